@@ -1,0 +1,56 @@
+#!/usr/bin/env bash
+# scanpipe's one entry point: set-up, the main job, the tests. Idempotent; fast the second time.
+#   ./run.sh demo [ARGS]   set up, then simulate the built-in room and build the textured model
+#   ./run.sh test [ARGS]   set up, then ruff, mypy and the whole test suite (ARGS go to pytest)
+#   ./run.sh setup         only the set-up
+set -euo pipefail
+cd "$(dirname "$0")"
+VENV="${SCANPIPE_VENV:-.venv}"
+
+need_system_libs() {
+  # Open3D's wheel needs libusb-1.0 and libgomp at import time.
+  ! ldconfig -p | grep -q 'libusb-1.0.so.0' || ! ldconfig -p | grep -q 'libgomp.so.1'
+}
+
+setup() {
+  if need_system_libs; then
+    echo "run.sh: installing system libraries for Open3D (libusb-1.0-0, libgomp1)" >&2
+    if [ "$(id -u)" = 0 ]; then SUDO=""; elif command -v sudo >/dev/null; then SUDO="sudo"; else
+      echo "run.sh: error: need root (or sudo) to apt-get install libusb-1.0-0 libgomp1" >&2
+      exit 1
+    fi
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 libgomp1 >/dev/null
+  fi
+  local python
+  python="$(command -v python3.11 || command -v python3)"
+  if ! "$python" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+    echo "run.sh: error: Python 3.11 or newer is needed ($python is older)" >&2
+    exit 1
+  fi
+  [ -x "$VENV/bin/python" ] || "$python" -m venv "$VENV"
+  local stamp
+  stamp="$(cat pyproject.toml | sha256sum | cut -c1-16)"
+  if [ "$(cat "$VENV/.setup-stamp" 2>/dev/null)" != "$stamp" ]; then
+    echo "run.sh: installing scanpipe and its dependencies into $VENV" >&2
+    "$VENV/bin/python" -m pip install -q --upgrade pip
+    "$VENV/bin/python" -m pip install -q -e ".[dev]"
+    echo "$stamp" > "$VENV/.setup-stamp"
+  fi
+}
+
+case "${1:-}" in
+  demo)
+    shift; setup
+    exec "$VENV/bin/scanpipe" plan --angle 0.108 "$@" ;;
+  test)
+    shift; setup
+    "$VENV/bin/ruff" check src tests benchmarks
+    "$VENV/bin/mypy" src
+    exec "$VENV/bin/pytest" -n 2 "$@" ;;
+  setup)
+    setup ;;
+  *)
+    sed -n '2,6p' "$0" >&2
+    exit 2 ;;
+esac

@@ -1,0 +1,46 @@
+"""What every command shares: error printing, output, common options, parameter assembly."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any, TypeVar
+
+import typer
+
+from scanpipe.params import Params, apply_assignments, load_toml, validate
+
+P = TypeVar("P", bound=Params)
+
+QUIET = typer.Option(False, "--quiet", "-q", help="No progress display.")
+JSON = typer.Option(False, "--json", help="Print one JSON object instead of a table.")
+SET = typer.Option(None, "--set", help="Override a parameter: key=value (repeatable).")
+PARAMS_FILE = typer.Option(None, "--params", help="TOML file of parameters.")
+RIG = typer.Option(None, "--rig", help="Rig TOML file (default: the paper's rig).")
+
+
+def print_error(message: str) -> None:
+    """One error message on stderr, prefixed so that scripts can grep it."""
+    sys.stderr.write(f"scanpipe: error: {message}\n")
+
+
+def print_json(data: Any) -> None:
+    """One JSON object on stdout."""
+    sys.stdout.write(json.dumps(data, indent=2, default=str) + "\n")
+
+
+def build_params(
+    model: type[P],
+    params_file: Path | None = None,
+    assignments: list[str] | None = None,
+    base: dict[str, Any] | None = None,
+) -> P:
+    """Parameters from a TOML file, then ``--set`` overrides, validated all at once."""
+    data: dict[str, Any] = dict(base or {})
+    source = "parameters"
+    if params_file is not None:
+        data.update(load_toml(params_file))
+        source = str(params_file)
+    data = apply_assignments(data, assignments or [])
+    return validate(model, data, source)

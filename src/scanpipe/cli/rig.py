@@ -1,0 +1,42 @@
+"""``scanpipe rig init|check``: write the default rig, validate a rig file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from scanpipe.artifacts import atomic_write_bytes
+from scanpipe.errors import UsageError
+from scanpipe.rig import default_rig, load_rig, rig_to_toml
+
+rig_app = typer.Typer(help="Write and check rig descriptions (TOML).", no_args_is_help=True)
+
+
+@rig_app.command("init")
+def init(
+    path: Path = typer.Argument(Path("rig.toml"), help="Where to write the rig file."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing file."),
+) -> None:
+    """Write the default rig (the paper's) as a commented TOML file."""
+    if path.exists() and not force:
+        raise UsageError(f"{path}: already exists; pass --force to overwrite it")
+    atomic_write_bytes(path, rig_to_toml(default_rig()).encode())
+    typer.echo(f"wrote {path}")
+
+
+@rig_app.command("check")
+def check(path: Path = typer.Argument(..., help="Rig TOML file to validate.")) -> None:
+    """Validate a rig file; report every problem at once (file, key, value, what is allowed)."""
+    rig = load_rig(path)
+    cams = ", ".join(c.id for c in rig.cameras) or "no cameras"
+    typer.echo(
+        f"{path}: ok — {rig.scanner.dialect} scanner at {rig.scanner.angular_step_deg:g}° and "
+        f"{rig.scanner.scan_hz:g} Hz, motor step {rig.motor.step_deg:g}°, "
+        f"pulse limit {rig.motor.pulse_limit}, {cams}"
+    )
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``rig`` group to the main app."""
+    app.add_typer(rig_app, name="rig")

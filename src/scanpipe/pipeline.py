@@ -1,0 +1,163 @@
+"""Stages, the registry that declares them, and the runner that executes one with caching.
+
+A stage is a pure function ``func(inputs, params, progress) -> StageResult`` over Arrow tables
+and one frozen parameter model. It never opens files: the runner (:func:`execute`) loads its
+inputs, computes the output key, reuses outputs whose key is unchanged, and writes new ones
+atomically with provenance. The one exception is the raw recording, which reaches the decode
+stage as a :class:`pathlib.Path` because it is not a table.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+
+from scanpipe import __version__
+from scanpipe.artifacts import (
+    artifact_key,
+    atomic_write_bytes,
+    file_key,
+    library_versions,
+    read_artifact,
+    read_provenance,
+    write_artifact,
+)
+from scanpipe.errors import ArtifactError
+from scanpipe.params import Params
+from scanpipe.progress import ProgressFn, no_progress
+
+#: Inputs that are raw files, not Parquet artifacts: keyed by the hash of their bytes.
+RAW_INPUTS = frozenset({"recording"})
+
+
+@dataclass
+class StageResult:
+    """What a stage returns: output tables by artifact name, extra files, and a report."""
+
+    tables: dict[str, pa.Table]
+    report: dict[str, Any] = field(default_factory=dict)
+    files: dict[str, bytes] = field(default_factory=dict)
+
+
+StageFn = Callable[[Mapping[str, Any], Any, ProgressFn], StageResult]
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A stage declared once: name, version, parameters, inputs, outputs, function."""
+
+    name: str
+    version: int
+    params: type[Params]
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    func: StageFn
+    description: str
+    #: Import names of libraries whose version can change the result.
+    libraries: tuple[str, ...] = ("numpy", "pyarrow")
+
+    def run(self, inputs: Mapping[str, Any], params: Params | None = None,
+            progress: ProgressFn = no_progress, **overrides: Any) -> StageResult:
+        """Run in memory (notebooks): ``params`` or keyword overrides of the defaults."""
+        chosen = params if params is not None else self.params(**overrides)
+        return self.func(inputs, chosen, progress)
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """What :func:`execute` did for one stage."""
+
+    stage: str
+    key: str
+    reused: bool
+    seconds: float
+    outputs: dict[str, Path]
+    report: dict[str, Any]
+
+
+def registry() -> dict[str, Stage]:
+    """Every stage, in pipeline order. Add a stage here and nowhere else."""
+    stages: list[Stage] = []
+    return {s.name: s for s in stages}
+
+
+def get_stage(name: str) -> Stage:
+    """The stage called ``name``."""
+    stages = registry()
+    if name not in stages:
+        raise ArtifactError(f"unknown stage {name!r}; stages: {', '.join(stages)}")
+    return stages[name]
+
+
+def input_key(name: str, path: Path) -> str:
+    """The key of one input: the hash of a raw file, or an artifact's recorded key."""
+    if not path.exists():
+        raise ArtifactError(f"{path}: not found (input {name!r})")
+    if name in RAW_INPUTS:
+        return file_key(path)
+    recorded = read_provenance(path).get("key")
+    return str(recorded) if recorded else file_key(path)
+
+
+def output_paths(stage: Stage, out_dir: Path) -> dict[str, Path]:
+    """Where a stage's output artifacts live in ``out_dir``."""
+    return {name: out_dir / f"{name}.parquet" for name in stage.outputs}
+
+
+def execute(
+    stage: Stage,
+    inputs: Mapping[str, Path],
+    out_dir: Path,
+    params: Params,
+    progress: ProgressFn = no_progress,
+    force: bool = False,
+) -> RunRecord:
+    """Run ``stage`` on artifact files, reusing outputs whose key is unchanged."""
+    missing = [name for name in stage.inputs if name not in inputs]
+    if missing:
+        raise ArtifactError(f"stage {stage.name!r} needs inputs: {', '.join(missing)}")
+    keys = {name: input_key(name, inputs[name]) for name in stage.inputs}
+    libraries = library_versions(stage.libraries)
+    params_data = params.model_dump(mode="json")
+    key = artifact_key(stage.name, stage.version, params_data, keys, libraries)
+    outputs = output_paths(stage, out_dir)
+    if not force and all(
+        p.exists() and read_provenance(p).get("key") == key for p in outputs.values()
+    ):
+        report = read_provenance(next(iter(outputs.values()))).get("report", {})
+        return RunRecord(stage.name, key, True, 0.0, outputs, report)
+
+    loaded: dict[str, Any] = {}
+    for name in stage.inputs:
+        loaded[name] = inputs[name] if name in RAW_INPUTS else read_artifact(inputs[name])[0]
+    started = time.perf_counter()
+    result = stage.func(loaded, params, progress)
+    seconds = time.perf_counter() - started
+    unexpected = set(result.tables) ^ set(stage.outputs)
+    if unexpected:
+        raise ArtifactError(f"stage {stage.name!r} produced {sorted(result.tables)}, "
+                            f"declared {list(stage.outputs)}")
+    provenance = {
+        "key": key,
+        "stage": stage.name,
+        "stage_version": stage.version,
+        "params": params_data,
+        "inputs": keys,
+        "input_paths": {name: str(path) for name, path in inputs.items()},
+        "libraries": libraries,
+        "scanpipe": __version__,
+        "created_ns": time.time_ns(),
+        "seconds": round(seconds, 4),
+        "report": result.report,
+    }
+    for name, table in result.tables.items():
+        write_artifact(outputs[name], table, {**provenance, "artifact": name,
+                                              "rows": table.num_rows})
+    for file_name, data in result.files.items():
+        atomic_write_bytes(out_dir / file_name, data)
+    return RunRecord(stage.name, key, False, seconds, outputs, result.report)

@@ -1,0 +1,195 @@
+"""Step arithmetic (paper eq. 1–4), device limits, and time and size estimates for a scan.
+
+Everything here is pure arithmetic on the rig; the CLI only formats it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Any
+
+from scanpipe.errors import PlanError
+
+if TYPE_CHECKING:
+    from scanpipe.rig import Rig, ScannerConfig
+
+#: A requested step count within this of an integer counts as that integer (0.108 / 0.036 is
+#: 2.9999999999999996 in binary floating point, and means 3 steps).
+_STEP_EPSILON = 1e-9
+#: LD-OEM 1000 limits (from public driver sources; see shared/paper/NOTES.md).
+LDOEM_HEAD_HZ = (5, 20)
+LDOEM_STEP_QUANTUM_DEG = 0.125
+LDOEM_MAX_PULSE_HZ = 14_400.0
+LDOEM_MAX_MEAN_PULSE_HZ = 10_800.0
+
+
+@dataclass(frozen=True)
+class LimitCheck:
+    """One device limit: what it is, the value the rig asks for, the bound, and whether it holds."""
+
+    name: str
+    value: float
+    limit: str
+    ok: bool
+
+
+@dataclass(frozen=True)
+class StepChoice:
+    """The achievable step counts around a requested angle (paper eq. 4 and the five offers)."""
+
+    requested_angle_deg: float
+    min_step_deg: float
+    steps_per_turn: int
+    requested_steps: float
+    possible_steps: tuple[int, ...]
+    possible_angles_deg: tuple[float, ...]
+    closest_index: int
+
+    @property
+    def chosen_steps(self) -> int:
+        """The step count whose angle is closest to the request."""
+        return self.possible_steps[self.closest_index]
+
+
+@dataclass(frozen=True)
+class ScanPlan:
+    """Everything the planner says about one scan with one rig and one motor step."""
+
+    steps: StepChoice
+    motor_step_count: int
+    motor_step_deg: float
+    travel_deg: float
+    profiles: int
+    samples_per_profile: int
+    points: int
+    frame_bytes: int
+    raw_bytes: int
+    scan_time_s: float
+    step_and_scan_time_s: float
+    device_limits: tuple[LimitCheck, ...] = field(default_factory=tuple)
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain data for ``--json``: the step arithmetic at top level, then the scan figures."""
+        data: dict[str, Any] = asdict(self.steps)
+        data["chosen_steps"] = self.steps.chosen_steps
+        rest = asdict(self)
+        rest.pop("steps")
+        data.update(rest)
+        data["device_limits_ok"] = all(c.ok for c in self.device_limits)
+        return data
+
+
+def choose_steps(angle_deg: float, min_step_deg: float, pulse_limit: int) -> StepChoice:
+    """The five achievable angles around ``angle_deg`` (paper eq. 1–4).
+
+    Takes the integer part of ``angle / min_step`` and offers it with ±1 and ±2 steps. Near the
+    ends (1 step, the pulse limit) the window of five shifts inward so that every offer is valid.
+    """
+    if not math.isfinite(angle_deg) or angle_deg <= 0:
+        raise PlanError(f"angle {angle_deg!r}: must be a number greater than 0 degrees")
+    max_angle = pulse_limit * min_step_deg
+    if angle_deg > max_angle + _STEP_EPSILON:
+        raise PlanError(
+            f"angle {angle_deg!r}: beyond the pulse limit ({pulse_limit} pulses × "
+            f"{min_step_deg:g}° = {max_angle:g}°); allowed: 0 < angle ≤ {max_angle:g}"
+        )
+    requested = angle_deg / min_step_deg
+    base = max(1, math.floor(requested + _STEP_EPSILON))
+    width = min(5, pulse_limit)
+    low = min(max(1, base - 2), pulse_limit - width + 1)
+    steps = tuple(range(low, low + width))
+    angles = tuple(round(s * min_step_deg, 12) for s in steps)
+    closest = min(range(width), key=lambda i: (abs(angles[i] - angle_deg), angles[i]))
+    return StepChoice(
+        requested_angle_deg=angle_deg,
+        min_step_deg=min_step_deg,
+        steps_per_turn=round(360.0 / min_step_deg),
+        requested_steps=round(requested, 3),
+        possible_steps=steps,
+        possible_angles_deg=angles,
+        closest_index=closest,
+    )
+
+
+def frame_bytes(dialect: str, samples: int, with_echo: bool = False) -> int:
+    """Bytes on the wire for one profile of ``samples`` points in a dialect's default format.
+
+    ``ldoem``: 9 bytes of framing, 6 of reply header, 6 of profile header (mask 0x39FF),
+    14 per sector plus 2 per point (4 with echoes), 4 of sensor status. ``paper``: 9 bytes of
+    framing, 21 of header, 2 per point.
+    """
+    if dialect == "ldoem":
+        return 9 + 6 + 6 + 14 + (4 if with_echo else 2) * samples + 4
+    if dialect == "paper":
+        return 9 + 21 + 2 * samples
+    raise PlanError(f"dialect {dialect!r}: unknown; allowed: ldoem, paper")
+
+
+def ldoem_limit_checks(scanner: ScannerConfig) -> tuple[LimitCheck, ...]:
+    """The LD-OEM 1000's limits for the scanner settings of a rig."""
+    hz, step = scanner.scan_hz, scanner.angular_step_deg
+    pulse_hz = hz * 360.0 / step
+    active = (scanner.end_angle_deg - scanner.start_angle_deg) / 360.0
+    quanta = step / LDOEM_STEP_QUANTUM_DEG
+    return (
+        LimitCheck("scan_hz", hz, "5–20 Hz in whole Hz",
+                   LDOEM_HEAD_HZ[0] <= hz <= LDOEM_HEAD_HZ[1] and float(hz).is_integer()),
+        LimitCheck("angular_step_deg", step, "a multiple of 0.125°",
+                   abs(quanta - round(quanta)) < 1e-9 and round(quanta) >= 1),
+        LimitCheck("pulse_hz", pulse_hz, "scan_hz · 360 / step ≤ 14400 Hz",
+                   pulse_hz <= LDOEM_MAX_PULSE_HZ + 1e-9),
+        LimitCheck("mean_pulse_hz", pulse_hz * active, "pulse_hz · active share ≤ 10800 Hz",
+                   pulse_hz * active <= LDOEM_MAX_MEAN_PULSE_HZ + 1e-9),
+    )
+
+
+def device_limit_problems(scanner: ScannerConfig) -> list[str]:
+    """LD-OEM limit violations of scanner settings, one line each (empty when fine)."""
+    problems = []
+    for check in ldoem_limit_checks(scanner):
+        if not check.ok:
+            key = "scan_hz" if check.name.endswith("pulse_hz") else check.name
+            problems.append(
+                f"scanner.{key}: {check.name} = {check.value:g} is outside the LD-OEM limit "
+                f"({check.limit})"
+            )
+    return problems
+
+
+def move_time_s(pulses: int, pulse_rate_hz: float, accel_hz_per_s: float) -> float:
+    """Time to send ``pulses`` with a trapezoidal rate profile (linear ramp up and down)."""
+    if pulses <= 0:
+        return 0.0
+    ramp_pulses = pulse_rate_hz**2 / accel_hz_per_s  # pulses spent ramping up and down together
+    if pulses >= ramp_pulses:
+        return pulses / pulse_rate_hz + pulse_rate_hz / accel_hz_per_s
+    return 2.0 * math.sqrt(pulses / accel_hz_per_s)
+
+
+def plan_scan(rig: Rig, angle_deg: float) -> ScanPlan:
+    """Plan a step-and-scan over the pulse limit with the step closest to ``angle_deg``."""
+    motor, scanner = rig.motor, rig.scanner
+    choice = choose_steps(angle_deg, motor.step_deg, motor.pulse_limit)
+    step_count = choice.chosen_steps
+    profiles = motor.pulse_limit // step_count + 1
+    samples = scanner.samples_per_profile
+    per_frame = frame_bytes(scanner.dialect, samples)
+    move_s = move_time_s(step_count, motor.pulse_rate_hz, motor.accel_hz_per_s)
+    # After a move: settle, then wait out the profile under way and take one whole profile.
+    per_position_s = move_s + motor.settle_s + 2.0 / scanner.scan_hz
+    limits = ldoem_limit_checks(scanner) if scanner.dialect == "ldoem" else ()
+    return ScanPlan(
+        steps=choice,
+        motor_step_count=step_count,
+        motor_step_deg=step_count * motor.step_deg,
+        travel_deg=(profiles - 1) * step_count * motor.step_deg,
+        profiles=profiles,
+        samples_per_profile=samples,
+        points=profiles * samples,
+        frame_bytes=per_frame,
+        raw_bytes=profiles * per_frame,
+        scan_time_s=profiles / scanner.scan_hz,
+        step_and_scan_time_s=profiles * per_position_s,
+        device_limits=limits,
+    )

@@ -1,0 +1,215 @@
+"""The rig: scanner, motor, cameras and their calibration, read from and written to TOML.
+
+The default is the paper's rig: a SICK LD-OEM 1000 at 0.25°, a Vexta PK566 (0.72° full step)
+behind a 20:1 gearbox, a controller that refuses more than 5000 pulses, and two Full-HD cameras
+facing opposite ways so that 180° of platform travel sees the whole room.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import Field, field_validator, model_validator
+
+from scanpipe.errors import ParameterError, RigError
+from scanpipe.params import Params, load_toml, to_toml, validate
+
+Vec3 = tuple[float, float, float]
+RIG_FORMAT_VERSION = 1
+
+
+class Pose(Params):
+    """A rigid pose in the parent frame: translation, then Euler angles (rx, ry, rz) in degrees.
+
+    See :mod:`scanpipe.geometry` for the frames and the rotation order.
+    """
+
+    translation_m: Vec3 = (0.0, 0.0, 0.0)
+    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+
+
+class ScannerConfig(Params):
+    """The 2-D laser scanner: how to reach it, how it scans, and how it is mounted."""
+
+    dialect: Literal["ldoem", "paper"] = "ldoem"
+    host: str = "192.168.0.1"
+    port: int = Field(49152, ge=1, le=65535)
+    angular_step_deg: float = Field(0.25, gt=0, le=90)
+    start_angle_deg: float = Field(0.0, ge=0, lt=360)
+    end_angle_deg: float = Field(360.0, gt=0, le=360)
+    scan_hz: float = Field(5.0, gt=0, le=100)
+    min_range_m: float = Field(0.5, ge=0)
+    max_range_m: float = Field(250.0, gt=0, le=255.99609375)
+    alpha_offset_deg: float = Field(0.0, ge=-180, le=180)
+    mount: Pose = Pose()
+
+    @model_validator(mode="after")
+    def _ranges_ordered(self) -> ScannerConfig:
+        if self.end_angle_deg <= self.start_angle_deg:
+            raise ValueError(
+                f"end_angle_deg ({self.end_angle_deg}) must be greater than "
+                f"start_angle_deg ({self.start_angle_deg})"
+            )
+        if self.max_range_m <= self.min_range_m:
+            raise ValueError(
+                f"max_range_m ({self.max_range_m}) must be greater than "
+                f"min_range_m ({self.min_range_m})"
+            )
+        return self
+
+    @property
+    def samples_per_profile(self) -> int:
+        """Samples in one profile: the covered sector divided by the angular step."""
+        return round((self.end_angle_deg - self.start_angle_deg) / self.angular_step_deg)
+
+
+class MotorConfig(Params):
+    """The stepper, its gearbox and the controller that counts pulses."""
+
+    full_step_deg: float = Field(0.72, gt=0, le=90)
+    gear_ratio: float = Field(20.0, gt=0)
+    pulse_limit: int = Field(5000, ge=1)
+    pulse_rate_hz: float = Field(1000.0, gt=0, le=100_000)
+    accel_hz_per_s: float = Field(5000.0, gt=0)
+    settle_s: float = Field(0.05, ge=0, le=10)
+    serial_url: str = "/dev/ttyUSB0"
+    baudrate: int = Field(115200, gt=0)
+    beta_offset_deg: float = Field(0.0, ge=-180, le=180)
+
+    @property
+    def step_deg(self) -> float:
+        """Platform rotation per pulse (paper eq. 1): full step / gear ratio."""
+        return self.full_step_deg / self.gear_ratio
+
+
+class CameraConfig(Params):
+    """One camera on the platform: source, image size, rate, intrinsics and pose."""
+
+    id: str = Field("cam0", pattern=r"^[A-Za-z0-9_-]+$")
+    source: str = "0"
+    width: int = Field(1920, ge=16, le=16384)
+    height: int = Field(1080, ge=16, le=16384)
+    fps: float = Field(30.0, gt=0, le=1000)
+    fx: float = Field(1507.0, gt=0)
+    fy: float = Field(1507.0, gt=0)
+    cx: float = 959.5
+    cy: float = 539.5
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    pose: Pose = Pose()
+
+    @property
+    def hfov_deg(self) -> float:
+        """Horizontal field of view of the pinhole model."""
+        return math.degrees(2 * math.atan(self.width / (2 * self.fx)))
+
+
+class Rig(Params):
+    """The whole rig description, one TOML file."""
+
+    format_version: int = RIG_FORMAT_VERSION
+    name: str = "paper-lab"
+    scanner: ScannerConfig = ScannerConfig()
+    motor: MotorConfig = MotorConfig()
+    cameras: tuple[CameraConfig, ...] = ()
+
+    @field_validator("format_version")
+    @classmethod
+    def _known_version(cls, value: int) -> int:
+        if value != RIG_FORMAT_VERSION:
+            raise ValueError(f"unsupported rig format version; allowed: {RIG_FORMAT_VERSION}")
+        return value
+
+    @model_validator(mode="after")
+    def _unique_camera_ids(self) -> Rig:
+        ids = [c.id for c in self.cameras]
+        duplicates = sorted({i for i in ids if ids.count(i) > 1})
+        if duplicates:
+            raise ValueError(f"camera ids must be unique; repeated: {', '.join(duplicates)}")
+        return self
+
+    def camera(self, camera_id: str) -> CameraConfig:
+        """The camera with ``camera_id``; :class:`RigError` naming the known ids otherwise."""
+        for cam in self.cameras:
+            if cam.id == camera_id:
+                return cam
+        known = ", ".join(c.id for c in self.cameras) or "none"
+        raise RigError([f"no camera {camera_id!r} (cameras: {known})"], "rig")
+
+
+def default_cameras() -> tuple[CameraConfig, ...]:
+    """Two Full-HD cameras above the scanner, facing opposite horizontal directions."""
+    return (
+        CameraConfig(id="cam0", pose=Pose(translation_m=(0.0, 0.25, 0.0))),
+        CameraConfig(
+            id="cam1", source="1",
+            pose=Pose(translation_m=(0.0, 0.25, 0.0), rotation_deg=(0.0, 180.0, 0.0)),
+        ),
+    )
+
+
+def default_rig() -> Rig:
+    """The paper's rig (LD-OEM 1000 at 0.25°, PK566 with 20:1, 5000 pulses) with two cameras."""
+    return Rig(cameras=default_cameras())
+
+
+def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
+    """Validate a rig from plain data, reporting every problem (device limits too) at once."""
+    from scanpipe.planning import device_limit_problems
+
+    problems: list[str] = []
+    rig: Rig | None = None
+    try:
+        rig = validate(Rig, data, source)
+    except ParameterError as err:
+        problems.extend(err.problems)
+    scanner_data = data.get("scanner", {}) if isinstance(data, dict) else {}
+    if isinstance(scanner_data, dict):  # unknown keys are reported above; check limits anyway
+        scanner_data = {k: v for k, v in scanner_data.items() if k in ScannerConfig.model_fields}
+    try:
+        scanner = rig.scanner if rig else validate(ScannerConfig, scanner_data, source)
+    except ParameterError:
+        scanner = None  # its problems are already in the list above
+    if scanner is not None and scanner.dialect == "ldoem":
+        problems.extend(device_limit_problems(scanner))
+    if problems or rig is None:
+        raise RigError(problems, source)
+    return rig
+
+
+def load_rig(path: Path | str | None) -> Rig:
+    """Load and validate a rig TOML file; ``None`` gives the default rig."""
+    if path is None:
+        return default_rig()
+    path = Path(path)
+    try:
+        data = load_toml(path)
+    except ParameterError as err:
+        raise RigError(err.problems, err.source) from None
+    return rig_from_dict(data, str(path))
+
+
+def rig_to_dict(rig: Rig) -> dict[str, Any]:
+    """Plain data of a rig, in TOML-friendly types."""
+    return rig.model_dump(mode="json")
+
+
+_COMMENTS = {
+    "format_version": "scanpipe rig description; see docs/rig.md for every key",
+    "scanner": "The 2-D laser scanner. dialect: ldoem (SICK LD-OEM 1000 TCP) or paper",
+    "scanner.angular_step_deg": "beam step; LD-OEM: a multiple of 0.125",
+    "scanner.scan_hz": "head rotation rate; LD-OEM: 5–20 Hz in whole Hz",
+    "scanner.alpha_offset_deg": "calibration: zero offset added to every beam angle",
+    "scanner.mount": "calibration: scan frame → platform frame (offset from the motor axis, tilt)",
+    "motor": "Stepper + gearbox + pulse-counting controller",
+    "motor.pulse_limit": "the controller refuses to pass this many pulses (5000 × 0.036° = 180°)",
+    "motor.serial_url": "pyserial URL of the controller (a device, a pty, or loop://)",
+    "motor.beta_offset_deg": "calibration: zero offset added to every platform angle",
+    "cameras": "A camera on the platform: OpenCV intrinsics, distortion (k1 k2 p1 p2 k3), pose",
+}
+
+
+def rig_to_toml(rig: Rig) -> str:
+    """The rig as a commented TOML document that :func:`load_rig` reads back unchanged."""
+    return to_toml(rig_to_dict(rig), _COMMENTS)
