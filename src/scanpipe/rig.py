@@ -213,3 +213,21 @@ _COMMENTS = {
 def rig_to_toml(rig: Rig) -> str:
     """The rig as a commented TOML document that :func:`load_rig` reads back unchanged."""
     return to_toml(rig_to_dict(rig), _COMMENTS)
+
+
+def rig_table(rig: Rig) -> Any:
+    """The ``rig`` artifact: one row, column ``toml``, so later stages carry the calibration."""
+    import pyarrow as pa
+
+    return pa.table({"toml": pa.array([rig_to_toml(rig)], pa.string())})
+
+
+def rig_from_table(table: Any, source: str = "rig.parquet") -> Rig:
+    """The rig stored in a ``rig`` artifact (see :func:`rig_table`)."""
+    import tomllib
+
+    try:
+        text = table.column("toml")[0].as_py()
+        return rig_from_dict(tomllib.loads(text), source)
+    except (KeyError, IndexError, tomllib.TOMLDecodeError) as err:
+        raise RigError([f"not a rig artifact ({err})"], source) from None

@@ -44,3 +44,29 @@ def build_params(
         source = str(params_file)
     data = apply_assignments(data, assignments or [])
     return validate(model, data, source)
+
+
+def run_stage_command(
+    stage_name: str,
+    inputs: dict[str, Path],
+    out_dir: Path,
+    params_file: Path | None,
+    assignments: list[str] | None,
+    quiet: bool,
+    base: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """What every standalone stage command does: build parameters, run, print a summary.
+
+    Always recomputes (``force``): a user who names a stage wants it run. Returns the report.
+    """
+    from scanpipe.pipeline import execute, get_stage
+    from scanpipe.progress import rich_progress
+
+    stage = get_stage(stage_name)
+    params = build_params(stage.params, params_file, assignments, base)
+    with rich_progress(quiet) as progress:
+        record = execute(stage, inputs, out_dir, params, progress, force=True)
+    if not quiet:
+        written = ", ".join(str(p) for p in record.outputs.values())
+        sys.stderr.write(f"{stage_name}: {record.seconds:.2f} s → {written}\n")
+    return record.report

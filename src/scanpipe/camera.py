@@ -1,0 +1,71 @@
+"""The camera model: OpenCV pinhole with distortion, posed on the turning platform.
+
+Used both to render (the virtual camera casts a ray per pixel) and to texture (project model
+points into a frame). Frames and rotation order: :mod:`scanpipe.geometry`.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from scanpipe.geometry import camera_to_platform, platform_rotation
+from scanpipe.rig import CameraConfig
+
+F64 = NDArray[np.float64]
+
+
+def intrinsic_matrix(cam: CameraConfig) -> F64:
+    """The 3×3 camera matrix K."""
+    return np.array([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])
+
+
+def camera_pose_in_rig(cam: CameraConfig, beta_deg: float) -> tuple[F64, F64]:
+    """``(R, t)`` mapping camera coordinates to the rig frame at platform angle β:
+    ``p_rig = R @ p_cam + t``."""
+    r_platform = platform_rotation(beta_deg)
+    rotation = r_platform @ camera_to_platform(cam.pose.rotation_deg)
+    translation = r_platform @ np.asarray(cam.pose.translation_m, dtype=np.float64)
+    return np.asarray(rotation, dtype=np.float64), np.asarray(translation, dtype=np.float64)
+
+
+def project_points(
+    points_rig: NDArray[np.floating], cam: CameraConfig, beta_deg: float
+) -> tuple[F64, F64]:
+    """Project rig-frame points into the image: ``(uv (N, 2) pixels, depth (N,) metres)``.
+
+    Points behind the camera get depth ≤ 0; their uv is meaningless and must be masked.
+    """
+    rotation, translation = camera_pose_in_rig(cam, beta_deg)
+    p_cam = (np.asarray(points_rig, dtype=np.float64) - translation) @ rotation
+    depth = p_cam[:, 2]
+    safe = np.where(np.abs(depth) < 1e-9, 1e-9, depth)
+    x, y = p_cam[:, 0] / safe, p_cam[:, 1] / safe
+    k1, k2, p1, p2, k3 = cam.distortion
+    r2 = x * x + y * y
+    radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    uv = np.stack([cam.fx * xd + cam.cx, cam.fy * yd + cam.cy], axis=1)
+    return uv, depth
+
+
+def pixel_rays(cam: CameraConfig, beta_deg: float, stride: int = 1) -> tuple[F64, F64]:
+    """Ray origin (3,) and unit directions (H/stride, W/stride, 3) in the rig frame for pixel
+    centres, with the lens distortion undone (so rendering matches :func:`project_points`)."""
+    us = np.arange(0, cam.width, stride, dtype=np.float64)
+    vs = np.arange(0, cam.height, stride, dtype=np.float64)
+    grid = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 1, 2)
+    if any(cam.distortion):
+        normalized = cv2.undistortPoints(
+            grid, intrinsic_matrix(cam), np.asarray(cam.distortion, dtype=np.float64)
+        ).reshape(-1, 2)
+    else:
+        flat = grid.reshape(-1, 2)
+        normalized = np.stack([(flat[:, 0] - cam.cx) / cam.fx, (flat[:, 1] - cam.cy) / cam.fy], 1)
+    directions_cam = np.concatenate([normalized, np.ones((normalized.shape[0], 1))], axis=1)
+    directions_cam /= np.linalg.norm(directions_cam, axis=1, keepdims=True)
+    rotation, origin = camera_pose_in_rig(cam, beta_deg)
+    directions = (directions_cam @ rotation.T).reshape(len(vs), len(us), 3)
+    return origin, directions
