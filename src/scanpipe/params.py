@@ -46,12 +46,17 @@ def _known_keys(model: type[BaseModel], loc: tuple[Any, ...]) -> list[str]:
     return list(getattr(current, "model_fields", {}))
 
 
-def describe_validation_error(err: ValidationError, model: type[BaseModel]) -> list[str]:
-    """One line per problem: ``key = value: what is wrong (what is allowed)``."""
+def describe_validation_error(
+    err: ValidationError, model: type[BaseModel], prefix: str = ""
+) -> list[str]:
+    """One line per problem: ``key = value: what is wrong (what is allowed)``.
+
+    ``prefix`` (e.g. ``"filter."``) is put before every key, for models nested in a larger file.
+    """
     problems: list[str] = []
     for item in err.errors():
         loc = tuple(item["loc"])
-        key = ".".join(str(p) for p in loc) or "(top level)"
+        key = prefix + (".".join(str(p) for p in loc) or "(top level)")
         if item["type"] == "extra_forbidden":
             known = _known_keys(model, loc[:-1])
             close = difflib.get_close_matches(str(loc[-1]), known, n=3)
@@ -69,12 +74,17 @@ def describe_validation_error(err: ValidationError, model: type[BaseModel]) -> l
     return problems
 
 
-def validate(model: type[P], data: Mapping[str, Any], source: str = "parameters") -> P:
+def validate(
+    model: type[P], data: Mapping[str, Any], source: str = "parameters", prefix: str = ""
+) -> P:
     """Build ``model`` from ``data`` or raise :class:`ParameterError` listing every problem."""
+    if not isinstance(data, Mapping):
+        raise ParameterError([f"{prefix.rstrip('.') or 'parameters'}: expected a table, "
+                              f"got {data!r}"], source)
     try:
         return model.model_validate(dict(data))
     except ValidationError as err:
-        raise ParameterError(describe_validation_error(err, model), source) from None
+        raise ParameterError(describe_validation_error(err, model, prefix), source) from None
 
 
 def parse_assignment(text: str) -> tuple[list[str], Any]:

@@ -9,8 +9,9 @@ stage as a :class:`pathlib.Path` because it is not a table.
 
 from __future__ import annotations
 
+import difflib
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,8 +28,8 @@ from scanpipe.artifacts import (
     read_provenance,
     write_artifact,
 )
-from scanpipe.errors import ArtifactError
-from scanpipe.params import Params
+from scanpipe.errors import ArtifactError, ParameterError
+from scanpipe.params import Params, validate
 from scanpipe.progress import ProgressFn, no_progress
 
 #: Inputs that are raw files, not Parquet artifacts: keyed by the hash of their bytes.
@@ -60,6 +61,10 @@ class Stage:
     description: str
     #: Import names of libraries whose version can change the result.
     libraries: tuple[str, ...] = ("numpy", "pyarrow")
+
+    def __post_init__(self) -> None:
+        if not self.outputs:
+            raise ValueError(f"stage {self.name!r} must declare at least one output artifact")
 
     def run(self, inputs: Mapping[str, Any], params: Params | None = None,
             progress: ProgressFn = no_progress, **overrides: Any) -> StageResult:
@@ -126,9 +131,7 @@ def execute(
     params_data = params.model_dump(mode="json")
     key = artifact_key(stage.name, stage.version, params_data, keys, libraries)
     outputs = output_paths(stage, out_dir)
-    if not force and all(
-        p.exists() and read_provenance(p).get("key") == key for p in outputs.values()
-    ):
+    if not force and _reusable(outputs, out_dir, key):
         report = read_provenance(next(iter(outputs.values()))).get("report", {})
         return RunRecord(stage.name, key, True, 0.0, outputs, report)
 
@@ -154,10 +157,110 @@ def execute(
         "created_ns": time.time_ns(),
         "seconds": round(seconds, 4),
         "report": result.report,
+        "files": sorted(result.files),
     }
+    # Extra files first, tables last: a table's key vouches for the files beside it.
+    for file_name, data in result.files.items():
+        atomic_write_bytes(out_dir / file_name, data)
     for name, table in result.tables.items():
         write_artifact(outputs[name], table, {**provenance, "artifact": name,
                                               "rows": table.num_rows})
-    for file_name, data in result.files.items():
-        atomic_write_bytes(out_dir / file_name, data)
     return RunRecord(stage.name, key, False, seconds, outputs, result.report)
+
+
+def _reusable(outputs: Mapping[str, Path], out_dir: Path, key: str) -> bool:
+    """True when every output exists with ``key`` and the files it lists exist too."""
+    for path in outputs.values():
+        if not path.exists():
+            return False
+        try:
+            provenance = read_provenance(path)
+        except ArtifactError:
+            return False  # a damaged artifact is recomputed, not served
+        if provenance.get("key") != key:
+            return False
+        if not all((out_dir / name).exists() for name in provenance.get("files", [])):
+            return False
+    return True
+
+
+def validate_pipeline_params(
+    stages: Sequence[Stage], data: Mapping[str, Any], source: str = "parameters"
+) -> dict[str, Params]:
+    """Parameters for every stage from ``{stage: {key: value}}``, every problem reported at once.
+
+    Unknown stage names are errors too, with the closest valid names.
+    """
+    names = [s.name for s in stages]
+    problems: list[str] = []
+    for unknown in sorted(set(data) - set(names)):
+        close = difflib.get_close_matches(unknown, names, n=2)
+        hint = f"did you mean {', '.join(close)}?; " if close else ""
+        problems.append(f"unknown stage {unknown!r} ({hint}stages: {', '.join(names)})")
+    result: dict[str, Params] = {}
+    for stage in stages:
+        try:
+            result[stage.name] = validate(stage.params, data.get(stage.name, {}), source,
+                                          prefix=f"{stage.name}.")
+        except ParameterError as err:
+            problems.extend(err.problems)
+    if problems:
+        raise ParameterError(problems, source)
+    return result
+
+
+def run_chain(
+    recording: Path,
+    workdir: Path,
+    params: Mapping[str, Params],
+    stages: Sequence[Stage] | None = None,
+    to: str | None = None,
+    force: bool = False,
+    rig_override: Path | None = None,
+    progress: ProgressFn = no_progress,
+    on_stage: Callable[[RunRecord], None] | None = None,
+) -> list[RunRecord]:
+    """Run the stages in order from a recording, each into ``workdir/<stage>/``.
+
+    Each input is taken from the nearest upstream stage that produces it. A stage is reused
+    when its output key is unchanged (see :func:`execute`); change one parameter and that stage
+    and what follows it rerun. ``rig_override`` replaces the rig that decode found in the
+    recording (a corrected calibration) for every later stage.
+    """
+    chain = list(stages if stages is not None else registry().values())
+    names = [s.name for s in chain]
+    if to is not None and to not in names:
+        raise ParameterError([f"--to {to!r}: not a stage; stages: {', '.join(names)}"], "run")
+    if to is not None:
+        chain = chain[: names.index(to) + 1]
+    if not recording.is_file():
+        raise ArtifactError(f"{recording}: recording not found")
+    available: dict[str, Path] = {"recording": recording}
+    override_path = _write_rig_override(rig_override, workdir) if rig_override else None
+    records: list[RunRecord] = []
+    for stage in chain:
+        missing = [n for n in stage.inputs if n not in available]
+        if missing:
+            raise ArtifactError(f"stage {stage.name!r} needs {', '.join(missing)}, "
+                                "which no earlier stage produces")
+        record = execute(stage, {n: available[n] for n in stage.inputs}, workdir / stage.name,
+                         params.get(stage.name) or stage.params(), progress, force)
+        available.update(record.outputs)
+        if override_path is not None and "rig" in record.outputs:
+            available["rig"] = override_path
+        records.append(record)
+        if on_stage is not None:
+            on_stage(record)
+    return records
+
+
+def _write_rig_override(path: Path, workdir: Path) -> Path:
+    """The rig file as a ``rig`` artifact in ``workdir/rig/``, keyed by its content."""
+    from scanpipe.rig import load_rig, rig_table, rig_to_toml
+
+    rig = load_rig(path)
+    out = workdir / "rig" / "rig.parquet"
+    key = artifact_key("rig", 1, {"toml": rig_to_toml(rig)}, {}, {})
+    if not (out.exists() and read_provenance(out).get("key") == key):
+        write_artifact(out, rig_table(rig), {"key": key, "stage": "rig", "source": str(path)})
+    return out

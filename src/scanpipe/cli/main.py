@@ -12,7 +12,7 @@ from collections.abc import Sequence
 import typer
 
 from scanpipe import __version__
-from scanpipe.cli import common, plan, rig
+from scanpipe.cli import common, pipeline, plan, rig
 from scanpipe.errors import ScanpipeError
 
 app = typer.Typer(
@@ -25,7 +25,7 @@ app = typer.Typer(
 )
 
 # Every command group, in the order `scanpipe --help` lists them.
-for module in (plan, rig):
+for module in (plan, rig, pipeline):
     module.register(app)
 
 

@@ -1,0 +1,145 @@
+"""``scanpipe run``, ``show`` and ``stages``: the cached chain and what it knows about itself."""
+
+from __future__ import annotations
+
+import datetime as dt
+import sys
+from pathlib import Path
+from typing import Any
+
+import pyarrow.parquet as pq
+import typer
+from pydantic import BaseModel
+
+from scanpipe.artifacts import read_provenance
+from scanpipe.cli.common import JSON, PARAMS_FILE, QUIET, SET, print_json
+from scanpipe.errors import ArtifactError
+from scanpipe.params import apply_assignments, load_toml
+from scanpipe.pipeline import RunRecord, Stage, registry, run_chain, validate_pipeline_params
+from scanpipe.progress import rich_progress
+
+
+def pipeline_params_from_cli(params_file: Path | None, assignments: list[str] | None
+                             ) -> dict[str, Any]:
+    """Per-stage parameters from ``--params FILE`` then ``--set stage.key=value``, validated."""
+    data: dict[str, Any] = load_toml(params_file) if params_file else {}
+    data = apply_assignments(data, assignments or [])
+    return validate_pipeline_params(list(registry().values()), data,
+                                    str(params_file) if params_file else "--set")
+
+
+def _print_record(record: RunRecord) -> None:
+    state = "reused" if record.reused else f"ran in {record.seconds:.2f} s"
+    sys.stderr.write(f"  {record.stage:<10} {state:<16} key {record.key[:12]}\n")
+
+
+def run(
+    recording: Path = typer.Argument(..., help="The recording (MCAP)."),
+    workdir: Path = typer.Option(..., "--workdir", "-w", help="Folder for every stage's output."),
+    to: str | None = typer.Option(None, "--to", help="Stop after this stage."),
+    force: bool = typer.Option(False, "--force", help="Recompute every stage."),
+    rig: Path | None = typer.Option(None, "--rig", help="Rig TOML overriding the recording's."),
+    assignments: list[str] | None = SET,
+    params_file: Path | None = PARAMS_FILE,
+    quiet: bool = QUIET,
+) -> None:
+    """Run the chain decode → … → export, reusing every artifact whose key is unchanged."""
+    params = pipeline_params_from_cli(params_file, assignments)
+    if not quiet:
+        sys.stderr.write(f"scanpipe run {recording} → {workdir}\n")
+    with rich_progress(quiet) as progress:
+        records = run_chain(recording, workdir, params, to=to, force=force, rig_override=rig,
+                            progress=progress, on_stage=None if quiet else _print_record)
+    if not quiet:
+        ran = sum(not r.reused for r in records)
+        total = sum(r.seconds for r in records)
+        sys.stderr.write(f"{ran} ran, {len(records) - ran} reused, {total:.2f} s\n")
+
+
+def show(
+    artifact: Path = typer.Argument(..., help="An artifact (.parquet)."),
+    as_json: bool = JSON,
+) -> None:
+    """Print an artifact's provenance: stage, parameters, inputs, versions, times, report."""
+    provenance = read_provenance(artifact)
+    if not provenance:
+        raise ArtifactError(f"{artifact}: a Parquet file without scanpipe provenance")
+    metadata = pq.read_metadata(artifact)
+    schema = pq.read_schema(artifact)
+    info = {
+        **provenance,
+        "rows": metadata.num_rows,
+        "columns": {f.name: str(f.type) for f in schema},
+    }
+    if as_json:
+        print_json(info)
+        return
+    created = provenance.get("created_ns")
+    when = dt.datetime.fromtimestamp(created / 1e9, dt.UTC).isoformat() if created else "?"
+    lines = [
+        f"{artifact}",
+        f"  artifact   {provenance.get('artifact', '?')} ({metadata.num_rows} rows)",
+        f"  stage      {provenance.get('stage')} v{provenance.get('stage_version', '?')}",
+        f"  key        {provenance.get('key')}",
+        f"  created    {when} in {provenance.get('seconds', '?')} s",
+        "  inputs",
+        *[f"    {k}: {v}" for k, v in provenance.get("inputs", {}).items()],
+        "  parameters",
+        *[f"    {k} = {v}" for k, v in _flatten(provenance.get("params", {})).items()],
+        "  libraries  " + ", ".join(f"{k} {v}" for k, v in provenance.get("libraries", {}).items()),
+        "  columns    " + ", ".join(f"{k}: {v}" for k, v in info["columns"].items()),
+        "  report",
+        *[f"    {k} = {v}" for k, v in _flatten(provenance.get("report", {})).items()],
+    ]
+    typer.echo("\n".join(lines))
+
+
+def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(data, dict):
+        return {prefix: data}
+    flat: dict[str, Any] = {}
+    for key, value in data.items():
+        name = f"{prefix}.{key}" if prefix else str(key)
+        flat.update(_flatten(value, name) if isinstance(value, dict) else {name: value})
+    return flat
+
+
+def describe_params(model: type[BaseModel], prefix: str = "") -> list[tuple[str, str, str, str]]:
+    """``(key, type, default, meaning)`` for every leaf parameter of a model."""
+    rows: list[tuple[str, str, str, str]] = []
+    for name, field in model.model_fields.items():
+        key = f"{prefix}{name}"
+        annotation = field.annotation
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            rows.extend(describe_params(annotation, f"{key}."))
+            continue
+        type_name = getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
+        rows.append((key, type_name, repr(field.default), field.description or ""))
+    return rows
+
+
+def stages(as_json: bool = JSON) -> None:
+    """List the stages with their inputs, outputs and parameters (defaults, meaning)."""
+    catalogue: list[Stage] = list(registry().values())
+    if as_json:
+        print_json([
+            {"name": s.name, "version": s.version, "description": s.description,
+             "inputs": list(s.inputs), "outputs": list(s.outputs),
+             "params": [dict(zip(("key", "type", "default", "meaning"), row, strict=True))
+                        for row in describe_params(s.params)]}
+            for s in catalogue
+        ])
+        return
+    for s in catalogue:
+        typer.echo(f"{s.name} (v{s.version}): {s.description}")
+        typer.echo(f"  {', '.join(s.inputs)} → {', '.join(s.outputs)}")
+        for key, type_name, default, meaning in describe_params(s.params):
+            tail = f"  {meaning}" if meaning else ""
+            typer.echo(f"    {s.name}.{key}: {type_name} = {default}{tail}")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``run``, ``show`` and ``stages`` to the main app."""
+    app.command("run")(run)
+    app.command("show")(show)
+    app.command("stages")(stages)
