@@ -1,0 +1,114 @@
+"""``scanpipe assemble | filter | import-points``: make and clean ``points`` artifacts."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import typer
+
+from scanpipe import __version__
+from scanpipe.artifacts import (
+    artifact_key,
+    file_key,
+    library_versions,
+    write_artifact,
+)
+from scanpipe.cli.common import PARAMS_FILE, QUIET, SET, print_json, run_stage_command
+from scanpipe.errors import UsageError
+from scanpipe.pipeline import _write_rig_override
+
+OUT = typer.Option(..., "--out", help="Output folder.")
+
+
+def _artifact_in(folder: Path, name: str) -> Path:
+    path = folder / f"{name}.parquet"
+    if not path.is_file():
+        raise UsageError(f"{path}: not found (expected the {name!r} artifact in {folder})")
+    return path
+
+
+def assemble(
+    folder: Path = typer.Argument(..., help="Folder with profiles, motor and rig artifacts."),
+    out: Path = OUT,
+    rig_path: Path | None = typer.Option(None, "--rig",
+                                         help="Rig TOML whose calibration replaces the "
+                                              "recording's."),
+    assignments: list[str] | None = SET,
+    params_file: Path | None = PARAMS_FILE,
+    quiet: bool = QUIET,
+) -> None:
+    """Profiles + motor states → calibrated points on the profile × sample grid."""
+    inputs = {name: _artifact_in(folder, name) for name in ("profiles", "motor")}
+    # The same rig artifact `scanpipe run --rig` writes: OUT/rig/rig.parquet, keyed by content.
+    inputs["rig"] = (_write_rig_override(rig_path, out) if rig_path is not None
+                     else _artifact_in(folder, "rig"))
+    report = run_stage_command("assemble", inputs, out, params_file, assignments, quiet)
+    print_json(report)
+
+
+def filter_command(
+    folder: Path = typer.Argument(..., help="Folder with a points artifact."),
+    out: Path = OUT,
+    assignments: list[str] | None = SET,
+    params_file: Path | None = PARAMS_FILE,
+    quiet: bool = QUIET,
+) -> None:
+    """Range gate, no-returns, depth edges, grid median, smoothing, double coverage, outliers,
+    voxels: remove or mark points."""
+    if out.resolve() == folder.resolve():
+        raise UsageError(f"--out {out}: must differ from the input folder (it would replace "
+                         "the points it reads)")
+    inputs = {"points": _artifact_in(folder, "points")}
+    report = run_stage_command("filter", inputs, out, params_file, assignments, quiet)
+    print_json(report)
+
+
+def _parse_origin(text: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise UsageError(f"--origin {text!r}: expected three numbers x,y,z in metres")
+    return values[0], values[1], values[2]
+
+
+def import_points_command(
+    file: Path = typer.Argument(..., help="PLY, XYZ/CSV/TXT/PTS or LAS/LAZ file."),
+    out: Path = OUT,
+    origin: str = typer.Option("0,0,0", "--origin",
+                               help="Sensor origin x,y,z in metres (rig frame)."),
+    up: str = typer.Option("auto", "--up", help="The file's up axis: auto, y or z."),
+    quiet: bool = QUIET,
+) -> None:
+    """Import a foreign point cloud as a points artifact (no grid)."""
+    from scanpipe.params import validate
+    from scanpipe.pointio import ImportParams, import_points
+
+    params = validate(ImportParams, {"origin_m": _parse_origin(origin), "up": up},
+                      "import-points")
+    started = time.perf_counter()
+    table, report = import_points(file, params)
+    libraries = library_versions(("numpy", "pyarrow", "open3d", "laspy"))
+    params_data = params.model_dump(mode="json")
+    keys = {"file": file_key(file)}
+    key = artifact_key("import-points", 1, params_data, keys, libraries)
+    target = out / "points.parquet"
+    write_artifact(target, table, {
+        "key": key, "stage": "import-points", "stage_version": 1, "params": params_data,
+        "inputs": keys, "input_paths": {"file": str(file)}, "libraries": libraries,
+        "scanpipe": __version__, "created_ns": time.time_ns(),
+        "seconds": round(time.perf_counter() - started, 4), "report": report,
+        "artifact": "points", "rows": table.num_rows,
+    })
+    if not quiet:
+        typer.echo(f"import-points: {table.num_rows} points → {target}", err=True)
+    print_json(report)
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``assemble``, ``filter`` and ``import-points`` to the main app."""
+    app.command("assemble")(assemble)
+    app.command("filter")(filter_command)
+    app.command("import-points")(import_points_command)
