@@ -1,0 +1,133 @@
+"""``scanpipe frames`` (decode a raw byte capture) and ``scanpipe decode`` (the decode stage)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from scanpipe.cli.common import JSON, PARAMS_FILE, QUIET, SET, print_json, run_stage_command
+from scanpipe.errors import UsageError
+from scanpipe.protocol.registry import DecodedFrame, StreamDecoder, resolve_dialect
+
+
+def _floats(values: Any) -> list[float | None]:
+    return [None if math.isnan(v) else v for v in values.tolist()]
+
+
+def frame_records(frames: list[DecodedFrame]) -> list[dict[str, Any]]:
+    """One JSON-ready record per profile sector (NaN ranges as null)."""
+    records = []
+    for frame in frames:
+        for p in frame.profiles:
+            records.append({
+                "frame": p.frame, "sector": p.sector,
+                "start_angle_deg": p.start_angle_deg, "step_deg": p.step_deg,
+                "samples": len(p.ranges_m), "ranges_m": _floats(p.ranges_m),
+                "echo": None if p.echo is None else p.echo.tolist(),
+                "device_time_ms": p.device_time_ms, "device_end_time_ms": p.device_end_time_ms,
+                "checksum_ok": p.checksum_ok,
+                "received_checksum": frame.received_checksum,
+                "computed_checksum": frame.computed_checksum,
+                "offset": frame.start_offset,
+            })
+    return records
+
+
+def _format_frame(r: dict[str, Any]) -> str:
+    check = ("ok" if r["checksum_ok"] else
+             f"MISMATCH (received {r['received_checksum']:#04x}, computed "
+             f"{r['computed_checksum']:#04x})")
+    ranges = ", ".join("-" if v is None else f"{v:g}" for v in r["ranges_m"][:8])
+    more = " …" if r["samples"] > 8 else ""
+    time = "" if r["device_time_ms"] is None else f"  t {r['device_time_ms']} ms"
+    return (f"@{r['offset']:<8d} frame {r['frame']:<6d} sector {r['sector']}  start "
+            f"{r['start_angle_deg']:g}°  step {r['step_deg']:g}°  {r['samples']} samples"
+            f"{time}  checksum {check}\n    ranges_m: {ranges}{more}")
+
+
+def frames(
+    capture: Path = typer.Argument(..., help="A raw byte capture of a scanner stream."),
+    dialect: str = typer.Option("auto", "--dialect", help="paper, ldoem or auto."),
+    checksum: str = typer.Option("lenient", "--checksum",
+                                 help="lenient shows damaged frames marked; strict drops them."),
+    as_json: bool = JSON,
+) -> None:
+    """Decode a raw byte capture and print each frame and the decoder's counters."""
+    if checksum not in ("strict", "lenient"):
+        raise UsageError(f"--checksum {checksum!r}: allowed strict, lenient")
+    if dialect not in ("auto", "paper", "ldoem"):
+        raise UsageError(f"--dialect {dialect!r}: allowed paper, ldoem, auto")
+    try:
+        data = capture.read_bytes()
+    except OSError as err:
+        raise UsageError(f"{capture}: cannot be read ({err.strerror or err})") from None
+    chosen = resolve_dialect(dialect, data)
+    decoder = StreamDecoder(chosen, "strict" if checksum == "strict" else "lenient")
+    decoded = decoder.feed_frames(data) + decoder.finish_frames()
+    records = frame_records(decoded)
+    counters = decoder.counters.as_dict()
+    if as_json:
+        print_json({"dialect": chosen.name, "frames": records, "counters": counters})
+        return
+    typer.echo(f"{capture}: {len(data)} bytes, dialect {chosen.name}")
+    for record in records:
+        typer.echo(_format_frame(record))
+    typer.echo("counters: " + ", ".join(f"{k} {v}" for k, v in counters.items()))
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The decode report as text for a terminal."""
+    counts, counters = report["counts"], report["counters"]
+    span, rates, gaps = report["time_span"], report["rates"], report["gaps"]
+    rec = report["recording"]
+    lines = [
+        f"dialect             {report['dialect']}"
+        f"{' (detected)' if report['dialect_detected'] else ''}, checksum "
+        f"{report['checksum_mode']}",
+        f"profiles            {counts['profiles']} ({counts['frames']} frames, "
+        f"{counts['samples']:,} samples)",
+        f"motor states        {counts['motor_states']}",
+        "camera frames       " + (", ".join(f"{k} {v}" for k, v in counts["images"].items())
+                                   or "none"),
+        f"events              {counts['events']}",
+        f"time span           {span['duration_s']:.3f} s",
+        f"rates               {rates['profiles_per_s']} profiles/s, "
+        f"{rates['scanner_bytes_per_s']} B/s",
+        f"gaps                {gaps['count']} (max interval {gaps['max_interval_s']} s, "
+        f"{gaps['missing_stream_chunks']} stream chunks missing)",
+        f"checksum failures   {counters['checksum_failures']} "
+        f"({counts['checksum_failed_rows']} kept)",
+        f"resyncs             {counters['resyncs']}, bytes skipped {counters['bytes_skipped']}, "
+        f"malformed {counters['malformed_frames']}, other frames {counters['other_frames']}",
+        f"recording           {'complete' if rec['complete'] else 'INCOMPLETE'}, "
+        f"{rec['bytes_read']} of {rec['file_size']} bytes, {rec['chunks_read']} chunks "
+        f"({rec['chunks_damaged']} damaged)",
+    ]
+    lines += [f"warning: {w}" for w in rec["warnings"]]
+    return "\n".join(lines)
+
+
+def decode(
+    recording: Path = typer.Argument(..., help="The recording (MCAP)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Folder for the artifacts."),
+    assignments: list[str] | None = SET,
+    params_file: Path | None = PARAMS_FILE,
+    quiet: bool = QUIET,
+    as_json: bool = JSON,
+) -> None:
+    """Decode a recording into profiles, motor, frames and rig artifacts, and print the report."""
+    report = run_stage_command("decode", {"recording": recording}, out, params_file,
+                               assignments, quiet)
+    if as_json:
+        print_json(report)
+    else:
+        typer.echo(format_report(report))
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``frames`` and ``decode`` to the main app."""
+    app.command("frames")(frames)
+    app.command("decode")(decode)

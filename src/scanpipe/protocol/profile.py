@@ -1,0 +1,112 @@
+"""One decoded scanner profile sector, the unit every dialect decodes to and encodes from."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+#: Distances on the wire are u16 in 1/256 m; 0 means "no return".
+RANGE_SCALE_PER_M = 256.0
+#: Angles on the wire are u16 in 1/16 degree.
+ANGLE_SCALE_PER_DEG = 16.0
+#: Device timestamps are 16-bit milliseconds: they wrap every 65.536 s.
+DEVICE_TIME_WRAP_MS = 1 << 16
+
+
+@dataclass(frozen=True, eq=False)
+class Profile:
+    """One profile sector as sent by the scanner.
+
+    ``ranges_m`` is float32 with NaN for "no return"; ``echo`` is uint16 or None when the
+    dialect or format mask carries none. ``device_time_ms`` / ``device_end_time_ms`` are the raw
+    16-bit millisecond timestamps of the sector's start and end as on the wire (None when absent).
+    ``checksum_ok`` is False only for frames returned by the lenient checksum mode.
+    """
+
+    frame: int
+    sector: int
+    start_angle_deg: float
+    step_deg: float
+    ranges_m: NDArray[np.float32]
+    echo: NDArray[np.uint16] | None = None
+    device_time_ms: int | None = None
+    device_end_time_ms: int | None = None
+    checksum_ok: bool = True
+
+    def same_as(self, other: Profile) -> bool:
+        """Field-by-field equality, NaN equal to NaN (dataclass ``==`` cannot compare arrays)."""
+        return (
+            self.frame == other.frame
+            and self.sector == other.sector
+            and _same_float(self.start_angle_deg, other.start_angle_deg)
+            and _same_float(self.step_deg, other.step_deg)
+            and np.array_equal(self.ranges_m, other.ranges_m, equal_nan=True)
+            and ((self.echo is None and other.echo is None) or (
+                self.echo is not None and other.echo is not None
+                and np.array_equal(self.echo, other.echo)))
+            and self.device_time_ms == other.device_time_ms
+            and self.device_end_time_ms == other.device_end_time_ms
+            and self.checksum_ok == other.checksum_ok
+        )
+
+
+def _same_float(a: float, b: float) -> bool:
+    return a == b or (a != a and b != b)
+
+
+def ranges_to_wire(ranges_m: NDArray[np.floating]) -> NDArray[np.uint16]:
+    """Ranges in metres to u16 in 1/256 m: NaN (and ≤ 0) → 0 = no return, clipped to 255.996 m."""
+    scaled = np.rint(np.asarray(ranges_m, dtype=np.float64) * RANGE_SCALE_PER_M)
+    scaled = np.where(np.isfinite(scaled) & (scaled > 0), scaled, 0.0)
+    wire = np.clip(scaled, 0, 65535).astype(np.uint16)
+    # A positive range that rounds to 0 is still a return: keep it distinguishable from "none".
+    wire[(wire == 0) & (scaled > 0)] = 1
+    return wire
+
+
+def _range_table() -> NDArray[np.float32]:
+    table = np.arange(1 << 16, dtype=np.float32) / np.float32(RANGE_SCALE_PER_M)
+    table[0] = np.nan
+    return table
+
+
+#: Every u16 wire distance in metres (one gather decodes a profile).
+_RANGE_TABLE = _range_table()
+
+
+def ranges_from_wire(wire: NDArray[np.unsignedinteger]) -> NDArray[np.float32]:
+    """u16 distances in 1/256 m to float32 metres, 0 → NaN (no return)."""
+    return _RANGE_TABLE[np.asarray(wire, dtype=np.uint16)]
+
+
+def angle_to_wire(angle_deg: float) -> int:
+    """An angle in degrees to its u16 wire value in 1/16° (0…4095.9375°)."""
+    value = round(angle_deg * ANGLE_SCALE_PER_DEG)
+    if not 0 <= value <= 0xFFFF:
+        from scanpipe.errors import ProtocolError
+
+        raise ProtocolError(f"angle {angle_deg!r}°: outside 0…4095.9375° (u16 in 1/16°)")
+    return value
+
+
+def unwrap_counter(values: NDArray[np.integer], period: int) -> NDArray[np.int64]:
+    """Unwrap a counter that wraps at ``period`` (a u16 frame number, a 16-bit ms clock).
+
+    Each backwards jump of more than half the period counts one wrap; smaller backwards steps
+    (reordering, jitter) are kept as they are. Like :func:`numpy.unwrap`, in integers.
+    """
+    t = np.asarray(values, dtype=np.int64)
+    if t.size == 0:
+        return t
+    step = np.diff(t)
+    half = period // 2
+    wraps = np.concatenate([[0], np.cumsum((step < -half).astype(np.int64)
+                                           - (step > half).astype(np.int64))])
+    return np.asarray(t + wraps * period, dtype=np.int64)
+
+
+def unwrap_ms16(times_ms: NDArray[np.integer]) -> NDArray[np.int64]:
+    """Unwrap 16-bit millisecond timestamps (they wrap every 65.536 s) into int64 milliseconds."""
+    return unwrap_counter(times_ms, DEVICE_TIME_WRAP_MS)

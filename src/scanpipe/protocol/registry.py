@@ -1,0 +1,194 @@
+"""The scanner dialects by name, a stream decoder for any of them, and auto-detection.
+
+>>> from scanpipe.protocol.registry import DIALECTS, StreamDecoder
+>>> sorted(DIALECTS)
+['ldoem', 'paper']
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Literal
+
+from scanpipe.errors import ProtocolError
+from scanpipe.protocol import ldoem, paper
+from scanpipe.protocol.framing import NOT_PARSED, FrameCounters, FrameReader, RawFrame
+from scanpipe.protocol.profile import Profile
+
+ChecksumMode = Literal["strict", "lenient"]
+#: How many bytes auto-detection looks at: a first look, then a longer one if that finds nothing.
+DETECT_BYTES = (1 << 16, 1 << 20)
+
+
+@dataclass(frozen=True)
+class Dialect:
+    """One wire format: its name, start marker, encoder, payload decoder and frame limits.
+
+    ``decode_payload(payload, checksum_ok)`` returns the profiles of a frame, None for a valid
+    frame that carries no profile, or raises :class:`ProtocolError` (then a frame with a good
+    checksum is a false start).
+    """
+
+    name: str
+    marker: bytes
+    min_payload_bytes: int
+    max_payload_bytes: int
+    encode_profile: Callable[[Profile], bytes]
+    decode_payload: Callable[[bytes, bool], list[Profile] | None]
+    description: str
+
+    def frame_reader(self, max_payload_bytes: int | None = None) -> FrameReader:
+        """A fresh frame reader for this dialect's framing."""
+        cap = self.max_payload_bytes if max_payload_bytes is None else max_payload_bytes
+        return FrameReader(self.marker, self.min_payload_bytes, cap, self.decode_payload)
+
+    def stream_decoder(self, checksum: ChecksumMode = "strict",
+                       max_payload_bytes: int | None = None) -> StreamDecoder:
+        """A fresh stream decoder (the decoder factory)."""
+        return StreamDecoder(self, checksum, max_payload_bytes)
+
+    def detect(self, data: bytes) -> bool:
+        """Whether ``data`` holds at least one frame of this dialect (checksum aside)."""
+        return _detect_score(self, data) > 0
+
+
+DIALECTS: Mapping[str, Dialect] = {
+    "paper": Dialect(
+        name="paper",
+        marker=paper.MARKER,
+        min_payload_bytes=paper.HEADER_BYTES,
+        max_payload_bytes=paper.MAX_PAYLOAD_BYTES,
+        encode_profile=paper.encode_profile,
+        decode_payload=paper.decode_payload,
+        description="the frame printed in the paper (02 02 02 02, SICK CoLa-B framing)",
+    ),
+    "ldoem": Dialect(
+        name="ldoem",
+        marker=ldoem.MARKER,
+        min_payload_bytes=ldoem.MIN_PAYLOAD_BYTES,
+        max_payload_bytes=ldoem.MAX_PAYLOAD_BYTES,
+        encode_profile=ldoem.encode_profile,
+        decode_payload=ldoem.decode_payload,
+        description="the SICK LD-OEM 1000 TCP protocol (02 'USP' framing, GET_PROFILE replies)",
+    ),
+}
+
+
+def get_dialect(name: str) -> Dialect:
+    """The dialect called ``name``; :class:`ProtocolError` naming the known ones otherwise."""
+    if name not in DIALECTS:
+        raise ProtocolError(f"dialect {name!r}: unknown; allowed: {', '.join(DIALECTS)}, auto")
+    return DIALECTS[name]
+
+
+@dataclass(frozen=True)
+class DecodedFrame:
+    """The profiles of one frame, where it lay in the stream, and its checksum bytes."""
+
+    profiles: list[Profile]
+    start_offset: int
+    end_offset: int
+    checksum_ok: bool
+    received_checksum: int
+    computed_checksum: int
+
+
+class StreamDecoder:
+    """Bytes in (chunks of any size), profiles out, with counters.
+
+    ``checksum="strict"`` drops frames whose checksum fails (they are counted);
+    ``"lenient"`` returns their profiles with ``checksum_ok=False``.
+    """
+
+    def __init__(self, dialect: Dialect | str, checksum: ChecksumMode = "strict",
+                 max_payload_bytes: int | None = None) -> None:
+        if checksum not in ("strict", "lenient"):
+            raise ProtocolError(f"checksum mode {checksum!r}: allowed strict, lenient")
+        self.dialect = get_dialect(dialect) if isinstance(dialect, str) else dialect
+        self.checksum: ChecksumMode = checksum
+        self._reader = self.dialect.frame_reader(max_payload_bytes)
+
+    @property
+    def counters(self) -> FrameCounters:
+        """Frames decoded, checksum failures, resyncs, bytes skipped, malformed, other frames."""
+        return self._reader.counters
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list[Profile]:
+        """Add bytes; return the profiles of every frame they complete."""
+        return [p for frame in self.feed_frames(chunk) for p in frame.profiles]
+
+    def finish(self) -> list[Profile]:
+        """End of stream: profiles of frames still pending (normally none)."""
+        return [p for frame in self.finish_frames() for p in frame.profiles]
+
+    def feed_frames(self, chunk: bytes | bytearray | memoryview) -> list[DecodedFrame]:
+        """Like :meth:`feed`, grouped by frame, with each frame's end offset in the stream."""
+        return self._decode(self._reader.feed(chunk))
+
+    def finish_frames(self) -> list[DecodedFrame]:
+        """Like :meth:`finish`, grouped by frame."""
+        return self._decode(self._reader.finish())
+
+    def _decode(self, raw_frames: list[RawFrame]) -> list[DecodedFrame]:
+        counters = self._reader.counters
+        decoded = []
+        for raw in raw_frames:
+            if not raw.checksum_ok and self.checksum == "strict":
+                counters.bytes_skipped += raw.end_offset - raw.start_offset
+                continue
+            if raw.parsed is NOT_PARSED:
+                try:
+                    profiles = self.dialect.decode_payload(raw.payload, raw.checksum_ok)
+                except ProtocolError:
+                    counters.malformed_frames += 1
+                    counters.bytes_skipped += raw.end_offset - raw.start_offset
+                    continue
+            else:
+                profiles = raw.parsed
+            if profiles is None:
+                counters.other_frames += 1
+                continue
+            counters.frames_decoded += 1
+            decoded.append(DecodedFrame(profiles, raw.start_offset, raw.end_offset,
+                                        raw.checksum_ok, raw.received_checksum,
+                                        raw.computed_checksum))
+        return decoded
+
+
+def decode_bytes(data: bytes, dialect: Dialect | str, checksum: ChecksumMode = "strict",
+                 max_payload_bytes: int | None = None) -> tuple[list[Profile], FrameCounters]:
+    """Decode a whole byte stream at once: its profiles and the counters."""
+    decoder = StreamDecoder(dialect, checksum, max_payload_bytes)
+    profiles = decoder.feed(data) + decoder.finish()
+    return profiles, decoder.counters
+
+
+def _detect_score(dialect: Dialect, data: bytes, limit: int = DETECT_BYTES[-1]) -> int:
+    decoder = StreamDecoder(dialect, "lenient")
+    decoder.feed(data[:limit])
+    decoder.finish()
+    c = decoder.counters
+    return c.frames_decoded + c.other_frames
+
+
+def detect_dialect(data: bytes) -> str:
+    """The dialect whose frames the first bytes of ``data`` hold; :class:`ProtocolError` if none.
+
+    Frames are counted with a lenient checksum so that a stream of damaged frames (like the
+    paper's printed sample) still tells its dialect.
+    """
+    for limit in DETECT_BYTES:
+        scores = {name: _detect_score(d, data, limit) for name, d in DIALECTS.items()}
+        best = max(scores, key=lambda name: scores[name])
+        if scores[best] > 0:
+            return best
+        if len(data) <= limit:
+            break
+    raise ProtocolError(f"cannot detect the dialect: no frame of {', '.join(DIALECTS)} "
+                        f"in the first {min(len(data), DETECT_BYTES[-1])} bytes")
+
+
+def resolve_dialect(name: str, data: bytes) -> Dialect:
+    """``name`` as a dialect, detecting it from ``data`` for ``auto``."""
+    return get_dialect(detect_dialect(data) if name == "auto" else name)

@@ -1,0 +1,1 @@
+"""Processing stages: decode, assemble, filter, mesh, texture, export (one module each)."""

@@ -1,0 +1,339 @@
+"""Decode: a raw recording to the ``profiles``, ``motor``, ``frames`` and ``rig`` artifacts.
+
+The scanner's received bytes (``/scanner/stream``, RX, in seq order) are decoded as one stream
+in the chosen or detected dialect; each profile sector becomes one row. Times:
+
+- ``recv_time_ns``: the host log time of the stream chunk that completed the frame.
+- ``device_time_ns`` / ``device_end_time_ns``: the sector's start / end on the **device clock**,
+  in ns: the 16-bit millisecond timestamps unwrapped (wraps every 65.536 s) into a continuous
+  count that starts at the first sector's raw value. The number of wraps between two sectors is
+  taken from their host receive times, so pauses longer than a wrap period unwrap correctly.
+  Mapping to the host clock is the assemble stage's job (``clock_offset_ns``); the report gives
+  the smallest receive-minus-end delay as ``device_clock.offset_ns``.
+- ``frame``: the frame (profile) number, unwrapped across its 16-bit wrap.
+
+The report (stored in the provenance of every artifact) has counts, the time span, rates, gaps,
+the decoder's counters (checksum failures, resyncs, bytes skipped) and the reader's warnings.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+from numpy.typing import NDArray
+from pydantic import Field
+
+from scanpipe.errors import ProtocolError, RecordingError, StageError
+from scanpipe.params import Params
+from scanpipe.pipeline import Stage, StageResult
+from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, unwrap_counter
+from scanpipe.protocol.registry import DecodedFrame, StreamDecoder, get_dialect, resolve_dialect
+from scanpipe.recording.reader import Image, Recording, StreamData, read_recording
+from scanpipe.recording.schemas import RX
+from scanpipe.rig import Rig, default_rig, rig_table
+
+I64 = NDArray[np.int64]
+
+PROFILES_SCHEMA = pa.schema([
+    ("recv_time_ns", pa.int64()), ("device_time_ns", pa.int64()),
+    ("device_end_time_ns", pa.int64()), ("frame", pa.int64()), ("sector", pa.int32()),
+    ("start_angle_deg", pa.float64()), ("step_deg", pa.float64()),
+    ("ranges_m", pa.list_(pa.float32())), ("echo", pa.list_(pa.uint16())),
+    ("checksum_ok", pa.bool_()), ("dialect", pa.string()),
+])
+MOTOR_SCHEMA = pa.schema([
+    ("log_time_ns", pa.int64()), ("step_count", pa.int64()), ("target_step_count", pa.int64()),
+    ("moving", pa.bool_()), ("device_time_us", pa.int64()),
+])
+FRAMES_SCHEMA = pa.schema([
+    ("camera_id", pa.string()), ("log_time_ns", pa.int64()), ("sequence", pa.int64()),
+    ("format", pa.string()), ("width", pa.int32()), ("height", pa.int32()),
+    ("data", pa.binary()),
+])
+#: The decoder is fed this many bytes at a time, to report progress.
+_FEED_BYTES = 1 << 20
+
+
+class DecodeParams(Params):
+    """How the scanner stream is decoded."""
+
+    dialect: Literal["auto", "paper", "ldoem"] = Field(
+        "auto", description="wire format of the scanner stream; auto detects it from the bytes")
+    checksum: Literal["strict", "lenient"] = Field(
+        "strict", description="strict drops frames whose checksum fails; lenient keeps them "
+                              "with checksum_ok = false")
+    max_frame_bytes: int = Field(
+        1 << 18, ge=64, le=1 << 24,
+        description="cap on a frame's length field: longer frames are false starts")
+    gap_factor: float = Field(
+        3.0, gt=1, le=1000,
+        description="report an interval between profiles longer than this × the median as a gap")
+
+
+def unwrap_device_ms(device_ms: NDArray[np.integer], host_ns: I64) -> I64:
+    """Unwrap 16-bit millisecond device timestamps, counting wraps from the host receive times.
+
+    Between consecutive sectors the device step is taken modulo 65 536 ms and then corrected by
+    the whole number of wrap periods that best matches the host's elapsed time. The result
+    starts at the first raw value.
+    """
+    t = np.asarray(device_ms, dtype=np.int64)
+    if t.size == 0:
+        return t
+    step = np.diff(t) % DEVICE_TIME_WRAP_MS
+    host_step_ms = np.diff(np.asarray(host_ns, dtype=np.int64)).astype(np.float64) / 1e6
+    wraps = np.rint((host_step_ms - step) / DEVICE_TIME_WRAP_MS).astype(np.int64)
+    steps = np.concatenate([[0], np.cumsum(step + wraps * DEVICE_TIME_WRAP_MS)])
+    return np.asarray(t[0] + steps, dtype=np.int64)
+
+
+def image_size(data: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` from a JPEG's SOF segment or a PNG's IHDR; None if not found."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24:
+        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    if data[:2] != b"\xff\xd8":
+        return None
+    pos = 2
+    while pos + 4 <= len(data):
+        if data[pos] != 0xFF:
+            return None
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # no length
+            pos += 2
+            continue
+        length = int.from_bytes(data[pos + 2:pos + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            if pos + 9 > len(data):
+                return None
+            height = int.from_bytes(data[pos + 5:pos + 7], "big")
+            width = int.from_bytes(data[pos + 7:pos + 9], "big")
+            return width, height
+        if marker == 0xDA or length < 2:  # start of scan before any SOF: give up
+            return None
+        pos += 2 + length
+    return None
+
+
+def _list_array(arrays: Sequence[NDArray[Any] | None], value_type: pa.DataType) -> pa.Array:
+    """A list array over one flat values array (None entries become null lists)."""
+    lengths = np.fromiter((0 if a is None else len(a) for a in arrays), np.int64, len(arrays))
+    offsets = np.zeros(len(arrays) + 1, np.int64)
+    np.cumsum(lengths, out=offsets[1:])
+    present = [a for a in arrays if a is not None]
+    numpy_type = value_type.to_pandas_dtype()
+    values = (np.concatenate(present).astype(numpy_type, copy=False) if present
+              else np.zeros(0, numpy_type))
+    list_type = pa.list_(value_type)
+    if offsets[-1] > np.iinfo(np.int32).max:
+        raise StageError(f"{offsets[-1]} samples exceed a list column's 32-bit offsets")
+    mask = None
+    if len(present) != len(arrays):
+        mask = pa.array(np.fromiter((a is None for a in arrays), np.bool_, len(arrays)))
+    return pa.ListArray.from_arrays(pa.array(offsets.astype(np.int32)), pa.array(values),
+                                    type=list_type, mask=mask)
+
+
+def _optional_ints(values: Sequence[int | None]) -> tuple[I64, NDArray[np.bool_]]:
+    present = np.fromiter((v is not None for v in values), np.bool_, len(values))
+    ints = np.fromiter((0 if v is None else v for v in values), np.int64, len(values))
+    return ints, present
+
+
+def profiles_table(frames: Sequence[DecodedFrame], stream: StreamData,
+                   dialect: str) -> tuple[pa.Table, dict[str, Any]]:
+    """The ``profiles`` artifact from decoded frames, and the device-clock part of the report."""
+    profiles: list[Profile] = [p for f in frames for p in f.profiles]
+    n = len(profiles)
+    ends = np.repeat(np.fromiter((f.end_offset for f in frames), np.int64, len(frames)),
+                     [len(f.profiles) for f in frames])
+    recv = stream.time_at(ends)
+    start_ms, has_start = _optional_ints([p.device_time_ms for p in profiles])
+    end_ms, has_end = _optional_ints([p.device_end_time_ms for p in profiles])
+    device_start = np.zeros(n, np.int64)
+    device_start[has_start] = unwrap_device_ms(start_ms[has_start], recv[has_start]) * 1_000_000
+    duration_ms = (end_ms - start_ms) % DEVICE_TIME_WRAP_MS
+    device_end = device_start + duration_ms * 1_000_000
+    has_end &= has_start
+    clock: dict[str, Any] = {"present": bool(has_start.any())}
+    if has_start.any():
+        reference = np.where(has_end, device_end, device_start)[has_start]
+        latency = recv[has_start] - reference
+        offset = int(latency.min())
+        clock.update(offset_ns=offset,
+                     median_latency_ms=float(np.median(latency - offset)) / 1e6,
+                     device_span_s=float(device_start[has_start][-1]
+                                         - device_start[has_start][0]) / 1e9)
+    frame_numbers = unwrap_counter(np.fromiter((p.frame for p in profiles), np.int64, n), 1 << 16)
+    table = pa.table([
+        pa.array(recv, pa.int64()),
+        pa.array(device_start, pa.int64(), mask=~has_start),
+        pa.array(device_end, pa.int64(), mask=~has_end),
+        pa.array(frame_numbers, pa.int64()),
+        pa.array(np.fromiter((p.sector for p in profiles), np.int32, n), pa.int32()),
+        pa.array(np.fromiter((p.start_angle_deg for p in profiles), np.float64, n)),
+        pa.array(np.fromiter((p.step_deg for p in profiles), np.float64, n)),
+        _list_array([p.ranges_m for p in profiles], pa.float32()),
+        _list_array([p.echo for p in profiles], pa.uint16()),
+        pa.array(np.fromiter((p.checksum_ok for p in profiles), np.bool_, n), pa.bool_()),
+        pa.array([dialect] * n, pa.string()) if n else pa.array([], pa.string()),
+    ], schema=PROFILES_SCHEMA)
+    return table, clock
+
+
+def motor_table(recording: Recording) -> pa.Table:
+    """The ``motor`` artifact: every motor state report in log-time order."""
+    m = recording.motor
+    return pa.table([pa.array(m.log_time_ns, pa.int64()), pa.array(m.step_count, pa.int64()),
+                     pa.array(m.target_step_count, pa.int64()), pa.array(m.moving, pa.bool_()),
+                     pa.array(m.device_time_us, pa.int64())], schema=MOTOR_SCHEMA)
+
+
+def frames_table(images: Sequence[Image]) -> tuple[pa.Table, int]:
+    """The ``frames`` artifact (the images with their sizes) and how many had no readable size."""
+    sizes = [image_size(i.data) for i in images]
+    unknown = sum(1 for s in sizes if s is None)
+    table = pa.table([
+        pa.array([i.camera_id for i in images], pa.string()),
+        pa.array([i.log_time_ns for i in images], pa.int64()),
+        pa.array([i.sequence for i in images], pa.int64()),
+        pa.array([i.format or "jpeg" for i in images], pa.string()),
+        pa.array([-1 if s is None else s[0] for s in sizes], pa.int32()),
+        pa.array([-1 if s is None else s[1] for s in sizes], pa.int32()),
+        pa.array([i.data for i in images], pa.binary()),
+    ], schema=FRAMES_SCHEMA)
+    return table, unknown
+
+
+def _gaps(times_ns: I64, factor: float) -> dict[str, Any]:
+    if times_ns.size < 2:
+        return {"median_interval_s": None, "max_interval_s": None, "count": 0, "largest": []}
+    intervals = np.diff(np.sort(times_ns)).astype(np.float64)
+    median = float(np.median(intervals))
+    is_gap = intervals > factor * max(median, 1.0)
+    order = np.argsort(intervals)[::-1][:5]
+    largest = [{"after_ns": int(np.sort(times_ns)[i]), "seconds": float(intervals[i]) / 1e9}
+               for i in order if is_gap[i]]
+    return {"median_interval_s": median / 1e9, "max_interval_s": float(intervals.max()) / 1e9,
+            "count": int(is_gap.sum()), "largest": largest}
+
+
+def _rate(count: int, span_ns: int) -> float | None:
+    return round(count / (span_ns / 1e9), 3) if span_ns > 0 else None
+
+
+def _recording_rig(recording: Recording, warnings: list[str]) -> Rig:
+    try:
+        return recording.rig()
+    except RecordingError as err:
+        warnings.append(f"{err}; using the default rig")
+        return default_rig()
+
+
+def decode_recording(recording: Recording, params: DecodeParams,
+                     progress: ProgressFn = no_progress) -> StageResult:
+    """The decode stage on a recording already read (pure: no file access)."""
+    warnings = list(recording.warnings)
+    rig = _recording_rig(recording, warnings)
+    stream = recording.stream("scanner", RX)
+    data = stream.data
+    try:
+        dialect = resolve_dialect(params.dialect, data)
+    except ProtocolError as err:
+        warnings.append(f"{err}; decoding as the rig's dialect {rig.scanner.dialect!r}")
+        dialect = get_dialect(rig.scanner.dialect)
+    decoder = StreamDecoder(dialect, params.checksum, params.max_frame_bytes)
+    frames: list[DecodedFrame] = []
+    view = memoryview(data)
+    for start in range(0, len(data), _FEED_BYTES):
+        frames += decoder.feed_frames(view[start:start + _FEED_BYTES])
+        progress("decode scanner stream", min(start + _FEED_BYTES, len(data)), len(data))
+    frames += decoder.finish_frames()
+    profiles, clock = profiles_table(frames, stream, dialect.name)
+    frames_art, unsized = frames_table(recording.images)
+    if unsized:
+        warnings.append(f"{unsized} camera frames have no readable JPEG/PNG size (width = -1)")
+    motor = motor_table(recording)
+
+    recv = profiles.column("recv_time_ns").to_numpy()
+    span_ns = int(recv.max() - recv.min()) if recv.size else 0
+    samples = int(pc.sum(pc.list_value_length(profiles.column("ranges_m")))
+                  .as_py() or 0)
+    cameras = Counter(i.camera_id for i in recording.images)
+    motor_stream = recording.stream("motor", RX)
+    report: dict[str, Any] = {
+        "dialect": dialect.name,
+        "dialect_detected": params.dialect == "auto",
+        "checksum_mode": params.checksum,
+        "counts": {
+            "profiles": profiles.num_rows, "frames": decoder.counters.frames_decoded,
+            "samples": samples, "motor_states": motor.num_rows, "images": dict(cameras),
+            "events": len(recording.events), "scanner_bytes": len(data),
+            "motor_stream_bytes": len(motor_stream.data),
+            "checksum_failed_rows": profiles.num_rows - int(
+                pc.sum(profiles.column("checksum_ok")).as_py() or 0),
+        },
+        "counters": decoder.counters.as_dict(),
+        "time_span": {
+            "start_ns": int(recv.min()) if recv.size else None,
+            "end_ns": int(recv.max()) if recv.size else None,
+            "duration_s": span_ns / 1e9,
+        },
+        "rates": {
+            "profiles_per_s": _rate(profiles.num_rows, span_ns),
+            "samples_per_s": _rate(samples, span_ns),
+            "scanner_bytes_per_s": _rate(len(data), span_ns),
+            "motor_states_per_s": _rate(motor.num_rows, _span(recording.motor.log_time_ns)),
+            "images_per_s": {cam: _rate(n, _span(np.array(
+                [i.log_time_ns for i in recording.images if i.camera_id == cam], np.int64)))
+                for cam, n in cameras.items()},
+        },
+        "gaps": {**_gaps(recv, params.gap_factor),
+                 "missing_stream_chunks": stream.missing_chunks},
+        "device_clock": clock,
+        "events": dict(Counter(e.kind for e in recording.events)),
+        "recording": {
+            "complete": recording.complete, "bytes_read": recording.bytes_read,
+            "file_size": recording.file_size, "chunks_read": recording.chunks_read,
+            "chunks_damaged": recording.chunks_damaged, "warnings": warnings,
+        },
+    }
+    return StageResult(
+        tables={"profiles": profiles, "motor": motor, "frames": frames_art,
+                "rig": rig_table(rig)},
+        report=report,
+    )
+
+
+def _span(times_ns: I64) -> int:
+    return int(times_ns.max() - times_ns.min()) if times_ns.size > 1 else 0
+
+
+def run_decode(inputs: Mapping[str, Any], params: DecodeParams,
+               progress: ProgressFn = no_progress) -> StageResult:
+    """Stage function: ``inputs["recording"]`` is the path of the MCAP recording."""
+    path = inputs.get("recording")
+    if not isinstance(path, str | Path):
+        raise StageError("decode needs inputs['recording']: the path of an MCAP recording")
+    return decode_recording(read_recording(Path(path)), params, progress)
+
+
+STAGE = Stage(
+    name="decode",
+    version=1,
+    params=DecodeParams,
+    inputs=("recording",),
+    outputs=("profiles", "motor", "frames", "rig"),
+    func=run_decode,
+    description="recording (MCAP) → profiles, motor states, camera frames, rig",
+    libraries=("numpy", "pyarrow", "mcap", "protobuf", "zstandard"),
+)
