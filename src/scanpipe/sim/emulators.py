@@ -1,0 +1,485 @@
+"""Device emulators on real endpoints: the scanner on a loopback TCP port, the motor controller
+on a pseudo-terminal, and virtual cameras with the interface of an OpenCV capture.
+
+All share one :class:`~scanpipe.sim.clock.SimClock` and one
+:class:`~scanpipe.sim.motion.PlatformState`: a profile is measured at the platform angle of
+its instant, however the motor was driven. Each emulator runs in threads; ``stop()`` ends them
+and closes every descriptor. :class:`VirtualRig` starts and stops the whole set.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import select
+import socket
+import threading
+import tty
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import cv2
+import numpy as np
+import pyarrow as pa
+from numpy.typing import NDArray
+
+from scanpipe.errors import SimulationError
+from scanpipe.rig import CameraConfig, MotorConfig, Rig, ScannerConfig
+from scanpipe.sim.camera import CameraModel, render_rgb
+from scanpipe.sim.clock import SimClock
+from scanpipe.sim.controller import MotorController
+from scanpipe.sim.ldoem_device import LdoemDevice
+from scanpipe.sim.motion import PlatformState
+from scanpipe.sim.options import SimOptions
+from scanpipe.sim.scanner import (
+    MeasurementModel,
+    measure,
+    sample_time_offsets_s,
+    sector_duration_s,
+    true_ranges,
+)
+from scanpipe.sim.scene import Scene, resolve_scene
+from scanpipe.sim.truth import truth_table, write_truth
+from scanpipe.sim.wire import device_clock_ms, profile_frame
+
+#: How often idle emulator threads look at their stop flag (real seconds).
+POLL_S = 0.02
+
+
+@dataclass(frozen=True)
+class SentProfile:
+    """The truth of one profile the scanner emulator sent."""
+
+    head_index: int
+    start_s: float
+    beta_first_deg: float
+    beta_last_deg: float
+    ranges_true_m: NDArray[np.float64]
+
+
+class ScannerEmulator:
+    """The scanner on a loopback TCP port, speaking ``ldoem`` or ``paper``.
+
+    ``ldoem``: answers requests (:class:`~scanpipe.sim.ldoem_device.LdoemDevice`) and streams
+    profiles after GET_PROFILE until CANCEL_PROFILE. ``paper``: streams from the moment a client
+    connects. The head turns from the start at ``scan_hz``: profile k starts at
+    ``phase + k / scan_hz`` simulation seconds and is sent when its sector is complete.
+    """
+
+    def __init__(self, scene: Scene, scanner_true: ScannerConfig, platform: PlatformState,
+                 clock: SimClock, measurement: MeasurementModel, host: str = "127.0.0.1",
+                 port: int = 0, phase_s: float = 0.0) -> None:
+        self.scene = scene
+        self.scanner = scanner_true
+        self.platform = platform
+        self.clock = clock
+        self.measurement = measurement
+        self.phase_s = phase_s
+        self._bind = (host, port)
+        self._server: socket.socket | None = None
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._clients: list[socket.socket] = []
+        self._lock = threading.Lock()
+        self.sent: list[SentProfile] = []
+        self.requests: list[str] = []
+
+    @property
+    def dialect(self) -> str:
+        """The wire dialect."""
+        return self.scanner.dialect
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """``(host, port)`` the emulator listens on."""
+        if self._server is None:
+            raise SimulationError("scanner emulator: not started")
+        host, port = self._server.getsockname()[:2]
+        return str(host), int(port)
+
+    def start(self) -> None:
+        """Listen and serve clients in background threads."""
+        server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            server.bind(self._bind)
+        except OSError as err:
+            server.close()
+            raise SimulationError(f"scanner emulator: cannot listen on {self._bind}: {err}"
+                                  ) from err
+        server.listen(4)
+        server.settimeout(POLL_S * 5)
+        self._server = server
+        self._spawn(self._accept_loop, "scanner-accept")
+
+    def _spawn(self, target: Any, name: str, *args: Any) -> None:
+        thread = threading.Thread(target=target, args=args, name=name, daemon=True)
+        self._threads.append(thread)
+        thread.start()
+
+    def stop(self) -> None:
+        """Stop serving, close every connection and join the threads."""
+        self._stop.set()
+        self.drop_connections()
+        if self._server is not None:
+            with contextlib.suppress(OSError):
+                self._server.close()
+        for thread in self._threads:
+            thread.join(timeout=5.0)
+        self._threads.clear()
+
+    def drop_connections(self) -> None:
+        """Close every client connection (a scanner that goes away); keeps listening."""
+        with self._lock:
+            clients, self._clients = self._clients, []
+        for client in clients:
+            with contextlib.suppress(OSError):
+                client.shutdown(socket.SHUT_RDWR)
+            with contextlib.suppress(OSError):
+                client.close()
+
+    def _accept_loop(self) -> None:
+        assert self._server is not None
+        while not self._stop.is_set():
+            try:
+                client, _ = self._server.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            client.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with self._lock:
+                self._clients.append(client)
+            self._spawn(self._serve, "scanner-client", client)
+
+    # -- one connection --------------------------------------------------------------------
+    def _serve(self, client: socket.socket) -> None:
+        from scanpipe.protocol import ldoem
+
+        device = LdoemDevice(self.scanner) if self.dialect == "ldoem" else None
+        reader = ldoem.FrameReader(accept_unknown=True) if device is not None else None
+        streaming = device is None
+        next_k = self._next_head_index(self.clock.now_s())
+        try:
+            while not self._stop.is_set():
+                config = self._device_config(device)
+                period = 1.0 / config.scan_hz
+                due_s = self.phase_s + next_k * period + sector_duration_s(config)
+                wait_real = (due_s - self.clock.now_s()) / self.clock.speedup
+                timeout = min(max(wait_real, 0.0), POLL_S) if streaming else POLL_S
+                readable, _, _ = select.select([client], [], [], timeout)
+                if readable:
+                    data = client.recv(1 << 16)
+                    if not data:
+                        return
+                    if device is not None and reader is not None:
+                        for frame in reader.feed(data):
+                            now = self.clock.now_s()
+                            replies = device.handle(frame.payload, device_clock_ms(now))
+                            self.requests.append(frame.payload[:2].hex())
+                            for reply in replies:
+                                client.sendall(reply)
+                            was_streaming = streaming
+                            streaming = device.stream is not None
+                            if streaming and not was_streaming:
+                                next_k = self._next_head_index(now, period)
+                    continue
+                if streaming and self.clock.now_s() >= due_s:
+                    mask = device.stream.mask if device and device.stream else None
+                    offset = device.clock_ms_offset if device else 0
+                    client.sendall(self._profile(next_k, config, mask, offset))
+                    next_k += 1
+                    if device is not None and device.stream is not None:
+                        device.stream.sent += 1
+                        if device.stream.count and device.stream.sent >= device.stream.count:
+                            device.stream = None
+                            streaming = False
+        except OSError:
+            return
+        finally:
+            with contextlib.suppress(OSError):
+                client.close()
+
+    def _next_head_index(self, now_s: float, period: float | None = None) -> int:
+        period = period if period is not None else 1.0 / self.scanner.scan_hz
+        return max(0, int(np.ceil((now_s - self.phase_s) / period - 1e-9)))
+
+    def _device_config(self, device: LdoemDevice | None) -> ScannerConfig:
+        if device is None:
+            return self.scanner
+        return self.scanner.model_copy(update={
+            "scan_hz": float(device.scan_hz), "angular_step_deg": device.step_ticks / 16.0,
+            "start_angle_deg": device.start_ticks / 16.0, "end_angle_deg": device.end_ticks / 16.0,
+        })
+
+    def _profile(self, k: int, config: ScannerConfig, mask: int | None,
+                 clock_offset_ms: int = 0) -> bytes:
+        start_s = self.phase_s + k / config.scan_hz
+        times = start_s + sample_time_offsets_s(config)
+        beta = self.platform.beta_deg_at(times)[None, :]
+        truth = true_ranges(self.scene, config, beta)
+        measured = measure(truth, self.measurement, k, config)[0]
+        with self._lock:
+            self.sent.append(SentProfile(k, start_s, float(beta[0, 0]), float(beta[0, -1]),
+                                         truth.ranges_m[0]))
+        return profile_frame(self.dialect, k, measured, config, start_s, mask, clock_offset_ms)
+
+    def truth_table(self) -> pa.Table:
+        """Per-profile truth of everything sent so far, in sending order (host-clock times)."""
+        with self._lock:
+            sent = list(self.sent)
+        offsets = sample_time_offsets_s(self.scanner)
+        samples = max((len(s.ranges_true_m) for s in sent), default=len(offsets))
+        ranges = np.full((len(sent), samples), np.nan)
+        for row, s in enumerate(sent):
+            ranges[row, :len(s.ranges_true_m)] = s.ranges_true_m
+        return truth_table(
+            np.array([self.clock.wall_ns(s.start_s) for s in sent], dtype=np.int64),
+            np.array([self.clock.wall_ns(s.start_s + offsets[-1]) for s in sent], dtype=np.int64),
+            np.array([s.beta_first_deg for s in sent]), np.array([s.beta_last_deg for s in sent]),
+            ranges)
+
+
+class MotorEmulator:
+    """The motor controller on a pseudo-terminal (open :attr:`port_path` with pyserial)."""
+
+    def __init__(self, motor: MotorConfig, platform: PlatformState, clock: SimClock,
+                 report_interval_s: float = 0.02) -> None:
+        self.clock = clock
+        self.controller = MotorController(motor, platform, report_interval_s)
+        self._master = -1
+        self._slave = -1
+        self.port_path = ""
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.commands: list[str] = []
+        self.overruns = 0
+
+    def start(self) -> None:
+        """Open the pseudo-terminal and answer commands in a background thread."""
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.port_path = os.ttyname(self._slave)
+        self._thread = threading.Thread(target=self._loop, name="motor-emulator", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the thread and close the pseudo-terminal."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        for fd in (self._master, self._slave):
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._master = self._slave = -1
+
+    def _send(self, lines: list[str]) -> None:
+        data = "".join(line + "\n" for line in lines).encode("ascii")
+        try:
+            os.write(self._master, data)
+        except BlockingIOError:
+            self.overruns += 1  # nobody reads: the line is lost, as on a real UART
+        except OSError as err:
+            if err.errno not in (errno.EIO, errno.EAGAIN):
+                raise
+
+    def _reports(self, now_s: float) -> None:
+        reports = self.controller.reports_until(now_s)
+        if reports:
+            self._send([r.line for r in reports])
+
+    def _loop(self) -> None:
+        buffer = b""
+        while not self._stop.is_set():
+            now = self.clock.now_s()
+            next_report = self.controller.next_report_s()
+            timeout = POLL_S
+            if np.isfinite(next_report):
+                timeout = min(POLL_S, max(0.0, (next_report - now) / self.clock.speedup))
+            try:
+                readable, _, _ = select.select([self._master], [], [], timeout)
+            except (OSError, ValueError):
+                return
+            if readable:
+                try:
+                    buffer += os.read(self._master, 4096)
+                except BlockingIOError:
+                    pass
+                except OSError:
+                    continue  # EIO: no client has the terminal open right now
+                while b"\n" in buffer or b"\r" in buffer:
+                    cut = min(i for i in (buffer.find(b"\n"), buffer.find(b"\r")) if i >= 0)
+                    line, buffer = buffer[:cut], buffer[cut + 1:]
+                    text = line.decode("ascii", "replace").strip()
+                    if not text:
+                        continue
+                    now = self.clock.now_s()
+                    self._reports(now)
+                    self.commands.append(text)
+                    self._send(self.controller.handle(text, now))
+            self._reports(self.clock.now_s())
+
+
+class VirtualCamera:
+    """A camera with the interface of ``cv2.VideoCapture``: ``read``, ``grab``/``retrieve``,
+    ``get``, ``set``, ``isOpened``, ``release``. Frames are BGR, rendered at the platform angle
+    of the instant of ``grab`` (or ``read``)."""
+
+    is_live = True
+
+    def __init__(self, scene: Scene, cam: CameraConfig, platform: PlatformState,
+                 clock: SimClock, model: CameraModel = CameraModel(), seed: int = 0,
+                 index: int = 0) -> None:
+        self.scene = scene
+        self.cam = cam
+        self.platform = platform
+        self.clock = clock
+        self.model = model
+        self.seed = seed
+        self.index = index
+        self.frames = 0
+        self._grab_s: float | None = None
+        self._open = True
+        self.captures: list[tuple[float, float]] = []  # (simulation time, true β)
+
+    def isOpened(self) -> bool:
+        """Whether the camera can deliver frames."""
+        return self._open
+
+    def grab(self) -> bool:
+        """Take the capture instant (now)."""
+        if not self._open:
+            return False
+        self._grab_s = self.clock.now_s()
+        return True
+
+    def retrieve(self) -> tuple[bool, NDArray[np.uint8] | None]:
+        """Render the frame of the last :meth:`grab` (BGR, like OpenCV)."""
+        if not self._open or self._grab_s is None:
+            return False, None
+        beta = float(self.platform.beta_deg_at(self._grab_s))
+        rng = np.random.default_rng([self.seed, 13, self.index, self.frames])
+        rgb = render_rgb(self.scene, self.cam, beta, self.model, rng)
+        self.captures.append((self._grab_s, beta))
+        self.frames += 1
+        self._grab_s = None
+        return True, np.ascontiguousarray(rgb[..., ::-1])
+
+    def read(self) -> tuple[bool, NDArray[np.uint8] | None]:
+        """Grab and retrieve one frame."""
+        if not self.grab():
+            return False, None
+        return self.retrieve()
+
+    def get(self, prop: int) -> float:
+        """``CAP_PROP_FPS``, ``CAP_PROP_FRAME_WIDTH``, ``CAP_PROP_FRAME_HEIGHT``,
+        ``CAP_PROP_POS_FRAMES``; 0 for anything else (as OpenCV does)."""
+        values = {cv2.CAP_PROP_FPS: self.cam.fps, cv2.CAP_PROP_FRAME_WIDTH: self.cam.width,
+                  cv2.CAP_PROP_FRAME_HEIGHT: self.cam.height,
+                  cv2.CAP_PROP_POS_FRAMES: self.frames, cv2.CAP_PROP_FRAME_COUNT: 0}
+        return float(values.get(prop, 0.0))
+
+    def set(self, prop: int, value: float) -> bool:
+        """Settings are fixed by the rig: always False (as OpenCV for unsupported ones)."""
+        return False
+
+    def release(self) -> None:
+        """Close the camera."""
+        self._open = False
+
+
+class VirtualRig:
+    """The whole virtual rig: scene, clock, platform, scanner, motor controller and cameras.
+
+    Use as a context manager, or call :meth:`start` and :meth:`stop`. :meth:`client_rig` is
+    the nominal rig pointed at the emulators' endpoints (what ``record`` should be given);
+    :meth:`write_truth` writes the ground-truth folder of what was sent.
+    """
+
+    def __init__(self, options: SimOptions | None = None, speedup: float = 1.0,
+                 scene: Scene | None = None) -> None:
+        from scanpipe.sim.direct import checked_rigs
+
+        self.options = options if options is not None else SimOptions()
+        self.nominal, self.true = checked_rigs(self.options)
+        self.scene = scene if scene is not None else resolve_scene(self.options.scene,
+                                                                   self.options.scene_pose)
+        self.clock = SimClock(speedup)
+        motor = self.true.motor
+        self.platform = PlatformState(motor.step_deg, motor.beta_offset_deg)
+        phase = float(np.random.default_rng([self.options.seed, 7]).uniform(
+            0.0, 1.0 / self.true.scanner.scan_hz))
+        self.scanner = ScannerEmulator(self.scene, self.true.scanner, self.platform, self.clock,
+                                       self.options.measurement(), phase_s=phase)
+        self.motor = MotorEmulator(motor, self.platform, self.clock,
+                                   self.options.report_interval_s)
+        self.cameras = {
+            cam.id: VirtualCamera(self.scene, cam, self.platform, self.clock,
+                                  self.options.camera_model(), self.options.seed, index)
+            for index, cam in enumerate(self.true.cameras)
+        } if self.options.cameras else {}
+        self._started = False
+
+    def start(self) -> None:
+        """Start the scanner server and the motor controller."""
+        self.scene.cast(np.zeros(3), np.array([[0.0, 1.0, 0.0]]))  # build the BVH up front
+        self.scanner.start()
+        try:
+            self.motor.start()
+        except OSError as err:
+            self.scanner.stop()
+            raise SimulationError(f"motor emulator: cannot open a pseudo-terminal: {err}"
+                                  ) from err
+        self._started = True
+
+    def stop(self) -> None:
+        """Stop every emulator (idempotent)."""
+        if self._started:
+            self.scanner.stop()
+            self.motor.stop()
+            for camera in self.cameras.values():
+                camera.release()
+            self._started = False
+
+    def __enter__(self) -> VirtualRig:
+        self.start()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()
+
+    def client_rig(self) -> Rig:
+        """The nominal rig with the scanner, motor and camera sources at the emulators."""
+        host, port = self.scanner.address
+        scanner = self.nominal.scanner.model_copy(update={"host": host, "port": port})
+        motor = self.nominal.motor.model_copy(update={"serial_url": self.motor.port_path})
+        cameras = tuple(c.model_copy(update={"source": f"sim:{c.id}"})
+                        for c in self.nominal.cameras)
+        return self.nominal.model_copy(update={"scanner": scanner, "motor": motor,
+                                               "cameras": cameras})
+
+    def camera(self, source: str) -> VirtualCamera:
+        """The virtual camera for a ``sim:<id>`` source (or a bare id)."""
+        camera_id = source.removeprefix("sim:")
+        if camera_id not in self.cameras:
+            known = ", ".join(self.cameras) or "none"
+            raise SimulationError(f"no virtual camera {camera_id!r} (cameras: {known})")
+        return self.cameras[camera_id]
+
+    def write_truth(self, folder: Path, summary: dict[str, Any] | None = None) -> None:
+        """The ground-truth folder for what the scanner emulator sent."""
+        import json
+
+        from scanpipe.sim.direct import versions
+
+        meta = {"seed": self.options.seed, "options": json.loads(self.options.model_dump_json()),
+                "versions": versions(), "speedup": self.clock.speedup,
+                "summary": summary or {}, "profiles_sent": len(self.scanner.sent),
+                "camera_captures": {k: len(c.captures) for k, c in self.cameras.items()}}
+        write_truth(folder, self.scene, self.true, self.scanner.truth_table(), meta)

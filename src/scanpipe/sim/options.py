@@ -1,0 +1,96 @@
+"""The options of a simulated scan, shared by direct mode and the emulators."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from scanpipe.params import Params
+from scanpipe.planning import choose_steps
+from scanpipe.rig import Pose, Rig, default_rig
+from scanpipe.sim.camera import CameraModel, scaled_camera
+from scanpipe.sim.scanner import MeasurementModel
+
+#: 2026-01-01T00:00:00Z: the host clock of a simulated session starts here (deterministic).
+DEFAULT_START_TIME_NS = 1_767_225_600_000_000_000
+
+
+class SimOptions(Params):
+    """Everything a simulated scan depends on (with the seed, it fixes every byte).
+
+    ``rig`` is the NOMINAL rig: what the user believes and what the recording carries. The
+    ``true_*`` options say how the rig really is (None: as nominal); the truth folder holds that
+    true rig, so calibration can be tested against it.
+    """
+
+    scene: str = "room"
+    scene_pose: Pose | None = None
+    rig: Rig = Field(default_factory=default_rig)
+    mode: Literal["step", "continuous"] = "step"
+    motor_step_deg: float = Field(0.108, gt=0, le=180)
+    scanner_step_deg: float | None = Field(None, gt=0, le=90)
+    noise_sigma_m: float = Field(0.010, ge=0, le=1)
+    dropout_rate: float = Field(0.002, ge=0, le=1)
+    grazing_start_deg: float = Field(75.0, ge=0, le=90)
+    mixed_pixels: bool = False
+    mixed_pixel_rate: float = Field(0.5, ge=0, le=1)
+    cameras: bool = True
+    camera_scale: float = Field(0.5, gt=0, le=1)
+    camera_fps: float | None = Field(1.0, gt=0, le=240)
+    camera_noise_sigma: float = Field(1.0, ge=0, le=50)
+    camera_exposure_gain: float = Field(1.0, gt=0, le=4)
+    camera_exposure_jitter: float = Field(0.0, ge=0, le=1)
+    jpeg_quality: int = Field(90, ge=1, le=100)
+    true_mount: Pose | None = None
+    true_alpha_offset_deg: float | None = Field(None, ge=-180, le=180)
+    true_beta_offset_deg: float | None = Field(None, ge=-180, le=180)
+    seed: int = Field(0, ge=0)
+    start_time_ns: int = Field(DEFAULT_START_TIME_NS, ge=0)
+    report_interval_s: float = Field(0.02, gt=0, le=10)
+    link_latency_s: float = Field(0.001, ge=0, le=1)
+
+    def nominal_rig(self) -> Rig:
+        """The rig the recording carries: ``rig`` with the scanner step and camera overrides."""
+        scanner = self.rig.scanner
+        if self.scanner_step_deg is not None:
+            scanner = scanner.model_copy(update={"angular_step_deg": self.scanner_step_deg})
+        cameras = tuple(scaled_camera(c, self.camera_scale) for c in self.rig.cameras)
+        if self.camera_fps is not None:
+            cameras = tuple(c.model_copy(update={"fps": self.camera_fps}) for c in cameras)
+        if not self.cameras:
+            cameras = ()
+        return self.rig.model_copy(update={"scanner": scanner, "cameras": cameras})
+
+    def true_rig(self) -> Rig:
+        """The rig as it really is: the nominal one with the ``true_*`` options applied."""
+        nominal = self.nominal_rig()
+        scanner_update: dict[str, object] = {}
+        if self.true_mount is not None:
+            scanner_update["mount"] = self.true_mount
+        if self.true_alpha_offset_deg is not None:
+            scanner_update["alpha_offset_deg"] = self.true_alpha_offset_deg
+        motor = nominal.motor
+        if self.true_beta_offset_deg is not None:
+            motor = motor.model_copy(update={"beta_offset_deg": self.true_beta_offset_deg})
+        scanner = nominal.scanner.model_copy(update=scanner_update)
+        return nominal.model_copy(update={"scanner": scanner, "motor": motor})
+
+    def motor_step_count(self) -> int:
+        """Pulses per motor step: the achievable step closest to ``motor_step_deg``."""
+        motor = self.rig.motor
+        return choose_steps(self.motor_step_deg, motor.step_deg, motor.pulse_limit).chosen_steps
+
+    def measurement(self) -> MeasurementModel:
+        """The scanner's measurement model."""
+        return MeasurementModel(
+            noise_sigma_m=self.noise_sigma_m, dropout_rate=self.dropout_rate,
+            grazing_start_deg=self.grazing_start_deg, mixed_pixels=self.mixed_pixels,
+            mixed_pixel_rate=self.mixed_pixel_rate, seed=self.seed)
+
+    def camera_model(self) -> CameraModel:
+        """The cameras' image model."""
+        return CameraModel(noise_sigma=self.camera_noise_sigma,
+                           exposure_gain=self.camera_exposure_gain,
+                           exposure_jitter=self.camera_exposure_jitter,
+                           jpeg_quality=self.jpeg_quality)
