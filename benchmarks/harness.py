@@ -1,0 +1,118 @@
+"""Measuring the same way every time: median wall time over repeats, peak memory, JSON results.
+
+Peak memory is measured in a forked child per measurement, as the growth of its peak resident set
+over what it inherited, so that one stage's allocations do not hide another's.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import multiprocessing as mp
+import os
+import platform
+import resource
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+RESULTS_DIR = Path(__file__).parent / "results"
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One timed piece of work."""
+
+    name: str
+    median_s: float
+    runs_s: list[float]
+    peak_rss_mb: float
+    items: float
+    unit: str
+
+    @property
+    def throughput(self) -> float:
+        """Items per second at the median time."""
+        return self.items / self.median_s if self.median_s > 0 else float("inf")
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/status") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return 0.0
+
+
+def _child(fn: Callable[[], Any], repeats: int, queue: Any) -> None:
+    try:
+        start_rss = _rss_mb()
+        runs = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            runs.append(time.perf_counter() - t0)
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        queue.put(("ok", runs, max(0.0, peak - start_rss)))
+    except BaseException as err:  # report any failure to the parent, which re-raises
+        queue.put(("error", repr(err), 0.0))
+
+
+def measure(name: str, fn: Callable[[], Any], items: float, unit: str,
+            repeats: int = 3, isolate: bool = True) -> Measurement:
+    """Run ``fn`` ``repeats`` times (in a forked child when ``isolate``) and summarise."""
+    if isolate:
+        ctx = mp.get_context("fork")
+        queue = ctx.Queue()
+        proc = ctx.Process(target=_child, args=(fn, repeats, queue))
+        proc.start()
+        status, runs, peak = queue.get()
+        proc.join()
+        if status != "ok":
+            raise RuntimeError(f"benchmark {name!r} failed: {runs}")
+    else:
+        runs = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            runs.append(time.perf_counter() - t0)
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return Measurement(name, statistics.median(runs), runs, peak, items, unit)
+
+
+def machine() -> dict[str, Any]:
+    """What the figures were measured on."""
+    return {
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+    }
+
+
+def save(results: dict[str, Any], stem: str | None = None) -> Path:
+    """Write results to ``benchmarks/results/<stem or date>.json`` and return the path."""
+    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+    stem = stem or dt.date.today().isoformat()
+    path = RESULTS_DIR / f"{stem}.json"
+    payload = {"date": dt.datetime.now(dt.UTC).isoformat(), "machine": machine(), **results}
+    path.write_text(json.dumps(payload, indent=2, default=_jsonable))
+    return path
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, Measurement):
+        return {**asdict(value), "throughput": value.throughput}
+    return str(value)
+
+
+def table(rows: list[tuple[str, ...]], header: tuple[str, ...]) -> str:
+    """A plain aligned text table."""
+    widths = [max(len(str(r[i])) for r in [header, *rows]) for i in range(len(header))]
+    line = "  ".join(f"{{:<{w}}}" for w in widths)
+    out = [line.format(*header), line.format(*("-" * w for w in widths))]
+    out += [line.format(*map(str, r)) for r in rows]
+    return "\n".join(out)
