@@ -25,6 +25,18 @@ import pyarrow.parquet as pq
 from scanpipe.errors import ArtifactError
 
 PROVENANCE_KEY = b"scanpipe.provenance"
+
+
+def _file_mode() -> int:
+    """What ``open()`` would give a new file: 0o666 less the umask (mkstemp gives 0o600)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+#: Read once at import: changing the umask is process-wide, so not on every write.
+FILE_MODE = _file_mode()
+
 #: The distribution names behind the import names a stage may list as result-changing.
 _DISTRIBUTIONS = {"cv2": "opencv-python-headless", "scanpipe": "scanpipe"}
 
@@ -80,6 +92,7 @@ def atomic_path(path: Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it into place only if the block succeeds."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.fchmod(fd, FILE_MODE)
     os.close(fd)
     tmp = Path(tmp_name)
     try:

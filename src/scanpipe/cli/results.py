@@ -1,0 +1,91 @@
+"""``scanpipe export | render | eval | report``: results out of the pipeline, and their quality."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import typer
+
+from scanpipe.cli.common import JSON, QUIET, print_json
+
+
+def export(
+    folder: Path = typer.Argument(..., help="Folder with the artifacts (a workdir or flat)."),
+    fmt: str = typer.Option(..., "--format", "-f",
+                            help="obj | glb | ply | las | laz | e57 | mcap"),
+    out: Path = typer.Option(..., "--out", "-o",
+                             help="Output file (its stem names every file written) or folder."),
+    quiet: bool = QUIET,
+) -> None:
+    """Write the mesh (OBJ/GLB/PLY), the points (LAS/LAZ/E57/PLY) or both (MCAP, Foxglove)."""
+    from scanpipe.stages.export import export_folder
+
+    written = export_folder(folder, fmt, out)
+    if not quiet:
+        for path in written:
+            sys.stderr.write(f"wrote {path}\n")
+
+
+def render(
+    folder: Path = typer.Argument(..., help="Folder with the mesh artifacts, or a mesh file."),
+    out: Path = typer.Option(..., "--out", "-o",
+                             help="A folder (every view) or one .png (the first view)."),
+    width: int = typer.Option(640, "--width", min=16, max=8192, help="Image width in pixels."),
+    views: str = typer.Option("perspective,plan,panorama", "--views",
+                              help="Comma-separated: perspective, plan, panorama."),
+    eye: str | None = typer.Option(None, "--eye", help="Perspective eye x,y,z (rig frame, m)."),
+    target: str | None = typer.Option(None, "--target", help="Perspective target x,y,z."),
+    fov: float = typer.Option(70.0, "--fov", min=1.0, max=170.0,
+                              help="Horizontal field of view (degrees)."),
+    quiet: bool = QUIET,
+) -> None:
+    """PNG previews by ray casting: perspective views, a plan view, a panorama from the origin."""
+    from scanpipe.render import render_previews
+
+    written = render_previews(folder, out, width=width, views=views, eye=eye, target=target,
+                              fov_deg=fov)
+    if not quiet:
+        for path in written:
+            sys.stderr.write(f"wrote {path}\n")
+
+
+def evaluate(
+    result: Path = typer.Argument(..., help="A workdir or folder of artifacts."),
+    truth: Path = typer.Option(..., "--truth", help="Truth folder (virtual rig) or a mesh file."),
+    tau_m: float = typer.Option(0.02, "--tau", min=1e-6, help="F-score threshold τ in metres."),
+    as_json: bool = JSON,
+) -> None:
+    """Accuracy against ground truth: points, mesh (F-score at τ), texture PSNR, stage times."""
+    from scanpipe.evaluate import evaluate_result, format_evaluation
+
+    report = evaluate_result(result, truth, tau_m=tau_m)
+    if as_json:
+        print_json(report)
+    else:
+        typer.echo(format_evaluation(report))
+
+
+def report(
+    workdir: Path = typer.Argument(..., help="A workdir or folder of artifacts."),
+    out: Path | None = typer.Option(None, "--out", "-o",
+                                    help="The HTML file (default: WORKDIR/report.html)."),
+    truth: Path | None = typer.Option(None, "--truth",
+                                      help="Truth folder or mesh (default: WORKDIR/truth "
+                                           "if present)."),
+    quiet: bool = QUIET,
+) -> None:
+    """One self-contained HTML report: summary, counts, plots, previews, evaluation."""
+    from scanpipe.report import write_report
+
+    path = write_report(workdir, out, truth)
+    if not quiet:
+        sys.stderr.write(f"wrote {path}\n")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``export``, ``render``, ``eval`` and ``report`` to the main app."""
+    app.command("export")(export)
+    app.command("render")(render)
+    app.command("eval")(evaluate)
+    app.command("report")(report)

@@ -1,0 +1,158 @@
+"""glTF 2.0 binary (GLB) with the texture pages embedded as PNG, written directly.
+
+One mesh with one primitive per atlas page (its own material and texture) and one for the
+untextured faces. The texture stage gives UVs per face corner, glTF needs them per vertex, so a
+vertex is split where its corners carry different UVs (unique (vertex, u, v) triples).
+Everything the Khronos glTF-Validator checks is respected: 4-byte alignment, POSITION min/max,
+unit normals, buffer-view targets, index bounds.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanpipe import __version__
+from scanpipe.errors import ExportError
+from scanpipe.exporters.model import MeshModel, split_by_uv, unit_normals
+
+FLOAT, UNSIGNED_BYTE, UNSIGNED_INT = 5126, 5121, 5125
+ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
+LINEAR, LINEAR_MIPMAP_LINEAR, CLAMP_TO_EDGE = 9729, 9987, 33071
+
+
+class _Builder:
+    """Accumulates buffer views and accessors into one binary buffer."""
+
+    def __init__(self) -> None:
+        self.blobs: list[bytes] = []
+        self.offset = 0
+        self.views: list[dict[str, Any]] = []
+        self.accessors: list[dict[str, Any]] = []
+
+    def view(self, data: bytes, target: int | None = None) -> int:
+        view: dict[str, Any] = {"buffer": 0, "byteOffset": self.offset, "byteLength": len(data)}
+        if target is not None:
+            view["target"] = target
+        self.views.append(view)
+        padding = (-len(data)) % 4
+        self.blobs += [data, b"\0" * padding]
+        self.offset += len(data) + padding
+        return len(self.views) - 1
+
+    def accessor(self, array: NDArray[Any], kind: str, component: int, target: int,
+                 normalized: bool = False, bounds: bool = False) -> int:
+        data = np.ascontiguousarray(array)
+        accessor: dict[str, Any] = {
+            "bufferView": self.view(data.tobytes(), target),
+            "componentType": component,
+            "count": int(data.shape[0]),
+            "type": kind,
+        }
+        if normalized:
+            accessor["normalized"] = True
+        if bounds:
+            flat = data.reshape(data.shape[0], -1)
+            accessor["min"] = [_number(v) for v in flat.min(axis=0)]
+            accessor["max"] = [_number(v) for v in flat.max(axis=0)]
+        self.accessors.append(accessor)
+        return len(self.accessors) - 1
+
+
+def _number(value: np.generic) -> float | int:
+    return int(value) if np.issubdtype(value.dtype, np.integer) else float(value)
+
+
+def glb_bytes(mesh: MeshModel, name: str = "scan") -> bytes:
+    """The mesh as one GLB file (bytes)."""
+    if len(mesh.faces) == 0:
+        raise ExportError("mesh has no faces: a glTF mesh needs at least one triangle")
+    normals = unit_normals(mesh)
+    builder = _Builder()
+    primitives: list[dict[str, Any]] = []
+    materials: list[dict[str, Any]] = []
+    images: list[dict[str, Any]] = []
+    textures: list[dict[str, Any]] = []
+    pages = mesh.face_pages if mesh.textured else None
+    page_ids = [] if pages is None else sorted(int(p) for p in np.unique(pages) if p >= 0)
+
+    def add_primitive(source: NDArray[np.int64], indices: NDArray[np.integer],
+                      uv: NDArray[np.float32] | None, material: int) -> None:
+        attributes = {
+            "POSITION": builder.accessor(mesh.vertices[source].astype(np.float32), "VEC3",
+                                         FLOAT, ARRAY_BUFFER, bounds=True),
+            "NORMAL": builder.accessor(normals[source], "VEC3", FLOAT, ARRAY_BUFFER),
+        }
+        if uv is not None:
+            attributes["TEXCOORD_0"] = builder.accessor(uv.astype(np.float32), "VEC2", FLOAT,
+                                                        ARRAY_BUFFER)
+        elif mesh.colors is not None:
+            rgba = np.concatenate([mesh.colors[source],
+                                   np.full((len(source), 1), 255, np.uint8)], axis=1)
+            attributes["COLOR_0"] = builder.accessor(rgba, "VEC4", UNSIGNED_BYTE,
+                                                     ARRAY_BUFFER, normalized=True)
+        index_accessor = builder.accessor(indices.astype(np.uint32), "SCALAR", UNSIGNED_INT,
+                                          ELEMENT_ARRAY_BUFFER)
+        primitives.append({"attributes": attributes, "indices": index_accessor,
+                           "material": material, "mode": 4})
+
+    for page in page_ids:
+        assert pages is not None and mesh.face_uvs is not None
+        selected = np.flatnonzero(pages == page)
+        corners = mesh.faces[selected].reshape(-1).astype(np.int64)
+        source, uv, inverse = split_by_uv(corners, mesh.face_uvs[selected].reshape(-1, 2))
+        image = len(images)
+        images.append({"bufferView": builder.view(mesh.pages[page]), "mimeType": "image/png",
+                       "name": f"page{page}"})
+        textures.append({"sampler": 0, "source": image})
+        materials.append({
+            "name": f"page{page}",
+            "pbrMetallicRoughness": {"baseColorTexture": {"index": len(textures) - 1},
+                                     "metallicFactor": 0.0, "roughnessFactor": 1.0},
+            "doubleSided": True,
+        })
+        add_primitive(source, inverse, uv, len(materials) - 1)
+
+    plain = (np.arange(len(mesh.faces)) if pages is None
+             else np.flatnonzero(pages < 0))
+    if len(plain):
+        corners = mesh.faces[plain].reshape(-1).astype(np.int64)
+        source, inverse = np.unique(corners, return_inverse=True)
+        grey = 1.0 if mesh.colors is not None else 0.7
+        materials.append({
+            "name": "untextured",
+            "pbrMetallicRoughness": {"baseColorFactor": [grey, grey, grey, 1.0],
+                                     "metallicFactor": 0.0, "roughnessFactor": 1.0},
+            "doubleSided": True,
+        })
+        add_primitive(source.astype(np.int64), inverse.ravel(), None, len(materials) - 1)
+
+    binary = b"".join(builder.blobs)
+    document: dict[str, Any] = {
+        "asset": {"version": "2.0", "generator": f"scanpipe {__version__}"},
+        "scene": 0,
+        "scenes": [{"name": name, "nodes": [0]}],
+        "nodes": [{"name": name, "mesh": 0}],
+        "meshes": [{"name": name, "primitives": primitives}],
+        "materials": materials,
+        "accessors": builder.accessors,
+        "bufferViews": builder.views,
+        "buffers": [{"byteLength": len(binary)}],
+    }
+    if images:
+        document["images"] = images
+        document["textures"] = textures
+        document["samplers"] = [{"magFilter": LINEAR, "minFilter": LINEAR_MIPMAP_LINEAR,
+                                 "wrapS": CLAMP_TO_EDGE, "wrapT": CLAMP_TO_EDGE}]
+    text = json.dumps(document, separators=(",", ":")).encode()
+    text += b" " * ((-len(text)) % 4)
+    total = 12 + 8 + len(text) + 8 + len(binary)
+    return b"".join([
+        struct.pack("<4sII", b"glTF", 2, total),
+        struct.pack("<I4s", len(text), b"JSON"), text,
+        struct.pack("<I4s", len(binary), b"BIN\0"), binary,
+    ])

@@ -1,0 +1,193 @@
+"""In-memory meshes and clouds built from artifact tables, the input of every exporter.
+
+A :class:`MeshModel` is the ``mesh_vertices`` + ``mesh_faces`` artifacts, optionally with the
+texture stage's ``textured_faces`` (per-corner UVs, glTF convention: v = 0 at the image top)
+and ``texture_pages`` (PNG). A :class:`CloudModel` is a ``points`` artifact. Both are in the
+rig frame (y up); :func:`rig_to_z_up` gives the (x, −z, y) frame of LAS and E57.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyarrow as pa
+from numpy.typing import NDArray
+
+from scanpipe.artifacts import check_columns
+from scanpipe.errors import ArtifactError
+
+F32 = NDArray[np.float32]
+
+MESH_VERTEX_COLUMNS = {n: pa.float32() for n in ("x", "y", "z", "nx", "ny", "nz")}
+MESH_FACE_COLUMNS = {n: pa.int32() for n in ("v0", "v1", "v2")}
+TEXTURED_FACE_COLUMNS = {"face": pa.int32(), "page": pa.int16(),
+                         **{n: pa.float32() for n in ("u0", "v0", "u1", "v1", "u2", "v2")}}
+TEXTURE_PAGE_COLUMNS = {"page": pa.int16(), "width": pa.int32(), "height": pa.int32(),
+                        "png": pa.binary()}
+POINT_COLUMNS = {"x": pa.float32(), "y": pa.float32(), "z": pa.float32()}
+COLOR_COLUMNS = ("red", "green", "blue")
+
+
+@dataclass(frozen=True)
+class MeshModel:
+    """A triangle mesh in the rig frame, with an optional texture atlas.
+
+    ``face_pages[i]`` is the atlas page of face ``i`` (−1: untextured) and ``face_uvs[i, k]``
+    the UV of its corner ``k`` in glTF convention (v = 0 at the top of the page).
+    """
+
+    vertices: F32
+    faces: NDArray[np.int32]
+    normals: F32 | None = None
+    colors: NDArray[np.uint8] | None = None
+    face_pages: NDArray[np.int16] | None = None
+    face_uvs: F32 | None = None
+    pages: dict[int, bytes] = field(default_factory=dict)
+
+    @property
+    def textured(self) -> bool:
+        """Whether any face has a texture page."""
+        return self.face_pages is not None and bool(np.any(self.face_pages >= 0))
+
+
+@dataclass(frozen=True)
+class CloudModel:
+    """A point cloud in the rig frame with what the points artifact carries besides xyz."""
+
+    xyz: F32
+    intensity: NDArray[np.uint16] | None = None
+    colors: NDArray[np.uint8] | None = None
+    time_ns: NDArray[np.int64] | None = None
+    range_m: F32 | None = None
+    profile: NDArray[np.int32] | None = None
+    beta_deg: NDArray[np.float64] | None = None
+
+
+def rig_to_z_up(xyz: NDArray[np.floating]) -> NDArray[np.float64]:
+    """Rig frame (y up) to the z-up right-handed frame of LAS and E57: (x, −z, y)."""
+    p = np.asarray(xyz, dtype=np.float64)
+    return np.stack([p[:, 0], -p[:, 2], p[:, 1]], axis=1)
+
+
+def _xyz(table: pa.Table, names: tuple[str, str, str]) -> F32:
+    return np.stack([table.column(n).to_numpy(zero_copy_only=False) for n in names],
+                    axis=1).astype(np.float32)
+
+
+def _colors(table: pa.Table) -> NDArray[np.uint8] | None:
+    if not all(c in table.column_names for c in COLOR_COLUMNS):
+        return None
+    columns = [table.column(c) for c in COLOR_COLUMNS]
+    if any(c.null_count for c in columns):
+        return None
+    return np.stack([c.to_numpy(zero_copy_only=False) for c in columns], 1).astype(np.uint8)
+
+
+def mesh_from_tables(
+    vertices: pa.Table,
+    faces: pa.Table,
+    textured_faces: pa.Table | None = None,
+    texture_pages: pa.Table | None = None,
+) -> MeshModel:
+    """Check the mesh (and texture) artifacts against the contract and build a model."""
+    check_columns(vertices, MESH_VERTEX_COLUMNS, "mesh_vertices")
+    check_columns(faces, MESH_FACE_COLUMNS, "mesh_faces")
+    xyz = _xyz(vertices, ("x", "y", "z"))
+    normals = _xyz(vertices, ("nx", "ny", "nz"))
+    tri = np.stack([faces.column(n).to_numpy() for n in ("v0", "v1", "v2")], 1).astype(np.int32)
+    if tri.size and (int(tri.min()) < 0 or int(tri.max()) >= len(xyz)):
+        raise ArtifactError(f"mesh_faces: vertex index out of range 0..{len(xyz) - 1} "
+                            f"(found {int(tri.min())}..{int(tri.max())})")
+    face_pages = face_uvs = None
+    pages: dict[int, bytes] = {}
+    if textured_faces is not None and texture_pages is not None:
+        check_columns(textured_faces, TEXTURED_FACE_COLUMNS, "textured_faces")
+        check_columns(texture_pages, TEXTURE_PAGE_COLUMNS, "texture_pages")
+        face_index = textured_faces.column("face").to_numpy()
+        if face_index.size and (int(face_index.min()) < 0 or int(face_index.max()) >= len(tri)):
+            raise ArtifactError("textured_faces: face index out of range "
+                                f"0..{len(tri) - 1}")
+        face_pages = np.full(len(tri), -1, dtype=np.int16)
+        face_uvs = np.zeros((len(tri), 3, 2), dtype=np.float32)
+        face_pages[face_index] = textured_faces.column("page").to_numpy()
+        uv = np.stack([textured_faces.column(n).to_numpy(zero_copy_only=False)
+                       for n in ("u0", "v0", "u1", "v1", "u2", "v2")], 1)
+        face_uvs[face_index] = uv.reshape(-1, 3, 2)
+        page_ids = texture_pages.column("page").to_pylist()
+        pngs = texture_pages.column("png").to_pylist()
+        pages = {int(p): bytes(b) for p, b in zip(page_ids, pngs, strict=True)}
+        missing = sorted(set(np.unique(face_pages[face_pages >= 0]).tolist()) - set(pages))
+        if missing:
+            raise ArtifactError(f"textured_faces: pages {missing} are not in texture_pages "
+                                f"(has {sorted(pages)})")
+        face_uvs = np.nan_to_num(face_uvs, nan=0.0)
+    return MeshModel(xyz, tri, normals, _colors(vertices), face_pages, face_uvs, pages)
+
+
+def cloud_from_table(points: pa.Table) -> CloudModel:
+    """Check a points artifact and build a cloud model (rows with non-finite xyz dropped)."""
+    check_columns(points, POINT_COLUMNS, "points")
+    xyz = _xyz(points, ("x", "y", "z"))
+    keep = np.all(np.isfinite(xyz), axis=1)
+
+    def optional(name: str, dtype: type[np.generic]) -> NDArray[np.generic] | None:
+        if name not in points.column_names or points.column(name).null_count:
+            return None
+        return np.asarray(points.column(name).to_numpy(zero_copy_only=False),
+                          dtype=dtype)[keep]
+
+    colors = _colors(points)
+    return CloudModel(
+        xyz=xyz[keep],
+        intensity=optional("echo", np.uint16),  # type: ignore[arg-type]
+        colors=None if colors is None else colors[keep],
+        time_ns=optional("time_ns", np.int64),  # type: ignore[arg-type]
+        range_m=optional("range_m", np.float32),  # type: ignore[arg-type]
+        profile=optional("profile", np.int32),  # type: ignore[arg-type]
+        beta_deg=optional("beta_deg", np.float64),  # type: ignore[arg-type]
+    )
+
+
+def split_by_uv(corner_vertex: NDArray[np.integer], corner_uv: NDArray[np.floating]
+                ) -> tuple[NDArray[np.int64], F32, NDArray[np.integer]]:
+    """Per-corner UVs to per-vertex ones: ``(source vertex of each new vertex, its uv, new
+    vertex index of each corner)``.
+
+    A corner reuses its vertex's first corner when their UVs are equal (inside a texture
+    chart); corners on a seam get a vertex of their own. O(n), no sorting. OBJ uses it for
+    shared ``vt`` lines, glTF to split vertices.
+    """
+    n = len(corner_vertex)
+    order = np.arange(n, dtype=np.int32 if n < 2**31 else np.int64)
+    first = np.zeros(int(np.max(corner_vertex, initial=0)) + 1, dtype=order.dtype)
+    first[corner_vertex[::-1]] = order[::-1]  # the last write wins: each vertex's first corner
+    first_of_corner = first[corner_vertex]
+    # compare (u, v) float32 pairs as one 64-bit word each: exact equality, half the work
+    uv = np.ascontiguousarray(corner_uv, dtype=np.float32).reshape(-1, 2)
+    packed = uv.view(np.uint64).ravel()
+    own = (order == first_of_corner) | (packed != packed[first_of_corner])
+    own_index = np.cumsum(own, dtype=order.dtype) - 1
+    index = np.where(own, own_index, own_index[first_of_corner])
+    return np.asarray(corner_vertex[own], dtype=np.int64), uv[own], index
+
+
+def unit_normals(mesh: MeshModel) -> F32:
+    """Per-vertex unit normals: the mesh's own where usable, else area-weighted face normals."""
+    v = mesh.vertices.astype(np.float64)
+    given = (np.zeros_like(v) if mesh.normals is None
+             else np.nan_to_num(mesh.normals.astype(np.float64)))
+    length = np.linalg.norm(given, axis=1)
+    bad = ~(length > 1e-6)
+    if np.any(bad) and len(mesh.faces):
+        tri = v[mesh.faces]
+        face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        acc = np.zeros_like(v)
+        for k in range(3):
+            np.add.at(acc, mesh.faces[:, k], face_n)
+        given[bad] = acc[bad]
+        length = np.linalg.norm(given, axis=1)
+    still_bad = ~(length > 1e-12)
+    given[still_bad] = (0.0, 1.0, 0.0)
+    length[still_bad] = 1.0
+    return np.asarray(given / length[:, None], dtype=np.float32)

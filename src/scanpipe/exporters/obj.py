@@ -1,0 +1,118 @@
+"""Wavefront OBJ + MTL + PNG, the paper's output format, written with numpy.
+
+- ``vt`` has v = 0 at the image *bottom* (OBJ), so the glTF-convention UVs of the texture
+  stage are flipped: ``v_obj = 1 − v_gltf``.
+- Each atlas page is one material (``Kd 1 1 1`` with ``map_Kd``: the texture is multiplied by
+  Kd, so anything but white would tint it); faces are grouped per page under ``usemtl``.
+- Every file name derives from the output stem (``room.obj``, ``room.mtl``,
+  ``room_page0.png``), with relative paths, so two exports into one folder never collide.
+- Lines are formatted column-wise with numpy (:mod:`scanpipe.exporters.textfmt`).
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from scanpipe import __version__
+from scanpipe.exporters.model import MeshModel, split_by_uv, unit_normals
+from scanpipe.exporters.textfmt import Fixed, Ints, Part, float_rows, render_lines
+
+#: Untextured faces of a textured mesh get this plain material.
+UNTEXTURED_KD = "0.7 0.7 0.7"
+
+
+def safe_stem(stem: str) -> str:
+    """The stem with characters that OBJ/MTL statements cannot carry replaced by ``_``."""
+    cleaned = re.sub(r"[^A-Za-z0-9._-]", "_", stem)
+    return cleaned or "model"
+
+
+def page_file_name(stem: str, page: int) -> str:
+    """The PNG file name of atlas page ``page`` for an export called ``stem``."""
+    return f"{safe_stem(stem)}_page{page}.png"
+
+
+def _face_lines(faces: np.ndarray, vt: np.ndarray | None, with_normals: bool) -> bytes:
+    """``f`` lines for ``faces`` (0-based) with 1-based ``v[/vt][/vn]`` references; ``vt``
+    (same shape as ``faces``, 0-based) gives each corner's texture coordinate."""
+    rows = len(faces)
+    if rows == 0:
+        return b""
+    parts: list[Part] = [b"f "]
+    for k in range(3):
+        if k:
+            parts.append(b" ")
+        v = Ints(np.ascontiguousarray(faces[:, k]) + 1)
+        parts.append(v)
+        if vt is not None:
+            parts += [b"/", Ints(np.ascontiguousarray(vt[:, k]) + 1)]
+            if with_normals:
+                parts += [b"/", v]
+        elif with_normals:
+            parts += [b"//", v]
+    return render_lines(rows, parts)
+
+
+def obj_files(mesh: MeshModel, stem: str) -> dict[str, bytes]:
+    """The OBJ export of ``mesh`` as ``{file name: bytes}`` (``<stem>.obj`` comes first)."""
+    base = safe_stem(stem)
+    obj_name, mtl_name = f"{stem}.obj", f"{base}.mtl"
+    chunks: list[bytes] = [f"# scanpipe {__version__} OBJ export; y up, metres\n".encode()]
+    files: dict[str, bytes] = {}
+    normals = unit_normals(mesh)
+    textured = mesh.textured
+    if textured:
+        chunks.append(f"mtllib {mtl_name}\n".encode())
+    if mesh.colors is not None and not textured:
+        # The widespread "v x y z r g b" extension (MeshLab, trimesh, Blender) with 0..1 colours.
+        parts: list[Part] = [b"v "]
+        for j in range(3):
+            parts += [Fixed(mesh.vertices[:, j], 6), b" "]
+        for j in range(3):
+            parts += [Fixed(mesh.colors[:, j].astype(np.float64) / 255.0, 4)]
+            if j < 2:
+                parts.append(b" ")
+        chunks.append(render_lines(len(mesh.vertices), parts))
+    else:
+        chunks.append(float_rows(b"v ", mesh.vertices, 6))
+    chunks.append(float_rows(b"vn ", normals, 5))
+    if not textured:
+        chunks.append(_face_lines(mesh.faces, None, True))
+        files[obj_name] = b"".join(chunks)
+        return files
+
+    assert mesh.face_pages is not None and mesh.face_uvs is not None
+    order = np.argsort(mesh.face_pages, kind="stable")
+    pages_sorted = mesh.face_pages[order]
+    textured_order = order[pages_sorted >= 0]
+    corner_uv = mesh.face_uvs[textured_order].reshape(-1, 2)
+    _, vt_uv, vt_index = split_by_uv(mesh.faces[textured_order].reshape(-1), corner_uv)
+    vt_of_face = vt_index.reshape(-1, 3)
+    uv_obj = np.stack([vt_uv[:, 0].astype(np.float64), 1.0 - vt_uv[:, 1].astype(np.float64)],
+                      axis=1)
+    chunks.append(float_rows(b"vt ", uv_obj, 6))
+    mtl: list[str] = [f"# scanpipe {__version__} materials for {obj_name}"]
+    page_ids, starts, counts = np.unique(pages_sorted, return_index=True, return_counts=True)
+    untextured_count = int(np.count_nonzero(pages_sorted < 0))
+    for page, start, count in zip(page_ids.tolist(), starts.tolist(), counts.tolist(),
+                                  strict=True):
+        group = mesh.faces[order[start:start + count]]
+        if page < 0:
+            material = f"{base}_untextured"
+            mtl += ["", f"newmtl {material}", "Ka 0 0 0", f"Kd {UNTEXTURED_KD}", "Ks 0 0 0",
+                    "d 1", "illum 1"]
+            chunks.append(f"usemtl {material}\n".encode())
+            chunks.append(_face_lines(group, None, True))
+            continue
+        material = f"{base}_page{page}"
+        png = page_file_name(stem, page)
+        mtl += ["", f"newmtl {material}", "Ka 1 1 1", "Kd 1 1 1", "Ks 0 0 0", "d 1",
+                "illum 1", f"map_Kd {png}"]
+        files[png] = mesh.pages[page]
+        chunks.append(f"usemtl {material}\n".encode())
+        first = start - untextured_count
+        chunks.append(_face_lines(group, vt_of_face[first:first + count], True))
+    files = {obj_name: b"".join(chunks), mtl_name: ("\n".join(mtl) + "\n").encode(), **files}
+    return files

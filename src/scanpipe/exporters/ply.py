@@ -1,0 +1,115 @@
+"""PLY, binary little-endian: meshes with vertex colours, and point clouds.
+
+A textured mesh without vertex colours gets them from its texture (the mean of the texels at
+the vertex's corners), so the PLY shows the same colours a textured viewer would.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from numpy.typing import NDArray
+from PIL import Image
+
+from scanpipe import __version__
+from scanpipe.errors import ExportError
+from scanpipe.exporters.model import CloudModel, MeshModel, unit_normals
+
+
+def decode_png(data: bytes, where: str) -> NDArray[np.uint8]:
+    """An RGB image ``(H, W, 3)`` from PNG bytes; ExportError when it is not an image."""
+    try:
+        with Image.open(io.BytesIO(data)) as image:
+            pixels: NDArray[np.uint8] = np.asarray(image.convert("RGB"), dtype=np.uint8)
+            return pixels
+    except (OSError, ValueError) as err:
+        raise ExportError(f"{where}: not a readable PNG ({err})") from None
+
+
+def sample_texture(image: NDArray[np.uint8], uv: NDArray[np.floating]) -> NDArray[np.uint8]:
+    """Nearest texels at glTF-convention UVs (v = 0 at the top row)."""
+    height, width = image.shape[:2]
+    u = np.clip(np.asarray(uv[:, 0], np.float64), 0.0, 1.0)
+    v = np.clip(np.asarray(uv[:, 1], np.float64), 0.0, 1.0)
+    col = np.minimum((u * width).astype(np.int64), width - 1)
+    row = np.minimum((v * height).astype(np.int64), height - 1)
+    return np.asarray(image[row, col], dtype=np.uint8)
+
+
+def vertex_colors_from_texture(mesh: MeshModel) -> NDArray[np.uint8] | None:
+    """Per-vertex colours: the mean texel over each vertex's textured corners."""
+    if not mesh.textured or mesh.face_pages is None or mesh.face_uvs is None:
+        return None
+    total = np.zeros((len(mesh.vertices), 3), dtype=np.float64)
+    count = np.zeros(len(mesh.vertices), dtype=np.float64)
+    for page in sorted(int(p) for p in np.unique(mesh.face_pages) if p >= 0):
+        image = decode_png(mesh.pages[page], f"texture page {page}")
+        selected = np.flatnonzero(mesh.face_pages == page)
+        corners = mesh.faces[selected].reshape(-1)
+        texels = sample_texture(image, mesh.face_uvs[selected].reshape(-1, 2))
+        for channel in range(3):
+            total[:, channel] += np.bincount(corners, texels[:, channel].astype(np.float64),
+                                             minlength=len(mesh.vertices))
+        count += np.bincount(corners, minlength=len(mesh.vertices))
+    seen = count > 0
+    colors = np.full((len(mesh.vertices), 3), 178, dtype=np.uint8)
+    colors[seen] = np.rint(total[seen] / count[seen, None]).astype(np.uint8)
+    return colors
+
+
+def _header(comment: str, vertex_count: int, properties: list[str],
+            face_count: int | None) -> bytes:
+    lines = ["ply", "format binary_little_endian 1.0", f"comment {comment}",
+             f"element vertex {vertex_count}", *properties]
+    if face_count is not None:
+        lines += [f"element face {face_count}", "property list uchar int vertex_indices"]
+    lines.append("end_header")
+    return ("\n".join(lines) + "\n").encode()
+
+
+def ply_mesh_bytes(mesh: MeshModel) -> bytes:
+    """A binary PLY of the mesh with normals and vertex colours (from the texture if needed)."""
+    colors = mesh.colors if mesh.colors is not None else vertex_colors_from_texture(mesh)
+    fields = [(n, "<f4") for n in ("x", "y", "z", "nx", "ny", "nz")]
+    properties = [f"property float {n}" for n, _ in fields]
+    if colors is not None:
+        fields += [(n, "u1") for n in ("red", "green", "blue")]
+        properties += [f"property uchar {n}" for n in ("red", "green", "blue")]
+    vertices = np.empty(len(mesh.vertices), dtype=fields)
+    normals = unit_normals(mesh)
+    for j, n in enumerate(("x", "y", "z")):
+        vertices[n] = mesh.vertices[:, j]
+        vertices["n" + n] = normals[:, j]
+    if colors is not None:
+        for j, n in enumerate(("red", "green", "blue")):
+            vertices[n] = colors[:, j]
+    faces = np.empty(len(mesh.faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    faces["n"] = 3
+    faces["i"] = mesh.faces
+    header = _header(f"scanpipe {__version__} mesh; y up, metres", len(vertices), properties,
+                     len(faces))
+    return header + vertices.tobytes() + faces.tobytes()
+
+
+def ply_cloud_bytes(cloud: CloudModel) -> bytes:
+    """A binary PLY of the points with intensity (echo) and colour when present."""
+    fields: list[tuple[str, str]] = [(n, "<f4") for n in ("x", "y", "z")]
+    properties = [f"property float {n}" for n in ("x", "y", "z")]
+    if cloud.intensity is not None:
+        fields.append(("intensity", "<u2"))
+        properties.append("property ushort intensity")
+    if cloud.colors is not None:
+        fields += [(n, "u1") for n in ("red", "green", "blue")]
+        properties += [f"property uchar {n}" for n in ("red", "green", "blue")]
+    vertices = np.empty(len(cloud.xyz), dtype=fields)
+    for j, n in enumerate(("x", "y", "z")):
+        vertices[n] = cloud.xyz[:, j]
+    if cloud.intensity is not None:
+        vertices["intensity"] = cloud.intensity
+    if cloud.colors is not None:
+        for j, n in enumerate(("red", "green", "blue")):
+            vertices[n] = cloud.colors[:, j]
+    header = _header(f"scanpipe {__version__} points; y up, metres", len(vertices),
+                     properties, None)
+    return header + vertices.tobytes()

@@ -1,0 +1,162 @@
+"""Export: artifacts to files other tools open (OBJ, GLB, PLY, LAS/LAZ, E57, Foxglove MCAP).
+
+Two layers. :func:`export_files` is pure: tables in, ``{file name: bytes}`` out (the same shape
+as :attr:`scanpipe.pipeline.StageResult.files`). :func:`write_files` puts them on disk all or
+nothing: every file goes to a temporary name first and is renamed only when all were written,
+so an error never leaves a half export. :func:`export_folder` does both for a folder of
+artifacts, the ``scanpipe export`` command.
+
+What each format takes: ``obj`` and ``glb`` the mesh (+ texture when present); ``las``,
+``laz`` and ``e57`` the points; ``ply`` the mesh, or the points when there is no mesh;
+``mcap`` both when present (the points for scrubbing the scan, the mesh as a model).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Literal
+
+import pyarrow as pa
+
+from scanpipe.artifacts import FILE_MODE, read_artifact
+from scanpipe.errors import ArtifactError, ExportError, UsageError
+from scanpipe.exporters.e57 import e57_bytes
+from scanpipe.exporters.glb import glb_bytes
+from scanpipe.exporters.las import las_bytes
+from scanpipe.exporters.mcap_foxglove import foxglove_mcap_bytes
+from scanpipe.exporters.model import CloudModel, MeshModel, cloud_from_table, mesh_from_tables
+from scanpipe.exporters.obj import obj_files
+from scanpipe.exporters.ply import ply_cloud_bytes, ply_mesh_bytes
+from scanpipe.params import Params
+from scanpipe.workdir import find_artifacts
+
+Format = Literal["obj", "glb", "ply", "las", "laz", "e57", "mcap"]
+FORMATS: tuple[str, ...] = ("obj", "glb", "ply", "las", "laz", "e57", "mcap")
+MESH_ARTIFACTS = ("mesh_vertices", "mesh_faces")
+TEXTURE_ARTIFACTS = ("textured_faces", "texture_pages")
+INPUT_ARTIFACTS = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points")
+
+
+class FormatError(ExportError, UsageError):
+    """An unknown export format, or an output name that contradicts it (a usage error: exit 2)."""
+
+    exit_code = 2
+
+
+class ExportParams(Params):
+    """What to write: the format, and the stem every file name derives from."""
+
+    format: Format = "obj"
+    name: str = "scan"
+
+
+def check_format(fmt: str) -> str:
+    """The format name in lower case, or a FormatError listing the formats."""
+    lowered = fmt.lower().lstrip(".")
+    if lowered not in FORMATS:
+        raise FormatError(f"--format {fmt!r}: unknown format; allowed: {', '.join(FORMATS)}")
+    return lowered
+
+
+def models_from_tables(tables: Mapping[str, pa.Table]) -> tuple[MeshModel | None,
+                                                                   CloudModel | None]:
+    """The mesh (with texture when both texture artifacts exist) and the cloud, where given."""
+    mesh = None
+    if all(name in tables for name in MESH_ARTIFACTS):
+        textured = all(name in tables for name in TEXTURE_ARTIFACTS)
+        mesh = mesh_from_tables(tables["mesh_vertices"], tables["mesh_faces"],
+                                tables["textured_faces"] if textured else None,
+                                tables["texture_pages"] if textured else None)
+    cloud = cloud_from_table(tables["points"]) if "points" in tables else None
+    return mesh, cloud
+
+
+def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str) -> dict[str, bytes]:
+    """The files of one export, by name; the first is the main file."""
+    fmt = check_format(fmt)
+    mesh, cloud = models_from_tables(tables)
+    if fmt in ("obj", "glb") or (fmt == "ply" and mesh is not None):
+        if mesh is None:
+            raise ArtifactError(f"{fmt} export needs a mesh (mesh_vertices and mesh_faces "
+                                f"artifacts); found: {', '.join(sorted(tables)) or 'nothing'}")
+        if fmt == "obj":
+            return obj_files(mesh, stem)
+        if fmt == "glb":
+            return {f"{stem}.glb": glb_bytes(mesh, stem)}
+        return {f"{stem}.ply": ply_mesh_bytes(mesh)}
+    if fmt == "mcap":
+        return {f"{stem}.mcap": foxglove_mcap_bytes(cloud, mesh, stem)}
+    if cloud is None:
+        raise ArtifactError(f"{fmt} export needs a points artifact; found: "
+                            f"{', '.join(sorted(tables)) or 'nothing'}")
+    if fmt == "ply":
+        return {f"{stem}.ply": ply_cloud_bytes(cloud)}
+    if fmt in ("las", "laz"):
+        return {f"{stem}.{fmt}": las_bytes(cloud, compressed=fmt == "laz")}
+    return {f"{stem}.e57": e57_bytes(cloud, stem)}
+
+
+def write_files(files: Mapping[str, bytes], out_dir: Path) -> list[Path]:
+    """Write every file into ``out_dir``, all or nothing; returns the paths written."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ExportError(f"{out_dir}: cannot create the folder ({err.strerror or err})") from None
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for name, data in files.items():
+            target = out_dir / name
+            fd, tmp_name = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out_dir)
+            staged.append((Path(tmp_name), target))
+            os.fchmod(fd, FILE_MODE)
+            with os.fdopen(fd, "wb") as handle:
+                handle.write(data)
+        for _, target in staged:
+            if target.is_dir():
+                raise ExportError(f"{target}: is a folder; choose another --out")
+        for tmp, target in staged:
+            os.replace(tmp, target)
+    except OSError as err:
+        raise ExportError(f"{out_dir}: cannot write the export "
+                          f"({err.strerror or err})") from None
+    finally:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+    return [target for _, target in staged]
+
+
+def stem_and_folder(out: Path, fmt: str) -> tuple[str, Path]:
+    """``--out`` as (stem, folder): ``room.obj`` → ("room", .); an existing folder or a path
+    ending in ``/`` → ("scan", that folder)."""
+    if out.is_dir() or str(out).endswith(os.sep):
+        return "scan", out
+    suffix = out.suffix.lower().lstrip(".")
+    if suffix and suffix != fmt:
+        raise FormatError(f"--out {out}: the extension .{suffix} does not match --format {fmt}")
+    return out.stem if suffix else out.name, out.parent
+
+
+def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
+    """The artifacts an export of ``fmt`` can use from ``folder`` (flat or per stage)."""
+    found = find_artifacts(folder, INPUT_ARTIFACTS)
+    if not found:
+        raise ArtifactError(f"{folder}: no artifacts to export (looked for "
+                            f"{', '.join(INPUT_ARTIFACTS)} as <name>.parquet or "
+                            "<stage>/<name>.parquet)")
+    wanted: tuple[str, ...] = INPUT_ARTIFACTS
+    if fmt in ("las", "laz", "e57"):
+        wanted = ("points",)
+    elif fmt in ("obj", "glb"):
+        wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)
+    return {name: read_artifact(path)[0] for name, path in found.items() if name in wanted}
+
+
+def export_folder(folder: Path, fmt: str, out: Path) -> list[Path]:
+    """``scanpipe export``: read the artifacts in ``folder`` and write ``fmt`` to ``out``."""
+    fmt = check_format(fmt)
+    stem, out_dir = stem_and_folder(out, fmt)
+    tables = load_tables(folder, fmt)
+    return write_files(export_files(tables, fmt, stem), out_dir)
