@@ -9,18 +9,25 @@ VENV="${SCANPIPE_VENV:-.venv}"
 
 need_system_libs() {
   # Open3D's wheel needs libusb-1.0 and libgomp at import time.
-  ! ldconfig -p | grep -q 'libusb-1.0.so.0' || ! ldconfig -p | grep -q 'libgomp.so.1'
+  # Read the cache first: grep -q closing the pipe early would fail the check under pipefail.
+  local libs
+  libs="$(ldconfig -p 2>/dev/null || true)"
+  ! grep -q 'libusb-1.0.so.0' <<<"$libs" || ! grep -q 'libgomp.so.1' <<<"$libs"
+}
+
+sudo_prefix() {
+  if [ "$(id -u)" = 0 ]; then return 0; fi
+  if command -v sudo >/dev/null; then echo sudo; return 0; fi
+  echo "run.sh: error: need root (or sudo) to apt-get install system packages" >&2
+  exit 1
 }
 
 setup() {
   if need_system_libs; then
     echo "run.sh: installing system libraries for Open3D (libusb-1.0-0, libgomp1)" >&2
-    if [ "$(id -u)" = 0 ]; then SUDO=""; elif command -v sudo >/dev/null; then SUDO="sudo"; else
-      echo "run.sh: error: need root (or sudo) to apt-get install libusb-1.0-0 libgomp1" >&2
-      exit 1
-    fi
-    $SUDO apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 libgomp1 >/dev/null
+    $(sudo_prefix) apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $(sudo_prefix) apt-get install -y -qq libusb-1.0-0 libgomp1 \
+      >/dev/null
   fi
   local python
   python="$(command -v python3.11 || command -v python3)"
@@ -39,12 +46,26 @@ setup() {
   fi
 }
 
+setup_test_tools() {
+  # The Khronos glTF-Validator (npm) checks our GLB files in the tests.
+  local validator=".cache/gltf-validator/node_modules/gltf-validator"
+  [ -d "$validator" ] && return 0
+  if ! command -v npm >/dev/null; then
+    echo "run.sh: installing Node.js and npm for the glTF-Validator" >&2
+    $(sudo_prefix) apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $(sudo_prefix) apt-get install -y -qq nodejs npm >/dev/null
+  fi
+  echo "run.sh: installing the Khronos glTF-Validator into .cache/" >&2
+  npm install --silent --no-audit --no-fund --prefix .cache/gltf-validator \
+    gltf-validator@2.0.0-dev.3.10 >/dev/null
+}
+
 case "${1:-}" in
   demo)
     shift; setup
     exec "$VENV/bin/scanpipe" plan --angle 0.108 "$@" ;;
   test)
-    shift; setup
+    shift; setup; setup_test_tools
     "$VENV/bin/ruff" check src tests benchmarks
     "$VENV/bin/mypy" src
     exec "$VENV/bin/pytest" -n 2 "$@" ;;
