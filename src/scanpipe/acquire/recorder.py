@@ -1,0 +1,539 @@
+"""The recorder: run a scan on the rig and write everything raw into one recording.
+
+Two procedures (:class:`RecordOptions.mode`):
+
+- ``step`` (the paper's step-and-scan): from the controller's current count, move by the chosen
+  step count (:func:`scanpipe.planning.choose_steps`), wait for the move to end and the settle
+  time, then for ``profiles_per_position`` complete profiles that began after the settle (the
+  profile under way when the platform came to rest is not counted), and repeat while the next
+  position is within the pulse limit;
+- ``continuous``: one move to the pulse limit at a constant pulse rate (the step angle per head
+  turn: ``steps × scan_hz`` pulses per second) while the controller reports its position
+  periodically and the scanner streams.
+
+Cameras record throughout. Threads: one reads the scanner, one the motor link, one per camera,
+one flushes the file every ``fsync_interval_s`` (so a SIGKILL loses at most about that much);
+the calling thread runs the procedure. SIGINT / SIGTERM stop the motor and finish the file
+properly. A scanner that drops the link stops the motor at once; the recorder tries to
+reconnect and carries on, or ends the recording cleanly. Every such incident is an event on
+``/events`` and in the summary.
+"""
+
+from __future__ import annotations
+
+import signal
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from types import FrameType
+from typing import Any, Literal
+
+from pydantic import Field
+
+from scanpipe import __version__
+from scanpipe.acquire.cameras import CameraThread, FrameSource, is_device_index, open_capture
+from scanpipe.acquire.display import RecorderStatus
+from scanpipe.acquire.motor_client import MotorClient
+from scanpipe.acquire.scanner_client import ScannerClient
+from scanpipe.acquire.sink import RecordingSink
+from scanpipe.errors import DeviceError, ScanpipeError
+from scanpipe.params import Params
+from scanpipe.planning import choose_steps, move_time_s
+from scanpipe.protocol import ldoem
+from scanpipe.rig import Rig
+
+CameraOpener = Callable[[Any], FrameSource]
+
+
+class RecordOptions(Params):
+    """How to record: the procedure, the step, safety and file settings."""
+
+    mode: Literal["step", "continuous"] = "step"
+    step_angle_deg: float = Field(0.108, gt=0, le=360)
+    profiles_per_position: int = Field(1, ge=1, le=100)
+    #: ldoem: ask for the echo amplitudes too (format mask 0x3DFF instead of 0x39FF).
+    with_echo: bool = False
+    cameras: bool = True
+    jpeg_quality: int = Field(90, ge=1, le=100)
+    fsync_interval_s: float = Field(1.0, gt=0, le=1.0)
+    split_size_mb: float | None = Field(None, gt=0)
+    split_duration_s: float | None = Field(None, gt=0)
+    reply_timeout_s: float = Field(3.0, gt=0)
+    reconnect_attempts: int = Field(2, ge=0, le=100)
+    reconnect_delay_s: float = Field(0.5, ge=0)
+    #: The virtual rig's clock speed-up: waits that stand for device time (settle, time-outs,
+    #: camera periods) shrink by this factor. 1 on a real rig.
+    speedup: float = Field(1.0, gt=0, le=10_000)
+    #: ZERO the controller at the start: the pulse limit counts from where the scan starts.
+    zero_at_start: bool = True
+    install_signal_handlers: bool = True
+
+
+class RecordingStopped(Exception):
+    """Internal: the procedure ends early (signal, lost scanner, device error)."""
+
+
+class Recorder:
+    """One recording session; :meth:`run` does it all and returns the summary.
+
+    ``camera_opener(camera_config)`` opens a camera's frame source (OpenCV by default; the
+    virtual rig passes its virtual cameras). ``writer_factory`` opens one recording file.
+    """
+
+    def __init__(
+        self,
+        rig: Rig,
+        out: Path,
+        options: RecordOptions | None = None,
+        camera_opener: CameraOpener | None = None,
+        writer_factory: Callable[[Path, Rig, Mapping[str, Any]], Any] | None = None,
+        clock_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
+        self.rig = rig
+        self.out = out
+        self.options = options or RecordOptions()
+        self.camera_opener = camera_opener or open_capture
+        self.writer_factory = writer_factory or _writer_factory(self.options.fsync_interval_s)
+        self.clock_ns = clock_ns
+        self.stop_event = threading.Event()
+        self.stop_reason = ""
+        self.status = "running"
+        self.phase = "starting"
+        self.positions_done = 0
+        self.positions_total: int | None = None
+        self.sink: RecordingSink | None = None
+        self.scanner: ScannerClient | None = None
+        self.motor: MotorClient | None = None
+        self.cameras: list[CameraThread] = []
+        self._started = time.monotonic()
+        self._position_times: list[float] = []
+        self._scanner_lost = threading.Event()
+        self._rate_window: list[tuple[float, int]] = []
+        self._continuous_end: tuple[float, int] | None = None  # (deadline, target) when turning
+        choice = choose_steps(self.options.step_angle_deg, rig.motor.step_deg,
+                              rig.motor.pulse_limit)
+        self.step_count = choice.chosen_steps
+
+    # -- the whole session ----------------------------------------------------------------
+
+    def session_metadata(self) -> dict[str, Any]:
+        """The ``scanpipe.session`` metadata: mode, step, start time, host, versions."""
+        import platform
+
+        return {
+            "mode": self.options.mode,
+            "step_count": self.step_count,
+            "step_deg": self.step_count * self.rig.motor.step_deg,
+            "profiles_per_position": self.options.profiles_per_position,
+            "start_time_ns": self.clock_ns(),
+            "host": socket.gethostname(),
+            "python": platform.python_version(),
+            "scanpipe": __version__,
+            "speedup": self.options.speedup,
+        }
+
+    def run(self) -> dict[str, Any]:
+        """Record until the procedure ends or is stopped; always finish the file properly."""
+        opts = self.options
+        self.sink = RecordingSink(
+            self.out, self.rig, self.session_metadata(), self.writer_factory,
+            split_bytes=int(opts.split_size_mb * 1e6) if opts.split_size_mb else None,
+            split_s=opts.split_duration_s, clock_ns=self.clock_ns)
+        flusher = threading.Thread(target=self._flush_loop, name="recording-flush", daemon=True)
+        flusher.start()
+        try:
+            with self._signals():
+                try:
+                    self._connect()
+                    if opts.mode == "step":
+                        self._step_and_scan()
+                    else:
+                        self._continuous()
+                    if self.status == "running":
+                        self.status = "complete"
+                except RecordingStopped:
+                    pass
+                except DeviceError as err:
+                    self._fail("device_error", str(err))
+                finally:
+                    self._shut_down()
+        finally:
+            self.stop_event.set()
+            flusher.join(timeout=2.0)
+            summary = self.summary()
+            self.sink.event("recording_end", f"recording ended: {self.status}",
+                            {"status": self.status, "reason": self.stop_reason})
+            self.sink.close()
+        return summary
+
+    def _fail(self, kind: str, message: str) -> None:
+        if self.status == "running":
+            self.status = "failed"
+            self.stop_reason = message
+        assert self.sink is not None
+        self.sink.event(kind, message)
+
+    @contextmanager
+    def _signals(self) -> Iterator[None]:
+        """SIGINT / SIGTERM end the scan gracefully (main thread only)."""
+        if (not self.options.install_signal_handlers
+                or threading.current_thread() is not threading.main_thread()):
+            yield
+            return
+
+        def handler(signum: int, frame: FrameType | None) -> None:
+            name = signal.Signals(signum).name
+            if self.stop_event.is_set():
+                # Already finishing the file: the next such signal ends the process at once.
+                signal.signal(signum, signal.SIG_DFL)
+                return
+            self.request_stop(f"{name} received", status="interrupted")
+
+        previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield
+        finally:
+            for s, h in previous.items():
+                signal.signal(s, h)
+
+    def request_stop(self, reason: str, status: str = "interrupted") -> None:
+        """Ask the procedure to stop (from a signal handler or another thread)."""
+        if self.status == "running":
+            self.status = status
+            self.stop_reason = reason
+        self.stop_event.set()
+
+    def _check_stop(self) -> None:
+        if self.stop_event.is_set():
+            raise RecordingStopped
+
+    # -- devices ---------------------------------------------------------------------------
+
+    def _connect(self) -> None:
+        assert self.sink is not None
+        opts = self.options
+        self.phase = "connecting"
+        self.motor = MotorClient(self.rig.motor, self.sink, opts.reply_timeout_s,
+                                 self.clock_ns, on_error=self._motor_link_error)
+        self.motor.connect()
+        firmware, limit = self.motor.identify()
+        self.sink.event("motor_connected", f"motor controller on {self.rig.motor.serial_url}",
+                        {"firmware": firmware, "pulse_limit": limit})
+        if limit is not None and limit != self.rig.motor.pulse_limit:
+            self.sink.event("motor_limit_mismatch",
+                            f"the controller's pulse limit is {limit}, the rig file says "
+                            f"{self.rig.motor.pulse_limit}; moves past {limit} will be refused",
+                            {"controller": limit, "rig": self.rig.motor.pulse_limit})
+        state = self.motor.query_position()
+        if opts.zero_at_start:
+            self.motor.zero()
+            state = self.motor.query_position()
+            self.sink.event("motor_zeroed", "the start position is the controller's zero")
+        self.motor.set_accel(self.rig.motor.accel_hz_per_s)
+        if not 0 <= state.step_count <= self.rig.motor.pulse_limit:
+            raise DeviceError(f"motor: the controller's count {state.step_count} is outside "
+                              f"0…{self.rig.motor.pulse_limit}; zero it at the start position")
+        mask = ldoem.MASK_RANGES_ECHO if opts.with_echo else ldoem.MASK_RANGES
+        self.scanner = ScannerClient(self.rig.scanner, self.sink, self._scanner_dropped,
+                                     reply_timeout_s=opts.reply_timeout_s, mask=mask,
+                                     clock_ns=self.clock_ns)
+        self.scanner.connect()
+        self.sink.event("scanner_connected",
+                        f"{self.rig.scanner.dialect} scanner at "
+                        f"{self.rig.scanner.host}:{self.rig.scanner.port}",
+                        {"ident": self.scanner.ident,
+                         "device_clock_ms_at_host_ns": self.scanner.device_clock})
+        if opts.cameras:
+            self._start_cameras()
+
+    def _start_cameras(self) -> None:
+        assert self.sink is not None
+        for cam in self.rig.cameras:
+            try:
+                source = self.camera_opener(cam)
+            except ScanpipeError as err:
+                self.sink.event("camera_error", str(err), {"camera_id": cam.id})
+                continue
+            live_device = is_device_index(cam.source) and self.camera_opener is open_capture
+            thread = CameraThread(cam.id, source, self.sink, self.stop_event,
+                                  period_s=1.0 / (cam.fps * self.options.speedup),
+                                  pace=not live_device, jpeg_quality=self.options.jpeg_quality,
+                                  clock_ns=self.clock_ns)
+            thread.start()
+            self.cameras.append(thread)
+
+    def _scanner_dropped(self, reason: str) -> None:
+        """Called by the scanner's reader thread: stop the motor first, then tell the procedure."""
+        assert self.sink is not None
+        self._scanner_lost.set()
+        self.sink.event("scanner_disconnected", f"scanner: {reason}")
+        if self.motor is not None:
+            try:
+                self.motor.stop()
+            except DeviceError as err:
+                self.sink.event("motor_error", f"STOP after the scanner dropped: {err}")
+
+    def _motor_link_error(self, reason: str) -> None:
+        assert self.sink is not None
+        self.sink.event("motor_disconnected", f"motor controller: {reason}")
+        self.request_stop(f"motor controller: {reason}", status="failed")
+
+    def _reconnect_scanner(self) -> None:
+        """After a drop: try to reconnect; :class:`RecordingStopped` when it stays down."""
+        assert self.sink is not None and self.scanner is not None
+        opts = self.options
+        self.scanner.close(cancel=False)
+        for attempt in range(1, opts.reconnect_attempts + 1):
+            if self.stop_event.wait(opts.reconnect_delay_s):
+                raise RecordingStopped
+            try:
+                self.scanner.connect()
+            except DeviceError as err:
+                self.sink.event("scanner_reconnect_failed", f"attempt {attempt}: {err}")
+                continue
+            self._scanner_lost.clear()
+            self.sink.event("scanner_reconnected", f"scanner reconnected (attempt {attempt})")
+            return
+        self.status = "scanner_disconnected"
+        self.stop_reason = (f"the scanner dropped the link and {opts.reconnect_attempts} "
+                            "reconnect attempt(s) failed")
+        raise RecordingStopped
+
+    def _shut_down(self) -> None:
+        """Stop the motor, the scanner stream and the cameras; every step is tried."""
+        assert self.sink is not None
+        self.phase = "stopping"
+        if self.motor is not None and self.motor.connected:
+            state = self.motor.state
+            if self.status != "complete" or (state is not None and state.moving):
+                try:
+                    self.motor.stop()
+                    self.sink.event("motor_stopped", "motor stopped")
+                except DeviceError as err:
+                    self.sink.event("motor_error", f"STOP failed: {err}")
+        if self.scanner is not None:
+            self.scanner.close(cancel=True)
+        self.stop_event.set()
+        for thread in self.cameras:
+            thread.join(timeout=2.0)
+        if self.motor is not None:
+            self.motor.close()
+        self.phase = "done"
+
+    def _flush_loop(self) -> None:
+        """Flush and fsync the file at least every ``fsync_interval_s`` (even when idle)."""
+        interval = self.options.fsync_interval_s
+        while not self.stop_event.wait(interval / 2):
+            if self.sink is not None:
+                try:
+                    self.sink.flush()
+                except (OSError, ScanpipeError) as err:
+                    self.request_stop(f"cannot write the recording: {err}", status="failed")
+            self._note_rate()
+
+    # -- procedures ------------------------------------------------------------------------
+
+    def _device_s(self, seconds: float) -> float:
+        """Host time for ``seconds`` of device time."""
+        return seconds / self.options.speedup
+
+    def _targets(self, start: int) -> list[int]:
+        limit = self.rig.motor.pulse_limit
+        return list(range(start, limit + 1, self.step_count))
+
+    def _move_to(self, target: int, rate_hz: float) -> None:
+        """Move to ``target`` and wait for the controller to report it reached, stopped."""
+        assert self.motor is not None and self.sink is not None
+        state = self.motor.state or self.motor.query_position()
+        pulses = target - state.step_count
+        if pulses == 0 and not state.moving:
+            return
+        expected = move_time_s(abs(pulses), rate_hz, self.rig.motor.accel_hz_per_s)
+        self.phase = f"moving to {target}"
+        try:
+            self.motor.move(pulses)
+        except DeviceError as err:
+            self.sink.event("motor_error", str(err), {"target": target})
+            raise
+        timeout = self._device_s(expected * 1.5 + 1.0) + self.options.reply_timeout_s
+        # A lost scanner stops the motor on purpose: stop waiting then, too.
+        reached = self.motor.wait_for_state(
+            lambda s: (not s.moving and s.step_count == target) or self._scanner_lost.is_set(),
+            timeout, self.stop_event)
+        self._check_stop()
+        if self._scanner_lost.is_set():
+            return  # the procedure reconnects and comes back to this target
+        if reached is None:
+            last = self.motor.state
+            self.sink.event("motor_timeout",
+                            f"motor: target {target} not reached within {timeout:.1f} s "
+                            f"(last count {last.step_count if last else '?'})",
+                            {"target": target})
+            raise DeviceError(f"motor: target {target} not reached within {timeout:.1f} s")
+
+    def _step_and_scan(self) -> None:
+        assert self.motor is not None and self.scanner is not None and self.sink is not None
+        opts, scanner = self.options, self.rig.scanner
+        start = self.motor.state.step_count if self.motor.state else 0
+        targets = self._targets(start)
+        self.positions_total = len(targets)
+        scan_period_s = self._device_s(1.0 / scanner.scan_hz)
+        profile_timeout = (opts.profiles_per_position + 3) * scan_period_s + opts.reply_timeout_s
+        self.motor.set_rate(self.rig.motor.pulse_rate_hz)
+        index = 0
+        while index < len(targets):
+            self._check_stop()
+            if self._scanner_lost.is_set():
+                self._reconnect_scanner()
+            position_started = time.monotonic()
+            self._move_to(targets[index], self.rig.motor.pulse_rate_hz)
+            if self._scanner_lost.is_set():
+                continue
+            self.phase = f"settling at {targets[index]}"
+            if self.stop_event.wait(self._device_s(self.rig.motor.settle_s)):
+                raise RecordingStopped
+            settled_ns = self.clock_ns()
+            self.phase = f"scanning at {targets[index]}"
+            # +1: the first profile after the settle may have begun before it.
+            if not self.scanner.wait_for_profiles(settled_ns, opts.profiles_per_position + 1,
+                                                  profile_timeout, self.stop_event):
+                self._check_stop()
+                if self._scanner_lost.is_set() or not self.scanner.connected:
+                    self._scanner_lost.set()
+                    continue  # reconnect, then retake this position
+                self.sink.event("scanner_timeout",
+                                f"scanner: no complete profile within {profile_timeout:.1f} s "
+                                f"at position {targets[index]}", {"target": targets[index]})
+                raise DeviceError(f"scanner: no profiles for {profile_timeout:.1f} s")
+            self.positions_done = index + 1
+            self._position_times.append(time.monotonic() - position_started)
+            index += 1
+
+    def continuous_rate_hz(self) -> float:
+        """Pulse rate of a continuous scan: the step per head turn, ``steps × scan_hz``."""
+        return self.step_count * self.rig.scanner.scan_hz
+
+    def _continuous(self) -> None:
+        assert self.motor is not None and self.scanner is not None and self.sink is not None
+        rate = self.continuous_rate_hz()
+        start = self.motor.state.step_count if self.motor.state else 0
+        end = self._targets(start)[-1]
+        self.positions_total = (end - start) // self.step_count + 1
+        self.motor.set_rate(rate)
+        # Wait for the stream to run before turning, so the scan starts at the start position.
+        self.phase = "waiting for the scanner"
+        if not self.scanner.wait_for_profiles(self.clock_ns(), 1,
+                                              self._device_s(3.0 / self.rig.scanner.scan_hz)
+                                              + self.options.reply_timeout_s, self.stop_event):
+            self._check_stop()
+            raise DeviceError("scanner: no profiles before the continuous turn")
+        while True:
+            self._check_stop()
+            if self._scanner_lost.is_set():
+                self._reconnect_scanner()
+            self.phase = f"turning at {rate:g} pulses/s"
+            state = self.motor.state or self.motor.query_position()
+            remaining = end - state.step_count
+            self._continuous_end = (time.monotonic() + self._device_s(remaining / rate), end)
+            self._move_to(end, rate)
+            if not self._scanner_lost.is_set():
+                break
+        self.positions_done = self.positions_total
+        # One more whole profile at the end position.
+        self.scanner.wait_for_profiles(self.clock_ns(), 1,
+                                       self._device_s(2.0 / self.rig.scanner.scan_hz) + 1.0,
+                                       self.stop_event)
+
+    # -- reporting -------------------------------------------------------------------------
+
+    def _note_rate(self) -> None:
+        if self.sink is None:
+            return
+        now = time.monotonic()
+        self._rate_window.append((now, self.sink.stats.total_bytes))
+        self._rate_window = [(t, b) for t, b in self._rate_window if now - t <= 5.0]
+
+    def time_left_s(self) -> float | None:
+        """A time-left estimate from the positions done so far (step) or the turn (continuous)."""
+        if self.options.mode == "continuous":
+            if self._continuous_end is None:
+                return None
+            return max(0.0, self._continuous_end[0] - time.monotonic())
+        if not self._position_times or self.positions_total is None:
+            return None
+        mean = sum(self._position_times[-20:]) / len(self._position_times[-20:])
+        return mean * (self.positions_total - self.positions_done)
+
+    def live_status(self) -> RecorderStatus:
+        """A snapshot for the live display."""
+        stats = self.sink.stats if self.sink else None
+        state = self.motor.state if self.motor else None
+        step_count = state.step_count if state else 0
+        rate = 0.0
+        if len(self._rate_window) >= 2:
+            (t0, b0), (t1, b1) = self._rate_window[0], self._rate_window[-1]
+            rate = (b1 - b0) / (t1 - t0) if t1 > t0 else 0.0
+        last = stats.event_log[-1]["message"] if stats and stats.event_log else ""
+        return RecorderStatus(
+            mode=self.options.mode,
+            phase=self.phase,
+            elapsed_s=time.monotonic() - self._started,
+            profiles=self.scanner.stats.profiles if self.scanner else 0,
+            positions_done=self.positions_done,
+            positions_total=self.positions_total,
+            step_count=step_count,
+            pulse_limit=self.rig.motor.pulse_limit,
+            beta_deg=step_count * self.rig.motor.step_deg + self.rig.motor.beta_offset_deg,
+            frames=dict(stats.images) if stats else {},
+            dropped_frames=sum(c.stats.dropped for c in self.cameras),
+            data_rate_bps=rate,
+            total_bytes=stats.total_bytes if stats else 0,
+            time_left_s=self.time_left_s(),
+            events=sum(stats.events.values()) if stats else 0,
+            last_event=last,
+        )
+
+    def summary(self) -> dict[str, Any]:
+        """The final summary (also the return value of :meth:`run`)."""
+        assert self.sink is not None
+        stats = self.sink.stats
+        state = self.motor.state if self.motor else None
+        step_count = state.step_count if state else 0
+        return {
+            "files": [str(p) for p in self.sink.paths],
+            "status": self.status,
+            "reason": self.stop_reason,
+            "mode": self.options.mode,
+            "dialect": self.rig.scanner.dialect,
+            "step_count": self.step_count,
+            "duration_s": time.monotonic() - self._started,
+            "profiles": self.scanner.stats.profiles if self.scanner else 0,
+            "positions": self.positions_done,
+            "positions_planned": self.positions_total,
+            "final_step_count": step_count,
+            "final_beta_deg": step_count * self.rig.motor.step_deg,
+            "pulse_limit": self.rig.motor.pulse_limit,
+            "motor_states": stats.motor_states,
+            "frames": dict(stats.images),
+            "dropped_frames": {c.camera_id: c.stats.dropped for c in self.cameras},
+            "stream_bytes": dict(stats.stream_bytes),
+            "events": dict(stats.events),
+            "event_log": [
+                {k: v for k, v in e.items() if k != "data"} for e in stats.event_log
+            ],
+            "rig": self.rig.name,
+        }
+
+
+def _writer_factory(fsync_interval_s: float) -> Callable[[Path, Rig, Mapping[str, Any]], Any]:
+    """Open recording parts with the recording package's crash-safe writer."""
+    from scanpipe.recording.writer import RecordingWriter
+
+    def open_part(path: Path, rig: Rig, session: Mapping[str, Any]) -> Any:
+        return RecordingWriter(path, rig, session, fsync_interval_s=fsync_interval_s)
+
+    return open_part
+

@@ -1,0 +1,312 @@
+"""The scanner's TCP link, for both dialects.
+
+Every byte read from or written to the socket goes to the recording first (``/scanner/stream``,
+RX/TX, stamped with the host clock when read or sent); the client decodes the stream only to
+count profiles and to read replies to its own requests. The recording stays the raw truth.
+
+- ``paper``: the scanner streams frames as soon as the connection is open; stopping closes it.
+- ``ldoem``: before connecting, the rig's settings are checked against the LD-OEM 1000's limits
+  (:func:`scanpipe.planning.ldoem_limit_checks`). Then the start-up requests (GET_IDENT,
+  GET_STATUS, GET_SYNC_CLOCK, SET_CONFIG of the sector, ROTATE at the head speed, GET_PROFILE
+  streaming) are
+  sent one by one, each waiting for its reply; a refused request is a :class:`DeviceError`.
+  Stopping sends CANCEL_PROFILE and waits briefly for its reply.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+from scanpipe.acquire.sink import Link
+from scanpipe.errors import DeviceError, ProtocolError
+from scanpipe.planning import ldoem_limit_checks
+from scanpipe.protocol import ldoem
+from scanpipe.protocol.framing import RawFrame
+from scanpipe.protocol.profile import angle_to_wire
+from scanpipe.protocol.registry import DIALECTS, StreamDecoder
+from scanpipe.rig import ScannerConfig
+
+RX, TX = 0, 1
+#: Socket read timeout: how often the reader thread looks at its stop flag.
+POLL_S = 0.1
+
+
+class StreamSink(Protocol):
+    """Where raw link bytes go (:class:`scanpipe.acquire.sink.RecordingSink`)."""
+
+    def write_stream(self, link: Link, data: bytes, direction: int, log_time_ns: int) -> None: ...
+
+
+@dataclass
+class ScannerStats:
+    """What the client saw on the link."""
+
+    profiles: int = 0
+    rx_bytes: int = 0
+    tx_bytes: int = 0
+    last_profile_ns: int = 0
+    connects: int = 0
+
+
+def ldoem_config_problems(scanner: ScannerConfig) -> list[str]:
+    """The rig's scanner settings that the LD-OEM 1000 would refuse, one line each."""
+    return [f"scanner: {c.name} = {c.value:g} is outside the LD-OEM limit ({c.limit})"
+            for c in ldoem_limit_checks(scanner) if not c.ok]
+
+
+class ScannerClient:
+    """A connection to the scanner that streams profiles into the recording.
+
+    ``on_disconnect(reason)`` is called once from the reader thread when the link drops
+    unexpectedly (not after :meth:`close`). Use :meth:`wait_for_profiles` to wait for complete
+    profiles received after a moment (step-and-scan).
+    """
+
+    def __init__(
+        self,
+        scanner: ScannerConfig,
+        sink: StreamSink,
+        on_disconnect: Callable[[str], None] | None = None,
+        connect_timeout_s: float = 3.0,
+        reply_timeout_s: float = 3.0,
+        mask: int = ldoem.MASK_RANGES,
+        clock_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
+        self.scanner = scanner
+        self.sink = sink
+        self.on_disconnect = on_disconnect
+        self.connect_timeout_s = connect_timeout_s
+        self.reply_timeout_s = reply_timeout_s
+        self.mask = mask
+        self.clock_ns = clock_ns
+        self.stats = ScannerStats()
+        self.ident = ""
+        self.device_clock: tuple[int, int] | None = None  # (device ms, host ns)
+        self._sock: socket.socket | None = None
+        self._reader: threading.Thread | None = None
+        self._closing = threading.Event()
+        self._send_lock = threading.Lock()
+        self._profiles_changed = threading.Condition()
+        self._profile_times: list[int] = []  # recv times of recent profiles (bounded)
+        self._replies: queue.Queue[ldoem.Message] = queue.Queue()
+        self._want_profile = threading.Event()
+        self._connected = False
+
+    @property
+    def dialect(self) -> str:
+        """The wire dialect of the rig's scanner."""
+        return self.scanner.dialect
+
+    @property
+    def connected(self) -> bool:
+        """Whether the link is up."""
+        return self._connected
+
+    # -- connection -----------------------------------------------------------------------
+
+    def connect(self) -> None:
+        """Open the link, run the start-up (ldoem) and start streaming profiles."""
+        if self.dialect == "ldoem":
+            problems = ldoem_config_problems(self.scanner)
+            if problems:
+                raise DeviceError("; ".join(problems) + " — fix the rig file before recording")
+        host, port = self.scanner.host, self.scanner.port
+        try:
+            sock = socket.create_connection((host, port), timeout=self.connect_timeout_s)
+        except OSError as err:
+            raise DeviceError(f"scanner at {host}:{port}: cannot connect "
+                              f"({err.strerror or err}); check scanner.host and scanner.port"
+                              ) from err
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        sock.settimeout(POLL_S)
+        self._sock = sock
+        self._closing.clear()
+        self._replies = queue.Queue()
+        self._connected = True
+        self.stats.connects += 1
+        self._reader = threading.Thread(target=self._read_loop, args=(sock,),
+                                         name="scanner-reader", daemon=True)
+        self._reader.start()
+        if self.dialect == "ldoem":
+            try:
+                self._ldoem_start()
+            except DeviceError:
+                self.close(cancel=False)
+                raise
+
+    def _ldoem_start(self) -> None:
+        s = self.scanner
+        ident = self._request(ldoem.get_ident_request(), ldoem.SERVICE_STATUS, ldoem.GET_IDENT)
+        self.ident = ident.body.decode("ascii", "replace").strip("\x00 ")
+        self._request(ldoem.get_status_request(), ldoem.SERVICE_STATUS, ldoem.GET_STATUS)
+        sent_ns = self.clock_ns()
+        clock = self._request(ldoem.get_sync_clock_request(), ldoem.SERVICE_CONFIG,
+                              ldoem.GET_SYNC_CLOCK)
+        received_ns = self.clock_ns()
+        # The device's 16-bit ms clock against the host clock, for whoever maps device times.
+        try:
+            self.device_clock = (clock.u16(0), (sent_ns + received_ns) // 2)
+        except ProtocolError as err:
+            raise DeviceError(f"scanner: unexpected GET_SYNC_CLOCK reply ({err})") from err
+        config = b"".join(angle_to_wire(v).to_bytes(2, "big") for v in (
+            s.angular_step_deg, s.start_angle_deg, s.end_angle_deg))
+        # SET_CONFIG body: u16 step, start, end in 1/16° (docs/simulation.md).
+        self._request(ldoem.request(ldoem.SERVICE_CONFIG, ldoem.SET_CONFIG, config),
+                      ldoem.SERVICE_CONFIG, ldoem.SET_CONFIG)
+        self._request(ldoem.rotate_request(int(s.scan_hz)), ldoem.SERVICE_WORKING,
+                      ldoem.WORKING_ROTATE)
+        self._request(ldoem.get_profile_request(0, self.mask), ldoem.SERVICE_MEASURE,
+                      ldoem.GET_PROFILE, expect_profile=True)
+
+    def close(self, cancel: bool = True) -> None:
+        """Stop streaming (CANCEL_PROFILE for ldoem) and close the link."""
+        if self._sock is None:
+            return
+        if cancel and self._connected and self.dialect == "ldoem":
+            # Closing anyway if the reply does not come; the raw stream shows what happened.
+            with contextlib.suppress(DeviceError):
+                self._request(ldoem.cancel_profile_request(), ldoem.SERVICE_MEASURE,
+                              ldoem.CANCEL_PROFILE, timeout_s=min(self.reply_timeout_s, 1.0))
+        self._closing.set()
+        if self._reader is not None and self._reader is not threading.current_thread():
+            self._reader.join(timeout=2.0)
+        with contextlib.suppress(OSError):
+            self._sock.close()
+        self._sock = None
+        self._connected = False
+
+    # -- sending and replies -------------------------------------------------------------
+
+    def send(self, frame: bytes) -> None:
+        """Write bytes to the scanner, recording them as TX first."""
+        sock = self._sock
+        if sock is None or not self._connected:
+            raise DeviceError("scanner: not connected")
+        with self._send_lock:
+            self.sink.write_stream("scanner", frame, TX, self.clock_ns())
+            try:
+                sock.sendall(frame)
+            except OSError as err:
+                raise DeviceError(f"scanner: send failed ({err.strerror or err})") from err
+            self.stats.tx_bytes += len(frame)
+
+    def _request(self, frame: bytes, service: int, sub: int, expect_profile: bool = False,
+                 timeout_s: float | None = None) -> ldoem.Message:
+        """Send an ldoem request and wait for its reply (a profile reply counts for
+        GET_PROFILE streaming, whose first answer is the first profile)."""
+        if expect_profile:
+            self._want_profile.set()
+        self.send(frame)
+        deadline = time.monotonic() + (self.reply_timeout_s if timeout_s is None else timeout_s)
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not self._connected:
+                what = "the link dropped" if not self._connected else "no reply"
+                raise DeviceError(f"scanner: {what} to request {service:02x} {sub:02x} within "
+                                  f"{self.reply_timeout_s:g} s")
+            try:
+                message = self._replies.get(timeout=min(remaining, POLL_S))
+            except queue.Empty:
+                continue
+            if (message.service, message.sub) != (service, sub):
+                continue  # a late reply to an earlier request
+            if not expect_profile:
+                refused = _refusal(message)
+                if refused:
+                    raise DeviceError(f"scanner refused request {service:02x} {sub:02x}: "
+                                      f"{refused}")
+            return message
+
+    # -- reading -------------------------------------------------------------------------
+
+    def _read_loop(self, sock: socket.socket) -> None:
+        paper_decoder = (StreamDecoder(DIALECTS["paper"]) if self.dialect == "paper" else None)
+        reader = ldoem.FrameReader(accept_unknown=True) if self.dialect == "ldoem" else None
+        reason = ""
+        while not self._closing.is_set():
+            try:
+                data = sock.recv(1 << 16)
+            except TimeoutError:
+                continue
+            except OSError as err:
+                reason = f"connection error ({err.strerror or err})"
+                break
+            now = self.clock_ns()
+            if not data:
+                reason = "connection closed by the scanner"
+                break
+            self.sink.write_stream("scanner", data, RX, now)
+            self.stats.rx_bytes += len(data)
+            if paper_decoder is not None:
+                complete = len(paper_decoder.feed_frames(data))
+            else:
+                assert reader is not None
+                complete = self._ldoem_frames(reader.feed(data))
+            if complete:
+                self._profiles_arrived(complete, now)
+        if not self._closing.is_set():
+            self._connected = False
+            with self._profiles_changed:
+                self._profiles_changed.notify_all()
+            if self.on_disconnect is not None:
+                self.on_disconnect(reason)
+
+    def _ldoem_frames(self, frames: list[RawFrame]) -> int:
+        profiles = 0
+        for frame in frames:
+            if not frame.checksum_ok:
+                continue
+            try:
+                message = ldoem.parse_payload(frame.payload)
+            except ProtocolError:
+                continue
+            if message.is_profile_reply:
+                profiles += 1
+                if self._want_profile.is_set():  # the first profile answers GET_PROFILE
+                    self._want_profile.clear()
+                    self._replies.put(message)
+            elif message.is_reply:
+                self._replies.put(message)
+        return profiles
+
+    def _profiles_arrived(self, count: int, now_ns: int) -> None:
+        with self._profiles_changed:
+            self.stats.profiles += count
+            self.stats.last_profile_ns = now_ns
+            self._profile_times.extend([now_ns] * count)
+            del self._profile_times[:-256]  # more than profiles_per_position can ask for
+            self._profiles_changed.notify_all()
+
+    def wait_for_profiles(self, after_ns: int, count: int, timeout_s: float,
+                          stop: threading.Event | None = None) -> bool:
+        """Wait until ``count`` profiles have been received after ``after_ns`` (host clock).
+
+        False on time-out, on a dropped link or when ``stop`` is set.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._profiles_changed:
+            while True:
+                if sum(1 for t in self._profile_times if t > after_ns) >= count:
+                    return True
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or not self._connected or (stop is not None and stop.is_set()):
+                    return False
+                self._profiles_changed.wait(min(remaining, POLL_S))
+
+
+def _refusal(message: ldoem.Message) -> str:
+    """Why a reply refuses its request ('' when it does not).
+
+    The emulator and scanpipe's driver agree on a refusal as a reply whose body starts with
+    the u16 0xFFFF followed by an ASCII reason.
+    """
+    if message.body[:2] == b"\xff\xff":
+        return message.body[2:].decode("ascii", "replace") or "refused"
+    return ""

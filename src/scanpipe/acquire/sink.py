@@ -1,0 +1,165 @@
+"""The recorder's one way into the recording: a thread-safe writer with counters and splitting.
+
+Every driver thread (scanner, motor, cameras) writes through one :class:`RecordingSink`. It
+serialises calls to the :class:`~scanpipe.recording.writer.RecordingWriter` (which is not meant
+for concurrent use), counts what went in (for the live display and the summary), and, when asked,
+closes the current file and opens the next part once a size or duration is reached.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from scanpipe.errors import RecordingError
+from scanpipe.rig import Rig
+
+Link = Literal["scanner", "motor"]
+RX, TX = 0, 1
+
+
+def part_path(out: Path, index: int) -> Path:
+    """The path of part ``index`` of a split recording: ``scan.mcap`` → ``scan-001.mcap``.
+
+    Part 0 is ``out`` itself, so an unsplit recording and the first part share a name.
+    """
+    if index == 0:
+        return out
+    return out.with_name(f"{out.stem}-{index:03d}{out.suffix}")
+
+
+@dataclass
+class SinkStats:
+    """What has been written so far, over all parts."""
+
+    stream_bytes: Counter[str] = field(default_factory=Counter)  # "scanner RX" → bytes
+    motor_states: int = 0
+    images: Counter[str] = field(default_factory=Counter)  # camera id → frames
+    image_bytes: int = 0
+    events: Counter[str] = field(default_factory=Counter)  # kind → count
+    event_log: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def total_bytes(self) -> int:
+        """Payload bytes written: streams and images (what the data rate is computed from)."""
+        return sum(self.stream_bytes.values()) + self.image_bytes
+
+
+class RecordingSink:
+    """Thread-safe front of the recording writer: counts, events, optional splitting.
+
+    ``writer_factory(path, rig, session)`` opens one part; it is the recording package's
+    ``RecordingWriter`` in production. ``split_bytes`` / ``split_s`` (None = never) start a new
+    part once the current one is that large or that old; every part carries the rig and the
+    session metadata (with ``part`` set), so each decodes on its own.
+    """
+
+    def __init__(
+        self,
+        out: Path,
+        rig: Rig,
+        session: Mapping[str, Any],
+        writer_factory: Callable[[Path, Rig, Mapping[str, Any]], Any],
+        split_bytes: int | None = None,
+        split_s: float | None = None,
+        clock_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
+        self.out = out
+        self.rig = rig
+        self.session = dict(session)
+        self._factory = writer_factory
+        self.split_bytes = split_bytes
+        self.split_s = split_s
+        self._clock_ns = clock_ns
+        self._lock = threading.Lock()
+        self.stats = SinkStats()
+        self.paths: list[Path] = []
+        self._closed = False
+        self._writer: Any = None
+        self._part_started_ns = 0
+        self._open_part(0)
+
+    def _open_part(self, index: int) -> None:
+        path = part_path(self.out, index)
+        session = dict(self.session)
+        if self.split_bytes is not None or self.split_s is not None:
+            session["part"] = index
+        try:
+            self._writer = self._factory(path, self.rig, session)
+        except OSError as err:
+            raise RecordingError(f"{path}: cannot be written ({err.strerror or err})") from None
+        self.paths.append(path)
+        self._part_started_ns = self._clock_ns()
+
+    def _maybe_split(self, now_ns: int) -> None:
+        """Start the next part if the current one is big or old enough (lock held)."""
+        too_old = self.split_s is not None and now_ns - self._part_started_ns >= self.split_s * 1e9
+        too_big = False
+        if self.split_bytes is not None:
+            try:
+                too_big = os.path.getsize(self.paths[-1]) >= self.split_bytes
+            except OSError:
+                too_big = False
+        if too_old or too_big:
+            self._writer.close()
+            self._open_part(len(self.paths))
+
+    def write_stream(self, link: Link, data: bytes, direction: int, log_time_ns: int) -> None:
+        """Raw bytes of a link, as read (RX) or written (TX)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._maybe_split(log_time_ns)
+            self._writer.write_stream(link, data, direction, log_time_ns)
+            self.stats.stream_bytes[f"{link} {'RX' if direction == RX else 'TX'}"] += len(data)
+
+    def write_motor_state(self, log_time_ns: int, step_count: int, target_step_count: int,
+                          moving: bool, device_time_us: int) -> None:
+        """One position report of the motor controller."""
+        with self._lock:
+            if self._closed:
+                return
+            self._writer.write_motor_state(log_time_ns, step_count, target_step_count, moving,
+                                           device_time_us)
+            self.stats.motor_states += 1
+
+    def write_image(self, camera_id: str, log_time_ns: int, jpeg: bytes,
+                    frame_id: str = "") -> None:
+        """One JPEG frame, stamped with its capture time."""
+        with self._lock:
+            if self._closed:
+                return
+            self._maybe_split(log_time_ns)
+            self._writer.write_image(camera_id, log_time_ns, jpeg, frame_id)
+            self.stats.images[camera_id] += 1
+            self.stats.image_bytes += len(jpeg)
+
+    def event(self, kind: str, message: str, data: Mapping[str, Any] | None = None,
+              log_time_ns: int | None = None) -> None:
+        """Record a notable event on ``/events`` and keep it for the summary."""
+        when = self._clock_ns() if log_time_ns is None else log_time_ns
+        with self._lock:
+            self.stats.events[kind] += 1
+            self.stats.event_log.append(
+                {"time_ns": when, "kind": kind, "message": message, "data": dict(data or {})})
+            if not self._closed:
+                self._writer.write_event(when, kind, message, dict(data or {}))
+
+    def flush(self) -> None:
+        """Flush and fsync the current part now."""
+        with self._lock:
+            if not self._closed:
+                self._writer.flush()
+
+    def close(self) -> None:
+        """Finish the current part (summary section, fsync). Later writes are ignored."""
+        with self._lock:
+            if not self._closed:
+                self._closed = True
+                self._writer.close()

@@ -1,0 +1,219 @@
+"""Add a separately recorded video (a phone, as in the paper) to a recording as camera frames.
+
+MCAP files cannot be appended to in place. :func:`import_video` rewrites the recording into a
+temporary file beside it, with every original record (schemas, channels, messages, metadata,
+attachments) plus the video's frames on ``/camera/<id>/image`` merged in time order, and renames
+it over the original only when everything succeeded: on any error the original is untouched.
+
+Frame times: ``start_time_ns + offset_s + the frame's position in the video`` (OpenCV's
+``CAP_PROP_POS_MSEC``, which follows variable frame rates; ``index / fps`` when the container
+gives none).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+from collections.abc import Generator
+from datetime import UTC, datetime
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+from typing import Any
+
+import cv2
+
+from scanpipe.acquire.cameras import encode_jpeg
+from scanpipe.artifacts import atomic_path
+from scanpipe.errors import DeviceError, RecordingError, UsageError
+
+#: Everything mcap's stream reader raises on a damaged file (see shared notes).
+_MCAP_DAMAGE: tuple[type[BaseException], ...] = (ValueError, KeyError, IndexError,
+                                                 OverflowError, UnicodeDecodeError, EOFError)
+
+
+def parse_start_time(text: str, recording_start_ns: int | None = None) -> int:
+    """A start time as integer ns since the Unix epoch.
+
+    Accepts ISO 8601 (``2026-11-22T08:00:00.5+00:00``; no zone = UTC), seconds since the epoch
+    (``1795334400.25``), nanoseconds since the epoch (an integer above 10¹⁷), or ``recording``
+    (the first message of the recording, when ``recording_start_ns`` is given).
+    """
+    value = text.strip()
+    if value == "recording":
+        if recording_start_ns is None:
+            raise UsageError("--start-time recording: the recording has no messages")
+        return recording_start_ns
+    if re.fullmatch(r"[+-]?\d+", value) and abs(int(value)) > 10**17:
+        return int(value)
+    try:  # Decimal: a float loses the nanoseconds of an epoch time
+        seconds = Decimal(value)
+        if seconds.is_finite():
+            return int(seconds * 1_000_000_000)
+    except InvalidOperation:
+        pass
+    try:
+        moment = datetime.fromisoformat(value)
+    except ValueError:
+        raise UsageError(
+            f"--start-time {text!r}: not a time; allowed: ISO 8601 (2026-11-22T08:00:00+00:00), "
+            "seconds or nanoseconds since the Unix epoch, or 'recording'") from None
+    if moment.tzinfo is None:
+        moment = moment.replace(tzinfo=UTC)
+    delta = moment - datetime(1970, 1, 1, tzinfo=UTC)
+    return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1000
+
+
+def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90
+                 ) -> Generator[tuple[int, bytes, int], None, None]:
+    """``(time_ns, jpeg, index)`` for every frame of a video file, in order."""
+    if not video.is_file():
+        raise UsageError(f"{video}: video file not found")
+    capture = cv2.VideoCapture(str(video))
+    if not capture.isOpened():
+        raise DeviceError(f"{video}: OpenCV cannot open this video (unknown container or codec)")
+    try:
+        fps = capture.get(cv2.CAP_PROP_FPS) or 0.0
+        index = 0
+        last_ns = -1
+        while True:
+            ok, image = capture.read()
+            if not ok or image is None:
+                break
+            position_ms = capture.get(cv2.CAP_PROP_POS_MSEC)
+            if position_ms > 0 or (index == 0 and position_ms == 0):
+                offset_ns = round(position_ms * 1e6)
+            elif fps > 0:
+                offset_ns = round(index / fps * 1e9)
+            else:
+                raise DeviceError(f"{video}: the video gives neither frame times nor a rate")
+            stamp = start_ns + offset_ns
+            if stamp <= last_ns:  # some containers repeat a time; keep frames in order
+                stamp = last_ns + 1
+            last_ns = stamp
+            yield stamp, encode_jpeg(image, jpeg_quality), index
+            index += 1
+    finally:
+        capture.release()
+
+
+def recording_start_ns(path: Path) -> int | None:
+    """Log time of the first message of a recording (None when it has none)."""
+    from scanpipe.recording.reader import read_recording
+
+    recording = read_recording(path)
+    times = [t for s in recording.streams.values() for t in s.log_time_ns[:1].tolist()]
+    times += recording.motor.log_time_ns[:1].tolist()
+    times += [i.log_time_ns for i in recording.images[:1]]
+    return min(times) if times else None
+
+
+def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
+                 jpeg_quality: int = 90) -> dict[str, Any]:
+    """Rewrite ``recording`` with the frames of ``video`` added as ``camera_id``; a report."""
+    from mcap.records import Attachment, Channel, DataEnd, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapWriter
+
+    from scanpipe.recording import schemas
+    from scanpipe.recording.writer import CHANNELS_METADATA, PROFILE, camera_topic
+
+    if not recording.is_file():
+        raise RecordingError(f"{recording}: recording not found")
+    topic = camera_topic(camera_id)
+    frames = video_frames(video, start_ns, jpeg_quality)
+    pending = next(frames, None)
+    if pending is None:
+        raise DeviceError(f"{video}: no frames could be read")
+    report: dict[str, Any] = {"video": str(video), "recording": str(recording),
+                              "camera_id": camera_id, "topic": topic, "frames": 0,
+                              "first_time_ns": pending[0], "last_time_ns": pending[0],
+                              "original_messages": 0}
+    try:
+        with atomic_path(recording) as tmp, recording.open("rb") as source, \
+                tmp.open("wb") as target:
+            writer = McapWriter(target, compression=CompressionType.ZSTD)
+            schema_ids: dict[int, int] = {}
+            channel_ids: dict[int, int] = {}
+            topics: dict[int, str] = {}
+            image_channel: int | None = None
+            started = False
+            for record in StreamReader(source, skip_magic=False).records:
+                if not started:
+                    writer.start(profile=getattr(record, "profile", PROFILE),
+                                 library=getattr(record, "library", "scanpipe"))
+                    started = True
+                if isinstance(record, DataEnd):
+                    break  # the summary section only repeats what was copied
+                if isinstance(record, Schema) and record.id not in schema_ids:
+                    schema_ids[record.id] = writer.register_schema(record.name, record.encoding,
+                                                                   record.data)
+                elif isinstance(record, Channel) and record.id not in channel_ids:
+                    if record.topic == topic and image_channel is not None:
+                        channel_ids[record.id] = image_channel
+                        continue
+                    new_id = writer.register_channel(
+                        record.topic, record.message_encoding,
+                        schema_ids.get(record.schema_id, 0), record.metadata)
+                    channel_ids[record.id] = new_id
+                    topics[new_id] = record.topic
+                    if record.topic == topic:
+                        image_channel = new_id
+                elif isinstance(record, Message):
+                    while pending is not None and pending[0] <= record.log_time:
+                        image_channel = _write_frame(writer, image_channel, topic, pending,
+                                                     schemas, report)
+                        topics[image_channel] = topic
+                        pending = next(frames, None)
+                    if record.channel_id in channel_ids:
+                        writer.add_message(channel_ids[record.channel_id], record.log_time,
+                                           record.data, record.publish_time, record.sequence)
+                        report["original_messages"] += 1
+                elif isinstance(record, Metadata) and record.name != CHANNELS_METADATA:
+                    writer.add_metadata(record.name, record.metadata)
+                elif isinstance(record, Attachment):
+                    writer.add_attachment(record.create_time, record.log_time, record.name,
+                                          record.media_type, record.data)
+            if not started:
+                raise RecordingError(f"{recording}: no MCAP header")
+            while pending is not None:
+                image_channel = _write_frame(writer, image_channel, topic, pending, schemas,
+                                             report)
+                topics[image_channel] = topic
+                pending = next(frames, None)
+            # Channel ids may have changed: write the id → topic map afresh.
+            writer.add_metadata(CHANNELS_METADATA, {str(k): v for k, v in topics.items()})
+            writer.finish()  # type: ignore[no-untyped-call]
+            target.flush()
+            os.fsync(target.fileno())
+    except RecordingError:
+        raise
+    except _MCAP_DAMAGE as err:
+        raise RecordingError(
+            f"{recording}: cannot be rewritten, it is damaged or incomplete "
+            f"({type(err).__name__}: {err}); the original is unchanged") from None
+    except OSError as err:
+        raise RecordingError(f"{recording}: cannot be rewritten ({err.strerror or err}); "
+                             "the original is unchanged") from None
+    finally:
+        with contextlib.suppress(Exception):
+            frames.close()
+    return report
+
+
+def _write_frame(writer: Any, channel: int | None, topic: str, frame: tuple[int, bytes, int],
+                 schemas: Any, report: dict[str, Any]) -> int:
+    """Write one imported frame (registering the camera channel when the recording lacks it)."""
+    time_ns, jpeg, index = frame
+    if channel is None:
+        cls = schemas.CompressedImage
+        schema = writer.register_schema(cls.DESCRIPTOR.full_name, "protobuf",
+                                        schemas.file_descriptor_set(cls))
+        channel = int(writer.register_channel(topic, "protobuf", schema))
+    message = schemas.CompressedImage(frame_id=f"import:{index}", data=jpeg, format="jpeg")
+    message.timestamp.FromNanoseconds(time_ns)
+    writer.add_message(channel, time_ns, message.SerializeToString(), time_ns, index)
+    report["frames"] += 1
+    report["last_time_ns"] = time_ns
+    return channel

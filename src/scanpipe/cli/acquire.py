@@ -1,0 +1,152 @@
+"""``scanpipe record``, ``scanpipe info`` and ``scanpipe import-video``: the robot side."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from scanpipe.cli.common import JSON, QUIET, RIG, print_error, print_json
+from scanpipe.errors import UsageError
+
+#: Exit codes of ``record`` by final status (a finished file in every case).
+RECORD_EXIT_CODES = {"complete": 0, "interrupted": 130, "failed": 1, "scanner_disconnected": 3}
+
+
+def record_options(
+    mode: str, step_angle: float, profiles_per_position: int, cameras: bool,
+    split_size_mb: float | None, split_duration_s: float | None, speedup: float = 1.0,
+    with_echo: bool = False,
+) -> Any:
+    """Validated :class:`~scanpipe.acquire.recorder.RecordOptions` from command-line values."""
+    from scanpipe.acquire.recorder import RecordOptions
+    from scanpipe.params import validate
+
+    return validate(RecordOptions, {
+        "mode": mode, "step_angle_deg": step_angle,
+        "profiles_per_position": profiles_per_position, "cameras": cameras,
+        "split_size_mb": split_size_mb, "split_duration_s": split_duration_s,
+        "speedup": speedup, "with_echo": with_echo,
+    }, "record options")
+
+
+def run_recorder(recorder: Any, quiet: bool, as_json: bool) -> int:
+    """Run a recorder with the live display, print the summary; the exit code by status."""
+    from scanpipe.acquire.display import format_summary, live_display
+
+    with live_display(recorder.live_status, quiet):
+        summary = recorder.run()
+    if as_json:
+        print_json(summary)
+    elif not quiet:
+        sys.stderr.write(format_summary(summary) + "\n")
+    if summary["status"] != "complete" and summary.get("reason"):
+        print_error(f"recording {summary['status']}: {summary['reason']} "
+                    f"(the file is finished: {', '.join(summary['files'])})")
+    return RECORD_EXIT_CODES.get(summary["status"], 1)
+
+
+def record(
+    out: Path = typer.Option(..., "--out", help="The recording to write (.mcap)."),
+    rig_path: Path | None = RIG,
+    mode: str = typer.Option("step", "--mode", help="step (step-and-scan) or continuous."),
+    step_angle: float = typer.Option(0.108, "--step-angle",
+                                     help="Motor step in degrees (the closest achievable is used; "
+                                          "see scanpipe plan)."),
+    profiles_per_position: int = typer.Option(1, "--profiles-per-position",
+                                              help="Complete profiles per position (step mode)."),
+    no_cameras: bool = typer.Option(False, "--no-cameras", help="Do not record the cameras."),
+    echo: bool = typer.Option(False, "--echo",
+                              help="ldoem: record echo amplitudes too (format mask 0x3DFF)."),
+    split_size_mb: float | None = typer.Option(None, "--split-size-mb",
+                                               help="Start a new file part after this many MB."),
+    split_duration_s: float | None = typer.Option(None, "--split-duration",
+                                                  help="Start a new file part after this many s."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing recording."),
+    speedup: float = typer.Option(1.0, "--speedup", hidden=True,
+                                  help="Device time runs this much faster (virtual rig only)."),
+    quiet: bool = QUIET,
+    as_json: bool = JSON,
+) -> None:
+    """Record a scan: scanner, motor and cameras, raw and timestamped, into one MCAP file."""
+    from scanpipe.acquire.recorder import Recorder
+    from scanpipe.rig import load_rig
+
+    if out.exists() and out.is_dir():
+        raise UsageError(f"--out {out}: is a directory; give a file name such as scan.mcap")
+    if out.exists() and not force:
+        raise UsageError(f"--out {out}: already exists; pass --force to overwrite it")
+    rig = load_rig(rig_path)
+    options = record_options(mode, step_angle, profiles_per_position, not no_cameras,
+                             split_size_mb, split_duration_s, speedup, echo)
+    code = run_recorder(Recorder(rig, out, options), quiet, as_json)
+    if code:
+        raise typer.Exit(code)
+
+
+def info(
+    recording: Path = typer.Argument(..., help="The recording (.mcap)."),
+    gap: float = typer.Option(1.0, "--gap", help="Count pauses longer than this many seconds."),
+    as_json: bool = JSON,
+) -> None:
+    """Channels, counts, durations, rates, gaps, events and the rig of a recording."""
+    from scanpipe.acquire.info import format_info, recording_info
+    from scanpipe.recording.reader import read_recording
+
+    if gap <= 0:
+        raise UsageError(f"--gap {gap!r}: must be greater than 0 seconds")
+    result = recording_info(read_recording(recording), gap)
+    if as_json:
+        print_json(result)
+    else:
+        typer.echo(format_info(result))
+
+
+def import_video(
+    video: Path = typer.Argument(..., help="The video file (any container OpenCV reads)."),
+    into: Path = typer.Option(..., "--into", help="The recording to add the frames to."),
+    start_time: str = typer.Option(..., "--start-time",
+                                   help="When the video's first frame was taken: ISO 8601, "
+                                        "seconds or ns since the epoch, or 'recording'."),
+    offset: float = typer.Option(0.0, "--offset", help="Seconds added to every frame time."),
+    camera: str | None = typer.Option(None, "--camera",
+                                      help="Camera id in the recording's rig "
+                                           "(default: its first camera)."),
+    quality: int = typer.Option(90, "--jpeg-quality", help="JPEG quality 1–100."),
+    as_json: bool = JSON,
+) -> None:
+    """Add a separately recorded video to a recording as camera frames with timestamps."""
+    from scanpipe.acquire.video_import import import_video as run_import
+    from scanpipe.acquire.video_import import parse_start_time, recording_start_ns
+    from scanpipe.recording.reader import read_recording
+
+    if not 1 <= quality <= 100:
+        raise UsageError(f"--jpeg-quality {quality}: allowed 1…100")
+    recorded = read_recording(into)
+    if not recorded.complete:
+        raise UsageError(f"{into}: the recording is incomplete (its writer did not finish); "
+                         "import into a complete recording")
+    rig = recorded.rig()
+    if camera is None:
+        if not rig.cameras:
+            raise UsageError(f"{into}: the recording's rig has no cameras; add the camera to "
+                             "the rig (its intrinsics are needed for texturing)")
+        camera = rig.cameras[0].id
+    rig.camera(camera)  # an unknown id is an error naming the known ones
+    start = parse_start_time(start_time, recording_start_ns(into) if start_time.strip()
+                             == "recording" else None)
+    report = run_import(video, into, start + round(offset * 1e9), camera, quality)
+    if as_json:
+        print_json(report)
+    else:
+        typer.echo(f"{into}: added {report['frames']} frames of {video} as camera {camera} "
+                   f"({report['first_time_ns']} … {report['last_time_ns']} ns)")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``record``, ``info`` and ``import-video`` to the main app."""
+    app.command("record")(record)
+    app.command("info")(info)
+    app.command("import-video")(import_video)

@@ -1,0 +1,91 @@
+"""Camera capture into a real recording: timestamps, JPEG, end of a file source, drops."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from acquire_helpers import rig_with_cameras, small_camera, write_video
+
+from scanpipe.acquire.cameras import CameraThread, open_capture
+from scanpipe.acquire.sink import RecordingSink
+from scanpipe.errors import DeviceError
+from scanpipe.recording.reader import read_recording
+from scanpipe.recording.writer import RecordingWriter
+
+
+def _sink(path: Path, rig) -> RecordingSink:  # type: ignore[no-untyped-def]
+    return RecordingSink(path, rig, {"mode": "test"},
+                         lambda p, r, s: RecordingWriter(p, r, s, fsync_interval_s=0.2))
+
+
+def test_file_source_is_captured_with_increasing_stamps(tmp_path: Path) -> None:
+    video = write_video(tmp_path / "v.avi", frames=8, fps=50.0)
+    cam = small_camera(source=str(video), fps=50.0)
+    rig = rig_with_cameras(cam)
+    sink = _sink(tmp_path / "rec.mcap", rig)
+    stop = threading.Event()
+    thread = CameraThread(cam.id, open_capture(cam), sink, stop, period_s=0.02, pace=True)
+    thread.start()
+    thread.join(timeout=10)
+    assert not thread.is_alive()
+    sink.close()
+    assert thread.stats.frames == 8 and thread.stats.ended
+    recording = read_recording(tmp_path / "rec.mcap")
+    images = [i for i in recording.images if i.camera_id == "cam0"]
+    assert len(images) == 8
+    stamps = np.array([i.log_time_ns for i in images])
+    assert np.all(np.diff(stamps) > 0)
+    # Paced at 50 fps: a late frame may be followed by a quick one (catching up by at most one
+    # period), so 8 frames span at least 6 periods.
+    assert stamps[-1] - stamps[0] >= 6 * 20e6
+    levels = [int(cv2.imdecode(np.frombuffer(i.data, np.uint8), cv2.IMREAD_GRAYSCALE).mean())
+              for i in images]
+    assert levels == pytest.approx([20 * i for i in range(8)], abs=3)
+    assert [e.kind for e in recording.events] == ["camera_end"]
+
+
+class _Flaky:
+    """A live source that fails every third read."""
+
+    is_live = True
+
+    def __init__(self) -> None:
+        self.reads = 0
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        self.reads += 1
+        if self.reads % 3 == 0:
+            return False, None
+        return True, np.zeros((8, 8, 3), np.uint8)
+
+    def release(self) -> None:
+        pass
+
+
+def test_failed_reads_are_counted_and_reported(tmp_path: Path) -> None:
+    cam = small_camera()
+    rig = rig_with_cameras(cam)
+    sink = _sink(tmp_path / "rec.mcap", rig)
+    stop = threading.Event()
+    thread = CameraThread(cam.id, _Flaky(), sink, stop, period_s=0.01, pace=True)
+    thread.start()
+    time.sleep(0.4)
+    stop.set()
+    thread.join(timeout=5)
+    sink.close()
+    assert thread.stats.dropped >= 5
+    recording = read_recording(tmp_path / "rec.mcap")
+    reported = sum(e.data["count"] for e in recording.events if e.kind == "camera_frames_dropped")
+    assert reported == thread.stats.dropped
+    assert len(recording.images) == thread.stats.frames
+
+
+def test_unopenable_source_is_a_device_error(tmp_path: Path) -> None:
+    cam = small_camera(source=str(tmp_path / "missing.avi"))
+    with pytest.raises(DeviceError, match="cannot open source"):
+        open_capture(cam)
