@@ -87,7 +87,14 @@ class RunRecord:
 
 def registry() -> dict[str, Stage]:
     """Every stage, in pipeline order. Add a stage here and nowhere else."""
-    stages: list[Stage] = []
+    from scanpipe.stages import assemble, decode
+    from scanpipe.stages import export as export_stage
+    from scanpipe.stages import filter as filter_stage
+    from scanpipe.stages import mesh as mesh_stage
+    from scanpipe.stages import texture as texture_stage
+
+    stages: list[Stage] = [decode.STAGE, assemble.STAGE, filter_stage.STAGE, mesh_stage.STAGE,
+                           texture_stage.STAGE, export_stage.STAGE]
     return {s.name: s for s in stages}
 
 

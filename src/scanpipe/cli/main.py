@@ -12,7 +12,20 @@ from collections.abc import Sequence
 import typer
 
 from scanpipe import __version__
-from scanpipe.cli import common, pipeline, plan, rig
+from scanpipe.cli import (
+    acquire,
+    common,
+    decode,
+    demo,
+    mesh,
+    pipeline,
+    plan,
+    points,
+    results,
+    rig,
+    simulate,
+    texture,
+)
 from scanpipe.errors import ScanpipeError
 
 app = typer.Typer(
@@ -25,7 +38,8 @@ app = typer.Typer(
 )
 
 # Every command group, in the order `scanpipe --help` lists them.
-for module in (plan, rig, pipeline):
+for module in (demo, plan, rig, acquire, simulate, pipeline, decode, points, mesh, texture,
+               results):
     module.register(app)
 
 

@@ -53,7 +53,7 @@ def plan(
     rig_path: Path | None = RIG,
     as_json: bool = JSON,
 ) -> None:
-    """Possible motor steps near ANGLE (paper eq. 1–4) and the scan they give."""
+    """The step arithmetic of paper eq. 1–4 for an angle, and the scan it gives."""
     result = plan_scan(load_rig(rig_path), angle)
     if as_json:
         print_json(result.to_json())

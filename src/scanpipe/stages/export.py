@@ -13,6 +13,7 @@ What each format takes: ``obj`` and ``glb`` the mesh (+ texture when present); `
 
 from __future__ import annotations
 
+import hashlib
 import os
 import tempfile
 from collections.abc import Mapping
@@ -20,6 +21,7 @@ from pathlib import Path
 from typing import Literal
 
 import pyarrow as pa
+from pydantic import Field
 
 from scanpipe.artifacts import FILE_MODE, read_artifact
 from scanpipe.errors import ArtifactError, ExportError, UsageError
@@ -31,6 +33,8 @@ from scanpipe.exporters.model import CloudModel, MeshModel, cloud_from_table, me
 from scanpipe.exporters.obj import obj_files
 from scanpipe.exporters.ply import ply_cloud_bytes, ply_mesh_bytes
 from scanpipe.params import Params
+from scanpipe.pipeline import Stage, StageResult
+from scanpipe.progress import ProgressFn
 from scanpipe.workdir import find_artifacts
 
 Format = Literal["obj", "glb", "ply", "las", "laz", "e57", "mcap"]
@@ -160,3 +164,58 @@ def export_folder(folder: Path, fmt: str, out: Path) -> list[Path]:
     stem, out_dir = stem_and_folder(out, fmt)
     tables = load_tables(folder, fmt)
     return write_files(export_files(tables, fmt, stem), out_dir)
+
+
+MeshFormat = Literal["obj", "glb", "ply", "mcap"]
+CloudFormat = Literal["ply", "las", "laz", "e57"]
+
+
+class ExportStageParams(Params):
+    """The export at the end of ``scanpipe run``: which files to write from the chain."""
+
+    mesh_formats: tuple[MeshFormat, ...] = Field(
+        ("obj", "glb"), description="formats of the textured mesh")
+    cloud_formats: tuple[CloudFormat, ...] = Field(
+        ("ply",), description="formats of the filtered point cloud")
+    name: str = Field("model", pattern=r"^[A-Za-z0-9_.-]+$",
+                      description="stem of the mesh files")
+    cloud_name: str = Field("cloud", pattern=r"^[A-Za-z0-9_.-]+$",
+                            description="stem of the point-cloud files")
+
+
+def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
+                 progress: ProgressFn) -> StageResult:
+    """The chain's export: every requested file, and a manifest table naming them."""
+    if params.name == params.cloud_name:
+        raise UsageError(f"export.name and export.cloud_name are both {params.name!r}: "
+                         "the mesh and the cloud files would overwrite each other")
+    files: dict[str, bytes] = {}
+    mesh_tables = {k: v for k, v in inputs.items() if k != "points"}
+    jobs: list[tuple[str, Mapping[str, pa.Table], str]] = [
+        (fmt, mesh_tables, params.name) for fmt in params.mesh_formats]
+    jobs += [(fmt, {"points": inputs["points"]}, params.cloud_name)
+             for fmt in params.cloud_formats]
+    for done, (fmt, tables, stem) in enumerate(jobs):
+        progress("export", done, len(jobs))
+        files.update(export_files(tables, fmt, stem))
+    progress("export", len(jobs), len(jobs))
+    manifest = pa.table({
+        "file": pa.array(list(files), pa.string()),
+        "bytes": pa.array([len(data) for data in files.values()], pa.int64()),
+        "sha256": pa.array([hashlib.sha256(data).hexdigest() for data in files.values()],
+                           pa.string()),
+    })
+    return StageResult({"export_manifest": manifest},
+                       {"files": {name: len(data) for name, data in files.items()}}, files)
+
+
+STAGE = Stage(
+    name="export",
+    version=1,
+    params=ExportStageParams,
+    inputs=(*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points"),
+    outputs=("export_manifest",),
+    func=export_stage,  # type: ignore[arg-type]
+    description="write the textured mesh (OBJ+MTL+PNG, GLB) and the cloud (PLY, LAS, E57)",
+    libraries=("numpy", "pyarrow", "laspy", "pye57"),
+)
