@@ -1,0 +1,148 @@
+"""Mesh: a surface from the points, by Open3D Poisson or by triangulating the scan grid.
+
+``poisson`` works on any cloud: oriented normals (grid or KNN, facing each point's sensor),
+screened Poisson, then trims by density and visibility (docs/meshing.md). ``grid`` needs the
+scan grid: it connects neighbouring samples of adjacent profiles, breaks at depth
+discontinuities, closes the seam and the poles and meshes each direction once; it keeps the
+measured points as vertices, so its smoothness is the filter stage's (``smoothing``). Both end
+with the same clean-up and an optional quadric decimation. Rows the filter stage only marked
+(``filtered_by`` not null) are left out.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from typing import Any, Literal
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+from pydantic import Field
+
+from scanpipe.artifacts import check_columns
+from scanpipe.errors import StageError
+from scanpipe.grid import scan_grid
+from scanpipe.meshing.cleanup import CleanupParams, clean_mesh
+from scanpipe.meshing.grid_mesh import GridMeshParams, triangulate_grid
+from scanpipe.meshing.mesh import COLOUR_COLUMNS, Mesh
+from scanpipe.meshing.poisson import PoissonParams, poisson_mesh
+from scanpipe.normals import NormalParams, estimate_normals, points_origins, points_xyz
+from scanpipe.params import Params
+from scanpipe.pipeline import Stage, StageResult
+from scanpipe.progress import ProgressFn
+
+#: The columns of the ``points`` artifact the mesh stage reads.
+POINT_COLUMNS = {
+    **{name: pa.float32() for name in ("x", "y", "z", "origin_x", "origin_y", "origin_z")},
+    "alpha_deg": pa.float64(), "beta_deg": pa.float64(),
+    "profile": pa.int32(), "sample": pa.int32(),
+}
+
+
+class MeshParams(Params):
+    """Parameters of the mesh stage: the method, each method's settings, the clean-up."""
+
+    method: Literal["poisson", "grid"] = Field("poisson", description="surface method")
+    normals: NormalParams = Field(default_factory=NormalParams)
+    poisson: PoissonParams = Field(default_factory=PoissonParams)
+    grid: GridMeshParams = Field(default_factory=GridMeshParams)
+    cleanup: CleanupParams = Field(default_factory=CleanupParams)
+
+
+def usable_points(table: pa.Table) -> pa.Table:
+    """The rows to mesh: without the ones a filter marked, and with finite coordinates."""
+    if "filtered_by" in table.column_names and table.column("filtered_by").null_count < len(
+            table):
+        table = table.filter(pc.is_null(table.column("filtered_by")))
+    finite = pc.and_(pc.and_(pc.is_finite(table.column("x")), pc.is_finite(table.column("y"))),
+                     pc.is_finite(table.column("z")))
+    if pc.all(finite).as_py() is not False:
+        return table  # nothing to drop: no copy
+    return table.filter(finite)
+
+
+def _colors(table: pa.Table) -> np.ndarray[Any, np.dtype[np.uint8]] | None:
+    if not all(name in table.column_names for name in COLOUR_COLUMNS):
+        return None
+    return np.stack([table.column(name).to_numpy(zero_copy_only=False).astype(np.uint8)
+                     for name in COLOUR_COLUMNS], axis=1)
+
+
+def mesh_points(table: pa.Table, params: MeshParams,
+                progress: ProgressFn | None = None) -> tuple[Mesh, dict[str, Any]]:
+    """The mesh of a points table and a report (counts, what clean-up removed, times)."""
+    check_columns(table, POINT_COLUMNS, "points")
+    table = usable_points(table)
+    if table.num_rows == 0:
+        raise StageError("points: no usable points to mesh (empty, or every row filtered)")
+    report: dict[str, Any] = {"method": params.method, "points": table.num_rows}
+    seconds: dict[str, float] = {}
+    tick = time.perf_counter()
+
+    def step(name: str, done: int) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        seconds[name] = round(now - tick, 4)
+        tick = now
+        if progress is not None:
+            progress("mesh", done, 4)
+
+    grid = scan_grid(table)
+    if params.method == "grid" and grid is None:
+        raise StageError("points: method 'grid' needs the scan grid, but these points have "
+                         "none (profile/sample are −1); use --method poisson")
+    points, origins = points_xyz(table), points_origins(table)
+    normals, normal_counts = estimate_normals(table, params.normals, grid)
+    report["normals"] = normal_counts
+    step("normals", 1)
+
+    colors = _colors(table)
+    if params.method == "grid":
+        assert grid is not None
+        vertices, faces, tri_report = triangulate_grid(points, origins, grid, params.grid)
+        report["triangulation"] = tri_report
+        mesh = Mesh(vertices, faces.astype(np.int32), normals, colors)
+    else:
+        steps = (grid.alpha_step_deg, grid.beta_step_deg) if grid is not None else None
+        mesh, poisson_report = poisson_mesh(points, normals, origins, colors, params.poisson,
+                                            steps)
+        report["poisson"] = poisson_report
+    step("surface", 2)
+
+    # Each grid quad gives its own two faces and the seam and poles keep that, so a grid
+    # mesh has neither duplicate faces nor edges with three faces: no need to search for them.
+    mesh, cleanup_report = clean_mesh(mesh, params.cleanup,
+                                      manifold_by_construction=params.method == "grid")
+    report["cleanup"] = cleanup_report
+    if params.method == "poisson" or "faces_removed_by_decimation" in cleanup_report:
+        mesh = mesh.with_vertex_normals()
+    step("cleanup", 3)
+    if len(mesh.faces) == 0:
+        raise StageError(f"mesh: no faces left after meshing and clean-up "
+                         f"(method {params.method!r}); see the report's counts")
+    report["vertices"] = len(mesh.vertices)
+    report["faces"] = len(mesh.faces)
+    report["seconds"] = seconds
+    return mesh, report
+
+
+def run_mesh(inputs: Mapping[str, Any], params: MeshParams,
+             progress: ProgressFn) -> StageResult:
+    """The stage function: ``points`` → ``mesh_vertices``, ``mesh_faces``."""
+    mesh, report = mesh_points(inputs["points"], params, progress)
+    vertices, faces = mesh.to_tables()
+    progress("mesh", 4, 4)
+    return StageResult(tables={"mesh_vertices": vertices, "mesh_faces": faces}, report=report)
+
+
+STAGE = Stage(
+    name="mesh",
+    version=1,
+    params=MeshParams,
+    inputs=("points",),
+    outputs=("mesh_vertices", "mesh_faces"),
+    func=run_mesh,
+    description="surface from the points: Open3D Poisson or the organized scan grid",
+    libraries=("numpy", "pyarrow", "open3d", "scipy"),
+)

@@ -1,0 +1,192 @@
+"""Grid triangulation: closed surfaces, depth discontinuities, seam, poles, coverage halves."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from scanpipe.grid import ScanGrid, scan_grid
+from scanpipe.meshing.grid_mesh import GridMeshParams, triangulate_grid
+from scanpipe.meshing.synthetic import BoxRoom, scan_table
+from scanpipe.normals import points_origins, points_xyz
+
+EMPTY_ROOM = BoxRoom()
+ROOM_WITH_BALL = BoxRoom(ball_centre_m=(1.5, 0.0, 1.0), ball_radius_m=0.5)
+
+
+def triangulate(table: pa.Table, **params: object) -> tuple[np.ndarray, np.ndarray, dict]:
+    grid = scan_grid(table)
+    assert grid is not None
+    return triangulate_grid(points_xyz(table), points_origins(table), grid,
+                            GridMeshParams.model_validate(params))
+
+
+def edge_uses(faces: np.ndarray) -> Counter[int]:
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return Counter(counts.tolist())
+
+
+def euler_characteristic(faces: np.ndarray) -> int:
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), 1)
+    return len(np.unique(faces)) - len(np.unique(edges, axis=0)) + len(faces)
+
+
+def facing_sensor(vertices: np.ndarray, origins: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    v0, v1, v2 = (vertices[faces[:, k]].astype(np.float64) for k in range(3))
+    normal = np.cross(v1 - v0, v2 - v0)
+    return np.einsum("ij,ij->i", normal, origins[faces[:, 0]] - v0) > 0
+
+
+def test_a_full_scan_of_a_room_is_one_closed_surface_facing_the_sensor() -> None:
+    table = scan_table(EMPTY_ROOM, alpha_step_deg=2.0, beta_step_deg=5.0, noise_m=0.003)
+    vertices, faces, report = triangulate(table)
+    assert report["seam_closed"] is True
+    assert report["faces_broken_at_jumps"] == 0
+    assert edge_uses(faces) == Counter({2: edge_uses(faces)[2]})  # every edge twice: closed
+    assert euler_characteristic(faces) == 2  # a sphere: no double surface, no hole
+    assert np.all(facing_sensor(vertices, points_origins(table), faces))
+
+
+def test_the_poles_become_one_vertex_each() -> None:
+    table = scan_table(EMPTY_ROOM, 2.0, 5.0)
+    profiles = round(180 / 5.0)
+    _, faces, report = triangulate(table)
+    assert report["pole_points_merged"] == 2 * (profiles - 1)
+    alpha = table.column("alpha_deg").to_numpy()
+    pole_rows = np.flatnonzero(np.isin(alpha, (0.0, 180.0)))
+    used_pole_rows = np.intersect1d(np.unique(faces), pole_rows)
+    assert len(used_pole_rows) == 2
+    # without merging the copies of each pole make zero-area slivers instead
+    _, unmerged, report = triangulate(table, merge_poles=False)
+    assert report["pole_points_merged"] == 0
+    assert len(np.intersect1d(np.unique(unmerged), pole_rows)) == 2 * profiles
+
+
+def test_without_the_seam_the_surface_is_open_along_the_first_profile() -> None:
+    table = scan_table(EMPTY_ROOM, 2.0, 5.0)
+    _, faces, report = triangulate(table, close_seam=False)
+    assert report["seam_closed"] is False
+    samples = round(360 / 2.0)
+    assert edge_uses(faces)[1] == 2 * samples  # the first and the last profile, each a loop
+
+
+def test_a_second_coverage_half_is_not_meshed_twice() -> None:
+    half = scan_table(EMPTY_ROOM, 2.0, 5.0)
+    full_turn = scan_table(EMPTY_ROOM, 2.0, 5.0, profiles=72)  # 360° of travel
+    _, faces_half, _ = triangulate(half)
+    _, faces, report = triangulate(full_turn)
+    assert report["duplicate_profiles_dropped"] == 36
+    assert report["seam_closed"] is True
+    assert len(faces) == len(faces_half)
+    assert edge_uses(faces) == Counter({2: edge_uses(faces)[2]})
+    assert int(np.max(full_turn.column("profile").to_numpy()[np.unique(faces)])) < 36
+
+
+def test_partial_travel_leaves_the_ends_open() -> None:
+    table = scan_table(EMPTY_ROOM, 2.0, 5.0, profiles=18)  # 90° of travel
+    vertices, faces, report = triangulate(table)
+    assert report["seam_closed"] is False
+    assert edge_uses(faces)[1] > 0
+    assert np.all(facing_sensor(vertices, points_origins(table), faces))
+
+
+def test_depth_discontinuities_break_the_mesh() -> None:
+    table = scan_table(ROOM_WITH_BALL, 1.0, 2.0, noise_m=0.003)
+    vertices, faces, report = triangulate(table)
+    assert report["faces_broken_at_jumps"] > 0
+    on_ball = np.abs(np.linalg.norm(vertices - np.asarray(ROOM_WITH_BALL.ball_centre_m), axis=1)
+                     - ROOM_WITH_BALL.ball_radius_m) < 0.05
+    mixed = on_ball[faces].any(axis=1) & ~on_ball[faces].all(axis=1)
+    assert not mixed.any()  # no triangle joins the ball to the wall behind it
+    assert edge_uses(faces)[1] > 0  # the ball's silhouette is an open boundary
+    assert euler_characteristic(faces) == 2  # room with a hole (1) + the ball's cap (1)
+    assert np.all(facing_sensor(vertices, points_origins(table), faces))
+
+
+def test_a_steeply_inclined_surface_stays_connected() -> None:
+    # the floor far from the scanner is seen at up to ~75° incidence: no false breaks there
+    room = BoxRoom(low_m=(-6.0, -1.2, -6.0), high_m=(6.0, 1.5, 6.0))
+    table = scan_table(room, 1.0, 2.0, noise_m=0.003)
+    _, faces, report = triangulate(table)
+    assert report["faces_broken_at_jumps"] == 0
+    assert edge_uses(faces) == Counter({2: edge_uses(faces)[2]})
+
+
+def test_missing_points_only_remove_the_triangles_that_need_them() -> None:
+    table = scan_table(EMPTY_ROOM, 2.0, 5.0)
+    rng = np.random.default_rng(1)
+    kept = np.sort(rng.choice(table.num_rows, size=table.num_rows - 40, replace=False))
+    sparse = table.take(pa.array(kept))
+    vertices, faces, _ = triangulate(sparse)
+    assert faces.max() < sparse.num_rows
+    assert len(faces) < len(triangulate(table)[1])
+    assert np.all(facing_sensor(vertices, points_origins(sparse), faces))
+    assert edge_uses(faces).keys() <= {1, 2}
+
+
+def test_an_offset_sensor_keeps_its_poles_apart_and_faces_it() -> None:
+    table = scan_table(EMPTY_ROOM, 2.0, 5.0, mount_translation_m=(0.1, 0.0, 0.0))
+    vertices, faces, report = triangulate(table)
+    assert report["pole_points_merged"] == 0  # the pole points are 0.2 m apart: not one point
+    assert np.all(facing_sensor(vertices, points_origins(table), faces))
+
+
+def reference_faces(table: pa.Table, grid: ScanGrid, params: GridMeshParams) -> set[tuple]:
+    """Per-quad loop straight from the rules (no seam, no pole merge, no wrap)."""
+    xyz = points_xyz(table).astype(np.float64)
+    origins = points_origins(table).astype(np.float64)
+    tan_inc = np.tan(np.radians(params.max_incidence_deg))
+
+    def continuous(i: int, j: int) -> bool:
+        ri, rj = np.linalg.norm(xyz[i] - origins[i]), np.linalg.norm(xyz[j] - origins[j])
+        ui, uj = (xyz[i] - origins[i]) / ri, (xyz[j] - origins[j]) / rj
+        return abs(ri - rj) <= min(ri, rj) * np.linalg.norm(ui - uj) * tan_inc + \
+            params.jump_allowance_m
+
+    def step(i: int, j: int) -> float:
+        return abs(np.linalg.norm(xyz[i] - origins[i]) - np.linalg.norm(xyz[j] - origins[j]))
+
+    faces = set()
+    index = grid.index
+    for p in range(index.shape[0] - 1):
+        for s in range(index.shape[1] - 1):
+            a, b, c, d = index[p, s], index[p + 1, s], index[p, s + 1], index[p + 1, s + 1]
+            ad = a >= 0 and d >= 0 and continuous(a, d)
+            bc = b >= 0 and c >= 0 and continuous(b, c)
+            use_ad = step(a, d) <= step(b, c) if ad and bc else ad
+            triangles = [(a, b, d), (a, d, c)] if use_ad else [(a, b, c), (b, d, c)]
+            for tri in triangles:
+                if min(tri) >= 0 and all(continuous(tri[k], tri[(k + 1) % 3]) for k in range(3)):
+                    faces.add(tuple(sorted(int(v) for v in tri)))
+    return faces
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_vectorised_triangulation_matches_a_per_quad_loop(seed: int) -> None:
+    table = scan_table(ROOM_WITH_BALL, 4.0, 6.0, noise_m=0.01, seed=seed,
+                       profiles=20)  # 120° of travel: no seam; 4° steps from 0°: poles present
+    # cut away the samples on the axis and the wrap, so that the loop needs no special cases
+    alpha = table.column("alpha_deg").to_numpy()
+    keep = np.flatnonzero((alpha > 0) & (alpha < 180))
+    rng = np.random.default_rng(seed)
+    keep = np.sort(rng.choice(keep, size=len(keep) - 15, replace=False))
+    part = table.take(pa.array(keep))
+    part = part.set_column(part.schema.get_field_index("sample"), "sample",
+                           pa.array(part.column("sample").to_numpy() - 1))
+    grid = scan_grid(part)
+    assert grid is not None and not grid.wraps_alpha
+    params = GridMeshParams()
+    _, faces, _ = triangulate_grid(points_xyz(part), points_origins(part), grid, params)
+    assert {tuple(sorted(f)) for f in faces.tolist()} == reference_faces(part, grid, params)
+
+
+def test_a_motor_turning_backwards_still_gives_faces_toward_the_sensor() -> None:
+    table = scan_table(EMPTY_ROOM, 2.0, -5.0, profiles=36)  # β = 0°, −5°, … −175°
+    vertices, faces, report = triangulate(table)
+    assert report["seam_closed"] is True
+    assert edge_uses(faces) == Counter({2: edge_uses(faces)[2]})
+    assert np.all(facing_sensor(vertices, points_origins(table), faces))
