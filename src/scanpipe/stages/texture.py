@@ -1,0 +1,248 @@
+"""The texture stage: mesh + camera frames + motor states + rig → UVs and atlas pages.
+
+Two methods (docs/texture.md):
+
+- ``projective`` (default): every face takes the best frame that really sees it (occlusion
+  tested against the mesh), the used image regions are packed into atlas pages, and per-frame
+  gains even out exposure across seams.
+- ``panorama``: the paper's method (eq. 17–21): frames chosen by f_si, central strips joined
+  into a cylindrical panorama about the motor axis, mapped onto the model by a cylindrical
+  projection from the axis. The panorama is also written as ``panorama.png``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from typing import Annotated, Any, Literal
+
+import cv2
+import numpy as np
+import pyarrow as pa
+from numpy.typing import NDArray
+from pydantic import Field
+
+from scanpipe.artifacts import check_columns
+from scanpipe.errors import StageError
+from scanpipe.params import Params
+from scanpipe.pipeline import Stage, StageResult
+from scanpipe.progress import ProgressFn
+from scanpipe.rig import Rig, rig_from_table
+from scanpipe.texturing.atlas import build_atlas
+from scanpipe.texturing.exposure import seam_colour_pairs, solve_gains
+from scanpipe.texturing.frames import choose_frames
+from scanpipe.texturing.projective import colorize_points, face_scores, select_frames_per_face
+from scanpipe.texturing.visibility import MeshOcclusion, face_normals
+
+__all__ = ["STAGE", "TextureParams", "colorize_points", "texture"]
+
+VERTEX_COLUMNS = {name: pa.float32() for name in ("x", "y", "z")}
+FACE_COLUMNS = {name: pa.int32() for name in ("v0", "v1", "v2")}
+TEXTURED_FACES_SCHEMA = pa.schema([
+    ("face", pa.int32()), ("page", pa.int16()),
+    ("u0", pa.float32()), ("v0", pa.float32()), ("u1", pa.float32()), ("v1", pa.float32()),
+    ("u2", pa.float32()), ("v2", pa.float32()),
+    ("camera_id", pa.string()), ("frame", pa.int64()),
+])
+TEXTURE_PAGES_SCHEMA = pa.schema([
+    ("page", pa.int16()), ("width", pa.int32()), ("height", pa.int32()), ("png", pa.binary()),
+])
+
+
+Channel = Annotated[int, Field(ge=0, le=255)]
+
+
+class TextureParams(Params):
+    """Parameters of the texture stage."""
+
+    method: Literal["projective", "panorama"] = Field(
+        "projective", description="projective (best frame per face, atlas) or panorama (paper)")
+    frame_stride: int = Field(1, ge=1, description="consider every n-th frame of each camera")
+    frame_spacing_deg: float = Field(
+        4.0, ge=0, le=90, description="projective: keep the sharpest frame per camera in every "
+        "bin of this many degrees of platform angle (0 = every frame)")
+    min_cos: float = Field(0.2, ge=0, lt=1,
+                           description="faces seen more obliquely than acos(min_cos) are skipped")
+    sharpness_weight: float = Field(1.0, ge=0, description="exponent of relative sharpness")
+    margin_px: float = Field(2.0, ge=0, description="keep face corners this far inside the image")
+    max_candidates: int = Field(8, ge=1, le=64,
+                                description="frames tested for occlusion per face at most")
+    two_sided: bool = Field(False, description="texture faces seen from behind (no normals)")
+    page_size_px: int = Field(4096, ge=256, le=8192, description="atlas page size (square max)")
+    texel_scale: float = Field(1.0, gt=0, le=1, description="scale of image regions in the atlas")
+    pad_px: int = Field(3, ge=1, le=32, description="real image kept around each region")
+    neutral_rgb: tuple[Channel, Channel, Channel] = Field(
+        (128, 128, 128), description="colour of faces no camera saw")
+    exposure: bool = Field(True, description="even out exposure with per-frame gains")
+    png_compression: int = Field(1, ge=0, le=9, description="PNG compression level")
+    panorama_distance_m: float = Field(
+        0.0, ge=0, description="panorama: the distance r of eq. 17–21 (0 = median of the mesh)")
+    panorama_strip_deg: float = Field(
+        0.0, ge=0, le=90, description="panorama: strip width in platform degrees (0 = from "
+        "eq. 20–21 with the recorded speed, at least 0.5°)")
+    panorama_px_per_deg: float = Field(
+        0.0, ge=0, le=200, description="panorama resolution (0 = the camera's, capped at 8192 px)")
+
+
+def _mesh_arrays(inputs: Mapping[str, Any]) -> tuple[NDArray[np.float64], NDArray[np.int64],
+                                                      NDArray[np.float64] | None]:
+    vertices_table, faces_table = inputs["mesh_vertices"], inputs["mesh_faces"]
+    check_columns(vertices_table, VERTEX_COLUMNS, "mesh_vertices")
+    check_columns(faces_table, FACE_COLUMNS, "mesh_faces")
+    vertices = np.stack([vertices_table.column(c).to_numpy() for c in "xyz"], 1).astype(np.float64)
+    faces = np.stack([faces_table.column(c).to_numpy() for c in ("v0", "v1", "v2")], 1)
+    faces = faces.astype(np.int64)
+    if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+        raise StageError(f"mesh_faces: vertex indices must lie in [0, {len(vertices) - 1}]; "
+                         f"found {faces.min()}..{faces.max()}")
+    normals = None
+    if all(c in vertices_table.column_names for c in ("nx", "ny", "nz")):
+        normals = np.stack([vertices_table.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+        normals = normals.astype(np.float64)
+        if not np.isfinite(normals).all() or not np.abs(normals).sum():
+            normals = None
+    return vertices, faces, normals
+
+
+def encode_png(image: NDArray[np.uint8], level: int) -> bytes:
+    """PNG bytes of a BGR image."""
+    ok, buffer = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, level])
+    if not ok:
+        raise StageError(f"texture: could not encode a {image.shape[1]}×{image.shape[0]} PNG page")
+    return bytes(buffer.tobytes())
+
+
+def textured_faces_table(face_page: NDArray[np.int16], face_uv: NDArray[np.float32],
+                         face_frame: NDArray[np.int64], camera_ids: list[str],
+                         sequences: NDArray[np.int64]) -> pa.Table:
+    """The ``textured_faces`` artifact from per-face page, UVs and chosen frame index."""
+    n = len(face_page)
+    textured = face_frame >= 0
+    camera = np.asarray([*camera_ids, ""], dtype=object)[np.where(textured, face_frame, -1)]
+    seq = np.where(textured, np.r_[sequences, -1][face_frame], -1)
+    columns: dict[str, Any] = {"face": pa.array(np.arange(n, dtype=np.int32)),
+                               "page": pa.array(face_page.astype(np.int16))}
+    for k in range(3):
+        columns[f"u{k}"] = pa.array(face_uv[:, k, 0].astype(np.float32))
+        columns[f"v{k}"] = pa.array(face_uv[:, k, 1].astype(np.float32))
+    columns["camera_id"] = pa.array(camera.tolist(), pa.string(), mask=~textured)
+    columns["frame"] = pa.array(seq.astype(np.int64))
+    return pa.table(columns, schema=TEXTURED_FACES_SCHEMA)
+
+
+def pages_table(pages: list[NDArray[np.uint8]], level: int) -> pa.Table:
+    """The ``texture_pages`` artifact."""
+    return pa.table({
+        "page": pa.array(np.arange(len(pages), dtype=np.int16)),
+        "width": pa.array([p.shape[1] for p in pages], pa.int32()),
+        "height": pa.array([p.shape[0] for p in pages], pa.int32()),
+        "png": pa.array([encode_png(p, level) for p in pages], pa.binary()),
+    }, schema=TEXTURE_PAGES_SCHEMA)
+
+
+def coverage_report(areas: NDArray[np.float64], face_frame: NDArray[np.int64]) -> dict[str, Any]:
+    """Share of surface area textured, and the face counts."""
+    total = float(areas.sum())
+    textured = face_frame >= 0
+    return {
+        "faces": len(face_frame),
+        "faces_textured": int(textured.sum()),
+        "faces_untextured": int((~textured).sum()),
+        "coverage": round(float(areas[textured].sum()) / total, 6) if total > 0 else 0.0,
+    }
+
+
+def orient_towards_rig(vertices: NDArray[np.float64], faces: NDArray[np.int64],
+                       normals: NDArray[np.float64], areas: NDArray[np.float64], rig: Rig
+                       ) -> bool:
+    """Flip ``normals`` in place when most of the surface faces away from the cameras.
+
+    Every surface the cameras can see faces the rig, so a mesh whose normals mostly point away
+    has the opposite convention (inward-facing Poisson normals, say); True when flipped.
+    """
+    height = float(np.mean([c.pose.translation_m[1] for c in rig.cameras]))
+    to_rig = np.array([0.0, height, 0.0]) - vertices[faces].mean(axis=1)
+    facing = np.einsum("ij,ij->i", normals, to_rig) > 0
+    if float(areas[facing].sum()) >= 0.5 * float(areas.sum()):
+        return False
+    normals *= -1
+    return True
+
+
+def texture(inputs: Mapping[str, Any], params: TextureParams, progress: ProgressFn
+            ) -> StageResult:
+    """Texture the mesh from the camera frames (the stage function)."""
+    started = time.perf_counter()
+    vertices, faces, vertex_normals = _mesh_arrays(inputs)
+    rig = rig_from_table(inputs["rig"])
+    if not rig.cameras:
+        raise StageError("rig: no cameras; a textured model needs at least one [[cameras]] entry")
+    normals, areas = face_normals(vertices, faces, vertex_normals)
+    flipped = orient_towards_rig(vertices, faces, normals, areas, rig)
+    if params.method == "panorama":
+        from scanpipe.texturing.panorama import texture_panorama
+
+        result = texture_panorama(vertices, faces, normals, areas, inputs, rig, params, progress)
+        result.report["normals_flipped"] = flipped
+        return result
+    frames = choose_frames(inputs["frames"], inputs["motor"], rig, params.frame_spacing_deg,
+                           params.frame_stride, progress)
+    timing = {"frames_s": time.perf_counter() - started}
+    scores = face_scores(vertices, faces, normals, frames, min_cos=params.min_cos,
+                         margin_px=params.margin_px, sharpness_weight=params.sharpness_weight,
+                         two_sided=params.two_sided or vertex_normals is None, progress=progress)
+    timing["score_s"] = time.perf_counter() - started - sum(timing.values())
+    occlusion = MeshOcclusion(vertices, faces)
+    selection = select_frames_per_face(scores, frames, occlusion, params.max_candidates, progress)
+    del scores
+    timing["visibility_s"] = time.perf_counter() - started - sum(timing.values())
+    gains = np.ones((len(frames), 3))
+    pairs = 0
+    if params.exposure:
+        fa, fb, ca, cb = seam_colour_pairs(vertices, faces, selection.frame, frames)
+        gains = solve_gains(fa, fb, ca, cb, len(frames))
+        pairs = len(fa)
+    timing["exposure_s"] = time.perf_counter() - started - sum(timing.values())
+    red, green, blue = params.neutral_rgb
+    atlas = build_atlas(vertices, faces, selection.frame, frames, gains,
+                        page_px=params.page_size_px, texel_scale=params.texel_scale,
+                        pad_px=params.pad_px, neutral_bgr=(blue, green, red), progress=progress)
+    faces_table = textured_faces_table(atlas.face_page, atlas.face_uv, selection.frame,
+                                       frames.camera_ids, frames.sequences)
+    pages = pages_table(atlas.pages, params.png_compression)
+    timing["atlas_s"] = time.perf_counter() - started - sum(timing.values())
+    used = np.unique(selection.frame[selection.frame >= 0])
+    used_gains = gains[used] if len(used) else np.ones((1, 3))
+    report = {
+        "method": "projective",
+        **coverage_report(areas, selection.frame),
+        "frames_in_recording": frames.considered,
+        "frames_considered": len(frames),
+        "frames_used": len(used),
+        "occluded_candidates": selection.occluded_candidates,
+        "rays_cast": selection.rays_cast,
+        "regions": atlas.regions,
+        "pages": len(atlas.pages),
+        "page_sizes": [[int(p.shape[1]), int(p.shape[0])] for p in atlas.pages],
+        "exposure_pairs": pairs,
+        "gain_min": round(float(used_gains.min()), 4),
+        "gain_max": round(float(used_gains.max()), 4),
+        "neutral_rgb": list(params.neutral_rgb),
+        "normals_flipped": flipped,
+        **{k: round(v, 3) for k, v in timing.items()},
+        "seconds": round(time.perf_counter() - started, 3),
+    }
+    return StageResult(tables={"textured_faces": faces_table, "texture_pages": pages},
+                       report=report)
+
+
+STAGE = Stage(
+    name="texture",
+    version=1,
+    params=TextureParams,
+    inputs=("mesh_vertices", "mesh_faces", "frames", "motor", "rig"),
+    outputs=("textured_faces", "texture_pages"),
+    func=texture,
+    description="camera frames onto the mesh: per-face UVs and PNG atlas pages",
+    libraries=("numpy", "pyarrow", "open3d", "cv2"),
+)

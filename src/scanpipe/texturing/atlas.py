@@ -1,0 +1,176 @@
+"""Texture atlas: the image regions that faces were textured from, packed into pages.
+
+Per frame, the faces that chose it cover a set of pixel boxes. The boxes are painted onto a
+coarse grid of ``cell_px`` cells and joined into 8-connected regions; each region's tight box
+(plus ``pad_px`` of real image around it, so that filtering at chart borders samples real
+pixels) is cut out, multiplied by the frame's exposure gain, scaled by ``texel_scale`` and placed
+into pages by shelf packing (tallest first). Page 0 begins with a neutral-colour strip where the
+UVs of untextured faces point; unused page area is neutral too. UVs follow glTF: v = 0 at the
+top, texel centres at ``(i + 0.5) / size``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from scanpipe.camera import project_points
+from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.texturing.frames import FrameSet
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+U8 = NDArray[np.uint8]
+#: Width of the neutral strip at the left of page 0.
+NEUTRAL_PX = 8
+
+
+@dataclass
+class Atlas:
+    """Pages (BGR images) and, per face, its page (−1 = untextured) and corner UVs."""
+
+    pages: list[U8]
+    face_page: NDArray[np.int16]
+    face_uv: NDArray[np.float32]  # (faces, 3, 2)
+    regions: int
+
+
+def frame_regions(corner_uv: F64, width: int, height: int, cell_px: int = 32,
+                  pad_px: int = 3) -> tuple[I64, I64]:
+    """Group faces (corner pixels ``(k, 3, 2)``) of one frame into regions.
+
+    Returns ``(region_of_face (k,), boxes (R, 4))`` with boxes ``x0, y0, x1, y1`` (x1, y1
+    exclusive), clipped to the image.
+    """
+    lo = np.floor(corner_uv.min(axis=1)).astype(np.int64) - pad_px
+    hi = np.ceil(corner_uv.max(axis=1)).astype(np.int64) + pad_px + 1
+    lo = np.clip(lo, 0, [width - 1, height - 1])
+    hi = np.clip(hi, lo + 1, [width, height])
+    gw, gh = math.ceil(width / cell_px), math.ceil(height / cell_px)
+    c0 = lo // cell_px
+    c1 = (hi - 1) // cell_px + 1
+    diff = np.zeros((gh + 1, gw + 1), dtype=np.int64)
+    np.add.at(diff, (c0[:, 1], c0[:, 0]), 1)
+    np.add.at(diff, (c0[:, 1], c1[:, 0]), -1)
+    np.add.at(diff, (c1[:, 1], c0[:, 0]), -1)
+    np.add.at(diff, (c1[:, 1], c1[:, 0]), 1)
+    covered = (diff.cumsum(0).cumsum(1)[:gh, :gw] > 0).astype(np.uint8)
+    _, labels = cv2.connectedComponents(covered, connectivity=8)
+    face_label = labels[c0[:, 1], c0[:, 0]].astype(np.int64)
+    used, region = np.unique(face_label, return_inverse=True)
+    boxes = np.empty((len(used), 4), dtype=np.int64)
+    boxes[:, :2] = np.iinfo(np.int64).max
+    boxes[:, 2:] = np.iinfo(np.int64).min
+    np.minimum.at(boxes[:, 0], region, lo[:, 0])
+    np.minimum.at(boxes[:, 1], region, lo[:, 1])
+    np.maximum.at(boxes[:, 2], region, hi[:, 0])
+    np.maximum.at(boxes[:, 3], region, hi[:, 1])
+    return region.reshape(-1), boxes
+
+
+def pack_shelves(sizes: I64, page_px: int, first: tuple[int, int] | None = None
+                 ) -> tuple[I64, I64, I64, list[tuple[int, int]]]:
+    """Shelf-pack rectangles ``(R, 2)`` (w, h) into square pages of ``page_px``.
+
+    ``first`` is a rectangle reserved at the start of page 0. Returns ``page, x, y`` per
+    rectangle and each page's used ``(width, height)``. Every rectangle must fit a page.
+    """
+    order = np.argsort(-sizes[:, 1], kind="stable")
+    page = np.zeros(len(sizes), dtype=np.int64)
+    xs = np.zeros(len(sizes), dtype=np.int64)
+    ys = np.zeros(len(sizes), dtype=np.int64)
+    used: list[tuple[int, int]] = [(0, 0)]
+    current, x, y, shelf_h = 0, 0, 0, 0
+    if first is not None:
+        x, shelf_h = first[0] + 1, first[1]
+        used[0] = first
+    for r in order:
+        w, h = int(sizes[r, 0]), int(sizes[r, 1])
+        if x + w > page_px:  # next shelf
+            y, x, shelf_h = y + shelf_h + 1, 0, 0
+        if y + h > page_px:  # next page
+            current, x, y, shelf_h = current + 1, 0, 0, 0
+            used.append((0, 0))
+        if shelf_h == 0:
+            shelf_h = h
+        page[r], xs[r], ys[r] = current, x, y
+        used[current] = (max(used[current][0], x + w), max(used[current][1], y + h))
+        x += w + 1
+    return page, xs, ys, used
+
+
+def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chosen: I64,
+                frames: FrameSet, gains: F64, *, page_px: int = 4096, texel_scale: float = 1.0,
+                pad_px: int = 3, cell_px: int = 32,
+                neutral_bgr: tuple[int, int, int] = (128, 128, 128),
+                progress: ProgressFn = no_progress) -> Atlas:
+    """Cut, scale, expose and pack the regions of every used frame; UVs for every face."""
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    n_faces = len(faces)
+    face_region = np.full(n_faces, -1, dtype=np.int64)
+    corner_uv = np.zeros((n_faces, 3, 2))
+    region_frame: list[I64] = []
+    region_boxes: list[I64] = []
+    count = 0
+    used_frames = np.unique(chosen[chosen >= 0])
+    for i in used_frames:
+        idx = np.flatnonzero(chosen == i)
+        cam = frames.cameras[i]
+        uv, _ = project_points(vertices[faces[idx]].reshape(-1, 3), cam, float(frames.beta_deg[i]))
+        uv = uv.reshape(-1, 3, 2)
+        region, boxes = frame_regions(uv, cam.width, cam.height, cell_px, pad_px)
+        corner_uv[idx] = uv
+        face_region[idx] = region + count
+        region_frame.append(np.full(len(boxes), i, dtype=np.int64))
+        region_boxes.append(boxes)
+        count += len(boxes)
+    frame_of = np.concatenate(region_frame) if region_frame else np.zeros(0, np.int64)
+    boxes = np.concatenate(region_boxes) if region_boxes else np.zeros((0, 4), np.int64)
+    src_w, src_h = boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]
+    limit = page_px - 2
+    scale = np.minimum(texel_scale, np.minimum(limit / src_w.clip(1), limit / src_h.clip(1)))
+    dst = np.stack([np.maximum(1, np.ceil(src_w * scale)),
+                    np.maximum(1, np.ceil(src_h * scale))], axis=1).astype(np.int64)
+    first_h = int(max(NEUTRAL_PX, dst[:, 1].max() if len(dst) else NEUTRAL_PX))
+    page, ox, oy, used = pack_shelves(dst, page_px, first=(NEUTRAL_PX, first_h))
+    sizes = [(_round_up(w, 4), _round_up(h, 4)) for w, h in used]
+    pages = [np.empty((h, w, 3), dtype=np.uint8) for w, h in sizes]
+    for p in pages:
+        p[:] = neutral_bgr
+    for r in range(len(boxes)):
+        x0, y0, x1, y1 = (int(b) for b in boxes[r])
+        crop = frames.image(int(frame_of[r]))[y0:y1, x0:x1].astype(np.float32)
+        crop *= gains[frame_of[r]].astype(np.float32)
+        patch = np.clip(crop + 0.5, 0, 255).astype(np.uint8)
+        w, h = int(dst[r, 0]), int(dst[r, 1])
+        if (w, h) != (x1 - x0, y1 - y0):
+            patch = cv2.resize(patch, (w, h), interpolation=cv2.INTER_AREA)
+        pages[page[r]][oy[r]:oy[r] + h, ox[r]:ox[r] + w] = patch
+        if r % 64 == 0:
+            progress("atlas", r + 1, len(boxes))
+    face_page = np.full(n_faces, -1, dtype=np.int16)
+    face_uv = np.empty((n_faces, 3, 2), dtype=np.float32)
+    face_uv[:, :, 0] = (NEUTRAL_PX / 2) / sizes[0][0]
+    face_uv[:, :, 1] = (NEUTRAL_PX / 2) / sizes[0][1]
+    done = np.flatnonzero(face_region >= 0)
+    if len(done):
+        reg = face_region[done]
+        sx, sy = dst[reg, 0] / src_w[reg], dst[reg, 1] / src_h[reg]
+        page_w = np.array([s[0] for s in sizes], dtype=np.float64)[page[reg]]
+        page_h = np.array([s[1] for s in sizes], dtype=np.float64)[page[reg]]
+        uv = corner_uv[done]
+        face_uv[done, :, 0] = (ox[reg, None] + (uv[:, :, 0] - boxes[reg, 0, None] + 0.5)
+                               * sx[:, None]) / page_w[:, None]
+        face_uv[done, :, 1] = (oy[reg, None] + (uv[:, :, 1] - boxes[reg, 1, None] + 0.5)
+                               * sy[:, None]) / page_h[:, None]
+        face_page[done] = page[reg]
+    return Atlas(pages, face_page, face_uv, len(boxes))
+
+
+def _round_up(value: int, multiple: int) -> int:
+    return max(multiple, -(-value // multiple) * multiple)

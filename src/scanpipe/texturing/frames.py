@@ -1,0 +1,190 @@
+"""Camera frames for texturing: decode, place at the platform angle, rate sharpness, choose.
+
+A frame is placed by the platform angle at its capture time (:func:`scanpipe.motion.beta_deg_at`)
+and the pose of its camera on the platform (:func:`scanpipe.camera.camera_pose_in_rig`).
+Sharpness is the variance of the Laplacian of a quarter-size grey decode: cheap enough to rate
+every frame of a video, and low for frames smeared by the turning platform.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import pyarrow as pa
+from numpy.typing import NDArray
+
+from scanpipe.artifacts import check_columns
+from scanpipe.camera import camera_pose_in_rig
+from scanpipe.errors import StageError
+from scanpipe.motion import beta_deg_at
+from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.rig import CameraConfig, Rig
+
+U8 = NDArray[np.uint8]
+F64 = NDArray[np.float64]
+
+FRAME_COLUMNS = {
+    "camera_id": pa.string(),
+    "log_time_ns": pa.int64(),
+    "sequence": pa.int64(),
+    "data": pa.binary(),
+}
+
+
+@dataclass
+class FrameSet:
+    """The frames chosen for texturing, one entry per frame; images decoded on demand (BGR).
+
+    A few decoded images are cached (the stages walk the frames in order), so a video's worth
+    of Full-HD frames never sits in memory at once.
+    """
+
+    camera_ids: list[str]
+    cameras: list[CameraConfig]
+    sequences: NDArray[np.int64]
+    times_ns: NDArray[np.int64]
+    beta_deg: F64
+    sharpness: F64
+    encoded: list[bytes] = field(repr=False)
+    #: Frames in the artifact before the choice (for the report).
+    considered: int = 0
+    cache_size: int = 8
+    _cache: OrderedDict[int, U8] = field(default_factory=OrderedDict, repr=False)
+
+    def __len__(self) -> int:
+        return len(self.encoded)
+
+    def image(self, index: int) -> U8:
+        """Frame ``index`` decoded (BGR), the size its camera says."""
+        if index in self._cache:
+            self._cache.move_to_end(index)
+            return self._cache[index]
+        image = decode_image(self.encoded[index], f"frame {self.sequences[index]}")
+        cam = self.cameras[index]
+        if image.shape[:2] != (cam.height, cam.width):
+            raise StageError(f"frames: frame {self.sequences[index]} of {cam.id!r} is "
+                             f"{image.shape[1]}×{image.shape[0]}, its other frames "
+                             f"{cam.width}×{cam.height}")
+        self._cache[index] = image
+        if len(self._cache) > self.cache_size:
+            self._cache.popitem(last=False)
+        return image
+
+    def centre(self, index: int) -> F64:
+        """The camera centre of frame ``index`` in the rig frame."""
+        return camera_pose_in_rig(self.cameras[index], float(self.beta_deg[index]))[1]
+
+    def relative_sharpness(self) -> F64:
+        """Sharpness divided by the sharpest frame of the same camera (1 = sharpest)."""
+        result = np.ones(len(self), dtype=np.float64)
+        ids = np.asarray(self.camera_ids)
+        for cam_id in set(self.camera_ids):
+            mask = ids == cam_id
+            best = float(self.sharpness[mask].max())
+            if best > 0:
+                result[mask] = self.sharpness[mask] / best
+        return result
+
+
+def camera_for_size(cam: CameraConfig, width: int, height: int) -> CameraConfig:
+    """``cam`` with intrinsics scaled to frames of ``width`` × ``height`` (same aspect ratio).
+
+    A camera calibrated at Full HD and recorded at 1280 × 720 keeps its lens; only the pixel
+    grid changes. A different aspect ratio is a crop we cannot know: :class:`StageError`.
+    """
+    if (width, height) == (cam.width, cam.height):
+        return cam
+    sx, sy = width / cam.width, height / cam.height
+    if abs(sx - sy) > 0.01 * max(sx, sy):
+        raise StageError(
+            f"frames: camera {cam.id!r} recorded {width}×{height}, the rig says "
+            f"{cam.width}×{cam.height} (a different aspect ratio); recalibrate with "
+            "scanpipe calibrate-camera"
+        )
+    return cam.model_copy(update={
+        "width": width, "height": height, "fx": cam.fx * sx, "fy": cam.fy * sy,
+        "cx": (cam.cx + 0.5) * sx - 0.5, "cy": (cam.cy + 0.5) * sy - 0.5,
+    })
+
+
+def decode_image(data: bytes, what: str) -> U8:
+    """A colour (BGR) image from encoded bytes; :class:`StageError` naming ``what`` if broken."""
+    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        raise StageError(f"frames: {what} is not a decodable image")
+    return np.asarray(image, dtype=np.uint8)
+
+
+def sharpness_of(data: bytes, what: str) -> float:
+    """Variance of the Laplacian of a quarter-size grey decode (higher is sharper)."""
+    grey = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_4)
+    if grey is None:
+        raise StageError(f"frames: {what} is not a decodable image")
+    return float(cv2.Laplacian(grey, cv2.CV_32F).var())
+
+
+def choose_frames(
+    frames: pa.Table,
+    motor: pa.Table,
+    rig: Rig,
+    spacing_deg: float,
+    stride: int = 1,
+    progress: ProgressFn = no_progress,
+) -> FrameSet:
+    """The sharpest frame per camera in every ``spacing_deg`` bin of platform angle.
+
+    ``stride`` first keeps every n-th frame of each camera (in time order); ``spacing_deg`` 0
+    keeps every remaining frame. Frames of cameras the rig does not know are an error.
+    """
+    check_columns(frames, FRAME_COLUMNS, "frames")
+    if frames.num_rows == 0:
+        raise StageError("frames: the recording has no camera frames; nothing to texture from")
+    camera_ids = np.asarray(frames.column("camera_id").to_pylist(), dtype=object)
+    times = frames.column("log_time_ns").to_numpy().astype(np.int64)
+    sequences = frames.column("sequence").to_numpy().astype(np.int64)
+    known = {c.id for c in rig.cameras}
+    unknown = sorted(set(camera_ids.tolist()) - known)
+    if unknown:
+        raise StageError(f"frames: camera(s) {', '.join(map(repr, unknown))} are not in the rig "
+                         f"(cameras: {', '.join(sorted(known)) or 'none'})")
+    order = np.lexsort((times, camera_ids.astype(str)))
+    rank = np.empty(len(order), dtype=np.int64)
+    cam_sorted = camera_ids[order]
+    starts = np.r_[0, np.flatnonzero(cam_sorted[1:] != cam_sorted[:-1]) + 1]
+    run_start = np.repeat(starts, np.diff(np.r_[starts, len(order)]))
+    rank[order] = np.arange(len(order)) - run_start
+    kept = np.flatnonzero(rank % max(1, stride) == 0)
+
+    beta = beta_deg_at(times[kept], motor, rig.motor)
+    data = frames.column("data")
+    sharp = np.empty(len(kept), dtype=np.float64)
+    for i, row in enumerate(kept):
+        sharp[i] = sharpness_of(data[int(row)].as_py(), f"frame {sequences[row]}")
+        if i % 16 == 0:
+            progress("rate frames", i, len(kept))
+    if spacing_deg > 0:
+        bins = np.round(beta / spacing_deg).astype(np.int64)
+        group = np.lexsort((-sharp, bins, camera_ids[kept].astype(str)))
+        key_cam, key_bin = camera_ids[kept][group], bins[group]
+        first = np.r_[True, (key_cam[1:] != key_cam[:-1]) | (key_bin[1:] != key_bin[:-1])]
+        chosen = np.sort(group[first])
+    else:
+        chosen = np.arange(len(kept))
+    rows = kept[chosen]
+    encoded = [data[int(row)].as_py() for row in rows]
+    sized: dict[str, CameraConfig] = {}
+    for cam in rig.cameras:  # the first frame of each camera gives the size of all its frames
+        first = next((k for k, row in enumerate(rows) if camera_ids[row] == cam.id), None)
+        if first is not None:
+            height, width = decode_image(encoded[first], f"frame {sequences[rows[first]]}"
+                                         ).shape[:2]
+            sized[cam.id] = camera_for_size(cam, width, height)
+    return FrameSet(
+        camera_ids=[str(c) for c in camera_ids[rows]],
+        cameras=[sized[str(c)] for c in camera_ids[rows]],
+        sequences=sequences[rows], times_ns=times[rows], beta_deg=beta[chosen],
+        sharpness=sharp[chosen], encoded=encoded, considered=frames.num_rows,
+    )

@@ -1,0 +1,269 @@
+"""Projective texturing: the best frame for every face, and colours for points.
+
+For each chosen frame the vertices within the camera's azimuth window are projected at once with
+the calibrated camera model at the frame's platform angle (:func:`scanpipe.camera.project_points`).
+A face's score in a frame is
+
+    score = cos θ · centrality · sharpness_rel ** sharpness_weight
+
+with θ the angle between the face normal and the direction to the camera centre, centrality
+``1 − ½ r²`` (r the distance of the face's image from the principal point, in half image sizes,
+floored at 0.05) and sharpness relative to the sharpest frame of that camera. A face scores 0
+where a corner falls outside the image (less a margin), behind the camera, or where it is seen
+at more than ``acos(min_cos)``. Faces then take their best frame in which they are really
+visible: in rounds, the best remaining candidate of every unresolved face is tested against
+the mesh (one batch of rays per round); an occluded candidate is struck out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+import pyarrow as pa
+from numpy.typing import NDArray
+
+from scanpipe.camera import camera_pose_in_rig, intrinsic_matrix, project_points
+from scanpipe.errors import StageError
+from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.rig import CameraConfig, Rig
+from scanpipe.texturing.frames import FrameSet, choose_frames
+from scanpipe.texturing.visibility import MeshOcclusion
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+NO_DISTORTION = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+@lru_cache(maxsize=64)
+def _normalized_limits(cam: CameraConfig) -> tuple[float, float]:
+    """How far (|x/z|, |y/z|) the image border reaches once the lens distortion is undone."""
+    w, h = cam.width, cam.height
+    border = np.concatenate([
+        np.stack([np.linspace(0, w - 1, 33), np.zeros(33)], 1),
+        np.stack([np.linspace(0, w - 1, 33), np.full(33, h - 1.0)], 1),
+        np.stack([np.zeros(33), np.linspace(0, h - 1, 33)], 1),
+        np.stack([np.full(33, w - 1.0), np.linspace(0, h - 1, 33)], 1),
+    ]).reshape(-1, 1, 2)
+    normalized = cv2.undistortPoints(border, intrinsic_matrix(cam),
+                                     np.asarray(cam.distortion, np.float64)).reshape(-1, 2)
+    return float(np.abs(normalized[:, 0]).max()) * 1.05, float(np.abs(normalized[:, 1]).max()
+                                                              ) * 1.05
+
+
+def project_valid(points: NDArray[np.floating], cam: CameraConfig, beta_deg: float,
+                  margin_px: float = 2.0, near_m: float = 0.05
+                  ) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """Project points; ``valid`` where in front of the camera and inside the image.
+
+    With lens distortion the polynomial folds back far outside the field of view, so a point
+    must also lie inside the undistorted image border.
+    """
+    uv, depth = project_points(points, cam, beta_deg)
+    valid = ((depth > near_m) & (uv[:, 0] >= margin_px) & (uv[:, 0] <= cam.width - 1 - margin_px)
+             & (uv[:, 1] >= margin_px) & (uv[:, 1] <= cam.height - 1 - margin_px))
+    if any(cam.distortion):
+        plain = cam.model_copy(update={"distortion": NO_DISTORTION})
+        uv0, _ = project_points(points, plain, beta_deg)
+        limit_x, limit_y = _normalized_limits(cam)
+        valid &= (np.abs((uv0[:, 0] - cam.cx) / cam.fx) <= limit_x) & (
+            np.abs((uv0[:, 1] - cam.cy) / cam.fy) <= limit_y)
+    return uv, depth, valid
+
+
+def centrality(uv: F64, cam: CameraConfig) -> F64:
+    """``1 − ½ r²`` floored at 0.05, r = distance from the principal point in half image sizes."""
+    rr = (((uv[:, 0] - cam.cx) / (cam.width / 2)) ** 2
+          + ((uv[:, 1] - cam.cy) / (cam.height / 2)) ** 2)
+    return np.asarray(np.clip(1.0 - 0.5 * rr, 0.05, 1.0))
+
+
+def view_window(cam: CameraConfig, beta_deg: float) -> tuple[float, float] | None:
+    """Azimuth (atan2(x, z), degrees) of a camera's view and a half width that holds every
+    direction it sees; None when straight up or down is in view (then every azimuth is).
+
+    The corners of the undistorted image rectangle bound the azimuths: each image edge is an arc
+    of a great circle, along which the azimuth is monotonic unless it passes a pole.
+    """
+    rotation, _ = camera_pose_in_rig(cam, beta_deg)
+    limit_x, limit_y = _normalized_limits(cam)
+    for pole in (rotation[1], -rotation[1]):  # the rig's ±y in camera coordinates
+        if pole[2] > 0 and abs(pole[0] / pole[2]) <= limit_x and abs(pole[1] / pole[2]) <= limit_y:
+            return None
+    corners = np.array([[sx * limit_x, sy * limit_y, 1.0] for sx in (-1, 1) for sy in (-1, 1)])
+    rays = np.einsum("ij,kj->ki", rotation, corners)
+    axis = rotation[:, 2]
+    centre = math.degrees(math.atan2(axis[0], axis[2]))
+    azimuths = np.degrees(np.arctan2(rays[:, 0], rays[:, 2]))
+    half = float(np.abs((azimuths - centre + 180.0) % 360.0 - 180.0).max())
+    return centre, half + 2.0
+
+
+class AzimuthIndex:
+    """Items (vertices, faces) sorted by azimuth about the motor axis, so that the ones inside
+    a camera's azimuth window are one or two slices; items near the axis are always taken."""
+
+    def __init__(self, points: NDArray[np.floating], near_m: float) -> None:
+        azimuth = np.degrees(np.arctan2(points[:, 0], points[:, 2]))
+        near = np.hypot(points[:, 0], points[:, 2]) < near_m
+        far = np.flatnonzero(~near)
+        order = np.argsort(azimuth[far], kind="stable")
+        self.order = far[order]
+        self.sorted_deg = azimuth[self.order]
+        self.near = np.flatnonzero(near)
+        self.count = len(points)
+
+    def window(self, centre_deg: float, half_deg: float) -> NDArray[np.int64]:
+        """Indices with azimuth within ``half_deg`` of ``centre_deg`` (plus those near the axis)."""
+        if half_deg >= 180.0:
+            return np.arange(self.count)
+        lo, hi = centre_deg - half_deg, centre_deg + half_deg
+        parts = [self.near]
+        for a, b in ((lo, hi), (lo + 360.0, hi + 360.0), (lo - 360.0, hi - 360.0)):
+            i, j = np.searchsorted(self.sorted_deg, (a, b))
+            parts.append(self.order[i:j])
+        return np.concatenate(parts)
+
+
+def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], normals: F64,
+                frames: FrameSet, *, min_cos: float = 0.2, margin_px: float = 2.0,
+                sharpness_weight: float = 1.0, two_sided: bool = False,
+                progress: ProgressFn = no_progress) -> F32:
+    """``(frames, faces)`` scores (0 = unusable); see the module docstring.
+
+    Per frame only the vertices and faces within the camera's azimuth window (plus those near
+    the axis, where the camera's offset from the axis matters) are looked at.
+    """
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    sharp = frames.relative_sharpness() ** sharpness_weight
+    scores = np.zeros((len(frames), len(faces)), dtype=np.float32)
+    offset = max((math.hypot(c.pose.translation_m[0], c.pose.translation_m[2])
+                  for c in frames.cameras), default=0.0)
+    near_m = 4 * offset + 0.3
+    parallax_deg = math.degrees(math.asin(offset / near_m))  # farther points shift less
+    centroids = np.asarray(vertices[faces].mean(axis=1), dtype=np.float64)
+    vertex_index = AzimuthIndex(vertices, near_m)
+    face_index = AzimuthIndex(centroids, near_m)
+    uv = np.zeros((len(vertices), 2))
+    valid = np.zeros(len(vertices), dtype=bool)
+    for i, cam in enumerate(frames.cameras):
+        beta = float(frames.beta_deg[i])
+        centre_deg, half_deg = view_window(cam, beta) or (0.0, 180.0)
+        window = (centre_deg, half_deg + parallax_deg)
+        near = vertex_index.window(*window)
+        valid[:] = False
+        uv[near], _, valid[near] = project_valid(vertices[near], cam, beta, margin_px)
+        fidx = face_index.window(*window)
+        fidx = fidx[valid[faces[fidx]].all(axis=1)]
+        corners = faces[fidx]
+        to_cam = frames.centre(i) - centroids[fidx]
+        cos = np.einsum("ij,ij->i", normals[fidx], to_cam) / np.maximum(
+            np.linalg.norm(to_cam, axis=1), 1e-12)
+        if two_sided:
+            cos = np.abs(cos)
+        score = cos * centrality(uv[corners].mean(axis=1), cam) * sharp[i]
+        keep = cos >= min_cos
+        scores[i, fidx[keep]] = score[keep]
+        progress("score frames", i + 1, len(frames))
+    return scores
+
+
+@dataclass
+class Selection:
+    """The frame chosen for every face (−1: none), and what the occlusion test struck out."""
+
+    frame: NDArray[np.int64]
+    occluded_candidates: int
+    rays_cast: int
+
+
+def select_frames_per_face(scores: F32, frames: FrameSet, occlusion: MeshOcclusion,
+                           max_candidates: int = 8, progress: ProgressFn = no_progress
+                           ) -> Selection:
+    """Each face's best-scoring frame in which it is wholly visible (see module docstring).
+
+    ``scores`` is modified: occluded candidates are set to 0.
+    """
+    n_faces = scores.shape[1]
+    chosen = np.full(n_faces, -1, dtype=np.int64)
+    if len(frames) == 0 or n_faces == 0:
+        return Selection(chosen, 0, 0)
+    centres = np.stack([frames.centre(i) for i in range(len(frames))])
+    pending = np.flatnonzero(scores.max(axis=0) > 0)
+    occluded = rays = 0
+    for round_index in range(max_candidates):
+        if len(pending) == 0:
+            break
+        sub = scores[:, pending]
+        best = np.argmax(sub, axis=0)
+        alive = sub[best, np.arange(len(pending))] > 0
+        pending, best = pending[alive], best[alive]
+        if len(pending) == 0:
+            break
+        visible = occlusion.faces_visible(centres[best], pending)
+        rays += 7 * len(pending)
+        chosen[pending[visible]] = best[visible]
+        blocked = ~visible
+        scores[best[blocked], pending[blocked]] = 0.0
+        occluded += int(blocked.sum())
+        pending = pending[blocked]
+        progress("visibility", round_index + 1, max_candidates)
+    return Selection(chosen, occluded, rays)
+
+
+def colorize_points(
+    points: pa.Table,
+    frames: pa.Table,
+    motor: pa.Table,
+    rig: Rig,
+    *,
+    spacing_deg: float = 5.0,
+    neutral_rgb: tuple[int, int, int] = (128, 128, 128),
+    cell_px: int = 6,
+    progress: ProgressFn = no_progress,
+) -> pa.Table:
+    """``points`` with ``red``, ``green``, ``blue`` (uint8) from the camera frames.
+
+    Each point takes the pixel of the frame (one per ``spacing_deg`` of platform angle and
+    camera, the sharpest) where it lies nearest the image centre among the frames that see it.
+    Occlusion is a z-buffer of the points themselves in ``cell_px`` cells: a point more than
+    3 cm + 1 % behind the nearest point of its cell is hidden. Points no frame sees get
+    ``neutral_rgb``. Called by the export stage for coloured point clouds (PLY, LAS, E57).
+    """
+    for name in ("x", "y", "z"):
+        if name not in points.column_names:
+            raise StageError(f"points: missing column {name!r}")
+    xyz = np.stack([points.column(n).to_numpy(zero_copy_only=False) for n in "xyz"], axis=1)
+    xyz = xyz.astype(np.float64)
+    chosen = choose_frames(frames, motor, rig, spacing_deg, progress=progress)
+    best = np.zeros(len(xyz), dtype=np.float64)
+    rgb = np.tile(np.asarray(neutral_rgb, dtype=np.uint8), (len(xyz), 1))
+    for i, cam in enumerate(chosen.cameras):
+        uv, depth, valid = project_valid(xyz, cam, float(chosen.beta_deg[i]), 0.0)
+        idx = np.flatnonzero(valid)
+        col = np.clip(np.rint(uv[idx, 0]), 0, cam.width - 1).astype(np.int64)
+        row = np.clip(np.rint(uv[idx, 1]), 0, cam.height - 1).astype(np.int64)
+        cells_w = cam.width // cell_px + 1
+        cell = (row // cell_px) * cells_w + col // cell_px
+        nearest = np.full((cam.height // cell_px + 1) * cells_w, np.inf)
+        np.minimum.at(nearest, cell, depth[idx])
+        seen = depth[idx] <= nearest[cell] + 0.03 + 0.01 * depth[idx]
+        idx, col, row = idx[seen], col[seen], row[seen]
+        score = centrality(uv[idx], cam)
+        better = score > best[idx]
+        idx, col, row = idx[better], col[better], row[better]
+        best[idx] = score[better]
+        rgb[idx] = chosen.image(i)[row, col, ::-1]
+        progress("colour points", i + 1, len(chosen))
+    table = points
+    for k, name in enumerate(("red", "green", "blue")):
+        column = pa.array(rgb[:, k], pa.uint8())
+        if name in table.column_names:
+            table = table.set_column(table.column_names.index(name), name, column)
+        else:
+            table = table.append_column(name, column)
+    return table
