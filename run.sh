@@ -63,7 +63,7 @@ setup_test_tools() {
 case "${1:-}" in
   demo)
     shift; setup
-    exec "$VENV/bin/scanpipe" plan --angle 0.108 "$@" ;;
+    exec "$VENV/bin/scanpipe" demo "$@" ;;
   test)
     shift; setup; setup_test_tools
     "$VENV/bin/ruff" check src tests benchmarks

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from scanpipe.geometry import camera_to_platform, platform_rotation
+from scanpipe.geometry import camera_to_platform, platform_rotation, rows_matmul
 from scanpipe.rig import CameraConfig
 
 F64 = NDArray[np.float64]
@@ -39,8 +39,7 @@ def project_points(
     """
     rotation, translation = camera_pose_in_rig(cam, beta_deg)
     delta = np.asarray(points_rig, dtype=np.float64) - translation
-    # delta @ rotation, written out: an (N, 3) @ (3, 3) product is 3–7× slower in threaded BLAS
-    p_cam = delta[:, :1] * rotation[0] + delta[:, 1:2] * rotation[1] + delta[:, 2:3] * rotation[2]
+    p_cam = rows_matmul(delta, rotation)
     depth = p_cam[:, 2]
     safe = np.where(np.abs(depth) < 1e-9, 1e-9, depth)
     x, y = p_cam[:, 0] / safe, p_cam[:, 1] / safe
@@ -69,5 +68,5 @@ def pixel_rays(cam: CameraConfig, beta_deg: float, stride: int = 1) -> tuple[F64
     directions_cam = np.concatenate([normalized, np.ones((normalized.shape[0], 1))], axis=1)
     directions_cam /= np.linalg.norm(directions_cam, axis=1, keepdims=True)
     rotation, origin = camera_pose_in_rig(cam, beta_deg)
-    directions = (directions_cam @ rotation.T).reshape(len(vs), len(us), 3)
+    directions = rows_matmul(directions_cam, rotation.T).reshape(len(vs), len(us), 3)
     return origin, directions

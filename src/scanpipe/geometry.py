@@ -84,3 +84,14 @@ def sensor_origin_in_rig(beta_deg: ArrayLike, mount_translation_m: ArrayLike) ->
 def camera_to_platform(rotation_deg: ArrayLike) -> F64:
     """Rotation from OpenCV camera axes to the platform frame for a camera pose's Euler angles."""
     return rotation_matrix_deg(rotation_deg) @ CAMERA_BASE
+
+
+def rows_matmul(rows: NDArray[np.floating], matrix: NDArray[np.floating]) -> F64:
+    """``rows @ matrix`` for an (N, 3) array and a 3×3 matrix, written out in columns.
+
+    Threaded BLAS runs this shape 3–7× slower than three broadcast products (measured on the
+    2-core workstation), and it is in the hot path of projection and rendering.
+    """
+    r = np.asarray(rows, dtype=np.float64)
+    m = np.asarray(matrix, dtype=np.float64)
+    return np.asarray(r[:, :1] * m[0] + r[:, 1:2] * m[1] + r[:, 2:3] * m[2], dtype=np.float64)
