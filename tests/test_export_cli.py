@@ -58,7 +58,7 @@ def test_flat_folder_and_output_folder(cli: Callable, tmp_path: Path) -> None:
     result = cli("export", flat, "-f", "obj", "-o", out)
     assert result.code == 0, result.err
     assert sorted(p.name for p in out.iterdir()) == ["scan.mtl", "scan.obj", "scan_page0.png",
-                                                     "scan_page1.png"]
+                                                     "scan_page1.png", "scan_untextured.png"]
 
 
 def test_bad_format_is_a_usage_error(cli: Callable, workdir: Path, tmp_path: Path) -> None:

@@ -78,7 +78,7 @@ def test_box_with_pages_and_untextured_faces_reads_back_in_two_readers(tmp_path:
     text = path.read_text()
     assert text.count("usemtl ") == 3  # untextured, page0, page1
     assert sorted(p.name for p in tmp_path.iterdir()) == [
-        "box.mtl", "box.obj", "box_page0.png", "box_page1.png"]
+        "box.mtl", "box.obj", "box_page0.png", "box_page1.png", "box_untextured.png"]
     loaded = trimesh.load(path, process=False, force="mesh", group_material=False)
     xyz = tables["mesh_vertices"]
     bounds = np.array([[min(xyz.column(c).to_pylist()) for c in "xyz"],
@@ -90,6 +90,8 @@ def test_box_with_pages_and_untextured_faces_reads_back_in_two_readers(tmp_path:
     np.testing.assert_allclose(o3d_mesh.get_min_bound(), bounds[0], atol=1e-6)
     np.testing.assert_allclose(o3d_mesh.get_max_bound(), bounds[1], atol=1e-6)
     assert len(o3d_mesh.textures) >= 2
+    # Every face carries a UV and every material an image, or Open3D drops the texture.
+    assert o3d_mesh.has_textures() and len(o3d_mesh.triangle_uvs) == 36
 
 
 def test_two_exports_into_one_folder_do_not_collide(tmp_path: Path) -> None:
@@ -97,7 +99,7 @@ def test_two_exports_into_one_folder_do_not_collide(tmp_path: Path) -> None:
     _export(textured_box(), tmp_path, "b")
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["a.mtl", "a.obj", "a_page0.png", "b.mtl", "b.obj", "b_page0.png",
-                     "b_page1.png"]
+                     "b_page1.png", "b_untextured.png"]
     assert len(trimesh.load(tmp_path / "a.obj", process=False).faces) == 2
     assert "mtllib b.mtl" in (tmp_path / "b.obj").read_text()
 

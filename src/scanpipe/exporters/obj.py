@@ -20,7 +20,18 @@ from scanpipe.exporters.model import MeshModel, split_by_uv, unit_normals
 from scanpipe.exporters.textfmt import Fixed, Ints, Part, float_rows, render_lines
 
 #: Untextured faces of a textured mesh get this plain material.
-UNTEXTURED_KD = "0.7 0.7 0.7"
+UNTEXTURED_GREY = 179  # 0.7 of full scale
+
+
+def plain_png(grey: int) -> bytes:
+    """A 2×2 grey PNG: the map of the untextured material (readers such as Open3D treat a
+    mesh as textured only when every material has an image)."""
+    import cv2
+
+    ok, data = cv2.imencode(".png", np.full((2, 2, 3), grey, np.uint8))
+    if not ok:
+        raise RuntimeError("OpenCV could not encode a 2×2 PNG")
+    return bytes(data)
 
 
 def safe_stem(stem: str) -> str:
@@ -92,7 +103,10 @@ def obj_files(mesh: MeshModel, stem: str) -> dict[str, bytes]:
     vt_of_face = vt_index.reshape(-1, 3)
     uv_obj = np.stack([vt_uv[:, 0].astype(np.float64), 1.0 - vt_uv[:, 1].astype(np.float64)],
                       axis=1)
-    chunks.append(float_rows(b"vt ", uv_obj, 6))
+    # Untextured faces get one shared vt too: readers such as Open3D drop every UV of a mesh in
+    # which some faces have none. It samples their material's plain grey map.
+    plain_vt = len(uv_obj)
+    chunks.append(float_rows(b"vt ", np.vstack([uv_obj, [[0.0, 0.0]]]), 6))
     mtl: list[str] = [f"# scanpipe {__version__} materials for {obj_name}"]
     page_ids, starts, counts = np.unique(pages_sorted, return_index=True, return_counts=True)
     untextured_count = int(np.count_nonzero(pages_sorted < 0))
@@ -101,10 +115,12 @@ def obj_files(mesh: MeshModel, stem: str) -> dict[str, bytes]:
         group = mesh.faces[order[start:start + count]]
         if page < 0:
             material = f"{base}_untextured"
-            mtl += ["", f"newmtl {material}", "Ka 0 0 0", f"Kd {UNTEXTURED_KD}", "Ks 0 0 0",
-                    "d 1", "illum 1"]
+            plain_name = f"{base}_untextured.png"
+            mtl += ["", f"newmtl {material}", "Ka 1 1 1", "Kd 1 1 1", "Ks 0 0 0",
+                    "d 1", "illum 1", f"map_Kd {plain_name}"]
+            files[plain_name] = plain_png(UNTEXTURED_GREY)
             chunks.append(f"usemtl {material}\n".encode())
-            chunks.append(_face_lines(group, None, True))
+            chunks.append(_face_lines(group, np.full(group.shape, plain_vt), True))
             continue
         material = f"{base}_page{page}"
         png = page_file_name(stem, page)
