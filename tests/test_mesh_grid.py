@@ -179,7 +179,7 @@ def test_vectorised_triangulation_matches_a_per_quad_loop(seed: int) -> None:
                            pa.array(part.column("sample").to_numpy() - 1))
     grid = scan_grid(part)
     assert grid is not None and not grid.wraps_alpha
-    params = GridMeshParams()
+    params = GridMeshParams(fill_single_holes=False)  # the loop knows quads only
     _, faces, _ = triangulate_grid(points_xyz(part), points_origins(part), grid, params)
     assert {tuple(sorted(f)) for f in faces.tolist()} == reference_faces(part, grid, params)
 
@@ -190,3 +190,19 @@ def test_a_motor_turning_backwards_still_gives_faces_toward_the_sensor() -> None
     assert report["seam_closed"] is True
     assert edge_uses(faces) == Counter({2: edge_uses(faces)[2]})
     assert np.all(facing_sensor(vertices, points_origins(table), faces))
+
+
+def test_lone_dropouts_are_closed_and_the_room_stays_one_closed_surface() -> None:
+    table = scan_table(EMPTY_ROOM, 2.0, 5.0)
+    sample = table.column("sample").to_numpy()
+    profile = table.column("profile").to_numpy()
+    # Lone missing samples away from the poles, the seam and each other.
+    lone = (profile % 4 == 2) & (sample % 6 == 3) & (sample > 6) & (sample < 80)
+    sparse = table.filter(pa.array(~lone))
+    vertices, faces, report = triangulate(sparse)
+    assert report["single_holes_filled"] == int(lone.sum()) > 10
+    assert edge_uses(faces).keys() == {2}  # no hole left: every edge between two faces
+    assert euler_characteristic(faces) == 2
+    assert np.all(facing_sensor(vertices, points_origins(sparse), faces))
+    _, open_faces, _ = triangulate(sparse, fill_single_holes=False)
+    assert 1 in edge_uses(open_faces)

@@ -139,11 +139,17 @@ class Rig(Params):
 
 
 def default_cameras() -> tuple[CameraConfig, ...]:
-    """Two Full-HD cameras above the scanner, facing opposite horizontal directions."""
+    """Two Full-HD phones above the scanner, upright (portrait), facing opposite ways.
+
+    Upright, the 65° side of the field of view is vertical, so the sweep of the platform sees
+    from well down the walls to well up them; the 39° side only sets how much each frame shows
+    of the sweep. Facing opposite ways, 180° of travel shows the whole horizon.
+    """
+    upright = {"width": 1080, "height": 1920, "cx": 539.5, "cy": 959.5}
     return (
-        CameraConfig(id="cam0", pose=Pose(translation_m=(0.0, 0.25, 0.0))),
+        CameraConfig(id="cam0", pose=Pose(translation_m=(0.0, 0.25, 0.0)), **upright),
         CameraConfig(
-            id="cam1", source="1",
+            id="cam1", source="1", **upright,
             pose=Pose(translation_m=(0.0, 0.25, 0.0), rotation_deg=(0.0, 180.0, 0.0)),
         ),
     )

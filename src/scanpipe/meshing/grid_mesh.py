@@ -44,6 +44,8 @@ class GridMeshParams(Params):
         0.03, ge=0, description="range difference always allowed between neighbours (noise)")
     close_seam: bool = Field(True, description="join the last profile to the first, mirrored")
     merge_poles: bool = Field(True, description="merge the samples on the axis into one vertex")
+    fill_single_holes: bool = Field(
+        True, description="close the hole a lone missing sample (a dropout) leaves in a surface")
 
 
 def _extended_rows(grid: ScanGrid, params: GridMeshParams) -> tuple[I64, dict[str, Any]]:
@@ -194,11 +196,38 @@ def triangulate_grid(points: F32, origins: F32, grid: ScanGrid,
         check = np.flatnonzero(np.concatenate([near_axis[first], near_axis[second]]))
         faces[check] = _face_sensor(vertices, origins, faces[check])
 
+    if params.fill_single_holes:
+        patches = _single_sample_holes(rows, r_grid, u_grid, tan_inc, allow)
+        report["single_holes_filled"] = len(patches) // 2
+        faces = np.concatenate([faces, _face_sensor(vertices, origins, patches)])
+
     merged_corner = ((faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2])
                      | (faces[:, 0] == faces[:, 2]))
     faces = faces[~merged_corner]
     report["grid_faces"] = len(faces)
     return vertices, faces, report
+
+
+def _single_sample_holes(rows: NDArray[np.integer[Any]], r_grid: F32, u_grid: F32, tan_incidence: float,
+                         allowance_m: float) -> I32:
+    """Two triangles over every missing sample whose four neighbours lie on one surface.
+
+    Each of the four quads around a missing sample keeps the triangle opposite it, so a dropout
+    leaves a diamond-shaped hole bounded by its four neighbours; this closes it.
+    """
+    up, down = (slice(None, -2), slice(1, -1)), (slice(2, None), slice(1, -1))
+    left, right = (slice(1, -1), slice(None, -2)), (slice(1, -1), slice(2, None))
+
+    def ok(i: tuple[slice, slice], j: tuple[slice, slice]) -> B:
+        return _continuous(r_grid[i], r_grid[j], u_grid[i], u_grid[j], tan_incidence,
+                           allowance_m)
+
+    hole = rows[1:-1, 1:-1] < 0
+    for side in (up, down, left, right):
+        hole &= rows[side] >= 0
+    hole &= ok(up, left) & ok(left, down) & ok(down, right) & ok(right, up) & ok(up, down)
+    u, d, lt, rt = (rows[side][hole] for side in (up, down, left, right))
+    return np.concatenate([np.stack([u, lt, d], 1), np.stack([u, d, rt], 1)]).astype(np.int32)
 
 
 def _face_sensor(vertices: F32, origins: F32, faces: I32) -> I32:
