@@ -181,6 +181,8 @@ class ExportStageParams(Params):
                       description="stem of the mesh files")
     cloud_name: str = Field("cloud", pattern=r"^[A-Za-z0-9_.-]+$",
                             description="stem of the point-cloud files")
+    cloud_colors: bool = Field(
+        True, description="colour the cloud from the camera frames (when there are frames)")
 
 
 def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
@@ -193,8 +195,16 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
     mesh_tables = {k: v for k, v in inputs.items() if k != "points"}
     jobs: list[tuple[str, Mapping[str, pa.Table], str]] = [
         (fmt, mesh_tables, params.name) for fmt in params.mesh_formats]
-    jobs += [(fmt, {"points": inputs["points"]}, params.cloud_name)
-             for fmt in params.cloud_formats]
+    points = inputs["points"]
+    coloured = False
+    if params.cloud_formats and params.cloud_colors and inputs["frames"].num_rows:
+        from scanpipe.rig import rig_from_table
+        from scanpipe.texturing.projective import colorize_points
+
+        points = colorize_points(points, inputs["frames"], inputs["motor"],
+                                 rig_from_table(inputs["rig"]), progress=progress)
+        coloured = True
+    jobs += [(fmt, {"points": points}, params.cloud_name) for fmt in params.cloud_formats]
     for done, (fmt, tables, stem) in enumerate(jobs):
         progress("export", done, len(jobs))
         files.update(export_files(tables, fmt, stem))
@@ -206,16 +216,17 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
                            pa.string()),
     })
     return StageResult({"export_manifest": manifest},
-                       {"files": {name: len(data) for name, data in files.items()}}, files)
+                       {"files": {name: len(data) for name, data in files.items()},
+                        "cloud_coloured": coloured}, files)
 
 
 STAGE = Stage(
     name="export",
     version=1,
     params=ExportStageParams,
-    inputs=(*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points"),
+    inputs=(*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points", "frames", "motor", "rig"),
     outputs=("export_manifest",),
     func=export_stage,  # type: ignore[arg-type]
     description="write the textured mesh (OBJ+MTL+PNG, GLB) and the cloud (PLY, LAS, E57)",
-    libraries=("numpy", "pyarrow", "laspy", "pye57"),
+    libraries=("numpy", "pyarrow", "cv2", "laspy", "pye57"),
 )
