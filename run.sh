@@ -68,7 +68,9 @@ case "${1:-}" in
     shift; setup; setup_test_tools
     "$VENV/bin/ruff" check src tests benchmarks
     "$VENV/bin/mypy" src
-    exec "$VENV/bin/pytest" -n 2 "$@" ;;
+    # With no arguments: every test and every notebook (executed by nbmake, outputs not stored).
+    if [ "$#" -eq 0 ]; then set -- tests notebooks; fi
+    exec "$VENV/bin/pytest" -n 2 --nbmake "$@" ;;
   setup)
     setup ;;
   *)

@@ -243,7 +243,7 @@ def run_chain(
     if not recording.is_file():
         raise ArtifactError(f"{recording}: recording not found")
     available: dict[str, Path] = {"recording": recording}
-    override_path = _write_rig_override(rig_override, workdir) if rig_override else None
+    override_path = rig_override_artifact(rig_override, workdir) if rig_override else None
     records: list[RunRecord] = []
     for stage in chain:
         missing = [n for n in stage.inputs if n not in available]
@@ -261,7 +261,7 @@ def run_chain(
     return records
 
 
-def _write_rig_override(path: Path, workdir: Path) -> Path:
+def rig_override_artifact(path: Path, workdir: Path) -> Path:
     """The rig file as a ``rig`` artifact in ``workdir/rig/``, keyed by its content."""
     from scanpipe.rig import load_rig, rig_table, rig_to_toml
 

@@ -16,7 +16,7 @@ from scanpipe.artifacts import (
 )
 from scanpipe.cli.common import PARAMS_FILE, QUIET, SET, print_json, run_stage_command
 from scanpipe.errors import UsageError
-from scanpipe.pipeline import _write_rig_override
+from scanpipe.pipeline import rig_override_artifact
 
 OUT = typer.Option(..., "--out", help="Output folder.")
 
@@ -41,7 +41,7 @@ def assemble(
     """Profiles + motor states → calibrated points on the profile × sample grid."""
     inputs = {name: _artifact_in(folder, name) for name in ("profiles", "motor")}
     # The same rig artifact `scanpipe run --rig` writes: OUT/rig/rig.parquet, keyed by content.
-    inputs["rig"] = (_write_rig_override(rig_path, out) if rig_path is not None
+    inputs["rig"] = (rig_override_artifact(rig_path, out) if rig_path is not None
                      else _artifact_in(folder, "rig"))
     report = run_stage_command("assemble", inputs, out, params_file, assignments, quiet)
     print_json(report)

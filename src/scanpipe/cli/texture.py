@@ -58,7 +58,7 @@ def texture(
     quiet: bool = QUIET,
 ) -> None:
     """Texture a mesh from the camera frames: UVs and PNG atlas pages."""
-    from scanpipe.pipeline import _write_rig_override
+    from scanpipe.pipeline import rig_override_artifact
     from scanpipe.stages.texture import TextureParams
 
     base = {"method": method} if method is not None else None
@@ -66,7 +66,7 @@ def texture(
     names = TEXTURE_INPUTS if rig_path is None else TEXTURE_INPUTS[:-1]
     inputs = find_inputs(dirs, names)
     if rig_path is not None:
-        inputs["rig"] = _write_rig_override(rig_path, out)
+        inputs["rig"] = rig_override_artifact(rig_path, out)
     report = run_stage_command("texture", inputs, out, params_file, assignments, quiet, base)
     if as_json:
         print_json(report)

@@ -208,8 +208,8 @@ def triangulate_grid(points: F32, origins: F32, grid: ScanGrid,
     return vertices, faces, report
 
 
-def _single_sample_holes(rows: NDArray[np.integer[Any]], r_grid: F32, u_grid: F32, tan_incidence: float,
-                         allowance_m: float) -> I32:
+def _single_sample_holes(rows: NDArray[np.integer[Any]], r_grid: F32, u_grid: F32,
+                         tan_incidence: float, allowance_m: float) -> I32:
     """Two triangles over every missing sample whose four neighbours lie on one surface.
 
     Each of the four quads around a missing sample keeps the triangle opposite it, so a dropout
