@@ -84,7 +84,9 @@ def test_cameras_and_truth_folder(noise_free: tuple[dict[str, Any], Path, Path])
     frames = decoded.tables["frames"]
     assert frames.num_rows == summary["frames"] > 0
     assert set(frames.column("camera_id").to_pylist()) == {"cam0", "cam1"}
-    assert frames.column("width").to_pylist()[0] == 96
+    # The default cameras stand upright: 1080 × 1920 at the test's 1/20 scale.
+    assert frames.column("width").to_pylist()[0] == 54
+    assert frames.column("height").to_pylist()[0] == 96
     truth = load_truth(truth_dir)
     assert truth.meta["seed"] == 0 and truth.meta["options"]["scanner_step_deg"] == 2.0
     assert len(truth.scene.triangles) > 100

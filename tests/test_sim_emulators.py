@@ -170,9 +170,9 @@ def test_virtual_camera_has_the_capture_interface(virtual_rig: VirtualRig) -> No
     camera = virtual_rig.camera("sim:cam1")
     assert camera.isOpened() and camera.is_live
     assert camera.get(cv2.CAP_PROP_FPS) == 1.0
-    assert camera.get(cv2.CAP_PROP_FRAME_WIDTH) == 96
+    assert camera.get(cv2.CAP_PROP_FRAME_WIDTH) == 54  # the default cameras stand upright
     ok, frame = camera.read()
-    assert ok and frame is not None and frame.shape == (54, 96, 3) and frame.dtype == np.uint8
+    assert ok and frame is not None and frame.shape == (96, 54, 3) and frame.dtype == np.uint8
     assert camera.grab()
     ok, _ = camera.retrieve()
     assert ok and camera.get(cv2.CAP_PROP_POS_FRAMES) == 2 and len(camera.captures) == 2
