@@ -11,9 +11,10 @@ from hypothesis import strategies as st
 
 from scanpipe.camera import project_points
 from scanpipe.geometry import platform_rotation, scan_point_to_rig
+from scanpipe.images import encode_jpeg_rgb
 from scanpipe.planning import move_time_s
 from scanpipe.rig import CameraConfig, Pose, ScannerConfig
-from scanpipe.sim.camera import CameraModel, encode_jpeg, render_rgb, scaled_camera
+from scanpipe.sim.camera import CameraModel, render_rgb, scaled_camera
 from scanpipe.sim.motion import MotorTimeline, Move, PlatformState
 from scanpipe.sim.scanner import (
     MeasurementModel,
@@ -203,5 +204,5 @@ def test_camera_noise_exposure_and_jpeg() -> None:
     means = [render_rgb(scene, cam, 0.0, CameraModel(exposure_jitter=0.2),
                         np.random.default_rng(i)).mean() for i in range(8)]
     assert np.std(means) / clean.mean() == pytest.approx(0.2, rel=0.6)
-    jpeg = encode_jpeg(clean)
+    jpeg = encode_jpeg_rgb(clean)
     assert jpeg[:2] == b"\xff\xd8"

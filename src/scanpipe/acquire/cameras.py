@@ -17,9 +17,9 @@ from typing import Any, Protocol
 
 import cv2
 import numpy as np
-from numpy.typing import NDArray
 
 from scanpipe.errors import DeviceError
+from scanpipe.images import encode_jpeg
 from scanpipe.rig import CameraConfig
 
 #: A source failing to deliver for this long is reported lost and its thread ends.
@@ -83,14 +83,6 @@ def _quiet_opencv() -> None:
     logging = getattr(getattr(cv2, "utils", None), "logging", None)
     if logging is not None:
         logging.setLogLevel(logging.LOG_LEVEL_ERROR)
-
-
-def encode_jpeg(image: NDArray[Any], quality: int = 90) -> bytes:
-    """JPEG bytes of a BGR (or grey) image."""
-    ok, buffer = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise DeviceError(f"JPEG encoding failed for an image of shape {image.shape}")
-    return bytes(buffer.tobytes())
 
 
 @dataclass

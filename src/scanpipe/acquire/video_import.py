@@ -23,9 +23,9 @@ from typing import Any
 
 import cv2
 
-from scanpipe.acquire.cameras import encode_jpeg
 from scanpipe.artifacts import atomic_path
 from scanpipe.errors import DeviceError, RecordingError, UsageError
+from scanpipe.images import encode_jpeg
 
 #: Everything mcap's stream reader raises on a damaged file (see shared notes).
 _MCAP_DAMAGE: tuple[type[BaseException], ...] = (ValueError, KeyError, IndexError,

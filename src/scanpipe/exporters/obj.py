@@ -18,20 +18,11 @@ import numpy as np
 from scanpipe import __version__
 from scanpipe.exporters.model import MeshModel, split_by_uv, unit_normals
 from scanpipe.exporters.textfmt import Fixed, Ints, Part, float_rows, render_lines
+from scanpipe.images import encode_png
 
-#: Untextured faces of a textured mesh get this plain material.
-UNTEXTURED_GREY = 179  # 0.7 of full scale
-
-
-def plain_png(grey: int) -> bytes:
-    """A 2×2 grey PNG: the map of the untextured material (readers such as Open3D treat a
-    mesh as textured only when every material has an image)."""
-    import cv2
-
-    ok, data = cv2.imencode(".png", np.full((2, 2, 3), grey, np.uint8))
-    if not ok:
-        raise RuntimeError("OpenCV could not encode a 2×2 PNG")
-    return bytes(data)
+#: Untextured faces get a 2×2 map of this grey (0.7 of full scale): readers such as Open3D
+#: treat a mesh as textured only when every material has an image.
+UNTEXTURED_GREY = 179
 
 
 def safe_stem(stem: str) -> str:
@@ -118,7 +109,7 @@ def obj_files(mesh: MeshModel, stem: str) -> dict[str, bytes]:
             plain_name = f"{base}_untextured.png"
             mtl += ["", f"newmtl {material}", "Ka 1 1 1", "Kd 1 1 1", "Ks 0 0 0",
                     "d 1", "illum 1", f"map_Kd {plain_name}"]
-            files[plain_name] = plain_png(UNTEXTURED_GREY)
+            files[plain_name] = encode_png(np.full((2, 2, 3), UNTEXTURED_GREY, np.uint8))
             chunks.append(f"usemtl {material}\n".encode())
             chunks.append(_face_lines(group, np.full(group.shape, plain_vt), True))
             continue

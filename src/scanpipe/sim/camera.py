@@ -10,12 +10,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.camera import pixel_rays
-from scanpipe.errors import SimulationError
 from scanpipe.geometry import platform_rotation
 from scanpipe.rig import CameraConfig
 from scanpipe.sim.scene import Scene
@@ -62,15 +60,6 @@ def _rays_at_zero(cam: CameraConfig) -> tuple[NDArray[np.float32], NDArray[np.fl
     """The camera's pixel rays at β = 0 (at β they turn with the platform: R(β) · ray)."""
     origin, directions = pixel_rays(cam, 0.0)
     return origin.astype(np.float32), directions.reshape(-1, 3).astype(np.float32)
-
-
-def encode_jpeg(rgb: U8, quality: int = 90) -> bytes:
-    """JPEG bytes of an RGB image."""
-    ok, data = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR),
-                            [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise SimulationError(f"OpenCV could not encode a {rgb.shape} image as JPEG")
-    return bytes(data.tobytes())
 
 
 def scaled_camera(cam: CameraConfig, scale: float) -> CameraConfig:

@@ -21,9 +21,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe import __version__
+from scanpipe.images import encode_jpeg_rgb
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import Rig, ScannerConfig, rig_from_dict, rig_to_dict
-from scanpipe.sim.camera import CameraModel, encode_jpeg, render_rgb
+from scanpipe.sim.camera import CameraModel, render_rgb
 from scanpipe.sim.ldoem_device import LdoemDevice
 from scanpipe.sim.options import SimOptions
 from scanpipe.sim.scanner import (
@@ -94,7 +95,7 @@ def _write_event(writer: Any, t_ns: int, kind: str, payload: tuple[Any, ...], sc
         cam, beta, index, j = payload
         image_rng = np.random.default_rng([seed, 13, index, j])
         rgb = render_rgb(scene, cam, beta, camera_model, image_rng)
-        writer.write_image(cam.id, t_ns, encode_jpeg(rgb, camera_model.jpeg_quality),
+        writer.write_image(cam.id, t_ns, encode_jpeg_rgb(rgb, camera_model.jpeg_quality),
                            frame_id=cam.id)
 
 

@@ -16,7 +16,6 @@ import time
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
-import cv2
 import numpy as np
 import pyarrow as pa
 from numpy.typing import NDArray
@@ -24,6 +23,7 @@ from pydantic import Field
 
 from scanpipe.artifacts import check_columns
 from scanpipe.errors import StageError
+from scanpipe.images import encode_png
 from scanpipe.params import Params
 from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
@@ -102,14 +102,6 @@ def _mesh_arrays(inputs: Mapping[str, Any]) -> tuple[NDArray[np.float64], NDArra
         if not np.isfinite(normals).all() or not np.abs(normals).sum():
             normals = None
     return vertices, faces, normals
-
-
-def encode_png(image: NDArray[np.uint8], level: int) -> bytes:
-    """PNG bytes of a BGR image."""
-    ok, buffer = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, level])
-    if not ok:
-        raise StageError(f"texture: could not encode a {image.shape[1]}×{image.shape[0]} PNG page")
-    return bytes(buffer.tobytes())
 
 
 def textured_faces_table(face_page: NDArray[np.int16], face_uv: NDArray[np.float32],

@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from scanpipe.camera import camera_pose_in_rig, pixel_rays, project_points
 from scanpipe.errors import StageError
+from scanpipe.images import encode_png
 from scanpipe.pipeline import StageResult
 from scanpipe.progress import ProgressFn
 from scanpipe.rig import MotorConfig, Rig
@@ -191,7 +192,6 @@ def texture_panorama(vertices: F64, faces: I64, normals: F64, areas: F64,
     """The panorama method of the texture stage (see the module docstring)."""
     from scanpipe.stages.texture import (
         coverage_report,
-        encode_png,
         pages_table,
         textured_faces_table,
     )
