@@ -212,7 +212,8 @@ def test_statistical_outliers_only_without_a_grid_by_default() -> None:
     result = STAGE.run({"points": table})
     out = result.tables["points"]
     assert result.report["grid"] is None
-    assert set(result.report["skipped"]) == {"depth_edges", "grid_median", "double_coverage"}
+    assert set(result.report["skipped"]) == {"depth_edges", "grid_median", "double_coverage",
+                                             "smoothing"}
     x = out.column("x").to_numpy()
     assert not np.any(x > 4.0) and not np.any(x < 0)
     assert taken(result.report, "statistical_outlier") >= 3

@@ -206,3 +206,17 @@ def test_lone_dropouts_are_closed_and_the_room_stays_one_closed_surface() -> Non
     assert np.all(facing_sensor(vertices, points_origins(sparse), faces))
     _, open_faces, _ = triangulate(sparse, fill_single_holes=False)
     assert 1 in edge_uses(open_faces)
+
+
+def test_automatic_stride_keeps_the_mesh_within_max_vertices() -> None:
+    from scanpipe.stages.mesh import MeshParams, mesh_points
+
+    table = scan_table(EMPTY_ROOM, 2.0, 2.0)  # 180 samples × 91 profiles
+    full, full_report = mesh_points(table, MeshParams())
+    assert full_report["method"] == "grid" and full_report["grid_stride"] == 1
+    capped = MeshParams.model_validate({"grid": {"max_vertices": table.num_rows // 3}})
+    half, report = mesh_points(table, capped)
+    assert report["grid_stride"] == 2  # ceil(sqrt(3))
+    assert report["points_meshed"] <= table.num_rows // 3
+    assert len(half.faces) < 0.3 * len(full.faces)
+    assert edge_uses(half.faces).keys() == {2}  # still one closed room at half resolution

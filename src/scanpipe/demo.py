@@ -46,11 +46,8 @@ class DemoResult:
 
 
 #: The chain's parameters for the demo, beyond each stage's defaults.
-#: The grid mesh over an edge-preserving smoothed range image: as accurate as Poisson on the
-#: built-in room (docs/meshing.md) and an order of magnitude faster.
+#: The defaults (grid mesh over the smoothed range image), plus a LAS copy of the cloud.
 DEMO_STAGE_PARAMS: dict[str, Any] = {
-    "filter": {"smoothing": {"enabled": True}},
-    "mesh": {"method": "grid"},
     "export": {"mesh_formats": ["obj", "glb"], "cloud_formats": ["ply", "las"]},
 }
 

@@ -262,3 +262,20 @@ def bilateral_smooth(range_grid: F32, radius: int = 1, sigma_cells: float = 1.0,
         smoothed = (total / weights).astype(np.float32)
     smoothed[np.isnan(range_grid)] = np.nan
     return smoothed
+
+
+def subsample(table: pa.Table, stride: int) -> pa.Table:
+    """The grid at 1/``stride``: every ``stride``-th profile and sample, renumbered.
+
+    Keeps profile 0 and sample 0 (so the poles at α = 0°/180° stay when the sample count allows).
+    """
+    if stride <= 1:
+        return table
+    profile = table.column("profile").to_numpy(zero_copy_only=False)
+    sample = table.column("sample").to_numpy(zero_copy_only=False)
+    keep = (profile % stride == 0) & (sample % stride == 0)
+    part = table.filter(pa.array(keep))
+    for name, values in (("profile", profile), ("sample", sample)):
+        part = part.set_column(part.schema.get_field_index(name), name,
+                               pa.array((values[keep] // stride).astype(np.int32)))
+    return part

@@ -16,8 +16,8 @@ def mesh_command(
     folder: Path = typer.Argument(..., help="Folder (or workdir) with a points artifact."),
     out: Path = typer.Option(..., "--out", help="Output folder for mesh_vertices/mesh_faces."),
     method: str | None = typer.Option(None, "--method",
-                                      help="poisson (any cloud) or grid (needs the scan grid); "
-                                           "default poisson."),
+                                      help="auto (grid when the points keep their scan "
+                                           "grid, else poisson), poisson, or grid."),
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,

@@ -16,6 +16,7 @@ merged into one vertex per pole, where the quads around the pole become a fan.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -46,6 +47,20 @@ class GridMeshParams(Params):
     merge_poles: bool = Field(True, description="merge the samples on the axis into one vertex")
     fill_single_holes: bool = Field(
         True, description="close the hole a lone missing sample (a dropout) leaves in a surface")
+    stride: int = Field(
+        0, ge=0, le=16,
+        description="mesh every n-th profile and sample (0 = the smallest that keeps the "
+                    "vertices within max_vertices)")
+    max_vertices: int = Field(
+        1_500_000, ge=1000,
+        description="with stride 0: the most grid points meshed (texture and export time "
+                    "grow with the face count)")
+
+    def stride_for(self, points: int) -> int:
+        """The stride to mesh ``points`` grid points with."""
+        if self.stride:
+            return self.stride
+        return max(1, math.ceil(math.sqrt(points / self.max_vertices)))
 
 
 def _extended_rows(grid: ScanGrid, params: GridMeshParams) -> tuple[I64, dict[str, Any]]:

@@ -112,7 +112,7 @@ class GridMedianParams(Params):
 class SmoothingParams(Params):
     """Edge-preserving (bilateral) smoothing of the range image along the grid."""
 
-    enabled: bool = False
+    enabled: bool = True
     radius: int = Field(1, ge=1, le=3, description="window half-size in cells")
     sigma_cells: float = Field(1.0, gt=0, le=10)
     sigma_range_m: float = Field(0.02, gt=0, le=10,

@@ -22,7 +22,7 @@ from pydantic import Field
 
 from scanpipe.artifacts import check_columns
 from scanpipe.errors import StageError
-from scanpipe.grid import scan_grid
+from scanpipe.grid import scan_grid, subsample
 from scanpipe.meshing.cleanup import CleanupParams, clean_mesh
 from scanpipe.meshing.grid_mesh import GridMeshParams, triangulate_grid
 from scanpipe.meshing.mesh import COLOUR_COLUMNS, Mesh
@@ -43,7 +43,9 @@ POINT_COLUMNS = {
 class MeshParams(Params):
     """Parameters of the mesh stage: the method, each method's settings, the clean-up."""
 
-    method: Literal["poisson", "grid"] = Field("poisson", description="surface method")
+    method: Literal["auto", "poisson", "grid"] = Field(
+        "auto", description="surface method; auto: grid when the points keep their scan grid, "
+                            "else Poisson")
     normals: NormalParams = Field(default_factory=NormalParams)
     poisson: PoissonParams = Field(default_factory=PoissonParams)
     grid: GridMeshParams = Field(default_factory=GridMeshParams)
@@ -76,7 +78,9 @@ def mesh_points(table: pa.Table, params: MeshParams,
     table = usable_points(table)
     if table.num_rows == 0:
         raise StageError("points: no usable points to mesh (empty, or every row filtered)")
-    report: dict[str, Any] = {"method": params.method, "points": table.num_rows}
+    grid = scan_grid(table)
+    method = params.method if params.method != "auto" else ("grid" if grid else "poisson")
+    report: dict[str, Any] = {"method": method, "points": table.num_rows}
     seconds: dict[str, float] = {}
     tick = time.perf_counter()
 
@@ -88,17 +92,23 @@ def mesh_points(table: pa.Table, params: MeshParams,
         if progress is not None:
             progress("mesh", done, 4)
 
-    grid = scan_grid(table)
-    if params.method == "grid" and grid is None:
+    if method == "grid" and grid is None:
         raise StageError("points: method 'grid' needs the scan grid, but these points have "
                          "none (profile/sample are −1); use --method poisson")
+    if method == "grid":
+        stride = params.grid.stride_for(table.num_rows)
+        report["grid_stride"] = stride
+        if stride > 1:
+            table = subsample(table, stride)
+            grid = scan_grid(table)
+            report["points_meshed"] = table.num_rows
     points, origins = points_xyz(table), points_origins(table)
     normals, normal_counts = estimate_normals(table, params.normals, grid)
     report["normals"] = normal_counts
     step("normals", 1)
 
     colors = _colors(table)
-    if params.method == "grid":
+    if method == "grid":
         assert grid is not None
         vertices, faces, tri_report = triangulate_grid(points, origins, grid, params.grid)
         report["triangulation"] = tri_report
@@ -113,14 +123,14 @@ def mesh_points(table: pa.Table, params: MeshParams,
     # Each grid quad gives its own two faces and the seam and poles keep that, so a grid
     # mesh has neither duplicate faces nor edges with three faces: no need to search for them.
     mesh, cleanup_report = clean_mesh(mesh, params.cleanup,
-                                      manifold_by_construction=params.method == "grid")
+                                      manifold_by_construction=method == "grid")
     report["cleanup"] = cleanup_report
-    if params.method == "poisson" or "faces_removed_by_decimation" in cleanup_report:
+    if method == "poisson" or "faces_removed_by_decimation" in cleanup_report:
         mesh = mesh.with_vertex_normals()
     step("cleanup", 3)
     if len(mesh.faces) == 0:
         raise StageError(f"mesh: no faces left after meshing and clean-up "
-                         f"(method {params.method!r}); see the report's counts")
+                         f"(method {method!r}); see the report's counts")
     report["vertices"] = len(mesh.vertices)
     report["faces"] = len(mesh.faces)
     report["seconds"] = seconds
