@@ -10,8 +10,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +18,7 @@ import pyarrow as pa
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import measure, save, table
+from harness import cpu_seconds, measure, save, table
 
 from scanpipe.progress import no_progress
 from scanpipe.rig import MotorConfig, Rig, ScannerConfig, rig_table
@@ -72,17 +70,6 @@ def lab_tables(profiles: int, samples: int, motor_steps: int = 3) -> dict[str, p
         "checksum_ok": np.ones(profiles, bool), "dialect": ["ldoem"] * profiles,
     })
     return {"profiles": profile_table, "motor": motor, "rig": rig_table(rig)}
-
-
-def cpu_seconds(work: Callable[[], object], repeats: int = 3) -> float:
-    """Median process CPU time of ``work`` after one warm-up run."""
-    work()
-    runs = []
-    for _ in range(repeats):
-        start = time.process_time()
-        work()
-        runs.append(time.process_time() - start)
-    return float(np.median(runs))
 
 
 def run(quick: bool = False) -> dict[str, Any]:

@@ -11,8 +11,6 @@ import argparse
 import io
 import os
 import sys
-import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +19,7 @@ from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import measure, save, table
+from harness import cpu_seconds, measure, save, table
 
 from scanpipe.exporters.glb import glb_bytes
 from scanpipe.exporters.las import las_bytes
@@ -51,16 +49,6 @@ def grid_mesh(rows: int, cols: int, pages: int = 4) -> MeshModel:
                      {p: buffer.getvalue() for p in range(pages)})
 
 
-def _cpu_seconds(work: Callable[[], object]) -> float:
-    """Median process CPU time of three runs."""
-    runs = []
-    for _ in range(3):
-        start = time.process_time()
-        work()
-        runs.append(time.process_time() - start)
-    return sorted(runs)[1]
-
-
 def run(quick: bool = False) -> dict[str, Any]:
     """Measure the exporters; return the figures."""
     side = 500 if quick else 1001  # 1001² vertices → 2 M faces
@@ -84,8 +72,8 @@ def run(quick: bool = False) -> dict[str, Any]:
     obj_size = sum(len(b) for b in obj_files(mesh, "bench").values())
     # CPU time too: on a shared machine wall time measures the neighbours as much as the code
     # (the writers are single-threaded numpy, so on an idle machine CPU ≈ wall).
-    obj_cpu_s = _cpu_seconds(lambda: obj_files(mesh, "bench"))
-    glb_cpu_s = _cpu_seconds(lambda: glb_bytes(mesh))
+    obj_cpu_s = cpu_seconds(lambda: obj_files(mesh, "bench"), warm_up=False)
+    glb_cpu_s = cpu_seconds(lambda: glb_bytes(mesh), warm_up=False)
     figures = {
         "faces": faces,
         "vertices": len(mesh.vertices),

@@ -19,8 +19,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_assemble import cpu_seconds
-from harness import measure, save, table
+from harness import cpu_seconds, measure, save, table
 
 from scanpipe.grid import scan_grid
 from scanpipe.meshing.grid_mesh import triangulate_grid

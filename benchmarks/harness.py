@@ -83,6 +83,21 @@ def measure(name: str, fn: Callable[[], Any], items: float, unit: str,
     return Measurement(name, statistics.median(runs), runs, peak, items, unit)
 
 
+def cpu_seconds(work: Callable[[], object], repeats: int = 3, warm_up: bool = True) -> float:
+    """Median process CPU time (all threads) of ``work``, after one untimed run if ``warm_up``.
+
+    Beside wall time on a shared machine: CPU time does not count other processes' turns.
+    """
+    if warm_up:
+        work()
+    runs = []
+    for _ in range(repeats):
+        start = time.process_time()
+        work()
+        runs.append(time.process_time() - start)
+    return statistics.median(runs)
+
+
 def machine() -> dict[str, Any]:
     """What the figures were measured on."""
     return {
@@ -93,11 +108,14 @@ def machine() -> dict[str, Any]:
     }
 
 
-def save(results: dict[str, Any], stem: str | None = None) -> Path:
-    """Write results to ``benchmarks/results/<stem or date>.json`` and return the path."""
-    RESULTS_DIR.mkdir(parents=True, exist_ok=True)
+def save(results: dict[str, Any], stem: str | None = None,
+         results_dir: Path | None = None) -> Path:
+    """Write results to ``<results_dir or benchmarks/results>/<stem or date>.json``; returns the
+    path."""
+    folder = results_dir or RESULTS_DIR
+    folder.mkdir(parents=True, exist_ok=True)
     stem = stem or dt.date.today().isoformat()
-    path = RESULTS_DIR / f"{stem}.json"
+    path = folder / f"{stem}.json"
     payload = {"date": dt.datetime.now(dt.UTC).isoformat(), "machine": machine(), **results}
     path.write_text(json.dumps(payload, indent=2, default=_jsonable))
     return path

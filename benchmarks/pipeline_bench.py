@@ -1,0 +1,355 @@
+"""Every stage on one simulated scan, the Open3D-only baseline beside it, and end to end.
+
+1. The scan is simulated once and cached (:mod:`benchmarks.scans`); the chain is run once with
+   the defaults into the cache to give each stage its inputs (reused by key on later runs).
+2. Each stage is timed in memory (``Stage.run``, no Parquet I/O) in a forked child: median of
+   the runs, throughput, peak-RSS growth (:func:`benchmarks.harness.measure`).
+3. The Open3D-only baseline (:mod:`benchmarks.baseline`) on the same assembled points, timed the
+   same way, its mesh kept for the accuracy figures.
+4. End to end, recording → textured GLB through the runner (Parquet and files included), on the
+   default path, with Poisson (the baseline's method) and on the grid path (see
+   :func:`chain_paths`); accuracy of each against the truth.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from collections.abc import Callable, Mapping
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from benchmarks.baseline import BaselineMesh, baseline_summary, finite_xyz, open3d_baseline
+from benchmarks.harness import Measurement, measure, table
+from benchmarks.scans import CACHE_DIR, BenchScan, ScanFiles, cached_scan
+from scanpipe.artifacts import read_artifact
+from scanpipe.evaluate import evaluate_result, load_reference, mesh_metrics, stage_times
+from scanpipe.params import Params
+from scanpipe.pipeline import registry, run_chain, validate_pipeline_params
+from scanpipe.render import RenderMesh
+from scanpipe.rig import rig_from_table
+from scanpipe.stages.export import export_files
+
+#: Stages whose input artifacts the stage benchmarks read from the cached default chain.
+CHAIN_ARTIFACTS = {
+    "decode": ("profiles", "motor", "frames", "rig"),
+    "assemble": ("points",),
+    "filter": ("points",),
+    "mesh": ("mesh_vertices", "mesh_faces"),
+    "texture": ("textured_faces", "texture_pages"),
+}
+
+#: Accuracy figures compared between scanpipe and the baseline (lower is better first).
+LOWER_IS_BETTER = ("mesh_mean_m",)
+HIGHER_IS_BETTER = ("completeness", "precision")
+
+
+def chain_params(overrides: Mapping[str, Any]) -> dict[str, Params]:
+    """Validated parameters of every stage: the defaults with ``overrides``."""
+    return validate_pipeline_params(list(registry().values()), overrides, "benchmark")
+
+
+def chain_tables(recording: Path, workdir: Path) -> dict[str, dict[str, pa.Table]]:
+    """Run (or reuse) the default chain into ``workdir``; every stage's outputs, by stage."""
+    run_chain(recording, workdir, chain_params({}))
+    return {stage: {name: read_artifact(workdir / stage / f"{name}.parquet")[0]
+                    for name in names} for stage, names in CHAIN_ARTIFACTS.items()}
+
+
+def chain_paths() -> dict[str, Mapping[str, Any]]:
+    """The end-to-end paths: the defaults, Poisson (the baseline's method) and the grid mesh over
+    the smoothed range image (as ``scanpipe demo`` has used); a path whose filter and mesh
+    parameters equal the defaults' is left out (it would time the same work twice)."""
+    candidates: dict[str, Mapping[str, Any]] = {
+        "default": {},
+        "poisson": {"mesh": {"method": "poisson"}},
+        "grid": {"filter": {"smoothing": {"enabled": True}}, "mesh": {"method": "grid"}},
+    }
+    default = chain_params({})
+    paths: dict[str, Mapping[str, Any]] = {}
+    for name, overrides in candidates.items():
+        chosen = chain_params(overrides)
+        same = all(chosen[s] == default[s] for s in ("filter", "mesh"))
+        if name == "default" or not same:
+            paths[name] = overrides
+    return paths
+
+
+def stage_measurements(recording: Path, tables: Mapping[str, Mapping[str, pa.Table]],
+                       scan: BenchScan, repeats: int, heavy_repeats: int) -> list[Measurement]:
+    """Time each stage in memory on the cached chain's artifacts."""
+    stages = registry()
+    decoded, assembled = tables["decode"], tables["assemble"]["points"]
+    filtered = tables["filter"]["points"]
+    mesh = tables["mesh"]
+    samples = pc.sum(pc.list_value_length(decoded["profiles"].column("ranges_m"))).as_py()
+    # Each artifact from the nearest upstream stage that makes it (filter's points over
+    # assemble's), as run_chain does.
+    latest = {name: t for stage_tables in tables.values() for name, t in stage_tables.items()}
+    texture_inputs = {name: latest[name] for name in stages["texture"].inputs}
+    export_inputs = {name: latest[name] for name in stages["export"].inputs}
+    export_tables = {**mesh, **tables["texture"]}
+    faces = mesh["mesh_faces"].num_rows
+
+    def stage(name: str, inputs: Mapping[str, Any], **overrides: Any) -> Callable[[], Any]:
+        return lambda: stages[name].run(inputs, **overrides)
+
+    results = [
+        measure("decode", stage("decode", {"recording": recording}), samples, "samples",
+                repeats),
+        measure("assemble", stage("assemble", {k: decoded[k] for k in ("profiles", "motor",
+                                                                       "rig")}),
+                assembled.num_rows, "points", repeats),
+        measure("filter (defaults)", stage("filter", {"points": assembled}),
+                assembled.num_rows, "points", repeats),
+        measure("filter without smoothing", stage(
+            "filter", {"points": assembled}, smoothing={"enabled": False}),
+            assembled.num_rows, "points", repeats),
+        measure("mesh grid", stage("mesh", {"points": filtered}, method="grid"),
+                filtered.num_rows, "points", repeats),
+    ]
+    for depth in scan.poisson_depths:
+        results.append(measure(f"mesh Poisson depth {depth}", stage(
+            "mesh", {"points": filtered}, method="poisson", poisson={"depth": depth}),
+            filtered.num_rows,
+            "points", heavy_repeats))
+    results += [
+        measure("texture (projective)", stage("texture", texture_inputs), faces, "faces",
+                heavy_repeats),
+        measure("export OBJ (+MTL, PNG)", lambda: export_files(export_tables, "obj", "model"),
+                faces, "faces", repeats),
+        measure("export GLB", lambda: export_files(export_tables, "glb", "model"), faces,
+                "faces", repeats),
+        measure("export stage (defaults)", stage("export", export_inputs), faces, "faces",
+                heavy_repeats),
+    ]
+    return results
+
+
+def scanner_centre(rig_table: pa.Table) -> tuple[float, float, float]:
+    """Where the scanner's optical centre is on the axis (its height above the rig origin)."""
+    rig = rig_from_table(rig_table)
+    return (0.0, float(rig.scanner.mount.translation_m[1]), 0.0)
+
+
+def run_baseline(tables: Mapping[str, Mapping[str, pa.Table]], scan: BenchScan,
+                 out: Path, repeats: int) -> tuple[Measurement, BaselineMesh]:
+    """Time the Open3D-only baseline on the assembled points; its mesh is saved in ``out``."""
+    decoded = tables["decode"]
+    xyz = finite_xyz(tables["assemble"]["points"])
+    rig = rig_from_table(decoded["rig"])
+    centre = scanner_centre(decoded["rig"])
+    depth = max(scan.poisson_depths)
+    saved = out / "baseline.npz"
+
+    def work() -> None:
+        result = open3d_baseline(xyz, centre, decoded["frames"], decoded["motor"], rig,
+                                 scan.baseline_voxel_m, scan.baseline_knn, depth)
+        np.savez(saved, vertices=result.vertices, faces=result.faces, colors=result.colors,
+                 steps=json.dumps({"steps_s": result.steps_s, "counts": result.counts}))
+
+    measurement = measure(f"Open3D baseline (Poisson depth {depth})", work, len(xyz), "points",
+                          repeats)
+    with np.load(saved) as data:
+        extra = json.loads(str(data["steps"]))
+        result = BaselineMesh(data["vertices"], data["faces"], data["colors"],
+                              extra["steps_s"], extra["counts"])
+    return measurement, result
+
+
+def run_end_to_end(recording: Path, out: Path, name: str, overrides: Mapping[str, Any],
+                   repeats: int) -> Measurement:
+    """Time recording → textured GLB through the runner (every stage recomputed)."""
+    params = chain_params(overrides)
+    workdir = out / name
+    return measure(f"end to end: {name}", lambda: run_chain(recording, workdir, params,
+                                                            force=True), 1.0, "runs", repeats)
+
+
+def baseline_accuracy(result: BaselineMesh, truth: Path, samples: int) -> dict[str, Any]:
+    """Mesh accuracy of the baseline against the truth (scanpipe.evaluate)."""
+    mesh = RenderMesh(result.vertices.astype(np.float32), result.faces.astype(np.int32),
+                      vertex_colors=result.colors)
+    return mesh_metrics(mesh, load_reference(truth), 0.02, samples)
+
+
+def at_least_as_accurate(ours: Mapping[str, Any], theirs: Mapping[str, Any]) -> bool:
+    """Equal or better on mean distance, completeness and precision (1 mm / 1 % slack)."""
+    lower = all(ours[k] <= theirs[k] + 0.001 for k in LOWER_IS_BETTER)
+    higher = all(ours[k] >= theirs[k] - 0.01 for k in HIGHER_IS_BETTER)
+    return lower and higher
+
+
+def acquisition_seconds(files: ScanFiles) -> dict[str, float]:
+    """How long acquiring the scan takes: positions / scan rate (one profile per position, the
+    issue's measure), and the simulated step-and-scan session (moves and settling included)."""
+    scan_hz = float(files.options["rig"]["scanner"]["scan_hz"])
+    return {"positions": float(files.summary["positions"]), "scan_hz": scan_hz,
+            "profiles_over_scan_hz_s": files.summary["positions"] / scan_hz,
+            "session_s": float(files.summary["duration_s"])}
+
+
+def target(name: str, value: float | None, limit: float, unit: str,
+           at_least: bool = False) -> dict[str, Any]:
+    """One target row: met when ``value`` is within ``limit`` (≤, or ≥ with ``at_least``)."""
+    met = value is not None and (value >= limit if at_least else value <= limit)
+    return {"name": name, "value": value, "target": f"{'≥' if at_least else '≤'} {limit:g}",
+            "unit": unit, "met": met}
+
+
+def targets(by_name: Mapping[str, Measurement], e2e_s: float, acquisition_s: float,
+            speedup: float, accurate: bool) -> list[dict[str, Any]]:
+    """The issue's targets against the figures."""
+
+    def seconds(name: str) -> float | None:
+        return by_name[name].median_s if name in by_name else None
+
+    poisson9 = by_name.get("mesh Poisson depth 9")
+    return [
+        target("decode", by_name["decode"].throughput / 1e6, 10, "M samples/s", at_least=True),
+        target("assemble", by_name["assemble"].throughput / 1e6, 20, "M points/s",
+               at_least=True),
+        target("grid filters", seconds("filter (defaults)"), 1, "s"),
+        target("grid mesh", seconds("mesh grid"), 2, "s"),
+        target("Poisson depth 9 time", poisson9.median_s if poisson9 else None, 60, "s"),
+        target("Poisson depth 9 memory", poisson9.peak_rss_mb if poisson9 else None, 2048, "MB"),
+        target("texture", seconds("texture (projective)"), 60, "s"),
+        target("GLB export", seconds("export GLB"), 2, "s"),
+        target("end to end / acquisition", e2e_s / acquisition_s, 0.1, "×"),
+        target("speed-up over the Open3D baseline", speedup, 3, "×", at_least=True),
+        {"name": "accuracy equal or better than the baseline", "value": accurate,
+         "target": "true", "unit": "", "met": accurate},
+    ]
+
+
+def run(scan: BenchScan, repeats: int = 3, cache_dir: Path = CACHE_DIR,
+        say: Callable[[str], None] = print) -> dict[str, Any]:
+    """The whole benchmark on ``scan``; returns the figures (see docs/performance.md)."""
+    heavy = max(1, repeats // 3)
+    load_start = os.getloadavg()
+    say(f"scan {scan.name}: simulating (or reusing the cache in {cache_dir})")
+    files = cached_scan(scan, cache_dir)
+    folder = files.recording.parent
+    say("running the default chain once for the stages' inputs (cached by key)")
+    tables = chain_tables(files.recording, folder / "chain")
+    say("timing the stages")
+    stages = stage_measurements(files.recording, tables, scan, repeats, heavy)
+    by_name = {m.name: m for m in stages}
+    out = folder / "runs"
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir()
+    say("timing the Open3D-only baseline")
+    baseline_m, baseline = run_baseline(tables, scan, out, heavy)
+    say("timing end to end (default path, grid path)")
+    paths = chain_paths()
+    e2e = {name: run_end_to_end(files.recording, out, name, overrides, heavy)
+           for name, overrides in paths.items()}
+    say("evaluating against the truth")
+    truth_baseline = baseline_accuracy(baseline, files.truth, scan.eval_samples)
+    comparison: dict[str, Any] = {"baseline": {
+        "seconds": baseline_m.median_s, "peak_rss_mb": baseline_m.peak_rss_mb,
+        **baseline_summary(baseline), "accuracy": truth_baseline}}
+    span = ("filter", "mesh", "texture")
+    for name in paths:
+        workdir = out / name
+        evaluation = evaluate_result(workdir, files.truth, samples=scan.eval_samples)
+        times = stage_times(workdir)
+        points_to_mesh_s = sum(times.get(s, 0.0) for s in span)
+        comparison[name] = {
+            "end_to_end_s": e2e[name].median_s, "peak_rss_mb": e2e[name].peak_rss_mb,
+            "stage_seconds": times, "points_to_textured_mesh_s": points_to_mesh_s,
+            "speedup_over_baseline": baseline_m.median_s / points_to_mesh_s,
+            "glb": str(workdir / "export" / "model.glb"),
+            "glb_exists": (workdir / "export" / "model.glb").is_file(),
+            "accuracy": {k: evaluation[k] for k in (
+                "mesh_mean_m", "mesh_rms_m", "precision", "completeness", "fscore",
+                "texture_psnr_db", "points_mean_m")},
+            "at_least_as_accurate_as_baseline": at_least_as_accurate(evaluation,
+                                                                     truth_baseline),
+        }
+    acquisition = acquisition_seconds(files)
+    default = comparison["default"]
+    return {
+        "scan": asdict(scan),
+        "simulation": {**{k: v for k, v in files.summary.items()
+                          if k not in ("options", "recording", "truth")},
+                       "reused": files.reused,
+                       "frame_size": _frame_size(tables["decode"]["frames"]),
+                       "camera_fps": files.options["camera_fps"],
+                       "frames_per_camera": scan.video_s * scan.video_fps},
+        "repeats": {"light": repeats, "heavy": heavy},
+        "stages": stages,
+        "baseline_measurement": baseline_m,
+        "end_to_end_measurements": list(e2e.values()),
+        "comparison": comparison,
+        "acquisition": acquisition,
+        "end_to_end_over_acquisition": {
+            name: comparison[name]["end_to_end_s"] / acquisition["profiles_over_scan_hz_s"]
+            for name in paths},
+        "targets": targets(by_name, default["end_to_end_s"],
+                           acquisition["profiles_over_scan_hz_s"],
+                           default["speedup_over_baseline"],
+                           default["at_least_as_accurate_as_baseline"]),
+        "load_average_start": load_start,
+        "load_average_end": os.getloadavg(),
+    }
+
+
+def _frame_size(frames: pa.Table) -> list[int]:
+    if frames.num_rows == 0:
+        return [0, 0]
+    return [int(frames.column("width")[0].as_py()), int(frames.column("height")[0].as_py())]
+
+
+def _fmt(value: Any, unit: str = "") -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.3g}{unit}"
+    return f"{value}{unit}"
+
+
+def report(results: Mapping[str, Any]) -> str:
+    """The results as text tables: stages, baseline vs scanpipe, end to end, targets."""
+    stages: list[Measurement] = results["stages"]
+    rows: list[tuple[str, ...]] = [
+        (m.name, f"{m.median_s:.3f} s", f"{m.throughput / 1e6:.2f} M {m.unit}/s",
+         f"{m.peak_rss_mb:.0f} MB", str(len(m.runs_s))) for m in stages]
+    parts = [table(rows, ("stage (in memory)", "median", "throughput", "peak RSS", "runs"))]
+    comparison = results["comparison"]
+    base = comparison["baseline"]
+    rows = [("Open3D baseline", f"{base['seconds']:.1f} s", "-", "1",
+             _fmt(base["accuracy"]["mesh_mean_m"] * 1000, " mm"),
+             _fmt(base["accuracy"]["completeness"]), _fmt(base["accuracy"]["precision"]), "-")]
+    for name in results["end_to_end_over_acquisition"]:
+        path = comparison[name]
+        acc = path["accuracy"]
+        rows.append((f"scanpipe {name}", f"{path['points_to_textured_mesh_s']:.1f} s",
+                     f"{path['end_to_end_s']:.1f} s", f"{path['speedup_over_baseline']:.2f}×",
+                     _fmt(acc["mesh_mean_m"] * 1000 if acc["mesh_mean_m"] is not None
+                          else None, " mm"),
+                     _fmt(acc["completeness"]), _fmt(acc["precision"]),
+                     _fmt(acc["texture_psnr_db"], " dB")))
+    parts.append(table(rows, ("path", "points → coloured mesh", "end to end", "speed-up",
+                              "mesh mean", "completeness@2cm", "precision@2cm", "PSNR")))
+    acq = results["acquisition"]
+    parts.append(
+        f"acquisition: {acq['positions']:.0f} positions / {acq['scan_hz']:g} Hz = "
+        f"{acq['profiles_over_scan_hz_s']:.0f} s (simulated step-and-scan session "
+        f"{acq['session_s']:.0f} s); end to end / acquisition: " + ", ".join(
+            f"{k} {v:.3f}" for k, v in results["end_to_end_over_acquisition"].items()))
+    rows = [(str(t["name"]), _fmt(t["value"], f" {t['unit']}" if t["unit"] else ""), t["target"],
+             "met" if t["met"] else "MISSED") for t in results["targets"]]
+    parts.append(table(rows, ("target", "measured", "target", "")))
+    if results.get("quick"):
+        parts.append("(--quick: the targets are for the lab-scale scan; this run only shows that "
+                     "everything works)")
+    return "\n\n".join(parts)

@@ -1,0 +1,107 @@
+"""Smoke test of the benchmark's core (``python -m benchmarks``) on a tiny simulated scan.
+
+Asserts the structure of the results and that every figure is a positive number; never speed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository: `benchmarks`
+
+from benchmarks import harness
+from benchmarks.pipeline_bench import report, run
+from benchmarks.scans import BenchScan, cached_scan, sim_options
+
+TINY = BenchScan("tiny", 4.0, 3.6, video_s=1.0, video_fps=4.0, camera_scale=0.125,
+                 poisson_depths=(5, 6), baseline_voxel_m=0.05, baseline_knn=10,
+                 eval_samples=2000)
+
+
+def positive(value: Any) -> bool:
+    return isinstance(value, int | float) and math.isfinite(value) and value > 0
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    cache = tmp_path_factory.mktemp("bench-cache")
+    figures = run(TINY, repeats=1, cache_dir=cache, say=lambda text: None)
+    saved = harness.save(figures, "tiny", results_dir=cache / "results")
+    loaded: dict[str, Any] = json.loads(saved.read_text())
+    loaded["_report"] = report(figures)
+    loaded["_cache"] = str(cache)
+    return loaded
+
+
+@pytest.mark.slow
+def test_every_stage_is_measured_with_positive_figures(results: dict[str, Any]) -> None:
+    names = [m["name"] for m in results["stages"]]
+    assert names == ["decode", "assemble", "filter (defaults)", "filter without smoothing",
+                     "mesh grid", "mesh Poisson depth 5",
+                     "mesh Poisson depth 6", "texture (projective)", "export OBJ (+MTL, PNG)",
+                     "export GLB", "export stage (defaults)"]
+    for m in results["stages"]:
+        assert positive(m["median_s"]) and positive(m["throughput"]) and positive(m["items"])
+        assert len(m["runs_s"]) == 1 and m["peak_rss_mb"] >= 0
+    assert results["machine"]["cpus"] >= 1 and len(results["load_average_start"]) == 3
+
+
+@pytest.mark.slow
+def test_baseline_and_paths_are_compared_on_accuracy_and_time(results: dict[str, Any]
+                                                              ) -> None:
+    comparison = results["comparison"]
+    base = comparison["baseline"]
+    assert positive(base["seconds"])
+    assert set(base["steps_s"]) == {"voxel_downsample", "statistical_outlier", "knn_normals",
+                                    "poisson", "vertex_colour"}
+    assert base["counts"]["after_voxel"] <= base["counts"]["points_in"]
+    assert positive(base["counts"]["faces"])
+    paths = [name for name in comparison if name != "baseline"]
+    assert paths[0] == "default" and "poisson" in paths
+    for path in paths:
+        entry = comparison[path]
+        assert entry["glb_exists"] and Path(entry["glb"]).stat().st_size > 0
+        assert positive(entry["end_to_end_s"]) and positive(entry["points_to_textured_mesh_s"])
+        assert positive(entry["speedup_over_baseline"])
+        assert set(entry["stage_seconds"]) == {"decode", "assemble", "filter", "mesh",
+                                               "texture", "export"}
+        assert isinstance(entry["at_least_as_accurate_as_baseline"], bool)
+    for acc in (base["accuracy"], comparison["default"]["accuracy"],
+                comparison["poisson"]["accuracy"]):
+        assert positive(acc["mesh_mean_m"]) and 0 < acc["completeness"] <= 1
+        assert 0 < acc["precision"] <= 1
+    assert positive(comparison["default"]["accuracy"]["texture_psnr_db"])
+
+
+@pytest.mark.slow
+def test_acquisition_targets_and_table(results: dict[str, Any]) -> None:
+    acq = results["acquisition"]
+    assert acq["profiles_over_scan_hz_s"] == pytest.approx(acq["positions"] / acq["scan_hz"])
+    assert acq["session_s"] > acq["profiles_over_scan_hz_s"]
+    assert all(positive(v) for v in results["end_to_end_over_acquisition"].values())
+    simulation = results["simulation"]
+    assert simulation["frames"] == pytest.approx(2 * TINY.video_s * TINY.video_fps, abs=2)
+    cam = sim_options(TINY).nominal_rig().cameras[0]  # the rig's camera at 1/8 scale
+    assert simulation["frame_size"] == [cam.width, cam.height]
+    assert max(cam.width, cam.height) == 240
+    rows = {t["name"]: t for t in results["targets"]}
+    assert len(rows) == 11 and all(isinstance(t["met"], bool) for t in rows.values())
+    assert rows["Poisson depth 9 time"]["value"] is None  # the tiny scan stops at depth 6
+    assert not rows["Poisson depth 9 time"]["met"]
+    for heading in ("stage (in memory)", "Open3D baseline", "scanpipe poisson", "MISSED"):
+        assert heading in results["_report"]
+
+
+@pytest.mark.slow
+def test_the_scan_is_simulated_once_and_then_reused(results: dict[str, Any]) -> None:
+    cache = Path(results["_cache"])
+    again = cached_scan(TINY, cache)
+    assert again.reused and again.recording.is_file()
+    assert len([p for p in cache.iterdir() if p.name.startswith("tiny-")]) == 1
+    assert not results["simulation"]["reused"]
