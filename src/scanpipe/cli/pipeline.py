@@ -5,7 +5,7 @@ from __future__ import annotations
 import datetime as dt
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args, get_origin
 
 import pyarrow.parquet as pq
 import typer
@@ -113,9 +113,19 @@ def describe_params(model: type[BaseModel], prefix: str = "") -> list[tuple[str,
         if isinstance(annotation, type) and issubclass(annotation, BaseModel):
             rows.extend(describe_params(annotation, f"{key}."))
             continue
-        type_name = getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
-        rows.append((key, type_name, repr(field.default), field.description or ""))
+        rows.append((key, _type_name(annotation), repr(field.default), field.description or ""))
     return rows
+
+
+def _type_name(annotation: Any) -> str:
+    """``a|b|c`` for a Literal, the bare name for a class, else the typing text."""
+    if get_origin(annotation) is Literal:
+        return "|".join(str(a) for a in get_args(annotation))
+    if get_origin(annotation) is tuple:
+        return "tuple[" + ", ".join(_type_name(a) for a in get_args(annotation)) + "]"
+    name = getattr(annotation, "__name__", None)
+    return str(name) if name and get_origin(annotation) is None else str(annotation).replace(
+        "typing.", "")
 
 
 def stages(as_json: bool = JSON) -> None:
