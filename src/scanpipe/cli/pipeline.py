@@ -122,7 +122,8 @@ def _type_name(annotation: Any) -> str:
     if get_origin(annotation) is Literal:
         return "|".join(str(a) for a in get_args(annotation))
     if get_origin(annotation) is tuple:
-        return "tuple[" + ", ".join(_type_name(a) for a in get_args(annotation)) + "]"
+        items = [a for a in get_args(annotation) if a is not Ellipsis]
+        return "list of " + ", ".join(_type_name(a) for a in items)
     name = getattr(annotation, "__name__", None)
     return str(name) if name and get_origin(annotation) is None else str(annotation).replace(
         "typing.", "")
