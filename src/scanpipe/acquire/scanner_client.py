@@ -6,7 +6,7 @@ count profiles and to read replies to its own requests. The recording stays the 
 
 - ``paper``: the scanner streams frames as soon as the connection is open; stopping closes it.
 - ``ldoem``: before connecting, the rig's settings are checked against the LD-OEM 1000's limits
-  (:func:`scanpipe.planning.ldoem_limit_checks`). Then the start-up requests (GET_IDENT,
+  (:func:`scanpipe.planning.device_limit_problems`). Then the start-up requests (GET_IDENT,
   GET_STATUS, GET_SYNC_CLOCK, SET_CONFIG of the sector, ROTATE at the head speed, GET_PROFILE
   streaming) are
   sent one by one, each waiting for its reply; a refused request is a :class:`DeviceError`.
@@ -26,7 +26,7 @@ from typing import Protocol
 
 from scanpipe.acquire.sink import Link
 from scanpipe.errors import DeviceError, ProtocolError
-from scanpipe.planning import ldoem_limit_checks
+from scanpipe.planning import device_limit_problems
 from scanpipe.protocol import ldoem
 from scanpipe.protocol.framing import RawFrame
 from scanpipe.protocol.profile import angle_to_wire
@@ -53,12 +53,6 @@ class ScannerStats:
     tx_bytes: int = 0
     last_profile_ns: int = 0
     connects: int = 0
-
-
-def ldoem_config_problems(scanner: ScannerConfig) -> list[str]:
-    """The rig's scanner settings that the LD-OEM 1000 would refuse, one line each."""
-    return [f"scanner: {c.name} = {c.value:g} is outside the LD-OEM limit ({c.limit})"
-            for c in ldoem_limit_checks(scanner) if not c.ok]
 
 
 class ScannerClient:
@@ -114,7 +108,7 @@ class ScannerClient:
     def connect(self) -> None:
         """Open the link, run the start-up (ldoem) and start streaming profiles."""
         if self.dialect == "ldoem":
-            problems = ldoem_config_problems(self.scanner)
+            problems = device_limit_problems(self.scanner)
             if problems:
                 raise DeviceError("; ".join(problems) + " — fix the rig file before recording")
         host, port = self.scanner.host, self.scanner.port
