@@ -78,9 +78,13 @@ def test_report_is_one_self_contained_file(cli: Callable, tmp_path: Path) -> Non
     assert parser.urls and all(u.startswith("data:image/png;base64,") for u in parser.urls)
     assert not parser.tags & {"link", "script", "iframe", "object", "embed"}
     assert not re.search(r"url\(", text)
-    for heading in ("Scan summary", "Points", "Time synchronisation", "Stage times",
-                    "Previews", "Evaluation against ground truth"):
+    order = ("At a glance", "Previews", "Evaluation against ground truth", "Points",
+             "Time synchronisation", "Stage times", "Details")
+    for heading in order:
         assert f"<h2>{heading}</h2>" in text, heading
+    # Headline and pictures first, the raw per-stage reports last.
+    positions = [text.index(f"<h2>{heading}</h2>") for heading in order]
+    assert positions == sorted(positions)
     for caption in ("Range histogram", "Coverage over α × β", "Seconds per stage",
                     "Receive-time residuals", "plan", "panorama"):
         assert caption in text, caption

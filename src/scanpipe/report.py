@@ -219,27 +219,38 @@ def build_report(workdir: Path, truth: Path | None = None, preview_width: int = 
                             "*/*.parquet with provenance)")
     parts = [f"<h1>scanpipe report: {html.escape(workdir.name or str(workdir))}</h1>",
              f'<p class="note">{html.escape(str(workdir))} · scanpipe {__version__}</p>']
-
-    parts.append("<h2>Artifacts</h2>")
-    parts.append(_table([(name, r.get("stage"), r.get("rows"), r.get("seconds"),
-                          str(r.get("key", ""))[:12]) for name, r in records.items()],
-                        ("artifact", "stage", "rows", "stage seconds", "key")))
-
     by_stage = {r.get("stage"): r for r in records.values()}
-    parts.append("<h2>Scan summary</h2>")
-    summary: list[tuple[Any, ...]] = []
-    decode = by_stage.get("decode", {}).get("report", {})
-    for key in ("dialect", "checksum_mode"):
-        if key in decode:
-            summary.append((f"decode: {key}", decode[key]))
-    for section in ("counts", "counters", "time_span", "gaps"):
-        for key, value in (decode.get(section) or {}).items():
-            summary.append((f"decode {section}: {key}", value))
-    for stage in ("assemble", "filter", "mesh", "texture"):
-        for key, value in (by_stage.get(stage, {}).get("report") or {}).items():
-            summary.append((f"{stage}: {key}", value))
-    parts.append(_table(summary, ("what", "value")) if summary
-                 else '<p class="note">No stage reports.</p>')
+    reports = {stage: (r.get("report") or {}) for stage, r in by_stage.items()}
+
+    # Evaluate first: its headline figures belong at the top, its table after the pictures.
+    truth = truth if truth is not None else _found_truth(workdir)
+    evaluation: dict[str, Any] | None = None
+    evaluation_error = ""
+    if truth is not None:
+        try:
+            evaluation = evaluate_result(workdir, truth)
+        except ScanpipeError as err:
+            evaluation_error = str(err)
+
+    times = stage_times(workdir)
+    parts.append("<h2>At a glance</h2>")
+    parts.append(_table(_glance(reports, times, evaluation), ("what", "value")))
+
+    if find_artifact(workdir, "mesh_vertices") and find_artifact(workdir, "mesh_faces"):
+        parts.append("<h2>Previews</h2>")
+        try:
+            parts += _previews(workdir, preview_width)
+        except ScanpipeError as err:
+            parts.append(f'<p class="note">No previews: {html.escape(str(err))}</p>')
+
+    if truth is not None:
+        parts.append("<h2>Evaluation against ground truth</h2>")
+        if evaluation is not None:
+            rows = [(k, v) for k, v in evaluation.items() if k not in ("result", "stage_seconds")]
+            parts.append(_table(rows, ("metric", "value")))
+        else:
+            parts.append(f'<p class="note">Evaluation failed: {html.escape(evaluation_error)}'
+                         "</p>")
 
     parts.append("<h2>Points</h2>")
     _points_section(workdir, parts)
@@ -255,30 +266,78 @@ def build_report(workdir: Path, truth: Path | None = None, preview_width: int = 
             parts.append(_figure(png, "Receive-time residuals after a linear clock fit"))
             parts.append(_table(list(stats.items()), ("statistic", "value")))
 
-    times = stage_times(workdir)
     if times:
         parts.append("<h2>Stage times</h2>")
         parts.append(_figure(stage_time_chart(times), "Seconds per stage (from provenance)"))
 
-    if find_artifact(workdir, "mesh_vertices") and find_artifact(workdir, "mesh_faces"):
-        parts.append("<h2>Previews</h2>")
-        try:
-            parts += _previews(workdir, preview_width)
-        except ScanpipeError as err:
-            parts.append(f'<p class="note">No previews: {html.escape(str(err))}</p>')
-
-    truth = truth if truth is not None else _found_truth(workdir)
-    if truth is not None:
-        parts.append("<h2>Evaluation against ground truth</h2>")
-        try:
-            result = evaluate_result(workdir, truth)
-            rows = [(k, v) for k, v in result.items() if k not in ("result", "stage_seconds")]
-            parts.append(_table(rows, ("metric", "value")))
-        except ScanpipeError as err:
-            parts.append(f'<p class="note">Evaluation failed: {html.escape(str(err))}</p>')
+    parts.append("<h2>Details</h2>")
+    parts.append("<details><summary>Every stage's report</summary>")
+    summary: list[tuple[Any, ...]] = []
+    decode = reports.get("decode", {})
+    for key in ("dialect", "checksum_mode"):
+        if key in decode:
+            summary.append((f"decode: {key}", decode[key]))
+    for section in ("counts", "counters", "time_span", "gaps"):
+        for key, value in (decode.get(section) or {}).items():
+            summary.append((f"decode {section}: {key}", value))
+    for stage in ("assemble", "filter", "mesh", "texture", "export"):
+        for key, value in reports.get(stage, {}).items():
+            summary.append((f"{stage}: {key}", value))
+    parts.append(_table(summary, ("what", "value")) if summary
+                 else '<p class="note">No stage reports.</p>')
+    parts.append("</details>")
+    parts.append("<details><summary>Artifacts</summary>")
+    parts.append(_table([(name, r.get("stage"), r.get("rows"), r.get("seconds"),
+                          str(r.get("key", ""))[:12]) for name, r in records.items()],
+                        ("artifact", "stage", "rows", "stage seconds", "key")))
+    parts.append("</details>")
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<title>scanpipe report: {html.escape(workdir.name)}</title>"
             f"<style>{_CSS}</style></head><body>\n" + "\n".join(parts) + "\n</body></html>\n")
+
+
+def _glance(reports: dict[Any, dict[str, Any]], times: dict[str, float],
+            evaluation: dict[str, Any] | None) -> list[tuple[str, str]]:
+    """The headline figures: what was scanned, what came out, how long, how good."""
+    rows: list[tuple[str, str]] = []
+    decode, assemble = reports.get("decode", {}), reports.get("assemble", {})
+    filtered, mesh, texture = (reports.get(s, {}) for s in ("filter", "mesh", "texture"))
+    counts = decode.get("counts") or {}
+    if counts:
+        rows.append(("recording", f"{counts.get('profiles', 0):,} profiles, "
+                                  f"{counts.get('samples', 0):,} samples, "
+                                  f"{sum((counts.get('images') or {}).values()):,} camera frames"))
+    if "grid" in assemble:
+        grid = assemble["grid"] or {}
+        rows.append(("scan grid", f"{grid.get('profiles')} profiles × {grid.get('samples')} "
+                                  f"samples ({assemble.get('mode', '?')} mode)"))
+    if "points_out" in filtered:
+        rows.append(("points", f"{filtered['points_out']:,} kept of {filtered['points_in']:,}"))
+    if "faces" in mesh:
+        rows.append(("mesh", f"{mesh['faces']:,} faces, {mesh.get('vertices', 0):,} vertices "
+                             f"({mesh.get('method', '?')})"))
+    if "coverage" in texture:
+        rows.append(("textured", f"{100 * texture['coverage']:.0f} % of the surface, "
+                                 f"{texture.get('frames_used', '?')} frames used"))
+    if times:
+        rows.append(("processing", f"{sum(times.values()):.1f} s over {len(times)} stages"))
+    if evaluation is not None:
+        def mm(key: str) -> str:
+            value = evaluation.get(key)
+            return "n/a" if value is None else f"{1000 * value:.1f} mm"
+
+        def pct(key: str) -> str:
+            value = evaluation.get(key)
+            return "n/a" if value is None else f"{100 * value:.1f} %"
+
+        rows.append(("accuracy", f"points RMS {mm('points_rms_m')}, mesh mean "
+                                 f"{mm('mesh_mean_m')}; completeness {pct('completeness')}, "
+                                 f"precision {pct('precision')} at "
+                                 f"{100 * evaluation.get('tau_m', 0.02):.0f} cm"))
+        psnr = evaluation.get("texture_psnr_db")
+        if psnr is not None:
+            rows.append(("texture", f"PSNR {psnr:.1f} dB against the true scene"))
+    return rows
 
 
 def _found_truth(workdir: Path) -> Path | None:
