@@ -7,7 +7,6 @@ Targets (issue 6): assemble ≥ 20 M points/s; the grid filters on 2.4 M points 
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 from pathlib import Path
@@ -18,7 +17,7 @@ import pyarrow as pa
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import cpu_seconds, measure, save, table
+from harness import cli, cpu_seconds, measure, table
 
 from scanpipe.progress import no_progress
 from scanpipe.rig import MotorConfig, Rig, ScannerConfig, rig_table
@@ -122,10 +121,4 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="a smaller grid")
-    args = parser.parse_args()
-    figures = run(args.quick)
-    path = save(figures, f"assemble-{'quick-' if args.quick else ''}"
-                         f"{np.datetime64('today')}")
-    print(f"saved {path}")
+    cli("assemble", run, __doc__ or "", "a smaller grid")

@@ -10,8 +10,6 @@ provenance). Target (issue 3): ≥ 10 M samples/s end to end, Parquet included.
 
 from __future__ import annotations
 
-import argparse
-import datetime as dt
 import os
 import statistics
 import sys
@@ -24,7 +22,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import measure, save, table
+from harness import cli, measure, table
 
 from scanpipe.pipeline import execute, get_stage
 from scanpipe.protocol import ldoem
@@ -113,12 +111,8 @@ def run(quick: bool = False) -> dict[str, Any]:
     }
 
 
-def main() -> None:
-    """Command line: print the figures and save them."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a smaller scan")
-    args = parser.parse_args()
-    results = run(args.quick)
+def show(results: dict[str, Any]) -> None:
+    """Print the figures."""
     rows = [(m.name, f"{m.median_s * 1000:.1f} ms", f"{m.throughput / 1e6:.1f} M {m.unit}/s",
              f"{m.peak_rss_mb:.0f} MB") for m in results["measurements"]]
     print(table(rows, ("measurement", "median", "throughput", "peak RSS")))
@@ -128,10 +122,7 @@ def main() -> None:
           f"{results['cpu_samples_per_s'] / 1e6:.1f} M samples per CPU second "
           f"(target 10 M: {'met' if results['meets_target'] else 'NOT met'}; load average "
           f"{results['load_average'][0]:.1f})")
-    suffix = "-quick" if args.quick else ""
-    path = save(results, f"decode-{dt.date.today().isoformat()}{suffix}")
-    print(f"saved {path}")
 
 
 if __name__ == "__main__":
-    main()
+    cli("decode", run, __doc__ or "", "a smaller scan", show)

@@ -7,7 +7,6 @@ Target (issue 9): the OBJ writer keeps up with big meshes, ≥ 1 M faces/s, meas
 
 from __future__ import annotations
 
-import argparse
 import io
 import os
 import sys
@@ -19,7 +18,7 @@ from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import cpu_seconds, measure, save, table
+from harness import cli, cpu_seconds, measure, table
 
 from scanpipe.exporters.glb import glb_bytes
 from scanpipe.exporters.las import las_bytes
@@ -98,9 +97,4 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="a smaller mesh and cloud")
-    args = parser.parse_args()
-    figures = run(args.quick)
-    path = save(figures, f"export-{'quick-' if args.quick else ''}{np.datetime64('today')}")
-    print(f"saved {path}")
+    cli("export", run, __doc__ or "", "a smaller mesh and cloud")

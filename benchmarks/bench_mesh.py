@@ -8,18 +8,15 @@ and saves JSON into ``benchmarks/results/``.
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import cpu_seconds, measure, save, table
+from harness import cli, cpu_seconds, measure, table
 
 from scanpipe.grid import scan_grid
 from scanpipe.meshing.grid_mesh import triangulate_grid
@@ -101,9 +98,4 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="smaller scans, depth 7")
-    args = parser.parse_args()
-    figures = run(args.quick)
-    path = save(figures, f"mesh-{'quick-' if args.quick else ''}{np.datetime64('today')}")
-    print(f"saved {path}")
+    cli("mesh", run, __doc__ or "", "smaller scans, depth 7")

@@ -9,8 +9,6 @@ the libraries are imported (a fresh interpreter adds ~1–2 s of imports: Open3D
 
 from __future__ import annotations
 
-import argparse
-import datetime as dt
 import sys
 import tempfile
 from pathlib import Path
@@ -20,7 +18,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import measure, save, table
+from harness import cli, measure, table
 
 from scanpipe.rig import default_rig
 from scanpipe.sim.camera import render_rgb, scaled_camera
@@ -83,20 +81,14 @@ def run(quick: bool = False) -> dict[str, Any]:
     }
 
 
-def main() -> None:
-    """Print the figures and save them as JSON."""
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="a coarser lab scan")
-    args = parser.parse_args()
-    results = run(args.quick)
+def show(results: dict[str, Any]) -> None:
+    """Print the figures."""
     rows = [(m.name, f"{m.median_s:.3f} s", f"{m.throughput:,.0f} {m.unit}/s")
             for m in results["measurements"]]
     print(table(rows, ("what", "median", "throughput")))
     print(f"lab: {results['lab']}")
     print(f"test: {results['test']}")
-    stem = f"simulate-{dt.date.today().isoformat()}" + ("-quick" if args.quick else "")
-    print(f"saved {save(results, stem)}")
 
 
 if __name__ == "__main__":
-    main()
+    cli("simulate", run, __doc__ or "", "a coarser lab scan", show)

@@ -13,7 +13,6 @@ seconds beside the wall time (the machine is shared; CPU time does not depend on
 
 from __future__ import annotations
 
-import argparse
 import os
 import resource
 import sys
@@ -27,7 +26,7 @@ import pyarrow as pa
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import save, table
+from harness import cli, table
 
 from scanpipe.evaluate import Reference, texture_psnr
 from scanpipe.render import RenderMesh, render_mesh_from_scene
@@ -162,10 +161,4 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="a coarser mesh and 2 s of video")
-    args = parser.parse_args()
-    figures = run(args.quick)
-    path = save(figures, f"texture-{'quick-' if args.quick else ''}"
-                         f"{np.datetime64('today')}")
-    print(f"saved {path}")
+    cli("texture", run, __doc__ or "", "a coarser mesh and 2 s of video")

@@ -47,14 +47,20 @@ def _rss_mb() -> float:
     return 0.0
 
 
+def _timed_runs(fn: Callable[[], Any], repeats: int) -> list[float]:
+    """Wall seconds of ``repeats`` calls of ``fn``."""
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        runs.append(time.perf_counter() - t0)
+    return runs
+
+
 def _child(fn: Callable[[], Any], repeats: int, queue: Any) -> None:
     try:
         start_rss = _rss_mb()
-        runs = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            runs.append(time.perf_counter() - t0)
+        runs = _timed_runs(fn, repeats)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         queue.put(("ok", runs, max(0.0, peak - start_rss)))
     except BaseException as err:  # report any failure to the parent, which re-raises
@@ -74,11 +80,7 @@ def measure(name: str, fn: Callable[[], Any], items: float, unit: str,
         if status != "ok":
             raise RuntimeError(f"benchmark {name!r} failed: {runs}")
     else:
-        runs = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            runs.append(time.perf_counter() - t0)
+        runs = _timed_runs(fn, repeats)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return Measurement(name, statistics.median(runs), runs, peak, items, unit)
 
@@ -134,3 +136,19 @@ def table(rows: list[tuple[str, ...]], header: tuple[str, ...]) -> str:
     out = [line.format(*header), line.format(*("-" * w for w in widths))]
     out += [line.format(*map(str, r)) for r in rows]
     return "\n".join(out)
+
+
+def cli(name: str, run: Callable[[bool], Any], description: str, quick_help: str,
+        show: Callable[[Any], None] | None = None) -> None:
+    """The command line of a ``bench_<name>.py``: ``[--quick]``, run, show, save as
+    ``results/<name>[-quick]-<date>.json``."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=description.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help=quick_help)
+    args = parser.parse_args()
+    results = run(args.quick)
+    if show is not None:
+        show(results)
+    stem = f"{name}-{'quick-' if args.quick else ''}{dt.date.today().isoformat()}"
+    print(f"saved {save(results, stem)}")
