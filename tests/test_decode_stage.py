@@ -13,6 +13,7 @@ import pyarrow as pa
 import pytest
 
 from scanpipe.artifacts import read_artifact
+from scanpipe.clock import unwrap_device_ms
 from scanpipe.pipeline import execute, get_stage, registry
 from scanpipe.protocol import ldoem, paper
 from scanpipe.protocol.profile import Profile
@@ -25,7 +26,6 @@ from scanpipe.stages.decode import (
     PROFILES_SCHEMA,
     DecodeParams,
     image_size,
-    unwrap_device_ms,
 )
 
 T0 = 1_700_000_000_000_000_000

@@ -68,10 +68,19 @@ class ScanGrid:
 
 
 def _median_step(angles_deg: F64) -> float:
+    """The typical step between consecutive angles; NaN when there is none.
+
+    Repeated angles (several profiles at one platform position, when a step scan was
+    assembled as continuous) make the median 0; the mean step over the span is taken then,
+    and NaN when the angles do not change at all, so that no caller divides by zero.
+    """
     finite = angles_deg[np.isfinite(angles_deg)]
     if finite.size < 2:
         return float("nan")
-    return float(np.median(np.diff(finite)))
+    step = float(np.median(np.diff(finite)))
+    if step == 0.0:
+        step = float(finite[-1] - finite[0]) / (finite.size - 1)
+    return step if step != 0.0 else float("nan")
 
 
 def grid_from_indices(profile: NDArray[Any], sample: NDArray[Any],

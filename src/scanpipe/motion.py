@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pyarrow as pa
 from numpy.typing import NDArray
 
+from scanpipe.clock import ClockModel, fit_clock
 from scanpipe.errors import StageError
 from scanpipe.rig import MotorConfig
 
@@ -21,11 +24,12 @@ def beta_deg_at(times_ns: NDArray[np.int64], motor_table: pa.Table,
     """Platform angle at each time, linearly interpolated between reported motor states.
 
     Before the first state and after the last the angle is held. ``motor_table`` is the
-    ``motor`` artifact (``log_time_ns``, ``step_count``), in any order.
+    ``motor`` artifact (``log_time_ns``, ``step_count``), in any order; the states' times are
+    those of :func:`motor_times_ns`.
     """
     if motor_table.num_rows == 0:
         raise StageError("motor: no motor states in the recording; cannot place profiles in β")
-    t = motor_table.column("log_time_ns").to_numpy().astype(np.int64)
+    t = motor_times_ns(motor_table)
     steps = motor_table.column("step_count").to_numpy().astype(np.float64)
     order = np.argsort(t, kind="stable")
     t, steps = t[order], steps[order]
@@ -33,3 +37,38 @@ def beta_deg_at(times_ns: NDArray[np.int64], motor_table: pa.Table,
     interpolated = np.interp((np.asarray(times_ns, np.int64) - t0).astype(np.float64),
                              (t - t0).astype(np.float64), steps)
     return beta_deg_from_steps(interpolated, motor)
+
+
+def motor_clock(motor_table: pa.Table) -> ClockModel | None:
+    """The controller's own clock fitted to the states' receive times; None when unusable.
+
+    The host stamps a state when it reads it, late by the serial link's and its own latency,
+    which varies; the controller stamps it when it happened (``device_time_us``). Unusable
+    when a state has no device time, the device time runs backwards (a controller reset) or
+    mostly stands still (a controller that does not stamp).
+    """
+    if "device_time_us" not in motor_table.column_names or motor_table.num_rows < 2:
+        return None
+    column = motor_table.column("device_time_us")
+    if column.null_count:
+        return None
+    log = motor_table.column("log_time_ns").to_numpy().astype(np.int64)
+    device_ns = column.to_numpy().astype(np.int64) * 1000
+    steps = np.diff(device_ns)  # in the order the states were read
+    if np.any(steps < 0) or np.count_nonzero(steps > 0) < 0.5 * steps.size:
+        return None  # a reset, or a controller that does not stamp (zeros)
+    model = fit_clock(device_ns, log)
+    return replace(model, name="the motor controller's clock")
+
+
+def motor_times_ns(motor_table: pa.Table) -> NDArray[np.int64]:
+    """Host times of the motor states, in table order, without the receive jitter.
+
+    The controller's clock mapped by :func:`motor_clock` when it is usable, else the log
+    (receive) times.
+    """
+    clock = motor_clock(motor_table)
+    if clock is None:
+        return np.asarray(motor_table.column("log_time_ns").to_numpy(), np.int64)
+    return clock.to_host_ns(motor_table.column("device_time_us").to_numpy().astype(
+        np.int64) * 1000)

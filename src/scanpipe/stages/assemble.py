@@ -16,10 +16,13 @@ Time association decides which profile belongs to which platform angle:
   complete profile (a continuous scan stands still only before and after its one move), or
   when at least half the profiles lie inside stationary intervals.
 
-Sample times come from the device's sector timestamps when the profiles carry them (mapped to
-the host clock by ``clock_offset_ns``, estimated as the smallest receive-minus-end delay when
-not given), else from the receive time (the end of the sector, less ``receive_latency_s``) and
-the scan frequency: one beam step takes ``step / 360 / scan_hz`` seconds.
+Sample times come from the device's sector timestamps when the profiles carry them, mapped to
+the host clock by a fitted model ``host = offset + rate · device`` (:mod:`scanpipe.clock`:
+the rate is fitted, not assumed to be 1, and the fit's problems are reported), else from the
+receive time (the end of the sector, less ``receive_latency_s``) and the head turn: one beam
+step takes ``step / 360`` of a turn. Receive times jitter with the host's load, so the frame
+counter is read as a clock ticking once per turn and fitted to them the same way
+(:func:`frame_clock`); that also measures the turn on the host clock.
 
 Geometry (:mod:`scanpipe.geometry`): the return at range r and beam angle
 ``α = start + i·step + α offset`` lies at ``R_mount · r (sin α, cos α, 0) + t_mount`` in the
@@ -30,7 +33,7 @@ angle (per sample in continuous mode, in float32) and is broadcast over the grid
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -39,9 +42,10 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from scanpipe.artifacts import check_columns
+from scanpipe.clock import ClockModel, fit_clock
 from scanpipe.errors import StageError
 from scanpipe.geometry import rotation_matrix_deg, scan_plane_direction
-from scanpipe.motion import beta_deg_at, beta_deg_from_steps
+from scanpipe.motion import beta_deg_at, beta_deg_from_steps, motor_clock, motor_times_ns
 from scanpipe.params import Params
 from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
@@ -73,8 +77,11 @@ class AssembleParams(Params):
         "auto", description="sample times from the device's sector timestamps or from the "
                             "receive time; auto = device when every profile has them")
     clock_offset_ns: int | None = Field(
-        None, description="host time = device time + this; None = estimate it as the smallest "
-                          "receive-minus-sector-end delay")
+        None, description="host time = clock_rate × device time + this; None = fit it (the "
+                          "lower envelope of receive minus sector end)")
+    clock_rate: float | None = Field(
+        None, gt=0, le=1000, description="host ns per device ns; None = fit it (1 when "
+                                         "clock_offset_ns alone is given)")
     receive_latency_s: float = Field(
         0.0, ge=0, le=10, description="receive time source: delay from a sector's last sample "
                                       "to its receipt")
@@ -90,7 +97,7 @@ class ScanLines:
     """The profile rows as arrays: timing, angular placement, and the flat ranges."""
 
     start_ns: I64  # time of the first sample (host clock)
-    sample_dt_ns: F64  # time between consecutive samples
+    sample_dt_ns: F64  # time between consecutive samples (host clock)
     lengths: I64
     row_starts: I64  # offset of each row's first sample in ``ranges``
     ranges: F32
@@ -102,7 +109,19 @@ class ScanLines:
     usable: B
     dropped: dict[str, int]
     time_source: str
-    clock_offset_ns: int | None
+    #: Device → host time: the sector timestamps' clock (device source), or the frame counter
+    #: read as a clock ticking once per head turn (receive source); None without either.
+    clock: ClockModel | None
+    turn_s: float  # one head turn on the host clock
+
+    @property
+    def time_scale(self) -> float:
+        """Host seconds per physical (device) second: the clock's rate, 1 without one.
+
+        1 for real hardware; a simulated speed-up shows here. Durations from the rig file (the
+        settle time) are physical and are scaled by it.
+        """
+        return self.clock.rate if self.clock is not None else 1.0
 
     @property
     def end_ns(self) -> I64:
@@ -146,7 +165,7 @@ def scan_lines(profiles: pa.Table, rig: Rig, params: AssembleParams) -> ScanLine
     sector, _ = _int_column(profiles, "sector", 0)
     start_angle = profiles.column("start_angle_deg").to_numpy().astype(np.float64)
     step = profiles.column("step_deg").to_numpy().astype(np.float64)
-    beam_dt_ns = step / 360.0 / rig.scanner.scan_hz * 1e9
+    nominal_turn_ns = 1e9 / rig.scanner.scan_hz
 
     usable = lengths > 0
     dropped = {"empty": int(np.count_nonzero(~usable))}
@@ -161,29 +180,52 @@ def scan_lines(profiles: pa.Table, rig: Rig, params: AssembleParams) -> ScanLine
     if source == "device" and not has_start[usable].all():
         raise StageError("profiles: time_source = 'device' but some profiles have no "
                          "device_time_ns; use 'receive' or 'auto'")
-    offset: int | None = None
+    clock: ClockModel | None
     if source == "device":
+        fit_rows = usable if usable.any() else np.ones(usable.size, bool)
+        device_end = np.where(has_end, dev_end, dev_start)
+        clock = fit_clock(device_end[fit_rows], recv[fit_rows], params.clock_rate,
+                          params.clock_offset_ns)
+        beam_dt_ns = step / 360.0 * nominal_turn_ns * clock.rate
         with np.errstate(invalid="ignore", divide="ignore"):
             measured_dt = (dev_end - dev_start) / np.maximum(lengths - 1, 1).astype(np.float64)
-        sample_dt = np.where(has_end & (lengths > 1), measured_dt, beam_dt_ns)
-        device_end = dev_start + np.rint(np.maximum(lengths - 1, 0) * sample_dt).astype(np.int64)
-        if params.clock_offset_ns is not None:
-            offset = params.clock_offset_ns
-        elif usable.any():
-            offset = int(np.min(recv[usable] - device_end[usable]))
-        else:
-            offset = 0
-        start = dev_start + offset
+        sample_dt = np.where(has_end & (lengths > 1), measured_dt * clock.rate, beam_dt_ns)
+        start = clock.to_host_ns(dev_start)
     else:
-        sample_dt = beam_dt_ns
-        end = recv - round(params.receive_latency_s * 1e9)
+        clock = frame_clock(recv, frame, nominal_turn_ns, params.clock_rate)
+        if clock is None:
+            end = recv
+            sample_dt = step / 360.0 * nominal_turn_ns
+        else:  # receive times without their jitter: the frame counter's fitted clock
+            end = clock.to_host_ns(np.rint(frame * nominal_turn_ns).astype(np.int64))
+            sample_dt = step / 360.0 * nominal_turn_ns * clock.rate
+        end = end - round(params.receive_latency_s * 1e9)
         start = end - np.rint(np.maximum(lengths - 1, 0) * sample_dt).astype(np.int64)
+    turn_s = nominal_turn_ns * (clock.rate if clock is not None else 1.0) / 1e9
     return ScanLines(
         start_ns=start.astype(np.int64), sample_dt_ns=np.asarray(sample_dt, np.float64),
         lengths=lengths, row_starts=row_starts, ranges=ranges, echo=echo,
         start_angle_deg=start_angle, step_deg=step, sector=sector, frame=frame, usable=usable,
-        dropped=dropped, time_source=source, clock_offset_ns=offset,
+        dropped=dropped, time_source=source, clock=clock, turn_s=turn_s,
     )
+
+
+def frame_clock(recv_ns: I64, frame: I64, nominal_turn_ns: float,
+                rate: float | None = None, min_frames: int = 8) -> ClockModel | None:
+    """The frame counter read as a clock that ticks once per head turn, fitted to receipt.
+
+    A streaming scanner ends frame ``n`` at ``t0 + n · turn``; the host receives it some
+    latency later. Fitting ``host = offset + rate · n · turn`` to the receive times (the lower
+    envelope, :func:`scanpipe.clock.fit_clock`) removes the receive jitter and measures the
+    turn on the host clock. None when there are fewer than ``min_frames`` frames or the
+    counter does not rise (a restarted device): then the raw receive times are used.
+    """
+    new_frame = np.concatenate([[True], frame[1:] != frame[:-1]]) if frame.size else frame
+    numbers, first_recv = frame[new_frame], recv_ns[new_frame]
+    if numbers.size < min_frames or np.any(np.diff(numbers) <= 0):
+        return None
+    model = fit_clock(np.rint(numbers * nominal_turn_ns).astype(np.int64), first_recv, rate)
+    return replace(model, name="the frame counter (a head turn per frame at the rig's scan_hz)")
 
 
 @dataclass(frozen=True)
@@ -200,7 +242,7 @@ def stationary_intervals(motor: pa.Table) -> StationaryIntervals:
     check_columns(motor, MOTOR_COLUMNS, "motor")
     if motor.num_rows == 0:
         raise StageError("motor: no motor states in the recording; cannot place profiles in β")
-    t = motor.column("log_time_ns").to_numpy().astype(np.int64)
+    t = motor_times_ns(motor)
     order = np.argsort(t, kind="stable")
     t = t[order]
     steps = motor.column("step_count").to_numpy().astype(np.int64)[order]
@@ -405,8 +447,10 @@ def assemble(inputs: Mapping[str, Any], params: AssembleParams,
     progress("assemble", 0, 4)
     lines = scan_lines(profiles, rig, params)
     intervals = stationary_intervals(motor)
+    motor_clock_model = motor_clock(motor)
     settle_s = rig.motor.settle_s if params.settle_s is None else params.settle_s
-    runs, step_drops = associate_steps(lines, intervals, round(settle_s * 1e9))
+    runs, step_drops = associate_steps(lines, intervals,
+                                       round(settle_s * lines.time_scale * 1e9))
     mode, why = choose_mode(params, lines, intervals, runs)
     progress("assemble", 1, 4)
 
@@ -471,7 +515,11 @@ def assemble(inputs: Mapping[str, Any], params: AssembleParams,
         "mode": mode,
         "mode_reason": why,
         "time_source": lines.time_source,
-        "clock_offset_ns": lines.clock_offset_ns,
+        "clock_offset_ns": (lines.clock.offset_ns if lines.clock is not None
+                            and lines.time_source == "device" else None),
+        "clock": None if lines.clock is None else lines.clock.report(),
+        "head_turn_s": lines.turn_s,
+        "motor_clock": None if motor_clock_model is None else motor_clock_model.report(),
         "grid": {"profiles": n_profiles, "samples": n_samples},
         "profiles_in": profiles.num_rows,
         "profiles_used": int(rows.size),
@@ -482,6 +530,8 @@ def assemble(inputs: Mapping[str, Any], params: AssembleParams,
         "no_return": no_return,
         "not_measured": int(np.count_nonzero(~measured)),
         "beta_deg_range": [float(np.min(beta_column)), float(np.max(beta_column))],
+        "warnings": [*([] if lines.clock is None else lines.clock.problems()),
+                     *([] if motor_clock_model is None else motor_clock_model.problems())],
     }
     progress("assemble", 4, 4)
     return StageResult(tables={"points": table}, report=report)
@@ -489,7 +539,7 @@ def assemble(inputs: Mapping[str, Any], params: AssembleParams,
 
 STAGE = Stage(
     name="assemble",
-    version=1,
+    version=2,
     params=AssembleParams,
     inputs=("profiles", "motor", "rig"),
     outputs=("points",),

@@ -7,9 +7,10 @@ in the chosen or detected dialect; each profile sector becomes one row. Times:
 - ``device_time_ns`` / ``device_end_time_ns``: the sector's start / end on the **device clock**,
   in ns: the 16-bit millisecond timestamps unwrapped (wraps every 65.536 s) into a continuous
   count that starts at the first sector's raw value. The number of wraps between two sectors is
-  taken from their host receive times, so pauses longer than a wrap period unwrap correctly.
-  Mapping to the host clock is the assemble stage's job (``clock_offset_ns``); the report gives
-  the smallest receive-minus-end delay as ``device_clock.offset_ns``.
+  taken from their host receive times (scaled by the device clock's rate), so pauses longer than
+  a wrap period unwrap correctly (:func:`scanpipe.clock.unwrap_device_ms`). Mapping to the host
+  clock is the assemble stage's job; the report gives the fitted clock model
+  (``device_clock``: offset, rate, latencies and any problem, :mod:`scanpipe.clock`).
 - ``frame``: the frame (profile) number, unwrapped across its 16-bit wrap.
 
 The report (stored in the provenance of every artifact) has counts, the time span, rates, gaps,
@@ -29,6 +30,7 @@ import pyarrow.compute as pc
 from numpy.typing import NDArray
 from pydantic import Field
 
+from scanpipe.clock import fit_clock, unwrap_device_ms
 from scanpipe.errors import ProtocolError, RecordingError, StageError
 from scanpipe.params import Params
 from scanpipe.pipeline import Stage, StageResult
@@ -75,23 +77,6 @@ class DecodeParams(Params):
     gap_factor: float = Field(
         3.0, gt=1, le=1000,
         description="report an interval between profiles longer than this × the median as a gap")
-
-
-def unwrap_device_ms(device_ms: NDArray[np.integer], host_ns: I64) -> I64:
-    """Unwrap 16-bit millisecond device timestamps, counting wraps from the host receive times.
-
-    Between consecutive sectors the device step is taken modulo 65 536 ms and then corrected by
-    the whole number of wrap periods that best matches the host's elapsed time. The result
-    starts at the first raw value.
-    """
-    t = np.asarray(device_ms, dtype=np.int64)
-    if t.size == 0:
-        return t
-    step = np.diff(t) % DEVICE_TIME_WRAP_MS
-    host_step_ms = np.diff(np.asarray(host_ns, dtype=np.int64)).astype(np.float64) / 1e6
-    wraps = np.rint((host_step_ms - step) / DEVICE_TIME_WRAP_MS).astype(np.int64)
-    steps = np.concatenate([[0], np.cumsum(step + wraps * DEVICE_TIME_WRAP_MS)])
-    return np.asarray(t[0] + steps, dtype=np.int64)
 
 
 def image_size(data: bytes) -> tuple[int, int] | None:
@@ -167,10 +152,7 @@ def profiles_table(frames: Sequence[DecodedFrame], stream: StreamData,
     clock: dict[str, Any] = {"present": bool(has_start.any())}
     if has_start.any():
         reference = np.where(has_end, device_end, device_start)[has_start]
-        latency = recv[has_start] - reference
-        offset = int(latency.min())
-        clock.update(offset_ns=offset,
-                     median_latency_ms=float(np.median(latency - offset)) / 1e6,
+        clock.update(fit_clock(reference, recv[has_start]).report(),
                      device_span_s=float(device_start[has_start][-1]
                                          - device_start[has_start][0]) / 1e9)
     frame_numbers = unwrap_counter(np.fromiter((p.frame for p in profiles), np.int64, n), 1 << 16)
@@ -329,7 +311,7 @@ def run_decode(inputs: Mapping[str, Any], params: DecodeParams,
 
 STAGE = Stage(
     name="decode",
-    version=1,
+    version=2,
     params=DecodeParams,
     inputs=("recording",),
     outputs=("profiles", "motor", "frames", "rig"),
