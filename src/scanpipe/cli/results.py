@@ -16,7 +16,7 @@ def export(
                             help="obj | glb | ply | las | laz | e57 | mcap"),
     out: Path = typer.Option(..., "--out", "-o",
                              help="Output file ending in the format's suffix (its stem names "
-                                  "every file written), or a folder (existing, or ending in /)."),
+                                  "every file written), or a folder (a path without a suffix)."),
     force: bool = FORCE,
     quiet: bool = QUIET,
 ) -> None:

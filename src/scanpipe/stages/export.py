@@ -139,19 +139,21 @@ def write_files(files: Mapping[str, bytes], out_dir: Path) -> list[Path]:
 
 
 def stem_and_folder(out: Path, fmt: str) -> tuple[str, Path]:
-    """``--out`` as (stem, folder): ``room.obj`` → ("room", .); an existing folder or a path
-    ending in ``/`` → ("scan", that folder). Nothing is appended to a path: one without the
-    format's suffix that is not a folder is refused (see :mod:`scanpipe.outpaths`)."""
-    if out.is_dir() or str(out).endswith(os.sep):
-        return "scan", out
+    """``--out`` as (stem, folder): ``room.obj`` → ("room", .); a path without a suffix is a
+    folder (created if needed) → ("scan", that folder). Nothing is appended to a path, and a
+    device or a file where a folder is meant is refused (see :mod:`scanpipe.outpaths`)."""
     suffix = out.suffix.lower().lstrip(".")
+    if out.is_dir():
+        return "scan", out
     if suffix and suffix != fmt:
         raise FormatError(f"--out {out}: the extension .{suffix} does not match --format {fmt}")
     if out.exists():
         check_output_file(out, "--out", (f".{fmt}",), force=True)  # a device, a FIFO …
     if not suffix:
-        raise FormatError(f"--out {out}: expected a file name ending in .{fmt}, or a folder "
-                          f"(an existing one, or end the path with {os.sep})")
+        if out.exists():
+            raise FormatError(f"--out {out}: is a file without a suffix; give a file name "
+                              f"ending in .{fmt}, or a folder")
+        return "scan", out
     return out.stem, out.parent
 
 
