@@ -93,9 +93,9 @@ def test_unwritable_path_gives_one_line_and_no_file(cli: Callable, workdir: Path
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("a file where a folder should be")
     result = cli("export", workdir, "--format", "glb", "--out", blocker / "sub" / "m.glb")
-    assert result.code == 1
+    assert result.code == 2
     assert result.err.startswith("scanpipe: error: ") and result.err.count("\n") == 1
-    assert "cannot" in result.err
+    assert f"{blocker} is a file, not a folder" in result.err
     assert blocker.read_text() == "a file where a folder should be"
 
 
@@ -108,7 +108,9 @@ def test_failure_midway_leaves_no_partial_export_and_keeps_old_files(
     (out / "room_page0.png").mkdir()  # the second export cannot put its texture here
     (out / "room.obj").write_bytes(b"previous export")
     result = cli("export", workdir, "-f", "obj", "-o", out / "room.obj")
-    assert result.code == 1 and "is a folder" in result.err
+    assert result.code == 2 and "already exists; pass --force" in result.err
+    result = cli("export", workdir, "-f", "obj", "-o", out / "room.obj", "--force")
+    assert result.code == 2 and "room_page0.png: is a folder" in result.err
     assert (out / "room.obj").read_bytes() == b"previous export"
     assert sorted(p.name for p in out.iterdir()) == ["room.mtl", "room.obj", "room_page0.png"]
     assert old.startswith(b"# scanpipe")

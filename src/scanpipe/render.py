@@ -407,15 +407,40 @@ def preview_views(mesh: RenderMesh, views: str = "perspective,plan,panorama", wi
     return chosen
 
 
+#: Image suffixes other than PNG: ``--out x.jpg`` would otherwise become a folder "x.jpg".
+_IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".gif", ".bmp", ".tif", ".tiff", ".webp"})
+
+
 def render_previews(source: Path, out: Path, width: int = 640,
                     views: str = "perspective,plan,panorama", eye: str | None = None,
-                    target: str | None = None, fov_deg: float = 70.0) -> list[Path]:
-    """``scanpipe render``: PNGs into the folder ``out``, or the first view into ``out.png``."""
+                    target: str | None = None, fov_deg: float = 70.0,
+                    overwrite: bool = True) -> list[Path]:
+    """``scanpipe render``: PNGs into the folder ``out``, or the first view into ``out.png``.
+
+    ``out`` is used as given: a ``.png`` path is one image, anything else a folder (another
+    image suffix is refused). Existing images are replaced only with ``overwrite``; an input
+    is never replaced (:mod:`scanpipe.outpaths`).
+    """
+    from scanpipe.outpaths import (
+        check_output_file,
+        check_output_files,
+        check_output_folder,
+        folder_inputs,
+    )
+
+    single = out.suffix.lower() == ".png"
+    if not single and out.suffix.lower() in _IMAGE_SUFFIXES and not out.is_dir():
+        check_output_file(out, "--out", (".png",))
+    inputs = folder_inputs(source)
+    if single:
+        check_output_file(out, "--out", (".png",), overwrite, inputs)
+    else:
+        check_output_folder(out, "--out", inputs)
     mesh = load_render_mesh(source)
     chosen = preview_views(mesh, views, width, eye, target, fov_deg)
     renderer = Renderer(mesh)
-    single = out.suffix.lower() == ".png"
     targets = [out] if single else [out / f"{view.name}.png" for view in chosen]
+    check_output_files(targets, "--out", overwrite, inputs)
     written = []
     for view, path in zip(chosen, targets, strict=False):
         data = renderer.render(view).png()

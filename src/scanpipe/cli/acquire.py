@@ -32,12 +32,18 @@ def record_options(
     }, "record options")
 
 
-def run_recorder(recorder: Any, quiet: bool, as_json: bool) -> int:
-    """Run a recorder with the live display, print the summary; the exit code by status."""
+def run_recorder(recorder: Any, quiet: bool, as_json: bool,
+                 renamed: dict[str, str] | None = None) -> int:
+    """Run a recorder with the live display, print the summary; the exit code by status.
+
+    ``renamed`` maps a temporary file the recorder writes to the name it gets afterwards.
+    """
     from scanpipe.acquire.display import format_summary, live_display
 
     with live_display(recorder.live_status, quiet):
         summary = recorder.run()
+    if renamed:
+        summary["files"] = [renamed.get(name, name) for name in summary["files"]]
     if as_json:
         print_json(summary)
     elif not quiet:
@@ -72,12 +78,11 @@ def record(
 ) -> None:
     """Record a scan: scanner, motor and cameras, raw and timestamped, into one MCAP file."""
     from scanpipe.acquire.recorder import Recorder
+    from scanpipe.outpaths import check_output_file
     from scanpipe.rig import load_rig
 
-    if out.exists() and out.is_dir():
-        raise UsageError(f"--out {out}: is a directory; give a file name such as scan.mcap")
-    if out.exists() and not force:
-        raise UsageError(f"--out {out}: already exists; pass --force to overwrite it")
+    # A recording is streamed to its name (crash-safe, so a killed recorder keeps what it got).
+    check_output_file(out, "--out", (".mcap",), force, [rig_path] if rig_path else [])
     rig = load_rig(rig_path)
     options = record_options(mode, step_angle, profiles_per_position, not no_cameras,
                              split_size_mb, split_duration_s, speedup, echo)
@@ -120,10 +125,13 @@ def import_video(
     """Add a separately recorded video to a recording as camera frames with timestamps."""
     from scanpipe.acquire.video_import import import_video as run_import
     from scanpipe.acquire.video_import import parse_start_time, recording_start_ns
+    from scanpipe.outpaths import check_input_file, check_not_input
     from scanpipe.recording.reader import read_recording
 
     if not 1 <= quality <= 100:
         raise UsageError(f"--jpeg-quality {quality}: allowed 1…100")
+    check_input_file(into, "--into")  # rewritten in place (temporary name, then rename)
+    check_not_input(into, [video], "--into")
     recorded = read_recording(into)
     if not recorded.complete:
         raise UsageError(f"{into}: the recording is incomplete (its writer did not finish); "

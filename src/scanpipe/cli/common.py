@@ -18,6 +18,7 @@ JSON = typer.Option(False, "--json", help="Print one JSON object instead of a ta
 SET = typer.Option(None, "--set", help="Override a parameter: key=value (repeatable).")
 PARAMS_FILE = typer.Option(None, "--params", help="TOML file of parameters.")
 RIG = typer.Option(None, "--rig", help="Rig TOML file (default: the paper's rig).")
+FORCE = typer.Option(False, "--force", help="Overwrite existing output files.")
 
 
 def print_error(message: str) -> None:

@@ -80,21 +80,26 @@ def import_points_command(
     origin: str = typer.Option("0,0,0", "--origin",
                                help="Sensor origin x,y,z in metres (rig frame)."),
     up: str = typer.Option("auto", "--up", help="The file's up axis: auto, y or z."),
+    force: bool = typer.Option(False, "--force",
+                               help="Overwrite an existing OUT/points.parquet."),
     quiet: bool = QUIET,
 ) -> None:
     """Import a foreign point cloud as a points artifact (no grid)."""
+    from scanpipe.outpaths import check_output_file, check_output_folder
     from scanpipe.params import validate
     from scanpipe.pointio import ImportParams, import_points
 
     params = validate(ImportParams, {"origin_m": _parse_origin(origin), "up": up},
                       "import-points")
+    target = out / "points.parquet"
+    check_output_folder(out, "--out", [file])
+    check_output_file(target, "--out", (".parquet",), force, [file])
     started = time.perf_counter()
     table, report = import_points(file, params)
     libraries = library_versions(("numpy", "pyarrow", "open3d", "laspy"))
     params_data = params.model_dump(mode="json")
     keys = {"file": file_key(file)}
     key = artifact_key("import-points", 1, params_data, keys, libraries)
-    target = out / "points.parquet"
     write_artifact(target, table, {
         "key": key, "stage": "import-points", "stage_version": 1, "params": params_data,
         "inputs": keys, "input_paths": {"file": str(file)}, "libraries": libraries,

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from scanpipe.cli.common import JSON, QUIET, print_json
+from scanpipe.cli.common import FORCE, JSON, QUIET, print_json
 
 
 def export(
@@ -15,13 +15,15 @@ def export(
     fmt: str = typer.Option(..., "--format", "-f",
                             help="obj | glb | ply | las | laz | e57 | mcap"),
     out: Path = typer.Option(..., "--out", "-o",
-                             help="Output file (its stem names every file written) or folder."),
+                             help="Output file ending in the format's suffix (its stem names "
+                                  "every file written), or a folder (a path without a suffix)."),
+    force: bool = FORCE,
     quiet: bool = QUIET,
 ) -> None:
     """Write the mesh (OBJ/GLB/PLY), the points (LAS/LAZ/E57/PLY) or both (MCAP, Foxglove)."""
     from scanpipe.stages.export import export_folder
 
-    written = export_folder(folder, fmt, out)
+    written = export_folder(folder, fmt, out, force)
     if not quiet:
         for path in written:
             sys.stderr.write(f"wrote {path}\n")
@@ -38,13 +40,14 @@ def render(
     target: str | None = typer.Option(None, "--target", help="Perspective target x,y,z."),
     fov: float = typer.Option(70.0, "--fov", min=1.0, max=170.0,
                               help="Horizontal field of view (degrees)."),
+    force: bool = FORCE,
     quiet: bool = QUIET,
 ) -> None:
     """PNG previews by ray casting: perspective views, a plan view, a panorama from the origin."""
     from scanpipe.render import render_previews
 
     written = render_previews(folder, out, width=width, views=views, eye=eye, target=target,
-                              fov_deg=fov)
+                              fov_deg=fov, overwrite=force)
     if not quiet:
         for path in written:
             sys.stderr.write(f"wrote {path}\n")
@@ -73,11 +76,19 @@ def report(
     truth: Path | None = typer.Option(None, "--truth",
                                       help="Truth folder or mesh (default: WORKDIR/truth "
                                            "if present)."),
+    force: bool = FORCE,
     quiet: bool = QUIET,
 ) -> None:
     """One self-contained HTML report: summary, counts, plots, previews, evaluation."""
+    from scanpipe.outpaths import check_output_file, folder_inputs
     from scanpipe.report import write_report
 
+    if out is not None:
+        # The default WORKDIR/report.html is this command's own file, replaced on every run.
+        inputs = folder_inputs(workdir)
+        if truth is not None:
+            inputs += [truth, *folder_inputs(truth)] if truth.is_dir() else [truth]
+        check_output_file(out, "--out", (".html", ".htm"), force, inputs)
     path = write_report(workdir, out, truth)
     if not quiet:
         sys.stderr.write(f"wrote {path}\n")

@@ -8,6 +8,7 @@ import typer
 
 from scanpipe.artifacts import atomic_write_bytes
 from scanpipe.errors import UsageError
+from scanpipe.outpaths import check_output_file
 from scanpipe.rig import default_rig, load_rig, rig_to_toml
 
 rig_app = typer.Typer(help="Write and check rig descriptions (TOML).", no_args_is_help=True)
@@ -19,9 +20,11 @@ def init(
     force: bool = typer.Option(False, "--force", help="Overwrite an existing file."),
 ) -> None:
     """Write the default rig (the paper's) as a commented TOML file."""
-    if path.exists() and not force:
-        raise UsageError(f"{path}: already exists; pass --force to overwrite it")
-    atomic_write_bytes(path, rig_to_toml(default_rig()).encode())
+    check_output_file(path, "", (".toml",), force)
+    try:
+        atomic_write_bytes(path, rig_to_toml(default_rig()).encode())
+    except OSError as err:
+        raise UsageError(f"{path}: cannot be written ({err.strerror or err})") from None
     typer.echo(f"wrote {path}")
 
 

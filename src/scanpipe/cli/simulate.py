@@ -8,6 +8,8 @@ them (:func:`simulate_live`).
 from __future__ import annotations
 
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +35,40 @@ def sim_options(scene: str, rig_path: Path | None, motor_step: float,
     }, "simulate options")
 
 
+def check_outputs(out: Path, truth: Path, scene: str, rig_path: Path | None,
+                  force: bool) -> None:
+    """The output-path policy (:mod:`scanpipe.outpaths`) for ``--out`` and ``--truth``."""
+    from scanpipe.outpaths import check_output_file, check_output_files, check_output_folder
+    from scanpipe.sim.truth import META_FILE, PROFILES_FILE, RIG_FILE, SCENE_FILE
+
+    inputs = [Path(scene)] + ([rig_path] if rig_path is not None else [])
+    check_output_file(out, "--out", (".mcap",), force, inputs)
+    check_output_folder(truth, "--truth", [out, *inputs])
+    check_output_files([truth / name for name in (SCENE_FILE, RIG_FILE, PROFILES_FILE, META_FILE)],
+                       "--truth", force, [out, *inputs])
+
+
+def check_speedup(speedup: float) -> None:
+    """``--speedup`` within what the recorder accepts (exit 2 otherwise, even with --direct)."""
+    from scanpipe.acquire.recorder import RecordOptions
+    from scanpipe.params import validate
+
+    validate(RecordOptions, {"speedup": speedup}, "simulate options")
+
+
+@contextmanager
+def atomic_recording(out: Path) -> Iterator[Path]:
+    """The recording is written under a temporary name and renamed when finished, so a failed
+    or interrupted simulation leaves no half file and the previous recording intact."""
+    from scanpipe.artifacts import atomic_path
+
+    try:
+        with atomic_path(out) as tmp:
+            yield tmp
+    except OSError as err:
+        raise UsageError(f"--out {out}: cannot be written ({err.strerror or err})") from None
+
+
 def simulate_live(out: Path, truth: Path, options: Any, speedup: float, quiet: bool,
                   as_json: bool) -> int:
     """Run the emulators and record them through the acquisition recorder; write the truth."""
@@ -40,13 +76,13 @@ def simulate_live(out: Path, truth: Path, options: Any, speedup: float, quiet: b
     from scanpipe.cli.acquire import run_recorder
     from scanpipe.sim.emulators import VirtualRig
 
-    with VirtualRig(options, speedup=speedup) as virtual:
+    with VirtualRig(options, speedup=speedup) as virtual, atomic_recording(out) as tmp:
         record_options = RecordOptions(
             mode=options.mode, step_angle_deg=options.motor_step_deg, cameras=options.cameras,
             jpeg_quality=options.jpeg_quality, speedup=speedup)
-        recorder = Recorder(virtual.client_rig(), out, record_options,
+        recorder = Recorder(virtual.client_rig(), tmp, record_options,
                             camera_opener=lambda cam: virtual.camera(cam.source))
-        code = run_recorder(recorder, quiet, as_json)
+        code = run_recorder(recorder, quiet, as_json, {str(tmp): str(out)})
         virtual.stop()
         virtual.write_truth(truth, {"recording": str(out), "speedup": speedup})
     return code
@@ -74,6 +110,8 @@ def simulate(
     mode: str = typer.Option("step", "--mode", help="step (step-and-scan) or continuous."),
     speedup: float = typer.Option(10.0, "--speedup",
                                   help="Without --direct: the emulators' clock speed-up."),
+    force: bool = typer.Option(False, "--force",
+                               help="Overwrite an existing recording and truth files."),
     quiet: bool = QUIET,
     as_json: bool = JSON,
 ) -> None:
@@ -81,20 +119,18 @@ def simulate(
     from scanpipe.progress import rich_progress
     from scanpipe.sim.direct import simulate_direct
 
-    if out.exists() and out.is_dir():
-        raise UsageError(f"--out {out}: is a directory; give a file name such as scan.mcap")
-    if truth.exists() and not truth.is_dir():
-        raise UsageError(f"--truth {truth}: exists and is not a folder")
-    out.parent.mkdir(parents=True, exist_ok=True)
+    check_outputs(out, truth, scene, rig_path, force)
     options = sim_options(scene, rig_path, motor_step, scanner_step, noise_mm, no_cameras, seed,
                           mode, camera_scale, camera_fps)
+    check_speedup(speedup)
     if not direct:
         code = simulate_live(out, truth, options, speedup, quiet, as_json)
         if code:
             raise typer.Exit(code)
         return
-    with rich_progress(quiet) as progress:
-        summary = simulate_direct(out, truth, options, progress)
+    with rich_progress(quiet) as progress, atomic_recording(out) as tmp:
+        summary = simulate_direct(tmp, truth, options, progress, recording_name=str(out))
+    summary["recording"] = str(out)
     if as_json:
         print_json(summary)
     elif not quiet:

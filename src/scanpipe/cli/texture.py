@@ -90,9 +90,12 @@ def calibrate_camera(
 ) -> None:
     """Calibrate a camera from chessboard images; write intrinsics and distortion to the rig."""
     from scanpipe.calibration import apply_calibration, calibrate, parse_board, read_images
+    from scanpipe.outpaths import check_input_file, check_not_input
     from scanpipe.rig import load_rig
 
     pattern = parse_board(board)
+    check_input_file(rig_path, "--rig")  # rewritten in place (temporary name, then rename)
+    check_not_input(rig_path, images, "--rig")
     load_rig(rig_path).camera(camera)  # fail before the slow part on a bad rig or camera
     result = calibrate(read_images(images), pattern, square_m, fix_k3=not free_k3)
     apply_calibration(rig_path, camera, result)

@@ -135,7 +135,8 @@ def _ldoem_startup(scanner: ScannerConfig, options: SimOptions
 
 
 def simulate_direct(out: Path, truth_dir: Path, options: SimOptions | None = None,
-                    progress: ProgressFn = no_progress) -> dict[str, Any]:
+                    progress: ProgressFn = no_progress,
+                    recording_name: str | None = None) -> dict[str, Any]:
     """Write a simulated recording to ``out`` and its ground truth to ``truth_dir``.
 
     Returns a summary (counts, sizes, seconds).
@@ -234,7 +235,8 @@ def simulate_direct(out: Path, truth_dir: Path, options: SimOptions | None = Non
         np.concatenate([b.beta_last_deg for b in true_rows]) if true_rows else np.zeros(0),
         ranges_true)
     summary: dict[str, Any] = {
-        "recording": str(out), "truth": str(truth_dir), "mode": options.mode,
+        # The name the recording will have when ``out`` is a temporary file renamed after.
+        "recording": recording_name or str(out), "truth": str(truth_dir), "mode": options.mode,
         "dialect": dialect, "profiles": len(starts),
         "samples_per_profile": scanner.samples_per_profile, "positions": session.positions,
         "motor_step_count": options.motor_step_count(),

@@ -32,6 +32,12 @@ from scanpipe.exporters.mcap_foxglove import foxglove_mcap_bytes
 from scanpipe.exporters.model import CloudModel, MeshModel, cloud_from_table, mesh_from_tables
 from scanpipe.exporters.obj import obj_files
 from scanpipe.exporters.ply import ply_cloud_bytes, ply_mesh_bytes
+from scanpipe.outpaths import (
+    check_output_file,
+    check_output_files,
+    check_output_folder,
+    folder_inputs,
+)
 from scanpipe.params import Params
 from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
@@ -133,14 +139,22 @@ def write_files(files: Mapping[str, bytes], out_dir: Path) -> list[Path]:
 
 
 def stem_and_folder(out: Path, fmt: str) -> tuple[str, Path]:
-    """``--out`` as (stem, folder): ``room.obj`` → ("room", .); an existing folder or a path
-    ending in ``/`` → ("scan", that folder)."""
-    if out.is_dir() or str(out).endswith(os.sep):
-        return "scan", out
+    """``--out`` as (stem, folder): ``room.obj`` → ("room", .); a path without a suffix is a
+    folder (created if needed) → ("scan", that folder). Nothing is appended to a path, and a
+    device or a file where a folder is meant is refused (see :mod:`scanpipe.outpaths`)."""
     suffix = out.suffix.lower().lstrip(".")
+    if out.is_dir():
+        return "scan", out
     if suffix and suffix != fmt:
         raise FormatError(f"--out {out}: the extension .{suffix} does not match --format {fmt}")
-    return out.stem if suffix else out.name, out.parent
+    if out.exists():
+        check_output_file(out, "--out", (f".{fmt}",), force=True)  # a device, a FIFO …
+    if not suffix:
+        if out.exists():
+            raise FormatError(f"--out {out}: is a file without a suffix; give a file name "
+                              f"ending in .{fmt}, or a folder")
+        return "scan", out
+    return out.stem, out.parent
 
 
 def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
@@ -158,12 +172,22 @@ def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
     return {name: read_artifact(path)[0] for name, path in found.items() if name in wanted}
 
 
-def export_folder(folder: Path, fmt: str, out: Path) -> list[Path]:
-    """``scanpipe export``: read the artifacts in ``folder`` and write ``fmt`` to ``out``."""
+def export_folder(folder: Path, fmt: str, out: Path, force: bool = False) -> list[Path]:
+    """``scanpipe export``: read the artifacts in ``folder`` and write ``fmt`` to ``out``.
+
+    No existing file is replaced without ``force``, and none may be one of the inputs (an
+    artifact, or the recording a workdir was made from), even with it.
+    """
     fmt = check_format(fmt)
     stem, out_dir = stem_and_folder(out, fmt)
+    check_output_folder(out_dir)
+    inputs = folder_inputs(folder)
+    # The main file first, before the (slow) reading; then every file the export makes.
+    check_output_files([out_dir / f"{stem}.{fmt}"], "--out", force, inputs)
     tables = load_tables(folder, fmt)
-    return write_files(export_files(tables, fmt, stem), out_dir)
+    files = export_files(tables, fmt, stem)
+    check_output_files([out_dir / name for name in files], "--out", force, inputs)
+    return write_files(files, out_dir)
 
 
 MeshFormat = Literal["obj", "glb", "ply", "mcap"]
