@@ -110,18 +110,13 @@ class ScanLines:
     dropped: dict[str, int]
     time_source: str
     #: Device → host time: the sector timestamps' clock (device source), or the frame counter
-    #: read as a clock ticking once per head turn (receive source); None without either.
+    #: fitted to the receive times (receive source); None without either.
     clock: ClockModel | None
     turn_s: float  # one head turn on the host clock
-
-    @property
-    def time_scale(self) -> float:
-        """Host seconds per physical (device) second: the clock's rate, 1 without one.
-
-        1 for real hardware; a simulated speed-up shows here. Durations from the rig file (the
-        settle time) are physical and are scaled by it.
-        """
-        return self.clock.rate if self.clock is not None else 1.0
+    #: Host seconds per physical second: the motor controller's clock rate, else the scanner's,
+    #: else 1. 1 for real hardware; a simulated speed-up shows here. Durations from the rig
+    #: file (the head turn, the settle time) are physical and are scaled by it.
+    time_scale: float
 
     @property
     def end_ns(self) -> I64:
@@ -147,8 +142,13 @@ def _flatten_lists(column: pa.ChunkedArray) -> tuple[NDArray[Any], I64]:
     return array.flatten().to_numpy(zero_copy_only=False), lengths
 
 
-def scan_lines(profiles: pa.Table, rig: Rig, params: AssembleParams) -> ScanLines:
-    """Per-row timing and placement of the ``profiles`` artifact (see the module docstring)."""
+def scan_lines(profiles: pa.Table, rig: Rig, params: AssembleParams,
+               motor_rate: float | None = None) -> ScanLines:
+    """Per-row timing and placement of the ``profiles`` artifact (see the module docstring).
+
+    ``motor_rate`` is the motor controller's fitted clock rate (host per physical second),
+    when it has a clock.
+    """
     check_columns(profiles, PROFILE_COLUMNS, "profiles")
     ranges, lengths = _flatten_lists(profiles.column("ranges_m"))
     ranges = ranges.astype(np.float32, copy=False)
@@ -191,41 +191,48 @@ def scan_lines(profiles: pa.Table, rig: Rig, params: AssembleParams) -> ScanLine
             measured_dt = (dev_end - dev_start) / np.maximum(lengths - 1, 1).astype(np.float64)
         sample_dt = np.where(has_end & (lengths > 1), measured_dt * clock.rate, beam_dt_ns)
         start = clock.to_host_ns(dev_start)
+        time_scale = motor_rate if motor_rate is not None else clock.rate
+        turn_s = nominal_turn_ns * clock.rate / 1e9
     else:
-        clock = frame_clock(recv, frame, nominal_turn_ns, params.clock_rate)
-        if clock is None:
-            end = recv
-            sample_dt = step / 360.0 * nominal_turn_ns
-        else:  # receive times without their jitter: the frame counter's fitted clock
-            end = clock.to_host_ns(np.rint(frame * nominal_turn_ns).astype(np.int64))
-            sample_dt = step / 360.0 * nominal_turn_ns * clock.rate
+        time_scale = motor_rate if motor_rate is not None else 1.0
+        turn_s = nominal_turn_ns * time_scale / 1e9
+        clock = frame_clock(recv, frame, nominal_turn_ns, params.clock_rate,
+                            max_latency_s=turn_s / 2)
+        # Receive times without their jitter, where the frame counter fits them.
+        end = recv if clock is None else clock.to_host_ns(
+            np.rint(frame * nominal_turn_ns).astype(np.int64))
         end = end - round(params.receive_latency_s * 1e9)
+        sample_dt = step / 360.0 * turn_s * 1e9
         start = end - np.rint(np.maximum(lengths - 1, 0) * sample_dt).astype(np.int64)
-    turn_s = nominal_turn_ns * (clock.rate if clock is not None else 1.0) / 1e9
     return ScanLines(
         start_ns=start.astype(np.int64), sample_dt_ns=np.asarray(sample_dt, np.float64),
         lengths=lengths, row_starts=row_starts, ranges=ranges, echo=echo,
         start_angle_deg=start_angle, step_deg=step, sector=sector, frame=frame, usable=usable,
         dropped=dropped, time_source=source, clock=clock, turn_s=turn_s,
+        time_scale=time_scale,
     )
 
 
-def frame_clock(recv_ns: I64, frame: I64, nominal_turn_ns: float,
-                rate: float | None = None, min_frames: int = 8) -> ClockModel | None:
-    """The frame counter read as a clock that ticks once per head turn, fitted to receipt.
+def frame_clock(recv_ns: I64, frame: I64, nominal_turn_ns: float, rate: float | None = None,
+                max_latency_s: float = 0.1, min_frames: int = 8) -> ClockModel | None:
+    """The frame counter fitted to the receive times, to take the receive jitter out.
 
     A streaming scanner ends frame ``n`` at ``t0 + n · turn``; the host receives it some
     latency later. Fitting ``host = offset + rate · n · turn`` to the receive times (the lower
-    envelope, :func:`scanpipe.clock.fit_clock`) removes the receive jitter and measures the
-    turn on the host clock. None when there are fewer than ``min_frames`` frames or the
-    counter does not rise (a restarted device): then the raw receive times are used.
+    envelope, :func:`scanpipe.clock.fit_clock`) gives each frame's time without the jitter.
+    None — use the raw receive times — with fewer than ``min_frames`` frames, a counter that
+    does not rise (a restarted device), or frames that do not follow one clock (sent on
+    request at irregular times: the median latency exceeds ``max_latency_s``; a loaded host
+    delays some receipts far more, so not the 99th percentile).
     """
     new_frame = np.concatenate([[True], frame[1:] != frame[:-1]]) if frame.size else frame
     numbers, first_recv = frame[new_frame], recv_ns[new_frame]
     if numbers.size < min_frames or np.any(np.diff(numbers) <= 0):
         return None
     model = fit_clock(np.rint(numbers * nominal_turn_ns).astype(np.int64), first_recv, rate)
-    return replace(model, name="the frame counter (a head turn per frame at the rig's scan_hz)")
+    if model.median_latency_s > max_latency_s:
+        return None
+    return replace(model, name="the frame counter (a frame per head turn at the rig's scan_hz)")
 
 
 @dataclass(frozen=True)
@@ -445,9 +452,10 @@ def assemble(inputs: Mapping[str, Any], params: AssembleParams,
     if profiles.num_rows == 0:
         raise StageError("profiles: no profiles in the input; nothing to assemble")
     progress("assemble", 0, 4)
-    lines = scan_lines(profiles, rig, params)
-    intervals = stationary_intervals(motor)
     motor_clock_model = motor_clock(motor)
+    lines = scan_lines(profiles, rig, params,
+                       None if motor_clock_model is None else motor_clock_model.rate)
+    intervals = stationary_intervals(motor)
     settle_s = rig.motor.settle_s if params.settle_s is None else params.settle_s
     runs, step_drops = associate_steps(lines, intervals,
                                        round(settle_s * lines.time_scale * 1e9))
