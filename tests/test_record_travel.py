@@ -4,6 +4,8 @@ home is refused, or brought home first with ``home_first``. Real pty and TCP emu
 
 from __future__ import annotations
 
+import os
+import signal
 import threading
 import time
 from pathlib import Path
@@ -122,3 +124,37 @@ def test_an_unlimited_rig_and_controller_may_turn_past_a_turn(tmp_path: Path,
         assert summary["status"] == "complete", summary
         assert (summary["limit_source"], summary["pulse_limit"]) == ("none", 12_000)
         assert _max_absolute(rig) == 12_000 and _absolute(rig) == 0  # 432°, then back
+
+
+def test_a_second_sigint_stops_the_way_back(tmp_path: Path, scene: Scene) -> None:
+    # Ctrl-C once: stop and go back; Ctrl-C again while it goes back: STOP where it is.
+    with VirtualRig(sim_options("paper", pulse_limit=5000), speedup=10.0, scene=scene) as rig:
+        options = RecordOptions(mode="step", step_angle_deg=36.0, speedup=10.0, cameras=False,
+                                install_signal_handlers=True)
+        recorder = Recorder(rig.client_rig(), tmp_path / "rec.mcap", options)
+
+        def press_ctrl_c_twice() -> None:
+            deadline = time.monotonic() + 20.0
+            while recorder.positions_done < 3 and time.monotonic() < deadline:
+                time.sleep(0.002)
+            os.kill(os.getpid(), signal.SIGINT)
+            while recorder.phase != "returning to the start" and time.monotonic() < deadline:
+                time.sleep(0.001)
+            while not rig.platform.moving_at(rig.clock.now_s()) and time.monotonic() < deadline:
+                time.sleep(0.001)
+            os.kill(os.getpid(), signal.SIGINT)
+
+        presser = threading.Thread(target=press_ctrl_c_twice, daemon=True)
+        presser.start()
+        summary = recorder.run()  # in the main thread: the signal handlers are installed
+        presser.join(timeout=5)
+        absolute = _absolute(rig)
+        moving = rig.platform.moving_at(rig.clock.now_s())
+        commands = list(rig.motor.commands)
+    assert summary["status"] == "interrupted" and summary["returned_to_start"] is False
+    assert commands[-1] == "STOP" and commands[-2].startswith("MOVE -")
+    way_back = -int(commands[-2].split()[1])
+    assert not moving and 0 < absolute < way_back  # stopped on the way back
+    failed = [e for e in read_recording(tmp_path / "rec.mcap").events
+              if e.kind == "motor_return_failed"]
+    assert failed and "stopped by a second signal" in failed[0].message
