@@ -8,16 +8,20 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 from acquire_helpers import record_against, sim_options
 
+from scanpipe.acquire.motor_client import MotorClient
 from scanpipe.acquire.recorder import Recorder, RecordOptions
 from scanpipe.motion import beta_deg_at
 from scanpipe.pipeline import get_stage
 from scanpipe.recording.reader import read_recording
+from scanpipe.rig import rig_to_toml
 from scanpipe.sim.emulators import VirtualRig
 from scanpipe.sim.scene import Scene, box_room
 
@@ -25,6 +29,14 @@ SPEEDUP = 25.0
 LIMIT = 1000
 STEP = 333  # 12° in 0.036° pulses: 4 positions, a quick scan
 ANGLE = 12.0
+
+
+class _NoSink:
+    def write_stream(self, link: str, data: bytes, direction: int, log_time_ns: int) -> None:
+        pass
+
+    def write_motor_state(self, *args: Any) -> None:
+        pass
 
 
 @pytest.fixture(scope="module")
@@ -158,3 +170,30 @@ def test_a_second_sigint_stops_the_way_back(tmp_path: Path, scene: Scene) -> Non
     failed = [e for e in read_recording(tmp_path / "rec.mcap").events
               if e.kind == "motor_return_failed"]
     assert failed and "stopped by a second signal" in failed[0].message
+
+
+def test_cli_refuses_away_from_home_in_one_line_and_home_first_fixes_it(
+        tmp_path: Path, scene: Scene, cli: Callable[..., Any]) -> None:
+    with VirtualRig(sim_options("paper", pulse_limit=LIMIT), speedup=SPEEDUP, scene=scene) as rig:
+        rig_file = tmp_path / "rig.toml"
+        rig_file.write_text(rig_to_toml(rig.client_rig()))
+        # Someone turned the platform and left it there (another program, a lost link).
+        client = MotorClient(rig.client_rig().motor, _NoSink())
+        client.connect()
+        try:
+            client.move(500)
+            assert client.wait_for_state(lambda s: s.step_count == 500 and not s.moving, 5.0)
+        finally:
+            client.close()
+        out = tmp_path / "scan.mcap"
+        args = ("record", "--rig", rig_file, "--out", out, "--step-angle", str(ANGLE),
+                "--no-cameras", "--quiet", "--speedup", str(SPEEDUP))
+        refused = cli(*args)
+        assert refused.code == 1
+        assert refused.err.count("\n") == 1 and "Traceback" not in refused.err
+        assert refused.err.startswith("scanpipe: error: recording failed: motor: the platform "
+                                      "stands 500 pulses (18.000°) from home")
+        assert "--home-first" in refused.err and _absolute(rig) == 500  # nothing moved
+        done = cli(*args, "--force", "--home-first")
+        assert done.code == 0, done.err
+        assert _absolute(rig) == 0 and _max_absolute(rig) == 3 * STEP
