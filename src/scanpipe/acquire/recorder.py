@@ -21,9 +21,10 @@ while the motor still answers: so no series of scans winds the cables.
 
 Cameras record throughout. Threads: one reads the scanner, one the motor link, one per camera,
 one flushes the file every ``fsync_interval_s`` (so a SIGKILL loses at most about that much);
-the calling thread runs the procedure. SIGINT / SIGTERM stop the motor and finish the file
-properly. A scanner that drops the link stops the motor at once; the recorder tries to
-reconnect and carries on, or ends the recording cleanly. Every such incident is an event on
+the calling thread runs the procedure. SIGINT / SIGTERM stop the motor, bring the platform back
+to the start and finish the file properly (a second signal stops the way back). A scanner that
+drops the link stops the motor at once; the recorder tries to reconnect and carries on, or ends
+the recording cleanly. Every such incident is an event on
 ``/events`` and in the summary.
 """
 
