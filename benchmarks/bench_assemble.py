@@ -42,7 +42,7 @@ def box_ranges(alpha_deg: np.ndarray, beta_deg: np.ndarray,
 def lab_tables(profiles: int, samples: int, motor_steps: int = 3) -> dict[str, pa.Table]:
     """Step-and-scan tables: one profile per position, each inside its stationary interval."""
     rig = Rig(scanner=ScannerConfig(angular_step_deg=360.0 / samples),
-              motor=MotorConfig(pulse_limit=10**6))
+              motor=MotorConfig(pulse_limit=10**6, unlimited_travel=True))
     period_ns = 400_000_000
     ok_ns = T0_NS + np.arange(profiles, dtype=np.int64) * period_ns
     steps = np.arange(profiles, dtype=np.int64) * motor_steps

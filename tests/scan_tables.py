@@ -28,7 +28,8 @@ def make_rig(step_deg: float = 1.0, scan_hz: float = 5.0, settle_s: float = 0.05
                               scan_hz=scan_hz, alpha_offset_deg=alpha_offset_deg,
                               mount=Pose(translation_m=translation_m, rotation_deg=rotation_deg)),
         motor=MotorConfig(gear_ratio=0.72 / step_deg, settle_s=settle_s,
-                          beta_offset_deg=beta_offset_deg, pulse_limit=pulse_limit),
+                          beta_offset_deg=beta_offset_deg, pulse_limit=pulse_limit,
+                          unlimited_travel=True),
     )
 
 

@@ -93,14 +93,18 @@ def test_signal_stops_the_motor_and_finishes_the_file(tmp_path: Path, scene: Sce
         _, err = process.communicate(timeout=20)
         time.sleep(0.05)
         moving = rig.platform.moving_at(rig.clock.now_s())
+        absolute = rig.motor.controller.absolute_at(rig.clock.now_s())
         commands = list(rig.motor.commands)
     assert process.returncode == 130, err.decode()
-    assert commands[-1] == "STOP" and not moving
+    # Stopped at once, then brought back to the start: the next scan may begin.
+    stop = commands.index("STOP")
+    assert any(c.startswith("MOVE -") for c in commands[stop:]) and not moving and absolute == 0
     recording = read_recording(out)
     assert recording.complete and not recording.warnings
     end = recording.events[-1]
     assert end.kind == "recording_end" and end.data["status"] == "interrupted"
     assert signal.Signals(signum).name in end.data["reason"]
+    assert recording.events[-2].kind == "motor_returned"
     assert decode_recording(recording, DecodeParams()).tables["profiles"].num_rows > 0
 
 

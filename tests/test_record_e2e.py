@@ -36,12 +36,18 @@ def test_record_end_to_end(tmp_path: Path, scene: Scene, dialect: str, mode: str
         sent = list(rig.scanner.sent)
         commands = list(rig.motor.commands)
         requests = list(rig.scanner.requests)
-        final_count = rig.platform.count_at(rig.clock.now_s())
+        final_absolute = rig.motor.controller.absolute_at(rig.clock.now_s())
     assert summary["status"] == "complete", summary
     targets = list(range(0, LIMIT + 1, STEP))
-    assert final_count == targets[-1] == summary["final_step_count"]
+    # The platform went home at the end: the next scan starts where this one did.
+    assert final_absolute == 0 == summary["final_step_count"] == summary["absolute_step_count"]
+    assert summary["returned_to_start"] is True
+    assert (summary["pulse_limit"], summary["limit_source"]) == (LIMIT, "rig and controller")
+    assert commands[:2] == ["ID?", "TRAVEL?"] and "ZERO" in commands
+    assert commands.index("ZERO") < min(i for i, c in enumerate(commands) if c.startswith("MOVE"))
+    assert commands[-3:] == ["RATE 1000", f"MOVE -{targets[-1]}", "TRAVEL?"]
     if mode == "step":
-        assert commands[:6] == ["ID?", "POS?", "ZERO", "POS?", "ACCEL 5000", "RATE 1000"]
+        assert commands[commands.index("ZERO") + 4] == "RATE 1000"
         assert commands.count(f"MOVE +{STEP}") == len(targets) - 1
         assert summary["positions"] == len(targets)
     else:
@@ -69,7 +75,7 @@ def test_record_end_to_end(tmp_path: Path, scene: Scene, dialect: str, mode: str
     assert np.std(measured[both] - truth[both]) == pytest.approx(0.010, rel=0.25)
 
     motor = recording.motor
-    assert motor.step_count.max() <= LIMIT and motor.step_count[-1] == targets[-1]
+    assert motor.step_count.max() == targets[-1] <= LIMIT and motor.step_count[-1] == 0
     if mode == "step":  # the platform rested at every target
         resting = set(motor.step_count[~motor.moving].tolist())
         assert set(targets) <= resting
@@ -83,5 +89,5 @@ def test_record_end_to_end(tmp_path: Path, scene: Scene, dialect: str, mode: str
         assert all(n >= 2 for n in summary["frames"].values())
         assert len(recording.images) == sum(summary["frames"].values())
     kinds = [e.kind for e in recording.events]
-    assert kinds[:3] == ["motor_connected", "motor_zeroed", "scanner_connected"]
-    assert kinds[-1] == "recording_end"
+    assert kinds[:4] == ["motor_connected", "motor_limit", "motor_zeroed", "scanner_connected"]
+    assert kinds[-2:] == ["motor_returned", "recording_end"]

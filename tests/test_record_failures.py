@@ -60,7 +60,8 @@ def test_scanner_gone_mid_scan_stops_motor_and_closes_file(tmp_path: Path, scene
         moving = rig.platform.moving_at(rig.clock.now_s())
     assert summary["status"] == "scanner_disconnected"
     assert "STOP" in commands and not moving
-    assert summary["final_step_count"] < 5000
+    assert summary["final_step_count"] == 0 and summary["returned_to_start"] is True
+    assert "motor_returned" in summary["events"]
     recording = read_recording(out)
     assert recording.complete and not recording.warnings
     kinds = [e.kind for e in recording.events]
@@ -85,25 +86,31 @@ def test_scanner_reconnects_and_the_scan_completes(tmp_path: Path, scene: Scene)
     assert summary["events"]["scanner_reconnected"] == 1
 
 
-def test_controller_refuses_a_move_past_its_limit(tmp_path: Path, scene: Scene) -> None:
+def test_a_smaller_controller_limit_is_obeyed_and_named(tmp_path: Path, scene: Scene) -> None:
     out = tmp_path / "rec.mcap"
     with VirtualRig(sim_options("ldoem", pulse_limit=400), speedup=SPEEDUP, scene=scene) as rig:
-        # The rig file claims a larger limit than the controller has: the controller refuses.
+        # The rig file claims a larger limit than the controller has: the smaller one applies.
         client_rig = rig.client_rig()
         wrong = client_rig.model_copy(update={
             "motor": client_rig.motor.model_copy(update={"pulse_limit": 5000})})
         summary = record_against(rig, out, rig=wrong)
-        count = rig.platform.count_at(rig.clock.now_s())
-    assert summary["status"] == "failed"
-    assert "LIMIT" in str(summary["reason"])
-    assert count == 2 * 139 <= 400  # nothing moved past the controller's limit
+        moves = rig.platform.timeline().moves
+        commands = list(rig.motor.commands)
+    assert summary["status"] == "complete", summary
+    assert (summary["pulse_limit"], summary["limit_source"]) == (400, "controller")
+    assert summary["positions"] == 400 // 139 + 1
+    assert max(m.target_steps for m in moves) == 2 * 139 <= 400  # never past the controller's
+    assert not any(c.startswith("MOVE") and "ERR" in c for c in commands)
     recording = read_recording(out)
     assert recording.complete
-    errors = [e for e in recording.events if e.kind == "motor_error"]
-    assert errors and "LIMIT" in errors[0].message
-    # The mismatch was seen at the start (ID? tells the controller's limit).
-    mismatch = [e for e in recording.events if e.kind == "motor_limit_mismatch"]
-    assert mismatch and mismatch[0].data == {"controller": 400, "rig": 5000}
+    assert not [e for e in recording.events if e.kind == "motor_error"]  # nothing was refused
+    limit = next(e for e in recording.events if e.kind == "motor_limit")
+    assert limit.data == {"pulse_limit": 400, "source": "controller", "rig": 5000,
+                          "controller": 400}
+    assert "travel limit 400 pulses from home (the controller's own limit)" in limit.message
+    mismatch = next(e for e in recording.events if e.kind == "motor_limit_mismatch")
+    assert mismatch.data == {"controller": 400, "rig": 5000}
+    assert "the smaller one applies" in mismatch.message
 
 
 def test_client_never_sends_a_move_past_the_limit(tmp_path: Path, scene: Scene) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+from typing import Literal
 
 import pytest
 
@@ -13,17 +14,19 @@ from scanpipe.sim.ldoem_device import LdoemDevice
 from scanpipe.sim.motion import PlatformState
 
 
-def _controller(limit: int = 5000) -> tuple[MotorController, PlatformState]:
+def _controller(limit: int = 5000, controller_limit: int | Literal["rig"] | None = "rig"
+                ) -> tuple[MotorController, PlatformState]:
     motor = MotorConfig(pulse_limit=limit)
     platform = PlatformState(motor.step_deg)
-    return MotorController(motor, platform, report_interval_s=0.02), platform
+    return MotorController(motor, platform, report_interval_s=0.02,
+                           pulse_limit=controller_limit), platform
 
 
 def test_move_past_the_limit_is_refused_and_nothing_moves() -> None:
     controller, platform = _controller(limit=100)
     assert controller.handle("MOVE +60", 0.0) == ["OK 60", "POS 0 60 1 0"]
     controller.reports_until(5.0)
-    assert controller.handle("MOVE +41", 5.0) == ["ERR LIMIT 60+41 = 101 outside 0..100"]
+    assert controller.handle("MOVE +41", 5.0) == ["ERR LIMIT absolute 60+41 = 101 outside 0..100"]
     assert controller.handle("MOVE -61", 5.0)[0].startswith("ERR LIMIT")
     assert not platform.moving_at(5.5) and platform.count_at(9.0) == 60
     assert controller.reports_until(9.0) == []
@@ -61,12 +64,57 @@ def test_busy_stop_zero_and_queries() -> None:
 
 @pytest.mark.parametrize(("line", "reply"), [
     ("MOVE", "ERR SYNTAX"), ("MOVE x", "ERR SYNTAX"), ("RATE -5", "ERR RANGE"),
-    ("ACCEL abc", "ERR SYNTAX"), ("JUMP 3", "ERR UNKNOWN"), ("ID?", "ID scanpipe-motor 1 5000"),
+    ("ACCEL abc", "ERR SYNTAX"), ("JUMP 3", "ERR UNKNOWN"), ("ID?", "ID scanpipe-motor 2 5000"),
+    ("TRAVEL?", "TRAVEL 0 0 5000"),
     ("rate 500", "OK 500"),
 ])
 def test_command_replies(line: str, reply: str) -> None:
     controller, _ = _controller()
     assert controller.handle(line, 0.0)[0].startswith(reply)
+
+
+def _finish(controller: MotorController, time_s: float) -> float:
+    """Let the move under way end; the time after it."""
+    controller.reports_until(time_s + 100.0)
+    return time_s + 100.0
+
+
+def test_zero_does_not_reset_the_travel_the_limit_holds_on() -> None:
+    # The issue: MOVE +5000, ZERO, MOVE +5000, ZERO, MOVE +5000 turned the platform 540°.
+    controller, platform = _controller()
+    t = 0.0
+    assert controller.handle("MOVE +5000", t)[0] == "OK 5000"
+    t = _finish(controller, t)
+    assert controller.handle("ZERO", t) == ["OK 0"]
+    assert controller.handle("TRAVEL?", t) == ["TRAVEL 5000 5000 5000", "OK"]
+    assert controller.handle("POS?", t)[0].split()[1] == "0"  # POS counts from the new origin
+    assert controller.handle("MOVE +5000", t) == [
+        "ERR LIMIT absolute 5000+5000 = 10000 outside 0..5000"]
+    assert controller.handle("MOVE +1", t)[0].startswith("ERR LIMIT")
+    assert platform.timeline().count_at(t + 50) == 5000  # nothing moved
+    # Back below the new origin is fine (negative counts), down to home and no further.
+    assert controller.handle("MOVE -5000", t)[0] == "OK -5000"
+    t = _finish(controller, t)
+    assert controller.handle("MOVE -1", t)[0] == "ERR LIMIT absolute 0-1 = -1 outside 0..5000"
+    assert controller.handle("TRAVEL?", t)[0] == "TRAVEL 0 5000 5000"
+
+
+def test_an_unlimited_controller_turns_any_amount() -> None:
+    controller, platform = _controller(controller_limit=None)
+    assert controller.handle("ID?", 0.0)[0] == "ID scanpipe-motor 2 unlimited"
+    t = 0.0
+    for _ in range(3):
+        assert controller.handle("MOVE +5000", t)[0].startswith("OK")
+        t = _finish(controller, t)
+        controller.handle("ZERO", t)
+    assert controller.handle("TRAVEL?", t)[0] == "TRAVEL 15000 15000 unlimited"
+    assert platform.beta_deg_at(t)[()] == pytest.approx(540.0)
+
+
+def test_a_controller_limit_other_than_the_rigs() -> None:
+    controller, _ = _controller(limit=5000, controller_limit=400)
+    assert controller.handle("ID?", 0.0)[0] == "ID scanpipe-motor 2 400"
+    assert controller.handle("MOVE +401", 0.0)[0].startswith("ERR LIMIT absolute 0+401")
 
 
 def _payload(frame: bytes) -> bytes:

@@ -11,7 +11,7 @@ import math
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from scanpipe.errors import ParameterError, RigError
 from scanpipe.params import Params, load_toml, to_toml, validate
@@ -65,12 +65,28 @@ class ScannerConfig(Params):
         return round((self.end_angle_deg - self.start_angle_deg) / self.angular_step_deg)
 
 
+#: The largest pulse count any controller can hold: its count is a signed 32-bit integer.
+MAX_PULSE_COUNT = 2**31 - 1
+#: The most a platform WITHOUT a slip ring may turn from home: two whole turns. Its cables (power,
+#: USB, the scanner's Ethernet) wind round the axis; no cable guide takes more, and a larger
+#: limit is a typo (1e17) or a platform that may turn freely, which must say so
+#: (``unlimited_travel = true``).
+MAX_LIMITED_TRAVEL_DEG = 720.0
+
+
 class MotorConfig(Params):
-    """The stepper, its gearbox and the controller that counts pulses."""
+    """The stepper, its gearbox and the controller that counts pulses.
+
+    ``pulse_limit`` is the platform's travel from home (the controller's power-on position), in
+    pulses: neither the controller nor the host sends it past, and a scan sweeps from home up
+    to it. ``unlimited_travel`` says the platform may turn any amount (a slip ring): then nothing
+    limits travel on the rig's side and ``pulse_limit`` is only the sweep of one scan.
+    """
 
     full_step_deg: float = Field(0.72, gt=0, le=90)
     gear_ratio: float = Field(20.0, gt=0)
-    pulse_limit: int = Field(5000, ge=1)
+    unlimited_travel: bool = Field(False, strict=True)
+    pulse_limit: int = Field(5000, ge=1, le=MAX_PULSE_COUNT, strict=True)
     pulse_rate_hz: float = Field(1000.0, gt=0, le=100_000)
     accel_hz_per_s: float = Field(5000.0, gt=0)
     settle_s: float = Field(0.05, ge=0, le=10)
@@ -78,10 +94,45 @@ class MotorConfig(Params):
     baudrate: int = Field(115200, gt=0)
     beta_offset_deg: float = Field(0.0, ge=-180, le=180)
 
+    @field_validator("pulse_limit", mode="before")
+    @classmethod
+    def _whole_pulses(cls, value: Any) -> Any:
+        # bool is an int in Python: `pulse_limit = true` would be taken as 1 pulse.
+        if isinstance(value, bool) or not isinstance(value, int):
+            kind = "a boolean" if isinstance(value, bool) else f"a {type(value).__name__}"
+            raise ValueError(f"must be a whole number of pulses (1 … {MAX_PULSE_COUNT}), not "
+                             f"{kind}; a platform that may turn freely sets "
+                             "motor.unlimited_travel = true")
+        if value > MAX_PULSE_COUNT:
+            raise ValueError(f"more pulses than a controller counts (at most {MAX_PULSE_COUNT}, "
+                             "a signed 32-bit count)")
+        return value
+
+    @field_validator("pulse_limit")
+    @classmethod
+    def _travel_a_cable_takes(cls, value: int, info: ValidationInfo) -> int:
+        full, ratio = info.data.get("full_step_deg"), info.data.get("gear_ratio")
+        if info.data.get("unlimited_travel", False) or full is None or ratio is None:
+            return value
+        travel_deg = value * full / ratio
+        if travel_deg > MAX_LIMITED_TRAVEL_DEG:
+            raise ValueError(
+                f"{travel_deg:g}° of travel ({value} × {full / ratio:g}°) is more than "
+                f"{MAX_LIMITED_TRAVEL_DEG:g}° (two platform turns), more than any cabled platform "
+                "turns; give at most "
+                f"{math.floor(MAX_LIMITED_TRAVEL_DEG * ratio / full + 1e-9)} pulses, or set "
+                "motor.unlimited_travel = true for a platform on a slip ring")
+        return value
+
     @property
     def step_deg(self) -> float:
         """Platform rotation per pulse (paper eq. 1): full step / gear ratio."""
         return self.full_step_deg / self.gear_ratio
+
+    @property
+    def travel_limit(self) -> int | None:
+        """The rig's travel limit in pulses from home; None when the platform turns freely."""
+        return None if self.unlimited_travel else self.pulse_limit
 
 
 class CameraConfig(Params):
@@ -209,7 +260,8 @@ _COMMENTS = {
     "scanner.alpha_offset_deg": "calibration: zero offset added to every beam angle",
     "scanner.mount": "calibration: scan frame → platform frame (offset from the motor axis, tilt)",
     "motor": "Stepper + gearbox + pulse-counting controller",
-    "motor.pulse_limit": "the controller refuses to pass this many pulses (5000 × 0.036° = 180°)",
+    "motor.unlimited_travel": "true only for a platform that may turn without limit (slip ring)",
+    "motor.pulse_limit": "travel from home in pulses, never passed (5000 × 0.036° = 180°)",
     "motor.serial_url": "pyserial URL of the controller (a device, a pty, or loop://)",
     "motor.beta_offset_deg": "calibration: zero offset added to every platform angle",
     "cameras": "A camera on the platform: OpenCV intrinsics, distortion (k1 k2 p1 p2 k3), pose",

@@ -5,9 +5,12 @@ Opened with :func:`serial.serial_for_url`, so a device (``/dev/ttyUSB0``), a pse
 (``/motor/stream``) before it is interpreted; every position report becomes a ``/motor/state``
 message. Commands wait for the controller's OK / ERR reply.
 
-The client never asks for a move that would leave ``0 … pulse_limit``: the controller refuses
-such a move too, but a driver that relies on the far end for safety is one firmware bug away
-from winding a cable round the axis.
+The client never asks for a move whose ABSOLUTE target (pulses from the controller's power-on
+position, learnt with ``TRAVEL?``) would leave ``0 … limit``, where the limit is the smaller of
+the rig's (``motor.pulse_limit``, none with ``motor.unlimited_travel``) and the controller's own.
+The controller refuses such a move too, but a driver that relies on the far end for safety is
+one firmware bug away from winding a cable round the axis. ``ZERO`` moves only the origin of the
+reported count; it never resets the absolute position the limit is checked on.
 """
 
 from __future__ import annotations
@@ -46,6 +49,55 @@ class MotorState:
     moving: bool
     device_time_us: int
     log_time_ns: int
+
+
+@dataclass(frozen=True)
+class Travel:
+    """``TRAVEL?``: the absolute position (pulses from power-on), the absolute position of
+    count 0 (``origin``: count = absolute − origin) and the controller's limit (None: none)."""
+
+    absolute: int
+    origin: int
+    controller_limit: int | None
+
+
+@dataclass(frozen=True)
+class TravelLimit:
+    """The travel limit the host obeys: the smaller of the rig's and the controller's.
+
+    ``pulses`` is None when neither sets one; ``source`` names which applied: ``"rig"``,
+    ``"controller"``, ``"rig and controller"`` (equal) or ``"none"``.
+    """
+
+    pulses: int | None
+    source: str
+    rig: int | None
+    controller: int | None
+
+    def describe(self) -> str:
+        """One phrase: the limit and where it comes from."""
+        if self.pulses is None:
+            return "no travel limit (motor.unlimited_travel and an unlimited controller)"
+        where = {"rig": "motor.pulse_limit of the rig file",
+                 "controller": "the controller's own limit",
+                 "rig and controller": "the rig file and the controller agree"}[self.source]
+        return f"travel limit {self.pulses} pulses from home ({where})"
+
+
+def applied_limit(rig_limit: int | None, controller_limit: int | None) -> TravelLimit:
+    """The smaller of two travel limits (None: that side has none) and which one it is."""
+    if rig_limit is None and controller_limit is None:
+        return TravelLimit(None, "none", None, None)
+    if controller_limit is None or (rig_limit is not None and rig_limit < controller_limit):
+        return TravelLimit(rig_limit, "rig", rig_limit, controller_limit)
+    source = "rig and controller" if rig_limit == controller_limit else "controller"
+    return TravelLimit(controller_limit, source, rig_limit, controller_limit)
+
+
+def parse_travel(fields: list[str]) -> Travel:
+    """``TRAVEL <absolute> <origin> <limit|unlimited>`` fields after ``TRAVEL``."""
+    absolute, origin, limit = fields[:3]
+    return Travel(int(absolute), int(origin), None if limit == "unlimited" else int(limit))
 
 
 @dataclass(frozen=True)
@@ -93,6 +145,8 @@ class MotorClient:
         self._line = bytearray()
         self.reports = 0
         self.ident = ""
+        self._travel_line: list[str] | None = None
+        self._travel: Travel | None = None
 
     # -- connection ------------------------------------------------------------------------
 
@@ -107,6 +161,7 @@ class MotorClient:
             raise DeviceError(f"motor controller at {url!r}: cannot open ({err}); check "
                               "motor.serial_url in the rig file") from err
         self._closing.clear()
+        self._travel = None  # the controller may have been zeroed or powered off meanwhile
         self._reader = threading.Thread(target=self._read_loop, name="motor-reader", daemon=True)
         self._reader.start()
 
@@ -175,18 +230,61 @@ class MotorClient:
             raise DeviceError("motor controller: no position report after POS?")
         return state
 
+    def query_travel(self) -> Travel:
+        """``TRAVEL?``: the absolute position, the origin of the count and the controller's limit.
+
+        A controller that does not answer it (firmware 1 reset its only count on ZERO) cannot
+        be trusted with the travel limit: :class:`DeviceError`.
+        """
+        self._travel_line = None
+        reply = self.command("TRAVEL?")
+        fields = self._travel_line
+        if not reply.ok or fields is None:
+            raise DeviceError(
+                f"motor controller: no answer to TRAVEL? ({reply.text or 'no TRAVEL line'}); it "
+                "does not report its absolute position since power-on, so the travel limit "
+                "cannot be kept across ZERO: update its firmware (docs/motor-link.md)")
+        try:
+            travel = parse_travel(fields)
+        except (ValueError, IndexError):
+            raise DeviceError(f"motor controller: cannot read the TRAVEL line "
+                              f"{' '.join(fields)!r}") from None
+        self._travel = travel
+        return travel
+
+    @property
+    def travel(self) -> Travel | None:
+        """The last ``TRAVEL?`` answer on this connection (None before the first)."""
+        return self._travel
+
+    def limit(self) -> TravelLimit:
+        """The travel limit obeyed: the smaller of the rig's and the controller's."""
+        travel = self._travel or self.query_travel()
+        return applied_limit(self.motor.travel_limit, travel.controller_limit)
+
+    def absolute(self, count: int) -> int:
+        """The absolute position (pulses from power-on) of a reported count."""
+        travel = self._travel or self.query_travel()
+        return count + travel.origin
+
     def check_move(self, pulses: int, from_count: int) -> None:
-        """Raise :class:`DeviceError` if a move would leave ``0 … pulse_limit``; sends nothing."""
-        target = from_count + pulses
-        limit = self.motor.pulse_limit
-        if not 0 <= target <= limit:
-            raise DeviceError(f"motor: a move of {pulses:+d} pulses from {from_count} would reach "
-                              f"{target}, outside 0…{limit} (motor.pulse_limit); not sent")
+        """Raise :class:`DeviceError` if a move of ``pulses`` from the reported count
+        ``from_count`` would take the absolute position out of ``0 … limit``; sends nothing."""
+        limit = self.limit()
+        if limit.pulses is None:
+            return
+        start = self.absolute(from_count)
+        target = start + pulses
+        if not 0 <= target <= limit.pulses:
+            raise DeviceError(f"motor: a move of {pulses:+d} pulses from absolute {start} would "
+                              f"reach {target}, outside 0…{limit.pulses} ({limit.describe()}); "
+                              "not sent")
 
     def move(self, pulses: int) -> None:
         """Start a relative move of ``pulses`` (signed); returns once the controller accepts it.
 
-        Checked against the pulse limit on this side first, from the last reported count.
+        Checked against the travel limit on this side first, on the absolute position of the
+        last reported count.
         """
         state = self._state or self.query_position()
         self.check_move(pulses, state.step_count)
@@ -213,9 +311,13 @@ class MotorClient:
         """Stop any move at once (STOP); the controller keeps the count it reached."""
         self.command("STOP")
 
-    def zero(self) -> None:
-        """Make the current position the controller's zero."""
+    def zero(self) -> Travel:
+        """Make the current position count 0 (the origin of reported counts; the absolute
+        position and the limit are unchanged); returns the controller's travel after it."""
         self._checked("ZERO")
+        self._travel = None
+        self.query_position()  # the last report counts from the old origin
+        return self.query_travel()
 
     # -- I/O -------------------------------------------------------------------------------
 
@@ -260,6 +362,8 @@ class MotorClient:
             self._replies.put(Reply(False, " ".join(fields) or "error"))
         elif head == "ID":
             self.ident = " ".join(fields)
+        elif head == "TRAVEL":
+            self._travel_line = fields
         elif head == "POS":
             try:
                 count, target, moving, time_us = parse_position(fields)

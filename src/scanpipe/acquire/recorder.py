@@ -2,20 +2,29 @@
 
 Two procedures (:class:`RecordOptions.mode`):
 
-- ``step`` (the paper's step-and-scan): from the controller's current count, move by the chosen
-  step count (:func:`scanpipe.planning.choose_steps`), wait for the move to end and the settle
-  time, then for ``profiles_per_position`` complete profiles that began after the settle (the
-  profile under way when the platform came to rest is not counted), and repeat while the next
-  position is within the pulse limit;
-- ``continuous``: one move to the pulse limit at a constant pulse rate (the step angle per head
-  turn: ``steps × scan_hz`` pulses per second) while the controller reports its position
+- ``step`` (the paper's step-and-scan): from the start, move by the chosen step count
+  (:func:`scanpipe.planning.choose_steps`), wait for the move to end and the settle time, then
+  for ``profiles_per_position`` complete profiles that began after the settle (the profile under
+  way when the platform came to rest is not counted), and repeat while the next position is
+  within the sweep;
+- ``continuous``: one move to the end of the sweep at a constant pulse rate (the step angle per
+  head turn: ``steps × scan_hz`` pulses per second) while the controller reports its position
   periodically and the scanner streams.
+
+The sweep starts at home (the controller's power-on position) and ends at the travel limit the
+host obeys: the smaller of the rig's ``motor.pulse_limit`` and the controller's own (``TRAVEL?``;
+the ``motor_limit`` event names which applied). A platform on a slip ring (both unlimited)
+sweeps ``motor.pulse_limit`` pulses from wherever it stands. A limited platform that stands
+away from home is refused (or brought home first with ``home_first``), and at the end of every
+scan, also after a stop or an error, the platform is brought back to where the scan started
+while the motor still answers: so no series of scans winds the cables.
 
 Cameras record throughout. Threads: one reads the scanner, one the motor link, one per camera,
 one flushes the file every ``fsync_interval_s`` (so a SIGKILL loses at most about that much);
-the calling thread runs the procedure. SIGINT / SIGTERM stop the motor and finish the file
-properly. A scanner that drops the link stops the motor at once; the recorder tries to
-reconnect and carries on, or ends the recording cleanly. Every such incident is an event on
+the calling thread runs the procedure. SIGINT / SIGTERM stop the motor, bring the platform back
+to the start and finish the file properly (a second signal stops the way back). A scanner that
+drops the link stops the motor at once; the recorder tries to reconnect and carries on, or ends
+the recording cleanly. Every such incident is an event on
 ``/events`` and in the summary.
 """
 
@@ -36,7 +45,7 @@ from pydantic import Field
 from scanpipe import __version__
 from scanpipe.acquire.cameras import CameraThread, FrameSource, is_device_index, open_capture
 from scanpipe.acquire.display import RecorderStatus
-from scanpipe.acquire.motor_client import MotorClient
+from scanpipe.acquire.motor_client import MotorClient, TravelLimit
 from scanpipe.acquire.scanner_client import ScannerClient
 from scanpipe.acquire.sink import RecordingSink
 from scanpipe.errors import DeviceError, ScanpipeError
@@ -67,8 +76,13 @@ class RecordOptions(Params):
     #: The virtual rig's clock speed-up: waits that stand for device time (settle, time-outs,
     #: camera periods) shrink by this factor. 1 on a real rig.
     speedup: float = Field(1.0, gt=0, le=10_000)
-    #: ZERO the controller at the start: the pulse limit counts from where the scan starts.
+    #: ZERO the controller at the start: the recorded counts (``/motor/state``) count from the
+    #: scan start. The controller keeps its absolute position, which the limit holds on.
     zero_at_start: bool = True
+    #: Bring the platform back to the scan's start at the end (also after a stop or an error).
+    return_to_start: bool = True
+    #: A platform standing away from home is brought home before the scan (else: refused).
+    home_first: bool = False
     install_signal_handlers: bool = True
 
 
@@ -113,6 +127,12 @@ class Recorder:
         self._scanner_lost = threading.Event()
         self._rate_window: list[tuple[float, int]] = []
         self._continuous_end: tuple[float, int] | None = None  # (deadline, target) when turning
+        self._done = threading.Event()  # the file is being closed: the flusher ends
+        self._abort_return = threading.Event()  # a second signal while the platform returns
+        self.travel_limit: TravelLimit | None = None
+        self._start_count: int | None = None  # the controller's count at the scan start
+        self._end_count: int | None = None  # … and at the end of the sweep
+        self._returned: bool | None = None
         choice = choose_steps(self.options.step_angle_deg, rig.motor.step_deg,
                               rig.motor.pulse_limit)
         self.step_count = choice.chosen_steps
@@ -162,6 +182,7 @@ class Recorder:
                     self._shut_down()
         finally:
             self.stop_event.set()
+            self._done.set()
             flusher.join(timeout=2.0)
             summary = self.summary()
             self.sink.event("recording_end", f"recording ended: {self.status}",
@@ -187,7 +208,9 @@ class Recorder:
         def handler(signum: int, frame: FrameType | None) -> None:
             name = signal.Signals(signum).name
             if self.stop_event.is_set():
-                # Already finishing the file: the next such signal ends the process at once.
+                # Already finishing the file: stop a return to the start, and the next such
+                # signal ends the process at once.
+                self._abort_return.set()
                 signal.signal(signum, signal.SIG_DFL)
                 return
             self.request_stop(f"{name} received", status="interrupted")
@@ -219,23 +242,24 @@ class Recorder:
         self.motor = MotorClient(self.rig.motor, self.sink, opts.reply_timeout_s,
                                  self.clock_ns, on_error=self._motor_link_error)
         self.motor.connect()
-        firmware, limit = self.motor.identify()
+        firmware, _ = self.motor.identify()
+        travel = self.motor.query_travel()
         self.sink.event("motor_connected", f"motor controller on {self.rig.motor.serial_url}",
-                        {"firmware": firmware, "pulse_limit": limit})
-        if limit is not None and limit != self.rig.motor.pulse_limit:
-            self.sink.event("motor_limit_mismatch",
-                            f"the controller's pulse limit is {limit}, the rig file says "
-                            f"{self.rig.motor.pulse_limit}; moves past {limit} will be refused",
-                            {"controller": limit, "rig": self.rig.motor.pulse_limit})
-        state = self.motor.query_position()
-        if opts.zero_at_start:
-            self.motor.zero()
-            state = self.motor.query_position()
-            self.sink.event("motor_zeroed", "the start position is the controller's zero")
+                        {"firmware": firmware, "pulse_limit": travel.controller_limit,
+                         "absolute_step_count": travel.absolute})
+        self._obey_limit()
+        self.motor.query_position()
         self.motor.set_accel(self.rig.motor.accel_hz_per_s)
-        if not 0 <= state.step_count <= self.rig.motor.pulse_limit:
-            raise DeviceError(f"motor: the controller's count {state.step_count} is outside "
-                              f"0…{self.rig.motor.pulse_limit}; zero it at the start position")
+        self._go_home_or_refuse()
+        if opts.zero_at_start:
+            travel = self.motor.zero()
+            self.sink.event("motor_zeroed", "the start position is count 0 (the controller keeps "
+                            f"its absolute position {travel.absolute})",
+                            {"absolute_step_count": travel.absolute})
+        state = self.motor.query_position()
+        self._start_count = state.step_count
+        self._end_count = state.step_count + self._sweep_pulses(self.motor.absolute(
+            state.step_count))
         mask = ldoem.MASK_RANGES_ECHO if opts.with_echo else ldoem.MASK_RANGES
         self.scanner = ScannerClient(self.rig.scanner, self.sink, self._scanner_dropped,
                                      reply_timeout_s=opts.reply_timeout_s, mask=mask,
@@ -248,6 +272,90 @@ class Recorder:
                          "device_clock_ms_at_host_ns": self.scanner.device_clock})
         if opts.cameras:
             self._start_cameras()
+
+    def _obey_limit(self) -> None:
+        """The travel limit: the smaller of the rig's and the controller's, named in an event."""
+        assert self.motor is not None and self.sink is not None
+        limit = self.motor.limit()
+        self.travel_limit = limit
+        data = {"pulse_limit": limit.pulses, "source": limit.source, "rig": limit.rig,
+                "controller": limit.controller}
+        self.sink.event("motor_limit", f"motor: {limit.describe()}", data)
+        if limit.rig != limit.controller:
+            def shown(value: int | None) -> str:
+                return "unlimited" if value is None else str(value)
+            self.sink.event("motor_limit_mismatch",
+                            f"the controller's travel limit is {shown(limit.controller)}, the rig "
+                            f"file's {shown(limit.rig)}; the smaller one applies: "
+                            f"{limit.describe()}",
+                            {"controller": limit.controller, "rig": limit.rig})
+
+    def _sweep_pulses(self, start_absolute: int) -> int:
+        """How far a scan turns from ``start_absolute``: up to the limit, or pulse_limit when
+        nothing limits travel (a slip ring)."""
+        assert self.travel_limit is not None
+        sweep = self.rig.motor.pulse_limit
+        if self.travel_limit.pulses is not None:
+            sweep = min(sweep, self.travel_limit.pulses - start_absolute)
+        return max(sweep, 0)
+
+    def _go_home_or_refuse(self) -> None:
+        """A limited platform scans from home: bring it there (``home_first``) or refuse."""
+        assert self.motor is not None and self.sink is not None
+        assert self.travel_limit is not None
+        travel = self.motor.query_travel()
+        if self.travel_limit.pulses is None or travel.absolute == 0:
+            return
+        away_deg = travel.absolute * self.rig.motor.step_deg
+        if not self.options.home_first:
+            raise DeviceError(
+                f"motor: the platform stands {travel.absolute} pulses ({away_deg:.3f}°) from home "
+                "(its position at the controller's power-on), so a scan would not start at home "
+                "and could not cover its sweep; check the cables, then record with --home-first "
+                "to bring it home")
+        state = self.motor.query_position()
+        self.motor.set_rate(self.rig.motor.pulse_rate_hz)
+        self.phase = "going home"
+        self._move_to(state.step_count - travel.absolute, self.rig.motor.pulse_rate_hz)
+        self.sink.event("motor_homed", f"motor: brought home from {travel.absolute} pulses "
+                        f"({away_deg:.3f}°) before the scan", {"from_absolute": travel.absolute})
+
+    def _return_to_start(self) -> None:
+        """Bring the platform back to the scan's start (tried whatever ended the scan)."""
+        assert self.sink is not None
+        motor = self.motor
+        if (not self.options.return_to_start or motor is None or not motor.connected
+                or self._start_count is None):
+            return
+        start = self._start_count
+        self.phase = "returning to the start"
+        try:
+            state = motor.query_position()
+            if state.moving:
+                motor.stop()
+                state = motor.query_position()
+            if state.step_count != start:
+                motor.set_rate(self.rig.motor.pulse_rate_hz)
+                self._move_to(start, self.rig.motor.pulse_rate_hz, stop=self._abort_return,
+                              watch_scanner=False)
+            travel = motor.query_travel()
+        except (DeviceError, RecordingStopped) as err:
+            self._returned = False
+            reason = str(err) or "stopped by a second signal"
+            with_stop = ""
+            if isinstance(err, RecordingStopped):
+                try:
+                    motor.stop()
+                except DeviceError as stop_err:
+                    with_stop = f"; STOP failed: {stop_err}"
+            self.sink.event("motor_return_failed",
+                            f"motor: the platform did not return to the start ({reason}"
+                            f"{with_stop}); the next scan is refused until it stands at home",
+                            {"start_step_count": start})
+            return
+        self._returned = True
+        self.sink.event("motor_returned", f"motor: back at the start (count {start}, absolute "
+                        f"{travel.absolute})", {"absolute_step_count": travel.absolute})
 
     def _start_cameras(self) -> None:
         assert self.sink is not None
@@ -319,6 +427,8 @@ class Recorder:
         self.stop_event.set()
         for thread in self.cameras:
             thread.join(timeout=2.0)
+        # With the stream and the cameras stopped, no profile or frame is taken on the way back.
+        self._return_to_start()
         if self.motor is not None:
             self.motor.close()
         self.phase = "done"
@@ -326,7 +436,7 @@ class Recorder:
     def _flush_loop(self) -> None:
         """Flush and fsync the file at least every ``fsync_interval_s`` (even when idle)."""
         interval = self.options.fsync_interval_s
-        while not self.stop_event.wait(interval / 2):
+        while not self._done.wait(interval / 2):  # on while the platform returns, too
             if self.sink is not None:
                 try:
                     self.sink.flush()
@@ -341,11 +451,15 @@ class Recorder:
         return seconds / self.options.speedup
 
     def _targets(self, start: int) -> list[int]:
-        limit = self.rig.motor.pulse_limit
-        return list(range(start, limit + 1, self.step_count))
+        assert self._end_count is not None
+        return list(range(start, self._end_count + 1, self.step_count))
 
-    def _move_to(self, target: int, rate_hz: float) -> None:
-        """Move to ``target`` and wait for the controller to report it reached, stopped."""
+    def _move_to(self, target: int, rate_hz: float, stop: threading.Event | None = None,
+                 watch_scanner: bool = True) -> None:
+        """Move to the count ``target`` and wait for the controller to report it reached,
+        stopped. ``stop`` (default: the recording's stop) ends the wait with
+        :class:`RecordingStopped`; ``watch_scanner``: a lost scanner ends it too."""
+        stop = self.stop_event if stop is None else stop
         assert self.motor is not None and self.sink is not None
         state = self.motor.state or self.motor.query_position()
         pulses = target - state.step_count
@@ -360,11 +474,13 @@ class Recorder:
             raise
         timeout = self._device_s(expected * 1.5 + 1.0) + self.options.reply_timeout_s
         # A lost scanner stops the motor on purpose: stop waiting then, too.
+        lost = self._scanner_lost if watch_scanner else threading.Event()
         reached = self.motor.wait_for_state(
-            lambda s: (not s.moving and s.step_count == target) or self._scanner_lost.is_set(),
-            timeout, self.stop_event)
-        self._check_stop()
-        if self._scanner_lost.is_set():
+            lambda s: (not s.moving and s.step_count == target) or lost.is_set(),
+            timeout, stop)
+        if stop.is_set():
+            raise RecordingStopped
+        if lost.is_set():
             return  # the procedure reconnects and comes back to this target
         if reached is None:
             last = self.motor.state
@@ -377,8 +493,8 @@ class Recorder:
     def _step_and_scan(self) -> None:
         assert self.motor is not None and self.scanner is not None and self.sink is not None
         opts, scanner = self.options, self.rig.scanner
-        start = self.motor.state.step_count if self.motor.state else 0
-        targets = self._targets(start)
+        assert self._start_count is not None
+        targets = self._targets(self._start_count)
         self.positions_total = len(targets)
         scan_period_s = self._device_s(1.0 / scanner.scan_hz)
         profile_timeout = (opts.profiles_per_position + 3) * scan_period_s + opts.reply_timeout_s
@@ -419,7 +535,8 @@ class Recorder:
     def _continuous(self) -> None:
         assert self.motor is not None and self.scanner is not None and self.sink is not None
         rate = self.continuous_rate_hz()
-        start = self.motor.state.step_count if self.motor.state else 0
+        assert self._start_count is not None
+        start = self._start_count
         end = self._targets(start)[-1]
         self.positions_total = (end - start) // self.step_count + 1
         self.motor.set_rate(rate)
@@ -485,7 +602,8 @@ class Recorder:
             positions_done=self.positions_done,
             positions_total=self.positions_total,
             step_count=step_count,
-            pulse_limit=self.rig.motor.pulse_limit,
+            pulse_limit=self._end_count if self._end_count is not None
+            else self.rig.motor.pulse_limit,
             beta_deg=step_count * self.rig.motor.step_deg + self.rig.motor.beta_offset_deg,
             frames=dict(stats.images) if stats else {},
             dropped_frames=sum(c.stats.dropped for c in self.cameras),
@@ -495,6 +613,12 @@ class Recorder:
             events=sum(stats.events.values()) if stats else 0,
             last_event=last,
         )
+
+    def _applied_limit(self) -> int:
+        """The travel limit obeyed (the sweep when nothing limits travel)."""
+        if self.travel_limit is not None and self.travel_limit.pulses is not None:
+            return self.travel_limit.pulses
+        return self.rig.motor.pulse_limit
 
     def summary(self) -> dict[str, Any]:
         """The final summary (also the return value of :meth:`run`)."""
@@ -515,7 +639,11 @@ class Recorder:
             "positions_planned": self.positions_total,
             "final_step_count": step_count,
             "final_beta_deg": step_count * self.rig.motor.step_deg,
-            "pulse_limit": self.rig.motor.pulse_limit,
+            "pulse_limit": self._applied_limit(),
+            "limit_source": self.travel_limit.source if self.travel_limit else None,
+            "returned_to_start": self._returned,
+            "absolute_step_count": (self.motor.travel.absolute
+                                    if self.motor and self.motor.travel else None),
             "motor_states": stats.motor_states,
             "frames": dict(stats.images),
             "dropped_frames": {c.camera_id: c.stats.dropped for c in self.cameras},

@@ -18,7 +18,7 @@ RECORD_EXIT_CODES = {"complete": 0, "interrupted": 130, "failed": 1, "scanner_di
 def record_options(
     mode: str, step_angle: float, profiles_per_position: int, cameras: bool,
     split_size_mb: float | None, split_duration_s: float | None, speedup: float = 1.0,
-    with_echo: bool = False,
+    with_echo: bool = False, home_first: bool = False,
 ) -> Any:
     """Validated :class:`~scanpipe.acquire.recorder.RecordOptions` from command-line values."""
     from scanpipe.acquire.recorder import RecordOptions
@@ -28,7 +28,7 @@ def record_options(
         "mode": mode, "step_angle_deg": step_angle,
         "profiles_per_position": profiles_per_position, "cameras": cameras,
         "split_size_mb": split_size_mb, "split_duration_s": split_duration_s,
-        "speedup": speedup, "with_echo": with_echo,
+        "speedup": speedup, "with_echo": with_echo, "home_first": home_first,
     }, "record options")
 
 
@@ -71,6 +71,9 @@ def record(
     split_duration_s: float | None = typer.Option(None, "--split-duration",
                                                   help="Start a new file part after this many s."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing recording."),
+    home_first: bool = typer.Option(False, "--home-first",
+                                    help="Bring a platform that stands away from home back "
+                                         "home before scanning (otherwise refused)."),
     speedup: float = typer.Option(1.0, "--speedup", hidden=True,
                                   help="Device time runs this much faster (virtual rig only)."),
     quiet: bool = QUIET,
@@ -85,7 +88,7 @@ def record(
     check_output_file(out, "--out", (".mcap",), force, [rig_path] if rig_path else [])
     rig = load_rig(rig_path)
     options = record_options(mode, step_angle, profiles_per_position, not no_cameras,
-                             split_size_mb, split_duration_s, speedup, echo)
+                             split_size_mb, split_duration_s, speedup, echo, home_first)
     code = run_recorder(Recorder(rig, out, options), quiet, as_json)
     if code:
         raise typer.Exit(code)

@@ -1,14 +1,19 @@
 """The motor controller's firmware, as a pure state machine (the motor link: docs/motor-link.md).
 
 :class:`MotorController` answers command lines at a given simulation time and produces the
-periodic position reports of a move. The pty emulator (:mod:`scanpipe.sim.motor_emulator`) and
+periodic position reports of a move. The pty emulator (:mod:`scanpipe.sim.emulators`) and
 direct mode (:mod:`scanpipe.sim.direct`) both drive it, so both put the same bytes on the link.
+
+The travel limit holds on the ABSOLUTE position: pulses from where the platform stood at power-on
+(the creation of the controller). ``ZERO`` only moves the user origin that ``POS`` counts from;
+no sequence of ``ZERO`` and ``MOVE`` takes the platform past the limit.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 from scanpipe.rig import MotorConfig
 from scanpipe.sim.motion import Move, PlatformState
@@ -16,7 +21,11 @@ from scanpipe.sim.motion import Move, PlatformState
 #: The highest pulse rate the firmware accepts (RATE) and the highest ramp (ACCEL).
 MAX_RATE_HZ = 100_000.0
 MAX_ACCEL_HZ_PER_S = 1_000_000.0
-FIRMWARE_ID = "scanpipe-motor 1"
+#: Version 2: the limit holds on the absolute position (version 1 checked the count since ZERO)
+#: and ``TRAVEL?`` reports it.
+FIRMWARE_ID = "scanpipe-motor 2"
+#: How ``ID?`` and ``TRAVEL?`` write the limit of a controller that has none (a slip ring).
+UNLIMITED = "unlimited"
 
 
 @dataclass(frozen=True)
@@ -28,11 +37,19 @@ class ControllerReport:
 
 
 class MotorController:
-    """Counts pulses, refuses moves outside ``0 … pulse_limit``, reports positions."""
+    """Counts pulses, refuses moves whose absolute target leaves ``0 … limit``, reports positions.
+
+    ``pulse_limit`` is the firmware's own travel limit: ``"rig"`` takes the motor's
+    (:attr:`MotorConfig.travel_limit`: none when ``unlimited_travel``), an int sets another
+    one (a controller that disagrees with the rig file), ``None`` makes a controller without
+    limit (a platform on a slip ring).
+    """
 
     def __init__(self, motor: MotorConfig, platform: PlatformState,
-                 report_interval_s: float = 0.02, clock_origin_us: int = 0) -> None:
+                 report_interval_s: float = 0.02, clock_origin_us: int = 0,
+                 pulse_limit: int | Literal["rig"] | None = "rig") -> None:
         self.motor = motor
+        self.pulse_limit = motor.travel_limit if pulse_limit == "rig" else pulse_limit
         self.platform = platform
         self.report_interval_s = report_interval_s
         self.clock_origin_us = clock_origin_us
@@ -47,6 +64,21 @@ class MotorController:
     def device_time_us(self, time_s: float) -> int:
         """The controller's microsecond clock."""
         return self.clock_origin_us + round(time_s * 1e6)
+
+    def absolute_at(self, time_s: float) -> int:
+        """Pulses from the power-on position at ``time_s`` (what the limit is checked on)."""
+        return self.platform.timeline().count_at(time_s)
+
+    def limit_text(self) -> str:
+        """The limit as ``ID?`` and ``TRAVEL?`` write it."""
+        return UNLIMITED if self.pulse_limit is None else str(self.pulse_limit)
+
+    def travel_line(self, time_s: float) -> str:
+        """``TRAVEL <absolute> <origin> <limit|unlimited>``: origin is the absolute position of
+        count 0 (the last ZERO), so count = absolute − origin."""
+        absolute = self.absolute_at(time_s)
+        origin = absolute - self.platform.count_at(time_s)
+        return f"TRAVEL {absolute} {origin} {self.limit_text()}"
 
     def position_line(self, time_s: float) -> str:
         """``POS <count> <target> <moving 0|1> <time_us>``."""
@@ -73,7 +105,9 @@ class MotorController:
         if name in ("POS?", "POS"):
             return [self.position_line(time_s), "OK"]
         if name == "ID?" or name == "ID":
-            return [f"ID {FIRMWARE_ID} {self.motor.pulse_limit}", "OK"]
+            return [f"ID {FIRMWARE_ID} {self.limit_text()}", "OK"]
+        if name in ("TRAVEL?", "TRAVEL"):
+            return [self.travel_line(time_s), "OK"]
         if name == "STOP":
             count = self.platform.stop(time_s)
             was_moving = self._final_pending
@@ -115,8 +149,10 @@ class MotorController:
             return ["ERR SYNTAX MOVE needs a signed pulse count, e.g. MOVE +3"]
         count = self.platform.count_at(time_s)
         target = count + pulses
-        if not 0 <= target <= self.motor.pulse_limit:
-            return [f"ERR LIMIT {count}{pulses:+d} = {target} outside 0..{self.motor.pulse_limit}"]
+        absolute = self.absolute_at(time_s)
+        if self.pulse_limit is not None and not 0 <= absolute + pulses <= self.pulse_limit:
+            return [f"ERR LIMIT absolute {absolute}{pulses:+d} = {absolute + pulses} outside "
+                    f"0..{self.pulse_limit}"]
         self._target = target
         if pulses == 0:
             return [f"OK {target}"]
