@@ -18,10 +18,22 @@ def init(
     path: Path = typer.Argument(Path("rig.toml"), help="Where to write the rig file."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing file."),
 ) -> None:
-    """Write the default rig (the paper's) as a commented TOML file."""
-    if path.exists() and not force:
+    """Write the default rig (the paper's) as a commented TOML file.
+
+    Never overwrites a file without ``--force``, never replaces a folder, and does not create
+    missing folders (a typo in the folder should not scatter rig files around).
+    """
+    if path.is_dir():
+        raise UsageError(f"{path}: is a directory; give the path of the rig file to write, "
+                         f"e.g. {path / 'rig.toml'}")
+    if (path.exists() or path.is_symlink()) and not force:
         raise UsageError(f"{path}: already exists; pass --force to overwrite it")
-    atomic_write_bytes(path, rig_to_toml(default_rig()).encode())
+    if not path.parent.is_dir():
+        raise UsageError(f"{path}: folder {path.parent} does not exist; create it first")
+    try:
+        atomic_write_bytes(path, rig_to_toml(default_rig()).encode())
+    except OSError as err:
+        raise UsageError(f"{path}: cannot write a file there ({err.strerror or err})") from None
     typer.echo(f"wrote {path}")
 
 
