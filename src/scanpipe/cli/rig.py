@@ -24,16 +24,15 @@ def init(
     missing folders (a typo in the folder should not scatter rig files around).
     """
     if path.is_dir():
-        raise UsageError(f"{path}: is a directory; give the path of the rig file to write, "
-                         f"e.g. {path / 'rig.toml'}")
-    if (path.exists() or path.is_symlink()) and not force:
+        raise UsageError(f"{path}: is a folder; give a file name such as {path / 'out.toml'}")
+    if path.exists() and not force:
         raise UsageError(f"{path}: already exists; pass --force to overwrite it")
     if not path.parent.is_dir():
         raise UsageError(f"{path}: folder {path.parent} does not exist; create it first")
     try:
         atomic_write_bytes(path, rig_to_toml(default_rig()).encode())
     except OSError as err:
-        raise UsageError(f"{path}: cannot write a file there ({err.strerror or err})") from None
+        raise UsageError(f"{path}: cannot be written ({err.strerror or err})") from None
     typer.echo(f"wrote {path}")
 
 
