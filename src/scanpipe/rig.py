@@ -9,15 +9,31 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from scanpipe.errors import ParameterError, RigError
-from scanpipe.params import Params, load_toml, to_toml, validate
+from scanpipe.params import Params, load_toml, parse_toml, to_toml, validate
 
+#: How far from the motor axis a scanner or camera can sit on a turntable rig (and how far the
+#: simulator's scene may be moved): anything farther is a typo in metres (millimetres meant?).
+MAX_OFFSET_M = 100.0
+Metres = Annotated[float, Field(ge=-MAX_OFFSET_M, le=MAX_OFFSET_M)]
+Degrees = Annotated[float, Field(ge=-360, le=360)]
 Vec3 = tuple[float, float, float]
 RIG_FORMAT_VERSION = 1
+
+
+#: What a pulse can turn the platform by: below 1e-6° no gearbox is that fine, above 90° a
+#: "turntable" step is a quarter turn.
+MIN_PLATFORM_STEP_DEG = 1e-6
+MAX_PLATFORM_STEP_DEG = 90.0
+#: The field of view a pinhole camera model can describe (per axis).
+MIN_FOV_DEG = 0.5
+MAX_FOV_DEG = 170.0
+#: OpenCV's k1 k2 p1 p2 k3 of any real lens are far below this.
+Coefficient = Annotated[float, Field(ge=-1000, le=1000)]
 
 
 class Pose(Params):
@@ -26,21 +42,21 @@ class Pose(Params):
     See :mod:`scanpipe.geometry` for the frames and the rotation order.
     """
 
-    translation_m: Vec3 = (0.0, 0.0, 0.0)
-    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    translation_m: tuple[Metres, Metres, Metres] = (0.0, 0.0, 0.0)
+    rotation_deg: tuple[Degrees, Degrees, Degrees] = (0.0, 0.0, 0.0)
 
 
 class ScannerConfig(Params):
     """The 2-D laser scanner: how to reach it, how it scans, and how it is mounted."""
 
     dialect: Literal["ldoem", "paper"] = "ldoem"
-    host: str = "192.168.0.1"
+    host: str = Field("192.168.0.1", min_length=1)
     port: int = Field(49152, ge=1, le=65535)
     angular_step_deg: float = Field(0.25, gt=0, le=90)
     start_angle_deg: float = Field(0.0, ge=0, lt=360)
     end_angle_deg: float = Field(360.0, gt=0, le=360)
     scan_hz: float = Field(5.0, gt=0, le=100)
-    min_range_m: float = Field(0.5, ge=0)
+    min_range_m: float = Field(0.5, ge=0, le=255.99609375)
     max_range_m: float = Field(250.0, gt=0, le=255.99609375)
     alpha_offset_deg: float = Field(0.0, ge=-180, le=180)
     mount: Pose = Pose()
@@ -84,14 +100,14 @@ class MotorConfig(Params):
     """
 
     full_step_deg: float = Field(0.72, gt=0, le=90)
-    gear_ratio: float = Field(20.0, gt=0)
+    gear_ratio: float = Field(20.0, ge=0.001, le=100_000)
     unlimited_travel: bool = Field(False, strict=True)
     pulse_limit: int = Field(5000, ge=1, le=MAX_PULSE_COUNT, strict=True)
     pulse_rate_hz: float = Field(1000.0, gt=0, le=100_000)
-    accel_hz_per_s: float = Field(5000.0, gt=0)
+    accel_hz_per_s: float = Field(5000.0, ge=1, le=10_000_000)
     settle_s: float = Field(0.05, ge=0, le=10)
-    serial_url: str = "/dev/ttyUSB0"
-    baudrate: int = Field(115200, gt=0)
+    serial_url: str = Field("/dev/ttyUSB0", min_length=1)
+    baudrate: int = Field(115200, ge=50, le=12_000_000)
     beta_offset_deg: float = Field(0.0, ge=-180, le=180)
 
     @field_validator("pulse_limit", mode="before")
@@ -124,6 +140,16 @@ class MotorConfig(Params):
                 "motor.unlimited_travel = true for a platform on a slip ring")
         return value
 
+    @model_validator(mode="after")
+    def _platform_step_possible(self) -> MotorConfig:
+        if not MIN_PLATFORM_STEP_DEG <= self.step_deg <= MAX_PLATFORM_STEP_DEG:
+            raise ValueError(
+                f"platform step full_step_deg / gear_ratio = {self.full_step_deg:g} / "
+                f"{self.gear_ratio:g} = {self.step_deg:g}°; allowed: "
+                f"{MIN_PLATFORM_STEP_DEG:g}° to {MAX_PLATFORM_STEP_DEG:g}° per pulse"
+            )
+        return self
+
     @property
     def step_deg(self) -> float:
         """Platform rotation per pulse (paper eq. 1): full step / gear ratio."""
@@ -139,16 +165,34 @@ class CameraConfig(Params):
     """One camera on the platform: source, image size, rate, intrinsics and pose."""
 
     id: str = Field("cam0", pattern=r"^[A-Za-z0-9_-]+$")
-    source: str = "0"
+    source: str = Field("0", min_length=1)
     width: int = Field(1920, ge=16, le=16384)
     height: int = Field(1080, ge=16, le=16384)
     fps: float = Field(30.0, gt=0, le=1000)
-    fx: float = Field(1507.0, gt=0)
-    fy: float = Field(1507.0, gt=0)
-    cx: float = 959.5
-    cy: float = 539.5
-    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    fx: float = Field(1507.0, ge=1, le=1_000_000)
+    fy: float = Field(1507.0, ge=1, le=1_000_000)
+    cx: float = Field(959.5, ge=-16384, le=32768)
+    cy: float = Field(539.5, ge=-16384, le=32768)
+    distortion: tuple[Coefficient, Coefficient, Coefficient, Coefficient, Coefficient] = (
+        0.0, 0.0, 0.0, 0.0, 0.0)
     pose: Pose = Pose()
+
+    @model_validator(mode="after")
+    def _pinhole_possible(self) -> CameraConfig:
+        problems = []
+        for axis, size, focal in (("x", self.width, self.fx), ("y", self.height, self.fy)):
+            fov_deg = math.degrees(2 * math.atan(size / (2 * focal)))
+            if not MIN_FOV_DEG <= fov_deg <= MAX_FOV_DEG:
+                problems.append(
+                    f"f{axis} = {focal:g} px over {size} px gives a {fov_deg:.3g}° field of view; "
+                    f"allowed: {MIN_FOV_DEG:g}° to {MAX_FOV_DEG:g}° (a pinhole lens)")
+        for axis, size, centre in (("x", self.width, self.cx), ("y", self.height, self.cy)):
+            if not -size <= centre <= 2 * size:
+                problems.append(f"c{axis} = {centre:g} px lies more than an image width outside "
+                                f"the {size} px image; allowed: {-size} to {2 * size}")
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
 
     @property
     def hfov_deg(self) -> float:
@@ -235,6 +279,22 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
     return rig
 
 
+def rig_from_toml(text: str, source: str = "rig", empty_hint: str = "") -> Rig:
+    """Parse and validate a rig TOML text; an empty one (no keys at all) is an error too.
+
+    An empty rig file would silently be the built-in rig without cameras, which is never what
+    was meant; ``empty_hint`` says what to do instead.
+    """
+    try:
+        data = parse_toml(text, source)
+    except ParameterError as err:
+        raise RigError(err.problems, err.source) from None
+    if not data:
+        raise RigError(["the rig is empty (no keys in it)" + (f"; {empty_hint}" if empty_hint
+                                                                else "")], source)
+    return rig_from_dict(data, source)
+
+
 def load_rig(path: Path | str | None) -> Rig:
     """Load and validate a rig TOML file; ``None`` gives the default rig."""
     if path is None:
@@ -244,6 +304,9 @@ def load_rig(path: Path | str | None) -> Rig:
         data = load_toml(path)
     except ParameterError as err:
         raise RigError(err.problems, err.source) from None
+    if not data:
+        raise RigError([f"the file is empty (no keys in it); write the default rig with "
+                        f"`scanpipe rig init --force {path}` and edit it"], str(path))
     return rig_from_dict(data, str(path))
 
 
@@ -280,12 +343,16 @@ def rig_table(rig: Rig) -> Any:
     return pa.table({"toml": pa.array([rig_to_toml(rig)], pa.string())})
 
 
-def rig_from_table(table: Any, source: str = "rig.parquet") -> Rig:
-    """The rig stored in a ``rig`` artifact (see :func:`rig_table`)."""
-    import tomllib
+def rig_from_table(table: Any, source: str = "rig artifact") -> Rig:
+    """The rig stored in a ``rig`` artifact (see :func:`rig_table`), validated like a rig file.
 
+    An artifact written by an older scanpipe, or by hand, may hold values a rig file may not
+    (NaN calibration): those are refused here, before any stage computes with them.
+    """
     try:
         text = table.column("toml")[0].as_py()
-        return rig_from_dict(tomllib.loads(text), source)
-    except (KeyError, IndexError, tomllib.TOMLDecodeError) as err:
+    except (KeyError, IndexError) as err:
         raise RigError([f"not a rig artifact ({err})"], source) from None
+    if not isinstance(text, str):
+        raise RigError([f"not a rig artifact (toml is {text!r})"], source)
+    return rig_from_toml(text, source, "run decode again or pass a rig file with --rig")

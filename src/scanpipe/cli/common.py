@@ -39,7 +39,7 @@ def build_params(
 ) -> P:
     """Parameters from a TOML file, then ``--set`` overrides, validated all at once."""
     data: dict[str, Any] = dict(base or {})
-    source = "parameters"
+    source = "--set" if assignments else "parameters"
     if params_file is not None:
         data.update(load_toml(params_file))
         source = str(params_file)

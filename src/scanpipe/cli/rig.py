@@ -19,7 +19,13 @@ def init(
     path: Path = typer.Argument(Path("rig.toml"), help="Where to write the rig file."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing file."),
 ) -> None:
-    """Write the default rig (the paper's) as a commented TOML file."""
+    """Write the default rig (the paper's) as a commented TOML file.
+
+    Never overwrites a file without ``--force``, never replaces a folder, and does not create
+    missing folders (a typo in the folder should not scatter rig files around).
+    """
+    if not path.parent.is_dir():
+        raise UsageError(f"{path}: folder {path.parent} does not exist; create it first")
     check_output_file(path, "", (".toml",), force)
     try:
         atomic_write_bytes(path, rig_to_toml(default_rig()).encode())

@@ -137,18 +137,14 @@ class Recording:
 
     def rig(self) -> Rig:
         """The rig the recording was made with; :class:`RecordingError` if absent or invalid."""
-        import tomllib
-
         from scanpipe.errors import RigError
-        from scanpipe.rig import rig_from_dict
+        from scanpipe.rig import rig_from_toml
 
         text = self.rig_toml
         if text is None:
             raise RecordingError(f"{self.path}: no {RIG_METADATA!r} metadata (no rig stored)")
         try:
-            return rig_from_dict(tomllib.loads(text), f"{self.path}:{RIG_METADATA}")
-        except tomllib.TOMLDecodeError as err:
-            raise RecordingError(f"{self.path}: stored rig is not valid TOML ({err})") from None
+            return rig_from_toml(text, f"{self.path}:{RIG_METADATA}")
         except RigError as err:
             raise RecordingError(f"{self.path}: stored rig is invalid: {err}") from None
 
