@@ -394,14 +394,23 @@ def test_recordings_stored_rig_goes_through_the_same_validation(cli: CliRunner,
         read_recording(recording).rig()
     assert f"{recording}: stored rig is invalid" in str(info.value)
     assert "scanner.mount.translation_m.0 = nan: nan and inf are not allowed" in str(info.value)
-    # decode then says so and carries the default rig, never the NaN one
+    # decode says so and passes the stored rig on; the stages that compute with it refuse it
+    # (never the default rig in its place: that would be a silently wrong calibration) ...
     result = cli("decode", recording, "--out", tmp_path / "dec", "-q", "--json")
     assert result.code == 0, result.err
-    assert "translation_m.0 = nan" in result.out and "using the default rig" in result.out
+    assert "translation_m.0 = nan" in result.out and "pass a corrected rig" in result.out
     from scanpipe.artifacts import read_artifact
     from scanpipe.rig import rig_from_table
 
-    assert rig_from_table(read_artifact(tmp_path / "dec" / "rig.parquet")[0]) == default_rig()
+    with pytest.raises(RigError, match="translation_m.0 = nan"):
+        rig_from_table(read_artifact(tmp_path / "dec" / "rig.parquet")[0])
+    result = cli("run", recording, "-w", tmp_path / "work", "-q")
+    assert result.code == 2 and result.err.count("\n") == 1, result.err
+    assert "translation_m.0 = nan" in result.err and "--rig" in result.err
+    # ... and a corrected rig file given with --rig gets past it.
+    good = _write(tmp_path, rig_to_toml(default_rig()))
+    result = cli("run", recording, "-w", tmp_path / "work", "--rig", good, "--to", "decode", "-q")
+    assert result.code == 0, result.err
 
 
 def test_run_with_a_bad_rig_override_stops_before_any_stage(cli: CliRunner,
@@ -428,5 +437,5 @@ def test_assemble_refuses_a_rig_artifact_with_nan_calibration(cli: CliRunner,
     assert result.code == 2
     assert result.err == ("scanpipe: error: rig artifact: scanner.mount.translation_m.1 = inf: "
                           "nan and inf are not allowed (allowed: a finite number ≥ -100 and "
-                          "≤ 100)\n")
+                          "≤ 100); run decode again or pass a corrected rig file with --rig\n")
     assert not (tmp_path / "asm" / "points.parquet").exists()

@@ -355,4 +355,10 @@ def rig_from_table(table: Any, source: str = "rig artifact") -> Rig:
         raise RigError([f"not a rig artifact ({err})"], source) from None
     if not isinstance(text, str):
         raise RigError([f"not a rig artifact (toml is {text!r})"], source)
-    return rig_from_toml(text, source, "run decode again or pass a rig file with --rig")
+    hint = "run decode again or pass a corrected rig file with --rig"
+    try:
+        return rig_from_toml(text, source, hint)
+    except RigError as err:
+        if err.problems and hint in err.problems[-1]:
+            raise
+        raise RigError([*err.problems[:-1], f"{err.problems[-1]}; {hint}"], source) from None

@@ -213,19 +213,31 @@ def _rate(count: int, span_ns: int) -> float | None:
     return round(count / (span_ns / 1e9), 3) if span_ns > 0 else None
 
 
-def _recording_rig(recording: Recording, warnings: list[str]) -> Rig:
+def _recording_rig(recording: Recording, warnings: list[str]) -> tuple[Rig, pa.Table]:
+    """The rig to decode with and the ``rig`` artifact to pass on.
+
+    No stored rig (a recording from another tool): the default rig, with a warning. A stored
+    rig that is invalid is passed on as stored, so that the stages that compute with it
+    refuse it with its problem (a corrected rig file via ``--rig`` replaces it); decoding
+    itself only needs the dialect, taken from the default rig then.
+    """
+    if recording.rig_toml is None:
+        warnings.append(f"{recording.path}: no rig stored; using the default rig (pass the "
+                        "rig the scan was made with: scanpipe run REC --rig RIG.toml)")
+        return default_rig(), rig_table(default_rig())
     try:
-        return recording.rig()
+        rig = recording.rig()
     except RecordingError as err:
-        warnings.append(f"{err}; using the default rig")
-        return default_rig()
+        warnings.append(f"{err}; later stages refuse it: pass a corrected rig with --rig")
+        return default_rig(), pa.table({"toml": pa.array([recording.rig_toml], pa.string())})
+    return rig, rig_table(rig)
 
 
 def decode_recording(recording: Recording, params: DecodeParams,
                      progress: ProgressFn = no_progress) -> StageResult:
     """The decode stage on a recording already read (pure: no file access)."""
     warnings = list(recording.warnings)
-    rig = _recording_rig(recording, warnings)
+    rig, rig_artifact = _recording_rig(recording, warnings)
     stream = recording.stream("scanner", RX)
     data = stream.data
     try:
@@ -291,7 +303,7 @@ def decode_recording(recording: Recording, params: DecodeParams,
     }
     return StageResult(
         tables={"profiles": profiles, "motor": motor, "frames": frames_art,
-                "rig": rig_table(rig)},
+                "rig": rig_artifact},
         report=report,
     )
 
