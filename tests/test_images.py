@@ -103,6 +103,13 @@ def test_scene_texture_limit_is_a_parameter(tmp_path: Path) -> None:
     assert MAX_TEXTURE_PX == 8192 * 8192
 
 
+def test_material_file_of_any_name_is_not_taken_for_a_texture(tmp_path: Path) -> None:
+    obj = obj_scene(tmp_path / "obj", black_png(16, 8, channels=3))
+    (obj.parent / "scene.mtl").rename(obj.parent / "materials.txt")
+    obj.write_text(obj.read_text().replace("mtllib scene.mtl", "mtllib materials.txt"))
+    assert load_scene(obj).textures[0].shape == (8, 16, 3)
+
+
 def test_unreadable_texture_is_an_error_not_dropped(tmp_path: Path) -> None:
     obj = obj_scene(tmp_path / "obj", b"this is not an image")
     with pytest.raises(SimulationError, match=r"texture 'tex.png': not a decodable image"):

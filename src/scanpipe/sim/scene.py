@@ -341,7 +341,7 @@ def scene_from_trimesh(loaded: Any, source: str = "scene",
                  np.concatenate(materials), textures, names)
 
 
-def _texture_resolver(path: Path, max_texture_px: int) -> Any:
+def _texture_resolver(path: Path, max_texture_px: int, materials: set[str]) -> Any:
     """A trimesh file resolver that checks every image it hands out from the header, before
     trimesh decodes it: trimesh swallows errors in textures (Pillow's decompression-bomb error
     too) and drops the texture without a word, so the problems are kept and raised after."""
@@ -354,7 +354,7 @@ def _texture_resolver(path: Path, max_texture_px: int) -> Any:
 
         def get(self, name: str) -> bytes:
             data: bytes = super().get(name)
-            if not name.lower().endswith((".mtl", ".bin")):
+            if name not in materials:
                 try:
                     probe_image(data, f"{path}: texture {name!r}", max_texture_px,
                                 SimulationError)
@@ -452,7 +452,9 @@ def load_scene(path: Path | str, pose: Pose | None = None,
         if suffix == ".obj":
             text = path.read_text(encoding="utf-8", errors="replace")
             text, _ = resolve_obj_negative_indices(text)
-            resolver = _texture_resolver(path, max_texture_px)
+            materials = {line.strip()[6:].strip() for line in text.splitlines()
+                         if line.strip().startswith("mtllib")}
+            resolver = _texture_resolver(path, max_texture_px, materials)
             problems = resolver.problems
             loaded = trimesh.load(io.BytesIO(text.encode()), file_type="obj", resolver=resolver,
                                   process=False, maintain_order=True)
