@@ -274,6 +274,17 @@ def resolve_obj_negative_indices(text: str) -> tuple[str, int]:
     return "\n".join(lines) + "\n", rewritten
 
 
+def _rgb_array(image: Image.Image, rows_per_strip: int = 512) -> U8:
+    """An RGB array of a Pillow image, converted strip by strip: ``np.asarray(image)`` goes
+    through ``tobytes`` and ``convert`` copies the whole image, each a second full copy."""
+    width, height = image.size
+    out = np.empty((height, width, 3), dtype=np.uint8)
+    for top in range(0, height, rows_per_strip):
+        strip = image.crop((0, top, width, min(height, top + rows_per_strip)))
+        out[top:top + strip.height] = np.asarray(strip.convert("RGB"), dtype=np.uint8)
+    return out
+
+
 def _material_image(visual: Any, what: str, max_texture_px: int) -> U8:
     """The RGB texture of a trimesh visual, or a small uniform image of its colour.
 
@@ -286,8 +297,7 @@ def _material_image(visual: Any, what: str, max_texture_px: int) -> U8:
     if image is not None:
         check_pixels(image.width, image.height, f"{what}: texture", max_texture_px,
                      SimulationError)
-        rgb = image if image.mode == "RGB" else image.convert("RGB")  # no needless copy
-        return np.asarray(rgb, dtype=np.uint8)
+        return _rgb_array(image)
     color = None
     if material is not None:
         color = getattr(material, "baseColorFactor", None)
@@ -300,15 +310,31 @@ def _material_image(visual: Any, what: str, max_texture_px: int) -> U8:
     return np.full((4, 4, 3), np.clip(rgb_value, 0, 255).astype(np.uint8), dtype=np.uint8)
 
 
+def _placed_meshes(loaded: Any) -> list[tuple[Any, F64, str | None]]:
+    """``(geometry, 4×4 transform, name)`` of every instance in a trimesh scene, or the one mesh.
+
+    Unlike ``Scene.dump`` nothing is copied: a copy of a material copies its texture, and
+    Pillow decodes an image to copy it.
+    """
+    import trimesh
+
+    if not isinstance(loaded, trimesh.Scene):
+        return [(loaded, np.eye(4), None)]
+    placed: list[tuple[Any, F64, str | None]] = []
+    for node in loaded.graph.nodes_geometry:
+        transform, geometry_name = loaded.graph[node]
+        placed.append((loaded.geometry[geometry_name], np.asarray(transform, dtype=np.float64),
+                       str(geometry_name)))
+    return placed
+
+
 def scene_from_trimesh(loaded: Any, source: str = "scene",
                        max_texture_px: int = MAX_TEXTURE_PX) -> Scene:
     """Convert a ``trimesh.Scene`` or ``Trimesh`` (textured or not) into a :class:`Scene`;
     :class:`SimulationError` for a texture of more than ``max_texture_px`` pixels."""
     import trimesh
 
-    meshes = (
-        loaded.dump(concatenate=False) if isinstance(loaded, trimesh.Scene) else [loaded]
-    )
+    meshes = _placed_meshes(loaded)
     vertices: list[F64] = []
     triangles: list[NDArray[np.int64]] = []
     uvs: list[F64] = []
@@ -316,10 +342,12 @@ def scene_from_trimesh(loaded: Any, source: str = "scene",
     textures: list[U8] = []
     names: list[str] = []
     offset = 0
-    for index, mesh in enumerate(meshes):
+    for index, (mesh, transform, placed_name) in enumerate(meshes):
         if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
             continue
         faces = np.asarray(mesh.faces, dtype=np.int64)
+        if np.linalg.det(transform[:3, :3]) < 0:  # a mirroring node turns the faces inside out
+            faces = faces[:, ::-1]
         visual = mesh.visual
         vertex_uv = getattr(visual, "uv", None)
         if vertex_uv is not None and len(vertex_uv) == len(mesh.vertices):
@@ -327,11 +355,12 @@ def scene_from_trimesh(loaded: Any, source: str = "scene",
             tri_uv[..., 1] = 1.0 - tri_uv[..., 1]  # to the glTF convention
         else:
             tri_uv = np.full((len(faces), 3, 2), 0.5)
-        vertices.append(np.asarray(mesh.vertices, dtype=np.float64))
+        corners = np.asarray(mesh.vertices, dtype=np.float64)
+        vertices.append(corners @ transform[:3, :3].T + transform[:3, 3])
         triangles.append(faces + offset)
         uvs.append(tri_uv)
         materials.append(np.full(len(faces), len(textures), dtype=np.int32))
-        name = str(mesh.metadata.get("name", f"mesh_{index}"))
+        name = placed_name or str(mesh.metadata.get("name", f"mesh_{index}"))
         textures.append(_material_image(visual, f"{source}: mesh {name!r}", max_texture_px))
         names.append(name)
         offset += len(mesh.vertices)
