@@ -192,3 +192,20 @@ def test_bad_scene_files_raise_one_line_errors(tmp_path: Path, name: str, conten
 def test_resolve_scene_knows_the_builtins() -> None:
     assert len(resolve_scene("box").triangles) == 12
     assert len(resolve_scene("room").triangles) == len(builtin_room().triangles)
+
+
+def test_scene_instances_are_placed_like_trimesh_dump() -> None:
+    """Instances are moved by their node transforms (a mirror turns faces round), uncopied."""
+    from scanpipe.sim.scene import scene_from_trimesh
+
+    box = trimesh.creation.box((1.0, 2.0, 3.0))
+    moved = np.diag([-1.0, 1.0, 1.0, 1.0])  # a mirroring node
+    moved[:3, 3] = (5.0, 0.0, -1.0)
+    loaded = trimesh.Scene()
+    loaded.add_geometry(box, geom_name="plain")
+    loaded.add_geometry(box, geom_name="mirrored", transform=moved)
+    scene = scene_from_trimesh(loaded)
+    expected = np.concatenate([np.asarray(m.vertices)[np.asarray(m.faces)]
+                               for m in loaded.dump(concatenate=False)])
+    np.testing.assert_allclose(scene.vertices[scene.triangles], expected, atol=1e-12)
+    assert scene.material_names == ["plain", "mirrored"]

@@ -64,9 +64,13 @@ def test_cli_rig_override(cli, workdir: Path, tmp_path: Path, recording: Recordi
     one_camera = recording.rig.model_copy(update={"cameras": recording.rig.cameras[:1]})
     rig_path.write_text(rig_to_toml(one_camera))
     out = tmp_path / "out"
-    result = cli("texture", workdir, "--out", out, "--rig", rig_path, "-q")
-    # the recording has cam1 frames, the override rig does not know cam1
-    assert result.code == 1 and "'cam1' are not in the rig" in result.err
+    result = cli("texture", workdir, "--out", out, "--rig", rig_path, "--json", "-q")
+    # the recording has cam1 frames, the override rig does not know cam1: skipped, named
+    assert result.code == 0, result.err
+    assert "warning: frames: skipped" in result.err
+    assert "camera 'cam1': not in the rig" in result.err
+    report = json.loads(result.out)
+    assert report["faces_textured"] > 0 and "'cam1'" in report["warnings"][0]
 
 
 def test_cli_errors(cli, workdir: Path, tmp_path: Path) -> None:

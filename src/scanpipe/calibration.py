@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from scanpipe.artifacts import atomic_write_bytes
 from scanpipe.errors import ParameterError, RigError, StageError, UsageError
+from scanpipe.images import MAX_FRAME_PX, read_image_file
 from scanpipe.params import load_toml
 from scanpipe.rig import Rig, rig_from_dict, rig_to_toml
 
@@ -121,16 +122,11 @@ def calibrate(images: Sequence[tuple[str, NDArray[np.uint8]]], board: tuple[int,
 
 
 def read_images(paths: Sequence[Path]) -> list[tuple[str, NDArray[np.uint8]]]:
-    """Grey images from files; :class:`UsageError` naming a file that is missing or unreadable."""
-    images = []
-    for path in paths:
-        if not path.is_file():
-            raise UsageError(f"{path}: image not found")
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise UsageError(f"{path}: not a readable image")
-        images.append((str(path), np.asarray(image, dtype=np.uint8)))
-    return images
+    """Grey images from files; :class:`UsageError` naming a file that is missing, unreadable or
+    larger than :data:`~scanpipe.images.MAX_FRAME_PX` (checked from its header, before
+    decoding: calibration images come from the camera that records the frames)."""
+    return [(str(path), read_image_file(path, MAX_FRAME_PX, cv2.IMREAD_GRAYSCALE, UsageError))
+            for path in paths]
 
 
 def apply_calibration(rig_path: Path, camera_id: str, calibration: Calibration) -> Rig:

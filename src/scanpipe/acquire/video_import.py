@@ -25,7 +25,7 @@ import cv2
 
 from scanpipe.artifacts import atomic_path
 from scanpipe.errors import DeviceError, RecordingError, UsageError
-from scanpipe.images import encode_jpeg
+from scanpipe.images import MAX_FRAME_PX, check_pixels, encode_jpeg
 
 #: Everything mcap's stream reader raises on a damaged file (see shared notes).
 _MCAP_DAMAGE: tuple[type[BaseException], ...] = (ValueError, KeyError, IndexError,
@@ -73,6 +73,11 @@ def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90
     if not capture.isOpened():
         raise DeviceError(f"{video}: OpenCV cannot open this video (unknown container or codec)")
     try:
+        # The container's size, before any frame is decoded (0 when it does not say).
+        width = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH) or 0)
+        height = int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT) or 0)
+        if width > 0 and height > 0:
+            check_pixels(width, height, str(video), MAX_FRAME_PX, UsageError)
         fps = capture.get(cv2.CAP_PROP_FPS) or 0.0
         index = 0
         last_ns = -1
@@ -80,6 +85,9 @@ def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90
             ok, image = capture.read()
             if not ok or image is None:
                 break
+            # a stream may change size mid-way: every frame is held to the limit
+            check_pixels(image.shape[1], image.shape[0], f"{video}: frame {index}",
+                         MAX_FRAME_PX, UsageError)
             position_ms = capture.get(cv2.CAP_PROP_POS_MSEC)
             if position_ms > 0 or (index == 0 and position_ms == 0):
                 offset_ns = round(position_ms * 1e6)

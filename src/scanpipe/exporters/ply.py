@@ -15,10 +15,13 @@ from PIL import Image
 from scanpipe import __version__
 from scanpipe.errors import ExportError
 from scanpipe.exporters.model import CloudModel, MeshModel, unit_normals
+from scanpipe.images import MAX_TEXTURE_PX, probe_image
 
 
 def decode_png(data: bytes, where: str) -> NDArray[np.uint8]:
-    """An RGB image ``(H, W, 3)`` from PNG bytes; ExportError when it is not an image."""
+    """An RGB image ``(H, W, 3)`` from PNG bytes; ExportError when it is not an image or is
+    larger than an atlas page may be (checked from the header, before decoding)."""
+    probe_image(data, where, MAX_TEXTURE_PX, ExportError)
     try:
         with Image.open(io.BytesIO(data)) as image:
             pixels: NDArray[np.uint8] = np.asarray(image.convert("RGB"), dtype=np.uint8)

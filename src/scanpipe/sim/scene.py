@@ -7,8 +7,11 @@ the image top) and one RGB texture image per material. Rays are cast with Open3D
 
 from __future__ import annotations
 
+import base64
 import io
+import json
 import re
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,6 +22,7 @@ from PIL import Image
 
 from scanpipe.errors import SimulationError
 from scanpipe.geometry import rotation_matrix_deg
+from scanpipe.images import MAX_TEXTURE_PX, check_pixels, limit_text, probe_image
 from scanpipe.rig import Pose
 
 F64 = NDArray[np.float64]
@@ -270,14 +274,30 @@ def resolve_obj_negative_indices(text: str) -> tuple[str, int]:
     return "\n".join(lines) + "\n", rewritten
 
 
-def _material_image(visual: Any) -> U8:
-    """The RGB texture of a trimesh visual, or a small uniform image of its colour."""
+def _rgb_array(image: Image.Image, rows_per_strip: int = 512) -> U8:
+    """An RGB array of a Pillow image, converted strip by strip: ``np.asarray(image)`` goes
+    through ``tobytes`` and ``convert`` copies the whole image, each a second full copy."""
+    width, height = image.size
+    out = np.empty((height, width, 3), dtype=np.uint8)
+    for top in range(0, height, rows_per_strip):
+        strip = image.crop((0, top, width, min(height, top + rows_per_strip)))
+        out[top:top + strip.height] = np.asarray(strip.convert("RGB"), dtype=np.uint8)
+    return out
+
+
+def _material_image(visual: Any, what: str, max_texture_px: int) -> U8:
+    """The RGB texture of a trimesh visual, or a small uniform image of its colour.
+
+    The size is checked before the pixels are touched (trimesh opens OBJ textures lazily).
+    """
     material = getattr(visual, "material", None)
     image = None
     if material is not None:
         image = getattr(material, "baseColorTexture", None) or getattr(material, "image", None)
     if image is not None:
-        return np.asarray(image.convert("RGB"), dtype=np.uint8)
+        check_pixels(image.width, image.height, f"{what}: texture", max_texture_px,
+                     SimulationError)
+        return _rgb_array(image)
     color = None
     if material is not None:
         color = getattr(material, "baseColorFactor", None)
@@ -285,19 +305,36 @@ def _material_image(visual: Any) -> U8:
             color = getattr(material, "diffuse", None)
     if color is None and hasattr(visual, "face_colors"):
         color = np.asarray(visual.face_colors).reshape(-1, 4)[0]
-    rgb = np.asarray(color if color is not None else (200, 200, 200), dtype=np.float64)[:3]
-    if rgb.max() <= 1.0:
-        rgb = rgb * 255
-    return np.full((4, 4, 3), np.clip(rgb, 0, 255).astype(np.uint8), dtype=np.uint8)
+    rgb_value = np.asarray(color if color is not None else (200, 200, 200), dtype=np.float64)
+    rgb_value = rgb_value[:3] * (255 if rgb_value[:3].max() <= 1.0 else 1)
+    return np.full((4, 4, 3), np.clip(rgb_value, 0, 255).astype(np.uint8), dtype=np.uint8)
 
 
-def scene_from_trimesh(loaded: Any, source: str = "scene") -> Scene:
-    """Convert a ``trimesh.Scene`` or ``Trimesh`` (textured or not) into a :class:`Scene`."""
+def _placed_meshes(loaded: Any) -> list[tuple[Any, F64, str | None]]:
+    """``(geometry, 4×4 transform, name)`` of every instance in a trimesh scene, or the one mesh.
+
+    Unlike ``Scene.dump`` nothing is copied: a copy of a material copies its texture, and
+    Pillow decodes an image to copy it.
+    """
     import trimesh
 
-    meshes = (
-        loaded.dump(concatenate=False) if isinstance(loaded, trimesh.Scene) else [loaded]
-    )
+    if not isinstance(loaded, trimesh.Scene):
+        return [(loaded, np.eye(4), None)]
+    placed: list[tuple[Any, F64, str | None]] = []
+    for node in loaded.graph.nodes_geometry:
+        transform, geometry_name = loaded.graph[node]
+        placed.append((loaded.geometry[geometry_name], np.asarray(transform, dtype=np.float64),
+                       str(geometry_name)))
+    return placed
+
+
+def scene_from_trimesh(loaded: Any, source: str = "scene",
+                       max_texture_px: int = MAX_TEXTURE_PX) -> Scene:
+    """Convert a ``trimesh.Scene`` or ``Trimesh`` (textured or not) into a :class:`Scene`;
+    :class:`SimulationError` for a texture of more than ``max_texture_px`` pixels."""
+    import trimesh
+
+    meshes = _placed_meshes(loaded)
     vertices: list[F64] = []
     triangles: list[NDArray[np.int64]] = []
     uvs: list[F64] = []
@@ -305,10 +342,12 @@ def scene_from_trimesh(loaded: Any, source: str = "scene") -> Scene:
     textures: list[U8] = []
     names: list[str] = []
     offset = 0
-    for index, mesh in enumerate(meshes):
+    for index, (mesh, transform, placed_name) in enumerate(meshes):
         if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
             continue
         faces = np.asarray(mesh.faces, dtype=np.int64)
+        if np.linalg.det(transform[:3, :3]) < 0:  # a mirroring node turns the faces inside out
+            faces = faces[:, ::-1]
         visual = mesh.visual
         vertex_uv = getattr(visual, "uv", None)
         if vertex_uv is not None and len(vertex_uv) == len(mesh.vertices):
@@ -316,12 +355,14 @@ def scene_from_trimesh(loaded: Any, source: str = "scene") -> Scene:
             tri_uv[..., 1] = 1.0 - tri_uv[..., 1]  # to the glTF convention
         else:
             tri_uv = np.full((len(faces), 3, 2), 0.5)
-        vertices.append(np.asarray(mesh.vertices, dtype=np.float64))
+        corners = np.asarray(mesh.vertices, dtype=np.float64)
+        vertices.append(corners @ transform[:3, :3].T + transform[:3, 3])
         triangles.append(faces + offset)
         uvs.append(tri_uv)
         materials.append(np.full(len(faces), len(textures), dtype=np.int32))
-        textures.append(_material_image(visual))
-        names.append(str(mesh.metadata.get("name", f"mesh_{index}")))
+        name = placed_name or str(mesh.metadata.get("name", f"mesh_{index}"))
+        textures.append(_material_image(visual, f"{source}: mesh {name!r}", max_texture_px))
+        names.append(name)
         offset += len(mesh.vertices)
     if not triangles:
         raise SimulationError(f"{source}: contains no triangles")
@@ -329,9 +370,99 @@ def scene_from_trimesh(loaded: Any, source: str = "scene") -> Scene:
                  np.concatenate(materials), textures, names)
 
 
-def load_scene(path: Path | str, pose: Pose | None = None) -> Scene:
+def _texture_resolver(path: Path, max_texture_px: int, materials: set[str]) -> Any:
+    """A trimesh file resolver that checks every image it hands out from the header, before
+    trimesh decodes it: trimesh swallows errors in textures (Pillow's decompression-bomb error
+    too) and drops the texture without a word, so the problems are kept and raised after."""
+    import trimesh
+
+    class Resolver(trimesh.resolvers.FilePathResolver):  # type: ignore[misc]
+        def __init__(self, source: str) -> None:
+            super().__init__(source)
+            self.problems: list[SimulationError] = []
+
+        def get(self, name: str) -> bytes:
+            data: bytes = super().get(name)
+            if name not in materials:
+                try:
+                    probe_image(data, f"{path}: texture {name!r}", max_texture_px,
+                                SimulationError)
+                except SimulationError as err:
+                    self.problems.append(err)
+                    raise
+            return data
+
+    return Resolver(str(path))
+
+
+def _glb_chunks(data: bytes, path: Path) -> tuple[dict[str, Any], bytes]:
+    """The JSON and BIN chunks of a binary glTF."""
+    magic, _, length = struct.unpack_from("<4sII", data)
+    if magic != b"glTF" or length > len(data):
+        raise SimulationError(f"{path}: not a binary glTF (bad header)")
+    json_length = struct.unpack_from("<I", data, 12)[0]
+    tree = json.loads(data[20:20 + json_length])
+    binary = b""
+    at = 20 + json_length
+    if at + 8 <= len(data):
+        bin_length, _ = struct.unpack_from("<II", data, at)
+        binary = data[at + 8:at + 8 + bin_length]
+    return tree, binary
+
+
+def _check_gltf_images(path: Path, max_texture_px: int) -> None:
+    """Check every image of a glTF/GLB (embedded, base64 or beside it) from its header.
+
+    trimesh decodes glTF images while loading, so this runs before it.
+    """
+    import trimesh
+
+    resolver = trimesh.resolvers.FilePathResolver(str(path))
+    try:
+        data = path.read_bytes()
+        if path.suffix.lower() == ".glb":
+            tree, binary = _glb_chunks(data, path)
+        else:
+            tree, binary = json.loads(data), b""
+
+        def uri_bytes(uri: str) -> bytes:
+            marker = uri.find("base64,")
+            if marker >= 0:
+                return base64.b64decode(uri[marker + 7:])
+            return bytes(resolver.get(uri))
+
+        buffers = [uri_bytes(b["uri"]) if "uri" in b else binary
+                   for b in tree.get("buffers", [])]
+        for i, image in enumerate(tree.get("images", [])):
+            label = image.get("name") or image.get("uri", "")[:60] or f"#{i}"
+            what = f"{path}: texture {label!r}"
+            if "bufferView" in image:
+                view = tree["bufferViews"][image["bufferView"]]
+                start = int(view.get("byteOffset", 0))
+                blob = buffers[view["buffer"]][start:start + int(view["byteLength"])]
+            elif "uri" in image:
+                blob = uri_bytes(image["uri"])
+            else:
+                continue
+            if image.get("mimeType") != "image/ktx2":  # trimesh skips KTX2
+                probe_image(blob, what, max_texture_px, SimulationError)
+    except SimulationError:
+        raise
+    except (OSError, ValueError, KeyError, IndexError, TypeError, struct.error) as err:
+        raise SimulationError(f"{path}: cannot read the scene's images "
+                              f"({type(err).__name__}: {err})") from None
+
+
+def load_scene(path: Path | str, pose: Pose | None = None,
+               max_texture_px: int = MAX_TEXTURE_PX) -> Scene:
     """Load an OBJ (+MTL + images) or GLB/glTF scene in metres, optionally moved by ``pose``
-    (rotation then translation, into the rig frame)."""
+    (rotation then translation, into the rig frame).
+
+    Every texture is checked from its header before it is decoded: one of more than
+    ``max_texture_px`` pixels (default 8192², the largest atlas page) is a
+    :class:`SimulationError` naming it, its size and the limit. The limit can be raised up to
+    Pillow's ``Image.MAX_IMAGE_PIXELS``.
+    """
     import trimesh
 
     path = Path(path)
@@ -341,20 +472,31 @@ def load_scene(path: Path | str, pose: Pose | None = None) -> Scene:
                               ".obj, .glb, .gltf")
     if not path.is_file():
         raise SimulationError(f"{path}: scene file not found")
+    pillow_limit = Image.MAX_IMAGE_PIXELS or max_texture_px
+    if not 0 < max_texture_px <= pillow_limit:
+        raise SimulationError(f"max_texture_px {max_texture_px}: allowed 1 to "
+                              f"{limit_text(pillow_limit)} (Pillow's MAX_IMAGE_PIXELS)")
+    problems: list[SimulationError] = []
     try:
         if suffix == ".obj":
             text = path.read_text(encoding="utf-8", errors="replace")
             text, _ = resolve_obj_negative_indices(text)
-            resolver = trimesh.resolvers.FilePathResolver(str(path))
+            materials = {line.strip()[6:].strip() for line in text.splitlines()
+                         if line.strip().startswith("mtllib")}
+            resolver = _texture_resolver(path, max_texture_px, materials)
+            problems = resolver.problems
             loaded = trimesh.load(io.BytesIO(text.encode()), file_type="obj", resolver=resolver,
                                   process=False, maintain_order=True)
         else:
+            _check_gltf_images(path, max_texture_px)
             loaded = trimesh.load(str(path), process=False)
     except SimulationError:
         raise
     except Exception as err:  # trimesh raises many types on bad files
         raise SimulationError(f"{path}: cannot read the scene: {err}") from err
-    scene = scene_from_trimesh(loaded, str(path))
+    if problems:
+        raise problems[0]
+    scene = scene_from_trimesh(loaded, str(path), max_texture_px)
     if pose is not None:
         rotation = rotation_matrix_deg(pose.rotation_deg)
         scene.vertices = scene.vertices @ rotation.T + np.asarray(pose.translation_m)

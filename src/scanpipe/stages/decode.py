@@ -32,6 +32,7 @@ from pydantic import Field
 
 from scanpipe.clock import fit_clock, unwrap_device_ms
 from scanpipe.errors import ProtocolError, RecordingError, StageError
+from scanpipe.images import image_size
 from scanpipe.params import Params
 from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn, no_progress
@@ -77,36 +78,6 @@ class DecodeParams(Params):
     gap_factor: float = Field(
         3.0, gt=1, le=1000,
         description="report an interval between profiles longer than this × the median as a gap")
-
-
-def image_size(data: bytes) -> tuple[int, int] | None:
-    """``(width, height)`` from a JPEG's SOF segment or a PNG's IHDR; None if not found."""
-    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24:
-        return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
-    if data[:2] != b"\xff\xd8":
-        return None
-    pos = 2
-    while pos + 4 <= len(data):
-        if data[pos] != 0xFF:
-            return None
-        marker = data[pos + 1]
-        if marker == 0xFF:  # fill byte
-            pos += 1
-            continue
-        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:  # no length
-            pos += 2
-            continue
-        length = int.from_bytes(data[pos + 2:pos + 4], "big")
-        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
-            if pos + 9 > len(data):
-                return None
-            height = int.from_bytes(data[pos + 5:pos + 7], "big")
-            width = int.from_bytes(data[pos + 7:pos + 9], "big")
-            return width, height
-        if marker == 0xDA or length < 2:  # start of scan before any SOF: give up
-            return None
-        pos += 2 + length
-    return None
 
 
 def _list_array(arrays: Sequence[NDArray[Any] | None], value_type: pa.DataType) -> pa.Array:

@@ -30,7 +30,7 @@ from scanpipe.progress import ProgressFn
 from scanpipe.rig import Rig, rig_from_table
 from scanpipe.texturing.atlas import build_atlas
 from scanpipe.texturing.exposure import seam_colour_pairs, solve_gains
-from scanpipe.texturing.frames import choose_frames
+from scanpipe.texturing.frames import choose_frames, known_camera_frames
 from scanpipe.texturing.projective import colorize_points, face_scores, select_frames_per_face
 from scanpipe.texturing.visibility import MeshOcclusion, face_normals
 
@@ -169,6 +169,12 @@ def texture(inputs: Mapping[str, Any], params: TextureParams, progress: Progress
     rig = rig_from_table(inputs["rig"])
     if not rig.cameras:
         raise StageError("rig: no cameras; a textured model needs at least one [[cameras]] entry")
+    known_frames, warnings = known_camera_frames(inputs["frames"], rig)
+    if warnings and known_frames.num_rows == 0:
+        raise StageError(f"frames: none of the rig's cameras "
+                         f"({', '.join(c.id for c in rig.cameras)}) has frames; "
+                         + "; ".join(w.removeprefix("frames: ") for w in warnings))
+    inputs = {**inputs, "frames": known_frames}
     normals, areas = face_normals(vertices, faces, vertex_normals)
     flipped = orient_towards_rig(vertices, faces, normals, areas, rig)
     if params.method == "panorama":
@@ -176,6 +182,7 @@ def texture(inputs: Mapping[str, Any], params: TextureParams, progress: Progress
 
         result = texture_panorama(vertices, faces, normals, areas, inputs, rig, params, progress)
         result.report["normals_flipped"] = flipped
+        result.report["warnings"] = warnings
         return result
     frames = choose_frames(inputs["frames"], inputs["motor"], rig, params.frame_spacing_deg,
                            params.frame_stride, progress)
@@ -221,6 +228,7 @@ def texture(inputs: Mapping[str, Any], params: TextureParams, progress: Progress
         "gain_max": round(float(used_gains.max()), 4),
         "neutral_rgb": list(params.neutral_rgb),
         "normals_flipped": flipped,
+        "warnings": warnings,
         **{k: round(v, 3) for k, v in timing.items()},
         "seconds": round(time.perf_counter() - started, 3),
     }

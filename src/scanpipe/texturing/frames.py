@@ -8,17 +8,19 @@ every frame of a video, and low for frames smeared by the turning platform.
 
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 from numpy.typing import NDArray
 
 from scanpipe.artifacts import check_columns
 from scanpipe.camera import camera_pose_in_rig
 from scanpipe.errors import StageError
+from scanpipe.images import MAX_FRAME_PX, decode_image_bytes
 from scanpipe.motion import beta_deg_at
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import CameraConfig, Rig
@@ -62,7 +64,8 @@ class FrameSet:
         if index in self._cache:
             self._cache.move_to_end(index)
             return self._cache[index]
-        image = decode_image(self.encoded[index], f"frame {self.sequences[index]}")
+        image = decode_image(self.encoded[index], f"frame {self.sequences[index]} of "
+                                                   f"{self.cameras[index].id!r}")
         cam = self.cameras[index]
         if image.shape[:2] != (cam.height, cam.width):
             raise StageError(f"frames: frame {self.sequences[index]} of {cam.id!r} is "
@@ -111,19 +114,43 @@ def camera_for_size(cam: CameraConfig, width: int, height: int) -> CameraConfig:
 
 
 def decode_image(data: bytes, what: str) -> U8:
-    """A colour (BGR) image from encoded bytes; :class:`StageError` naming ``what`` if broken."""
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
-    if image is None:
-        raise StageError(f"frames: {what} is not a decodable image")
-    return np.asarray(image, dtype=np.uint8)
+    """A colour (BGR) image from encoded bytes; :class:`StageError` naming ``what`` if broken
+    or larger than :data:`~scanpipe.images.MAX_FRAME_PX` (checked before decoding)."""
+    return decode_image_bytes(data, f"frames: {what}", MAX_FRAME_PX, cv2.IMREAD_COLOR,
+                              StageError)
 
 
 def sharpness_of(data: bytes, what: str) -> float:
     """Variance of the Laplacian of a quarter-size grey decode (higher is sharper)."""
-    grey = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_4)
-    if grey is None:
-        raise StageError(f"frames: {what} is not a decodable image")
+    grey = decode_image_bytes(data, f"frames: {what}", MAX_FRAME_PX,
+                              cv2.IMREAD_REDUCED_GRAYSCALE_4, StageError)
     return float(cv2.Laplacian(grey, cv2.CV_32F).var())
+
+
+def _shown_id(camera_id: str, limit: int = 60) -> str:
+    """A camera id for a message: quoted and escaped (``repr``), long ones cut short."""
+    text = repr(camera_id)
+    return text if len(text) <= limit else f"{text[:limit - 1]}…({len(camera_id)} characters)"
+
+
+def known_camera_frames(frames: pa.Table, rig: Rig) -> tuple[pa.Table, list[str]]:
+    """The frames of cameras the rig knows, and one warning per camera id it does not know.
+
+    A camera id comes from the recording's channel name (``/camera/<id>/image``), which
+    anything may have written: a path-like, very long or unicode id is skipped, named, never
+    used as a path.
+    """
+    check_columns(frames, FRAME_COLUMNS, "frames")
+    known = {c.id for c in rig.cameras}
+    ids = frames.column("camera_id")
+    counts = Counter(ids.to_pylist())
+    unknown = sorted((c for c in counts if c not in known), key=str)
+    if not unknown:
+        return frames, []
+    keep = pc.is_in(ids, value_set=pa.array(sorted(known), pa.string()))
+    warnings = [f"frames: skipped {counts[c]} frame(s) of camera {_shown_id(str(c))}: not in "
+                f"the rig (cameras: {', '.join(sorted(known)) or 'none'})" for c in unknown]
+    return frames.filter(pc.fill_null(keep, False)), warnings
 
 
 def choose_frames(
@@ -148,7 +175,8 @@ def choose_frames(
     known = {c.id for c in rig.cameras}
     unknown = sorted(set(camera_ids.tolist()) - known)
     if unknown:
-        raise StageError(f"frames: camera(s) {', '.join(map(repr, unknown))} are not in the rig "
+        shown = ", ".join(_shown_id(str(c)) for c in unknown)
+        raise StageError(f"frames: camera(s) {shown} are not in the rig "
                          f"(cameras: {', '.join(sorted(known)) or 'none'})")
     order = np.lexsort((times, camera_ids.astype(str)))
     rank = np.empty(len(order), dtype=np.int64)
@@ -162,7 +190,8 @@ def choose_frames(
     data = frames.column("data")
     sharp = np.empty(len(kept), dtype=np.float64)
     for i, row in enumerate(kept):
-        sharp[i] = sharpness_of(data[int(row)].as_py(), f"frame {sequences[row]}")
+        sharp[i] = sharpness_of(data[int(row)].as_py(),
+                                f"frame {sequences[row]} of {camera_ids[row]!r}")
         if i % 16 == 0:
             progress("rate frames", i, len(kept))
     if spacing_deg > 0:
@@ -179,8 +208,8 @@ def choose_frames(
     for cam in rig.cameras:  # the first frame of each camera gives the size of all its frames
         first = next((k for k, row in enumerate(rows) if camera_ids[row] == cam.id), None)
         if first is not None:
-            height, width = decode_image(encoded[first], f"frame {sequences[rows[first]]}"
-                                         ).shape[:2]
+            height, width = decode_image(
+                encoded[first], f"frame {sequences[rows[first]]} of {cam.id!r}").shape[:2]
             sized[cam.id] = camera_for_size(cam, width, height)
     return FrameSet(
         camera_ids=[str(c) for c in camera_ids[rows]],
