@@ -402,7 +402,7 @@ def test_recordings_stored_rig_goes_through_the_same_validation(cli: CliRunner,
     from scanpipe.artifacts import read_artifact
     from scanpipe.rig import rig_from_table
 
-    with pytest.raises(RigError, match="translation_m.0 = nan"):
+    with pytest.raises(RigError, match=r"translation_m\.0 = nan"):
         rig_from_table(read_artifact(tmp_path / "dec" / "rig.parquet")[0])
     result = cli("run", recording, "-w", tmp_path / "work", "-q")
     assert result.code == 2 and result.err.count("\n") == 1, result.err
