@@ -152,7 +152,9 @@ def test_a_second_sigint_stops_the_way_back(tmp_path: Path, scene: Scene) -> Non
             os.kill(os.getpid(), signal.SIGINT)
             while recorder.phase != "returning to the start" and time.monotonic() < deadline:
                 time.sleep(0.001)
-            while not rig.platform.moving_at(rig.clock.now_s()) and time.monotonic() < deadline:
+            away = _absolute(rig)
+            # Wait until the way back has begun for real (the ramp's first pulses take ~20 ms).
+            while _absolute(rig) > away - 20 and time.monotonic() < deadline:
                 time.sleep(0.001)
             os.kill(os.getpid(), signal.SIGINT)
 
