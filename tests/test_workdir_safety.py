@@ -347,3 +347,23 @@ def test_sigkill_during_a_stage_then_the_next_run_completes(scan: Path, tmp_path
     assert finished.returncode == 0, finished.stderr
     assert assert_consistent(work) == 6
     assert sorted(p.name for p in (work / STATE_DIR).iterdir()) == ["lock"]
+
+
+@pytest.mark.parametrize("command", ["decode", "run"])
+def test_cli_disk_full_is_one_line_and_keeps_the_previous_set(
+        cli, scan: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,  # type: ignore[no-untyped-def]
+        command: str) -> None:
+    out = tmp_path / "out"
+    args: list[str | Path] = (["decode", scan, "--out", out] if command == "decode" else
+                              ["run", scan, "--workdir", out, "--to", "decode"])
+    change = "checksum=lenient" if command == "decode" else "decode.checksum=lenient"
+    assert cli(*args, "-q").code == 0
+    before = _snapshot(out)
+    _fail_on_call(monkeypatch, 3, errno.ENOSPC)  # two tables written, then the disk fills
+    failed = cli(*args, "-q", "--set", change)
+    folder = out if command == "decode" else out / "decode"
+    assert failed.code == 1
+    assert failed.err == (f"scanpipe: error: {folder / 'frames.parquet'}: cannot be written "
+                          "(No space left on device); the previous decode artifacts are kept\n")
+    assert "Traceback" not in failed.err
+    assert _snapshot(out) == before
