@@ -5,6 +5,11 @@ An artifact is one Parquet file named after what it holds (``profiles.parquet``,
 :data:`PROVENANCE_KEY`: the stage and its version, the parameters with defaults filled in, the
 keys of its inputs, the library versions that change its result, times and counts, and its own
 ``key``, the hash of all that determines its content.
+
+A stage's artifacts are replaced together (:func:`write_together`): everything is written and
+fsynced into a staging folder under ``<folder>/.scanpipe/`` (same filesystem), then swapped in
+by renames; :func:`recover` finishes or undoes what a killed writer left there. See
+docs/artifacts.md for the protocol.
 """
 
 from __future__ import annotations
@@ -12,9 +17,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
@@ -25,6 +31,10 @@ import pyarrow.parquet as pq
 from scanpipe.errors import ArtifactError
 
 PROVENANCE_KEY = b"scanpipe.provenance"
+
+#: The hidden folder, in a workdir or an output folder, holding the lock and staging folders.
+#: Two levels below the folder, so ``<folder>/*/<artifact>.parquet`` never sees staged files.
+STATE_DIR = ".scanpipe"
 
 
 def _file_mode() -> int:
@@ -108,8 +118,8 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         tmp.write_bytes(data)
 
 
-def write_artifact(path: Path, table: pa.Table, provenance: Mapping[str, Any]) -> None:
-    """Write ``table`` to ``path`` atomically, with ``provenance`` in the schema metadata."""
+def _write_parquet(path: Path, table: pa.Table, provenance: Mapping[str, Any]) -> None:
+    """Write ``table`` to ``path`` (not atomically) with ``provenance`` in the schema metadata."""
     metadata = dict(table.schema.metadata or {})
     metadata[PROVENANCE_KEY] = canonical_json(provenance).encode()
     table = table.replace_schema_metadata(metadata)
@@ -117,12 +127,144 @@ def write_artifact(path: Path, table: pa.Table, provenance: Mapping[str, Any]) -
     dictionary_columns = [
         f.name for f in table.schema if pa.types.is_string(f.type) or pa.types.is_boolean(f.type)
     ]
+    pq.write_table(table, path, compression="zstd", compression_level=1,
+                   use_dictionary=dictionary_columns or False)
+
+
+def write_artifact(path: Path, table: pa.Table, provenance: Mapping[str, Any]) -> None:
+    """Write ``table`` to ``path`` atomically, with ``provenance`` in the schema metadata."""
     try:
         with atomic_path(path) as tmp:
-            pq.write_table(table, tmp, compression="zstd", compression_level=1,
-                           use_dictionary=dictionary_columns or False)
+            _write_parquet(tmp, table, provenance)
     except OSError as err:
         raise ArtifactError(f"{path}: cannot be written ({err.strerror or err})") from None
+
+
+def _fsync(path: Path) -> None:
+    """Flush a file or a folder to disk (a folder: the names in it)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_together(
+    out_dir: Path,
+    stage: str,
+    tables: Mapping[str, tuple[pa.Table, Mapping[str, Any]]],
+    files: Mapping[str, bytes],
+    replace_folder: bool,
+) -> None:
+    """Write a stage's artifacts (``name.parquet``) and extra files so that they replace the
+    previous set together; on any OSError the previous set is kept.
+
+    ``replace_folder``: ``out_dir`` belongs to the stage (``W/<stage>/`` of a workdir) and is
+    replaced as a whole by two renames, so a reader sees the old set, the new set, or (for the
+    instant between the renames) no folder — never a mix. Otherwise ``out_dir`` is a shared flat
+    folder: the staged set is committed by one rename, then each file is renamed into place; a
+    writer killed in between is completed by :func:`recover` before the next write.
+    The caller holds the folder's lock (:func:`scanpipe.workdir.workdir_lock`).
+    """
+    owner = out_dir.parent if replace_folder else out_dir
+    state = owner / STATE_DIR
+    staging = state / f"tmp-{stage}-{os.getpid()}"
+    names = [*(f"{name}.parquet" for name in tables), *files]
+    commit = state / f"commit-{stage}-{os.getpid()}"
+    for file_name in [] if replace_folder else names:
+        if (out_dir / file_name).is_dir():
+            raise ArtifactError(f"{out_dir / file_name}: is a folder; the {stage} output of "
+                                "that name cannot replace it")
+    where = out_dir
+    try:
+        if staging.exists():
+            shutil.rmtree(staging)
+        staging.mkdir(parents=True)
+        for file_name, data in files.items():
+            where = out_dir / file_name
+            (staging / file_name).parent.mkdir(parents=True, exist_ok=True)
+            (staging / file_name).write_bytes(data)
+            _fsync(staging / file_name)
+        for name, (table, provenance) in tables.items():
+            where = out_dir / f"{name}.parquet"
+            _write_parquet(staging / f"{name}.parquet", table, provenance)
+            _fsync(staging / f"{name}.parquet")
+        where = out_dir
+        _fsync(staging)
+        if replace_folder:
+            _swap_folder(staging, out_dir, state / f"old-{stage}-{os.getpid()}")
+            return
+        os.rename(staging, commit)  # the commit point: from here on the new set wins
+    except OSError as err:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise ArtifactError(f"{where}: cannot be written ({err.strerror or err}); the previous "
+                            f"{stage} artifacts are kept") from None
+    try:
+        _fsync(state)
+        _roll_forward(commit, out_dir)
+    except OSError as err:
+        raise ArtifactError(f"{out_dir}: replacing the {stage} artifacts was interrupted "
+                            f"({err.strerror or err}); the next scanpipe command writing there "
+                            "completes it") from None
+
+
+def _swap_folder(staging: Path, target: Path, aside: Path) -> None:
+    """Replace folder ``target`` by ``staging``: old aside, new in, old deleted."""
+    if aside.exists():
+        shutil.rmtree(aside)
+    had_old = os.path.lexists(target)
+    if had_old:
+        os.rename(target, aside)
+    try:
+        os.rename(staging, target)
+    except OSError:
+        if had_old:
+            os.rename(aside, target)
+        raise
+    # The swap is done; failing to flush the folder or delete the old set does not undo it.
+    with suppress(OSError):
+        _fsync(target.parent)
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def _roll_forward(commit: Path, out_dir: Path) -> None:
+    """Rename every file of a committed staging folder into ``out_dir``, then remove it."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for path in sorted(commit.rglob("*")):
+        if path.is_file():
+            target = out_dir / path.relative_to(commit)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(path, target)
+    _fsync(out_dir)
+    shutil.rmtree(commit)
+
+
+def recover(owner: Path) -> None:
+    """Finish or undo what a killed :func:`write_together` left in ``owner/.scanpipe/``.
+
+    Incomplete staging folders (``tmp-*``) are deleted; committed ones (``commit-*``) are rolled
+    forward into ``owner``; a stage folder moved aside (``old-<stage>-*``) goes back to
+    ``owner/<stage>`` if the new one never arrived, else it is deleted. Call it holding the
+    folder's lock, before deciding what is reusable.
+    """
+    state = owner / STATE_DIR
+    try:
+        entries = sorted(state.iterdir()) if state.is_dir() else []
+        for entry in entries:
+            kind, _, rest = entry.name.partition("-")
+            if kind == "tmp":
+                shutil.rmtree(entry)
+            elif kind == "commit":
+                _roll_forward(entry, owner)
+            elif kind == "old":
+                target = owner / rest.rpartition("-")[0]
+                if os.path.lexists(target):
+                    shutil.rmtree(entry)
+                else:
+                    os.rename(entry, target)
+    except OSError as err:
+        raise ArtifactError(f"{state}: cannot clean up after an interrupted write "
+                            f"({err.strerror or err})") from None
 
 
 def read_provenance(path: Path) -> dict[str, Any]:

@@ -5,6 +5,9 @@ and one frozen parameter model. It never opens files: the runner (:func:`execute
 inputs, computes the output key, reuses outputs whose key is unchanged, and writes new ones
 atomically with provenance. The one exception is the raw recording, which reaches the decode
 stage as a :class:`pathlib.Path` because it is not a table.
+
+Writers hold the folder's lock (:func:`scanpipe.workdir.workdir_lock`) and replace a stage's
+artifacts together (:func:`scanpipe.artifacts.write_together`).
 """
 
 from __future__ import annotations
@@ -21,16 +24,18 @@ import pyarrow as pa
 from scanpipe import __version__
 from scanpipe.artifacts import (
     artifact_key,
-    atomic_write_bytes,
     file_key,
     library_versions,
     read_artifact,
     read_provenance,
+    recover,
     write_artifact,
+    write_together,
 )
 from scanpipe.errors import ArtifactError, ParameterError
 from scanpipe.params import Params, validate
 from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.workdir import DEFAULT_LOCK_WAIT_S, lock_root, workdir_lock
 
 #: Inputs that are raw files, not Parquet artifacts: keyed by the hash of their bytes.
 RAW_INPUTS = frozenset({"recording"})
@@ -128,11 +133,25 @@ def execute(
     params: Params,
     progress: ProgressFn = no_progress,
     force: bool = False,
+    replace_folder: bool = False,
+    lock_wait_s: float = DEFAULT_LOCK_WAIT_S,
 ) -> RunRecord:
-    """Run ``stage`` on artifact files, reusing outputs whose key is unchanged."""
+    """Run ``stage`` on artifact files, reusing outputs whose key is unchanged.
+
+    The outputs replace the previous ones together, under the lock of ``out_dir``'s workdir.
+    ``replace_folder``: ``out_dir`` is the stage's own folder in a workdir (``W/<stage>/``),
+    replaced as a whole; otherwise only the stage's files in ``out_dir`` are replaced.
+    """
     missing = [name for name in stage.inputs if name not in inputs]
     if missing:
         raise ArtifactError(f"stage {stage.name!r} needs inputs: {', '.join(missing)}")
+    with workdir_lock(lock_root(out_dir, replace_folder), lock_wait_s):
+        recover(out_dir.parent if replace_folder else out_dir)
+        return _execute_locked(stage, inputs, out_dir, params, progress, force, replace_folder)
+
+
+def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, params: Params,
+                    progress: ProgressFn, force: bool, replace_folder: bool) -> RunRecord:
     keys = {name: input_key(name, inputs[name]) for name in stage.inputs}
     libraries = library_versions(stage.libraries)
     params_data = params.model_dump(mode="json")
@@ -166,12 +185,9 @@ def execute(
         "report": result.report,
         "files": sorted(result.files),
     }
-    # Extra files first, tables last: a table's key vouches for the files beside it.
-    for file_name, data in result.files.items():
-        atomic_write_bytes(out_dir / file_name, data)
-    for name, table in result.tables.items():
-        write_artifact(outputs[name], table, {**provenance, "artifact": name,
-                                              "rows": table.num_rows})
+    tables = {name: (table, {**provenance, "artifact": name, "rows": table.num_rows})
+              for name, table in result.tables.items()}
+    write_together(out_dir, stage.name, tables, result.files, replace_folder)
     return RunRecord(stage.name, key, False, seconds, outputs, result.report)
 
 
@@ -226,6 +242,7 @@ def run_chain(
     rig_override: Path | None = None,
     progress: ProgressFn = no_progress,
     on_stage: Callable[[RunRecord], None] | None = None,
+    lock_wait_s: float = DEFAULT_LOCK_WAIT_S,
 ) -> list[RunRecord]:
     """Run the stages in order from a recording, each into ``workdir/<stage>/``.
 
@@ -233,6 +250,9 @@ def run_chain(
     when its output key is unchanged (see :func:`execute`); change one parameter and that stage
     and what follows it rerun. ``rig_override`` replaces the rig that decode found in the
     recording (a corrected calibration) for every later stage.
+
+    The whole chain holds the workdir's lock, so a second run on the same workdir waits up to
+    ``lock_wait_s`` seconds (then :class:`ArtifactError`) and two runs never mix artifacts.
     """
     chain = list(stages if stages is not None else registry().values())
     names = [s.name for s in chain]
@@ -242,6 +262,15 @@ def run_chain(
         chain = chain[: names.index(to) + 1]
     if not recording.is_file():
         raise ArtifactError(f"{recording}: recording not found")
+    with workdir_lock(workdir, lock_wait_s):
+        return _run_chain_locked(chain, recording, workdir, params, force, rig_override,
+                                 progress, on_stage)
+
+
+def _run_chain_locked(chain: Sequence[Stage], recording: Path, workdir: Path,
+                      params: Mapping[str, Params], force: bool, rig_override: Path | None,
+                      progress: ProgressFn, on_stage: Callable[[RunRecord], None] | None
+                      ) -> list[RunRecord]:
     available: dict[str, Path] = {"recording": recording}
     override_path = rig_override_artifact(rig_override, workdir) if rig_override else None
     records: list[RunRecord] = []
@@ -251,7 +280,8 @@ def run_chain(
             raise ArtifactError(f"stage {stage.name!r} needs {', '.join(missing)}, "
                                 "which no earlier stage produces")
         record = execute(stage, {n: available[n] for n in stage.inputs}, workdir / stage.name,
-                         params.get(stage.name) or stage.params(), progress, force)
+                         params.get(stage.name) or stage.params(), progress, force,
+                         replace_folder=True)
         available.update(record.outputs)
         if override_path is not None and "rig" in record.outputs:
             available["rig"] = override_path

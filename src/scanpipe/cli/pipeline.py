@@ -17,6 +17,7 @@ from scanpipe.errors import ArtifactError
 from scanpipe.params import apply_assignments, load_toml
 from scanpipe.pipeline import RunRecord, Stage, registry, run_chain, validate_pipeline_params
 from scanpipe.progress import rich_progress
+from scanpipe.workdir import DEFAULT_LOCK_WAIT_S
 
 
 def pipeline_params_from_cli(params_file: Path | None, assignments: list[str] | None
@@ -39,6 +40,9 @@ def run(
     to: str | None = typer.Option(None, "--to", help="Stop after this stage."),
     force: bool = typer.Option(False, "--force", help="Recompute every stage."),
     rig: Path | None = typer.Option(None, "--rig", help="Rig TOML overriding the recording's."),
+    wait_s: float = typer.Option(DEFAULT_LOCK_WAIT_S, "--wait", min=0.0,
+                                 help="Seconds to wait while another scanpipe writes into the "
+                                      "workdir (0: refuse at once)."),
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
@@ -49,7 +53,8 @@ def run(
         sys.stderr.write(f"scanpipe run {recording} → {workdir}\n")
     with rich_progress(quiet) as progress:
         records = run_chain(recording, workdir, params, to=to, force=force, rig_override=rig,
-                            progress=progress, on_stage=None if quiet else _print_record)
+                            progress=progress, on_stage=None if quiet else _print_record,
+                            lock_wait_s=wait_s)
     if not quiet:
         ran = sum(not r.reused for r in records)
         total = sum(r.seconds for r in records)

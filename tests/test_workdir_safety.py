@@ -1,0 +1,369 @@
+"""A stage's artifacts are replaced together, and writers on one workdir take turns.
+
+Stand-in stages over real Parquet for the write protocol (fast); real processes, real
+``fcntl`` locks and real SIGKILLs for the lock and the crash recovery.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pytest
+
+import scanpipe
+from scanpipe import artifacts
+from scanpipe.artifacts import STATE_DIR, read_provenance
+from scanpipe.errors import ArtifactError
+from scanpipe.params import Params
+from scanpipe.pipeline import Stage, StageResult, execute, registry, run_chain
+from scanpipe.progress import ProgressFn
+from scanpipe.workdir import workdir_lock
+
+SRC = str(Path(scanpipe.__file__).parents[1])
+ENV = {**os.environ, "PYTHONPATH": SRC}
+
+
+class ReadParams(Params):
+    scale: float = 1.0
+
+
+def _read(inputs: Mapping[str, Any], params: ReadParams, progress: ProgressFn) -> StageResult:
+    values = [float(b) * params.scale for b in Path(inputs["recording"]).read_bytes()]
+    table = pa.table({"v": values})
+    return StageResult({"a": table, "b": table, "c": table}, {"scale": params.scale},
+                       files={"note.txt": f"scale {params.scale}".encode()})
+
+
+READ = Stage("read", 1, ReadParams, ("recording",), ("a", "b", "c"), _read,  # type: ignore[arg-type]
+             "three tables and a file")
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` except the lock, by relative path."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != "lock"}
+
+
+def _scales(folder: Path) -> set[float]:
+    return {read_provenance(folder / f"{n}.parquet")["params"]["scale"] for n in "abc"}
+
+
+@pytest.fixture
+def recording(tmp_path: Path) -> Path:
+    path = tmp_path / "rec.bin"
+    path.write_bytes(bytes([1, 2, 3]))
+    return path
+
+
+def _fail_on_call(monkeypatch: pytest.MonkeyPatch, number: int, code: int) -> None:
+    """Make the ``number``-th Parquet write raise OSError(``code``)."""
+    calls = [0]
+    real = artifacts.pq.write_table
+
+    def write_table(*args: Any, **kwargs: Any) -> None:
+        calls[0] += 1
+        if calls[0] == number:
+            raise OSError(code, os.strerror(code))
+        real(*args, **kwargs)
+
+    monkeypatch.setattr(artifacts.pq, "write_table", write_table)
+
+
+@pytest.mark.parametrize("replace_folder", [True, False])
+@pytest.mark.parametrize("code", [errno.ENOSPC, errno.EIO, errno.EACCES])
+def test_oserror_part_way_keeps_the_previous_set(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        replace_folder: bool, code: int) -> None:
+    out = tmp_path / "w" / "read"
+    execute(READ, {"recording": recording}, out, ReadParams(scale=1.0),
+            replace_folder=replace_folder)
+    before = _snapshot(out.parent)
+    _fail_on_call(monkeypatch, 2, code)  # after table "a" is written
+    with pytest.raises(ArtifactError) as info:
+        execute(READ, {"recording": recording}, out, ReadParams(scale=2.0), force=True,
+                replace_folder=replace_folder)
+    message = str(info.value)
+    assert "\n" not in message
+    assert f"{out / 'b.parquet'}: cannot be written ({os.strerror(code)})" in message
+    assert "previous read artifacts are kept" in message
+    assert _snapshot(out.parent) == before  # the old set, and no staging left behind
+    assert _scales(out) == {1.0}
+    monkeypatch.undo()
+    execute(READ, {"recording": recording}, out, ReadParams(scale=2.0),
+            replace_folder=replace_folder)
+    assert _scales(out) == {2.0}
+    assert (out / "note.txt").read_text() == "scale 2.0"
+
+
+def test_failed_swap_puts_the_old_folder_back(recording: Path, tmp_path: Path,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    work = tmp_path / "w"
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ])
+    before = _snapshot(work)
+    real = os.rename
+
+    def rename(src: Any, dst: Any) -> None:
+        if Path(src).name.startswith("tmp-"):  # the new folder moving in
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        real(src, dst)
+
+    monkeypatch.setattr(artifacts.os, "rename", rename)
+    with pytest.raises(ArtifactError, match=r"cannot be written \(Input/output error\)"):
+        run_chain(recording, work, {"read": ReadParams(scale=2.0)}, [READ])
+    assert _snapshot(work) == before
+
+
+def test_flat_folder_keeps_other_files(recording: Path, tmp_path: Path) -> None:
+    out = tmp_path / "flat"
+    out.mkdir()
+    (out / "mine.txt").write_text("the user's")
+    execute(READ, {"recording": recording}, out, ReadParams(scale=3.0))
+    assert (out / "mine.txt").read_text() == "the user's"
+    assert _scales(out) == {3.0}
+    assert sorted(p.name for p in (out / STATE_DIR).iterdir()) == ["lock"]
+
+
+# --- real processes -------------------------------------------------------------------------
+
+CHILD = """
+import os, signal, sys
+from pathlib import Path
+sys.path.insert(0, {tests!r})
+import test_workdir_safety as t
+from scanpipe import artifacts
+from scanpipe.pipeline import execute, run_chain
+
+def die():
+    os.kill(os.getpid(), signal.SIGKILL)
+
+{patch}
+rec, out = Path({rec!r}), Path({out!r})
+if {chain!r}:
+    run_chain(rec, out, {{"read": t.ReadParams(scale=2.0)}}, [t.READ])
+else:
+    execute(t.READ, {{"recording": rec}}, out, t.ReadParams(scale=2.0), force=True)
+"""
+
+#: Where the child kills itself: part-way through the staged writes, between the two renames of
+#: the folder swap, and part-way through rolling a committed flat set into place.
+KILL_POINTS = {
+    "staging": """
+real = artifacts._write_parquet
+calls = [0]
+def write(*args, **kwargs):
+    calls[0] += 1
+    if calls[0] == 2:
+        die()
+    real(*args, **kwargs)
+artifacts._write_parquet = write
+""",
+    "swap": """
+real = os.rename
+def rename(src, dst):
+    real(src, dst)
+    if Path(dst).name.startswith("old-"):
+        die()
+artifacts.os.rename = rename
+""",
+    "roll-forward": """
+real = os.replace
+calls = [0]
+def replace(src, dst):
+    calls[0] += 1
+    if calls[0] == 2:
+        die()
+    real(src, dst)
+artifacts.os.replace = replace
+""",
+}
+
+
+@pytest.mark.parametrize(("point", "chain"), [("staging", True), ("swap", True),
+                                              ("staging", False), ("roll-forward", False)])
+def test_killed_writer_leaves_a_consistent_folder(recording: Path, tmp_path: Path,
+                                                  point: str, chain: bool) -> None:
+    work = tmp_path / "w"
+    out = work if chain else work / "read"
+    if chain:
+        run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ])
+    else:
+        execute(READ, {"recording": recording}, out, ReadParams(scale=1.0))
+    code = CHILD.format(tests=str(Path(__file__).parent), patch=KILL_POINTS[point],
+                        rec=str(recording), out=str(out), chain=chain)
+    child = subprocess.run([sys.executable, "-c", code], env=ENV, capture_output=True,
+                           timeout=60)
+    assert child.returncode == -signal.SIGKILL, child.stderr.decode()
+    folder = work / "read"
+    leftovers = sorted(p.name for p in (folder.parent if chain else folder).joinpath(
+        STATE_DIR).iterdir())
+    assert leftovers != ["lock"]  # the kill did leave work for the recovery
+    if point == "swap":
+        assert not folder.exists()  # a reader sees no folder, never a mix
+    elif point == "roll-forward":
+        assert len(_scales(folder)) == 2  # committed, half moved: the recovery must finish it
+    else:
+        assert _scales(folder) == {1.0}
+    # The next writer recovers first: the previous set back (staging, swap) or the committed
+    # one finished (roll-forward), then it runs as usual.
+    expected = {"staging": 1.0, "swap": 1.0, "roll-forward": 2.0}[point]
+    if chain:
+        records = run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ])
+        assert records[0].reused and _scales(folder) == {expected}
+    else:
+        execute(READ, {"recording": recording}, folder, ReadParams(scale=expected))
+        assert _scales(folder) == {expected}
+    assert sorted(p.name for p in (folder.parent if chain else folder).joinpath(
+        STATE_DIR).iterdir()) == ["lock"]
+
+
+HOLDER = """
+import sys, time
+from pathlib import Path
+from scanpipe.workdir import workdir_lock
+with workdir_lock(Path(sys.argv[1])):
+    print("locked", flush=True)
+    time.sleep(60)
+"""
+
+
+def _hold_lock(work: Path) -> subprocess.Popen[str]:
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(work)], env=ENV,
+                              stdout=subprocess.PIPE, text=True)
+    assert holder.stdout is not None and holder.stdout.readline() == "locked\n"
+    return holder
+
+
+def test_second_writer_refuses_or_waits_naming_the_holder(recording: Path, tmp_path: Path,
+                                                          cli) -> None:  # type: ignore[no-untyped-def]
+    work = tmp_path / "w"
+    holder = _hold_lock(work)
+    try:
+        refused = cli("run", recording, "--workdir", work, "--wait", "0", "-q")
+        assert refused.code == 1
+        assert refused.err.count("\n") == 1
+        assert f"scanpipe: error: {work}: in use by pid {holder.pid} (" in refused.err
+        started = time.monotonic()
+        waited = cli("run", recording, "--workdir", work, "--wait", "0.5", "-q")
+        assert time.monotonic() - started >= 0.5
+        assert f"scanpipe: waiting for {work}: in use by pid {holder.pid}" in waited.err
+        assert "gave up after 0.5 s" in waited.err and waited.code == 1
+        # A single-stage command writing into a stage folder of that workdir waits for it too.
+        with pytest.raises(ArtifactError, match=f"in use by pid {holder.pid}"):
+            execute(READ, {"recording": recording}, work / "read", ReadParams(),
+                    lock_wait_s=0)
+        assert not (work / "read").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    # The holder died (SIGKILL): the kernel released its lock, which is simply taken.
+    with workdir_lock(work, wait_s=0):
+        pass
+    assert run_chain(recording, work, {}, [READ], lock_wait_s=0)[0].reused is False
+
+
+# --- the real chain: concurrent runs and a real kill ------------------------------------------
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from scanpipe.sim.direct import simulate_direct
+    from scanpipe.sim.options import SimOptions
+
+    root = tmp_path_factory.mktemp("scan")
+    path = root / "scan.mcap"
+    simulate_direct(path, root / "truth", SimOptions(
+        scanner_step_deg=2.0, motor_step_deg=6.0, camera_scale=0.1, camera_fps=0.2, seed=3))
+    return path
+
+
+def assert_consistent(work: Path) -> int:
+    """Every stage folder holds one generation (one key), its listed files exist, and its inputs
+    are the artifacts of the upstream folders present; returns how many folders were checked."""
+    produced: dict[str, str] = {}
+    checked = 0
+    for stage in registry().values():
+        folder = work / stage.name
+        if not folder.exists():
+            continue
+        records = [read_provenance(folder / f"{name}.parquet") for name in stage.outputs]
+        assert len({r["key"] for r in records}) == 1, f"{folder}: mixed generations"
+        for record in records:
+            for name, key in record["inputs"].items():
+                if name != "recording":
+                    assert produced.get(name) == key, f"{folder}: input {name} not present"
+            assert all((folder / f).is_file() for f in record["files"])
+        produced.update({name: records[0]["key"] for name in stage.outputs})
+        checked += 1
+    return checked
+
+
+def _cli(*args: str | Path) -> list[str]:
+    return [sys.executable, "-m", "scanpipe.cli.main", *map(str, args)]
+
+
+@pytest.mark.slow
+def test_concurrent_runs_with_different_parameters_do_not_mix(scan: Path,
+                                                              tmp_path: Path) -> None:
+    work = tmp_path / "w"
+    runs = [subprocess.Popen(_cli("run", scan, "--workdir", work, "-q", "--set",
+                                  f"filter.grid_median.max_deviation_m={0.02 + 0.01 * i}",
+                                  "--set", f"mesh.method={'grid' if i % 2 else 'auto'}"),
+                             env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            for i in range(10)]
+    results = [(run.wait(timeout=300), run.stderr.read() if run.stderr else "") for run in runs]
+    failures = [err for code, err in results if code != 0]
+    assert failures == []
+    assert any("waiting for" in err for _, err in results)
+    assert assert_consistent(work) == 6
+    assert sorted(p.name for p in (work / STATE_DIR).iterdir()) == ["lock"]
+
+
+@pytest.mark.slow
+def test_sigkill_during_a_stage_then_the_next_run_completes(scan: Path, tmp_path: Path) -> None:
+    work = tmp_path / "w"
+    for attempt in range(3):
+        run = subprocess.Popen(_cli("run", scan, "--workdir", work, "-q", "--set",
+                                    f"filter.grid_median.max_deviation_m={0.03 + attempt / 100}"),
+                               env=ENV, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + 60
+        staged: list[Path] = []
+        while not staged and run.poll() is None and time.monotonic() < deadline:
+            # A stage is writing: kill it there, mid-stage, as a crash would.
+            staged = list((work / STATE_DIR).glob("tmp-*")) if (work / STATE_DIR).is_dir() else []
+        run.send_signal(signal.SIGKILL)
+        run.wait()
+        assert staged, "the run finished before it could be killed"
+        assert_consistent(work)
+    finished = subprocess.run(_cli("run", scan, "--workdir", work, "-q"), env=ENV,
+                              capture_output=True, text=True, timeout=300)
+    assert finished.returncode == 0, finished.stderr
+    assert assert_consistent(work) == 6
+    assert sorted(p.name for p in (work / STATE_DIR).iterdir()) == ["lock"]
+
+
+@pytest.mark.parametrize("command", ["decode", "run"])
+def test_cli_disk_full_is_one_line_and_keeps_the_previous_set(
+        cli, scan: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,  # type: ignore[no-untyped-def]
+        command: str) -> None:
+    out = tmp_path / "out"
+    args: list[str | Path] = (["decode", scan, "--out", out] if command == "decode" else
+                              ["run", scan, "--workdir", out, "--to", "decode"])
+    change = "checksum=lenient" if command == "decode" else "decode.checksum=lenient"
+    assert cli(*args, "-q").code == 0
+    before = _snapshot(out)
+    _fail_on_call(monkeypatch, 3, errno.ENOSPC)  # two tables written, then the disk fills
+    failed = cli(*args, "-q", "--set", change)
+    folder = out if command == "decode" else out / "decode"
+    assert failed.code == 1
+    assert failed.err == (f"scanpipe: error: {folder / 'frames.parquet'}: cannot be written "
+                          "(No space left on device); the previous decode artifacts are kept\n")
+    assert "Traceback" not in failed.err
+    assert _snapshot(out) == before
