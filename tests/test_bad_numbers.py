@@ -405,7 +405,8 @@ def test_recordings_stored_rig_goes_through_the_same_validation(cli: CliRunner,
     with pytest.raises(RigError, match=r"translation_m\.0 = nan"):
         rig_from_table(read_artifact(tmp_path / "dec" / "rig.parquet")[0])
     result = cli("run", recording, "-w", tmp_path / "work", "-q")
-    assert result.code == 2 and result.err.count("\n") == 1, result.err
+    assert result.code == 2 and result.err.count("scanpipe: error:") == 1, result.err
+    assert result.err.splitlines()[-1].startswith("scanpipe: error: rig artifact:")
     assert "translation_m.0 = nan" in result.err and "--rig" in result.err
     # ... and a corrected rig file given with --rig gets past it.
     good = _write(tmp_path, rig_to_toml(default_rig()))

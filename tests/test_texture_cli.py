@@ -67,7 +67,7 @@ def test_cli_rig_override(cli, workdir: Path, tmp_path: Path, recording: Recordi
     result = cli("texture", workdir, "--out", out, "--rig", rig_path, "--json", "-q")
     # the recording has cam1 frames, the override rig does not know cam1: skipped, named
     assert result.code == 0, result.err
-    assert "warning: frames: skipped" in result.err
+    assert "warning: texture: frames: skipped" in result.err
     assert "camera 'cam1': not in the rig" in result.err
     report = json.loads(result.out)
     assert report["faces_textured"] > 0 and "'cam1'" in report["warnings"][0]

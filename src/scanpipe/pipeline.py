@@ -262,6 +262,10 @@ def run_chain(
         chain = chain[: names.index(to) + 1]
     if not recording.is_file():
         raise ArtifactError(f"{recording}: recording not found")
+    if rig_override is not None:
+        from scanpipe.rig import load_rig
+
+        load_rig(rig_override)  # a bad rig file is refused before the workdir is touched
     with workdir_lock(workdir, lock_wait_s):
         return _run_chain_locked(chain, recording, workdir, params, force, rig_override,
                                  progress, on_stage)

@@ -31,6 +31,12 @@ def print_json(data: Any) -> None:
     sys.stdout.write(json.dumps(data, indent=2, default=str) + "\n")
 
 
+def print_warnings(stage_name: str, report: dict[str, Any]) -> None:
+    """A stage report's warnings on stderr, one line each (shown even with ``--quiet``)."""
+    for warning in report.get("warnings", []):
+        sys.stderr.write(f"warning: {stage_name}: {warning}\n")
+
+
 def build_params(
     model: type[P],
     params_file: Path | None = None,
@@ -70,4 +76,5 @@ def run_stage_command(
     if not quiet:
         written = ", ".join(str(p) for p in record.outputs.values())
         sys.stderr.write(f"{stage_name}: {record.seconds:.2f} s → {written}\n")
+    print_warnings(stage_name, record.report)
     return record.report

@@ -12,7 +12,7 @@ import typer
 from pydantic import BaseModel
 
 from scanpipe.artifacts import read_provenance
-from scanpipe.cli.common import JSON, PARAMS_FILE, QUIET, SET, print_json
+from scanpipe.cli.common import JSON, PARAMS_FILE, QUIET, SET, print_json, print_warnings
 from scanpipe.errors import ArtifactError
 from scanpipe.params import apply_assignments, load_toml
 from scanpipe.pipeline import RunRecord, Stage, registry, run_chain, validate_pipeline_params
@@ -29,9 +29,12 @@ def pipeline_params_from_cli(params_file: Path | None, assignments: list[str] | 
                                     str(params_file) if params_file else "--set")
 
 
-def _print_record(record: RunRecord) -> None:
-    state = "reused" if record.reused else f"ran in {record.seconds:.2f} s"
-    sys.stderr.write(f"  {record.stage:<10} {state:<16} key {record.key[:12]}\n")
+def _print_record(record: RunRecord, quiet: bool) -> None:
+    if not quiet:
+        state = "reused" if record.reused else f"ran in {record.seconds:.2f} s"
+        sys.stderr.write(f"  {record.stage:<10} {state:<16} key {record.key[:12]}\n")
+    if not record.reused:  # a reused stage's warnings were shown when it ran
+        print_warnings(record.stage, record.report)
 
 
 def run(
@@ -53,7 +56,8 @@ def run(
         sys.stderr.write(f"scanpipe run {recording} → {workdir}\n")
     with rich_progress(quiet) as progress:
         records = run_chain(recording, workdir, params, to=to, force=force, rig_override=rig,
-                            progress=progress, on_stage=None if quiet else _print_record,
+                            progress=progress,
+                            on_stage=lambda record: _print_record(record, quiet),
                             lock_wait_s=wait_s)
     if not quiet:
         ran = sum(not r.reused for r in records)

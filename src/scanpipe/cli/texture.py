@@ -68,8 +68,6 @@ def texture(
     if rig_path is not None:
         inputs["rig"] = rig_override_artifact(rig_path, out)
     report = run_stage_command("texture", inputs, out, params_file, assignments, quiet, base)
-    for warning in report.get("warnings", []):
-        sys.stderr.write(f"warning: {warning}\n")
     if as_json:
         print_json(report)
     else:

@@ -265,6 +265,7 @@ def decode_recording(recording: Recording, params: DecodeParams,
         "gaps": {**_gaps(recv, params.gap_factor),
                  "missing_stream_chunks": stream.missing_chunks},
         "device_clock": clock,
+        "warnings": warnings,
         "events": dict(Counter(e.kind for e in recording.events)),
         "recording": {
             "complete": recording.complete, "bytes_read": recording.bytes_read,
