@@ -2,10 +2,13 @@
 
 :func:`read_recording` reads a whole recording into a :class:`Recording` in one linear pass
 (it never needs the summary section), so a file whose writer was killed is read up to its last
-complete chunk. Damage never raises a third-party exception: a damaged chunk or record is
-skipped with a warning; the read stops with a warning where the record structure is lost (a cut
-record, a length beyond the end of the file, an unknown opcode). Only a file that is missing or
-not an MCAP file at all raises :class:`RecordingError`.
+complete chunk. Damage never raises a third-party exception: a damaged chunk (its CRC, size or
+zstd data wrong) is skipped with a warning; where the record structure is lost (an unknown
+opcode, a length beyond the end of the file, a damaged length field) reading resynchronises on
+the next record shaped like a whole chunk, so every intact chunk after the damage is read. What
+was lost is counted in :class:`RecordingLoss` (``Recording.loss``): chunks, bytes and log time,
+exact when the summary section's chunk indexes are intact, a lower bound otherwise. Only a file
+that is missing or not an MCAP file at all raises :class:`RecordingError`.
 
 It parses MCAP records itself (they are few and simple: the spec's little-endian layout) rather
 than through ``mcap.reader``, because that reader stops at the first damaged byte and raises a
@@ -14,6 +17,7 @@ dozen exception types.
 
 from __future__ import annotations
 
+import bisect
 import json
 import mmap
 import struct
@@ -45,7 +49,7 @@ from scanpipe.rig import Rig
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x04, 0x05, 0x06
-OP_METADATA, OP_DATA_END = 0x0C, 0x0F
+OP_CHUNK_INDEX, OP_METADATA, OP_DATA_END = 0x08, 0x0C, 0x0F
 KNOWN_OPCODES = frozenset(range(0x01, 0x10))
 #: A chunk may not claim to inflate beyond this (never allocate from an unchecked length).
 MAX_CHUNK_BYTES = 1 << 30
@@ -105,6 +109,53 @@ class RecordedEvent:
     data: dict[str, Any]
 
 
+@dataclass(frozen=True)
+class LostRegion:
+    """One stretch of the file that could not be read: a damaged chunk or skipped bytes."""
+
+    offset: int  # byte offset in the file
+    length: int  # bytes
+    reason: str
+    start_ns: int | None = None  # log time lost, when known
+    end_ns: int | None = None
+
+
+@dataclass(frozen=True)
+class RecordingLoss:
+    """What damage or a cut cost a recording: the tolerant reader's loss counters.
+
+    ``chunks`` counts data chunks not read (damaged, skipped while resynchronising, or cut off);
+    ``bytes`` the file bytes not read (damaged records, skipped stretches, a cut tail);
+    ``time_ns`` the log time those chunks spanned (the union of their time ranges). With an
+    intact summary section (``from_summary``) chunks and times come from its chunk indexes and
+    are exact; without one (a killed writer, a damaged summary) they are lower bounds: the time
+    of a lost stretch is taken from the intact chunks on either side, and a cut tail's time from
+    the cut chunk's own header when it is readable. ``regions`` lists each lost stretch.
+    """
+
+    chunks: int = 0
+    bytes: int = 0
+    time_ns: int = 0
+    from_summary: bool = False
+    regions: tuple[LostRegion, ...] = ()
+
+    @property
+    def time_s(self) -> float:
+        """``time_ns`` in seconds."""
+        return self.time_ns / 1e9
+
+    @property
+    def any(self) -> bool:
+        """Whether anything was lost."""
+        return bool(self.chunks or self.bytes)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain data for JSON (regions as dicts)."""
+        return {"chunks": self.chunks, "bytes": self.bytes, "time_s": self.time_s,
+                "time_ns": self.time_ns, "exact": self.from_summary,
+                "regions": [vars(r).copy() for r in self.regions]}
+
+
 @dataclass
 class Recording:
     """Everything :func:`read_recording` could read from one file."""
@@ -124,6 +175,7 @@ class Recording:
     file_size: int
     chunks_read: int = 0
     chunks_damaged: int = 0
+    loss: RecordingLoss = field(default_factory=RecordingLoss)
 
     @property
     def rig_toml(self) -> str | None:
@@ -179,6 +231,8 @@ class _Collector:
     chunks_read: int = 0
     chunks_damaged: int = 0
     complete: bool = False
+    good_chunks: dict[int, tuple[int, int]] = field(default_factory=dict)  # offset → times
+    lost: list[LostRegion] = field(default_factory=list)
 
 
 class _Buffer:
@@ -236,13 +290,14 @@ def read_recording(path: Path | str) -> Recording:
                     raise RecordingError(f"{path}: not an MCAP file (bad magic bytes)")
                 collector = _Collector()
                 bytes_read = _read_records(data, size, collector)
+                loss = _loss(data, size, collector)
     except FileNotFoundError:
         raise RecordingError(f"{path}: not found") from None
     except IsADirectoryError:
         raise RecordingError(f"{path}: is a directory, expected an MCAP recording") from None
     except (OSError, ValueError) as err:  # mmap of special files raises ValueError
         raise RecordingError(f"{path}: cannot be read ({err})") from None
-    return _assemble(path, collector, bytes_read, size)
+    return _assemble(path, collector, bytes_read, size, loss)
 
 
 def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
@@ -250,6 +305,7 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
     pos = len(MAGIC)
     while pos < size:
         problem = None
+        opcode = length = 0
         if pos + 9 > size:
             problem = "the file ends inside a record header"
         else:
@@ -263,9 +319,14 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
             c.complete = True
             return int(pos + 9 + length)
         if problem is None:
+            # A chunk whose opcode was damaged into another known one is still read as a chunk.
+            is_chunk = _chunk_end(data, pos, size, strict=True) is not None
+            if opcode == OP_CHUNK and not is_chunk:
+                problem = f"chunk at byte {pos}: its length field does not match its contents"
+        if problem is None:
             body = data[pos + 9:pos + 9 + length]  # a copy: no view may outlive the mmap
             try:
-                if opcode == OP_CHUNK:
+                if is_chunk:
                     _read_chunk(body, pos, c)
                 else:
                     _read_record(opcode, body, c)
@@ -274,12 +335,20 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
             except _DAMAGE as err:
                 problem = (f"record {opcode:#04x} at byte {pos} is damaged "
                            f"({type(err).__name__}: {err})")
-        # The record structure is lost here: a cut file, or damage. Resume at the next
-        # well-formed chunk if there is one; otherwise the file was cut.
+        # The record structure is lost here: damage in a record header, or a cut file. A chunk
+        # whose opcode or length field was hit is still recognised by its inner fields and
+        # accepted if its CRC matches; otherwise resume at the next well-formed chunk.
+        recovered = _recover_chunk(data, pos, size, c)
+        if recovered is not None:
+            c.warnings.append(f"{problem}; the chunk there was recovered by its CRC")
+            pos = recovered
+            continue
         resume = _next_chunk(data, pos + 1, size)
         if resume is None:
+            c.lost.append(LostRegion(pos, size - pos, "cut", *_header_times(data, pos, size)))
             c.warnings.append(_stop_message(c, pos, size, problem))
             return pos
+        c.lost.append(LostRegion(pos, resume - pos, "skipped"))
         c.warnings.append(f"{problem}; bytes {pos}…{resume} skipped, reading resumed at the "
                           "next chunk")
         pos = resume
@@ -291,23 +360,61 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
 _CHUNK_FIXED_BYTES = 8 + 8 + 8 + 4
 
 
+def _chunk_end(data: mmap.mmap, pos: int, size: int, strict: bool) -> int | None:
+    """Where the chunk record at ``pos`` ends, if its inner fields are consistent (compression
+    zstd or none, the records inside the file); ``strict`` also requires the chunk opcode and
+    a length field equal to the sum of the parts."""
+    fields = pos + 9 + _CHUNK_FIXED_BYTES
+    if fields + 4 > size:
+        return None
+    (name_length,) = struct.unpack_from("<I", data, fields)
+    if name_length not in (0, 4) or fields + 4 + name_length + 8 > size:
+        return None
+    if data[fields + 4:fields + 4 + name_length] not in (b"", b"zstd"):
+        return None
+    (records,) = struct.unpack_from("<Q", data, fields + 4 + name_length)
+    expected = _CHUNK_FIXED_BYTES + 4 + name_length + 8 + records
+    if pos + 9 + expected > size:
+        return None
+    if strict:
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        if data[pos] != OP_CHUNK or length != expected:
+            return None
+    return int(pos + 9 + expected)
+
+
 def _next_chunk(data: mmap.mmap, start: int, size: int) -> int | None:
-    """Offset of the next record at or after ``start`` that is shaped like a whole chunk: its
-    length field equals the sum of its parts and its compression is zstd or none."""
+    """Offset of the next record at or after ``start`` that is shaped like a whole chunk."""
     pos = data.find(bytes([OP_CHUNK]), start)
     while pos >= 0:
-        fields = pos + 9 + _CHUNK_FIXED_BYTES
-        if fields + 4 <= size:
-            (length,) = struct.unpack_from("<Q", data, pos + 1)
-            (name_length,) = struct.unpack_from("<I", data, fields)
-            if (name_length in (0, 4) and fields + 4 + name_length + 8 <= size
-                    and data[fields + 4:fields + 4 + name_length] in (b"", b"zstd")):
-                (records,) = struct.unpack_from("<Q", data, fields + 4 + name_length)
-                expected = _CHUNK_FIXED_BYTES + 4 + name_length + 8 + records
-                if length == expected and pos + 9 + length <= size:
-                    return int(pos)
+        if _chunk_end(data, pos, size, strict=True) is not None:
+            return int(pos)
         pos = data.find(bytes([OP_CHUNK]), pos + 1)
     return None
+
+
+def _recover_chunk(data: mmap.mmap, pos: int, size: int, c: _Collector) -> int | None:
+    """Read the record at ``pos`` as a chunk despite a damaged opcode or length field, if its
+    inner fields are consistent and its CRC (required) matches; the offset after it, or None."""
+    if pos + 9 > size:
+        return None
+    end = _chunk_end(data, pos, size, strict=False)
+    if end is None:
+        return None
+    try:
+        start_ns, end_ns, records = _decode_chunk(data[pos + 9:end], require_crc=True)
+    except _DAMAGE:
+        return None
+    _read_chunk_records(records, pos, start_ns, end_ns, c)
+    return end
+
+
+def _header_times(data: mmap.mmap, pos: int, size: int) -> tuple[int | None, int | None]:
+    """The log time range a chunk header at ``pos`` claims, if it is readable."""
+    if pos + 9 + 16 > size or data[pos] != OP_CHUNK:
+        return None, None
+    start_ns, end_ns = struct.unpack_from("<QQ", data, pos + 9)
+    return int(start_ns), int(end_ns)
 
 
 def _stop_message(c: _Collector, pos: int, size: int, why: str) -> str:
@@ -315,29 +422,45 @@ def _stop_message(c: _Collector, pos: int, size: int, why: str) -> str:
             f"{c.chunks_read} complete chunks, stopped at byte {pos}")
 
 
-def _read_chunk(body: bytes, offset: int, c: _Collector) -> None:
+def _decode_chunk(body: bytes, require_crc: bool = False) -> tuple[int, int, bytes]:
+    """A chunk record's time range and its records, checked by size and CRC (raises on damage)."""
     buf = _Buffer(body)
     start_ns, end_ns, uncompressed_size, crc = buf.u64(), buf.u64(), buf.u64(), buf.u32()
     compression = buf.string()
     compressed = buf.raw(buf.u64())
+    if uncompressed_size > min(MAX_CHUNK_BYTES, 1000 * len(compressed) + (1 << 20)):
+        raise ValueError(f"claims {uncompressed_size} bytes from {len(compressed)}")
+    if compression == "zstd":
+        records = zstandard.ZstdDecompressor().decompress(
+            compressed, max_output_size=uncompressed_size)
+    elif compression == "":
+        records = compressed
+    else:
+        raise ValueError(f"unsupported compression {compression!r}")
+    if len(records) != uncompressed_size or (crc and zlib.crc32(records) != crc):
+        raise ValueError("size or CRC of the decompressed records does not match")
+    if require_crc and not crc:
+        raise ValueError("no CRC to confirm the chunk")
+    return start_ns, end_ns, records
+
+
+def _read_chunk(body: bytes, offset: int, c: _Collector) -> None:
     try:
-        if uncompressed_size > min(MAX_CHUNK_BYTES, 1000 * len(compressed) + (1 << 20)):
-            raise ValueError(f"claims {uncompressed_size} bytes from {len(compressed)}")
-        if compression == "zstd":
-            records = zstandard.ZstdDecompressor().decompress(
-                compressed, max_output_size=uncompressed_size)
-        elif compression == "":
-            records = compressed
-        else:
-            raise ValueError(f"unsupported compression {compression!r}")
-        if len(records) != uncompressed_size or (crc and zlib.crc32(records) != crc):
-            raise ValueError("size or CRC of the decompressed records does not match")
+        start_ns, end_ns, records = _decode_chunk(body)
     except _DAMAGE as err:
+        start_ns, end_ns = struct.unpack_from("<QQ", body) if len(body) >= 16 else (0, 0)
         c.chunks_damaged += 1
+        c.lost.append(LostRegion(offset, 9 + len(body), "damaged chunk", start_ns, end_ns))
         c.warnings.append(f"chunk at byte {offset} (log time {start_ns}…{end_ns} ns) is damaged "
                           f"and was skipped ({type(err).__name__}: {err})")
         return
+    _read_chunk_records(records, offset, start_ns, end_ns, c)
+
+
+def _read_chunk_records(records: bytes, offset: int, start_ns: int, end_ns: int,
+                        c: _Collector) -> None:
     c.chunks_read += 1
+    c.good_chunks[offset] = (start_ns, end_ns)
     pos = 0
     while pos + 9 <= len(records):
         opcode = records[pos]
@@ -403,8 +526,90 @@ def _read_message(channel: int, sequence: int, log_time: int, data: bytes, c: _C
         c.undecodable[topic] += 1
 
 
-def _assemble(path: Path, c: _Collector, bytes_read: int, size: int) -> Recording:
+def _summary_chunks(data: mmap.mmap, size: int) -> list[tuple[int, int, int]] | None:
+    """(offset, start_ns, end_ns) of every chunk the summary section indexes, or None when the
+    file has no summary or its CRC does not confirm it."""
+    footer = size - len(MAGIC) - 29
+    if footer <= len(MAGIC) or data[size - len(MAGIC):size] != MAGIC or data[footer] != OP_FOOTER:
+        return None
+    summary_start, _, crc = struct.unpack_from("<QQI", data, footer + 9)
+    if not crc or not len(MAGIC) < summary_start <= footer:
+        return None
+    if zlib.crc32(data[summary_start:footer + 9 + 16]) != crc:
+        return None
+    chunks = []
+    pos = summary_start
+    try:
+        while pos + 9 <= footer:
+            opcode = data[pos]
+            (length,) = struct.unpack_from("<Q", data, pos + 1)
+            if opcode == OP_CHUNK_INDEX:
+                start_ns, end_ns, offset = struct.unpack_from("<QQQ", data, pos + 9)
+                chunks.append((int(offset), int(start_ns), int(end_ns)))
+            pos += 9 + length
+    except struct.error:
+        return None
+    return chunks
+
+
+def _has_chunk_header(data: mmap.mmap, start: int, end: int) -> bool:
+    """Whether a lost stretch holds something shaped like the start of a zstd chunk."""
+    pos = data.find(b"\x04\x00\x00\x00zstd", start, end)
+    return pos >= 0
+
+
+def _union_ns(spans: list[tuple[int, int]]) -> int:
+    """Total length of the union of [start, end] log time spans."""
+    total, reach = 0, None
+    for start, end in sorted(s for s in spans if s[1] >= s[0]):
+        if reach is None or start > reach:
+            total += end - start
+            reach = end
+        elif end > reach:
+            total += end - reach
+            reach = end
+    return total
+
+
+def _loss(data: mmap.mmap, size: int, c: _Collector) -> RecordingLoss:
+    """Count what was lost (see :class:`RecordingLoss`)."""
+    lost_bytes = sum(r.length for r in c.lost)
+    indexed = _summary_chunks(data, size)
+    if indexed is not None:
+        missing = [(s, e) for offset, s, e in indexed if offset not in c.good_chunks]
+        return RecordingLoss(len(missing), lost_bytes, _union_ns(missing), True, tuple(c.lost))
+    # No usable summary: bound each lost stretch by the intact chunks on either side.
+    good = sorted(c.good_chunks.items())
+    offsets = [offset for offset, _ in good]
+    spans: list[tuple[int, int]] = []
+    chunks = 0
+    for region in c.lost:
+        if region.reason == "damaged chunk" or _has_chunk_header(
+                data, region.offset, region.offset + region.length):
+            chunks += 1
+        else:
+            continue
+        index = bisect.bisect_left(offsets, region.offset)
+        before = good[index - 1][1][1] if index > 0 else None
+        after = good[index][1][0] if index < len(good) else None
+        start = before if before is not None else region.start_ns
+        end = after if after is not None else region.end_ns
+        if start is not None and end is not None and 0 <= end - start < _MAX_LOST_SPAN_NS:
+            spans.append((start, end))
+    return RecordingLoss(chunks, lost_bytes, _union_ns(spans), False, tuple(c.lost))
+
+
+#: A lost stretch claiming more log time than this has damaged times: its time is not counted.
+_MAX_LOST_SPAN_NS = 3600 * 10**9
+
+
+def _assemble(path: Path, c: _Collector, bytes_read: int, size: int,
+              loss: RecordingLoss) -> Recording:
     warnings = list(c.warnings)
+    if loss.any:
+        bound = "" if loss.from_summary else "at least "
+        warnings.append(f"lost {bound}{loss.chunks} chunks, {loss.bytes} bytes and "
+                        f"{bound}{loss.time_s:.3f} s of log time to damage or a cut")
     for topic, n in sorted(c.undecodable.items()):
         warnings.append(f"{n} messages on {topic} could not be decoded and were skipped")
     if c.unknown_channels:
@@ -442,5 +647,5 @@ def _assemble(path: Path, c: _Collector, bytes_read: int, size: int) -> Recordin
         motor=motor, images=sorted(c.images, key=lambda i: (i.camera_id, i.log_time_ns)),
         events=sorted(c.events, key=lambda e: e.log_time_ns), message_counts=dict(c.counts),
         warnings=warnings, complete=c.complete, bytes_read=bytes_read, file_size=size,
-        chunks_read=c.chunks_read, chunks_damaged=c.chunks_damaged,
+        chunks_read=c.chunks_read, chunks_damaged=c.chunks_damaged, loss=loss,
     )
