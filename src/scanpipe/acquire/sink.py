@@ -8,11 +8,12 @@ closes the current file and opens the next part once a size or duration is reach
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -58,6 +59,11 @@ class RecordingSink:
     ``RecordingWriter`` in production. ``split_bytes`` / ``split_s`` (None = never) start a new
     part once the current one is that large or that old; every part carries the rig and the
     session metadata (with ``part`` set), so each decodes on its own.
+
+    When the writer fails (a full disk, an I/O error) its :class:`RecordingError` is raised once
+    to the caller that hit it and kept in :attr:`failure`; the sink is then closed: later writes
+    are ignored, :meth:`flush` raises the kept error (so a flush loop stops the recording) and
+    :meth:`close` does not raise it again.
     """
 
     def __init__(
@@ -82,6 +88,7 @@ class RecordingSink:
         self.paths: list[Path] = []
         self._closed = False
         self._writer: Any = None
+        self.failure: RecordingError | None = None
         self._part_started_ns = 0
         self._open_part(0)
 
@@ -115,8 +122,9 @@ class RecordingSink:
         with self._lock:
             if self._closed:
                 return
-            self._maybe_split(log_time_ns)
-            self._writer.write_stream(link, data, direction, log_time_ns)
+            with self._failing():
+                self._maybe_split(log_time_ns)
+                self._writer.write_stream(link, data, direction, log_time_ns)
             self.stats.stream_bytes[f"{link} {'RX' if direction == RX else 'TX'}"] += len(data)
 
     def write_motor_state(self, log_time_ns: int, step_count: int, target_step_count: int,
@@ -125,8 +133,9 @@ class RecordingSink:
         with self._lock:
             if self._closed:
                 return
-            self._writer.write_motor_state(log_time_ns, step_count, target_step_count, moving,
-                                           device_time_us)
+            with self._failing():
+                self._writer.write_motor_state(log_time_ns, step_count, target_step_count,
+                                               moving, device_time_us)
             self.stats.motor_states += 1
 
     def write_image(self, camera_id: str, log_time_ns: int, jpeg: bytes,
@@ -135,8 +144,9 @@ class RecordingSink:
         with self._lock:
             if self._closed:
                 return
-            self._maybe_split(log_time_ns)
-            self._writer.write_image(camera_id, log_time_ns, jpeg, frame_id)
+            with self._failing():
+                self._maybe_split(log_time_ns)
+                self._writer.write_image(camera_id, log_time_ns, jpeg, frame_id)
             self.stats.images[camera_id] += 1
             self.stats.image_bytes += len(jpeg)
 
@@ -149,17 +159,36 @@ class RecordingSink:
             self.stats.event_log.append(
                 {"time_ns": when, "kind": kind, "message": message, "data": dict(data or {})})
             if not self._closed:
-                self._writer.write_event(when, kind, message, dict(data or {}))
+                with self._failing():
+                    self._writer.write_event(when, kind, message, dict(data or {}))
 
     def flush(self) -> None:
         """Flush and fsync the current part now."""
         with self._lock:
+            if self.failure is not None:
+                raise self.failure
             if not self._closed:
-                self._writer.flush()
+                with self._failing():
+                    self._writer.flush()
 
     def close(self) -> None:
         """Finish the current part (summary section, fsync). Later writes are ignored."""
         with self._lock:
             if not self._closed:
-                self._closed = True
+                with self._failing():
+                    self._closed = True
+                    self._writer.close()
+
+    @contextlib.contextmanager
+    def _failing(self) -> Iterator[None]:
+        """Turn a writer failure into the sink's one failure (lock held)."""
+        try:
+            yield
+        except (RecordingError, OSError) as err:
+            failure = err if isinstance(err, RecordingError) else RecordingError(
+                f"{self.paths[-1]}: cannot be written ({err.strerror or err})")
+            self.failure = failure
+            self._closed = True
+            with contextlib.suppress(RecordingError, OSError):
                 self._writer.close()
+            raise failure from None

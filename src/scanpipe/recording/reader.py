@@ -315,18 +315,21 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
                 problem = f"unknown record opcode {opcode:#04x}"
             elif length > size - pos - 9:
                 problem = f"a record of {length} bytes runs past the end of the file"
-        if problem is None and opcode in (OP_DATA_END, OP_FOOTER):
-            c.complete = True
-            return int(pos + 9 + length)
         if problem is None:
-            # A chunk whose opcode was damaged into another known one is still read as a chunk.
-            is_chunk = _chunk_end(data, pos, size, strict=True) is not None
-            if opcode == OP_CHUNK and not is_chunk:
+            shaped = _chunk_end(data, pos, size, check_length=True) is not None
+            if opcode == OP_CHUNK and not shaped:
                 problem = f"chunk at byte {pos}: its length field does not match its contents"
+            elif opcode != OP_CHUNK and shaped:  # a chunk whose opcode byte was hit
+                problem = f"record at byte {pos}: opcode {opcode:#04x} on a chunk-shaped record"
+            elif opcode in (OP_DATA_END, OP_FOOTER):
+                if length == _END_LENGTHS[opcode]:
+                    c.complete = True
+                    return int(pos + 9 + length)
+                problem = f"end record at byte {pos} has a wrong length ({length})"
         if problem is None:
             body = data[pos + 9:pos + 9 + length]  # a copy: no view may outlive the mmap
             try:
-                if is_chunk:
+                if opcode == OP_CHUNK:
                     _read_chunk(body, pos, c)
                 else:
                     _read_record(opcode, body, c)
@@ -358,12 +361,15 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
 
 #: A chunk record's fixed fields: start time, end time, uncompressed size, CRC.
 _CHUNK_FIXED_BYTES = 8 + 8 + 8 + 4
+#: The body length of the data end record (a CRC) and of the footer (two offsets and a CRC).
+_END_LENGTHS = {OP_DATA_END: 4, OP_FOOTER: 20}
 
 
-def _chunk_end(data: mmap.mmap, pos: int, size: int, strict: bool) -> int | None:
+def _chunk_end(data: mmap.mmap, pos: int, size: int, check_length: bool = False,
+               check_opcode: bool = False) -> int | None:
     """Where the chunk record at ``pos`` ends, if its inner fields are consistent (compression
-    zstd or none, the records inside the file); ``strict`` also requires the chunk opcode and
-    a length field equal to the sum of the parts."""
+    zstd or none, the records inside the file); optionally also that its length field equals
+    the sum of the parts and its opcode is a chunk's."""
     fields = pos + 9 + _CHUNK_FIXED_BYTES
     if fields + 4 > size:
         return None
@@ -376,10 +382,10 @@ def _chunk_end(data: mmap.mmap, pos: int, size: int, strict: bool) -> int | None
     expected = _CHUNK_FIXED_BYTES + 4 + name_length + 8 + records
     if pos + 9 + expected > size:
         return None
-    if strict:
-        (length,) = struct.unpack_from("<Q", data, pos + 1)
-        if data[pos] != OP_CHUNK or length != expected:
-            return None
+    if check_opcode and data[pos] != OP_CHUNK:
+        return None
+    if check_length and struct.unpack_from("<Q", data, pos + 1)[0] != expected:
+        return None
     return int(pos + 9 + expected)
 
 
@@ -387,7 +393,7 @@ def _next_chunk(data: mmap.mmap, start: int, size: int) -> int | None:
     """Offset of the next record at or after ``start`` that is shaped like a whole chunk."""
     pos = data.find(bytes([OP_CHUNK]), start)
     while pos >= 0:
-        if _chunk_end(data, pos, size, strict=True) is not None:
+        if _chunk_end(data, pos, size, check_length=True, check_opcode=True) is not None:
             return int(pos)
         pos = data.find(bytes([OP_CHUNK]), pos + 1)
     return None
@@ -398,7 +404,7 @@ def _recover_chunk(data: mmap.mmap, pos: int, size: int, c: _Collector) -> int |
     inner fields are consistent and its CRC (required) matches; the offset after it, or None."""
     if pos + 9 > size:
         return None
-    end = _chunk_end(data, pos, size, strict=False)
+    end = _chunk_end(data, pos, size)
     if end is None:
         return None
     try:
