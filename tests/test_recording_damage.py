@@ -262,34 +262,57 @@ def test_sink_reports_a_full_disk_once_then_stops(tmp_path: Path,
         return RecordingWriter(p, rig, session)
 
     sink = RecordingSink(path, default_rig(), {}, factory)
-    with pytest.raises(RecordingError, match="ENOSPC") as raised:
-        for i in range(RATE_HZ * SECONDS):
-            sink.write_stream("scanner", _payload(i), schemas.RX, T0 + i * (10**9 // RATE_HZ))
-    assert sink.failure is raised.value
-    sink.write_stream("scanner", b"ignored", schemas.RX, T0)  # the sink is closed: ignored
+    for i in range(RATE_HZ * SECONDS):  # driver threads never see the failure
+        sink.write_stream("scanner", _payload(i), schemas.RX, T0 + i * (10**9 // RATE_HZ))
+    assert sink.failure is not None and "ENOSPC" in str(sink.failure)
     sink.event("recording_end", "ended")  # kept for the summary, not written
-    with pytest.raises(RecordingError) as flushed:  # a flush loop learns of the failure
+    assert sink.stats.events["recording_end"] == 1
+    with pytest.raises(RecordingError) as flushed:  # the flush loop learns of it, once
         sink.flush()
-    assert flushed.value is raised.value
+    assert flushed.value is sink.failure
+    sink.flush()
     sink.close()  # no second error
-    assert _indices(read_recording(path))
+    kept = _indices(read_recording(path))
+    assert kept and kept == set(range(len(kept)))
+
+
+def test_sink_raises_an_unreported_failure_when_closed(tmp_path: Path,
+                                                       full_disk: FullDisk) -> None:
+    path = tmp_path / "rec.mcap"
+    full_disk(path, 12_000)
+    sink = RecordingSink(path, default_rig(), {},
+                         lambda p, rig, session: RecordingWriter(p, rig, session))
+    for i in range(RATE_HZ * SECONDS):
+        sink.write_stream("scanner", _payload(i), schemas.RX, T0 + i * (10**9 // RATE_HZ))
+    with pytest.raises(RecordingError, match="ENOSPC"):
+        sink.close()
+    sink.close()
 
 
 @pytest.fixture
-def tiny_fs(tmp_path: Path) -> Iterator[Path]:
-    """A real 64 KiB filesystem (tmpfs), unmounted afterwards."""
-    mount = tmp_path / "tiny"
-    mount.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mount)], check=True)
+def tiny_fs(tmp_path: Path) -> Iterator[Callable[[int], Path]]:
+    """``tiny_fs(kib)``: a real filesystem (tmpfs) of that size, unmounted afterwards."""
+    mounts: list[Path] = []
+
+    def mount(kib: int) -> Path:
+        target = tmp_path / f"tiny{len(mounts)}"
+        target.mkdir()
+        subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={kib}k", "tmpfs", str(target)],
+                       check=True)
+        mounts.append(target)
+        return target
+
     try:
         yield mount
     finally:
-        subprocess.run(["umount", str(mount)], check=True)
+        for target in mounts:
+            subprocess.run(["umount", str(target)], check=True)
 
 
-def test_simulate_onto_a_full_filesystem_is_one_line(tiny_fs: Path, tmp_path: Path,
+def test_simulate_onto_a_full_filesystem_is_one_line(tiny_fs: Callable[[int], Path],
+                                                     tmp_path: Path,
                                                      cli: Callable[..., Any]) -> None:
-    out = tiny_fs / "scan.mcap"
+    out = tiny_fs(64) / "scan.mcap"
     result = cli("simulate", "--direct", "--out", out, "--truth", tmp_path / "truth",
                  "--motor-step", "5", "--scanner-step", "1", "--no-cameras")
     assert result.code == 1
@@ -298,3 +321,22 @@ def test_simulate_onto_a_full_filesystem_is_one_line(tiny_fs: Path, tmp_path: Pa
     rec = read_recording(out)
     assert rec.chunks_read > 5 and rec.stream("scanner").data and not rec.complete
     assert any("lost" in w for w in rec.warnings)
+
+
+def test_record_onto_a_full_filesystem_fails_once_and_keeps_the_data(
+        tiny_fs: Callable[[int], Path]) -> None:
+    from acquire_helpers import record_against, sim_options
+
+    from scanpipe.sim.emulators import VirtualRig
+    from scanpipe.sim.scene import box_room
+    from scanpipe.stages.decode import DecodeParams, decode_recording
+
+    out = tiny_fs(16) / "rec.mcap"
+    with VirtualRig(sim_options("ldoem"), speedup=10.0, scene=box_room()) as rig:
+        summary = record_against(rig, out)
+    assert summary["status"] == "failed"
+    assert summary["reason"] == (f"cannot write the recording: {out}: cannot be written (errno "
+                                 "ENOSPC: No space left on device); the recording ends with "
+                                 "what reached the disk")
+    recording = read_recording(out)
+    assert decode_recording(recording, DecodeParams()).tables["profiles"].num_rows > 0

@@ -60,10 +60,11 @@ class RecordingSink:
     part once the current one is that large or that old; every part carries the rig and the
     session metadata (with ``part`` set), so each decodes on its own.
 
-    When the writer fails (a full disk, an I/O error) its :class:`RecordingError` is raised once
-    to the caller that hit it and kept in :attr:`failure`; the sink is then closed: later writes
-    are ignored, :meth:`flush` raises the kept error (so a flush loop stops the recording) and
-    :meth:`close` does not raise it again.
+    When the writer fails (a full disk, an I/O error) the sink keeps its
+    :class:`RecordingError` in :attr:`failure` and closes: the write that hit it and every later
+    one are ignored (driver threads never see it), and the error is raised exactly once, by the
+    next :meth:`flush` (the recorder's flush loop then stops the recording) or else by
+    :meth:`close`. What reached the disk stays readable by the tolerant reader.
     """
 
     def __init__(
@@ -89,6 +90,7 @@ class RecordingSink:
         self._closed = False
         self._writer: Any = None
         self.failure: RecordingError | None = None
+        self._failure_raised = False
         self._part_started_ns = 0
         self._open_part(0)
 
@@ -165,11 +167,10 @@ class RecordingSink:
     def flush(self) -> None:
         """Flush and fsync the current part now."""
         with self._lock:
-            if self.failure is not None:
-                raise self.failure
             if not self._closed:
                 with self._failing():
                     self._writer.flush()
+            self._raise_failure()
 
     def close(self) -> None:
         """Finish the current part (summary section, fsync). Later writes are ignored."""
@@ -178,17 +179,22 @@ class RecordingSink:
                 with self._failing():
                     self._closed = True
                     self._writer.close()
+            self._raise_failure()
 
     @contextlib.contextmanager
     def _failing(self) -> Iterator[None]:
-        """Turn a writer failure into the sink's one failure (lock held)."""
+        """Keep a writer failure as the sink's one failure and stop writing (lock held)."""
         try:
             yield
         except (RecordingError, OSError) as err:
-            failure = err if isinstance(err, RecordingError) else RecordingError(
+            self.failure = err if isinstance(err, RecordingError) else RecordingError(
                 f"{self.paths[-1]}: cannot be written ({err.strerror or err})")
-            self.failure = failure
             self._closed = True
             with contextlib.suppress(RecordingError, OSError):
                 self._writer.close()
-            raise failure from None
+
+    def _raise_failure(self) -> None:
+        """Raise the kept failure if it has not been raised yet (lock held)."""
+        if self.failure is not None and not self._failure_raised:
+            self._failure_raised = True
+            raise self.failure

@@ -614,8 +614,12 @@ def _assemble(path: Path, c: _Collector, bytes_read: int, size: int,
     warnings = list(c.warnings)
     if loss.any:
         bound = "" if loss.from_summary else "at least "
-        warnings.append(f"lost {bound}{loss.chunks} chunks, {loss.bytes} bytes and "
-                        f"{bound}{loss.time_s:.3f} s of log time to damage or a cut")
+        if loss.chunks:
+            warnings.append(f"lost {bound}{loss.chunks} chunks, {loss.bytes} bytes and "
+                            f"{bound}{loss.time_s:.3f} s of log time to damage or a cut")
+        else:
+            warnings.append(f"lost {loss.bytes} bytes to damage or a cut, outside any chunk "
+                            "found (index or summary records)")
     for topic, n in sorted(c.undecodable.items()):
         warnings.append(f"{n} messages on {topic} could not be decoded and were skipped")
     if c.unknown_channels:
