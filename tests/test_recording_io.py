@@ -216,8 +216,12 @@ def test_writer_refuses_bad_arguments(tmp_path: Path) -> None:
             writer.write_stream("camera", b"x", 0, T0)  # type: ignore[arg-type]
         with pytest.raises(RecordingError, match="direction 2"):
             writer.write_stream("scanner", b"x", 2, T0)
-    with pytest.raises(RecordingError, match="cannot be created"):
+    with pytest.raises(RecordingError, match=r"w\.mcap: cannot be created \(errno ENOENT: "):
         RecordingWriter(tmp_path / "no" / "dir" / "w.mcap", default_rig(), {})
+    for name, value in [("chunk_s", 0.0), ("chunk_bytes", 0), ("fsync_interval_s", -1.0)]:
+        with pytest.raises(RecordingError, match=rf"^{name} {value!r}: must be > 0$"):
+            RecordingWriter(tmp_path / "x.mcap", default_rig(), {}, **{name: value})
+        assert not (tmp_path / "x.mcap").exists()  # refused before the file is created
 
 
 def _normalized(text: str) -> list[str]:
