@@ -340,3 +340,34 @@ def test_record_onto_a_full_filesystem_fails_once_and_keeps_the_data(
                                  "what reached the disk")
     recording = read_recording(out)
     assert decode_recording(recording, DecodeParams()).tables["profiles"].num_rows > 0
+
+
+@pytest.mark.parametrize("with_summary", [True, False])
+def test_a_zeroed_stretch_loses_only_the_chunks_it_covers(scan: Any, tmp_path: Path,
+                                                          with_summary: bool) -> None:
+    _, data, chunk_indexes = scan
+    a, b = chunk_indexes[3], chunk_indexes[5]
+    start = a.chunk_start_offset + 100  # from inside chunk 3 to inside chunk 5
+    end = b.chunk_start_offset + 100
+    mutated = bytearray(data)
+    mutated[start:end] = bytes(end - start)
+    if not with_summary:  # a killed writer: no data end, no summary
+        mutated = mutated[:chunk_indexes[-1].chunk_start_offset + chunk_indexes[-1].chunk_length]
+    damaged = tmp_path / "z.mcap"
+    damaged.write_bytes(bytes(mutated))
+    rec = read_recording(damaged)
+    step = 10**9 // RATE_HZ
+    lost = set(range(RATE_HZ * SECONDS)) - _indices(rec)
+    assert lost == set(range((a.message_start_time - T0) // step,
+                             (b.message_end_time - T0) // step + 1))
+    loss = rec.loss
+    assert loss.from_summary is with_summary
+    if with_summary:
+        assert loss.chunks == 3
+        assert loss.time_ns == sum(c.message_end_time - c.message_start_time
+                                   for c in chunk_indexes[3:6])
+    else:  # lower bound on chunks; time between the intact chunks either side
+        assert 1 <= loss.chunks <= 3
+        assert loss.time_ns == (chunk_indexes[6].message_start_time
+                                - chunk_indexes[2].message_end_time)
+    assert sum(r.length for r in loss.regions) == loss.bytes >= end - start

@@ -128,9 +128,10 @@ class RecordingLoss:
     ``bytes`` the file bytes not read (damaged records, skipped stretches, a cut tail);
     ``time_ns`` the log time those chunks spanned (the union of their time ranges). With an
     intact summary section (``from_summary``) chunks and times come from its chunk indexes and
-    are exact; without one (a killed writer, a damaged summary) they are lower bounds: the time
-    of a lost stretch is taken from the intact chunks on either side, and a cut tail's time from
-    the cut chunk's own header when it is readable. ``regions`` lists each lost stretch.
+    are exact. Without one (a killed writer, a damaged summary) ``chunks`` is a lower bound (the
+    chunk headers still recognisable in the lost stretches) and ``time_ns`` the log time between
+    the intact chunks on either side of each lost stretch (for a cut tail, up to the end time in
+    the cut chunk's header when it is readable). ``regions`` lists each lost stretch.
     """
 
     chunks: int = 0
@@ -558,10 +559,16 @@ def _summary_chunks(data: mmap.mmap, size: int) -> list[tuple[int, int, int]] | 
     return chunks
 
 
-def _has_chunk_header(data: mmap.mmap, start: int, end: int) -> bool:
-    """Whether a lost stretch holds something shaped like the start of a zstd chunk."""
-    pos = data.find(b"\x04\x00\x00\x00zstd", start, end)
-    return pos >= 0
+def _chunk_headers(data: mmap.mmap, start: int, end: int) -> int:
+    """How many zstd chunk headers a lost stretch holds (their compression field)."""
+    count, pos = 0, data.find(_ZSTD_FIELD, start, end)
+    while pos >= 0:
+        count += 1
+        pos = data.find(_ZSTD_FIELD, pos + 1, end)
+    return count
+
+
+_ZSTD_FIELD = b"\x04\x00\x00\x00zstd"
 
 
 def _union_ns(spans: list[tuple[int, int]]) -> int:
@@ -590,11 +597,11 @@ def _loss(data: mmap.mmap, size: int, c: _Collector) -> RecordingLoss:
     spans: list[tuple[int, int]] = []
     chunks = 0
     for region in c.lost:
-        if region.reason == "damaged chunk" or _has_chunk_header(
-                data, region.offset, region.offset + region.length):
-            chunks += 1
-        else:
+        found = 1 if region.reason == "damaged chunk" else _chunk_headers(
+            data, region.offset, region.offset + region.length)
+        if not found:
             continue
+        chunks += found
         index = bisect.bisect_left(offsets, region.offset)
         before = good[index - 1][1][1] if index > 0 else None
         after = good[index][1][0] if index < len(good) else None
