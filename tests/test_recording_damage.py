@@ -58,13 +58,20 @@ def _indices(rec: Recording) -> set[int]:
     return {int.from_bytes(data[k:k + 4], "little") for k in range(0, len(data), 40)}
 
 
+class _Scan(tuple):  # type: ignore[type-arg]
+    """(path, bytes, chunk indexes) with a short repr (hypothesis prints its arguments)."""
+
+    def __repr__(self) -> str:
+        return f"<scan {self[0]}>"
+
+
 @pytest.fixture(scope="module")
 def scan(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, bytes, list[Any]]:
     path = tmp_path_factory.mktemp("scan") / "scan.mcap"
     _write_scan(path)
     with path.open("rb") as handle:
         chunk_indexes = make_reader(handle).get_summary().chunk_indexes
-    return path, path.read_bytes(), chunk_indexes
+    return _Scan((path, path.read_bytes(), chunk_indexes))
 
 
 def test_chunks_span_at_most_a_second_and_official_readers_read_them(scan: Any) -> None:
@@ -287,6 +294,20 @@ def test_sink_raises_an_unreported_failure_when_closed(tmp_path: Path,
     with pytest.raises(RecordingError, match="ENOSPC"):
         sink.close()
     sink.close()
+    # The recorder takes the failure itself (to put it in its summary): no raise then.
+    other = RecordingSink(tmp_path / "b.mcap", default_rig(), {},
+                          lambda p, rig, session: RecordingWriter(p, rig, session))
+    assert other.take_failure() is None
+    full_disk(tmp_path / "c.mcap", 12_000)
+    third = RecordingSink(tmp_path / "c.mcap", default_rig(), {},
+                          lambda p, rig, session: RecordingWriter(p, rig, session))
+    for i in range(RATE_HZ * SECONDS):
+        third.write_stream("scanner", _payload(i), schemas.RX, T0 + i * (10**9 // RATE_HZ))
+    taken = third.take_failure()
+    assert taken is not None and "ENOSPC" in str(taken)
+    third.flush()
+    third.close()
+    other.close()
 
 
 @pytest.fixture

@@ -64,7 +64,8 @@ class RecordingSink:
     :class:`RecordingError` in :attr:`failure` and closes: the write that hit it and every later
     one are ignored (driver threads never see it), and the error is raised exactly once, by the
     next :meth:`flush` (the recorder's flush loop then stops the recording) or else by
-    :meth:`close`. What reached the disk stays readable by the tolerant reader.
+    :meth:`close`, unless :meth:`take_failure` took it first. What reached the disk stays
+    readable by the tolerant reader.
     """
 
     def __init__(
@@ -192,6 +193,12 @@ class RecordingSink:
             self._closed = True
             with contextlib.suppress(RecordingError, OSError):
                 self._writer.close()
+
+    def take_failure(self) -> RecordingError | None:
+        """The writer's failure, if any; the caller reports it, so flush and close will not."""
+        with self._lock:
+            self._failure_raised = True
+            return self.failure
 
     def _raise_failure(self) -> None:
         """Raise the kept failure if it has not been raised yet (lock held)."""

@@ -49,7 +49,7 @@ from scanpipe.rig import Rig
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x04, 0x05, 0x06
-OP_CHUNK_INDEX, OP_METADATA, OP_DATA_END = 0x08, 0x0C, 0x0F
+OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_METADATA, OP_DATA_END = 0x07, 0x08, 0x0C, 0x0F
 KNOWN_OPCODES = frozenset(range(0x01, 0x10))
 #: A chunk may not claim to inflate beyond this (never allocate from an unchecked length).
 MAX_CHUNK_BYTES = 1 << 30
@@ -327,6 +327,9 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
                     c.complete = True
                     return int(pos + 9 + length)
                 problem = f"end record at byte {pos} has a wrong length ({length})"
+            elif opcode != OP_CHUNK and not _length_confirmed(data, pos, opcode, length, size):
+                problem = (f"record {opcode:#04x} at byte {pos}: its length {length} does not "
+                           "match its contents")
         if problem is None:
             body = data[pos + 9:pos + 9 + length]  # a copy: no view may outlive the mmap
             try:
@@ -366,6 +369,34 @@ _CHUNK_FIXED_BYTES = 8 + 8 + 8 + 4
 _END_LENGTHS = {OP_DATA_END: 4, OP_FOOTER: 20}
 
 
+#: Top-level records whose parsing checks that their fields fill the length exactly.
+_SELF_CHECKED = frozenset({OP_HEADER, OP_METADATA})
+
+
+def _length_confirmed(data: mmap.mmap, pos: int, opcode: int, length: int, size: int) -> bool:
+    """Whether a record's length field is confirmed: by its own fields (message index; header
+    and metadata are checked when parsed), or else by a record starting where it ends (or a
+    chunk shaped by its inner fields there, whose own header may be the damaged one)."""
+    if opcode in _SELF_CHECKED:
+        return True
+    if opcode == OP_MESSAGE_INDEX:
+        if length < 6:
+            return False
+        (records,) = struct.unpack_from("<I", data, pos + 9 + 2)
+        return bool(length == 6 + records and records % 16 == 0)
+    end = pos + 9 + length
+    return _record_starts(data, end, size) or _chunk_end(data, end, size) is not None
+
+
+def _record_starts(data: mmap.mmap, pos: int, size: int) -> bool:
+    """Whether a record can start at ``pos``: a known opcode and a length inside the file (or
+    the file ends there, or is cut inside the header: that is found when reading on)."""
+    if pos + 9 > size:
+        return True
+    (length,) = struct.unpack_from("<Q", data, pos + 1)
+    return data[pos] in KNOWN_OPCODES and length <= size - pos - 9
+
+
 def _chunk_end(data: mmap.mmap, pos: int, size: int, check_length: bool = False,
                check_opcode: bool = False) -> int | None:
     """Where the chunk record at ``pos`` ends, if its inner fields are consistent (compression
@@ -401,19 +432,32 @@ def _next_chunk(data: mmap.mmap, start: int, size: int) -> int | None:
 
 
 def _recover_chunk(data: mmap.mmap, pos: int, size: int, c: _Collector) -> int | None:
-    """Read the record at ``pos`` as a chunk despite a damaged opcode or length field, if its
-    inner fields are consistent and its CRC (required) matches; the offset after it, or None."""
-    if pos + 9 > size:
+    """Read the record at ``pos`` as a chunk despite a damaged opcode, record length or
+    records length field; the offset after it, or None.
+
+    Two ends are tried: the record length's (the compressed bytes then run to it, whatever the
+    records length says) and the inner fields' (a compression field and a records length that
+    fit). The zstd frame must fill the compressed bytes exactly, the CRC (required) must match,
+    and a record (or the end of the file) must follow.
+    """
+    if pos + 9 + _CHUNK_FIXED_BYTES + 4 > size:
         return None
-    end = _chunk_end(data, pos, size)
-    if end is None:
-        return None
-    try:
-        start_ns, end_ns, records = _decode_chunk(data[pos + 9:end], require_crc=True)
-    except _DAMAGE:
-        return None
-    _read_chunk_records(records, pos, start_ns, end_ns, c)
-    return end
+    (length,) = struct.unpack_from("<Q", data, pos + 1)
+    candidates = [(int(pos + 9 + length), True)] if length <= size - pos - 9 else []
+    inner_end = _chunk_end(data, pos, size)
+    if inner_end is not None:
+        candidates.append((inner_end, False))
+    for end, to_end in candidates:
+        if end + 9 <= size and data[end] not in KNOWN_OPCODES:  # a cut record may follow
+            continue
+        try:
+            start_ns, end_ns, records = _decode_chunk(data[pos + 9:end], require_crc=True,
+                                                      compressed_to_end=to_end)
+        except _DAMAGE:
+            continue
+        _read_chunk_records(records, pos, start_ns, end_ns, c)
+        return end
+    return None
 
 
 def _header_times(data: mmap.mmap, pos: int, size: int) -> tuple[int | None, int | None]:
@@ -429,12 +473,18 @@ def _stop_message(c: _Collector, pos: int, size: int, why: str) -> str:
             f"{c.chunks_read} complete chunks, stopped at byte {pos}")
 
 
-def _decode_chunk(body: bytes, require_crc: bool = False) -> tuple[int, int, bytes]:
-    """A chunk record's time range and its records, checked by size and CRC (raises on damage)."""
+def _decode_chunk(body: bytes, require_crc: bool = False,
+                  compressed_to_end: bool = False) -> tuple[int, int, bytes]:
+    """A chunk record's time range and its records, checked by size and CRC (raises on damage).
+
+    ``compressed_to_end``: the compressed records run to the end of ``body`` (their length field
+    is not trusted). ``require_crc``: a CRC must be present, and the zstd frame must end exactly
+    at the end of the compressed bytes (zstd ignores trailing bytes)."""
     buf = _Buffer(body)
     start_ns, end_ns, uncompressed_size, crc = buf.u64(), buf.u64(), buf.u64(), buf.u32()
     compression = buf.string()
-    compressed = buf.raw(buf.u64())
+    records_length = buf.u64()
+    compressed = buf.raw(len(body) - buf.pos if compressed_to_end else records_length)
     if uncompressed_size > min(MAX_CHUNK_BYTES, 1000 * len(compressed) + (1 << 20)):
         raise ValueError(f"claims {uncompressed_size} bytes from {len(compressed)}")
     if compression == "zstd":
@@ -446,8 +496,14 @@ def _decode_chunk(body: bytes, require_crc: bool = False) -> tuple[int, int, byt
         raise ValueError(f"unsupported compression {compression!r}")
     if len(records) != uncompressed_size or (crc and zlib.crc32(records) != crc):
         raise ValueError("size or CRC of the decompressed records does not match")
-    if require_crc and not crc:
-        raise ValueError("no CRC to confirm the chunk")
+    if require_crc:  # recovering a chunk with a damaged header: its bytes must fit exactly
+        if not crc:
+            raise ValueError("no CRC to confirm the chunk")
+        if compression == "zstd":
+            stream = zstandard.ZstdDecompressor().decompressobj()
+            stream.decompress(compressed)  # the frame is known good: its size is bounded
+            if stream.unused_data:
+                raise ValueError(f"{len(stream.unused_data)} bytes after the zstd frame")
     return start_ns, end_ns, records
 
 
@@ -467,15 +523,21 @@ def _read_chunk(body: bytes, offset: int, c: _Collector) -> None:
 def _read_chunk_records(records: bytes, offset: int, start_ns: int, end_ns: int,
                         c: _Collector) -> None:
     c.chunks_read += 1
-    c.good_chunks[offset] = (start_ns, end_ns)
+    first_ns, last_ns = None, None  # the messages' own times: the CRC covers them, not the header
     pos = 0
     while pos + 9 <= len(records):
         opcode = records[pos]
         (length,) = struct.unpack_from("<Q", records, pos + 1)
         if length > len(records) - pos - 9:
             break
+        if opcode == OP_MESSAGE and length >= 14:
+            (log_ns,) = struct.unpack_from("<Q", records, pos + 9 + 6)
+            first_ns = log_ns if first_ns is None else min(first_ns, log_ns)
+            last_ns = log_ns if last_ns is None else max(last_ns, log_ns)
         _read_record(opcode, memoryview(records)[pos + 9:pos + 9 + length], c)
         pos += 9 + length
+    c.good_chunks[offset] = ((start_ns, end_ns) if first_ns is None or last_ns is None
+                             else (int(first_ns), int(last_ns)))
     if pos != len(records):
         c.warnings.append(f"chunk at byte {offset}: its records end {len(records) - pos} bytes "
                           "early; the rest was skipped")
@@ -494,14 +556,21 @@ def _read_record(opcode: int, body: bytes | memoryview, c: _Collector) -> None:
     elif opcode == OP_METADATA:
         name = buf.string()
         values = buf.string_map()
+        _check_consumed(buf)
         c.metadata[name] = values
         if name == CHANNELS_METADATA:
             c.fallback_channels = {int(k): v for k, v in values.items()}
     elif opcode == OP_HEADER:
         c.profile, c.library = buf.string(), buf.string()
+        _check_consumed(buf)
         if c.profile != PROFILE:
             c.warnings.append(f"MCAP profile {c.profile!r}: not written by scanpipe "
                               f"(expected {PROFILE!r}); reading what is recognisable")
+
+
+def _check_consumed(buf: _Buffer) -> None:
+    if buf.pos != len(buf.data):
+        raise ValueError(f"{len(buf.data) - buf.pos} bytes after the record's fields")
 
 
 def _read_message(channel: int, sequence: int, log_time: int, data: bytes, c: _Collector) -> None:
@@ -560,10 +629,12 @@ def _summary_chunks(data: mmap.mmap, size: int) -> list[tuple[int, int, int]] | 
 
 
 def _chunk_headers(data: mmap.mmap, start: int, end: int) -> int:
-    """How many zstd chunk headers a lost stretch holds (their compression field)."""
+    """How many zstd chunk headers a lost stretch holds (a compression field with a chunk
+    opcode where it belongs; chunk indexes in the summary have the field too)."""
     count, pos = 0, data.find(_ZSTD_FIELD, start, end)
     while pos >= 0:
-        count += 1
+        at = pos - 9 - _CHUNK_FIXED_BYTES
+        count += at >= start and data[at] == OP_CHUNK
         pos = data.find(_ZSTD_FIELD, pos + 1, end)
     return count
 
