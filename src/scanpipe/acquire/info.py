@@ -105,6 +105,7 @@ def recording_info(recording: Recording, gap_s: float = 1.0) -> dict[str, Any]:
         "bytes_read": recording.bytes_read,
         "chunks_read": recording.chunks_read,
         "chunks_damaged": recording.chunks_damaged,
+        "loss": recording.loss.as_dict(),
         "warnings": list(recording.warnings),
         "session": recording.session,
         "rig": rig,
@@ -135,6 +136,11 @@ def format_info(info: dict[str, Any], max_events: int = 20) -> str:
         + (f", {info['chunks_damaged']} damaged" if info["chunks_damaged"] else ""),
         f"duration    {format_duration(info['duration_s'])} ({info['duration_s']:.3f} s)",
     ]
+    loss = info["loss"]
+    if loss["chunks"] or loss["bytes"]:
+        bound = "" if loss["exact"] else "at least "
+        lines.append(f"lost        {bound}{loss['chunks']} chunks, {format_bytes(loss['bytes'])}, "
+                     f"{bound}{loss['time_s']:.3f} s of log time (damage or a cut)")
     session = info["session"]
     if session:
         lines.append("session     " + ", ".join(f"{k}={v}" for k, v in sorted(session.items())

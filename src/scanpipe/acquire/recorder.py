@@ -184,6 +184,9 @@ class Recorder:
             self.stop_event.set()
             self._done.set()
             flusher.join(timeout=2.0)
+            failure = self.sink.take_failure()
+            if failure is not None:  # data were lost, whatever the procedure's status was
+                self.status, self.stop_reason = "failed", f"cannot write the recording: {failure}"
             summary = self.summary()
             self.sink.event("recording_end", f"recording ended: {self.status}",
                             {"status": self.status, "reason": self.stop_reason})

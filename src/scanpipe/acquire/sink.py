@@ -8,11 +8,12 @@ closes the current file and opens the next part once a size or duration is reach
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -58,6 +59,13 @@ class RecordingSink:
     ``RecordingWriter`` in production. ``split_bytes`` / ``split_s`` (None = never) start a new
     part once the current one is that large or that old; every part carries the rig and the
     session metadata (with ``part`` set), so each decodes on its own.
+
+    When the writer fails (a full disk, an I/O error) the sink keeps its
+    :class:`RecordingError` in :attr:`failure` and closes: the write that hit it and every later
+    one are ignored (driver threads never see it), and the error is raised exactly once, by the
+    next :meth:`flush` (the recorder's flush loop then stops the recording) or else by
+    :meth:`close`, unless :meth:`take_failure` took it first. What reached the disk stays
+    readable by the tolerant reader.
     """
 
     def __init__(
@@ -82,6 +90,8 @@ class RecordingSink:
         self.paths: list[Path] = []
         self._closed = False
         self._writer: Any = None
+        self.failure: RecordingError | None = None
+        self._failure_raised = False
         self._part_started_ns = 0
         self._open_part(0)
 
@@ -115,8 +125,9 @@ class RecordingSink:
         with self._lock:
             if self._closed:
                 return
-            self._maybe_split(log_time_ns)
-            self._writer.write_stream(link, data, direction, log_time_ns)
+            with self._failing():
+                self._maybe_split(log_time_ns)
+                self._writer.write_stream(link, data, direction, log_time_ns)
             self.stats.stream_bytes[f"{link} {'RX' if direction == RX else 'TX'}"] += len(data)
 
     def write_motor_state(self, log_time_ns: int, step_count: int, target_step_count: int,
@@ -125,8 +136,9 @@ class RecordingSink:
         with self._lock:
             if self._closed:
                 return
-            self._writer.write_motor_state(log_time_ns, step_count, target_step_count, moving,
-                                           device_time_us)
+            with self._failing():
+                self._writer.write_motor_state(log_time_ns, step_count, target_step_count,
+                                               moving, device_time_us)
             self.stats.motor_states += 1
 
     def write_image(self, camera_id: str, log_time_ns: int, jpeg: bytes,
@@ -135,8 +147,9 @@ class RecordingSink:
         with self._lock:
             if self._closed:
                 return
-            self._maybe_split(log_time_ns)
-            self._writer.write_image(camera_id, log_time_ns, jpeg, frame_id)
+            with self._failing():
+                self._maybe_split(log_time_ns)
+                self._writer.write_image(camera_id, log_time_ns, jpeg, frame_id)
             self.stats.images[camera_id] += 1
             self.stats.image_bytes += len(jpeg)
 
@@ -149,17 +162,46 @@ class RecordingSink:
             self.stats.event_log.append(
                 {"time_ns": when, "kind": kind, "message": message, "data": dict(data or {})})
             if not self._closed:
-                self._writer.write_event(when, kind, message, dict(data or {}))
+                with self._failing():
+                    self._writer.write_event(when, kind, message, dict(data or {}))
 
     def flush(self) -> None:
         """Flush and fsync the current part now."""
         with self._lock:
             if not self._closed:
-                self._writer.flush()
+                with self._failing():
+                    self._writer.flush()
+            self._raise_failure()
 
     def close(self) -> None:
         """Finish the current part (summary section, fsync). Later writes are ignored."""
         with self._lock:
             if not self._closed:
-                self._closed = True
+                with self._failing():
+                    self._closed = True
+                    self._writer.close()
+            self._raise_failure()
+
+    @contextlib.contextmanager
+    def _failing(self) -> Iterator[None]:
+        """Keep a writer failure as the sink's one failure and stop writing (lock held)."""
+        try:
+            yield
+        except (RecordingError, OSError) as err:
+            self.failure = err if isinstance(err, RecordingError) else RecordingError(
+                f"{self.paths[-1]}: cannot be written ({err.strerror or err})")
+            self._closed = True
+            with contextlib.suppress(RecordingError, OSError):
                 self._writer.close()
+
+    def take_failure(self) -> RecordingError | None:
+        """The writer's failure, if any; the caller reports it, so flush and close will not."""
+        with self._lock:
+            self._failure_raised = True
+            return self.failure
+
+    def _raise_failure(self) -> None:
+        """Raise the kept failure if it has not been raised yet (lock held)."""
+        if self.failure is not None and not self._failure_raised:
+            self._failure_raised = True
+            raise self.failure

@@ -2,10 +2,13 @@
 
 :func:`read_recording` reads a whole recording into a :class:`Recording` in one linear pass
 (it never needs the summary section), so a file whose writer was killed is read up to its last
-complete chunk. Damage never raises a third-party exception: a damaged chunk or record is
-skipped with a warning; the read stops with a warning where the record structure is lost (a cut
-record, a length beyond the end of the file, an unknown opcode). Only a file that is missing or
-not an MCAP file at all raises :class:`RecordingError`.
+complete chunk. Damage never raises a third-party exception: a damaged chunk (its CRC, size or
+zstd data wrong) is skipped with a warning; where the record structure is lost (an unknown
+opcode, a length beyond the end of the file, a damaged length field) reading resynchronises on
+the next record shaped like a whole chunk, so every intact chunk after the damage is read. What
+was lost is counted in :class:`RecordingLoss` (``Recording.loss``): chunks, bytes and log time,
+exact when the summary section's chunk indexes are intact, a lower bound otherwise. Only a file
+that is missing or not an MCAP file at all raises :class:`RecordingError`.
 
 It parses MCAP records itself (they are few and simple: the spec's little-endian layout) rather
 than through ``mcap.reader``, because that reader stops at the first damaged byte and raises a
@@ -14,6 +17,7 @@ dozen exception types.
 
 from __future__ import annotations
 
+import bisect
 import json
 import mmap
 import struct
@@ -45,7 +49,7 @@ from scanpipe.rig import Rig
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x04, 0x05, 0x06
-OP_METADATA, OP_DATA_END = 0x0C, 0x0F
+OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_METADATA, OP_DATA_END = 0x07, 0x08, 0x0C, 0x0F
 KNOWN_OPCODES = frozenset(range(0x01, 0x10))
 #: A chunk may not claim to inflate beyond this (never allocate from an unchecked length).
 MAX_CHUNK_BYTES = 1 << 30
@@ -105,6 +109,54 @@ class RecordedEvent:
     data: dict[str, Any]
 
 
+@dataclass(frozen=True)
+class LostRegion:
+    """One stretch of the file that could not be read: a damaged chunk or skipped bytes."""
+
+    offset: int  # byte offset in the file
+    length: int  # bytes
+    reason: str
+    start_ns: int | None = None  # log time lost, when known
+    end_ns: int | None = None
+
+
+@dataclass(frozen=True)
+class RecordingLoss:
+    """What damage or a cut cost a recording: the tolerant reader's loss counters.
+
+    ``chunks`` counts data chunks not read (damaged, skipped while resynchronising, or cut off);
+    ``bytes`` the file bytes not read (damaged records, skipped stretches, a cut tail);
+    ``time_ns`` the log time those chunks spanned (the union of their time ranges). With an
+    intact summary section (``from_summary``) chunks and times come from its chunk indexes and
+    are exact. Without one (a killed writer, a damaged summary) ``chunks`` is a lower bound (the
+    chunk headers still recognisable in the lost stretches) and ``time_ns`` the log time between
+    the intact chunks on either side of each lost stretch (for a cut tail, up to the end time in
+    the cut chunk's header when it is readable). ``regions`` lists each lost stretch.
+    """
+
+    chunks: int = 0
+    bytes: int = 0
+    time_ns: int = 0
+    from_summary: bool = False
+    regions: tuple[LostRegion, ...] = ()
+
+    @property
+    def time_s(self) -> float:
+        """``time_ns`` in seconds."""
+        return self.time_ns / 1e9
+
+    @property
+    def any(self) -> bool:
+        """Whether anything was lost."""
+        return bool(self.chunks or self.bytes)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain data for JSON (regions as dicts)."""
+        return {"chunks": self.chunks, "bytes": self.bytes, "time_s": self.time_s,
+                "time_ns": self.time_ns, "exact": self.from_summary,
+                "regions": [vars(r).copy() for r in self.regions]}
+
+
 @dataclass
 class Recording:
     """Everything :func:`read_recording` could read from one file."""
@@ -124,6 +176,7 @@ class Recording:
     file_size: int
     chunks_read: int = 0
     chunks_damaged: int = 0
+    loss: RecordingLoss = field(default_factory=RecordingLoss)
 
     @property
     def rig_toml(self) -> str | None:
@@ -175,6 +228,8 @@ class _Collector:
     chunks_read: int = 0
     chunks_damaged: int = 0
     complete: bool = False
+    good_chunks: dict[int, tuple[int, int]] = field(default_factory=dict)  # offset → times
+    lost: list[LostRegion] = field(default_factory=list)
 
 
 class _Buffer:
@@ -232,13 +287,14 @@ def read_recording(path: Path | str) -> Recording:
                     raise RecordingError(f"{path}: not an MCAP file (bad magic bytes)")
                 collector = _Collector()
                 bytes_read = _read_records(data, size, collector)
+                loss = _loss(data, size, collector)
     except FileNotFoundError:
         raise RecordingError(f"{path}: not found") from None
     except IsADirectoryError:
         raise RecordingError(f"{path}: is a directory, expected an MCAP recording") from None
     except (OSError, ValueError) as err:  # mmap of special files raises ValueError
         raise RecordingError(f"{path}: cannot be read ({err})") from None
-    return _assemble(path, collector, bytes_read, size)
+    return _assemble(path, collector, bytes_read, size, loss)
 
 
 def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
@@ -246,6 +302,7 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
     pos = len(MAGIC)
     while pos < size:
         problem = None
+        opcode = length = 0
         if pos + 9 > size:
             problem = "the file ends inside a record header"
         else:
@@ -255,9 +312,20 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
                 problem = f"unknown record opcode {opcode:#04x}"
             elif length > size - pos - 9:
                 problem = f"a record of {length} bytes runs past the end of the file"
-        if problem is None and opcode in (OP_DATA_END, OP_FOOTER):
-            c.complete = True
-            return int(pos + 9 + length)
+        if problem is None:
+            shaped = _chunk_end(data, pos, size, check_length=True) is not None
+            if opcode == OP_CHUNK and not shaped:
+                problem = f"chunk at byte {pos}: its length field does not match its contents"
+            elif opcode != OP_CHUNK and shaped:  # a chunk whose opcode byte was hit
+                problem = f"record at byte {pos}: opcode {opcode:#04x} on a chunk-shaped record"
+            elif opcode in (OP_DATA_END, OP_FOOTER):
+                if length == _END_LENGTHS[opcode]:
+                    c.complete = True
+                    return int(pos + 9 + length)
+                problem = f"end record at byte {pos} has a wrong length ({length})"
+            elif opcode != OP_CHUNK and not _length_confirmed(data, pos, opcode, length, size):
+                problem = (f"record {opcode:#04x} at byte {pos}: its length {length} does not "
+                           "match its contents")
         if problem is None:
             body = data[pos + 9:pos + 9 + length]  # a copy: no view may outlive the mmap
             try:
@@ -270,12 +338,20 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
             except _DAMAGE as err:
                 problem = (f"record {opcode:#04x} at byte {pos} is damaged "
                            f"({type(err).__name__}: {err})")
-        # The record structure is lost here: a cut file, or damage. Resume at the next
-        # well-formed chunk if there is one; otherwise the file was cut.
+        # The record structure is lost here: damage in a record header, or a cut file. A chunk
+        # whose opcode or length field was hit is still recognised by its inner fields and
+        # accepted if its CRC matches; otherwise resume at the next well-formed chunk.
+        recovered = _recover_chunk(data, pos, size, c)
+        if recovered is not None:
+            c.warnings.append(f"{problem}; the chunk there was recovered by its CRC")
+            pos = recovered
+            continue
         resume = _next_chunk(data, pos + 1, size)
         if resume is None:
+            c.lost.append(LostRegion(pos, size - pos, "cut", *_header_times(data, pos, size)))
             c.warnings.append(_stop_message(c, pos, size, problem))
             return pos
+        c.lost.append(LostRegion(pos, resume - pos, "skipped"))
         c.warnings.append(f"{problem}; bytes {pos}…{resume} skipped, reading resumed at the "
                           "next chunk")
         pos = resume
@@ -285,25 +361,107 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
 
 #: A chunk record's fixed fields: start time, end time, uncompressed size, CRC.
 _CHUNK_FIXED_BYTES = 8 + 8 + 8 + 4
+#: The body length of the data end record (a CRC) and of the footer (two offsets and a CRC).
+_END_LENGTHS = {OP_DATA_END: 4, OP_FOOTER: 20}
+
+
+#: Top-level records whose parsing checks that their fields fill the length exactly.
+_SELF_CHECKED = frozenset({OP_HEADER, OP_METADATA})
+
+
+def _length_confirmed(data: mmap.mmap, pos: int, opcode: int, length: int, size: int) -> bool:
+    """Whether a record's length field is confirmed: by its own fields (message index; header
+    and metadata are checked when parsed), or else by a record starting where it ends (or a
+    chunk shaped by its inner fields there, whose own header may be the damaged one)."""
+    if opcode in _SELF_CHECKED:
+        return True
+    if opcode == OP_MESSAGE_INDEX:
+        if length < 6:
+            return False
+        (records,) = struct.unpack_from("<I", data, pos + 9 + 2)
+        return bool(length == 6 + records and records % 16 == 0)
+    end = pos + 9 + length
+    return _record_starts(data, end, size) or _chunk_end(data, end, size) is not None
+
+
+def _record_starts(data: mmap.mmap, pos: int, size: int) -> bool:
+    """Whether a record can start at ``pos``: a known opcode and a length inside the file (or
+    the file ends there, or is cut inside the header: that is found when reading on)."""
+    if pos + 9 > size:
+        return True
+    (length,) = struct.unpack_from("<Q", data, pos + 1)
+    return data[pos] in KNOWN_OPCODES and length <= size - pos - 9
+
+
+def _chunk_end(data: mmap.mmap, pos: int, size: int, check_length: bool = False,
+               check_opcode: bool = False) -> int | None:
+    """Where the chunk record at ``pos`` ends, if its inner fields are consistent (compression
+    zstd or none, the records inside the file); optionally also that its length field equals
+    the sum of the parts and its opcode is a chunk's."""
+    fields = pos + 9 + _CHUNK_FIXED_BYTES
+    if fields + 4 > size:
+        return None
+    (name_length,) = struct.unpack_from("<I", data, fields)
+    if name_length not in (0, 4) or fields + 4 + name_length + 8 > size:
+        return None
+    if data[fields + 4:fields + 4 + name_length] not in (b"", b"zstd"):
+        return None
+    (records,) = struct.unpack_from("<Q", data, fields + 4 + name_length)
+    expected = _CHUNK_FIXED_BYTES + 4 + name_length + 8 + records
+    if pos + 9 + expected > size:
+        return None
+    if check_opcode and data[pos] != OP_CHUNK:
+        return None
+    if check_length and struct.unpack_from("<Q", data, pos + 1)[0] != expected:
+        return None
+    return int(pos + 9 + expected)
 
 
 def _next_chunk(data: mmap.mmap, start: int, size: int) -> int | None:
-    """Offset of the next record at or after ``start`` that is shaped like a whole chunk: its
-    length field equals the sum of its parts and its compression is zstd or none."""
+    """Offset of the next record at or after ``start`` that is shaped like a whole chunk."""
     pos = data.find(bytes([OP_CHUNK]), start)
     while pos >= 0:
-        fields = pos + 9 + _CHUNK_FIXED_BYTES
-        if fields + 4 <= size:
-            (length,) = struct.unpack_from("<Q", data, pos + 1)
-            (name_length,) = struct.unpack_from("<I", data, fields)
-            if (name_length in (0, 4) and fields + 4 + name_length + 8 <= size
-                    and data[fields + 4:fields + 4 + name_length] in (b"", b"zstd")):
-                (records,) = struct.unpack_from("<Q", data, fields + 4 + name_length)
-                expected = _CHUNK_FIXED_BYTES + 4 + name_length + 8 + records
-                if length == expected and pos + 9 + length <= size:
-                    return int(pos)
+        if _chunk_end(data, pos, size, check_length=True, check_opcode=True) is not None:
+            return int(pos)
         pos = data.find(bytes([OP_CHUNK]), pos + 1)
     return None
+
+
+def _recover_chunk(data: mmap.mmap, pos: int, size: int, c: _Collector) -> int | None:
+    """Read the record at ``pos`` as a chunk despite a damaged opcode, record length or
+    records length field; the offset after it, or None.
+
+    Two ends are tried: the record length's (the compressed bytes then run to it, whatever the
+    records length says) and the inner fields' (a compression field and a records length that
+    fit). The zstd frame must fill the compressed bytes exactly, the CRC (required) must match,
+    and a record (or the end of the file) must follow.
+    """
+    if pos + 9 + _CHUNK_FIXED_BYTES + 4 > size:
+        return None
+    (length,) = struct.unpack_from("<Q", data, pos + 1)
+    candidates = [(int(pos + 9 + length), True)] if length <= size - pos - 9 else []
+    inner_end = _chunk_end(data, pos, size)
+    if inner_end is not None:
+        candidates.append((inner_end, False))
+    for end, to_end in candidates:
+        if end + 9 <= size and data[end] not in KNOWN_OPCODES:  # a cut record may follow
+            continue
+        try:
+            start_ns, end_ns, records = _decode_chunk(data[pos + 9:end], require_crc=True,
+                                                      compressed_to_end=to_end)
+        except _DAMAGE:
+            continue
+        _read_chunk_records(records, pos, start_ns, end_ns, c)
+        return end
+    return None
+
+
+def _header_times(data: mmap.mmap, pos: int, size: int) -> tuple[int | None, int | None]:
+    """The log time range a chunk header at ``pos`` claims, if it is readable."""
+    if pos + 9 + 16 > size or data[pos] != OP_CHUNK:
+        return None, None
+    start_ns, end_ns = struct.unpack_from("<QQ", data, pos + 9)
+    return int(start_ns), int(end_ns)
 
 
 def _stop_message(c: _Collector, pos: int, size: int, why: str) -> str:
@@ -311,37 +469,71 @@ def _stop_message(c: _Collector, pos: int, size: int, why: str) -> str:
             f"{c.chunks_read} complete chunks, stopped at byte {pos}")
 
 
-def _read_chunk(body: bytes, offset: int, c: _Collector) -> None:
+def _decode_chunk(body: bytes, require_crc: bool = False,
+                  compressed_to_end: bool = False) -> tuple[int, int, bytes]:
+    """A chunk record's time range and its records, checked by size and CRC (raises on damage).
+
+    ``compressed_to_end``: the compressed records run to the end of ``body`` (their length field
+    is not trusted). ``require_crc``: a CRC must be present, and the zstd frame must end exactly
+    at the end of the compressed bytes (zstd ignores trailing bytes)."""
     buf = _Buffer(body)
     start_ns, end_ns, uncompressed_size, crc = buf.u64(), buf.u64(), buf.u64(), buf.u32()
     compression = buf.string()
-    compressed = buf.raw(buf.u64())
-    try:
-        if uncompressed_size > min(MAX_CHUNK_BYTES, 1000 * len(compressed) + (1 << 20)):
-            raise ValueError(f"claims {uncompressed_size} bytes from {len(compressed)}")
+    records_length = buf.u64()
+    compressed = buf.raw(len(body) - buf.pos if compressed_to_end else records_length)
+    if uncompressed_size > min(MAX_CHUNK_BYTES, 1000 * len(compressed) + (1 << 20)):
+        raise ValueError(f"claims {uncompressed_size} bytes from {len(compressed)}")
+    if compression == "zstd":
+        records = zstandard.ZstdDecompressor().decompress(
+            compressed, max_output_size=uncompressed_size)
+    elif compression == "":
+        records = compressed
+    else:
+        raise ValueError(f"unsupported compression {compression!r}")
+    if len(records) != uncompressed_size or (crc and zlib.crc32(records) != crc):
+        raise ValueError("size or CRC of the decompressed records does not match")
+    if require_crc:  # recovering a chunk with a damaged header: its bytes must fit exactly
+        if not crc:
+            raise ValueError("no CRC to confirm the chunk")
         if compression == "zstd":
-            records = zstandard.ZstdDecompressor().decompress(
-                compressed, max_output_size=uncompressed_size)
-        elif compression == "":
-            records = compressed
-        else:
-            raise ValueError(f"unsupported compression {compression!r}")
-        if len(records) != uncompressed_size or (crc and zlib.crc32(records) != crc):
-            raise ValueError("size or CRC of the decompressed records does not match")
+            stream = zstandard.ZstdDecompressor().decompressobj()
+            stream.decompress(compressed)  # the frame is known good: its size is bounded
+            if stream.unused_data:
+                raise ValueError(f"{len(stream.unused_data)} bytes after the zstd frame")
+    return start_ns, end_ns, records
+
+
+def _read_chunk(body: bytes, offset: int, c: _Collector) -> None:
+    try:
+        start_ns, end_ns, records = _decode_chunk(body)
     except _DAMAGE as err:
+        start_ns, end_ns = struct.unpack_from("<QQ", body) if len(body) >= 16 else (0, 0)
         c.chunks_damaged += 1
+        c.lost.append(LostRegion(offset, 9 + len(body), "damaged chunk", start_ns, end_ns))
         c.warnings.append(f"chunk at byte {offset} (log time {start_ns}…{end_ns} ns) is damaged "
                           f"and was skipped ({type(err).__name__}: {err})")
         return
+    _read_chunk_records(records, offset, start_ns, end_ns, c)
+
+
+def _read_chunk_records(records: bytes, offset: int, start_ns: int, end_ns: int,
+                        c: _Collector) -> None:
     c.chunks_read += 1
+    first_ns, last_ns = None, None  # the messages' own times: the CRC covers them, not the header
     pos = 0
     while pos + 9 <= len(records):
         opcode = records[pos]
         (length,) = struct.unpack_from("<Q", records, pos + 1)
         if length > len(records) - pos - 9:
             break
+        if opcode == OP_MESSAGE and length >= 14:
+            (log_ns,) = struct.unpack_from("<Q", records, pos + 9 + 6)
+            first_ns = log_ns if first_ns is None else min(first_ns, log_ns)
+            last_ns = log_ns if last_ns is None else max(last_ns, log_ns)
         _read_record(opcode, memoryview(records)[pos + 9:pos + 9 + length], c)
         pos += 9 + length
+    c.good_chunks[offset] = ((start_ns, end_ns) if first_ns is None or last_ns is None
+                             else (int(first_ns), int(last_ns)))
     if pos != len(records):
         c.warnings.append(f"chunk at byte {offset}: its records end {len(records) - pos} bytes "
                           "early; the rest was skipped")
@@ -360,14 +552,21 @@ def _read_record(opcode: int, body: bytes | memoryview, c: _Collector) -> None:
     elif opcode == OP_METADATA:
         name = buf.string()
         values = buf.string_map()
+        _check_consumed(buf)
         c.metadata[name] = values
         if name == CHANNELS_METADATA:
             c.fallback_channels = {int(k): v for k, v in values.items()}
     elif opcode == OP_HEADER:
         c.profile, c.library = buf.string(), buf.string()
+        _check_consumed(buf)
         if c.profile != PROFILE:
             c.warnings.append(f"MCAP profile {c.profile!r}: not written by scanpipe "
                               f"(expected {PROFILE!r}); reading what is recognisable")
+
+
+def _check_consumed(buf: _Buffer) -> None:
+    if buf.pos != len(buf.data):
+        raise ValueError(f"{len(buf.data) - buf.pos} bytes after the record's fields")
 
 
 def _read_message(channel: int, sequence: int, log_time: int, data: bytes, c: _Collector) -> None:
@@ -399,8 +598,102 @@ def _read_message(channel: int, sequence: int, log_time: int, data: bytes, c: _C
         c.undecodable[topic] += 1
 
 
-def _assemble(path: Path, c: _Collector, bytes_read: int, size: int) -> Recording:
+def _summary_chunks(data: mmap.mmap, size: int) -> list[tuple[int, int, int]] | None:
+    """(offset, start_ns, end_ns) of every chunk the summary section indexes, or None when the
+    file has no summary or its CRC does not confirm it."""
+    footer = size - len(MAGIC) - 29
+    if footer <= len(MAGIC) or data[size - len(MAGIC):size] != MAGIC or data[footer] != OP_FOOTER:
+        return None
+    summary_start, _, crc = struct.unpack_from("<QQI", data, footer + 9)
+    if not crc or not len(MAGIC) < summary_start <= footer:
+        return None
+    if zlib.crc32(data[summary_start:footer + 9 + 16]) != crc:
+        return None
+    chunks = []
+    pos = summary_start
+    try:
+        while pos + 9 <= footer:
+            opcode = data[pos]
+            (length,) = struct.unpack_from("<Q", data, pos + 1)
+            if opcode == OP_CHUNK_INDEX:
+                start_ns, end_ns, offset = struct.unpack_from("<QQQ", data, pos + 9)
+                chunks.append((int(offset), int(start_ns), int(end_ns)))
+            pos += 9 + length
+    except struct.error:
+        return None
+    return chunks
+
+
+def _chunk_headers(data: mmap.mmap, start: int, end: int) -> int:
+    """How many zstd chunk headers a lost stretch holds (a compression field with a chunk
+    opcode where it belongs; chunk indexes in the summary have the field too)."""
+    count, pos = 0, data.find(_ZSTD_FIELD, start, end)
+    while pos >= 0:
+        at = pos - 9 - _CHUNK_FIXED_BYTES
+        count += at >= start and data[at] == OP_CHUNK
+        pos = data.find(_ZSTD_FIELD, pos + 1, end)
+    return count
+
+
+_ZSTD_FIELD = b"\x04\x00\x00\x00zstd"
+
+
+def _union_ns(spans: list[tuple[int, int]]) -> int:
+    """Total length of the union of [start, end] log time spans."""
+    total, reach = 0, None
+    for start, end in sorted(s for s in spans if s[1] >= s[0]):
+        if reach is None or start > reach:
+            total += end - start
+            reach = end
+        elif end > reach:
+            total += end - reach
+            reach = end
+    return total
+
+
+def _loss(data: mmap.mmap, size: int, c: _Collector) -> RecordingLoss:
+    """Count what was lost (see :class:`RecordingLoss`)."""
+    lost_bytes = sum(r.length for r in c.lost)
+    indexed = _summary_chunks(data, size)
+    if indexed is not None:
+        missing = [(s, e) for offset, s, e in indexed if offset not in c.good_chunks]
+        return RecordingLoss(len(missing), lost_bytes, _union_ns(missing), True, tuple(c.lost))
+    # No usable summary: bound each lost stretch by the intact chunks on either side.
+    good = sorted(c.good_chunks.items())
+    offsets = [offset for offset, _ in good]
+    spans: list[tuple[int, int]] = []
+    chunks = 0
+    for region in c.lost:
+        found = 1 if region.reason == "damaged chunk" else _chunk_headers(
+            data, region.offset, region.offset + region.length)
+        if not found:
+            continue
+        chunks += found
+        index = bisect.bisect_left(offsets, region.offset)
+        before = good[index - 1][1][1] if index > 0 else None
+        after = good[index][1][0] if index < len(good) else None
+        start = before if before is not None else region.start_ns
+        end = after if after is not None else region.end_ns
+        if start is not None and end is not None and 0 <= end - start < _MAX_LOST_SPAN_NS:
+            spans.append((start, end))
+    return RecordingLoss(chunks, lost_bytes, _union_ns(spans), False, tuple(c.lost))
+
+
+#: A lost stretch claiming more log time than this has damaged times: its time is not counted.
+_MAX_LOST_SPAN_NS = 3600 * 10**9
+
+
+def _assemble(path: Path, c: _Collector, bytes_read: int, size: int,
+              loss: RecordingLoss) -> Recording:
     warnings = list(c.warnings)
+    if loss.any:
+        bound = "" if loss.from_summary else "at least "
+        if loss.chunks:
+            warnings.append(f"lost {bound}{loss.chunks} chunks, {loss.bytes} bytes and "
+                            f"{bound}{loss.time_s:.3f} s of log time to damage or a cut")
+        else:
+            warnings.append(f"lost {loss.bytes} bytes to damage or a cut, outside any chunk "
+                            "found (index or summary records)")
     for topic, n in sorted(c.undecodable.items()):
         warnings.append(f"{n} messages on {topic} could not be decoded and were skipped")
     if c.unknown_channels:
@@ -438,5 +731,5 @@ def _assemble(path: Path, c: _Collector, bytes_read: int, size: int) -> Recordin
         motor=motor, images=sorted(c.images, key=lambda i: (i.camera_id, i.log_time_ns)),
         events=sorted(c.events, key=lambda e: e.log_time_ns), message_counts=dict(c.counts),
         warnings=warnings, complete=c.complete, bytes_read=bytes_read, file_size=size,
-        chunks_read=c.chunks_read, chunks_damaged=c.chunks_damaged,
+        chunks_read=c.chunks_read, chunks_damaged=c.chunks_damaged, loss=loss,
     )

@@ -1,13 +1,23 @@
 """The crash-safe recording writer: MCAP, protobuf messages, zstd chunks, regular fsync.
 
-A chunk is closed and the file fsynced at least every ``fsync_interval_s`` (checked on every
-write; call :meth:`RecordingWriter.flush` from an idle loop if writes can pause), so a writer
-killed at any moment loses at most about that much data; :mod:`scanpipe.recording.reader`
-reads such a file up to its last complete chunk. The Python mcap writer never fsyncs by itself.
+A chunk holds at most ``chunk_s`` of log time (1 s) and about ``chunk_bytes`` of records, so one
+damaged byte or a cut loses at most about a second of data: :mod:`scanpipe.recording.reader`
+skips a damaged chunk and reads every intact one after it. The file is fsynced at least every
+``fsync_interval_s`` of wall time (checked on every write; call :meth:`RecordingWriter.flush`
+from an idle loop if writes can pause), so a writer killed at any moment loses at most about
+that much. The Python mcap writer never fsyncs by itself.
+
+A failed write, flush, fsync or close (a full disk, an I/O error) raises one
+:class:`~scanpipe.errors.RecordingError` naming the file and the error; the writer is then
+failed: later writes raise the same error, :meth:`RecordingWriter.close` only releases the file
+(it never raises a second error), and what reached the disk stays readable by the tolerant
+reader.
 """
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import os
 import threading
@@ -37,6 +47,8 @@ SESSION_METADATA = "scanpipe.session"
 CHANNELS_METADATA = "scanpipe.channels"
 #: Uncompressed bytes after which a chunk is closed regardless of time.
 DEFAULT_CHUNK_BYTES = 1 << 20
+#: Log time a chunk may span: what one damaged byte or a cut can lose at most (about).
+DEFAULT_CHUNK_S = 1.0
 
 Link = Literal["scanner", "motor"]
 _STREAM_TOPICS: dict[str, str] = {"scanner": SCANNER_STREAM, "motor": MOTOR_STREAM}
@@ -55,13 +67,21 @@ class RecordingWriter:
     """
 
     def __init__(self, path: Path, rig: Rig, session: Mapping[str, Any],
-                 fsync_interval_s: float = 1.0, chunk_bytes: int = DEFAULT_CHUNK_BYTES) -> None:
+                 fsync_interval_s: float = 1.0, chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+                 chunk_s: float = DEFAULT_CHUNK_S) -> None:
         if fsync_interval_s <= 0:
             raise RecordingError(f"fsync_interval_s {fsync_interval_s!r}: must be > 0")
+        if chunk_s <= 0:
+            raise RecordingError(f"chunk_s {chunk_s!r}: must be > 0")
+        if chunk_bytes <= 0:
+            raise RecordingError(f"chunk_bytes {chunk_bytes!r}: must be > 0")
         self.path = Path(path)
         self.fsync_interval_s = fsync_interval_s
+        self._chunk_ns = round(chunk_s * 1e9)
+        self._chunk_start_ns: int | None = None  # earliest log time in the open chunk
         self._lock = threading.Lock()
         self._closed = False
+        self._failure: RecordingError | None = None
         self._seq: dict[tuple[str, int], int] = {}
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
@@ -69,8 +89,15 @@ class RecordingWriter:
         try:
             self._file: IO[bytes] = self.path.open("wb")
         except OSError as err:
-            raise RecordingError(f"{self.path}: cannot be created ({err.strerror or err})"
+            raise RecordingError(f"{self.path}: cannot be created ({_errno_meaning(err)})"
                                  ) from None
+        try:
+            self._start(rig, session, chunk_bytes)
+        except OSError as err:
+            raise self._fail(err) from None
+
+    def _start(self, rig: Rig, session: Mapping[str, Any], chunk_bytes: int) -> None:
+        """Header, metadata and channels, then a first fsync."""
         self._mcap = McapWriter(self._file, chunk_size=chunk_bytes,
                                 compression=CompressionType.ZSTD, enable_crcs=True)
         self._mcap.start(profile=PROFILE, library=f"scanpipe {__version__}")
@@ -135,24 +162,47 @@ class RecordingWriter:
     def flush(self) -> None:
         """Close the chunk in progress, write it out and fsync the file."""
         with self._lock:
+            if self._failure is not None:
+                raise self._failure
             if not self._closed:
-                self._sync()
+                try:
+                    self._sync()
+                except OSError as err:
+                    raise self._fail(err) from None
+
+    @property
+    def failed(self) -> RecordingError | None:
+        """The error that ended writing (a full disk …), or None."""
+        return self._failure
 
     def close(self) -> None:
-        """Write the summary and close the file (idempotent)."""
+        """Write the summary and close the file (idempotent).
+
+        After a failed write it only releases the file: the error was raised already.
+        """
         with self._lock:
             if self._closed:
                 return
             self._closed = True
+            if self._failure is not None:
+                return
             try:
                 self._mcap.finish()  # type: ignore[no-untyped-call]
                 self._file.flush()
                 os.fsync(self._file.fileno())
-            except OSError as err:
-                raise RecordingError(f"{self.path}: cannot be written ({err.strerror or err})"
-                                     ) from None
-            finally:
                 self._file.close()
+            except OSError as err:
+                raise self._fail(err) from None
+
+    def _fail(self, err: OSError) -> RecordingError:
+        """Enter the failed state after an OSError: release the file, keep one error."""
+        self._closed = True
+        self._failure = RecordingError(
+            f"{self.path}: cannot be written ({_errno_meaning(err)}); the recording ends "
+            "with what reached the disk")
+        with contextlib.suppress(OSError):  # close() flushes the buffer: fails again if full
+            self._file.close()
+        return self._failure
 
     def __enter__(self) -> RecordingWriter:
         return self
@@ -174,20 +224,35 @@ class RecordingWriter:
         return self._channels[topic]
 
     def _write(self, topic: str, message: Any, log_time_ns: int, sequence: int) -> None:
+        if self._failure is not None:
+            raise self._failure
         if self._closed:
             raise RecordingError(f"{self.path}: write after close")
-        channel = self._channel(topic, type(message))
         try:
+            channel = self._channel(topic, type(message))
+            start = self._chunk_start_ns
+            if start is not None and abs(log_time_ns - start) >= self._chunk_ns:
+                self._mcap.flush()  # type: ignore[no-untyped-call]  # closes the chunk
+                start = None
+            self._chunk_start_ns = log_time_ns if start is None else min(start, log_time_ns)
             self._mcap.add_message(channel_id=channel, log_time=log_time_ns,
                                    data=message.SerializeToString(), publish_time=log_time_ns,
                                    sequence=sequence & 0xFFFFFFFF)
             if time.monotonic() - self._last_sync >= self.fsync_interval_s:
                 self._sync()
         except OSError as err:
-            raise RecordingError(f"{self.path}: cannot be written ({err.strerror or err})"
-                                 ) from None
+            raise self._fail(err) from None
 
     def _sync(self) -> None:
         self._mcap.flush()  # type: ignore[no-untyped-call]
+        self._chunk_start_ns = None
         os.fsync(self._file.fileno())
         self._last_sync = time.monotonic()
+
+
+def _errno_meaning(err: OSError) -> str:
+    """``errno ENOSPC: No space left on device`` (or the error's text without an errno)."""
+    if err.errno is None:
+        return str(err) or type(err).__name__
+    name = errno.errorcode.get(err.errno, str(err.errno))
+    return f"errno {name}: {err.strerror or os.strerror(err.errno)}"
