@@ -16,7 +16,7 @@ from typing import Any
 import typer
 
 from scanpipe.cli.common import JSON, QUIET, RIG, print_json
-from scanpipe.errors import UsageError
+from scanpipe.errors import RecordingError, UsageError
 
 
 def sim_options(scene: str, rig_path: Path | None, motor_step: float,
@@ -61,12 +61,16 @@ def atomic_recording(out: Path) -> Iterator[Path]:
     """The recording is written under a temporary name and renamed when finished, so a failed
     or interrupted simulation leaves no half file and the previous recording intact."""
     from scanpipe.artifacts import atomic_path
+    from scanpipe.recording.writer import RecordingWriteError
 
     try:
         with atomic_path(out) as tmp:
             yield tmp
     except OSError as err:
         raise UsageError(f"--out {out}: cannot be written ({err.strerror or err})") from None
+    except RecordingWriteError as err:  # the temporary file is gone: say so, by the real name
+        raise RecordingError(f"{out}: cannot be written ({err.reason}); nothing was written "
+                             "and an earlier file of that name is unchanged") from None
 
 
 def simulate_live(out: Path, truth: Path, options: Any, speedup: float, quiet: bool,

@@ -59,6 +59,16 @@ def camera_topic(camera_id: str) -> str:
     return f"/camera/{camera_id}/image"
 
 
+class RecordingWriteError(RecordingError):
+    """The recording's file could not be written (a full disk, an I/O error)."""
+
+    def __init__(self, path: Path, reason: str) -> None:
+        self.path = path
+        self.reason = reason
+        super().__init__(f"{path}: cannot be written ({reason}); the recording ends with what "
+                         "reached the disk")
+
+
 class RecordingWriter:
     """Writes one recording; a context manager. Thread-safe: devices may write concurrently.
 
@@ -197,9 +207,7 @@ class RecordingWriter:
     def _fail(self, err: OSError) -> RecordingError:
         """Enter the failed state after an OSError: release the file, keep one error."""
         self._closed = True
-        self._failure = RecordingError(
-            f"{self.path}: cannot be written ({_errno_meaning(err)}); the recording ends "
-            "with what reached the disk")
+        self._failure = RecordingWriteError(self.path, _errno_meaning(err))
         with contextlib.suppress(OSError):  # close() flushes the buffer: fails again if full
             self._file.close()
         return self._failure

@@ -271,6 +271,7 @@ def decode_recording(recording: Recording, params: DecodeParams,
             "complete": recording.complete, "bytes_read": recording.bytes_read,
             "file_size": recording.file_size, "chunks_read": recording.chunks_read,
             "chunks_damaged": recording.chunks_damaged, "warnings": warnings,
+            "loss": recording.loss.as_dict(),
         },
     }
     return StageResult(
