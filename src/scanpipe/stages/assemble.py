@@ -47,9 +47,9 @@ from scanpipe.errors import StageError
 from scanpipe.geometry import rotation_matrix_deg, scan_plane_direction
 from scanpipe.motion import beta_deg_at, beta_deg_from_steps, motor_clock, motor_times_ns
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
 from scanpipe.rig import Rig, rig_from_table
+from scanpipe.stage import Stage, StageResult
 
 I64 = NDArray[np.int64]
 F32 = NDArray[np.float32]
@@ -443,7 +443,7 @@ def choose_mode(params: AssembleParams, lines: ScanLines, intervals: StationaryI
             f"{inside} of {usable} profiles lie inside one")
 
 
-def assemble(inputs: Mapping[str, Any], params: AssembleParams,
+def assemble_stage(inputs: Mapping[str, Any], params: AssembleParams,
              progress: ProgressFn) -> StageResult:
     """The assemble stage: ``profiles``, ``motor``, ``rig`` → ``points`` (a full grid)."""
     rig = rig_from_table(inputs["rig"])
@@ -551,6 +551,6 @@ STAGE = Stage(
     params=AssembleParams,
     inputs=("profiles", "motor", "rig"),
     outputs=("points",),
-    func=assemble,
+    func=assemble_stage,
     description="profiles + motor states + rig calibration → points on the profile × sample grid",
 )

@@ -34,13 +34,13 @@ from scanpipe.clock import fit_clock, unwrap_device_ms
 from scanpipe.errors import ProtocolError, RecordingError, StageError
 from scanpipe.images import image_size
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, unwrap_counter
 from scanpipe.protocol.registry import DecodedFrame, StreamDecoder, get_dialect, resolve_dialect
 from scanpipe.recording.reader import Image, Recording, StreamData, read_recording
 from scanpipe.recording.schemas import RX
 from scanpipe.rig import Rig, default_rig, rig_table
+from scanpipe.stage import Stage, StageResult
 
 I64 = NDArray[np.int64]
 
@@ -285,7 +285,7 @@ def _span(times_ns: I64) -> int:
     return int(times_ns.max() - times_ns.min()) if times_ns.size > 1 else 0
 
 
-def run_decode(inputs: Mapping[str, Any], params: DecodeParams,
+def decode_stage(inputs: Mapping[str, Any], params: DecodeParams,
                progress: ProgressFn = no_progress) -> StageResult:
     """Stage function: ``inputs["recording"]`` is the path of the MCAP recording."""
     path = inputs.get("recording")
@@ -300,7 +300,7 @@ STAGE = Stage(
     params=DecodeParams,
     inputs=("recording",),
     outputs=("profiles", "motor", "frames", "rig"),
-    func=run_decode,
+    func=decode_stage,
     description="recording (MCAP) → profiles, motor states, camera frames, rig",
     libraries=("numpy", "pyarrow", "mcap", "protobuf", "zstandard"),
 )

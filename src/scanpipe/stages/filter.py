@@ -55,8 +55,8 @@ from scanpipe.grid import (
     to_grid,
 )
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
+from scanpipe.stage import Stage, StageResult
 
 F32 = NDArray[np.float32]
 B = NDArray[np.bool_]
@@ -512,7 +512,7 @@ def filtered_table(table: pa.Table, cloud: Cloud, mode: str) -> pa.Table:
     return table.append_column("filtered_by", names)
 
 
-def filter_points(inputs: Mapping[str, Any], params: FilterParams,
+def filter_stage(inputs: Mapping[str, Any], params: FilterParams,
                   progress: ProgressFn) -> StageResult:
     """The filter stage: ``points`` → ``points`` with fewer (or marked) points."""
     table: pa.Table = inputs["points"]
@@ -540,7 +540,7 @@ STAGE = Stage(
     params=FilterParams,
     inputs=("points",),
     outputs=("points",),
-    func=filter_points,
+    func=filter_stage,
     description="range gate, no-returns, depth edges, grid median, smoothing, double coverage, "
                 "statistical outliers, voxels: mark or remove",
     libraries=("numpy", "pyarrow", "open3d"),

@@ -29,8 +29,8 @@ from scanpipe.meshing.mesh import COLOUR_COLUMNS, Mesh
 from scanpipe.meshing.poisson import PoissonParams, poisson_mesh
 from scanpipe.normals import NormalParams, estimate_normals, points_origins, points_xyz
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
+from scanpipe.stage import Stage, StageResult
 
 #: The columns of the ``points`` artifact the mesh stage reads.
 POINT_COLUMNS = {
@@ -137,7 +137,7 @@ def mesh_points(table: pa.Table, params: MeshParams,
     return mesh, report
 
 
-def run_mesh(inputs: Mapping[str, Any], params: MeshParams,
+def mesh_stage(inputs: Mapping[str, Any], params: MeshParams,
              progress: ProgressFn) -> StageResult:
     """The stage function: ``points`` → ``mesh_vertices``, ``mesh_faces``."""
     mesh, report = mesh_points(inputs["points"], params, progress)
@@ -152,7 +152,7 @@ STAGE = Stage(
     params=MeshParams,
     inputs=("points",),
     outputs=("mesh_vertices", "mesh_faces"),
-    func=run_mesh,
+    func=mesh_stage,
     description="surface from the points: Open3D Poisson or the organized scan grid",
     libraries=("numpy", "pyarrow", "open3d", "scipy"),
 )

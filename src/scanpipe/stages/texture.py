@@ -25,16 +25,17 @@ from scanpipe.artifacts import check_columns
 from scanpipe.errors import StageError
 from scanpipe.images import encode_png
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
 from scanpipe.rig import Rig, rig_from_table
+from scanpipe.stage import Stage, StageResult
 from scanpipe.texturing.atlas import build_atlas
 from scanpipe.texturing.exposure import seam_colour_pairs, solve_gains
 from scanpipe.texturing.frames import choose_frames, known_camera_frames
+from scanpipe.texturing.panorama import texture_panorama
 from scanpipe.texturing.projective import colorize_points, face_scores, select_frames_per_face
 from scanpipe.texturing.visibility import MeshOcclusion, face_normals
 
-__all__ = ["STAGE", "TextureParams", "colorize_points", "texture"]
+__all__ = ["STAGE", "TextureParams", "colorize_points", "texture_stage"]
 
 VERTEX_COLUMNS = {name: pa.float32() for name in ("x", "y", "z")}
 FACE_COLUMNS = {name: pa.int32() for name in ("v0", "v1", "v2")}
@@ -161,7 +162,7 @@ def orient_towards_rig(vertices: NDArray[np.float64], faces: NDArray[np.int64],
     return True
 
 
-def texture(inputs: Mapping[str, Any], params: TextureParams, progress: ProgressFn
+def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: ProgressFn
             ) -> StageResult:
     """Texture the mesh from the camera frames (the stage function)."""
     started = time.perf_counter()
@@ -178,12 +179,16 @@ def texture(inputs: Mapping[str, Any], params: TextureParams, progress: Progress
     normals, areas = face_normals(vertices, faces, vertex_normals)
     flipped = orient_towards_rig(vertices, faces, normals, areas, rig)
     if params.method == "panorama":
-        from scanpipe.texturing.panorama import texture_panorama
-
-        result = texture_panorama(vertices, faces, normals, areas, inputs, rig, params, progress)
-        result.report["normals_flipped"] = flipped
-        result.report["warnings"] = warnings
-        return result
+        pano = texture_panorama(vertices, faces, normals, inputs, rig, params, progress)
+        return StageResult(
+            tables={"textured_faces": textured_faces_table(
+                        pano.face_page, pano.face_uv, pano.face_frame, pano.frames.camera_ids,
+                        pano.frames.sequences),
+                    "texture_pages": pages_table([pano.page], params.png_compression)},
+            report={**pano.report, **coverage_report(areas, pano.face_frame),
+                    "normals_flipped": flipped, "warnings": warnings},
+            files={"panorama.png": encode_png(pano.panorama, params.png_compression)},
+        )
     frames = choose_frames(inputs["frames"], inputs["motor"], rig, params.frame_spacing_deg,
                            params.frame_stride, progress)
     timing = {"frames_s": time.perf_counter() - started}
@@ -242,7 +247,7 @@ STAGE = Stage(
     params=TextureParams,
     inputs=("mesh_vertices", "mesh_faces", "frames", "motor", "rig"),
     outputs=("textured_faces", "texture_pages"),
-    func=texture,
+    func=texture_stage,
     description="camera frames onto the mesh: per-face UVs and PNG atlas pages",
     libraries=("numpy", "pyarrow", "open3d", "cv2"),
 )
