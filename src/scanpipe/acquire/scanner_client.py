@@ -221,7 +221,9 @@ class ScannerClient:
     # -- reading -------------------------------------------------------------------------
 
     def _read_loop(self, sock: socket.socket) -> None:
-        paper_decoder = (StreamDecoder(DIALECTS["paper"]) if self.dialect == "paper" else None)
+        # Live: count a profile when it arrives, not when the next frame confirms it.
+        paper_decoder = (StreamDecoder(DIALECTS["paper"], confirm=False)
+                         if self.dialect == "paper" else None)
         reader = ldoem.FrameReader(accept_unknown=True) if self.dialect == "ldoem" else None
         reason = ""
         while not self._closing.is_set():
