@@ -100,7 +100,12 @@ def _columns(types: Mapping[str, pa.DataType], required: bool = True,
 
 
 F32, F64, I64, I32 = pa.float32(), pa.float64(), pa.int64(), pa.int32()
+#: Column groups that several artifacts share, named once.
+XYZ = ("x", "y", "z")
+ORIGIN = ("origin_x", "origin_y", "origin_z")
+NORMAL = ("nx", "ny", "nz")
 RGB = ("red", "green", "blue")
+FACE_CORNERS = ("v0", "v1", "v2")
 
 RIG = ArtifactSchema(
     "rig", _columns({"toml": pa.string()}),
@@ -152,14 +157,14 @@ FRAMES = ArtifactSchema(
 POINTS = ArtifactSchema(
     "points",
     (
-        *_columns({"x": F32, "y": F32, "z": F32}, description="rig frame, metres"),
+        *_columns(dict.fromkeys(XYZ, F32), description="rig frame, metres"),
         Column("range_m", F32, description="measured range, NaN = no return"),
         Column("alpha_deg", F64, description="beam angle"),
         Column("beta_deg", F64, description="platform angle"),
         Column("time_ns", I64, description="when the sample was measured (host clock)"),
         Column("profile", I32, description="grid row, −1 for clouds without a grid"),
         Column("sample", I32, description="grid column, −1 for clouds without a grid"),
-        *_columns({"origin_x": F32, "origin_y": F32, "origin_z": F32},
+        *_columns(dict.fromkeys(ORIGIN, F32),
                   description="the sensor's optical centre when the point was measured"),
         Column("echo", pa.uint16(), False, "echo amplitude"),
         *_columns(dict.fromkeys(RGB, pa.uint8()), False, "colour"),
@@ -171,12 +176,12 @@ POINTS = ArtifactSchema(
 )
 MESH_VERTICES = ArtifactSchema(
     "mesh_vertices",
-    (*_columns({n: F32 for n in ("x", "y", "z", "nx", "ny", "nz")}),
+    (*_columns(dict.fromkeys((*XYZ, *NORMAL), F32)),
      *_columns(dict.fromkeys(RGB, pa.uint8()), False, "colour")),
     "vertices with unit normals, rig frame",
 )
 MESH_FACES = ArtifactSchema(
-    "mesh_faces", _columns({n: I32 for n in ("v0", "v1", "v2")}, description="vertex index"),
+    "mesh_faces", _columns(dict.fromkeys(FACE_CORNERS, I32), description="vertex index"),
     "triangles, counter-clockwise seen from outside",
 )
 TEXTURED_FACES = ArtifactSchema(

@@ -40,26 +40,15 @@ from scanpipe.protocol.registry import DecodedFrame, StreamDecoder, get_dialect,
 from scanpipe.recording.reader import Image, Recording, StreamData, read_recording
 from scanpipe.recording.schemas import RX
 from scanpipe.rig import Rig, default_rig, rig_table
+from scanpipe.schema import FRAMES, MOTOR, PROFILES
 from scanpipe.stage import Stage, StageResult
 
 I64 = NDArray[np.int64]
 
-PROFILES_SCHEMA = pa.schema([
-    ("recv_time_ns", pa.int64()), ("device_time_ns", pa.int64()),
-    ("device_end_time_ns", pa.int64()), ("frame", pa.int64()), ("sector", pa.int32()),
-    ("start_angle_deg", pa.float64()), ("step_deg", pa.float64()),
-    ("ranges_m", pa.list_(pa.float32())), ("echo", pa.list_(pa.uint16())),
-    ("checksum_ok", pa.bool_()), ("dialect", pa.string()),
-])
-MOTOR_SCHEMA = pa.schema([
-    ("log_time_ns", pa.int64()), ("step_count", pa.int64()), ("target_step_count", pa.int64()),
-    ("moving", pa.bool_()), ("device_time_us", pa.int64()),
-])
-FRAMES_SCHEMA = pa.schema([
-    ("camera_id", pa.string()), ("log_time_ns", pa.int64()), ("sequence", pa.int64()),
-    ("format", pa.string()), ("width", pa.int32()), ("height", pa.int32()),
-    ("data", pa.binary()),
-])
+#: What decode writes: every column of each artifact (:mod:`scanpipe.schema`).
+PROFILES_SCHEMA = PROFILES.arrow_schema
+MOTOR_SCHEMA = MOTOR.arrow_schema
+FRAMES_SCHEMA = FRAMES.arrow_schema
 #: The decoder is fed this many bytes at a time, to report progress.
 _FEED_BYTES = 1 << 20
 

@@ -21,12 +21,20 @@ import pyarrow as pa
 from numpy.typing import NDArray
 from pydantic import Field
 
-from scanpipe.artifacts import check_columns
 from scanpipe.errors import StageError
 from scanpipe.images import encode_png
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn
 from scanpipe.rig import Rig, rig_from_table
+from scanpipe.schema import (
+    FACE_CORNERS,
+    MESH_FACES,
+    MESH_VERTICES,
+    NORMAL,
+    TEXTURE_PAGES,
+    TEXTURED_FACES,
+    XYZ,
+)
 from scanpipe.stage import Stage, StageResult
 from scanpipe.texturing.atlas import build_atlas
 from scanpipe.texturing.exposure import seam_colour_pairs, solve_gains
@@ -37,17 +45,6 @@ from scanpipe.texturing.visibility import MeshOcclusion, face_normals
 
 __all__ = ["STAGE", "TextureParams", "colorize_points", "texture_stage"]
 
-VERTEX_COLUMNS = {name: pa.float32() for name in ("x", "y", "z")}
-FACE_COLUMNS = {name: pa.int32() for name in ("v0", "v1", "v2")}
-TEXTURED_FACES_SCHEMA = pa.schema([
-    ("face", pa.int32()), ("page", pa.int16()),
-    ("u0", pa.float32()), ("v0", pa.float32()), ("u1", pa.float32()), ("v1", pa.float32()),
-    ("u2", pa.float32()), ("v2", pa.float32()),
-    ("camera_id", pa.string()), ("frame", pa.int64()),
-])
-TEXTURE_PAGES_SCHEMA = pa.schema([
-    ("page", pa.int16()), ("width", pa.int32()), ("height", pa.int32()), ("png", pa.binary()),
-])
 
 
 Channel = Annotated[int, Field(ge=0, le=255)]
@@ -88,17 +85,17 @@ class TextureParams(Params):
 def _mesh_arrays(inputs: Mapping[str, Any]) -> tuple[NDArray[np.float64], NDArray[np.int64],
                                                       NDArray[np.float64] | None]:
     vertices_table, faces_table = inputs["mesh_vertices"], inputs["mesh_faces"]
-    check_columns(vertices_table, VERTEX_COLUMNS, "mesh_vertices")
-    check_columns(faces_table, FACE_COLUMNS, "mesh_faces")
-    vertices = np.stack([vertices_table.column(c).to_numpy() for c in "xyz"], 1).astype(np.float64)
-    faces = np.stack([faces_table.column(c).to_numpy() for c in ("v0", "v1", "v2")], 1)
+    MESH_VERTICES.check(vertices_table, XYZ)  # normals are optional here
+    MESH_FACES.check(faces_table)
+    vertices = np.stack([vertices_table.column(c).to_numpy() for c in XYZ], 1).astype(np.float64)
+    faces = np.stack([faces_table.column(c).to_numpy() for c in FACE_CORNERS], 1)
     faces = faces.astype(np.int64)
     if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise StageError(f"mesh_faces: vertex indices must lie in [0, {len(vertices) - 1}]; "
                          f"found {faces.min()}..{faces.max()}")
     normals = None
-    if all(c in vertices_table.column_names for c in ("nx", "ny", "nz")):
-        normals = np.stack([vertices_table.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    if all(c in vertices_table.column_names for c in NORMAL):
+        normals = np.stack([vertices_table.column(c).to_numpy() for c in NORMAL], 1)
         normals = normals.astype(np.float64)
         if not np.isfinite(normals).all() or not np.abs(normals).sum():
             normals = None
@@ -120,7 +117,7 @@ def textured_faces_table(face_page: NDArray[np.int16], face_uv: NDArray[np.float
         columns[f"v{k}"] = pa.array(face_uv[:, k, 1].astype(np.float32))
     columns["camera_id"] = pa.array(camera.tolist(), pa.string(), mask=~textured)
     columns["frame"] = pa.array(seq.astype(np.int64))
-    return pa.table(columns, schema=TEXTURED_FACES_SCHEMA)
+    return pa.table(columns, schema=TEXTURED_FACES.arrow_schema)
 
 
 def pages_table(pages: list[NDArray[np.uint8]], level: int) -> pa.Table:
@@ -130,7 +127,7 @@ def pages_table(pages: list[NDArray[np.uint8]], level: int) -> pa.Table:
         "width": pa.array([p.shape[1] for p in pages], pa.int32()),
         "height": pa.array([p.shape[0] for p in pages], pa.int32()),
         "png": pa.array([encode_png(p, level) for p in pages], pa.binary()),
-    }, schema=TEXTURE_PAGES_SCHEMA)
+    }, schema=TEXTURE_PAGES.arrow_schema)
 
 
 def coverage_report(areas: NDArray[np.float64], face_frame: NDArray[np.int64]) -> dict[str, Any]:
