@@ -41,7 +41,7 @@ def run(quick: bool = False) -> dict[str, Any]:
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        test = SimOptions(motor_step_deg=2.0, scanner_step_deg=2.0, cameras=False)
+        test = SimOptions(motor_step_deg=2.0, beam_step_deg=2.0, cameras=False)
         lab = SimOptions(cameras=False) if not quick else SimOptions(
             cameras=False, motor_step_deg=0.72)
         summaries: dict[str, Any] = {}

@@ -27,7 +27,7 @@ class BenchScan:
     """One benchmark scan: the grid, the video, and the sizes of the work done on it."""
 
     name: str
-    scanner_step_deg: float
+    beam_step_deg: float
     motor_step_deg: float
     #: Video per camera: ``video_s × video_fps`` frames spread over the whole session.
     video_s: float
@@ -52,7 +52,7 @@ QUICK = BenchScan("quick", 1.0, 1.08, video_s=2.0, video_fps=10.0, camera_scale=
 def sim_options(scan: BenchScan) -> SimOptions:
     """The simulator's options for ``scan``, the camera rate chosen so that each camera records
     ``video_s × video_fps`` frames over the session (whose length depends on the grid)."""
-    options = SimOptions(scanner_step_deg=scan.scanner_step_deg,
+    options = SimOptions(beam_step_deg=scan.beam_step_deg,
                          motor_step_deg=scan.motor_step_deg, camera_scale=scan.camera_scale)
     _, true_rig = checked_rigs(options)
     duration_s = plan_session(options, true_rig).end_s

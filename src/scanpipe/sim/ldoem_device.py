@@ -61,7 +61,7 @@ class LdoemDevice:
 
     def __post_init__(self) -> None:
         self.scan_hz = int(self.scanner.scan_hz)
-        self.step_ticks = round(self.scanner.angular_step_deg * 16)
+        self.step_ticks = round(self.scanner.beam_step_deg * 16)
         self.start_ticks = round(self.scanner.start_angle_deg * 16)
         self.end_ticks = round(self.scanner.end_angle_deg * 16)
 
