@@ -35,7 +35,7 @@ def rig_with_cameras(*cameras: CameraConfig) -> Rig:
 
 def sim_options(dialect: str = "ldoem", mode: str = "step", cameras: bool = False,
                 pulse_limit: int = 1000, seed: int = 3) -> Any:
-    """A small virtual-rig scan: 2° scanner step, 5° motor step (139 pulses), box room."""
+    """A small virtual-rig scan: 2° beam step, 5° motor step (139 pulses), box room."""
     from scanpipe.sim.options import SimOptions
 
     rig = default_rig()

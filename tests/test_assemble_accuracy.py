@@ -1,6 +1,6 @@
 """Accuracy on the virtual rig: simulate → decode → assemble, against the true room surface.
 
-Small scans (5° motor step × 2° scanner step) keep this fast; the tolerances come from the noise
+Small scans (5° motor step × 2° beam step) keep this fast; the tolerances come from the noise
 model: with range noise σ the distance to the surface is at most |noise|, so its RMS is ≤ σ plus
 the 1/256 m quantisation (≈ 1.1 mm RMS), hence the issue's 1.1 σ.
 """

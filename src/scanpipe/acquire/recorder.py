@@ -7,7 +7,7 @@ Two procedures (:class:`RecordOptions.mode`):
   for ``profiles_per_position`` complete profiles that began after the settle (the profile under
   way when the platform came to rest is not counted), and repeat while the next position is
   within the sweep;
-- ``continuous``: one move to the end of the sweep at a constant pulse rate (the step angle per
+- ``continuous``: one move to the end of the sweep at a constant pulse rate (the motor step per
   head turn: ``steps × scan_hz`` pulses per second) while the controller reports its position
   periodically and the scanner streams.
 
