@@ -97,3 +97,15 @@ def test_an_input_artifact_missing_a_column_is_named_on_read(tmp_path: Path) -> 
     with pytest.raises(ArtifactError, match=r"^points: missing column 'origin_y' \(float\)$"):
         execute(stage, {"points": path}, tmp_path / "out", stage.params())
     assert not (tmp_path / "out" / "points.parquet").exists()
+
+
+def test_the_command_line_starts_without_the_heavy_libraries() -> None:
+    # Open3D alone costs ~0.8 s and ~250 MB at import; rig check and record must not pay it.
+    import subprocess
+    import sys
+
+    code = ("import sys, scanpipe.cli.main; "
+            "print(sorted(m for m in ('open3d', 'laspy', 'pye57', 'trimesh') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "[]"

@@ -9,7 +9,6 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import pye57
 
 from scanpipe.errors import ExportError
 from scanpipe.exporters.model import CloudModel, rig_to_z_up
@@ -29,6 +28,8 @@ def e57_bytes(cloud: CloudModel, name: str = "scan") -> bytes:
         data["colorRed"] = cloud.colors[:, 0].copy()
         data["colorGreen"] = cloud.colors[:, 1].copy()
         data["colorBlue"] = cloud.colors[:, 2].copy()
+    import pye57  # here, not at import: only an E57 export needs it
+
     with tempfile.TemporaryDirectory(prefix="scanpipe-e57-") as tmp:
         path = Path(tmp) / "scan.e57"
         try:

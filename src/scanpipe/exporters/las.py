@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import io
 
-import laspy
 import numpy as np
 
 from scanpipe.errors import ExportError
@@ -20,6 +19,8 @@ SCALE_M = 0.0001
 
 def las_bytes(cloud: CloudModel, compressed: bool = False) -> bytes:
     """The cloud as a LAS (or, with ``compressed``, LAZ) file."""
+    import laspy  # here, not at import: only an LAS export needs it
+
     if len(cloud.xyz) == 0:
         raise ExportError("points: no points to write")
     xyz = rig_to_z_up(cloud.xyz)

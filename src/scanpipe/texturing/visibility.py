@@ -9,7 +9,6 @@ object is not textured from that frame.
 from __future__ import annotations
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 
 from scanpipe.errors import StageError
@@ -25,6 +24,9 @@ class MeshOcclusion:
     def __init__(self, vertices: NDArray[np.floating], faces: NDArray[np.integer]) -> None:
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float32)
         self.faces = np.ascontiguousarray(faces, dtype=np.uint32)
+        import open3d as o3d  # here, not at import: every command would pay ~0.8 s for it
+
+        self._o3d = o3d
         self._scene = o3d.t.geometry.RaycastingScene()
         if len(self.faces):
             try:
@@ -57,7 +59,7 @@ class MeshOcclusion:
         distance = np.linalg.norm(delta, axis=1)
         direction = delta / np.maximum(distance, 1e-12)[:, None]
         rays = np.concatenate([origins, direction], axis=1).astype(np.float32)
-        hits = self._scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
+        hits = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
         t_hit = hits["t_hit"].numpy().astype(np.float64)
         primitive = hits["primitive_ids"].numpy().astype(np.int64)
         tolerance = abs_tol_m + rel_tol * distance
