@@ -21,8 +21,8 @@ from harness import cli, cpu_seconds, measure, table
 
 from scanpipe.progress import no_progress
 from scanpipe.rig import MotorConfig, Rig, ScannerConfig, rig_table
-from scanpipe.stages.assemble import AssembleParams, assemble
-from scanpipe.stages.filter import FilterParams, filter_points
+from scanpipe.stages.assemble import AssembleParams, assemble_stage
+from scanpipe.stages.filter import FilterParams, filter_stage
 
 T0_NS = 1_700_000_000_000_000_000
 
@@ -75,29 +75,29 @@ def run(quick: bool = False) -> dict[str, Any]:
     """Measure assemble and the grid filters; return the figures."""
     profiles, samples = (400, 720) if quick else (1667, 1440)
     inputs = lab_tables(profiles, samples)
-    points = assemble(inputs, AssembleParams(), no_progress).tables["points"]
+    points = assemble_stage(inputs, AssembleParams(), no_progress).tables["points"]
     n = points.num_rows
     grid_only = FilterParams(statistical_outlier={"enabled": False})
     with_smoothing = FilterParams(statistical_outlier={"enabled": False},
                                   smoothing={"enabled": True})
     repeats = 3
     results = [
-        measure("assemble", lambda: assemble(inputs, AssembleParams(), no_progress), n,
+        measure("assemble", lambda: assemble_stage(inputs, AssembleParams(), no_progress), n,
                 "points", repeats),
-        measure("grid filters (defaults)", lambda: filter_points({"points": points}, grid_only,
+        measure("grid filters (defaults)", lambda: filter_stage({"points": points}, grid_only,
                                                                  no_progress), n, "points",
                 repeats),
-        measure("grid filters + smoothing", lambda: filter_points(
+        measure("grid filters + smoothing", lambda: filter_stage(
             {"points": points}, with_smoothing, no_progress), n, "points", repeats),
     ]
     # CPU seconds as well as wall time: on a shared 2-core machine the wall time also counts
     # other processes' turns.
     cpu = {
-        "assemble": cpu_seconds(lambda: assemble(inputs, AssembleParams(), no_progress)),
-        "grid_filters": cpu_seconds(lambda: filter_points({"points": points}, grid_only,
+        "assemble": cpu_seconds(lambda: assemble_stage(inputs, AssembleParams(), no_progress)),
+        "grid_filters": cpu_seconds(lambda: filter_stage({"points": points}, grid_only,
                                                           no_progress)),
     }
-    report = filter_points({"points": points}, grid_only, no_progress).report
+    report = filter_stage({"points": points}, grid_only, no_progress).report
     figures = {
         "grid": [profiles, samples],
         "points": n,

@@ -24,7 +24,7 @@ from scanpipe.rig import default_rig
 from scanpipe.sim.camera import render_rgb, scaled_camera
 from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
-from scanpipe.sim.scene import builtin_room
+from scanpipe.sim.room import builtin_room
 
 LAB_TARGET_S = 30.0
 TEST_TARGET_S = 2.0

@@ -32,7 +32,8 @@ from scanpipe.evaluate import Reference, texture_psnr
 from scanpipe.render import RenderMesh, render_mesh_from_scene
 from scanpipe.rig import Rig, default_rig, rig_table
 from scanpipe.sim.camera import render_rgb, scaled_camera
-from scanpipe.sim.scene import Scene, builtin_room
+from scanpipe.sim.room import builtin_room
+from scanpipe.sim.scene import Scene
 from scanpipe.stages.texture import STAGE, TextureParams
 
 T0_NS = 1_700_000_000_000_000_000

@@ -12,7 +12,7 @@ import trimesh
 from result_tables import points_table, textured_box, textured_quad
 
 from scanpipe.artifacts import write_artifact
-from scanpipe.stages.export import write_files
+from scanpipe.exporting import write_files
 
 
 def write_tables(folder: Path, tables: dict[str, pa.Table], stage: str = "test",

@@ -15,7 +15,8 @@ import pye57
 import trimesh
 from result_tables import RED, points_table, textured_quad
 
-from scanpipe.stages.export import export_files, write_files
+from scanpipe.exporting import write_files
+from scanpipe.stages.export import export_files
 
 
 def _cloud(table: pa.Table) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

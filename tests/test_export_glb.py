@@ -14,7 +14,8 @@ import open3d as o3d
 import trimesh
 from result_tables import RED, points_table, textured_box, textured_quad
 
-from scanpipe.stages.export import export_files, write_files
+from scanpipe.exporting import write_files
+from scanpipe.stages.export import export_files
 
 REPO = Path(__file__).resolve().parents[1]
 #: Installed by ./run.sh setup (npm install into .cache/gltf-validator).

@@ -14,8 +14,9 @@ from result_tables import points_table, textured_quad
 
 from scanpipe.exporters.foxglove_schemas import POOL
 from scanpipe.exporters.mcap_foxglove import quaternion_from_matrix
+from scanpipe.exporting import write_files
 from scanpipe.geometry import platform_rotation, rotation_matrix_deg
-from scanpipe.stages.export import export_files, write_files
+from scanpipe.stages.export import export_files
 
 
 def _read(path: Path) -> dict[str, list]:

@@ -24,7 +24,8 @@ from result_tables import (
 )
 
 from scanpipe.exporters.textfmt import Fixed, Ints, render_lines
-from scanpipe.stages.export import export_files, write_files
+from scanpipe.exporting import write_files
+from scanpipe.stages.export import export_files
 
 CORNERS = {(0.0, 1.0, 0.0): RED, (1.0, 1.0, 0.0): GREEN, (0.0, 0.0, 0.0): BLUE,
            (1.0, 0.0, 0.0): WHITE}

@@ -11,9 +11,9 @@ import pytest
 
 from scanpipe.artifacts import read_artifact, write_artifact
 from scanpipe.errors import StageError
-from scanpipe.meshing.mesh import FACE_COLUMNS, VERTEX_COLUMNS
 from scanpipe.meshing.synthetic import BoxRoom, scan_table
 from scanpipe.pipeline import get_stage, registry
+from scanpipe.schema import MESH_FACES, MESH_VERTICES
 from scanpipe.stages.mesh import MeshParams, mesh_points
 
 ROOM = BoxRoom()
@@ -44,11 +44,10 @@ def test_grid_stage_in_memory_keeps_colours_and_reports() -> None:
         table = table.append_column(name, pa.array(np.full(n, value, np.uint8)))
     result = get_stage("mesh").run({"points": table}, method="grid")
     vertices, faces = result.tables["mesh_vertices"], result.tables["mesh_faces"]
-    for name, dtype in VERTEX_COLUMNS.items():
-        assert vertices.schema.field(name).type == dtype
+    MESH_VERTICES.check(vertices)
+    assert vertices.schema.field("green").type == pa.uint8()
     assert vertices.column("green").to_numpy().tolist() == [20] * vertices.num_rows
-    for name, dtype in FACE_COLUMNS.items():
-        assert faces.schema.field(name).type == dtype
+    MESH_FACES.check(faces)
     report = result.report
     assert report["faces"] == faces.num_rows and report["vertices"] == vertices.num_rows
     assert report["triangulation"]["seam_closed"] is True
@@ -100,9 +99,8 @@ def test_cli_writes_the_mesh_artifacts_with_provenance(
     result = cli("mesh", tmp_path / "in", "--method", "grid", "--out", tmp_path / "out",
                  "--set", "grid.jump_allowance_m=0.05", "-q")
     assert result.code == 0, result.err  # type: ignore[attr-defined]
-    faces, provenance = read_artifact(tmp_path / "out" / "mesh_faces.parquet",
-                                      FACE_COLUMNS)
-    vertices, _ = read_artifact(tmp_path / "out" / "mesh_vertices.parquet", VERTEX_COLUMNS)
+    faces, provenance = read_artifact(tmp_path / "out" / "mesh_faces.parquet", MESH_FACES)
+    vertices, _ = read_artifact(tmp_path / "out" / "mesh_vertices.parquet", MESH_VERTICES)
     assert provenance["stage"] == "mesh"
     assert provenance["params"]["method"] == "grid"
     assert provenance["params"]["grid"]["jump_allowance_m"] == 0.05

@@ -17,6 +17,7 @@ from scanpipe.artifacts import (
 )
 from scanpipe.errors import ArtifactError, ParameterError
 from scanpipe.params import Params, apply_assignments, validate
+from scanpipe.schema import ArtifactSchema, Column
 
 
 class Inner(Params):
@@ -67,13 +68,16 @@ def test_artifact_round_trip_with_provenance(tmp_path: Path) -> None:
     path = tmp_path / "points.parquet"
     table = pa.table({"x": pa.array([1.0, 2.0], pa.float32()), "name": ["a", "b"]})
     write_artifact(path, table, {"key": "abc", "stage": "test"})
-    loaded, provenance = read_artifact(path, {"x": pa.float32()})
+    def schema(**columns: pa.DataType) -> ArtifactSchema:
+        return ArtifactSchema("t", tuple(Column(n, t) for n, t in columns.items()), "a test")
+
+    loaded, provenance = read_artifact(path, schema(x=pa.float32()))
     assert loaded.column("x").to_pylist() == [1.0, 2.0]
     assert provenance == {"key": "abc", "stage": "test"}
     with pytest.raises(ArtifactError, match="missing column 'y'"):
-        read_artifact(path, {"y": pa.float32()})
+        read_artifact(path, schema(y=pa.float32()))
     with pytest.raises(ArtifactError, match="is float, expected double"):
-        read_artifact(path, {"x": pa.float64()})
+        read_artifact(path, schema(x=pa.float64()))
 
 
 def test_failed_write_leaves_old_file(tmp_path: Path) -> None:

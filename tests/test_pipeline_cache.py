@@ -19,8 +19,11 @@ from scanpipe.pipeline import (
     validate_pipeline_params,
 )
 from scanpipe.progress import ProgressFn
+from scanpipe.schema import ArtifactSchema, Column
 
 CALLS: list[str] = []
+TOY = tuple(ArtifactSchema(n, (Column("v", pa.float64()),), "a toy table")
+            for n in ("numbers", "scaled"))
 
 
 class ReadParams(Params):
@@ -47,9 +50,10 @@ def _scale(inputs: Mapping[str, Any], params: ScaleParams, progress: ProgressFn)
 
 def _stages(scale_version: int = 1) -> list[Stage]:
     return [
-        Stage("read", 1, ReadParams, ("recording",), ("numbers",), _read, "read bytes"),  # type: ignore[arg-type]
+        Stage("read", 1, ReadParams, ("recording",), ("numbers",), _read, "read bytes",  # type: ignore[arg-type]
+              schemas=TOY),
         Stage("scale", scale_version, ScaleParams, ("numbers",), ("scaled",), _scale,  # type: ignore[arg-type]
-              "multiply"),
+              "multiply", schemas=TOY),
     ]
 
 

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scanpipe.errors import ProtocolError
 from scanpipe.planning import frame_bytes
 from scanpipe.protocol import ldoem, paper
-from scanpipe.protocol.framing import xor_checksum
+from scanpipe.protocol.framing import LengthMismatch, xor_checksum
 from scanpipe.protocol.profile import Profile
 from scanpipe.protocol.registry import decode_bytes, detect_dialect
 
@@ -71,6 +71,7 @@ ranges = st.lists(st.one_of(st.floats(0.004, 255.0), st.just(float("nan"))), max
 @given(frame=st.integers(0, 0xFFFF), step=st.integers(1, 1440), start=st.integers(0, 5760),
        values=ranges)
 def test_round_trip(frame: int, step: int, start: int, values: list[float]) -> None:
+    values = values[: 5760 // step + 1]  # a 360° scanner: samples span at most one turn
     wire = np.rint(np.array(values, np.float64) * 256) / 256  # representable ranges
     profile = Profile(frame=frame, sector=0, start_angle_deg=start / 16, step_deg=step / 16,
                       ranges_m=wire.astype(np.float32))
@@ -90,8 +91,50 @@ def test_frame_bytes_matches_the_encoders() -> None:
 
 
 def test_malformed_payload_is_a_protocol_error() -> None:
-    with pytest.raises(ProtocolError, match=r"21 \+ 2·samples"):
+    with pytest.raises(LengthMismatch, match=r"declares 5 samples: expected 21 \+ 2·samples"):
         paper.decode_payload(GOLDEN[8:-2])
+    with pytest.raises(ProtocolError, match=r"'sRA' header"):
+        paper.decode_payload(b"sRB" + GOLDEN[11:-1])
+
+
+def test_sample_count_disagreeing_with_length_is_rejected_and_counted() -> None:
+    """A frame whose good checksum covers a payload of the wrong length for its sample count."""
+    good = paper.encode_profile(Profile(frame=1, sector=0, start_angle_deg=0.0, step_deg=1.0,
+                                        ranges_m=np.ones(4, np.float32)))
+    payload = bytearray(good[8:-1])
+    payload[18] = 5  # declares 5 samples, carries 4
+    forged = paper.MARKER + len(payload).to_bytes(4, "big") + bytes(payload)
+    forged += bytes([xor_checksum(bytes(payload))])
+    for mode in ("strict", "lenient"):
+        profiles, counters = decode_bytes(forged + good, "paper", mode)  # type: ignore[arg-type]
+        assert [p.frame for p in profiles] == [1]
+        assert counters.length_mismatches == 1 and counters.malformed_frames == 0
+    # With a bad checksum the lenient path counts it too, and strict drops it as a failure.
+    damaged = forged[:-1] + bytes([forged[-1] ^ 1])
+    profiles, counters = decode_bytes(damaged, "paper", "lenient")
+    assert profiles == [] and counters.length_mismatches == 1
+
+
+@pytest.mark.parametrize(("start_deg", "step_deg", "samples"), [
+    (360.0625, 1.0, 3),  # start past a turn
+    (0.0, 400.0, 1),  # step past a turn
+    (0.0, 0.0, 3),  # several samples at one angle
+    (10.0, 1.0, 362),  # 361° of samples
+])
+def test_implausible_angles_are_rejected_and_counted(start_deg: float, step_deg: float,
+                                                      samples: int) -> None:
+    bad = Profile(frame=1, sector=0, start_angle_deg=start_deg, step_deg=step_deg,
+                  ranges_m=np.ones(samples, np.float32))
+    good = Profile(frame=2, sector=0, start_angle_deg=0.0, step_deg=1.0,
+                   ranges_m=np.ones(3, np.float32))
+    data = paper.encode_profile(bad) + paper.encode_profile(good)
+    profiles, counters = decode_bytes(data, "paper")
+    assert [p.frame for p in profiles] == [2]
+    assert counters.implausible_frames == 1 and counters.resyncs == 1
+    # The edges of the device's range are fine: 0…360° start, a whole turn of samples.
+    edge = Profile(frame=3, sector=0, start_angle_deg=360.0, step_deg=0.25,
+                   ranges_m=np.ones(1441, np.float32))
+    assert [p.frame for p in decode_bytes(paper.encode_profile(edge), "paper")[0]] == [3]
 
 
 def test_angles_out_of_range_are_refused() -> None:

@@ -21,7 +21,8 @@ from acquire_helpers import record_against, sim_options
 from scanpipe.recording.reader import read_recording
 from scanpipe.rig import rig_to_toml
 from scanpipe.sim.emulators import VirtualRig
-from scanpipe.sim.scene import Scene, box_room
+from scanpipe.sim.room import box_room
+from scanpipe.sim.scene import Scene
 from scanpipe.stages.decode import DecodeParams, decode_recording
 
 SPEEDUP = 4.0  # a 5000-pulse scan then takes ~10 s: long enough to be killed mid-way

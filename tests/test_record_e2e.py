@@ -11,7 +11,8 @@ from acquire_helpers import record_against, sim_options
 
 from scanpipe.recording.reader import read_recording
 from scanpipe.sim.emulators import VirtualRig
-from scanpipe.sim.scene import Scene, box_room
+from scanpipe.sim.room import box_room
+from scanpipe.sim.scene import Scene
 from scanpipe.stages.decode import DecodeParams, decode_recording
 
 SPEEDUP = 20.0

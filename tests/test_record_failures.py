@@ -16,7 +16,8 @@ from scanpipe.acquire.recorder import Recorder, RecordOptions
 from scanpipe.errors import DeviceError
 from scanpipe.recording.reader import read_recording
 from scanpipe.sim.emulators import VirtualRig
-from scanpipe.sim.scene import Scene, box_room
+from scanpipe.sim.room import box_room
+from scanpipe.sim.scene import Scene
 from scanpipe.stages.decode import DecodeParams, decode_recording
 
 SPEEDUP = 10.0

@@ -23,7 +23,8 @@ from scanpipe.pipeline import get_stage
 from scanpipe.recording.reader import read_recording
 from scanpipe.rig import rig_to_toml
 from scanpipe.sim.emulators import VirtualRig
-from scanpipe.sim.scene import Scene, box_room
+from scanpipe.sim.room import box_room
+from scanpipe.sim.scene import Scene
 
 SPEEDUP = 25.0
 LIMIT = 1000

@@ -349,7 +349,7 @@ def test_record_onto_a_full_filesystem_fails_once_and_keeps_the_data(
     from acquire_helpers import record_against, sim_options
 
     from scanpipe.sim.emulators import VirtualRig
-    from scanpipe.sim.scene import box_room
+    from scanpipe.sim.room import box_room
     from scanpipe.stages.decode import DecodeParams, decode_recording
 
     out = tiny_fs(16) / "rec.mcap"
@@ -392,3 +392,15 @@ def test_a_zeroed_stretch_loses_only_the_chunks_it_covers(scan: Any, tmp_path: P
         assert loss.time_ns == (chunk_indexes[6].message_start_time
                                 - chunk_indexes[2].message_end_time)
     assert sum(r.length for r in loss.regions) == loss.bytes >= end - start
+
+
+def test_a_chunk_of_highly_compressible_data_is_not_taken_for_damage(tmp_path: Path) -> None:
+    # A blank 1.5 MB image compresses ~5000:1 in zstd; an earlier guard on the inflation ratio
+    # called that chunk damaged and dropped it silently.
+    path = tmp_path / "blank.mcap"
+    with RecordingWriter(path, default_rig(), {}) as writer:
+        writer.write_image("cam0", 1_700_000_000_000_000_000, bytes(1_500_000))
+        writer.write_image("cam0", 1_700_000_000_100_000_000, b"\xff\xd8" + bytes(100))
+    recording = read_recording(path)
+    assert recording.warnings == [] and not recording.loss.any
+    assert [len(i.data) for i in recording.images] == [1_500_000, 102]

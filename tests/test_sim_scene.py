@@ -10,14 +10,8 @@ import trimesh
 
 from scanpipe.errors import SimulationError
 from scanpipe.rig import Pose
-from scanpipe.sim.scene import (
-    Scene,
-    box_room,
-    builtin_room,
-    load_scene,
-    resolve_obj_negative_indices,
-    resolve_scene,
-)
+from scanpipe.sim.room import box_room, builtin_room, resolve_scene
+from scanpipe.sim.scene import Scene, load_scene, resolve_obj_negative_indices
 
 
 def _unit_directions(n: int, seed: int = 0) -> np.ndarray:

@@ -16,6 +16,7 @@ from scanpipe.planning import move_time_s
 from scanpipe.rig import CameraConfig, Pose, ScannerConfig
 from scanpipe.sim.camera import CameraModel, render_rgb, scaled_camera
 from scanpipe.sim.motion import MotorTimeline, Move, PlatformState
+from scanpipe.sim.room import box_room, builtin_room
 from scanpipe.sim.scanner import (
     MeasurementModel,
     TrueProfiles,
@@ -24,7 +25,6 @@ from scanpipe.sim.scanner import (
     sample_time_offsets_s,
     true_ranges,
 )
-from scanpipe.sim.scene import box_room, builtin_room
 
 ROOM_LO = np.array([-3.0, -1.2, -2.0])
 ROOM_HI = np.array([3.0, 1.8, 2.0])

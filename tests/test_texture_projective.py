@@ -21,7 +21,8 @@ from texture_scene import (
 from scanpipe.camera import camera_pose_in_rig
 from scanpipe.errors import StageError
 from scanpipe.rig import rig_table
-from scanpipe.stages.texture import STAGE, TEXTURE_PAGES_SCHEMA, TEXTURED_FACES_SCHEMA
+from scanpipe.schema import TEXTURE_PAGES, TEXTURED_FACES
+from scanpipe.stages.texture import STAGE
 from scanpipe.texturing.atlas import frame_regions, pack_shelves
 from scanpipe.texturing.exposure import shared_edges, solve_gains
 from scanpipe.texturing.frames import choose_frames
@@ -121,8 +122,8 @@ def test_projective_colours_match_truth_and_contract(recording: Recording, mesh,
     vt, ft = mesh_tables(vertices, faces, normals)
     result = STAGE.run(recording.inputs(vt, ft))
     faces_table, pages = result.tables["textured_faces"], result.tables["texture_pages"]
-    assert faces_table.schema.equals(TEXTURED_FACES_SCHEMA)
-    assert pages.schema.equals(TEXTURE_PAGES_SCHEMA)
+    assert faces_table.schema.equals(TEXTURED_FACES.arrow_schema)
+    assert pages.schema.equals(TEXTURE_PAGES.arrow_schema)
     assert faces_table.column("face").to_pylist() == list(range(len(faces)))
     errors = colour_errors(result.tables, vertices, faces)
     assert errors.mean() < 3.0 and np.percentile(errors, 95) < 8.0

@@ -26,6 +26,7 @@ from scanpipe.errors import ArtifactError
 from scanpipe.params import Params
 from scanpipe.pipeline import Stage, StageResult, execute, registry, run_chain
 from scanpipe.progress import ProgressFn
+from scanpipe.schema import ArtifactSchema, Column
 from scanpipe.workdir import workdir_lock
 
 SRC = str(Path(scanpipe.__file__).parents[1])
@@ -43,8 +44,9 @@ def _read(inputs: Mapping[str, Any], params: ReadParams, progress: ProgressFn) -
                        files={"note.txt": f"scale {params.scale}".encode()})
 
 
+TOY = tuple(ArtifactSchema(n, (Column("v", pa.float64()),), "a toy table") for n in "abc")
 READ = Stage("read", 1, ReadParams, ("recording",), ("a", "b", "c"), _read,  # type: ignore[arg-type]
-             "three tables and a file")
+             "three tables and a file", schemas=TOY)
 
 
 def _snapshot(folder: Path) -> dict[str, bytes]:

@@ -29,6 +29,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from scanpipe.errors import ArtifactError
+from scanpipe.schema import ArtifactSchema
 
 PROVENANCE_KEY = b"scanpipe.provenance"
 
@@ -286,26 +287,14 @@ def read_provenance(path: Path) -> dict[str, Any]:
 
 
 def read_artifact(
-    path: Path, columns: Mapping[str, pa.DataType] | None = None
+    path: Path, schema: ArtifactSchema | None = None
 ) -> tuple[pa.Table, dict[str, Any]]:
-    """Read an artifact and its provenance; check that ``columns`` exist with those types."""
+    """Read an artifact and its provenance; check it against ``schema`` when given."""
     provenance = read_provenance(path)
     try:
         table = pq.read_table(path)
     except (OSError, pa.ArrowException) as err:
         raise ArtifactError(f"{path}: not a readable Parquet file ({err})") from None
-    if columns:
-        check_columns(table, columns, str(path))
+    if schema is not None:
+        schema.check(table, where=str(path))
     return table, provenance
-
-
-def check_columns(table: pa.Table, columns: Mapping[str, pa.DataType], where: str) -> None:
-    """Raise :class:`ArtifactError` naming every missing column or column of the wrong type."""
-    problems = []
-    for name, dtype in columns.items():
-        if name not in table.column_names:
-            problems.append(f"missing column {name!r} ({dtype})")
-        elif not table.schema.field(name).type.equals(dtype):
-            problems.append(f"column {name!r} is {table.schema.field(name).type}, expected {dtype}")
-    if problems:
-        raise ArtifactError(f"{where}: " + "; ".join(problems))

@@ -18,8 +18,9 @@ from pydantic import Field
 
 from scanpipe.artifacts import atomic_write_bytes
 from scanpipe.params import Params
-from scanpipe.pipeline import RunRecord, registry, run_chain, validate_pipeline_params
+from scanpipe.pipeline import RunRecord, run_chain, validate_pipeline_params
 from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.stages import chain_stages
 
 
 class DemoOptions(Params):
@@ -76,7 +77,7 @@ def run_demo(out: Path, options: DemoOptions | None = None,
         camera_scale=options.camera_scale, seed=options.seed), progress)
     seconds["simulate"] = time.perf_counter() - started
 
-    stages = list(registry().values())
+    stages = chain_stages()
     params = validate_pipeline_params(stages, DEMO_STAGE_PARAMS, "demo")
     say(f"running the pipeline → {work}")
     records = run_chain(recording, work, params, stages, progress=progress,

@@ -22,6 +22,7 @@ from pydantic import Field
 from scanpipe.errors import StageError
 from scanpipe.grid import ScanGrid, from_grid, neighbour_differences, scan_grid, to_grid
 from scanpipe.params import Params
+from scanpipe.schema import ORIGIN, XYZ
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -40,12 +41,12 @@ class NormalParams(Params):
 
 def points_xyz(table: pa.Table) -> F32:
     """The ``x, y, z`` columns as one ``(N, 3)`` float32 array."""
-    return np.stack([table.column(c).to_numpy().astype(np.float32) for c in "xyz"], axis=1)
+    return np.stack([table.column(c).to_numpy().astype(np.float32) for c in XYZ], axis=1)
 
 
 def points_origins(table: pa.Table) -> F32:
-    """The ``origin_x/y/z`` columns (each point's sensor origin) as ``(N, 3)`` float32."""
-    return np.stack([table.column(f"origin_{c}").to_numpy().astype(np.float32) for c in "xyz"],
+    """The sensor-origin columns (each point's sensor origin) as ``(N, 3)`` float32."""
+    return np.stack([table.column(c).to_numpy().astype(np.float32) for c in ORIGIN],
                     axis=1)
 
 

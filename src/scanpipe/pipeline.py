@@ -1,10 +1,10 @@
-"""Stages, the registry that declares them, and the runner that executes one with caching.
+"""The runner: one stage with caching (:func:`execute`) and the chain (:func:`run_chain`).
 
-A stage is a pure function ``func(inputs, params, progress) -> StageResult`` over Arrow tables
-and one frozen parameter model. It never opens files: the runner (:func:`execute`) loads its
-inputs, computes the output key, reuses outputs whose key is unchanged, and writes new ones
-atomically with provenance. The one exception is the raw recording, which reaches the decode
-stage as a :class:`pathlib.Path` because it is not a table.
+A stage (:mod:`scanpipe.stage`, declared in :mod:`scanpipe.stages`) is a pure function over
+Arrow tables and one frozen parameter model; it never opens files. The runner loads its
+inputs, checks them and its outputs against their schemas (:mod:`scanpipe.schema`), computes
+the output key, reuses outputs whose key is unchanged, and writes new ones with provenance —
+here and nowhere else. Raw inputs (a recording, a point file) reach a stage as paths.
 
 Writers hold the folder's lock (:func:`scanpipe.workdir.workdir_lock`) and replace a stage's
 artifacts together (:func:`scanpipe.artifacts.write_together`).
@@ -15,11 +15,9 @@ from __future__ import annotations
 import difflib
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import pyarrow as pa
 
 from scanpipe import __version__
 from scanpipe.artifacts import (
@@ -35,47 +33,12 @@ from scanpipe.artifacts import (
 from scanpipe.errors import ArtifactError, ParameterError
 from scanpipe.params import Params, validate
 from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.stage import RAW_INPUTS, Stage, StageResult
+from scanpipe.stages import chain_stages, get_stage, registry
 from scanpipe.workdir import DEFAULT_LOCK_WAIT_S, lock_root, workdir_lock
 
-#: Inputs that are raw files, not Parquet artifacts: keyed by the hash of their bytes.
-RAW_INPUTS = frozenset({"recording"})
-
-
-@dataclass
-class StageResult:
-    """What a stage returns: output tables by artifact name, extra files, and a report."""
-
-    tables: dict[str, pa.Table]
-    report: dict[str, Any] = field(default_factory=dict)
-    files: dict[str, bytes] = field(default_factory=dict)
-
-
-StageFn = Callable[[Mapping[str, Any], Any, ProgressFn], StageResult]
-
-
-@dataclass(frozen=True)
-class Stage:
-    """A stage declared once: name, version, parameters, inputs, outputs, function."""
-
-    name: str
-    version: int
-    params: type[Params]
-    inputs: tuple[str, ...]
-    outputs: tuple[str, ...]
-    func: StageFn
-    description: str
-    #: Import names of libraries whose version can change the result.
-    libraries: tuple[str, ...] = ("numpy", "pyarrow")
-
-    def __post_init__(self) -> None:
-        if not self.outputs:
-            raise ValueError(f"stage {self.name!r} must declare at least one output artifact")
-
-    def run(self, inputs: Mapping[str, Any], params: Params | None = None,
-            progress: ProgressFn = no_progress, **overrides: Any) -> StageResult:
-        """Run in memory (notebooks): ``params`` or keyword overrides of the defaults."""
-        chosen = params if params is not None else self.params(**overrides)
-        return self.func(inputs, chosen, progress)
+__all__ = ["RunRecord", "Stage", "StageResult", "execute", "get_stage", "registry",
+           "rig_override_artifact", "run_chain", "validate_pipeline_params"]
 
 
 @dataclass(frozen=True)
@@ -88,27 +51,6 @@ class RunRecord:
     seconds: float
     outputs: dict[str, Path]
     report: dict[str, Any]
-
-
-def registry() -> dict[str, Stage]:
-    """Every stage, in pipeline order. Add a stage here and nowhere else."""
-    from scanpipe.stages import assemble, decode
-    from scanpipe.stages import export as export_stage
-    from scanpipe.stages import filter as filter_stage
-    from scanpipe.stages import mesh as mesh_stage
-    from scanpipe.stages import texture as texture_stage
-
-    stages: list[Stage] = [decode.STAGE, assemble.STAGE, filter_stage.STAGE, mesh_stage.STAGE,
-                           texture_stage.STAGE, export_stage.STAGE]
-    return {s.name: s for s in stages}
-
-
-def get_stage(name: str) -> Stage:
-    """The stage called ``name``."""
-    stages = registry()
-    if name not in stages:
-        raise ArtifactError(f"unknown stage {name!r}; stages: {', '.join(stages)}")
-    return stages[name]
 
 
 def input_key(name: str, path: Path) -> str:
@@ -165,12 +107,8 @@ def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, par
     for name in stage.inputs:
         loaded[name] = inputs[name] if name in RAW_INPUTS else read_artifact(inputs[name])[0]
     started = time.perf_counter()
-    result = stage.func(loaded, params, progress)
+    result = stage.call(loaded, params, progress)  # inputs and outputs checked by schema
     seconds = time.perf_counter() - started
-    unexpected = set(result.tables) ^ set(stage.outputs)
-    if unexpected:
-        raise ArtifactError(f"stage {stage.name!r} produced {sorted(result.tables)}, "
-                            f"declared {list(stage.outputs)}")
     provenance = {
         "key": key,
         "stage": stage.name,
@@ -254,7 +192,7 @@ def run_chain(
     The whole chain holds the workdir's lock, so a second run on the same workdir waits up to
     ``lock_wait_s`` seconds (then :class:`ArtifactError`) and two runs never mix artifacts.
     """
-    chain = list(stages if stages is not None else registry().values())
+    chain = list(stages if stages is not None else chain_stages("recording"))
     names = [s.name for s in chain]
     if to is not None and to not in names:
         raise ParameterError([f"--to {to!r}: not a stage; stages: {', '.join(names)}"], "run")

@@ -1,4 +1,5 @@
-"""Step arithmetic (paper eq. 1–4), device limits, and time and size estimates for a scan.
+"""Step arithmetic (paper eq. 1–4), time and size estimates for a scan, checked against the
+device limits (:mod:`scanpipe.device_limits`).
 
 Everything here is pure arithmetic on the rig; the CLI only formats it.
 """
@@ -7,33 +8,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+from scanpipe.device_limits import LimitCheck, ldoem_limit_checks
 from scanpipe.errors import PlanError
-
-if TYPE_CHECKING:
-    from scanpipe.rig import Rig, ScannerConfig
+from scanpipe.rig import Rig
 
 #: A requested step count within this of an integer counts as that integer (0.108 / 0.036 is
 #: 2.9999999999999996 in binary floating point, and means 3 steps).
 _STEP_EPSILON = 1e-9
-#: LD-OEM 1000 limits (from public driver sources; see shared/paper/NOTES.md).
-LDOEM_HEAD_HZ = (5, 20)
-LDOEM_STEP_QUANTUM_DEG = 0.125
-LDOEM_MAX_PULSE_HZ = 14_400.0
-LDOEM_MAX_MEAN_PULSE_HZ = 10_800.0
-
-
-@dataclass(frozen=True)
-class LimitCheck:
-    """One device limit: what it is, the value the rig asks for, the bound, and whether it holds."""
-
-    name: str
-    value: float
-    limit: str
-    ok: bool
-
-
 @dataclass(frozen=True)
 class StepChoice:
     """The achievable step counts around a requested angle (paper eq. 4 and the five offers)."""
@@ -124,37 +107,6 @@ def frame_bytes(dialect: str, samples: int, with_echo: bool = False) -> int:
     if dialect == "paper":
         return 9 + 21 + 2 * samples
     raise PlanError(f"dialect {dialect!r}: unknown; allowed: ldoem, paper")
-
-
-def ldoem_limit_checks(scanner: ScannerConfig) -> tuple[LimitCheck, ...]:
-    """The LD-OEM 1000's limits for the scanner settings of a rig."""
-    hz, step = scanner.scan_hz, scanner.angular_step_deg
-    pulse_hz = hz * 360.0 / step
-    active = (scanner.end_angle_deg - scanner.start_angle_deg) / 360.0
-    quanta = step / LDOEM_STEP_QUANTUM_DEG
-    return (
-        LimitCheck("scan_hz", hz, "5–20 Hz in whole Hz",
-                   LDOEM_HEAD_HZ[0] <= hz <= LDOEM_HEAD_HZ[1] and float(hz).is_integer()),
-        LimitCheck("angular_step_deg", step, "a multiple of 0.125°",
-                   abs(quanta - round(quanta)) < 1e-9 and round(quanta) >= 1),
-        LimitCheck("pulse_hz", pulse_hz, "scan_hz · 360 / step ≤ 14400 Hz",
-                   pulse_hz <= LDOEM_MAX_PULSE_HZ + 1e-9),
-        LimitCheck("mean_pulse_hz", pulse_hz * active, "pulse_hz · active share ≤ 10800 Hz",
-                   pulse_hz * active <= LDOEM_MAX_MEAN_PULSE_HZ + 1e-9),
-    )
-
-
-def device_limit_problems(scanner: ScannerConfig) -> list[str]:
-    """LD-OEM limit violations of scanner settings, one line each (empty when fine)."""
-    problems = []
-    for check in ldoem_limit_checks(scanner):
-        if not check.ok:
-            key = "scan_hz" if check.name.endswith("pulse_hz") else check.name
-            problems.append(
-                f"scanner.{key}: {check.name} = {check.value:g} is outside the LD-OEM limit "
-                f"({check.limit})"
-            )
-    return problems
 
 
 def move_time_s(pulses: int, pulse_rate_hz: float, accel_hz_per_s: float) -> float:

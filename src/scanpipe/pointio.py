@@ -40,6 +40,7 @@ from pydantic import Field
 
 from scanpipe.errors import ArtifactError, UsageError
 from scanpipe.params import Params
+from scanpipe.schema import ORIGIN, RGB
 
 F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
@@ -385,10 +386,10 @@ def points_table(points: F64, colours: U8 | None, origin_m: tuple[float, float, 
         "profile": pa.array(minus_one),
         "sample": pa.array(minus_one),
     }
-    for k, name in enumerate(("origin_x", "origin_y", "origin_z")):
+    for k, name in enumerate(ORIGIN):
         columns[name] = pa.array(np.full(n, origin[k], np.float32))
     if colours is not None:
-        for k, name in enumerate(("red", "green", "blue")):
+        for k, name in enumerate(RGB):
             columns[name] = pa.array(np.ascontiguousarray(colours[:, k]))
     return pa.table(columns)
 

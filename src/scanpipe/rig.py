@@ -13,6 +13,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
+from scanpipe.device_limits import device_limit_problems
 from scanpipe.errors import ParameterError, RigError
 from scanpipe.params import Params, load_toml, parse_toml, to_toml, validate
 
@@ -257,7 +258,6 @@ def default_rig() -> Rig:
 
 def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
     """Validate a rig from plain data, reporting every problem (device limits too) at once."""
-    from scanpipe.planning import device_limit_problems
 
     problems: list[str] = []
     rig: Rig | None = None

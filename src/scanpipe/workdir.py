@@ -23,6 +23,7 @@ from typing import Any
 
 from scanpipe.artifacts import FILE_MODE, STATE_DIR, read_provenance
 from scanpipe.errors import ArtifactError
+from scanpipe.stages import registry
 
 #: How long a writer waits for another one on the same workdir before giving up.
 DEFAULT_LOCK_WAIT_S = 600.0
@@ -121,9 +122,8 @@ def _acquire(fd: int, root: Path, wait_s: float, notice: Callable[[str], None]) 
             told = True
         time.sleep(_POLL_S)
 
-#: Stage folders in pipeline order; a later stage's artifact is preferred.
-STAGE_ORDER = ("decode", "import-points", "import_points", "assemble", "filter", "mesh",
-               "texture")
+#: Stage folders in pipeline order (the registry's); a later stage's artifact is preferred.
+STAGE_ORDER: tuple[str, ...] = tuple(registry())
 
 
 def find_artifact(root: Path, name: str) -> Path | None:

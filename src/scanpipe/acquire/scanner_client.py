@@ -6,7 +6,7 @@ count profiles and to read replies to its own requests. The recording stays the 
 
 - ``paper``: the scanner streams frames as soon as the connection is open; stopping closes it.
 - ``ldoem``: before connecting, the rig's settings are checked against the LD-OEM 1000's limits
-  (:func:`scanpipe.planning.device_limit_problems`). Then the start-up requests (GET_IDENT,
+  (:func:`scanpipe.device_limits.device_limit_problems`). Then the start-up requests (GET_IDENT,
   GET_STATUS, GET_SYNC_CLOCK, SET_CONFIG of the sector, ROTATE at the head speed, GET_PROFILE
   streaming) are
   sent one by one, each waiting for its reply; a refused request is a :class:`DeviceError`.
@@ -25,8 +25,8 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from scanpipe.acquire.sink import Link
+from scanpipe.device_limits import device_limit_problems
 from scanpipe.errors import DeviceError, ProtocolError
-from scanpipe.planning import device_limit_problems
 from scanpipe.protocol import ldoem
 from scanpipe.protocol.framing import RawFrame
 from scanpipe.protocol.profile import angle_to_wire
@@ -221,7 +221,9 @@ class ScannerClient:
     # -- reading -------------------------------------------------------------------------
 
     def _read_loop(self, sock: socket.socket) -> None:
-        paper_decoder = (StreamDecoder(DIALECTS["paper"]) if self.dialect == "paper" else None)
+        # Live: count a profile when it arrives, not when the next frame confirms it.
+        paper_decoder = (StreamDecoder(DIALECTS["paper"], confirm=False)
+                         if self.dialect == "paper" else None)
         reader = ldoem.FrameReader(accept_unknown=True) if self.dialect == "ldoem" else None
         reason = ""
         while not self._closing.is_set():

@@ -102,6 +102,8 @@ def format_report(report: dict[str, Any]) -> str:
         f"({counts['checksum_failed_rows']} kept)",
         f"resyncs             {counters['resyncs']}, bytes skipped {counters['bytes_skipped']}, "
         f"malformed {counters['malformed_frames']}, other frames {counters['other_frames']}",
+        f"rejected frames     {counters['length_mismatches']} length mismatches, "
+        f"{counters['implausible_frames']} implausible (checksum passed)",
         f"recording           {'complete' if rec['complete'] else 'INCOMPLETE'}, "
         f"{rec['bytes_read']} of {rec['file_size']} bytes, {rec['chunks_read']} chunks "
         f"({rec['chunks_damaged']} damaged)",

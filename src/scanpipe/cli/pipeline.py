@@ -17,6 +17,7 @@ from scanpipe.errors import ArtifactError
 from scanpipe.params import apply_assignments, load_toml
 from scanpipe.pipeline import RunRecord, Stage, registry, run_chain, validate_pipeline_params
 from scanpipe.progress import rich_progress
+from scanpipe.stages import chain_stages
 from scanpipe.workdir import DEFAULT_LOCK_WAIT_S
 
 
@@ -25,7 +26,7 @@ def pipeline_params_from_cli(params_file: Path | None, assignments: list[str] | 
     """Per-stage parameters from ``--params FILE`` then ``--set stage.key=value``, validated."""
     data: dict[str, Any] = load_toml(params_file) if params_file else {}
     data = apply_assignments(data, assignments or [])
-    return validate_pipeline_params(list(registry().values()), data,
+    return validate_pipeline_params(chain_stages(), data,
                                     str(params_file) if params_file else "--set")
 
 

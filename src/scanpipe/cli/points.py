@@ -2,18 +2,10 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import typer
 
-from scanpipe import __version__
-from scanpipe.artifacts import (
-    artifact_key,
-    file_key,
-    library_versions,
-    write_artifact,
-)
 from scanpipe.cli.common import PARAMS_FILE, QUIET, SET, print_json, run_stage_command
 from scanpipe.errors import UsageError
 from scanpipe.pipeline import rig_override_artifact
@@ -86,29 +78,14 @@ def import_points_command(
 ) -> None:
     """Import a foreign point cloud as a points artifact (no grid)."""
     from scanpipe.outpaths import check_output_file, check_output_folder
-    from scanpipe.params import validate
-    from scanpipe.pointio import ImportParams, import_points
 
-    params = validate(ImportParams, {"origin_m": _parse_origin(origin), "up": up},
-                      "import-points")
+    if not file.is_file():
+        raise UsageError(f"{file}: not found (the point file to import)")
     target = out / "points.parquet"
     check_output_folder(out, "--out", [file])
     check_output_file(target, "--out", (".parquet",), force, [file])
-    started = time.perf_counter()
-    table, report = import_points(file, params)
-    libraries = library_versions(("numpy", "pyarrow", "open3d", "laspy"))
-    params_data = params.model_dump(mode="json")
-    keys = {"file": file_key(file)}
-    key = artifact_key("import-points", 1, params_data, keys, libraries)
-    write_artifact(target, table, {
-        "key": key, "stage": "import-points", "stage_version": 1, "params": params_data,
-        "inputs": keys, "input_paths": {"file": str(file)}, "libraries": libraries,
-        "scanpipe": __version__, "created_ns": time.time_ns(),
-        "seconds": round(time.perf_counter() - started, 4), "report": report,
-        "artifact": "points", "rows": table.num_rows,
-    })
-    if not quiet:
-        typer.echo(f"import-points: {table.num_rows} points → {target}", err=True)
+    report = run_stage_command("import-points", {"point_file": file}, out, None, None, quiet,
+                               {"origin_m": _parse_origin(origin), "up": up})
     print_json(report)
 
 

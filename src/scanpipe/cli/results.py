@@ -21,7 +21,7 @@ def export(
     quiet: bool = QUIET,
 ) -> None:
     """Write the mesh (OBJ/GLB/PLY), the points (LAS/LAZ/E57/PLY) or both (MCAP, Foxglove)."""
-    from scanpipe.stages.export import export_folder
+    from scanpipe.exporting import export_folder
 
     written = export_folder(folder, fmt, out, force)
     if not quiet:

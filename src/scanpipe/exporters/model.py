@@ -14,19 +14,23 @@ import numpy as np
 import pyarrow as pa
 from numpy.typing import NDArray
 
-from scanpipe.artifacts import check_columns
 from scanpipe.errors import ArtifactError
+from scanpipe.schema import (
+    FACE_CORNERS,
+    MESH_FACES,
+    MESH_VERTICES,
+    NORMAL,
+    POINTS,
+    RGB,
+    TEXTURE_PAGES,
+    TEXTURED_FACES,
+    XYZ,
+)
 
 F32 = NDArray[np.float32]
 
-MESH_VERTEX_COLUMNS = {n: pa.float32() for n in ("x", "y", "z", "nx", "ny", "nz")}
-MESH_FACE_COLUMNS = {n: pa.int32() for n in ("v0", "v1", "v2")}
-TEXTURED_FACE_COLUMNS = {"face": pa.int32(), "page": pa.int16(),
-                         **{n: pa.float32() for n in ("u0", "v0", "u1", "v1", "u2", "v2")}}
-TEXTURE_PAGE_COLUMNS = {"page": pa.int16(), "width": pa.int32(), "height": pa.int32(),
-                        "png": pa.binary()}
-POINT_COLUMNS = {"x": pa.float32(), "y": pa.float32(), "z": pa.float32()}
-COLOR_COLUMNS = ("red", "green", "blue")
+#: The texture coordinates of a face's three corners, in the order of ``textured_faces``.
+UV_COLUMNS = ("u0", "v0", "u1", "v1", "u2", "v2")
 
 
 @dataclass(frozen=True)
@@ -76,9 +80,9 @@ def _xyz(table: pa.Table, names: tuple[str, str, str]) -> F32:
 
 
 def _colors(table: pa.Table) -> NDArray[np.uint8] | None:
-    if not all(c in table.column_names for c in COLOR_COLUMNS):
+    if not all(c in table.column_names for c in RGB):
         return None
-    columns = [table.column(c) for c in COLOR_COLUMNS]
+    columns = [table.column(c) for c in RGB]
     if any(c.null_count for c in columns):
         return None
     return np.stack([c.to_numpy(zero_copy_only=False) for c in columns], 1).astype(np.uint8)
@@ -91,19 +95,19 @@ def mesh_from_tables(
     texture_pages: pa.Table | None = None,
 ) -> MeshModel:
     """Check the mesh (and texture) artifacts against the contract and build a model."""
-    check_columns(vertices, MESH_VERTEX_COLUMNS, "mesh_vertices")
-    check_columns(faces, MESH_FACE_COLUMNS, "mesh_faces")
-    xyz = _xyz(vertices, ("x", "y", "z"))
-    normals = _xyz(vertices, ("nx", "ny", "nz"))
-    tri = np.stack([faces.column(n).to_numpy() for n in ("v0", "v1", "v2")], 1).astype(np.int32)
+    MESH_VERTICES.check(vertices)
+    MESH_FACES.check(faces)
+    xyz = _xyz(vertices, XYZ)
+    normals = _xyz(vertices, NORMAL)
+    tri = np.stack([faces.column(n).to_numpy() for n in FACE_CORNERS], 1).astype(np.int32)
     if tri.size and (int(tri.min()) < 0 or int(tri.max()) >= len(xyz)):
         raise ArtifactError(f"mesh_faces: vertex index out of range 0..{len(xyz) - 1} "
                             f"(found {int(tri.min())}..{int(tri.max())})")
     face_pages = face_uvs = None
     pages: dict[int, bytes] = {}
     if textured_faces is not None and texture_pages is not None:
-        check_columns(textured_faces, TEXTURED_FACE_COLUMNS, "textured_faces")
-        check_columns(texture_pages, TEXTURE_PAGE_COLUMNS, "texture_pages")
+        TEXTURED_FACES.check(textured_faces, ("face", "page", *UV_COLUMNS))
+        TEXTURE_PAGES.check(texture_pages)
         face_index = textured_faces.column("face").to_numpy()
         if face_index.size and (int(face_index.min()) < 0 or int(face_index.max()) >= len(tri)):
             raise ArtifactError("textured_faces: face index out of range "
@@ -112,7 +116,7 @@ def mesh_from_tables(
         face_uvs = np.zeros((len(tri), 3, 2), dtype=np.float32)
         face_pages[face_index] = textured_faces.column("page").to_numpy()
         uv = np.stack([textured_faces.column(n).to_numpy(zero_copy_only=False)
-                       for n in ("u0", "v0", "u1", "v1", "u2", "v2")], 1)
+                       for n in UV_COLUMNS], 1)
         face_uvs[face_index] = uv.reshape(-1, 3, 2)
         page_ids = texture_pages.column("page").to_pylist()
         pngs = texture_pages.column("png").to_pylist()
@@ -127,8 +131,8 @@ def mesh_from_tables(
 
 def cloud_from_table(points: pa.Table) -> CloudModel:
     """Check a points artifact and build a cloud model (rows with non-finite xyz dropped)."""
-    check_columns(points, POINT_COLUMNS, "points")
-    xyz = _xyz(points, ("x", "y", "z"))
+    POINTS.check(points, XYZ)
+    xyz = _xyz(points, XYZ)
     keep = np.all(np.isfinite(xyz), axis=1)
 
     def optional(name: str, dtype: type[np.generic]) -> NDArray[np.generic] | None:

@@ -9,14 +9,13 @@ import numpy as np
 import pyarrow as pa
 from numpy.typing import NDArray
 
+from scanpipe.schema import FACE_CORNERS, NORMAL, RGB, XYZ
+
 F32 = NDArray[np.float32]
 I32 = NDArray[np.int32]
 U8 = NDArray[np.uint8]
 B = NDArray[np.bool_]
 
-VERTEX_COLUMNS = {name: pa.float32() for name in ("x", "y", "z", "nx", "ny", "nz")}
-COLOUR_COLUMNS = {name: pa.uint8() for name in ("red", "green", "blue")}
-FACE_COLUMNS = {name: pa.int32() for name in ("v0", "v1", "v2")}
 
 
 @dataclass(frozen=True)
@@ -103,13 +102,13 @@ class Mesh:
         """The ``mesh_vertices`` and ``mesh_faces`` artifact tables."""
         normals = self.normals if self.normals is not None else np.zeros_like(self.vertices)
         columns: dict[str, pa.Array] = {}
-        for k, name in enumerate("xyz"):
+        for k, name in enumerate(XYZ):
             columns[name] = pa.array(np.ascontiguousarray(self.vertices[:, k], np.float32))
-        for k, name in enumerate(("nx", "ny", "nz")):
+        for k, name in enumerate(NORMAL):
             columns[name] = pa.array(np.ascontiguousarray(normals[:, k], np.float32))
         if self.colors is not None:
-            for k, name in enumerate(COLOUR_COLUMNS):
+            for k, name in enumerate(RGB):
                 columns[name] = pa.array(np.ascontiguousarray(self.colors[:, k], np.uint8))
         faces = {name: pa.array(np.ascontiguousarray(self.faces[:, k], np.int32))
-                 for k, name in enumerate(FACE_COLUMNS)}
+                 for k, name in enumerate(FACE_CORNERS)}
         return pa.table(columns), pa.table(faces)

@@ -14,6 +14,7 @@ import pyarrow as pa
 from numpy.typing import NDArray
 
 from scanpipe.geometry import platform_rotation, scan_plane_direction
+from scanpipe.schema import ORIGIN
 
 F64 = NDArray[np.float64]
 
@@ -96,6 +97,6 @@ def scan_table(
     data["time_ns"] = pa.array((profile.ravel() * 200_000_000).astype(np.int64))
     data["profile"] = pa.array(profile.ravel().astype(np.int32))
     data["sample"] = pa.array(sample.ravel().astype(np.int32))
-    for axis, name in enumerate(("origin_x", "origin_y", "origin_z")):
+    for axis, name in enumerate(ORIGIN):
         data[name] = pa.array(origins[..., axis].ravel().astype(np.float32))
     return pa.table(data)

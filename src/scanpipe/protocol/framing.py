@@ -13,6 +13,27 @@ split of a stream gives the same frames:
 - a frame whose checksum fails with no marker inside is a damaged frame: a checksum failure,
   returned with ``checksum_ok=False`` (the caller decides whether to keep it);
 - at the end of the stream (:meth:`FrameReader.finish`) an incomplete frame is a false start.
+
+An 8-bit XOR passes one random frame in 256, so a frame whose checksum passes is not trusted on
+that alone (``confirm=True``, the default). It must also parse (``parse``: a sample count that
+disagrees with the length is :class:`LengthMismatch`), hold values the device can send
+(``check``: :class:`ImplausibleFrame`), and must not look like a cut frame that swallowed an
+intact one. That last danger exists only when a *viable* marker (a marker followed by an
+in-bounds length) begins inside the frame's span; then the frame is rejected when
+
+- the bytes right after it are not a start marker (a cut frame's claimed end lands inside
+  the data of what follows), or
+- its counter (``check``'s return value: frame number, profile count) steps backwards modulo
+  ``counter_period``, or
+- a complete frame with a good checksum that parses and passes ``check`` lies inside its span
+  (the cut frame's claimed end happens to fall on a frame boundary).
+
+A rejected frame is a false start: decoding resumes one byte past its marker, so the frame it
+swallowed is still found. Deciding needs the 7 bytes after a frame (a marker and a length),
+so a frame that ends within 7 bytes of the data fed so far is held until more bytes arrive or
+the stream ends (at the end, the end of the stream counts as a start marker).
+``confirm=False`` hands frames out at once with the checksum as the only test: for
+request/reply links where a reply is the last thing sent and nothing follows it.
 """
 
 from __future__ import annotations
@@ -29,6 +50,8 @@ from scanpipe.errors import ProtocolError
 HEADER_BYTES = 8  # marker + u32 length
 _LENGTH = struct.Struct(">I")
 TRAILER_BYTES = 1  # XOR checksum
+# A marker beginning in a frame's last byte ends its length field 7 bytes past the frame.
+_LOOKAHEAD_BYTES = HEADER_BYTES - 1
 #: ``RawFrame.parsed`` of a frame the reader did not parse (no callback, or a bad checksum).
 NOT_PARSED: Any = object()
 #: Default cap on a payload length field; larger lengths are false starts.
@@ -51,9 +74,23 @@ def encode_frame(marker: bytes, payload: bytes) -> bytes:
             + bytes([xor_checksum(payload)]))
 
 
+class LengthMismatch(ProtocolError):
+    """A frame whose declared counts (samples, points) disagree with its payload length."""
+
+
+class ImplausibleFrame(ProtocolError):
+    """A frame that parses but holds values the device cannot send (angles, sizes)."""
+
+
 @dataclass
 class FrameCounters:
-    """What a reader saw: frames, checksum failures, resyncs, skipped bytes, odd frames."""
+    """What a reader saw: frames, checksum failures, resyncs, skipped bytes, odd frames.
+
+    ``length_mismatches`` counts frames whose declared sample count disagrees with their
+    length; ``implausible_frames`` counts frames whose checksum passed but that failed the
+    other checks (values out of the device's range, a cut frame that swallowed another: see the
+    module docstring). Both are false starts, so each also counts one resync.
+    """
 
     frames_decoded: int = 0
     checksum_failures: int = 0
@@ -61,6 +98,8 @@ class FrameCounters:
     bytes_skipped: int = 0
     malformed_frames: int = 0
     other_frames: int = 0
+    length_mismatches: int = 0
+    implausible_frames: int = 0
 
     def as_dict(self) -> dict[str, int]:
         """Plain data for reports and ``--json``."""
@@ -80,31 +119,46 @@ class RawFrame:
     parsed: Any = None  # what the reader's parse callback returned, or NOT_PARSED
 
 
+#: ``check(parsed)``: raises :class:`ImplausibleFrame` (or another :class:`ProtocolError`) for a
+#: parsed frame the device cannot have sent; returns the frame's counter, or None if it has none.
+FrameCheck = Callable[[Any], "int | None"]
+
+
 class FrameReader:
     """Cuts frames out of a byte stream fed in chunks of any size (see the module docstring).
 
     ``parse(payload, checksum_ok)`` tells a frame of the dialect from a frame-shaped accident:
-    a frame with a good checksum for which it raises :class:`ProtocolError` is counted as
-    malformed and treated as a false start; what it returns is kept in ``RawFrame.parsed``.
-    ``counters.frames_decoded`` is left to the caller (it knows which frames it could use);
-    the reader counts checksum failures, resyncs, malformed frames and skipped bytes.
+    a frame with a good checksum for which it raises :class:`ProtocolError` is counted
+    (:class:`LengthMismatch` as a length mismatch, others as malformed) and treated as a false
+    start; what it returns is kept in ``RawFrame.parsed``. ``check(parsed)`` then vets the
+    values and gives the frame's counter (see :data:`FrameCheck`). ``confirm`` turns on the
+    checks beyond the XOR (module docstring). ``counters.frames_decoded`` is left to the
+    caller (it knows which frames it could use).
     """
 
     def __init__(self, marker: bytes, min_payload_bytes: int = 0,
                  max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES,
-                 parse: Callable[[bytes, bool], Any] | None = None) -> None:
+                 parse: Callable[[bytes, bool], Any] | None = None,
+                 check: FrameCheck | None = None, confirm: bool = True,
+                 counter_period: int = 1 << 16) -> None:
         if len(marker) != 4:
             raise ProtocolError(f"start marker {marker!r}: must be 4 bytes")
         if not 0 <= min_payload_bytes <= max_payload_bytes:
             raise ProtocolError(f"payload bounds {min_payload_bytes}…{max_payload_bytes}: "
                                 "need 0 ≤ min ≤ max")
+        if counter_period < 2:
+            raise ProtocolError(f"counter period {counter_period}: must be ≥ 2")
         self.marker = marker
         self.min_payload_bytes = min_payload_bytes
         self.max_payload_bytes = max_payload_bytes
         self.parse = parse
+        self.check = check
+        self.confirm = confirm
+        self.counter_period = counter_period
         self.counters = FrameCounters()
         self._buffer = bytearray()
         self._base = 0  # stream offset of _buffer[0]
+        self._last_counter: int | None = None
 
     @property
     def offset(self) -> int:
@@ -112,12 +166,12 @@ class FrameReader:
         return self._base
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[RawFrame]:
-        """Add bytes; return every frame they complete."""
+        """Add bytes; return every frame they complete (and confirm)."""
         self._buffer += chunk
         return self._scan(final=False)
 
     def finish(self) -> list[RawFrame]:
-        """End of stream: resolve an incomplete frame as a false start, skip the tail."""
+        """End of stream: resolve held and incomplete frames, skip the tail."""
         frames = self._scan(final=True)
         self.counters.bytes_skipped += len(self._buffer)
         self._base += len(self._buffer)
@@ -156,9 +210,13 @@ class FrameReader:
                     pos = start + 1
                     continue
                 break
+            # The checks below read a marker and a length up to 7 bytes past the frame.
+            if self.confirm and not final and end + _LOOKAHEAD_BYTES > size:
+                break
             payload = bytes(buf[start + HEADER_BYTES:end - 1])
             computed = xor_checksum(payload)
             received = buf[end - 1]
+            parsed: Any = NOT_PARSED
             if computed != received:
                 # A marker starting inside the span means an intact frame may begin there.
                 search_end = end + len(marker) - 1
@@ -168,17 +226,25 @@ class FrameReader:
                     self._false_start()
                     pos = start + 1
                     continue
-            parsed: Any = NOT_PARSED
-            if computed == received and self.parse is not None:
+                self.counters.checksum_failures += 1
+            else:
                 try:
-                    parsed = self.parse(payload, True)
+                    parsed = self._vet(buf, start, end, payload, final)
+                except LengthMismatch:
+                    self.counters.length_mismatches += 1
+                    self._false_start()
+                    pos = start + 1
+                    continue
+                except ImplausibleFrame:
+                    self.counters.implausible_frames += 1
+                    self._false_start()
+                    pos = start + 1
+                    continue
                 except ProtocolError:
                     self.counters.malformed_frames += 1
                     self._false_start()
                     pos = start + 1
                     continue
-            if computed != received:
-                self.counters.checksum_failures += 1
             frames.append(RawFrame(
                 payload=payload,
                 checksum_ok=computed == received,
@@ -192,6 +258,82 @@ class FrameReader:
         del buf[:pos]
         self._base += pos
         return frames
+
+    def _vet(self, buf: bytearray, start: int, end: int, payload: bytes, final: bool) -> Any:
+        """Parse and check a frame whose checksum passed; what ``parse`` returned, or raise."""
+        parsed: Any = NOT_PARSED
+        counter = None
+        if self.parse is not None:
+            parsed = self.parse(payload, True)
+            if self.check is not None:
+                counter = self.check(parsed)
+        if self.confirm:
+            self._confirm(buf, start, end, counter, final)
+        if counter is not None:
+            self._last_counter = counter
+        return parsed
+
+    def _confirm(self, buf: bytearray, start: int, end: int, counter: int | None,
+                 final: bool) -> None:
+        """Raise :class:`ImplausibleFrame` if the frame at ``start`` looks like a cut frame that
+        swallowed an intact one (module docstring)."""
+        marker = self.marker
+        inner = self._viable_markers(buf, start + 1, end)
+        if not inner:
+            return
+        after = bytes(buf[end:end + len(marker)])
+        # At the end of the stream, the end (or a cut marker) counts as a start marker.
+        followed = after == marker or (final and marker.startswith(after))
+        if not followed:
+            raise ImplausibleFrame(f"frame at byte {self._base + start}: no start marker "
+                                   "after it, and a marker inside it")
+        last = self._last_counter
+        if counter is not None and last is not None:
+            back = (last - counter) % self.counter_period
+            if 0 < back < self.counter_period // 2:
+                raise ImplausibleFrame(f"frame at byte {self._base + start}: counter {counter} "
+                                       f"steps back from {last}, and a marker inside it")
+        for inner_start in inner:
+            if self._valid_frame_within(buf, inner_start, end):
+                raise ImplausibleFrame(f"frame at byte {self._base + start}: holds a whole "
+                                       f"frame at byte {self._base + inner_start}")
+
+    def _viable_markers(self, buf: bytearray, begin: int, end: int) -> list[int]:
+        """Markers beginning in ``[begin, end)`` (they may run past ``end``) followed by an
+        in-bounds length, or too near the data's end to tell."""
+        marker, found = self.marker, []
+        limit = min(end + len(marker) - 1, len(buf))  # the whole stream is here at the end
+        at = buf.find(marker, begin, limit)
+        while at >= 0:
+            if at + HEADER_BYTES > len(buf):
+                found.append(at)
+            else:
+                (length,) = _LENGTH.unpack_from(buf, at + 4)
+                if self.min_payload_bytes <= length <= self.max_payload_bytes:
+                    found.append(at)
+            at = buf.find(marker, at + 1, limit)
+        return found
+
+    def _valid_frame_within(self, buf: bytearray, start: int, limit: int) -> bool:
+        """Whether a whole frame with a good checksum that parses and passes ``check`` begins
+        at ``start`` and ends by ``limit``."""
+        if start + HEADER_BYTES > limit:
+            return False
+        (length,) = _LENGTH.unpack_from(buf, start + 4)
+        end = start + HEADER_BYTES + length + TRAILER_BYTES
+        if not self.min_payload_bytes <= length <= self.max_payload_bytes or end > limit:
+            return False
+        payload = bytes(buf[start + HEADER_BYTES:end - 1])
+        if xor_checksum(payload) != buf[end - 1]:
+            return False
+        if self.parse is not None:
+            try:
+                parsed = self.parse(payload, True)
+                if self.check is not None:
+                    self.check(parsed)
+            except ProtocolError:
+                return False
+        return True
 
     def _false_start(self) -> None:
         self.counters.resyncs += 1

@@ -26,10 +26,13 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import ProtocolError
 from scanpipe.protocol import framing
+from scanpipe.protocol.framing import LengthMismatch
 from scanpipe.protocol.profile import (
     ANGLE_SCALE_PER_DEG,
+    TICKS_PER_TURN,
     Profile,
     angle_to_wire,
+    check_plausible,
     ranges_from_wire,
     ranges_to_wire,
 )
@@ -98,8 +101,9 @@ MOTOR_SPIN_TOO_LOW = 0x4
 MOTOR_SPIN_TOO_HIGH = 0x9
 MOTOR_ERROR = 0xB
 
-#: Encoder ticks per turn (1/16°): directions wrap here.
-TICKS_PER_TURN = 5760
+#: Device limits: sectors per profile and points per sector.
+MAX_SECTORS = 8
+MAX_SECTOR_POINTS = 2881
 #: Profile-reply payloads: 2 codes + mask + sector count, at least.
 MIN_PAYLOAD_BYTES = 2
 #: 8 sectors of 2881 points with every field, plus headers: a generous cap.
@@ -119,13 +123,17 @@ def encode_frame(payload: bytes) -> bytes:
 class FrameReader(framing.FrameReader):
     """The USP framing: :class:`scanpipe.protocol.framing.FrameReader` with the ``02 USP`` marker.
 
-    By default it accepts only payloads with a known service code whose profile replies parse.
+    By default it accepts only payloads with a known service code whose profile replies parse
+    and pass :func:`check_frame`. ``confirm`` is off by default: this reader serves
+    request/reply links, where a reply is often the last thing sent and must not wait for the
+    next frame's marker (recordings go through ``StreamDecoder``, which confirms).
     """
 
     def __init__(self, max_payload_bytes: int = MAX_PAYLOAD_BYTES,
-                 accept_unknown: bool = False) -> None:
+                 accept_unknown: bool = False, confirm: bool = False) -> None:
         super().__init__(MARKER, MIN_PAYLOAD_BYTES, max_payload_bytes,
-                         None if accept_unknown else decode_payload)
+                         None if accept_unknown else decode_payload,
+                         None if accept_unknown else check_frame, confirm)
 
 
 @dataclass(frozen=True)
@@ -381,7 +389,7 @@ class _Cursor:
 
     def need(self, n_bytes: int, what: str) -> None:
         if self.pos + n_bytes > len(self.payload):
-            raise ProtocolError(f"ldoem profile reply of {len(self.payload)} bytes ends inside "
+            raise LengthMismatch(f"ldoem profile reply of {len(self.payload)} bytes ends inside "
                                 f"{what} (at byte {self.pos}, needs {n_bytes})")
 
     def u16s(self, fields: struct.Struct, what: str) -> tuple[int, ...]:
@@ -422,7 +430,7 @@ def decode_profile_reply(payload: bytes, checksum_ok: bool = True) -> ProfileRep
         elif n_sectors == 1:  # no point count: the single sector fills the payload
             rest = len(payload) - cur.pos - tail_bytes - senstat_bytes
             if rest < 0 or rest % (2 * len(point_fields)):
-                raise ProtocolError(f"ldoem profile reply: {rest} bytes of points do not divide "
+                raise LengthMismatch(f"ldoem profile reply: {rest} bytes of points do not divide "
                                     f"into {len(point_fields)} fields")
             n = rest // (2 * len(point_fields))
         else:
@@ -438,7 +446,7 @@ def decode_profile_reply(payload: bytes, checksum_ok: bool = True) -> ProfileRep
         sensor_mode, motor_mode = payload[cur.pos + 3] & 0xF, payload[cur.pos + 3] >> 4
         cur.pos += 4
     if cur.pos != len(payload):
-        raise ProtocolError(f"ldoem profile reply: {len(payload) - cur.pos} bytes left over "
+        raise LengthMismatch(f"ldoem profile reply: {len(payload) - cur.pos} bytes left over "
                             f"after mask {mask:#06x} and {n_sectors} sectors")
     return ProfileReply(mask, header.get(PROFILESENT), header.get(PROFILECOUNT),
                         header.get(LAYERNUM), sectors, sensor_mode, motor_mode)
@@ -486,3 +494,13 @@ def decode_payload(payload: bytes, checksum_ok: bool = True) -> list[Profile] | 
     if not message.is_profile_reply:
         return None
     return decode_profile_reply(payload, checksum_ok).sectors
+
+
+def check_frame(profiles: list[Profile] | None) -> int | None:
+    """The profile counter of a decoded reply (None for a frame without profiles);
+    ``ImplausibleFrame`` for more than 8 sectors, more than 2881 points in a sector, or angles
+    no 360° scanner sends (see :func:`scanpipe.protocol.profile.check_plausible`)."""
+    if profiles is not None and len(profiles) > MAX_SECTORS:
+        raise framing.ImplausibleFrame(f"ldoem profile reply of {len(profiles)} sectors: the "
+                                       f"device sends at most {MAX_SECTORS}")
+    return check_plausible(profiles, MAX_SECTOR_POINTS)

@@ -23,11 +23,12 @@ from __future__ import annotations
 import numpy as np
 
 from scanpipe.errors import ProtocolError
-from scanpipe.protocol.framing import encode_frame
+from scanpipe.protocol.framing import LengthMismatch, encode_frame
 from scanpipe.protocol.profile import (
     ANGLE_SCALE_PER_DEG,
     Profile,
     angle_to_wire,
+    check_plausible,
     ranges_from_wire,
     ranges_to_wire,
 )
@@ -69,12 +70,16 @@ def is_profile_payload(payload: bytes) -> bool:
 
 
 def decode_payload(payload: bytes, checksum_ok: bool = True) -> list[Profile]:
-    """The one profile in a frame's data; :class:`ProtocolError` when the layout does not fit."""
-    if not is_profile_payload(payload):
-        raise ProtocolError(
-            f"paper frame of {len(payload)} data bytes: expected the 'sRA' header and "
-            f"21 + 2·samples bytes"
-        )
+    """The one profile in a frame's data; :class:`ProtocolError` when the layout does not fit
+    (:class:`~scanpipe.protocol.framing.LengthMismatch` when the sample count disagrees with
+    the length)."""
+    if len(payload) < HEADER_BYTES or payload[:3] != REPLY_HEADER[:3]:
+        raise ProtocolError(f"paper frame of {len(payload)} data bytes: expected the 'sRA' "
+                            f"header and 21 + 2·samples bytes")
+    samples = int.from_bytes(payload[17:19], "big")
+    if len(payload) != payload_bytes(samples):
+        raise LengthMismatch(f"paper frame of {len(payload)} data bytes declares {samples} "
+                             f"samples: expected 21 + 2·samples = {payload_bytes(samples)}")
     head = np.frombuffer(payload, dtype=">u2", count=5, offset=11)
     wire = np.frombuffer(payload, dtype=">u2", offset=HEADER_BYTES)
     return [Profile(
@@ -85,3 +90,9 @@ def decode_payload(payload: bytes, checksum_ok: bool = True) -> list[Profile]:
         ranges_m=ranges_from_wire(wire),
         checksum_ok=checksum_ok,
     )]
+
+
+def check_frame(profiles: list[Profile] | None) -> int | None:
+    """The frame number of a decoded frame; ``ImplausibleFrame`` for angles no 360° scanner
+    sends (see :func:`scanpipe.protocol.profile.check_plausible`)."""
+    return check_plausible(profiles)

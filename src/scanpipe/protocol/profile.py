@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+
+from scanpipe.errors import ProtocolError
+from scanpipe.protocol.framing import ImplausibleFrame
 
 #: Distances on the wire are u16 in 1/256 m; 0 means "no return".
 RANGE_SCALE_PER_M = 256.0
@@ -13,6 +17,10 @@ RANGE_SCALE_PER_M = 256.0
 ANGLE_SCALE_PER_DEG = 16.0
 #: Device timestamps are 16-bit milliseconds: they wrap every 65.536 s.
 DEVICE_TIME_WRAP_MS = 1 << 16
+#: Encoder ticks (1/16°) per turn: directions wrap here.
+TICKS_PER_TURN = 5760
+#: A 2-D scanner sees one turn: no start angle, step or sector span exceeds it.
+FULL_TURN_DEG = 360.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,10 +93,33 @@ def angle_to_wire(angle_deg: float) -> int:
     """An angle in degrees to its u16 wire value in 1/16° (0…4095.9375°)."""
     value = round(angle_deg * ANGLE_SCALE_PER_DEG)
     if not 0 <= value <= 0xFFFF:
-        from scanpipe.errors import ProtocolError
-
         raise ProtocolError(f"angle {angle_deg!r}°: outside 0…4095.9375° (u16 in 1/16°)")
     return value
+
+
+def check_plausible(profiles: Sequence[Profile] | None,
+                    max_points: int | None = None) -> int | None:
+    """The frame counter of a frame's profiles (None for a frame without profiles), or
+    :class:`~scanpipe.protocol.framing.ImplausibleFrame` when the angles cannot come from a
+    360° scanner: a start angle or step outside 0…360°, a zero step with several samples, or
+    samples spanning more than a turn; or when a sector holds more than ``max_points``."""
+    if not profiles:
+        return None
+    for p in profiles:
+        n = len(p.ranges_m)
+        start, step = p.start_angle_deg, p.step_deg
+        problem = ""
+        if start == start and not 0.0 <= start <= FULL_TURN_DEG:
+            problem = f"start angle {start}°"
+        elif step == step and not 0.0 <= step <= FULL_TURN_DEG:
+            problem = f"step {step}°"
+        elif step == step and n >= 2 and (step == 0.0 or (n - 1) * step > FULL_TURN_DEG):
+            problem = f"{n} samples at {step}° (span over 360°)"
+        elif max_points is not None and n > max_points:
+            problem = f"{n} samples (at most {max_points})"
+        if problem:
+            raise ImplausibleFrame(f"frame {p.frame} sector {p.sector}: {problem}")
+    return profiles[0].frame
 
 
 def unwrap_counter(values: NDArray[np.integer], period: int) -> NDArray[np.int64]:

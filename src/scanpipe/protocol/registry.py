@@ -7,13 +7,19 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass
 from typing import Literal
 
 from scanpipe.errors import ProtocolError
 from scanpipe.protocol import ldoem, paper
-from scanpipe.protocol.framing import NOT_PARSED, FrameCounters, FrameReader, RawFrame
+from scanpipe.protocol.framing import (
+    NOT_PARSED,
+    FrameCounters,
+    FrameReader,
+    LengthMismatch,
+    RawFrame,
+)
 from scanpipe.protocol.profile import Profile
 
 ChecksumMode = Literal["strict", "lenient"]
@@ -27,7 +33,8 @@ class Dialect:
 
     ``decode_payload(payload, checksum_ok)`` returns the profiles of a frame, None for a valid
     frame that carries no profile, or raises :class:`ProtocolError` (then a frame with a good
-    checksum is a false start).
+    checksum is a false start). ``check_frame(profiles)`` vets a decoded frame with a good
+    checksum (``ImplausibleFrame``) and returns its counter (see ``framing.FrameCheck``).
     """
 
     name: str
@@ -36,17 +43,21 @@ class Dialect:
     max_payload_bytes: int
     encode_profile: Callable[[Profile], bytes]
     decode_payload: Callable[[bytes, bool], list[Profile] | None]
+    check_frame: Callable[[list[Profile] | None], int | None]
     description: str
 
-    def frame_reader(self, max_payload_bytes: int | None = None) -> FrameReader:
-        """A fresh frame reader for this dialect's framing."""
+    def frame_reader(self, max_payload_bytes: int | None = None,
+                     confirm: bool = True) -> FrameReader:
+        """A fresh frame reader for this dialect's framing (``confirm``: framing module)."""
         cap = self.max_payload_bytes if max_payload_bytes is None else max_payload_bytes
-        return FrameReader(self.marker, self.min_payload_bytes, cap, self.decode_payload)
+        return FrameReader(self.marker, self.min_payload_bytes, cap, self.decode_payload,
+                           self.check_frame, confirm)
 
     def stream_decoder(self, checksum: ChecksumMode = "strict",
-                       max_payload_bytes: int | None = None) -> StreamDecoder:
+                       max_payload_bytes: int | None = None,
+                       confirm: bool = True) -> StreamDecoder:
         """A fresh stream decoder (the decoder factory)."""
-        return StreamDecoder(self, checksum, max_payload_bytes)
+        return StreamDecoder(self, checksum, max_payload_bytes, confirm)
 
     def detect(self, data: bytes) -> bool:
         """Whether ``data`` holds at least one frame of this dialect (checksum aside)."""
@@ -61,6 +72,7 @@ DIALECTS: Mapping[str, Dialect] = {
         max_payload_bytes=paper.MAX_PAYLOAD_BYTES,
         encode_profile=paper.encode_profile,
         decode_payload=paper.decode_payload,
+        check_frame=paper.check_frame,
         description="the frame printed in the paper (02 02 02 02, SICK CoLa-B framing)",
     ),
     "ldoem": Dialect(
@@ -70,6 +82,7 @@ DIALECTS: Mapping[str, Dialect] = {
         max_payload_bytes=ldoem.MAX_PAYLOAD_BYTES,
         encode_profile=ldoem.encode_profile,
         decode_payload=ldoem.decode_payload,
+        check_frame=ldoem.check_frame,
         description="the SICK LD-OEM 1000 TCP protocol (02 'USP' framing, GET_PROFILE replies)",
     ),
 }
@@ -98,20 +111,23 @@ class StreamDecoder:
     """Bytes in (chunks of any size), profiles out, with counters.
 
     ``checksum="strict"`` drops frames whose checksum fails (they are counted);
-    ``"lenient"`` returns their profiles with ``checksum_ok=False``.
+    ``"lenient"`` returns their profiles with ``checksum_ok=False``. Frames whose checksum
+    passes are checked further (``confirm``, on by default: see :mod:`scanpipe.protocol.framing`);
+    a frame is then handed out once the 7 bytes after it have arrived, or at :meth:`finish`.
     """
 
     def __init__(self, dialect: Dialect | str, checksum: ChecksumMode = "strict",
-                 max_payload_bytes: int | None = None) -> None:
+                 max_payload_bytes: int | None = None, confirm: bool = True) -> None:
         if checksum not in ("strict", "lenient"):
             raise ProtocolError(f"checksum mode {checksum!r}: allowed strict, lenient")
         self.dialect = get_dialect(dialect) if isinstance(dialect, str) else dialect
         self.checksum: ChecksumMode = checksum
-        self._reader = self.dialect.frame_reader(max_payload_bytes)
+        self._reader = self.dialect.frame_reader(max_payload_bytes, confirm)
 
     @property
     def counters(self) -> FrameCounters:
-        """Frames decoded, checksum failures, resyncs, bytes skipped, malformed, other frames."""
+        """Frames decoded, checksum failures, resyncs, bytes skipped, malformed, other frames,
+        length mismatches, implausible frames."""
         return self._reader.counters
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[Profile]:
@@ -140,6 +156,10 @@ class StreamDecoder:
             if raw.parsed is NOT_PARSED:
                 try:
                     profiles = self.dialect.decode_payload(raw.payload, raw.checksum_ok)
+                except LengthMismatch:
+                    counters.length_mismatches += 1
+                    counters.bytes_skipped += raw.end_offset - raw.start_offset
+                    continue
                 except ProtocolError:
                     counters.malformed_frames += 1
                     counters.bytes_skipped += raw.end_offset - raw.start_offset
@@ -162,6 +182,57 @@ def decode_bytes(data: bytes, dialect: Dialect | str, checksum: ChecksumMode = "
     decoder = StreamDecoder(dialect, checksum, max_payload_bytes)
     profiles = decoder.feed(data) + decoder.finish()
     return profiles, decoder.counters
+
+
+@dataclass(frozen=True)
+class RecoveryScore:
+    """How a decode of a damaged stream compares with the profiles actually sent.
+
+    ``recovered`` of ``expected`` intact profiles came out with a good checksum (``lost`` did
+    not); ``false_good`` profiles came out with a good checksum but match no sent profile
+    (a false frame passed as good: must be 0); ``marked_damaged`` came out with
+    ``checksum_ok=False`` (lenient mode). ``counters`` are the decoder's.
+    """
+
+    expected: int
+    recovered: int
+    lost: int
+    false_good: int
+    marked_damaged: int
+    counters: FrameCounters
+
+    def as_dict(self) -> dict[str, object]:
+        """Plain data for reports and ``--json``."""
+        return asdict(self)
+
+
+def _profile_key(p: Profile) -> tuple[object, ...]:
+    echo = None if p.echo is None else p.echo.tobytes()
+    return (p.frame, p.sector, p.start_angle_deg.hex(), p.step_deg.hex(), p.ranges_m.tobytes(),
+            echo, p.device_time_ms, p.device_end_time_ms)
+
+
+def score_recovery(expected: Sequence[Profile], decoded: Sequence[Profile],
+                   counters: FrameCounters) -> RecoveryScore:
+    """Compare ``decoded`` with the ``expected`` intact profiles (as the same dialect decodes
+    them from their intact frames; each expected profile is matched at most once)."""
+    wanted: dict[tuple[object, ...], int] = {}
+    for p in expected:
+        key = _profile_key(p)
+        wanted[key] = wanted.get(key, 0) + 1
+    recovered = false_good = damaged = 0
+    for p in decoded:
+        if not p.checksum_ok:
+            damaged += 1
+            continue
+        key = _profile_key(p)
+        if wanted.get(key, 0) > 0:
+            wanted[key] -= 1
+            recovered += 1
+        else:
+            false_good += 1
+    return RecoveryScore(len(expected), recovered, len(expected) - recovered, false_good,
+                         damaged, counters)
 
 
 def _detect_score(dialect: Dialect, data: bytes, limit: int = DETECT_BYTES[-1]) -> int:

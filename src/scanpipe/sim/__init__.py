@@ -1,7 +1,8 @@
 """The virtual rig: a ground-truth scene, ray-cast sensor models and device emulators.
 
-- :mod:`scanpipe.sim.scene`: :class:`~scanpipe.sim.scene.Scene`, ``builtin_room()``,
-  ``box_room()``, ``load_scene()``; :mod:`scanpipe.sim.room` builds the built-in rooms.
+- :mod:`scanpipe.sim.scene`: :class:`~scanpipe.sim.scene.Scene` and ``load_scene()`` (OBJ,
+  GLB, glTF); :mod:`scanpipe.sim.room`: the built-in scenes (``builtin_room()``,
+  ``box_room()``) and ``resolve_scene()`` (a built-in name or a file).
 - :mod:`scanpipe.sim.scanner`, :mod:`scanpipe.sim.motion`, :mod:`scanpipe.sim.camera`: the
   scanner's ranges and measurement model, the motor's motion, the camera renderer.
 - :mod:`scanpipe.sim.controller` (the motor controller firmware, docs/motor-link.md) and

@@ -27,13 +27,14 @@ from scanpipe.rig import Rig, ScannerConfig, rig_from_dict, rig_to_dict
 from scanpipe.sim.camera import CameraModel, render_rgb
 from scanpipe.sim.ldoem_device import LdoemDevice
 from scanpipe.sim.options import SimOptions
+from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import (
     measure,
     sample_time_offsets_s,
     sector_duration_s,
     true_ranges,
 )
-from scanpipe.sim.scene import Scene, resolve_scene
+from scanpipe.sim.scene import Scene
 from scanpipe.sim.session import RX, TX, Session, camera_times_s, plan_session
 from scanpipe.sim.truth import truth_table, write_truth
 from scanpipe.sim.wire import SCANNER_CLOCK_ORIGIN_MS, device_clock_ms, profile_frame

@@ -34,6 +34,7 @@ from scanpipe.sim.controller import MotorController
 from scanpipe.sim.ldoem_device import LdoemDevice
 from scanpipe.sim.motion import PlatformState
 from scanpipe.sim.options import SimOptions
+from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import (
     MeasurementModel,
     measure,
@@ -41,7 +42,7 @@ from scanpipe.sim.scanner import (
     sector_duration_s,
     true_ranges,
 )
-from scanpipe.sim.scene import Scene, resolve_scene
+from scanpipe.sim.scene import Scene
 from scanpipe.sim.truth import truth_table, write_truth
 from scanpipe.sim.wire import device_clock_ms, profile_frame
 

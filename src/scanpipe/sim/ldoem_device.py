@@ -16,8 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from scanpipe.device_limits import LDOEM_HEAD_HZ, LDOEM_MAX_MEAN_PULSE_HZ, LDOEM_MAX_PULSE_HZ
 from scanpipe.errors import ProtocolError
-from scanpipe.planning import LDOEM_HEAD_HZ, LDOEM_MAX_MEAN_PULSE_HZ, LDOEM_MAX_PULSE_HZ
 from scanpipe.protocol import ldoem
 from scanpipe.rig import ScannerConfig
 

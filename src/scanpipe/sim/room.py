@@ -18,7 +18,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from scanpipe.sim.scene import Scene
+from scanpipe.rig import Pose
+from scanpipe.sim.scene import Scene, load_scene
 
 U8 = NDArray[np.uint8]
 Vec = tuple[float, float, float]
@@ -204,16 +205,28 @@ def _room_cached() -> Scene:
     return b.scene()
 
 
-def build_room() -> Scene:
-    """The built-in room; a fresh copy (callers may move its vertices)."""
+def builtin_room() -> Scene:
+    """The built-in room (about 6 × 4 × 3 m, furnished, textured); a fresh copy (callers may
+    move its vertices)."""
     cached = _room_cached()
     return Scene(cached.vertices.copy(), cached.triangles, cached.triangle_uvs,
                  cached.triangle_material, cached.textures, list(cached.material_names))
 
 
-def build_box_room(size_m: tuple[float, float, float], floor_y_m: float) -> Scene:
-    """An empty room ``size_m = (x, y, z)`` centred on the motor axis, floor at ``floor_y_m``."""
+def box_room(size_m: tuple[float, float, float] = (6.0, 3.0, 4.0),
+             floor_y_m: float = -1.2) -> Scene:
+    """An empty textured room ``size_m = (x, y, z)`` centred on the motor axis, floor at
+    ``floor_y_m`` (for analytic tests)."""
     b = _Builder()
     sx, sy, sz = size_m
     _room_shell(b, (-sx / 2, sx / 2), (-sz / 2, sz / 2), (floor_y_m, floor_y_m + sy), "X")
     return b.scene()
+
+
+def resolve_scene(name_or_path: str, pose: Pose | None = None) -> Scene:
+    """A built-in scene by name (``room``, ``box``) or a scene file (OBJ, GLB, glTF)."""
+    if name_or_path == "room":
+        return builtin_room()
+    if name_or_path == "box":
+        return box_room()
+    return load_scene(name_or_path, pose)

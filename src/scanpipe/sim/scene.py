@@ -501,30 +501,3 @@ def load_scene(path: Path | str, pose: Pose | None = None,
         rotation = rotation_matrix_deg(pose.rotation_deg)
         scene.vertices = scene.vertices @ rotation.T + np.asarray(pose.translation_m)
     return scene
-
-
-def builtin_room() -> Scene:
-    """The built-in room (about 6 × 4 × 3 m, furnished, textured; see :mod:`scanpipe.sim.room`)."""
-    from scanpipe.sim.room import build_room
-
-    return build_room()
-
-
-def box_room(size_m: tuple[float, float, float] = (6.0, 3.0, 4.0),
-             floor_y_m: float = -1.2) -> Scene:
-    """An empty textured box room centred on the motor axis (for analytic tests)."""
-    from scanpipe.sim.room import build_box_room
-
-    return build_box_room(size_m, floor_y_m)
-
-
-BUILTIN_SCENES = ("room", "box")
-
-
-def resolve_scene(name_or_path: str, pose: Pose | None = None) -> Scene:
-    """A built-in scene by name (``room``, ``box``) or a scene file (OBJ, GLB, glTF)."""
-    if name_or_path == "room":
-        return builtin_room()
-    if name_or_path == "box":
-        return box_room()
-    return load_scene(name_or_path, pose)

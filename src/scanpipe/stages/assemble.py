@@ -41,28 +41,21 @@ import pyarrow as pa
 from numpy.typing import NDArray
 from pydantic import Field
 
-from scanpipe.artifacts import check_columns
 from scanpipe.clock import ClockModel, fit_clock
 from scanpipe.errors import StageError
 from scanpipe.geometry import rotation_matrix_deg, scan_plane_direction
 from scanpipe.motion import beta_deg_at, beta_deg_from_steps, motor_clock, motor_times_ns
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
 from scanpipe.rig import Rig, rig_from_table
+from scanpipe.schema import MOTOR, ORIGIN, PROFILES, XYZ
+from scanpipe.stage import Stage, StageResult
 
 I64 = NDArray[np.int64]
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 B = NDArray[np.bool_]
 
-PROFILE_COLUMNS = {
-    "recv_time_ns": pa.int64(),
-    "start_angle_deg": pa.float64(),
-    "step_deg": pa.float64(),
-    "ranges_m": pa.list_(pa.float32()),
-}
-MOTOR_COLUMNS = {"log_time_ns": pa.int64(), "step_count": pa.int64(), "moving": pa.bool_()}
 
 
 class AssembleParams(Params):
@@ -149,7 +142,7 @@ def scan_lines(profiles: pa.Table, rig: Rig, params: AssembleParams,
     ``motor_rate`` is the motor controller's fitted clock rate (host per physical second),
     when it has a clock.
     """
-    check_columns(profiles, PROFILE_COLUMNS, "profiles")
+    PROFILES.check(profiles)
     ranges, lengths = _flatten_lists(profiles.column("ranges_m"))
     ranges = ranges.astype(np.float32, copy=False)
     row_starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
@@ -246,7 +239,7 @@ class StationaryIntervals:
 
 def stationary_intervals(motor: pa.Table) -> StationaryIntervals:
     """The motor log's stationary runs (see :class:`StationaryIntervals`)."""
-    check_columns(motor, MOTOR_COLUMNS, "motor")
+    MOTOR.check(motor)
     if motor.num_rows == 0:
         raise StageError("motor: no motor states in the recording; cannot place profiles in β")
     t = motor_times_ns(motor)
@@ -415,13 +408,15 @@ def points_from_grid(ranges: F32, alpha_deg: F64, beta_deg: F64, rig: Rig) -> di
         py += ty
         pz += tz
     shape = ranges.shape
+    x, y, z = XYZ
+    ox, oy, oz = ORIGIN
     return {
-        "x": px * cos_b - pz * sin_b,
-        "y": py,
-        "z": px * sin_b + pz * cos_b,
-        "origin_x": np.broadcast_to(tx * cos_b - tz * sin_b, shape),
-        "origin_y": np.broadcast_to(np.float32(ty), shape),
-        "origin_z": np.broadcast_to(tx * sin_b + tz * cos_b, shape),
+        x: px * cos_b - pz * sin_b,
+        y: py,
+        z: px * sin_b + pz * cos_b,
+        ox: np.broadcast_to(tx * cos_b - tz * sin_b, shape),
+        oy: np.broadcast_to(np.float32(ty), shape),
+        oz: np.broadcast_to(tx * sin_b + tz * cos_b, shape),
     }
 
 
@@ -443,7 +438,7 @@ def choose_mode(params: AssembleParams, lines: ScanLines, intervals: StationaryI
             f"{inside} of {usable} profiles lie inside one")
 
 
-def assemble(inputs: Mapping[str, Any], params: AssembleParams,
+def assemble_stage(inputs: Mapping[str, Any], params: AssembleParams,
              progress: ProgressFn) -> StageResult:
     """The assemble stage: ``profiles``, ``motor``, ``rig`` → ``points`` (a full grid)."""
     rig = rig_from_table(inputs["rig"])
@@ -503,7 +498,7 @@ def assemble(inputs: Mapping[str, Any], params: AssembleParams,
     progress("assemble", 3, 4)
 
     columns: dict[str, pa.Array] = {
-        name: pa.array(coords[name].ravel()) for name in ("x", "y", "z")
+        name: pa.array(coords[name].ravel()) for name in XYZ
     }
     columns["range_m"] = pa.array(ranges.ravel())
     columns["alpha_deg"] = pa.array(np.tile(alpha_deg, n_profiles))
@@ -511,7 +506,7 @@ def assemble(inputs: Mapping[str, Any], params: AssembleParams,
     columns["time_ns"] = pa.array(time_ns.ravel())
     columns["profile"] = pa.array(np.repeat(np.arange(n_profiles, dtype=np.int32), n_samples))
     columns["sample"] = pa.array(np.tile(np.arange(n_samples, dtype=np.int32), n_profiles))
-    for name in ("origin_x", "origin_y", "origin_z"):
+    for name in ORIGIN:
         columns[name] = pa.array(np.ascontiguousarray(coords[name]).ravel())
     echo = echo_grid(lines, layout)
     if echo is not None:
@@ -551,6 +546,6 @@ STAGE = Stage(
     params=AssembleParams,
     inputs=("profiles", "motor", "rig"),
     outputs=("points",),
-    func=assemble,
+    func=assemble_stage,
     description="profiles + motor states + rig calibration → points on the profile × sample grid",
 )

@@ -34,32 +34,21 @@ from scanpipe.clock import fit_clock, unwrap_device_ms
 from scanpipe.errors import ProtocolError, RecordingError, StageError
 from scanpipe.images import image_size
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, unwrap_counter
 from scanpipe.protocol.registry import DecodedFrame, StreamDecoder, get_dialect, resolve_dialect
 from scanpipe.recording.reader import Image, Recording, StreamData, read_recording
 from scanpipe.recording.schemas import RX
 from scanpipe.rig import Rig, default_rig, rig_table
+from scanpipe.schema import FRAMES, MOTOR, PROFILES
+from scanpipe.stage import Stage, StageResult
 
 I64 = NDArray[np.int64]
 
-PROFILES_SCHEMA = pa.schema([
-    ("recv_time_ns", pa.int64()), ("device_time_ns", pa.int64()),
-    ("device_end_time_ns", pa.int64()), ("frame", pa.int64()), ("sector", pa.int32()),
-    ("start_angle_deg", pa.float64()), ("step_deg", pa.float64()),
-    ("ranges_m", pa.list_(pa.float32())), ("echo", pa.list_(pa.uint16())),
-    ("checksum_ok", pa.bool_()), ("dialect", pa.string()),
-])
-MOTOR_SCHEMA = pa.schema([
-    ("log_time_ns", pa.int64()), ("step_count", pa.int64()), ("target_step_count", pa.int64()),
-    ("moving", pa.bool_()), ("device_time_us", pa.int64()),
-])
-FRAMES_SCHEMA = pa.schema([
-    ("camera_id", pa.string()), ("log_time_ns", pa.int64()), ("sequence", pa.int64()),
-    ("format", pa.string()), ("width", pa.int32()), ("height", pa.int32()),
-    ("data", pa.binary()),
-])
+#: What decode writes: every column of each artifact (:mod:`scanpipe.schema`).
+PROFILES_SCHEMA = PROFILES.arrow_schema
+MOTOR_SCHEMA = MOTOR.arrow_schema
+FRAMES_SCHEMA = FRAMES.arrow_schema
 #: The decoder is fed this many bytes at a time, to report progress.
 _FEED_BYTES = 1 << 20
 
@@ -285,7 +274,7 @@ def _span(times_ns: I64) -> int:
     return int(times_ns.max() - times_ns.min()) if times_ns.size > 1 else 0
 
 
-def run_decode(inputs: Mapping[str, Any], params: DecodeParams,
+def decode_stage(inputs: Mapping[str, Any], params: DecodeParams,
                progress: ProgressFn = no_progress) -> StageResult:
     """Stage function: ``inputs["recording"]`` is the path of the MCAP recording."""
     path = inputs.get("recording")
@@ -300,7 +289,7 @@ STAGE = Stage(
     params=DecodeParams,
     inputs=("recording",),
     outputs=("profiles", "motor", "frames", "rig"),
-    func=run_decode,
+    func=decode_stage,
     description="recording (MCAP) → profiles, motor states, camera frames, rig",
     libraries=("numpy", "pyarrow", "mcap", "protobuf", "zstandard"),
 )

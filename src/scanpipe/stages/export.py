@@ -1,10 +1,8 @@
 """Export: artifacts to files other tools open (OBJ, GLB, PLY, LAS/LAZ, E57, Foxglove MCAP).
 
-Two layers. :func:`export_files` is pure: tables in, ``{file name: bytes}`` out (the same shape
-as :attr:`scanpipe.pipeline.StageResult.files`). :func:`write_files` puts them on disk all or
-nothing: every file goes to a temporary name first and is renamed only when all were written,
-so an error never leaves a half export. :func:`export_folder` does both for a folder of
-artifacts, the ``scanpipe export`` command.
+Pure: :func:`export_files` turns tables into ``{file name: bytes}`` (the shape of
+:attr:`scanpipe.stage.StageResult.files`), and the chain's export stage is that plus a
+manifest. Writing files for ``scanpipe export`` is the shell's: :mod:`scanpipe.exporting`.
 
 What each format takes: ``obj`` and ``glb`` the mesh (+ texture when present); ``las``,
 ``laz`` and ``e57`` the points; ``ply`` the mesh, or the points when there is no mesh;
@@ -14,16 +12,12 @@ What each format takes: ``obj`` and ``glb`` the mesh (+ texture when present); `
 from __future__ import annotations
 
 import hashlib
-import os
-import tempfile
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Literal
 
 import pyarrow as pa
 from pydantic import Field
 
-from scanpipe.artifacts import FILE_MODE, read_artifact
 from scanpipe.errors import ArtifactError, ExportError, UsageError
 from scanpipe.exporters.e57 import e57_bytes
 from scanpipe.exporters.glb import glb_bytes
@@ -32,16 +26,9 @@ from scanpipe.exporters.mcap_foxglove import foxglove_mcap_bytes
 from scanpipe.exporters.model import CloudModel, MeshModel, cloud_from_table, mesh_from_tables
 from scanpipe.exporters.obj import obj_files
 from scanpipe.exporters.ply import ply_cloud_bytes, ply_mesh_bytes
-from scanpipe.outpaths import (
-    check_output_file,
-    check_output_files,
-    check_output_folder,
-    folder_inputs,
-)
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
-from scanpipe.workdir import find_artifacts
+from scanpipe.stage import Stage, StageResult
 
 Format = Literal["obj", "glb", "ply", "las", "laz", "e57", "mcap"]
 FORMATS: tuple[str, ...] = ("obj", "glb", "ply", "las", "laz", "e57", "mcap")
@@ -107,87 +94,6 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str) -> dict[st
     if fmt in ("las", "laz"):
         return {f"{stem}.{fmt}": las_bytes(cloud, compressed=fmt == "laz")}
     return {f"{stem}.e57": e57_bytes(cloud, stem)}
-
-
-def write_files(files: Mapping[str, bytes], out_dir: Path) -> list[Path]:
-    """Write every file into ``out_dir``, all or nothing; returns the paths written."""
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ExportError(f"{out_dir}: cannot create the folder ({err.strerror or err})") from None
-    staged: list[tuple[Path, Path]] = []
-    try:
-        for name, data in files.items():
-            target = out_dir / name
-            fd, tmp_name = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out_dir)
-            staged.append((Path(tmp_name), target))
-            os.fchmod(fd, FILE_MODE)
-            with os.fdopen(fd, "wb") as handle:
-                handle.write(data)
-        for _, target in staged:
-            if target.is_dir():
-                raise ExportError(f"{target}: is a folder; choose another --out")
-        for tmp, target in staged:
-            os.replace(tmp, target)
-    except OSError as err:
-        raise ExportError(f"{out_dir}: cannot write the export "
-                          f"({err.strerror or err})") from None
-    finally:
-        for tmp, _ in staged:
-            tmp.unlink(missing_ok=True)
-    return [target for _, target in staged]
-
-
-def stem_and_folder(out: Path, fmt: str) -> tuple[str, Path]:
-    """``--out`` as (stem, folder): ``room.obj`` → ("room", .); a path without a suffix is a
-    folder (created if needed) → ("scan", that folder). Nothing is appended to a path, and a
-    device or a file where a folder is meant is refused (see :mod:`scanpipe.outpaths`)."""
-    suffix = out.suffix.lower().lstrip(".")
-    if out.is_dir():
-        return "scan", out
-    if suffix and suffix != fmt:
-        raise FormatError(f"--out {out}: the extension .{suffix} does not match --format {fmt}")
-    if out.exists():
-        check_output_file(out, "--out", (f".{fmt}",), force=True)  # a device, a FIFO …
-    if not suffix:
-        if out.exists():
-            raise FormatError(f"--out {out}: is a file without a suffix; give a file name "
-                              f"ending in .{fmt}, or a folder")
-        return "scan", out
-    return out.stem, out.parent
-
-
-def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
-    """The artifacts an export of ``fmt`` can use from ``folder`` (flat or per stage)."""
-    found = find_artifacts(folder, INPUT_ARTIFACTS)
-    if not found:
-        raise ArtifactError(f"{folder}: no artifacts to export (looked for "
-                            f"{', '.join(INPUT_ARTIFACTS)} as <name>.parquet or "
-                            "<stage>/<name>.parquet)")
-    wanted: tuple[str, ...] = INPUT_ARTIFACTS
-    if fmt in ("las", "laz", "e57"):
-        wanted = ("points",)
-    elif fmt in ("obj", "glb"):
-        wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)
-    return {name: read_artifact(path)[0] for name, path in found.items() if name in wanted}
-
-
-def export_folder(folder: Path, fmt: str, out: Path, force: bool = False) -> list[Path]:
-    """``scanpipe export``: read the artifacts in ``folder`` and write ``fmt`` to ``out``.
-
-    No existing file is replaced without ``force``, and none may be one of the inputs (an
-    artifact, or the recording a workdir was made from), even with it.
-    """
-    fmt = check_format(fmt)
-    stem, out_dir = stem_and_folder(out, fmt)
-    check_output_folder(out_dir)
-    inputs = folder_inputs(folder)
-    # The main file first, before the (slow) reading; then every file the export makes.
-    check_output_files([out_dir / f"{stem}.{fmt}"], "--out", force, inputs)
-    tables = load_tables(folder, fmt)
-    files = export_files(tables, fmt, stem)
-    check_output_files([out_dir / name for name in files], "--out", force, inputs)
-    return write_files(files, out_dir)
 
 
 MeshFormat = Literal["obj", "glb", "ply", "mcap"]

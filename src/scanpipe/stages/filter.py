@@ -42,7 +42,6 @@ import pyarrow as pa
 from numpy.typing import NDArray
 from pydantic import Field, model_validator
 
-from scanpipe.artifacts import check_columns
 from scanpipe.errors import StageError
 from scanpipe.grid import (
     ScanGrid,
@@ -55,17 +54,14 @@ from scanpipe.grid import (
     to_grid,
 )
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
+from scanpipe.schema import ORIGIN, POINTS
+from scanpipe.stage import Stage, StageResult
 
 F32 = NDArray[np.float32]
 B = NDArray[np.bool_]
 I64 = NDArray[np.int64]
 
-POINT_COLUMNS = {name: pa.float32() for name in
-                 ("x", "y", "z", "range_m", "origin_x", "origin_y", "origin_z")}
-POINT_COLUMNS.update({"profile": pa.int32(), "sample": pa.int32(), "alpha_deg": pa.float64(),
-                      "beta_deg": pa.float64()})
 
 
 class RangeGateParams(Params):
@@ -197,7 +193,7 @@ class Cloud:
     def origin(self) -> F32:
         """Sensor origins ``(N, 3)``."""
         if self._origin is None:
-            self._origin = np.stack([_column(self.table, f"origin_{c}") for c in "xyz"], axis=1)
+            self._origin = np.stack([_column(self.table, c) for c in ORIGIN], axis=1)
         return self._origin
 
     @property
@@ -429,7 +425,7 @@ def _column(table: pa.Table, name: str) -> F32:
 
 def make_cloud(table: pa.Table) -> Cloud:
     """The working state of a points table (earlier ``filtered_by`` marks count as taken)."""
-    check_columns(table, POINT_COLUMNS, "points")
+    POINTS.check(table)
     taken = np.zeros(table.num_rows, np.int8)
     if "filtered_by" in table.column_names:
         marked = table.column("filtered_by").is_valid().to_numpy(zero_copy_only=False)
@@ -512,7 +508,7 @@ def filtered_table(table: pa.Table, cloud: Cloud, mode: str) -> pa.Table:
     return table.append_column("filtered_by", names)
 
 
-def filter_points(inputs: Mapping[str, Any], params: FilterParams,
+def filter_stage(inputs: Mapping[str, Any], params: FilterParams,
                   progress: ProgressFn) -> StageResult:
     """The filter stage: ``points`` → ``points`` with fewer (or marked) points."""
     table: pa.Table = inputs["points"]
@@ -540,7 +536,7 @@ STAGE = Stage(
     params=FilterParams,
     inputs=("points",),
     outputs=("points",),
-    func=filter_points,
+    func=filter_stage,
     description="range gate, no-returns, depth edges, grid median, smoothing, double coverage, "
                 "statistical outliers, voxels: mark or remove",
     libraries=("numpy", "pyarrow", "open3d"),

@@ -20,24 +20,17 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from pydantic import Field
 
-from scanpipe.artifacts import check_columns
 from scanpipe.errors import StageError
 from scanpipe.grid import scan_grid, subsample
 from scanpipe.meshing.cleanup import CleanupParams, clean_mesh
 from scanpipe.meshing.grid_mesh import GridMeshParams, triangulate_grid
-from scanpipe.meshing.mesh import COLOUR_COLUMNS, Mesh
+from scanpipe.meshing.mesh import Mesh
 from scanpipe.meshing.poisson import PoissonParams, poisson_mesh
 from scanpipe.normals import NormalParams, estimate_normals, points_origins, points_xyz
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
-
-#: The columns of the ``points`` artifact the mesh stage reads.
-POINT_COLUMNS = {
-    **{name: pa.float32() for name in ("x", "y", "z", "origin_x", "origin_y", "origin_z")},
-    "alpha_deg": pa.float64(), "beta_deg": pa.float64(),
-    "profile": pa.int32(), "sample": pa.int32(),
-}
+from scanpipe.schema import POINTS, RGB
+from scanpipe.stage import Stage, StageResult
 
 
 class MeshParams(Params):
@@ -65,16 +58,16 @@ def usable_points(table: pa.Table) -> pa.Table:
 
 
 def _colors(table: pa.Table) -> np.ndarray[Any, np.dtype[np.uint8]] | None:
-    if not all(name in table.column_names for name in COLOUR_COLUMNS):
+    if not all(name in table.column_names for name in RGB):
         return None
     return np.stack([table.column(name).to_numpy(zero_copy_only=False).astype(np.uint8)
-                     for name in COLOUR_COLUMNS], axis=1)
+                     for name in RGB], axis=1)
 
 
 def mesh_points(table: pa.Table, params: MeshParams,
                 progress: ProgressFn | None = None) -> tuple[Mesh, dict[str, Any]]:
     """The mesh of a points table and a report (counts, what clean-up removed, times)."""
-    check_columns(table, POINT_COLUMNS, "points")
+    POINTS.check(table)
     table = usable_points(table)
     if table.num_rows == 0:
         raise StageError("points: no usable points to mesh (empty, or every row filtered)")
@@ -137,7 +130,7 @@ def mesh_points(table: pa.Table, params: MeshParams,
     return mesh, report
 
 
-def run_mesh(inputs: Mapping[str, Any], params: MeshParams,
+def mesh_stage(inputs: Mapping[str, Any], params: MeshParams,
              progress: ProgressFn) -> StageResult:
     """The stage function: ``points`` → ``mesh_vertices``, ``mesh_faces``."""
     mesh, report = mesh_points(inputs["points"], params, progress)
@@ -152,7 +145,7 @@ STAGE = Stage(
     params=MeshParams,
     inputs=("points",),
     outputs=("mesh_vertices", "mesh_faces"),
-    func=run_mesh,
+    func=mesh_stage,
     description="surface from the points: Open3D Poisson or the organized scan grid",
     libraries=("numpy", "pyarrow", "open3d", "scipy"),
 )

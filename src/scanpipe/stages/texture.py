@@ -21,32 +21,30 @@ import pyarrow as pa
 from numpy.typing import NDArray
 from pydantic import Field
 
-from scanpipe.artifacts import check_columns
 from scanpipe.errors import StageError
 from scanpipe.images import encode_png
 from scanpipe.params import Params
-from scanpipe.pipeline import Stage, StageResult
 from scanpipe.progress import ProgressFn
 from scanpipe.rig import Rig, rig_from_table
+from scanpipe.schema import (
+    FACE_CORNERS,
+    MESH_FACES,
+    MESH_VERTICES,
+    NORMAL,
+    TEXTURE_PAGES,
+    TEXTURED_FACES,
+    XYZ,
+)
+from scanpipe.stage import Stage, StageResult
 from scanpipe.texturing.atlas import build_atlas
 from scanpipe.texturing.exposure import seam_colour_pairs, solve_gains
 from scanpipe.texturing.frames import choose_frames, known_camera_frames
+from scanpipe.texturing.panorama import texture_panorama
 from scanpipe.texturing.projective import colorize_points, face_scores, select_frames_per_face
 from scanpipe.texturing.visibility import MeshOcclusion, face_normals
 
-__all__ = ["STAGE", "TextureParams", "colorize_points", "texture"]
+__all__ = ["STAGE", "TextureParams", "colorize_points", "texture_stage"]
 
-VERTEX_COLUMNS = {name: pa.float32() for name in ("x", "y", "z")}
-FACE_COLUMNS = {name: pa.int32() for name in ("v0", "v1", "v2")}
-TEXTURED_FACES_SCHEMA = pa.schema([
-    ("face", pa.int32()), ("page", pa.int16()),
-    ("u0", pa.float32()), ("v0", pa.float32()), ("u1", pa.float32()), ("v1", pa.float32()),
-    ("u2", pa.float32()), ("v2", pa.float32()),
-    ("camera_id", pa.string()), ("frame", pa.int64()),
-])
-TEXTURE_PAGES_SCHEMA = pa.schema([
-    ("page", pa.int16()), ("width", pa.int32()), ("height", pa.int32()), ("png", pa.binary()),
-])
 
 
 Channel = Annotated[int, Field(ge=0, le=255)]
@@ -87,17 +85,17 @@ class TextureParams(Params):
 def _mesh_arrays(inputs: Mapping[str, Any]) -> tuple[NDArray[np.float64], NDArray[np.int64],
                                                       NDArray[np.float64] | None]:
     vertices_table, faces_table = inputs["mesh_vertices"], inputs["mesh_faces"]
-    check_columns(vertices_table, VERTEX_COLUMNS, "mesh_vertices")
-    check_columns(faces_table, FACE_COLUMNS, "mesh_faces")
-    vertices = np.stack([vertices_table.column(c).to_numpy() for c in "xyz"], 1).astype(np.float64)
-    faces = np.stack([faces_table.column(c).to_numpy() for c in ("v0", "v1", "v2")], 1)
+    MESH_VERTICES.check(vertices_table, XYZ)  # normals are optional here
+    MESH_FACES.check(faces_table)
+    vertices = np.stack([vertices_table.column(c).to_numpy() for c in XYZ], 1).astype(np.float64)
+    faces = np.stack([faces_table.column(c).to_numpy() for c in FACE_CORNERS], 1)
     faces = faces.astype(np.int64)
     if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
         raise StageError(f"mesh_faces: vertex indices must lie in [0, {len(vertices) - 1}]; "
                          f"found {faces.min()}..{faces.max()}")
     normals = None
-    if all(c in vertices_table.column_names for c in ("nx", "ny", "nz")):
-        normals = np.stack([vertices_table.column(c).to_numpy() for c in ("nx", "ny", "nz")], 1)
+    if all(c in vertices_table.column_names for c in NORMAL):
+        normals = np.stack([vertices_table.column(c).to_numpy() for c in NORMAL], 1)
         normals = normals.astype(np.float64)
         if not np.isfinite(normals).all() or not np.abs(normals).sum():
             normals = None
@@ -119,7 +117,7 @@ def textured_faces_table(face_page: NDArray[np.int16], face_uv: NDArray[np.float
         columns[f"v{k}"] = pa.array(face_uv[:, k, 1].astype(np.float32))
     columns["camera_id"] = pa.array(camera.tolist(), pa.string(), mask=~textured)
     columns["frame"] = pa.array(seq.astype(np.int64))
-    return pa.table(columns, schema=TEXTURED_FACES_SCHEMA)
+    return pa.table(columns, schema=TEXTURED_FACES.arrow_schema)
 
 
 def pages_table(pages: list[NDArray[np.uint8]], level: int) -> pa.Table:
@@ -129,7 +127,7 @@ def pages_table(pages: list[NDArray[np.uint8]], level: int) -> pa.Table:
         "width": pa.array([p.shape[1] for p in pages], pa.int32()),
         "height": pa.array([p.shape[0] for p in pages], pa.int32()),
         "png": pa.array([encode_png(p, level) for p in pages], pa.binary()),
-    }, schema=TEXTURE_PAGES_SCHEMA)
+    }, schema=TEXTURE_PAGES.arrow_schema)
 
 
 def coverage_report(areas: NDArray[np.float64], face_frame: NDArray[np.int64]) -> dict[str, Any]:
@@ -161,7 +159,7 @@ def orient_towards_rig(vertices: NDArray[np.float64], faces: NDArray[np.int64],
     return True
 
 
-def texture(inputs: Mapping[str, Any], params: TextureParams, progress: ProgressFn
+def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: ProgressFn
             ) -> StageResult:
     """Texture the mesh from the camera frames (the stage function)."""
     started = time.perf_counter()
@@ -178,12 +176,16 @@ def texture(inputs: Mapping[str, Any], params: TextureParams, progress: Progress
     normals, areas = face_normals(vertices, faces, vertex_normals)
     flipped = orient_towards_rig(vertices, faces, normals, areas, rig)
     if params.method == "panorama":
-        from scanpipe.texturing.panorama import texture_panorama
-
-        result = texture_panorama(vertices, faces, normals, areas, inputs, rig, params, progress)
-        result.report["normals_flipped"] = flipped
-        result.report["warnings"] = warnings
-        return result
+        pano = texture_panorama(vertices, faces, normals, inputs, rig, params, progress)
+        return StageResult(
+            tables={"textured_faces": textured_faces_table(
+                        pano.face_page, pano.face_uv, pano.face_frame, pano.frames.camera_ids,
+                        pano.frames.sequences),
+                    "texture_pages": pages_table([pano.page], params.png_compression)},
+            report={**pano.report, **coverage_report(areas, pano.face_frame),
+                    "normals_flipped": flipped, "warnings": warnings},
+            files={"panorama.png": encode_png(pano.panorama, params.png_compression)},
+        )
     frames = choose_frames(inputs["frames"], inputs["motor"], rig, params.frame_spacing_deg,
                            params.frame_stride, progress)
     timing = {"frames_s": time.perf_counter() - started}
@@ -242,7 +244,7 @@ STAGE = Stage(
     params=TextureParams,
     inputs=("mesh_vertices", "mesh_faces", "frames", "motor", "rig"),
     outputs=("textured_faces", "texture_pages"),
-    func=texture,
+    func=texture_stage,
     description="camera frames onto the mesh: per-face UVs and PNG atlas pages",
     libraries=("numpy", "pyarrow", "open3d", "cv2"),
 )

@@ -17,23 +17,19 @@ import pyarrow as pa
 import pyarrow.compute as pc
 from numpy.typing import NDArray
 
-from scanpipe.artifacts import check_columns
 from scanpipe.camera import camera_pose_in_rig
 from scanpipe.errors import StageError
 from scanpipe.images import MAX_FRAME_PX, decode_image_bytes
 from scanpipe.motion import beta_deg_at
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import CameraConfig, Rig
+from scanpipe.schema import FRAMES
 
 U8 = NDArray[np.uint8]
 F64 = NDArray[np.float64]
 
-FRAME_COLUMNS = {
-    "camera_id": pa.string(),
-    "log_time_ns": pa.int64(),
-    "sequence": pa.int64(),
-    "data": pa.binary(),
-}
+#: The frame columns texturing reads (see :data:`scanpipe.schema.FRAMES`).
+FRAME_COLUMNS = ("camera_id", "log_time_ns", "sequence", "data")
 
 
 @dataclass
@@ -140,7 +136,7 @@ def known_camera_frames(frames: pa.Table, rig: Rig) -> tuple[pa.Table, list[str]
     anything may have written: a path-like, very long or unicode id is skipped, named, never
     used as a path.
     """
-    check_columns(frames, FRAME_COLUMNS, "frames")
+    FRAMES.check(frames, FRAME_COLUMNS)
     known = {c.id for c in rig.cameras}
     ids = frames.column("camera_id")
     counts = Counter(ids.to_pylist())
@@ -166,7 +162,7 @@ def choose_frames(
     ``stride`` first keeps every n-th frame of each camera (in time order); ``spacing_deg`` 0
     keeps every remaining frame. Frames of cameras the rig does not know are an error.
     """
-    check_columns(frames, FRAME_COLUMNS, "frames")
+    FRAMES.check(frames, FRAME_COLUMNS)
     if frames.num_rows == 0:
         raise StageError("frames: the recording has no camera frames; nothing to texture from")
     camera_ids = np.asarray(frames.column("camera_id").to_pylist(), dtype=object)

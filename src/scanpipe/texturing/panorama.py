@@ -24,7 +24,8 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -34,16 +35,11 @@ from numpy.typing import NDArray
 
 from scanpipe.camera import camera_pose_in_rig, pixel_rays, project_points
 from scanpipe.errors import StageError
-from scanpipe.images import encode_png
-from scanpipe.pipeline import StageResult
 from scanpipe.progress import ProgressFn
 from scanpipe.rig import MotorConfig, Rig
 from scanpipe.texturing.exposure import sample_mean_colour, shrink, solve_gains
 from scanpipe.texturing.frames import FrameSet, choose_frames
 from scanpipe.texturing.visibility import MeshOcclusion
-
-if TYPE_CHECKING:
-    from scanpipe.stages.texture import TextureParams
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -186,16 +182,43 @@ def strip_gains(panorama_frames: I64, theta: F64, h_range: tuple[float, float],
                        ca[usable], cb[usable], len(frames))
 
 
-def texture_panorama(vertices: F64, faces: I64, normals: F64, areas: F64,
-                     inputs: Mapping[str, Any], rig: Rig, params: TextureParams,
-                     progress: ProgressFn) -> StageResult:
-    """The panorama method of the texture stage (see the module docstring)."""
-    from scanpipe.stages.texture import (
-        coverage_report,
-        pages_table,
-        textured_faces_table,
-    )
+class PanoramaOptions(Protocol):
+    """The texture parameters the panorama reads (``TextureParams`` has them all)."""
 
+    @property
+    def panorama_distance_m(self) -> float: ...
+    @property
+    def panorama_strip_deg(self) -> float: ...
+    @property
+    def panorama_px_per_deg(self) -> float: ...
+    @property
+    def frame_stride(self) -> int: ...
+    @property
+    def exposure(self) -> bool: ...
+    @property
+    def min_cos(self) -> float: ...
+    @property
+    def two_sided(self) -> bool: ...
+    @property
+    def neutral_rgb(self) -> tuple[int, int, int]: ...
+
+
+@dataclass(frozen=True)
+class Panorama:
+    """The panorama method's result as arrays: one atlas page, the faces mapped onto it."""
+
+    face_page: NDArray[np.int16]  # 0, or −1 for untextured faces
+    face_uv: NDArray[np.float32]  # (F, 3, 2) in [0, 1] of the page, v = 0 at the top
+    face_frame: I64  # index into ``frames``, −1 untextured
+    page: NDArray[np.uint8]  # the panorama plus a neutral band, BGR
+    panorama: NDArray[np.uint8]  # the panorama alone, BGR (panorama.png)
+    frames: FrameSet
+    report: dict[str, Any]
+
+
+def texture_panorama(vertices: F64, faces: I64, normals: F64, inputs: Mapping[str, Any],
+                     rig: Rig, params: PanoramaOptions, progress: ProgressFn) -> Panorama:
+    """The panorama method of the texture stage (see the module docstring)."""
     started = time.perf_counter()
     cam0 = rig.cameras[0]
     recorded = inputs["frames"]
@@ -269,12 +292,9 @@ def texture_panorama(vertices: F64, faces: I64, normals: F64, areas: F64,
     face_uv[untextured, :, 0] = 0.5 / width
     face_uv[untextured, :, 1] = (height + NEUTRAL_ROWS / 2) / (height + NEUTRAL_ROWS)
     face_page = np.where(untextured, -1, 0).astype(np.int16)
-    faces_table = textured_faces_table(face_page, face_uv, face_frame, frames.camera_ids,
-                                       frames.sequences)
     used = np.unique(face_frame[face_frame >= 0])
     report = {
         "method": "panorama",
-        **coverage_report(areas, face_frame),
         "frames_in_recording": frames.considered,
         "frames_considered": len(frames),
         "frames_used": len(used),
@@ -293,9 +313,4 @@ def texture_panorama(vertices: F64, faces: I64, normals: F64, areas: F64,
         "neutral_rgb": list(params.neutral_rgb),
         "seconds": round(time.perf_counter() - started, 3),
     }
-    return StageResult(
-        tables={"textured_faces": faces_table,
-                "texture_pages": pages_table([page], params.png_compression)},
-        report=report,
-        files={"panorama.png": encode_png(panorama, params.png_compression)},
-    )
+    return Panorama(face_page, face_uv, face_frame, page, panorama, frames, report)

@@ -1,0 +1,115 @@
+"""``scanpipe export``: a folder of artifacts to files on disk, all or nothing.
+
+The shell around the pure :func:`scanpipe.stages.export.export_files`: find the artifacts
+(a workdir or a flat folder), check the output paths (:mod:`scanpipe.outpaths`), and write
+every file to a temporary name first, renaming only when all were written, so an error never
+leaves a half export.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+
+import pyarrow as pa
+
+from scanpipe.artifacts import FILE_MODE, read_artifact
+from scanpipe.errors import ArtifactError, ExportError
+from scanpipe.outpaths import (
+    check_output_file,
+    check_output_files,
+    check_output_folder,
+    folder_inputs,
+)
+from scanpipe.stages.export import (
+    INPUT_ARTIFACTS,
+    MESH_ARTIFACTS,
+    TEXTURE_ARTIFACTS,
+    FormatError,
+    check_format,
+    export_files,
+)
+from scanpipe.workdir import find_artifacts
+
+
+def write_files(files: Mapping[str, bytes], out_dir: Path) -> list[Path]:
+    """Write every file into ``out_dir``, all or nothing; returns the paths written."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ExportError(f"{out_dir}: cannot create the folder ({err.strerror or err})") from None
+    staged: list[tuple[Path, Path]] = []
+    try:
+        for name, data in files.items():
+            target = out_dir / name
+            fd, tmp_name = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out_dir)
+            staged.append((Path(tmp_name), target))
+            os.fchmod(fd, FILE_MODE)
+            with os.fdopen(fd, "wb") as handle:
+                handle.write(data)
+        for _, target in staged:
+            if target.is_dir():
+                raise ExportError(f"{target}: is a folder; choose another --out")
+        for tmp, target in staged:
+            os.replace(tmp, target)
+    except OSError as err:
+        raise ExportError(f"{out_dir}: cannot write the export "
+                          f"({err.strerror or err})") from None
+    finally:
+        for tmp, _ in staged:
+            tmp.unlink(missing_ok=True)
+    return [target for _, target in staged]
+
+
+def stem_and_folder(out: Path, fmt: str) -> tuple[str, Path]:
+    """``--out`` as (stem, folder): ``room.obj`` → ("room", .); a path without a suffix is a
+    folder (created if needed) → ("scan", that folder). Nothing is appended to a path, and a
+    device or a file where a folder is meant is refused (see :mod:`scanpipe.outpaths`)."""
+    suffix = out.suffix.lower().lstrip(".")
+    if out.is_dir():
+        return "scan", out
+    if suffix and suffix != fmt:
+        raise FormatError(f"--out {out}: the extension .{suffix} does not match --format {fmt}")
+    if out.exists():
+        check_output_file(out, "--out", (f".{fmt}",), force=True)  # a device, a FIFO …
+    if not suffix:
+        if out.exists():
+            raise FormatError(f"--out {out}: is a file without a suffix; give a file name "
+                              f"ending in .{fmt}, or a folder")
+        return "scan", out
+    return out.stem, out.parent
+
+
+def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
+    """The artifacts an export of ``fmt`` can use from ``folder`` (flat or per stage)."""
+    found = find_artifacts(folder, INPUT_ARTIFACTS)
+    if not found:
+        raise ArtifactError(f"{folder}: no artifacts to export (looked for "
+                            f"{', '.join(INPUT_ARTIFACTS)} as <name>.parquet or "
+                            "<stage>/<name>.parquet)")
+    wanted: tuple[str, ...] = INPUT_ARTIFACTS
+    if fmt in ("las", "laz", "e57"):
+        wanted = ("points",)
+    elif fmt in ("obj", "glb"):
+        wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)
+    return {name: read_artifact(path)[0] for name, path in found.items() if name in wanted}
+
+
+def export_folder(folder: Path, fmt: str, out: Path, force: bool = False) -> list[Path]:
+    """``scanpipe export``: read the artifacts in ``folder`` and write ``fmt`` to ``out``.
+
+    No existing file is replaced without ``force``, and none may be one of the inputs (an
+    artifact, or the recording a workdir was made from), even with it.
+    """
+    fmt = check_format(fmt)
+    stem, out_dir = stem_and_folder(out, fmt)
+    check_output_folder(out_dir)
+    inputs = folder_inputs(folder)
+    # The main file first, before the (slow) reading; then every file the export makes.
+    check_output_files([out_dir / f"{stem}.{fmt}"], "--out", force, inputs)
+    tables = load_tables(folder, fmt)
+    files = export_files(tables, fmt, stem)
+    check_output_files([out_dir / name for name in files], "--out", force, inputs)
+    return write_files(files, out_dir)

@@ -1,0 +1,100 @@
+"""What a stage is: a pure function over Arrow tables and one frozen parameter model.
+
+This module sits below the stages (they import it) and below the runner (``pipeline.py``),
+so nothing here imports a stage. A stage declares its inputs and outputs by artifact name
+(:mod:`scanpipe.schema`); raw files that are not artifacts (a recording, a point file from
+another tool) reach a stage as paths and are named in :data:`RAW_INPUTS`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import pyarrow as pa
+
+from scanpipe.errors import ArtifactError
+from scanpipe.params import Params
+from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.schema import ARTIFACTS, ArtifactSchema, artifact_schema
+
+#: Inputs that are raw files, not Parquet artifacts: passed as paths, keyed by their bytes.
+RAW_INPUTS = frozenset({"recording", "point_file"})
+
+
+@dataclass
+class StageResult:
+    """What a stage returns: output tables by artifact name, extra files, and a report."""
+
+    tables: dict[str, pa.Table]
+    report: dict[str, Any] = field(default_factory=dict)
+    files: dict[str, bytes] = field(default_factory=dict)
+
+
+StageFn = Callable[[Mapping[str, Any], Any, ProgressFn], StageResult]
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A stage declared once: name, version, parameters, inputs, outputs, function."""
+
+    name: str
+    version: int
+    params: type[Params]
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    func: StageFn
+    description: str
+    #: Import names of libraries whose version can change the result.
+    libraries: tuple[str, ...] = ("numpy", "pyarrow")
+    #: Schemas of artifacts that only this stage's world knows (a plugin, a test's toy
+    #: stages); the product's artifacts are in :data:`scanpipe.schema.ARTIFACTS`.
+    schemas: tuple[ArtifactSchema, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.outputs:
+            raise ValueError(f"stage {self.name!r} must declare at least one output artifact")
+        known = {*ARTIFACTS, *RAW_INPUTS, *(s.name for s in self.schemas)}
+        unknown = [n for n in (*self.inputs, *self.outputs) if n not in known]
+        if unknown:
+            raise ValueError(f"stage {self.name!r}: {unknown} are neither artifacts "
+                             f"({', '.join(ARTIFACTS)}) nor raw inputs")
+
+    def schema(self, name: str) -> ArtifactSchema:
+        """The schema of one of this stage's artifacts."""
+        for own in self.schemas:
+            if own.name == name:
+                return own
+        return artifact_schema(name)
+
+    def check_inputs(self, inputs: Mapping[str, Any]) -> None:
+        """Every declared input is there, and every table matches its artifact's schema."""
+        missing = [n for n in self.inputs if n not in inputs]
+        if missing:
+            raise ArtifactError(f"stage {self.name!r} needs inputs: {', '.join(missing)}")
+        for name in self.inputs:
+            if name not in RAW_INPUTS:
+                self.schema(name).check(inputs[name])
+
+    def check_result(self, result: StageResult) -> None:
+        """The stage produced exactly its declared outputs, each matching its schema."""
+        if set(result.tables) != set(self.outputs):
+            raise ArtifactError(f"stage {self.name!r} produced {sorted(result.tables)}, "
+                                f"declared {list(self.outputs)}")
+        for name, table in result.tables.items():
+            self.schema(name).check(table, where=f"{self.name} output {name}")
+
+    def call(self, inputs: Mapping[str, Any], params: Params,
+             progress: ProgressFn = no_progress) -> StageResult:
+        """Run the function with the inputs and the result checked against the schemas."""
+        self.check_inputs(inputs)
+        result = self.func(inputs, params, progress)
+        self.check_result(result)
+        return result
+
+    def run(self, inputs: Mapping[str, Any], params: Params | None = None,
+            progress: ProgressFn = no_progress, **overrides: Any) -> StageResult:
+        """Run in memory (notebooks): ``params`` or keyword overrides of the defaults."""
+        chosen = params if params is not None else self.params(**overrides)
+        return self.call(inputs, chosen, progress)
