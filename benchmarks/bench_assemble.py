@@ -41,7 +41,7 @@ def box_ranges(alpha_deg: np.ndarray, beta_deg: np.ndarray,
 
 def lab_tables(profiles: int, samples: int, motor_steps: int = 3) -> dict[str, pa.Table]:
     """Step-and-scan tables: one profile per position, each inside its stationary interval."""
-    rig = Rig(scanner=ScannerConfig(angular_step_deg=360.0 / samples),
+    rig = Rig(scanner=ScannerConfig(beam_step_deg=360.0 / samples),
               motor=MotorConfig(pulse_limit=10**6, unlimited_travel=True))
     period_ns = 400_000_000
     ok_ns = T0_NS + np.arange(profiles, dtype=np.int64) * period_ns
@@ -54,8 +54,8 @@ def lab_tables(profiles: int, samples: int, motor_steps: int = 3) -> dict[str, p
         "moving": np.concatenate([np.zeros(profiles, bool), np.ones(profiles - 1, bool)]),
         "device_time_us": np.zeros(2 * profiles - 1, np.int64),
     })
-    alpha = np.arange(samples) * rig.scanner.angular_step_deg
-    ranges = box_ranges(alpha, steps * rig.motor.step_deg)
+    alpha = np.arange(samples) * rig.scanner.beam_step_deg
+    ranges = box_ranges(alpha, steps * rig.motor.pulse_step_deg)
     offsets = pa.array(np.arange(profiles + 1, dtype=np.int32) * samples)
     recv = ok_ns + 60_000_000 + 200_000_000
     none = pa.nulls(profiles, pa.int64())

@@ -1,6 +1,6 @@
 """Benchmark: ``simulate --direct`` at lab scale and at test scale, and its parts.
 
-Targets (issue 4): the lab-scale scan (0.25° scanner step, 0.108° motor step: 1667 positions ×
+Targets (issue 4): the lab-scale scan (0.25° beam step, 0.108° motor step: 1667 positions ×
 1440 samples, cameras off) in ≤ 30 s; a 2° × 2° test scan in ≤ 2 s. Measured in-process after
 the libraries are imported (a fresh interpreter adds ~1–2 s of imports: Open3D, trimesh, mcap).
 ``python benchmarks/bench_simulate.py [--quick]`` prints the figures and saves JSON to
@@ -41,7 +41,7 @@ def run(quick: bool = False) -> dict[str, Any]:
 
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        test = SimOptions(motor_step_deg=2.0, scanner_step_deg=2.0, cameras=False)
+        test = SimOptions(motor_step_deg=2.0, beam_step_deg=2.0, cameras=False)
         lab = SimOptions(cameras=False) if not quick else SimOptions(
             cameras=False, motor_step_deg=0.72)
         summaries: dict[str, Any] = {}

@@ -62,7 +62,7 @@ def grid_mesh(scene: Scene, alpha_step_deg: float, beta_step_deg: float
 def video(scene: Scene, rig: Rig, seconds: float, fps: float, render_scale: float
           ) -> tuple[pa.Table, pa.Table]:
     """``frames`` and ``motor`` tables: the platform turns 180° in ``seconds``."""
-    steps = round(180.0 / rig.motor.step_deg)
+    steps = round(180.0 / rig.motor.pulse_step_deg)
     motor_t = T0_NS + np.linspace(0, seconds * 1e9, 501).astype(np.int64)
     motor = pa.table({
         "log_time_ns": motor_t, "step_count": np.linspace(0, steps, 501).round().astype(np.int64),

@@ -15,6 +15,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from scanpipe.planning import DEFAULT_MOTOR_STEP_DEG
 from scanpipe.sim.direct import checked_rigs, simulate_direct
 from scanpipe.sim.options import SimOptions
 from scanpipe.sim.session import plan_session
@@ -27,7 +28,7 @@ class BenchScan:
     """One benchmark scan: the grid, the video, and the sizes of the work done on it."""
 
     name: str
-    scanner_step_deg: float
+    beam_step_deg: float
     motor_step_deg: float
     #: Video per camera: ``video_s × video_fps`` frames spread over the whole session.
     video_s: float
@@ -42,8 +43,8 @@ class BenchScan:
     eval_samples: int = 100_000
 
 
-#: The paper's lab scan: 0.25° beam step × 0.108° platform step = 1667 positions × 1440 samples.
-LAB = BenchScan("lab", 0.25, 0.108, video_s=10.0, video_fps=30.0, camera_scale=0.5)
+#: The paper's lab scan: 0.25° beam step × 0.108° motor step = 1667 positions × 1440 samples.
+LAB = BenchScan("lab", 0.25, DEFAULT_MOTOR_STEP_DEG, video_s=10.0, video_fps=30.0, camera_scale=0.5)
 #: A small scan for CI smoke runs (under a minute for everything).
 QUICK = BenchScan("quick", 1.0, 1.08, video_s=2.0, video_fps=10.0, camera_scale=0.25,
                   poisson_depths=(6, 7), baseline_voxel_m=0.02, eval_samples=20_000)
@@ -52,7 +53,7 @@ QUICK = BenchScan("quick", 1.0, 1.08, video_s=2.0, video_fps=10.0, camera_scale=
 def sim_options(scan: BenchScan) -> SimOptions:
     """The simulator's options for ``scan``, the camera rate chosen so that each camera records
     ``video_s × video_fps`` frames over the session (whose length depends on the grid)."""
-    options = SimOptions(scanner_step_deg=scan.scanner_step_deg,
+    options = SimOptions(beam_step_deg=scan.beam_step_deg,
                          motor_step_deg=scan.motor_step_deg, camera_scale=scan.camera_scale)
     _, true_rig = checked_rigs(options)
     duration_s = plan_session(options, true_rig).end_s

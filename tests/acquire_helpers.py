@@ -35,7 +35,7 @@ def rig_with_cameras(*cameras: CameraConfig) -> Rig:
 
 def sim_options(dialect: str = "ldoem", mode: str = "step", cameras: bool = False,
                 pulse_limit: int = 1000, seed: int = 3) -> Any:
-    """A small virtual-rig scan: 2° scanner step, 5° motor step (139 pulses), box room."""
+    """A small virtual-rig scan: 2° beam step, 5° motor step (139 pulses), box room."""
     from scanpipe.sim.options import SimOptions
 
     rig = default_rig()
@@ -43,7 +43,7 @@ def sim_options(dialect: str = "ldoem", mode: str = "step", cameras: bool = Fals
         "scanner": rig.scanner.model_copy(update={"dialect": dialect}),
         "motor": rig.motor.model_copy(update={"pulse_limit": pulse_limit}),
     })
-    return SimOptions(rig=rig, scene="box", mode=mode, motor_step_deg=5.0, scanner_step_deg=2.0,
+    return SimOptions(rig=rig, scene="box", mode=mode, motor_step_deg=5.0, beam_step_deg=2.0,
                       cameras=cameras, camera_scale=0.04, camera_fps=2.0, seed=seed)
 
 
@@ -52,7 +52,7 @@ def record_against(virtual_rig: Any, out: Path, rig: Rig | None = None, **option
     """Run the recorder against a started virtual rig (its speed-up, its cameras)."""
     from scanpipe.acquire.recorder import Recorder, RecordOptions
 
-    settings = {"mode": virtual_rig.options.mode, "step_angle_deg": 5.0,
+    settings = {"mode": virtual_rig.options.mode, "motor_step_deg": 5.0,
                 "speedup": virtual_rig.clock.speedup, "install_signal_handlers": False,
                 "cameras": virtual_rig.options.cameras, **options}
     recorder = Recorder(rig or virtual_rig.client_rig(), out, RecordOptions(**settings),

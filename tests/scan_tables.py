@@ -18,16 +18,16 @@ from scanpipe.rig import MotorConfig, Pose, Rig, ScannerConfig, rig_table
 T0_NS = 1_700_000_000_000_000_000
 
 
-def make_rig(step_deg: float = 1.0, scan_hz: float = 5.0, settle_s: float = 0.05,
-             angular_step_deg: float = 2.0, translation_m: tuple[float, float, float] = (0, 0, 0),
+def make_rig(pulse_step_deg: float = 1.0, scan_hz: float = 5.0, settle_s: float = 0.05,
+             beam_step_deg: float = 2.0, translation_m: tuple[float, float, float] = (0, 0, 0),
              rotation_deg: tuple[float, float, float] = (0, 0, 0), alpha_offset_deg: float = 0.0,
              beta_offset_deg: float = 0.0, pulse_limit: int = 100_000) -> Rig:
-    """A rig whose platform step is ``step_deg`` per pulse (gear ratio 0.72 / step)."""
+    """A rig whose pulse step is ``pulse_step_deg`` (gear ratio 0.72 / step)."""
     return Rig(
-        scanner=ScannerConfig(dialect="paper", angular_step_deg=angular_step_deg,
+        scanner=ScannerConfig(dialect="paper", beam_step_deg=beam_step_deg,
                               scan_hz=scan_hz, alpha_offset_deg=alpha_offset_deg,
                               mount=Pose(translation_m=translation_m, rotation_deg=rotation_deg)),
-        motor=MotorConfig(gear_ratio=0.72 / step_deg, settle_s=settle_s,
+        motor=MotorConfig(gear_ratio=0.72 / pulse_step_deg, settle_s=settle_s,
                           beta_offset_deg=beta_offset_deg, pulse_limit=pulse_limit,
                           unlimited_travel=True),
     )
@@ -113,9 +113,9 @@ def step_scan(rig: Rig, positions: int, pulses_per_position: int,
     """
     scanner, motor = rig.scanner, rig.motor
     samples = scanner.samples_per_profile
-    alpha = scanner.start_angle_deg + np.arange(samples) * scanner.angular_step_deg
+    alpha = scanner.start_angle_deg + np.arange(samples) * scanner.beam_step_deg
     period_ns = round(1e9 / scanner.scan_hz)
-    window_ns = round((samples - 1) * scanner.angular_step_deg / 360 / scanner.scan_hz * 1e9)
+    window_ns = round((samples - 1) * scanner.beam_step_deg / 360 / scanner.scan_hz * 1e9)
     dwell_ns = round(motor.settle_s * 1e9) + (profiles_per_dwell + 1) * period_ns
     move_ns = round(move_s * 1e9)
     times, steps, moving, targets = [], [], [], []
@@ -143,7 +143,7 @@ def step_scan(rig: Rig, positions: int, pulses_per_position: int,
         e = s + window_ns
         hit = [k for a, b, k in intervals if a <= s and e < b]
         k = hit[0] if hit else -1
-        beta = k * pulses_per_position * motor.step_deg + motor.beta_offset_deg
+        beta = k * pulses_per_position * motor.pulse_step_deg + motor.beta_offset_deg
         rows.append(range_fn(alpha, beta) if k >= 0 else np.full(samples, 99.0))
         clean.append(k >= 0)
         position.append(k)
@@ -152,7 +152,7 @@ def step_scan(rig: Rig, positions: int, pulses_per_position: int,
     device = (starts - T0_NS + 5_000_000) if with_device_time else None
     device_end = (device + window_ns) if device is not None else None
     return StepScan(
-        profiles=profiles_table(ranges, scanner.start_angle_deg, scanner.angular_step_deg, recv,
+        profiles=profiles_table(ranges, scanner.start_angle_deg, scanner.beam_step_deg, recv,
                                 device_time_ns=device, device_end_time_ns=device_end),
         motor=motor_table(np.array(times), np.array(steps), np.array(moving), np.array(targets)),
         rig=rig_table(rig),
@@ -170,7 +170,7 @@ def positions_scan(rig: Rig, step_counts: list[int], ranges_m: NDArray[np.floati
     scanner = rig.scanner
     dwell_ns = round(dwell_s * 1e9)
     ok = T0_NS + np.arange(len(step_counts), dtype=np.int64) * dwell_ns
-    window_ns = round((ranges_m.shape[1] - 1) * scanner.angular_step_deg / 360
+    window_ns = round((ranges_m.shape[1] - 1) * scanner.beam_step_deg / 360
                       / scanner.scan_hz * 1e9)
     settle_ns = round(rig.motor.settle_s * 1e9)
     recv = ok + settle_ns + 100_000_000 + window_ns
@@ -180,7 +180,7 @@ def positions_scan(rig: Rig, step_counts: list[int], ranges_m: NDArray[np.floati
                         np.concatenate([np.zeros(len(ok), bool), np.ones(len(moves), bool)]),
                         np.concatenate([steps, steps[1:]]))
     return {
-        "profiles": profiles_table(ranges_m, scanner.start_angle_deg, scanner.angular_step_deg,
+        "profiles": profiles_table(ranges_m, scanner.start_angle_deg, scanner.beam_step_deg,
                                    recv),
         "motor": motor,
         "rig": rig_table(rig),

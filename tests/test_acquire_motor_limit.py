@@ -44,7 +44,7 @@ def _emulator(pulse_limit: int = 5000, unlimited_travel: bool = False,
               controller_limit: int | Literal["rig"] | None = "rig"
               ) -> Iterator[MotorEmulator]:
     motor = MotorConfig(pulse_limit=pulse_limit, unlimited_travel=unlimited_travel)
-    platform = PlatformState(motor.step_deg)
+    platform = PlatformState(motor.pulse_step_deg)
     emulator = MotorEmulator(motor, platform, SimClock(SPEEDUP))
     emulator.controller = MotorController(motor, platform, pulse_limit=controller_limit)
     emulator.start()

@@ -1,6 +1,6 @@
 """Accuracy on the virtual rig: simulate → decode → assemble, against the true room surface.
 
-Small scans (5° motor step × 2° scanner step) keep this fast; the tolerances come from the noise
+Small scans (5° motor step × 2° beam step) keep this fast; the tolerances come from the noise
 model: with range noise σ the distance to the surface is at most |noise|, so its RMS is ≤ σ plus
 the 1/256 m quantisation (≈ 1.1 mm RMS), hence the issue's 1.1 σ.
 """
@@ -25,7 +25,7 @@ TRUE_MOUNT = Pose(translation_m=(0.06, 0.04, -0.05), rotation_deg=(1.0, 0.0, 0.8
 
 def simulate(folder: Path, **options: object) -> tuple[dict[str, pa.Table], Truth]:
     """Simulate a small scan, decode it, and return the decoded tables and the truth."""
-    sim = SimOptions(motor_step_deg=5.0, scanner_step_deg=2.0, cameras=False,
+    sim = SimOptions(motor_step_deg=5.0, beam_step_deg=2.0, cameras=False,
                      noise_sigma_m=SIGMA_M, **options)  # type: ignore[arg-type]
     simulate_direct(folder / "scan.mcap", folder / "truth", sim)
     decoded = get_stage("decode").run({"recording": folder / "scan.mcap"})

@@ -15,7 +15,7 @@ from scanpipe.rig import rig_to_toml
 
 
 def write_inputs(folder: Path) -> None:
-    rig = make_rig(step_deg=2.0, angular_step_deg=10.0)
+    rig = make_rig(pulse_step_deg=2.0, beam_step_deg=10.0)
     ranges = np.full((5, 36), 3.0)
     ranges[0, 0] = np.nan
     for name, table in positions_scan(rig, [0, 1, 2, 3, 4], ranges).items():
@@ -47,7 +47,7 @@ def test_assemble_with_a_rig_file_uses_its_calibration(tmp_path: Path,
                                                        cli: Callable[..., Any]) -> None:
     write_inputs(tmp_path / "dec")
     rig_path = tmp_path / "calibrated.toml"
-    rig_path.write_text(rig_to_toml(make_rig(step_deg=2.0, angular_step_deg=10.0,
+    rig_path.write_text(rig_to_toml(make_rig(pulse_step_deg=2.0, beam_step_deg=10.0,
                                              translation_m=(0.0, 0.25, 0.0))))
     plain = cli("assemble", tmp_path / "dec", "--out", tmp_path / "a", "-q")
     shifted = cli("assemble", tmp_path / "dec", "--out", tmp_path / "b", "--rig", rig_path,

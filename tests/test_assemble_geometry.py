@@ -29,7 +29,7 @@ CONTRACT = {
 
 
 def test_paper_vectors_through_the_stage() -> None:
-    rig = make_rig(step_deg=1.0, angular_step_deg=10.0)  # 1° per pulse: β in whole steps
+    rig = make_rig(pulse_step_deg=1.0, beam_step_deg=10.0)  # 1° per pulse: β in whole steps
     samples = rig.scanner.samples_per_profile
     ranges = np.full((len(PAPER_VECTORS), samples), 3.0)
     for k, (r, alpha, _, _) in enumerate(PAPER_VECTORS):
@@ -49,7 +49,7 @@ def test_paper_vectors_through_the_stage() -> None:
 
 
 def test_output_follows_the_points_contract() -> None:
-    rig = make_rig(step_deg=2.0, angular_step_deg=30.0)
+    rig = make_rig(pulse_step_deg=2.0, beam_step_deg=30.0)
     inputs = positions_scan(rig, [0, 1, 2], np.full((3, 12), 2.0))
     points = STAGE.run(inputs).tables["points"]
     for name, dtype in CONTRACT.items():
@@ -73,7 +73,7 @@ def slow_reference(ranges: np.ndarray, alphas: np.ndarray, betas: np.ndarray,
 
 def test_fast_path_matches_the_slow_reference_with_a_mount_pose_and_offsets() -> None:
     translation, rotation = (0.04, -0.03, 0.07), (1.2, -0.8, 2.5)
-    rig = make_rig(step_deg=0.5, angular_step_deg=7.5, translation_m=translation,
+    rig = make_rig(pulse_step_deg=0.5, beam_step_deg=7.5, translation_m=translation,
                    rotation_deg=rotation, alpha_offset_deg=0.7, beta_offset_deg=-1.3)
     rng = np.random.default_rng(3)
     steps = [0, 7, 40, 111, 250, 333]
@@ -95,8 +95,8 @@ def test_fast_path_matches_the_slow_reference_with_a_mount_pose_and_offsets() ->
 
 def test_calibration_changes_the_points() -> None:
     ranges = np.full((2, 12), 3.0)
-    plain = STAGE.run(positions_scan(make_rig(angular_step_deg=30.0), [0, 10], ranges))
-    tilted = STAGE.run(positions_scan(make_rig(angular_step_deg=30.0, rotation_deg=(0, 0, 1.0)),
+    plain = STAGE.run(positions_scan(make_rig(beam_step_deg=30.0), [0, 10], ranges))
+    tilted = STAGE.run(positions_scan(make_rig(beam_step_deg=30.0, rotation_deg=(0, 0, 1.0)),
                                       [0, 10], ranges))
     a = plain.tables["points"].column("x").to_numpy()
     b = tilted.tables["points"].column("x").to_numpy()
@@ -104,7 +104,7 @@ def test_calibration_changes_the_points() -> None:
 
 
 def test_no_returns_stay_in_the_grid_as_nan() -> None:
-    rig = make_rig(step_deg=2.0, angular_step_deg=30.0)
+    rig = make_rig(pulse_step_deg=2.0, beam_step_deg=30.0)
     ranges = np.full((2, 12), 2.0)
     ranges[1, 4] = np.nan
     result = STAGE.run(positions_scan(rig, [0, 1], ranges))
@@ -115,7 +115,7 @@ def test_no_returns_stay_in_the_grid_as_nan() -> None:
 
 
 def test_continuous_mode_interpolates_beta_per_sample() -> None:
-    rig = make_rig(step_deg=0.1, angular_step_deg=10.0, scan_hz=5.0)
+    rig = make_rig(pulse_step_deg=0.1, beam_step_deg=10.0, scan_hz=5.0)
     samples = rig.scanner.samples_per_profile
     rate_steps_per_s = 50.0  # 5°/s: β changes by ~1° over one head turn
     t_motor = T0_NS + np.arange(0, 41) * 100_000_000

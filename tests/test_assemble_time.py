@@ -19,7 +19,7 @@ def flat_range(alpha: np.ndarray, beta: float) -> np.ndarray:
 
 
 def run_step_scan(**options: object) -> tuple[dict[str, object], pa.Table, object]:
-    rig = make_rig(step_deg=1.0, angular_step_deg=30.0)
+    rig = make_rig(pulse_step_deg=1.0, beam_step_deg=30.0)
     with_device = bool(options.pop("with_device_time", False))
     scan = step_scan(rig, positions=6, pulses_per_position=5, range_fn=flat_range,
                      with_device_time=with_device)
@@ -74,7 +74,7 @@ def test_device_clock_offset_is_estimated_or_taken_as_given() -> None:
 
 
 def test_average_mode_averages_the_complete_profiles_at_a_position() -> None:
-    rig = make_rig(step_deg=1.0, angular_step_deg=30.0)
+    rig = make_rig(pulse_step_deg=1.0, beam_step_deg=30.0)
     noise = iter(np.random.default_rng(0).normal(0, 0.05, 1000))
     scan = step_scan(rig, 4, 3, lambda a, b: 2.0 + next(noise) + 0 * a, profiles_per_dwell=4)
     inputs = {"profiles": scan.profiles, "motor": scan.motor, "rig": scan.rig}
@@ -92,7 +92,7 @@ def test_average_mode_averages_the_complete_profiles_at_a_position() -> None:
 
 
 def test_bad_checksums_are_dropped_unless_kept() -> None:
-    rig = make_rig(step_deg=1.0, angular_step_deg=30.0)
+    rig = make_rig(pulse_step_deg=1.0, beam_step_deg=30.0)
     inputs = positions_scan(rig, [0, 1, 2], np.full((3, 12), 2.0))
     bad = inputs["profiles"].set_column(
         inputs["profiles"].schema.get_field_index("checksum_ok"), "checksum_ok",
@@ -111,7 +111,7 @@ def test_auto_mode_picks_step_for_step_and_scan() -> None:
 
 
 def test_sectors_are_placed_side_by_side_by_angle() -> None:
-    rig = make_rig(step_deg=1.0, angular_step_deg=10.0)
+    rig = make_rig(pulse_step_deg=1.0, beam_step_deg=10.0)
     inputs = positions_scan(rig, [0], np.full((1, 36), 2.0))
     recv = inputs["profiles"].column("recv_time_ns").to_numpy()[0]
     # One head turn in two sectors (0–90° and 180–260°), the second with an echo.
@@ -139,15 +139,15 @@ def test_no_motor_states_is_a_clear_error() -> None:
 
 
 def test_no_usable_profile_is_a_clear_error() -> None:
-    rig = make_rig(step_deg=1.0, angular_step_deg=30.0)
+    rig = make_rig(pulse_step_deg=1.0, beam_step_deg=30.0)
     inputs = positions_scan(rig, [0], np.full((1, 12), 2.0))
     motor = motor_table(np.array([T0_NS + 10**12]), np.array([0]), np.array([False]))
     with pytest.raises(StageError, match=r"none of the 1 profiles.*before_motor_log"):
         STAGE.run({**inputs, "motor": motor}, AssembleParams(mode="step"))
 
 
-def test_mixed_angular_steps_are_refused() -> None:
-    rig = make_rig(step_deg=1.0, angular_step_deg=30.0)
+def test_mixed_beam_steps_are_refused() -> None:
+    rig = make_rig(pulse_step_deg=1.0, beam_step_deg=30.0)
     inputs = positions_scan(rig, [0, 1], np.full((2, 12), 2.0))
     profiles = inputs["profiles"].set_column(
         inputs["profiles"].schema.get_field_index("step_deg"), "step_deg", pa.array([30.0, 15.0]))
@@ -156,7 +156,7 @@ def test_mixed_angular_steps_are_refused() -> None:
 
 
 def test_missing_columns_are_named() -> None:
-    rig = make_rig(step_deg=1.0, angular_step_deg=30.0)
+    rig = make_rig(pulse_step_deg=1.0, beam_step_deg=30.0)
     inputs = positions_scan(rig, [0], np.full((1, 12), 2.0))
     with pytest.raises(ArtifactError, match="missing column 'ranges_m'"):
         STAGE.run({**inputs, "profiles": inputs["profiles"].drop_columns(["ranges_m"])})
@@ -164,8 +164,8 @@ def test_missing_columns_are_named() -> None:
 
 def test_the_rig_artifact_supplies_the_calibration() -> None:
     ranges = np.full((1, 12), 2.0)
-    inputs = positions_scan(make_rig(step_deg=1.0, angular_step_deg=30.0), [0], ranges)
-    shifted = rig_table(make_rig(step_deg=1.0, angular_step_deg=30.0,
+    inputs = positions_scan(make_rig(pulse_step_deg=1.0, beam_step_deg=30.0), [0], ranges)
+    shifted = rig_table(make_rig(pulse_step_deg=1.0, beam_step_deg=30.0,
                                  translation_m=(0.0, 0.5, 0.0)))
     y0 = STAGE.run(inputs).tables["points"].column("y").to_numpy()
     y1 = STAGE.run({**inputs, "rig": shifted}).tables["points"].column("y").to_numpy()

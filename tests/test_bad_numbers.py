@@ -204,15 +204,15 @@ BAD_RIGS = [
     ("[motor]\nbaudrate = true\n",
      "motor.baudrate = true: expected a number, not true/false (allowed: a whole number ≥ 50 and "
      "≤ 12000000)"),
-    ("[scanner]\nangular_step_deg = false\n",
-     "scanner.angular_step_deg = false: expected a number, not true/false"),
+    ("[scanner]\nbeam_step_deg = false\n",
+     "scanner.beam_step_deg = false: expected a number, not true/false"),
     ("[scanner.mount]\nrotation_deg = [0, true, 0]\n",
      "scanner.mount.rotation_deg = [0, true, 0]: item 1: expected a number"),
     ("[motor]\ngear_ratio = 1e9\n",
      "motor.gear_ratio = 1000000000.0: out of range (allowed: a finite number ≥ 0.001 and "
      "≤ 100000)"),
     ("[motor]\nfull_step_deg = 90\ngear_ratio = 0.5\nunlimited_travel = true\n",
-     "platform step full_step_deg / gear_ratio = 90 / 0.5 = 180°; allowed: 1e-06° to 90°"),
+     "pulse step full_step_deg / gear_ratio = 90 / 0.5 = 180°; allowed: 1e-06° to 90°"),
     ("[motor]\naccel_hz_per_s = 1e9\n", "motor.accel_hz_per_s = 1000000000.0: out of range"),
     ("[motor]\nbaudrate = 20000000\n", "motor.baudrate = 20000000: out of range"),
     ("[motor]\nserial_url = ''\n", "motor.serial_url"),
@@ -279,7 +279,7 @@ def test_good_rigs_still_load(tmp_path: Path) -> None:
     assert load_rig(_write(tmp_path, rig_to_toml(default_rig()))) == default_rig()
     rig = load_rig(_write(tmp_path, "name = 'bench'\n[motor]\ngear_ratio = 1\npulse_limit = 250\n"
                                     "baudrate = 9600\n"))
-    assert rig.motor.step_deg == 0.72 and rig.cameras == ()
+    assert rig.motor.pulse_step_deg == 0.72 and rig.cameras == ()
 
 
 # --- rig init ----------------------------------------------------------------------------------
@@ -342,7 +342,7 @@ def test_cli_run_refuses_bad_set_before_touching_anything(cli: CliRunner, tmp_pa
 
 def _assemble_inputs(folder: Path, rig: Rig | None = None) -> None:
     """Real ``profiles``, ``motor`` and ``rig`` artifacts of a small step scan."""
-    good = make_rig(step_deg=2.0, angular_step_deg=10.0)
+    good = make_rig(pulse_step_deg=2.0, beam_step_deg=10.0)
     tables = positions_scan(good, [0, 1, 2], np.full((3, 36), 3.0))
     if rig is not None:
         tables["rig"] = rig_table(rig)
@@ -429,7 +429,7 @@ def test_run_with_a_bad_rig_override_stops_before_any_stage(cli: CliRunner,
 
 def test_assemble_refuses_a_rig_artifact_with_nan_calibration(cli: CliRunner,
                                                               tmp_path: Path) -> None:
-    rig = make_rig(step_deg=2.0, angular_step_deg=10.0)
+    rig = make_rig(pulse_step_deg=2.0, beam_step_deg=10.0)
     bad = rig.model_copy(update={"scanner": rig.scanner.model_copy(update={
         "mount": Pose.model_construct(translation_m=(0.0, math.inf, 0.0),
                                       rotation_deg=(0.0, 0.0, 0.0))})})

@@ -33,7 +33,7 @@ def assembled(ranges: np.ndarray, rig: Rig, steps: list[int]) -> pa.Table:
 
 def wall_scan(noise_m: float = 0.0, seed: int = 0) -> tuple[pa.Table, np.ndarray]:
     """A 20 × 36 grid of ranges (2° × 2°... in α 10°) with a nearer block in the middle."""
-    rig = make_rig(step_deg=2.0, angular_step_deg=10.0)
+    rig = make_rig(pulse_step_deg=2.0, beam_step_deg=10.0)
     ranges = np.full((20, 36), 4.0)
     ranges[:, 12:18] = 2.0  # a box in front: depth edges at samples 11|12 and 17|18
     ranges += np.random.default_rng(seed).normal(0, noise_m, ranges.shape)
@@ -45,7 +45,7 @@ def taken(report: dict[str, object], name: str) -> int:
 
 
 def test_no_return_and_range_gate_count_exactly() -> None:
-    rig = make_rig(step_deg=2.0, angular_step_deg=30.0)
+    rig = make_rig(pulse_step_deg=2.0, beam_step_deg=30.0)
     ranges = np.full((4, 12), 3.0)
     ranges[0, :3] = np.nan
     ranges[1, :2] = 0.2
@@ -72,7 +72,7 @@ def test_depth_edges_take_the_far_side_of_a_jump_and_nothing_on_smooth_surfaces(
 
 
 def test_depth_edges_catch_a_mixed_pixel() -> None:
-    rig = make_rig(step_deg=2.0, angular_step_deg=2.0)
+    rig = make_rig(pulse_step_deg=2.0, beam_step_deg=2.0)
     ranges = np.full((5, 180), 4.0)
     ranges[:, 60:80] = 2.0
     ranges[:, 80] = 3.0  # between foreground and background: a mixed pixel
@@ -92,7 +92,7 @@ def test_grid_median_removes_a_spike_or_replaces_it() -> None:
     points, ranges = wall_scan(noise_m=0.005)
     spiked = ranges.copy()
     spiked[7, 3] += 0.8
-    points = assembled(spiked, make_rig(step_deg=2.0, angular_step_deg=10.0), list(range(20)))
+    points = assembled(spiked, make_rig(pulse_step_deg=2.0, beam_step_deg=10.0), list(range(20)))
     removed = STAGE.run({"points": points}, only(grid_median={}))
     assert taken(removed.report, "grid_median") == 1
     assert (7, 3) not in set(zip(removed.tables["points"].column("profile").to_pylist(),
@@ -108,7 +108,7 @@ def test_grid_median_removes_a_spike_or_replaces_it() -> None:
 
 
 def test_grid_median_takes_isolated_points() -> None:
-    rig = make_rig(step_deg=2.0, angular_step_deg=30.0)
+    rig = make_rig(pulse_step_deg=2.0, beam_step_deg=30.0)
     ranges = np.full((5, 12), np.nan)
     ranges[2, 5] = 3.0
     ranges[0:2, 0:4] = 3.0
@@ -135,7 +135,7 @@ def test_smoothing_reduces_noise_and_keeps_edges() -> None:
 
 def plane_scan(translation: tuple[float, float, float]) -> pa.Table:
     """360° of travel in 10° steps over the plane y = −1 (a floor), scanner offset from the axis."""
-    rig = make_rig(step_deg=10.0, angular_step_deg=10.0, translation_m=translation)
+    rig = make_rig(pulse_step_deg=10.0, beam_step_deg=10.0, translation_m=translation)
     steps = list(range(36))
     alphas = np.arange(36) * 10.0
     ranges = np.full((36, 36), np.nan)
@@ -223,7 +223,7 @@ def test_statistical_outliers_only_without_a_grid_by_default() -> None:
 
 
 def test_mark_mode_keeps_every_row_and_names_the_filter() -> None:
-    rig = make_rig(step_deg=2.0, angular_step_deg=30.0)
+    rig = make_rig(pulse_step_deg=2.0, beam_step_deg=30.0)
     ranges = np.full((4, 12), 3.0)
     ranges[0, :3] = np.nan
     ranges[1, :2] = 0.2

@@ -28,7 +28,7 @@ def gridded_points(draw: st.DrawFn) -> pa.Table:
                                                                            (profiles, samples))
     ranges[rng.random(ranges.shape) < draw(st.floats(0, 0.5))] = np.nan
     ranges[rng.random(ranges.shape) < 0.05] = 0.1
-    rig = make_rig(step_deg=step, angular_step_deg=360.0 / samples)
+    rig = make_rig(pulse_step_deg=step, beam_step_deg=360.0 / samples)
     table = assemble.STAGE.run(positions_scan(rig, list(range(profiles)), ranges))
     return table.tables["points"]
 

@@ -22,7 +22,7 @@ def distances(points: pa.Table, truth_dir: Path) -> np.ndarray:
 
 @pytest.mark.slow
 def test_filters_remove_mixed_pixels_and_smoothing_reduces_noise(tmp_path: Path) -> None:
-    sim = SimOptions(motor_step_deg=5.0, scanner_step_deg=1.0, cameras=False, mixed_pixels=True)
+    sim = SimOptions(motor_step_deg=5.0, beam_step_deg=1.0, cameras=False, mixed_pixels=True)
     simulate_direct(tmp_path / "scan.mcap", tmp_path / "truth", sim)
     decoded = get_stage("decode").run({"recording": tmp_path / "scan.mcap"}).tables
     points = get_stage("assemble").run(

@@ -32,7 +32,7 @@ def _simulate_and_run(tmp_path: Path, cli: Callable[..., Any], dialect: str, mod
     rig_file.write_text(rig_to_toml(rig))
     recording, truth, work = tmp_path / "scan.mcap", tmp_path / "truth", tmp_path / "work"
     args = ["simulate", "--out", recording, "--truth", truth, "--rig", rig_file,
-            "--motor-step", "3", "--scanner-step", "1", "--camera-scale", "0.05",
+            "--motor-step", "3", "--beam-step", "1", "--camera-scale", "0.05",
             "--mode", mode, "--seed", "3", "--quiet"]
     args += ["--direct"] if direct else ["--speedup", str(SPEEDUP)]
     result = cli(*args)

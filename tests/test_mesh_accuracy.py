@@ -27,7 +27,7 @@ SIGMA_M = SimOptions().noise_sigma_m
 @pytest.fixture(scope="module")
 def scanned_room(tmp_path_factory: pytest.TempPathFactory) -> tuple[pa.Table, Path]:
     folder = tmp_path_factory.mktemp("room")
-    options = SimOptions(motor_step_deg=1.0, scanner_step_deg=0.5, cameras=False)
+    options = SimOptions(motor_step_deg=1.0, beam_step_deg=0.5, cameras=False)
     simulate_direct(folder / "scan.mcap", folder / "truth", options)
     decoded = get_stage("decode").run({"recording": folder / "scan.mcap"}).tables
     points = get_stage("assemble").run(

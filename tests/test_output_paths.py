@@ -127,7 +127,7 @@ def test_import_points_overwrites_only_with_force(cli: Cli, tmp_path: Path) -> N
 def test_simulate_keeps_an_existing_recording(cli: Cli, tmp_path: Path) -> None:
     out, truth = tmp_path / "s.mcap", tmp_path / "t"
     out.write_bytes(b"a precious recording")
-    args = ("simulate", "--direct", "--motor-step", "10", "--scanner-step", "2", "--no-cameras",
+    args = ("simulate", "--direct", "--motor-step", "10", "--beam-step", "2", "--no-cameras",
             "--truth", truth, "-q")
     refused(cli(*args, "--out", out), "already exists; pass --force")
     refused(cli(*args, "--out", tmp_path / "s.bag"), "expected a file name ending in .mcap")
@@ -150,7 +150,7 @@ def test_simulate_keeps_an_existing_recording(cli: Cli, tmp_path: Path) -> None:
     ("--speedup", "1e9", "speedup"),
     ("--motor-step", "0", "motor_step_deg"),
     ("--motor-step", "nan", "motor_step_deg"),
-    ("--scanner-step", "-1", "scanner_step_deg"),
+    ("--beam-step", "-1", "beam_step_deg"),
     ("--noise-mm", "inf", "noise_sigma_m"),
     ("--camera-scale", "0", "camera_scale"),
     ("--camera-fps", "nan", "camera_fps"),

@@ -16,7 +16,7 @@ STEP = 0.036
 
 def test_paper_example_six_degrees() -> None:
     choice = choose_steps(6.0, STEP, 5000)
-    assert choice.min_step_deg == pytest.approx(0.036)
+    assert choice.pulse_step_deg == pytest.approx(0.036)
     assert choice.steps_per_turn == 10_000
     assert choice.requested_steps == pytest.approx(166.667)
     assert choice.possible_steps == (164, 165, 166, 167, 168)
@@ -71,14 +71,14 @@ def test_scan_time_at_seven_hz() -> None:
 def test_device_limits_flag_too_fast_head() -> None:
     rig = Rig(scanner=ScannerConfig(scan_hz=8))  # 8 · 360 / 0.25 = 11520 Hz mean > 10800
     checks = {c.name: c.ok for c in plan_scan(rig, 6).device_limits}
-    assert checks == {"scan_hz": True, "angular_step_deg": True, "pulse_hz": True,
+    assert checks == {"scan_hz": True, "beam_step_deg": True, "pulse_hz": True,
                       "mean_pulse_hz": False}
 
 
 def test_other_gearbox() -> None:
     rig = Rig(motor=MotorConfig(gear_ratio=10, pulse_limit=2500))
     plan = plan_scan(rig, 0.72)
-    assert plan.steps.min_step_deg == pytest.approx(0.072)
+    assert plan.steps.pulse_step_deg == pytest.approx(0.072)
     assert plan.motor_step_count == 10
 
 
@@ -90,17 +90,17 @@ def test_move_time_trapezoid_and_triangle() -> None:
 
 
 def test_cli_plan_json_gives_the_paper_angles(cli) -> None:  # type: ignore[no-untyped-def]
-    result = cli("plan", "--angle", "6", "--json")
+    result = cli("plan", "--motor-step", "6", "--json")
     assert result.code == 0
     data = json.loads(result.out)
-    assert data["min_step_deg"] == pytest.approx(0.036)
+    assert data["pulse_step_deg"] == pytest.approx(0.036)
     assert data["steps_per_turn"] == 10_000
     assert data["requested_steps"] == pytest.approx(166.667)
     assert data["possible_angles_deg"] == pytest.approx([5.904, 5.940, 5.976, 6.012, 6.048])
 
 
 def test_cli_plan_text_marks_closest(cli) -> None:  # type: ignore[no-untyped-def]
-    result = cli("plan", "--angle", "6")
+    result = cli("plan", "--motor-step", "6")
     assert result.code == 0
     assert "6.012°  ← closest" in result.out
     assert "profiles            30" in result.out
@@ -112,7 +112,7 @@ def test_cli_plan_text_marks_closest(cli) -> None:  # type: ignore[no-untyped-de
      ("abc", "valid number"), ("nan", "greater than 0")],
 )
 def test_cli_plan_bad_angle_is_one_line_exit_2(cli, angle: str, needle: str) -> None:  # type: ignore[no-untyped-def]
-    result = cli("plan", f"--angle={angle}")
+    result = cli("plan", f"--motor-step={angle}")
     assert result.code == 2
     assert needle in result.err
     assert result.err.count("\n") == 1 and "Traceback" not in result.err

@@ -40,7 +40,7 @@ def _start_recorder(rig: VirtualRig, tmp_path: Path, name: str) -> tuple[subproc
     out = tmp_path / f"{name}.mcap"
     process = subprocess.Popen(
         [sys.executable, "-m", "scanpipe.cli.main", "record", "--rig", str(rig_file),
-         "--out", str(out), "--step-angle", "5", "--quiet", "--speedup", str(SPEEDUP)],
+         "--out", str(out), "--motor-step", "5", "--quiet", "--speedup", str(SPEEDUP)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     return process, out
 

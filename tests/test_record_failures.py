@@ -46,7 +46,7 @@ def _record_and_disturb(rig: VirtualRig, out: Path, after_profiles: int,
 
 
 def _recorder(rig: VirtualRig, out: Path, **options: object) -> Recorder:
-    settings = {"mode": "step", "step_angle_deg": 5.0, "speedup": rig.clock.speedup,
+    settings = {"mode": "step", "motor_step_deg": 5.0, "speedup": rig.clock.speedup,
                 "install_signal_handlers": False, "cameras": False, "reconnect_delay_s": 0.05,
                 **options}
     return Recorder(rig.client_rig(), out, RecordOptions(**settings))  # type: ignore[arg-type]

@@ -23,7 +23,7 @@ def test_simulate_through_the_emulators(tmp_path: Path, cli: Callable[..., objec
     rig_file.write_text(rig_to_toml(rig))
     out, truth_dir = tmp_path / "sim.mcap", tmp_path / "truth"
     result = cli("simulate", "--out", out, "--truth", truth_dir, "--rig", rig_file,
-                 "--scene", "box", "--scanner-step", "2", "--motor-step", "5",
+                 "--scene", "box", "--beam-step", "2", "--motor-step", "5",
                  "--camera-scale", "0.04", "--camera-fps", "2", "--speedup", "20", "--json")
     assert result.code == 0, result.err  # type: ignore[attr-defined]
     summary = json.loads(result.out)  # type: ignore[attr-defined]
@@ -31,7 +31,7 @@ def test_simulate_through_the_emulators(tmp_path: Path, cli: Callable[..., objec
     truth = load_truth(truth_dir)
     recording = read_recording(out)
     assert recording.complete
-    assert recording.rig().scanner.angular_step_deg == 2.0  # the nominal rig is recorded
+    assert recording.rig().scanner.beam_step_deg == 2.0  # the nominal rig is recorded
     profiles = decode_recording(recording, DecodeParams()).tables["profiles"]
     assert profiles.num_rows == truth.profiles.num_rows == summary["profiles"]
     # Each profile is received after the truth says its sector ended. (How long after depends

@@ -60,7 +60,7 @@ def test_consecutive_records_stay_within_the_limit(tmp_path: Path, scene: Scene)
     with VirtualRig(sim_options("paper", pulse_limit=LIMIT), speedup=SPEEDUP, scene=scene) as rig:
         for index, mode in enumerate(["step", "continuous", "step"]):
             out = tmp_path / f"scan{index}.mcap"
-            summary = record_against(rig, out, mode=mode, step_angle_deg=ANGLE)
+            summary = record_against(rig, out, mode=mode, motor_step_deg=ANGLE)
             assert summary["status"] == "complete", summary
             assert summary["returned_to_start"] is True
             assert _absolute(rig) == 0 == summary["absolute_step_count"]  # home after each
@@ -82,11 +82,11 @@ def test_consecutive_records_stay_within_the_limit(tmp_path: Path, scene: Scene)
 
 def test_away_from_home_the_next_scan_is_refused(tmp_path: Path, scene: Scene) -> None:
     with VirtualRig(sim_options("paper", pulse_limit=LIMIT), speedup=SPEEDUP, scene=scene) as rig:
-        first = record_against(rig, tmp_path / "a.mcap", step_angle_deg=ANGLE,
+        first = record_against(rig, tmp_path / "a.mcap", motor_step_deg=ANGLE,
                                return_to_start=False)
         assert first["status"] == "complete" and _absolute(rig) == 3 * STEP
         moves_before = len(rig.platform.timeline().moves)
-        refused = record_against(rig, tmp_path / "b.mcap", step_angle_deg=ANGLE)
+        refused = record_against(rig, tmp_path / "b.mcap", motor_step_deg=ANGLE)
         assert len(rig.platform.timeline().moves) == moves_before  # nothing moved
         assert refused["status"] == "failed"
         reason = str(refused["reason"])
@@ -94,7 +94,7 @@ def test_away_from_home_the_next_scan_is_refused(tmp_path: Path, scene: Scene) -
                                  "home") and "--home-first" in reason and "\n" not in reason
         assert not any(c.startswith("ZERO") for c in rig.motor.commands[-6:])  # no blind re-zero
         # Asked to, the recorder brings it home first, scans from there and comes back.
-        homed = record_against(rig, tmp_path / "c.mcap", step_angle_deg=ANGLE, home_first=True)
+        homed = record_against(rig, tmp_path / "c.mcap", motor_step_deg=ANGLE, home_first=True)
         assert homed["status"] == "complete", homed
         assert _absolute(rig) == 0 and _max_absolute(rig) == 3 * STEP
     kinds = [e.kind for e in read_recording(tmp_path / "c.mcap").events]
@@ -103,7 +103,7 @@ def test_away_from_home_the_next_scan_is_refused(tmp_path: Path, scene: Scene) -
 
 def test_a_stopped_scan_still_returns_home(tmp_path: Path, scene: Scene) -> None:
     with VirtualRig(sim_options("paper", pulse_limit=LIMIT), speedup=SPEEDUP, scene=scene) as rig:
-        options = RecordOptions(mode="step", step_angle_deg=5.0, speedup=SPEEDUP, cameras=False,
+        options = RecordOptions(mode="step", motor_step_deg=5.0, speedup=SPEEDUP, cameras=False,
                                 install_signal_handlers=False)
         recorder = Recorder(rig.client_rig(), tmp_path / "rec.mcap", options)
         summary: dict[str, object] = {}
@@ -120,7 +120,7 @@ def test_a_stopped_scan_still_returns_home(tmp_path: Path, scene: Scene) -> None
         assert summary["returned_to_start"] is True and _absolute(rig) == 0
         assert "STOP" in rig.motor.commands
         # The next scan is accepted (it stands at home).
-        again = record_against(rig, tmp_path / "again.mcap", step_angle_deg=ANGLE)
+        again = record_against(rig, tmp_path / "again.mcap", motor_step_deg=ANGLE)
         assert again["status"] == "complete" and _max_absolute(rig) <= LIMIT
 
 
@@ -133,7 +133,7 @@ def test_an_unlimited_rig_and_controller_may_turn_past_a_turn(tmp_path: Path,
     with VirtualRig(options, speedup=200.0, scene=scene) as rig:
         assert rig.motor.controller.pulse_limit is None
         summary = record_against(rig, tmp_path / "rec.mcap", mode="continuous",
-                                 step_angle_deg=108.0, cameras=False)
+                                 motor_step_deg=108.0, cameras=False)
         assert summary["status"] == "complete", summary
         assert (summary["limit_source"], summary["pulse_limit"]) == ("none", 12_000)
         assert _max_absolute(rig) == 12_000 and _absolute(rig) == 0  # 432°, then back
@@ -142,7 +142,7 @@ def test_an_unlimited_rig_and_controller_may_turn_past_a_turn(tmp_path: Path,
 def test_a_second_sigint_stops_the_way_back(tmp_path: Path, scene: Scene) -> None:
     # Ctrl-C once: stop and go back; Ctrl-C again while it goes back: STOP where it is.
     with VirtualRig(sim_options("paper", pulse_limit=5000), speedup=10.0, scene=scene) as rig:
-        options = RecordOptions(mode="step", step_angle_deg=36.0, speedup=10.0, cameras=False,
+        options = RecordOptions(mode="step", motor_step_deg=36.0, speedup=10.0, cameras=False,
                                 install_signal_handlers=True)
         recorder = Recorder(rig.client_rig(), tmp_path / "rec.mcap", options)
 
@@ -189,7 +189,7 @@ def test_cli_refuses_away_from_home_in_one_line_and_home_first_fixes_it(
         finally:
             client.close()
         out = tmp_path / "scan.mcap"
-        args = ("record", "--rig", rig_file, "--out", out, "--step-angle", str(ANGLE),
+        args = ("record", "--rig", rig_file, "--out", out, "--motor-step", str(ANGLE),
                 "--no-cameras", "--quiet", "--speedup", str(SPEEDUP))
         refused = cli(*args)
         assert refused.code == 1

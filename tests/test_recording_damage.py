@@ -335,7 +335,7 @@ def test_simulate_onto_a_full_filesystem_is_one_line(tiny_fs: Callable[[int], Pa
                                                      cli: Callable[..., Any]) -> None:
     out = tiny_fs(64) / "scan.mcap"
     result = cli("simulate", "--direct", "--out", out, "--truth", tmp_path / "truth",
-                 "--motor-step", "5", "--scanner-step", "1", "--no-cameras")
+                 "--motor-step", "5", "--beam-step", "1", "--no-cameras")
     assert result.code == 1
     # simulate writes under a temporary name (a simulation can be made again): nothing is left
     assert result.err == (f"scanpipe: error: {out}: cannot be written (errno ENOSPC: No space "

@@ -12,9 +12,9 @@ from scanpipe.rig import default_rig, load_rig, rig_to_toml
 
 def test_default_rig_is_the_papers() -> None:
     rig = default_rig()
-    assert rig.motor.step_deg == pytest.approx(0.036)
+    assert rig.motor.pulse_step_deg == pytest.approx(0.036)
     assert rig.motor.pulse_limit == 5000
-    assert rig.scanner.angular_step_deg == 0.25
+    assert rig.scanner.beam_step_deg == 0.25
     assert rig.scanner.samples_per_profile == 1440
     assert [c.id for c in rig.cameras] == ["cam0", "cam1"]
 
@@ -32,7 +32,7 @@ def _write(tmp_path: Path, text: str) -> Path:
 
 
 def test_every_problem_reported_at_once(tmp_path: Path) -> None:
-    path = _write(tmp_path, "[scanner]\nangular_step_deg = 0.3\nscan_hz = 8.5\nbogus = 1\n"
+    path = _write(tmp_path, "[scanner]\nbeam_step_deg = 0.3\nscan_hz = 8.5\nbogus = 1\n"
                             "[motor]\ngear_ratio = -1\npulse_limt = 3\n")
     with pytest.raises(RigError) as info:
         load_rig(path)
@@ -44,7 +44,7 @@ def test_every_problem_reported_at_once(tmp_path: Path) -> None:
     assert "motor.gear_ratio = -1" in text
     assert "did you mean pulse_limit" in text
     assert "scan_hz = 8.5" in text and "5–20 Hz" in text
-    assert "angular_step_deg = 0.3" in text and "0.125" in text
+    assert "beam_step_deg = 0.3" in text and "0.125" in text
 
 
 @pytest.mark.parametrize(
@@ -72,8 +72,8 @@ def test_missing_file(tmp_path: Path) -> None:
 
 
 def test_paper_dialect_skips_ldoem_limits(tmp_path: Path) -> None:
-    rig = load_rig(_write(tmp_path, "[scanner]\ndialect = 'paper'\nangular_step_deg = 0.3\n"))
-    assert rig.scanner.angular_step_deg == 0.3
+    rig = load_rig(_write(tmp_path, "[scanner]\ndialect = 'paper'\nbeam_step_deg = 0.3\n"))
+    assert rig.scanner.beam_step_deg == 0.3
 
 
 def test_cli_rig_init_and_check(cli, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]

@@ -22,7 +22,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("sim")
     path = root / "scan.mcap"
     simulate_direct(path, root / "truth", SimOptions(
-        scanner_step_deg=2.0, motor_step_deg=3.0, camera_scale=0.125, camera_fps=0.5, seed=4))
+        beam_step_deg=2.0, motor_step_deg=3.0, camera_scale=0.125, camera_fps=0.5, seed=4))
     return path
 
 
@@ -120,7 +120,7 @@ def test_schema_mismatch_is_named(cli, recording: Path, tmp_path: Path) -> None:
 
 def test_demo_outputs_open_in_trimesh_and_open3d(tmp_path: Path) -> None:
     out = tmp_path / "demo"
-    result = run_demo(out, DemoOptions(scanner_step_deg=2.0, motor_step_deg=2.0, camera_fps=0.2,
+    result = run_demo(out, DemoOptions(beam_step_deg=2.0, motor_step_deg=2.0, camera_fps=0.2,
                                        camera_scale=0.25))
     for name in ("model.obj", "model.mtl", "model.glb", "cloud.ply", "cloud.las", "report.html",
                  "eval.json", "previews/plan.png"):

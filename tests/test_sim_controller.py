@@ -17,7 +17,7 @@ from scanpipe.sim.motion import PlatformState
 def _controller(limit: int = 5000, controller_limit: int | Literal["rig"] | None = "rig"
                 ) -> tuple[MotorController, PlatformState]:
     motor = MotorConfig(pulse_limit=limit)
-    platform = PlatformState(motor.step_deg)
+    platform = PlatformState(motor.pulse_step_deg)
     return MotorController(motor, platform, report_interval_s=0.02,
                            pulse_limit=controller_limit), platform
 
@@ -122,7 +122,7 @@ def _payload(frame: bytes) -> bytes:
 
 
 def test_ldoem_device_answers_and_refuses_like_the_device() -> None:
-    device = LdoemDevice(ScannerConfig(angular_step_deg=0.25, scan_hz=5))
+    device = LdoemDevice(ScannerConfig(beam_step_deg=0.25, scan_hz=5))
     ident = ldoem.parse_payload(_payload(device.handle(_payload(ldoem.get_ident_request()),
                                                       0)[0]))
     assert ident.is_reply and ident.body.startswith(b"LD-OEM1000")

@@ -21,7 +21,7 @@ from scanpipe.sim.truth import load_truth
 from scanpipe.stages.decode import STAGE as DECODE
 
 QUANTUM_M = 1.0 / 256
-SMALL = {"scanner_step_deg": 2.0, "motor_step_deg": 5.0, "cameras": False}
+SMALL = {"beam_step_deg": 2.0, "motor_step_deg": 5.0, "cameras": False}
 
 
 def _run(tmp_path: Path, name: str = "a", **options: Any) -> tuple[dict[str, Any], Path, Path]:
@@ -88,7 +88,7 @@ def test_cameras_and_truth_folder(noise_free: tuple[dict[str, Any], Path, Path])
     assert frames.column("width").to_pylist()[0] == 54
     assert frames.column("height").to_pylist()[0] == 96
     truth = load_truth(truth_dir)
-    assert truth.meta["seed"] == 0 and truth.meta["options"]["scanner_step_deg"] == 2.0
+    assert truth.meta["seed"] == 0 and truth.meta["options"]["beam_step_deg"] == 2.0
     assert len(truth.scene.triangles) > 100
     names = truth.profiles.schema.names
     assert names == ["profile", "time_ns", "time_end_ns", "beta_deg", "beta_end_deg",
@@ -97,7 +97,7 @@ def test_cameras_and_truth_folder(noise_free: tuple[dict[str, Any], Path, Path])
 
 
 def test_noise_in_the_recording_matches_sigma(tmp_path: Path) -> None:
-    _, rec, truth_dir = _run(tmp_path, scanner_step_deg=0.5, motor_step_deg=10.0,
+    _, rec, truth_dir = _run(tmp_path, beam_step_deg=0.5, motor_step_deg=10.0,
                              noise_sigma_m=0.02)
     measured = _ranges(DECODE.run({"recording": rec}).tables["profiles"])
     error = (measured - load_truth(truth_dir).ranges_true_m())[
@@ -152,7 +152,7 @@ def test_settings_the_device_refuses_are_reported(tmp_path: Path) -> None:
     from scanpipe.errors import RigError
 
     with pytest.raises(RigError, match=r"multiple of 0\.125"):
-        _run(tmp_path, scanner_step_deg=0.3)
+        _run(tmp_path, beam_step_deg=0.3)
 
 
 def test_bad_scene_is_a_simulation_error(tmp_path: Path) -> None:
@@ -166,7 +166,7 @@ def test_load_truth_of_a_folder_that_is_not_one(tmp_path: Path) -> None:
 
 
 def test_cli_simulate_direct(cli: Callable[..., Any], tmp_path: Path) -> None:
-    result = cli("simulate", "--direct", "--motor-step", "10", "--scanner-step", "2",
+    result = cli("simulate", "--direct", "--motor-step", "10", "--beam-step", "2",
                  "--no-cameras", "--seed", "3", "--out", tmp_path / "s.mcap",
                  "--truth", tmp_path / "t", "-q", "--json")
     assert result.code == 0, result.err
@@ -193,7 +193,7 @@ def test_cli_simulate_bad_input_is_one_line(cli: Callable[..., Any], tmp_path: P
 @pytest.mark.slow
 def test_cli_simulate_live_records_through_the_emulators(cli: Callable[..., Any],
                                                          tmp_path: Path) -> None:
-    result = cli("simulate", "--motor-step", "30", "--scanner-step", "2", "--speedup", "25",
+    result = cli("simulate", "--motor-step", "30", "--beam-step", "2", "--speedup", "25",
                  "--no-cameras", "--noise-mm", "0", "--out", tmp_path / "s.mcap", "--truth",
                  tmp_path / "t", "-q", "--json")
     assert result.code == 0, result.err

@@ -30,7 +30,7 @@ QUANTUM_M = 1.0 / 256
 def _options(dialect: str = "ldoem", **extra: object) -> SimOptions:
     rig = default_rig()
     rig = rig.model_copy(update={"scanner": rig.scanner.model_copy(update={"dialect": dialect})})
-    base: dict[str, object] = {"rig": rig, "scanner_step_deg": 2.0, "motor_step_deg": 5.0,
+    base: dict[str, object] = {"rig": rig, "beam_step_deg": 2.0, "motor_step_deg": 5.0,
                                "noise_sigma_m": 0.0, "dropout_rate": 0.0, "grazing_start_deg": 90.0,
                                "camera_scale": 0.05}
     base.update(extra)
@@ -250,7 +250,7 @@ def test_profiles_use_the_platform_angle_of_their_instant() -> None:
     assert all(s.beta_last_deg > s.beta_first_deg for s in sent[:5])
     for s in sent[:5]:
         steps = rig.platform.timeline().steps_at(s.start_s)
-        assert s.beta_first_deg == pytest.approx(float(steps) * rig.platform.step_deg)
+        assert s.beta_first_deg == pytest.approx(float(steps) * rig.platform.pulse_step_deg)
     frame: list[Profile] = DIALECTS["ldoem"].decode_payload(client.payloads[0], True) or []
     assert len(frame[0].ranges_m) == 180
 

@@ -51,7 +51,7 @@ def _analytic_range(alpha: float, beta: float, scanner: ScannerConfig) -> float:
     Pose(translation_m=(0.05, 0.12, -0.03), rotation_deg=(1.5, -2.0, 0.7)),
 ])
 def test_noise_free_ranges_equal_analytic_distances_in_a_box_room(mount: Pose) -> None:
-    scanner = ScannerConfig(angular_step_deg=3.0, mount=mount, alpha_offset_deg=0.4,
+    scanner = ScannerConfig(beam_step_deg=3.0, mount=mount, alpha_offset_deg=0.4,
                             min_range_m=0.0)
     betas = np.array([0.0, 17.3, 95.0, 179.9])
     beta_grid = np.repeat(betas[:, None], scanner.samples_per_profile, axis=1)
@@ -62,7 +62,7 @@ def test_noise_free_ranges_equal_analytic_distances_in_a_box_room(mount: Pose) -
 
 
 def test_min_and_max_range_blank_the_truth() -> None:
-    scanner = ScannerConfig(angular_step_deg=2.0, min_range_m=1.3, max_range_m=2.5)
+    scanner = ScannerConfig(beam_step_deg=2.0, min_range_m=1.3, max_range_m=2.5)
     truth = true_ranges(box_room(), scanner, np.zeros((1, scanner.samples_per_profile)))
     finite = truth.ranges_m[np.isfinite(truth.ranges_m)]
     assert finite.min() >= 1.3 and finite.max() <= 2.5
@@ -75,7 +75,7 @@ def _flat_truth(profiles: int, samples: int, range_m: float = 3.0) -> TrueProfil
 
 
 def test_noise_statistics_match_sigma() -> None:
-    scanner = ScannerConfig(angular_step_deg=0.25)
+    scanner = ScannerConfig(beam_step_deg=0.25)
     model = MeasurementModel(noise_sigma_m=0.010, dropout_rate=0.0, seed=5)
     measured = measure(_flat_truth(100, 1440), model, 0, scanner)
     error = measured.astype(np.float64) - 3.0
@@ -86,7 +86,7 @@ def test_noise_statistics_match_sigma() -> None:
 
 
 def test_measurement_is_deterministic_per_seed_and_profile() -> None:
-    scanner = ScannerConfig(angular_step_deg=1.0)
+    scanner = ScannerConfig(beam_step_deg=1.0)
     truth = _flat_truth(6, 360)
     model = MeasurementModel(seed=9)
     whole = measure(truth, model, 10, scanner)
@@ -97,7 +97,7 @@ def test_measurement_is_deterministic_per_seed_and_profile() -> None:
 
 
 def test_dropouts_base_rate_and_grazing() -> None:
-    scanner = ScannerConfig(angular_step_deg=0.25)
+    scanner = ScannerConfig(beam_step_deg=0.25)
     model = MeasurementModel(noise_sigma_m=0.0, dropout_rate=0.05, grazing_start_deg=75, seed=1)
     cosines = np.tile(np.cos(np.radians([0.0, 80.0, 89.9])).astype(np.float32), (200, 480))
     truth = TrueProfiles(np.full(cosines.shape, 3.0), cosines)
@@ -111,7 +111,7 @@ def test_dropouts_base_rate_and_grazing() -> None:
 
 
 def test_mixed_pixels_lie_between_the_two_surfaces() -> None:
-    scanner = ScannerConfig(angular_step_deg=1.0)
+    scanner = ScannerConfig(beam_step_deg=1.0)
     ranges = np.where(np.arange(360) % 20 < 10, 2.0, 5.0)[None, :].repeat(50, axis=0)
     truth = TrueProfiles(ranges, np.ones(ranges.shape, np.float32))
     model = MeasurementModel(noise_sigma_m=0.0, dropout_rate=0.0, mixed_pixels=True, seed=2)
@@ -125,7 +125,7 @@ def test_mixed_pixels_lie_between_the_two_surfaces() -> None:
 
 
 def test_sample_times_follow_the_head_rotation() -> None:
-    scanner = ScannerConfig(angular_step_deg=0.25, scan_hz=5)
+    scanner = ScannerConfig(beam_step_deg=0.25, scan_hz=5)
     offsets = sample_time_offsets_s(scanner)
     assert offsets[0] == 0.0
     assert offsets[-1] == pytest.approx(0.2 * 1439 / 1440)
@@ -156,7 +156,7 @@ def test_timeline_vectorised_equals_per_move_reference() -> None:
 
 
 def test_platform_state_zero_stop_and_angle() -> None:
-    platform = PlatformState(step_deg=0.036, beta_offset_deg=1.0)
+    platform = PlatformState(pulse_step_deg=0.036, beta_offset_deg=1.0)
     platform.start_move(0.0, 1000, 1000.0, 5000.0)
     assert platform.moving_at(0.5) and not platform.moving_at(1.3)
     count = platform.stop(0.5)

@@ -31,7 +31,7 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     folder = tmp_path_factory.mktemp("sim")
-    options = SimOptions(motor_step_deg=6.0, scanner_step_deg=4.0, camera_scale=0.125,
+    options = SimOptions(motor_step_deg=6.0, beam_step_deg=4.0, camera_scale=0.125,
                          camera_fps=2.0)
     simulate_direct(folder / "scan.mcap", folder / "truth", options)
     stage = registry()["decode"]

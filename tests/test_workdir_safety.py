@@ -282,7 +282,7 @@ def scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("scan")
     path = root / "scan.mcap"
     simulate_direct(path, root / "truth", SimOptions(
-        scanner_step_deg=2.0, motor_step_deg=6.0, camera_scale=0.1, camera_fps=0.2, seed=3))
+        beam_step_deg=2.0, motor_step_deg=6.0, camera_scale=0.1, camera_fps=0.2, seed=3))
     return path
 
 

@@ -134,7 +134,7 @@ def record(rig: Rig, beta_step_deg: float = 6.0, travel_deg: float = 180.0,
     """
     caster = caster or Caster()
     t0 = 1_700_000_000_000_000_000
-    step_deg = rig.motor.step_deg
+    step_deg = rig.motor.pulse_step_deg
     total_steps = round(travel_deg / step_deg)
     duration_ns = int(travel_deg / 10.0 * 1e9)
     motor_t = t0 + np.linspace(0, duration_ns, 11).astype(np.int64)

@@ -26,8 +26,8 @@ from scanpipe.stages import chain_stages
 class DemoOptions(Params):
     """The demo's scan: coarser than the paper's lab scan so that it runs in about a minute."""
 
-    scanner_step_deg: float = Field(0.5, gt=0, le=10, description="beam step of the scan")
-    motor_step_deg: float = Field(0.36, gt=0, le=10, description="platform step between profiles")
+    beam_step_deg: float = Field(0.5, gt=0, le=10, description="beam step of the scan")
+    motor_step_deg: float = Field(0.36, gt=0, le=10, description="motor step between profiles")
     noise_sigma_m: float = Field(0.010, ge=0, le=0.2, description="range noise σ")
     # The demo scan takes ~200 simulated seconds: 0.2 fps is a frame per ~4.5° of travel.
     camera_fps: float = Field(0.2, gt=0, le=30, description="frames per second per camera")
@@ -72,7 +72,7 @@ def run_demo(out: Path, options: DemoOptions | None = None,
     started = time.perf_counter()
     say(f"simulating the built-in room → {recording}")
     simulate_direct(recording, truth, SimOptions(
-        scanner_step_deg=options.scanner_step_deg, motor_step_deg=options.motor_step_deg,
+        beam_step_deg=options.beam_step_deg, motor_step_deg=options.motor_step_deg,
         noise_sigma_m=options.noise_sigma_m, camera_fps=options.camera_fps,
         camera_scale=options.camera_scale, seed=options.seed), progress)
     seconds["simulate"] = time.perf_counter() - started

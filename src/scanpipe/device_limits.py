@@ -17,7 +17,7 @@ class ScanSettings(Protocol):
     @property
     def scan_hz(self) -> float: ...
     @property
-    def angular_step_deg(self) -> float: ...
+    def beam_step_deg(self) -> float: ...
     @property
     def start_angle_deg(self) -> float: ...
     @property
@@ -43,14 +43,14 @@ class LimitCheck:
 
 def ldoem_limit_checks(scanner: ScanSettings) -> tuple[LimitCheck, ...]:
     """The LD-OEM 1000's limits for the scanner settings of a rig."""
-    hz, step = scanner.scan_hz, scanner.angular_step_deg
+    hz, step = scanner.scan_hz, scanner.beam_step_deg
     pulse_hz = hz * 360.0 / step
     active = (scanner.end_angle_deg - scanner.start_angle_deg) / 360.0
     quanta = step / LDOEM_STEP_QUANTUM_DEG
     return (
         LimitCheck("scan_hz", hz, "5–20 Hz in whole Hz",
                    LDOEM_HEAD_HZ[0] <= hz <= LDOEM_HEAD_HZ[1] and float(hz).is_integer()),
-        LimitCheck("angular_step_deg", step, "a multiple of 0.125°",
+        LimitCheck("beam_step_deg", step, "a multiple of 0.125°",
                    abs(quanta - round(quanta)) < 1e-9 and round(quanta) >= 1),
         LimitCheck("pulse_hz", pulse_hz, "scan_hz · 360 / step ≤ 14400 Hz",
                    pulse_hz <= LDOEM_MAX_PULSE_HZ + 1e-9),

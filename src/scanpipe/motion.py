@@ -16,7 +16,7 @@ from scanpipe.rig import MotorConfig
 def beta_deg_from_steps(step_count: NDArray[np.integer] | NDArray[np.floating],
                         motor: MotorConfig) -> NDArray[np.float64]:
     """Platform angle for step counts: ``steps × full_step / gear_ratio + beta_offset``."""
-    return np.asarray(step_count, dtype=np.float64) * motor.step_deg + motor.beta_offset_deg
+    return np.asarray(step_count, dtype=np.float64) * motor.pulse_step_deg + motor.beta_offset_deg
 
 
 def beta_deg_at(times_ns: NDArray[np.int64], motor_table: pa.Table,

@@ -14,6 +14,8 @@ from scanpipe.device_limits import LimitCheck, ldoem_limit_checks
 from scanpipe.errors import PlanError
 from scanpipe.rig import Rig
 
+#: The motor step of a scan when none is asked for: the paper's lab scan (3 pulses of 0.036°).
+DEFAULT_MOTOR_STEP_DEG = 0.108
 #: A requested step count within this of an integer counts as that integer (0.108 / 0.036 is
 #: 2.9999999999999996 in binary floating point, and means 3 steps).
 _STEP_EPSILON = 1e-9
@@ -21,8 +23,8 @@ _STEP_EPSILON = 1e-9
 class StepChoice:
     """The achievable step counts around a requested angle (paper eq. 4 and the five offers)."""
 
-    requested_angle_deg: float
-    min_step_deg: float
+    requested_motor_step_deg: float
+    pulse_step_deg: float
     steps_per_turn: int
     requested_steps: float
     possible_steps: tuple[int, ...]
@@ -63,31 +65,32 @@ class ScanPlan:
         return data
 
 
-def choose_steps(angle_deg: float, min_step_deg: float, pulse_limit: int) -> StepChoice:
-    """The five achievable angles around ``angle_deg`` (paper eq. 1–4).
+def choose_steps(motor_step_deg: float, pulse_step_deg: float, pulse_limit: int) -> StepChoice:
+    """The five achievable motor steps around ``motor_step_deg`` (paper eq. 1–4).
 
-    Takes the integer part of ``angle / min_step`` and offers it with ±1 and ±2 steps. Near the
+    ``pulse_step_deg`` is the platform angle of one pulse (the paper's minimum step). Takes the
+    integer part of ``motor_step / pulse_step`` and offers it with ±1 and ±2 steps. Near the
     ends (1 step, the pulse limit) the window of five shifts inward so that every offer is valid.
     """
-    if not math.isfinite(angle_deg) or angle_deg <= 0:
-        raise PlanError(f"angle {angle_deg!r}: must be a number greater than 0 degrees")
-    max_angle = pulse_limit * min_step_deg
-    if angle_deg > max_angle + _STEP_EPSILON:
+    if not math.isfinite(motor_step_deg) or motor_step_deg <= 0:
+        raise PlanError(f"motor step {motor_step_deg!r}: must be a number greater than 0 degrees")
+    max_angle = pulse_limit * pulse_step_deg
+    if motor_step_deg > max_angle + _STEP_EPSILON:
         raise PlanError(
-            f"angle {angle_deg!r}: beyond the pulse limit ({pulse_limit} pulses × "
-            f"{min_step_deg:g}° = {max_angle:g}°); allowed: 0 < angle ≤ {max_angle:g}"
+            f"motor step {motor_step_deg!r}: beyond the pulse limit ({pulse_limit} pulses × "
+            f"{pulse_step_deg:g}° = {max_angle:g}°); allowed: 0 < motor step ≤ {max_angle:g}"
         )
-    requested = angle_deg / min_step_deg
+    requested = motor_step_deg / pulse_step_deg
     base = max(1, math.floor(requested + _STEP_EPSILON))
     width = min(5, pulse_limit)
     low = min(max(1, base - 2), pulse_limit - width + 1)
     steps = tuple(range(low, low + width))
-    angles = tuple(round(s * min_step_deg, 12) for s in steps)
-    closest = min(range(width), key=lambda i: (abs(angles[i] - angle_deg), angles[i]))
+    angles = tuple(round(s * pulse_step_deg, 12) for s in steps)
+    closest = min(range(width), key=lambda i: (abs(angles[i] - motor_step_deg), angles[i]))
     return StepChoice(
-        requested_angle_deg=angle_deg,
-        min_step_deg=min_step_deg,
-        steps_per_turn=round(360.0 / min_step_deg),
+        requested_motor_step_deg=motor_step_deg,
+        pulse_step_deg=pulse_step_deg,
+        steps_per_turn=round(360.0 / pulse_step_deg),
         requested_steps=round(requested, 3),
         possible_steps=steps,
         possible_angles_deg=angles,
@@ -119,10 +122,10 @@ def move_time_s(pulses: int, pulse_rate_hz: float, accel_hz_per_s: float) -> flo
     return 2.0 * math.sqrt(pulses / accel_hz_per_s)
 
 
-def plan_scan(rig: Rig, angle_deg: float) -> ScanPlan:
-    """Plan a step-and-scan over the pulse limit with the step closest to ``angle_deg``."""
+def plan_scan(rig: Rig, motor_step_deg: float = DEFAULT_MOTOR_STEP_DEG) -> ScanPlan:
+    """Plan a step-and-scan over the pulse limit with the step closest to ``motor_step_deg``."""
     motor, scanner = rig.motor, rig.scanner
-    choice = choose_steps(angle_deg, motor.step_deg, motor.pulse_limit)
+    choice = choose_steps(motor_step_deg, motor.pulse_step_deg, motor.pulse_limit)
     step_count = choice.chosen_steps
     profiles = motor.pulse_limit // step_count + 1
     samples = scanner.samples_per_profile
@@ -134,8 +137,8 @@ def plan_scan(rig: Rig, angle_deg: float) -> ScanPlan:
     return ScanPlan(
         steps=choice,
         motor_step_count=step_count,
-        motor_step_deg=step_count * motor.step_deg,
-        travel_deg=(profiles - 1) * step_count * motor.step_deg,
+        motor_step_deg=step_count * motor.pulse_step_deg,
+        travel_deg=(profiles - 1) * step_count * motor.pulse_step_deg,
         profiles=profiles,
         samples_per_profile=samples,
         points=profiles * samples,

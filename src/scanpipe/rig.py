@@ -47,13 +47,21 @@ class Pose(Params):
     rotation_deg: tuple[Degrees, Degrees, Degrees] = (0.0, 0.0, 0.0)
 
 
+#: Keys of ``[scanner]`` renamed since rig files were first written: old name → new name. Old
+#: rig files, and the rig TOML stored in old recordings, still load.
+SCANNER_KEY_RENAMES = {"angular_step_deg": "beam_step_deg"}
+
+
 class ScannerConfig(Params):
-    """The 2-D laser scanner: how to reach it, how it scans, and how it is mounted."""
+    """The 2-D laser scanner: how to reach it, how it scans, and how it is mounted.
+
+    ``beam_step_deg`` is the beam step: the angle between two samples of a profile.
+    """
 
     dialect: Literal["ldoem", "paper"] = "ldoem"
     host: str = Field("192.168.0.1", min_length=1)
     port: int = Field(49152, ge=1, le=65535)
-    angular_step_deg: float = Field(0.25, gt=0, le=90)
+    beam_step_deg: float = Field(0.25, gt=0, le=90)
     start_angle_deg: float = Field(0.0, ge=0, lt=360)
     end_angle_deg: float = Field(360.0, gt=0, le=360)
     scan_hz: float = Field(5.0, gt=0, le=100)
@@ -61,6 +69,16 @@ class ScannerConfig(Params):
     max_range_m: float = Field(250.0, gt=0, le=255.99609375)
     alpha_offset_deg: float = Field(0.0, ge=-180, le=180)
     mount: Pose = Pose()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed_keys(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        for old, new in SCANNER_KEY_RENAMES.items():
+            if old in data and new in data:
+                raise ValueError(f"{old} is the old name of {new}: give only {new}")
+        return {SCANNER_KEY_RENAMES.get(k, k): v for k, v in data.items()}
 
     @model_validator(mode="after")
     def _ranges_ordered(self) -> ScannerConfig:
@@ -78,8 +96,13 @@ class ScannerConfig(Params):
 
     @property
     def samples_per_profile(self) -> int:
-        """Samples in one profile: the covered sector divided by the angular step."""
-        return round((self.end_angle_deg - self.start_angle_deg) / self.angular_step_deg)
+        """Samples in one profile: the covered sector divided by the beam step."""
+        return round((self.end_angle_deg - self.start_angle_deg) / self.beam_step_deg)
+
+    @property
+    def angular_step_deg(self) -> float:
+        """Deprecated: the old name of :attr:`beam_step_deg` (still read by acquire/info.py)."""
+        return self.beam_step_deg
 
 
 #: The largest pulse count any controller can hold: its count is a signed 32-bit integer.
@@ -143,18 +166,24 @@ class MotorConfig(Params):
 
     @model_validator(mode="after")
     def _platform_step_possible(self) -> MotorConfig:
-        if not MIN_PLATFORM_STEP_DEG <= self.step_deg <= MAX_PLATFORM_STEP_DEG:
+        if not MIN_PLATFORM_STEP_DEG <= self.pulse_step_deg <= MAX_PLATFORM_STEP_DEG:
             raise ValueError(
-                f"platform step full_step_deg / gear_ratio = {self.full_step_deg:g} / "
-                f"{self.gear_ratio:g} = {self.step_deg:g}°; allowed: "
+                f"pulse step full_step_deg / gear_ratio = {self.full_step_deg:g} / "
+                f"{self.gear_ratio:g} = {self.pulse_step_deg:g}°; allowed: "
                 f"{MIN_PLATFORM_STEP_DEG:g}° to {MAX_PLATFORM_STEP_DEG:g}° per pulse"
             )
         return self
 
     @property
-    def step_deg(self) -> float:
-        """Platform rotation per pulse (paper eq. 1): full step / gear ratio."""
+    def pulse_step_deg(self) -> float:
+        """The pulse step: platform rotation per pulse (paper eq. 1, its "minimum step"), full
+        step / gear ratio. A scan's motor step is a whole number of these."""
         return self.full_step_deg / self.gear_ratio
+
+    @property
+    def step_deg(self) -> float:
+        """Deprecated: the old name of :attr:`pulse_step_deg` (still read by acquire/info.py)."""
+        return self.pulse_step_deg
 
     @property
     def travel_limit(self) -> int | None:
@@ -267,7 +296,8 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
         problems.extend(err.problems)
     scanner_data = data.get("scanner", {}) if isinstance(data, dict) else {}
     if isinstance(scanner_data, dict):  # unknown keys are reported above; check limits anyway
-        scanner_data = {k: v for k, v in scanner_data.items() if k in ScannerConfig.model_fields}
+        scanner_data = {k: v for k, v in scanner_data.items()
+                        if k in ScannerConfig.model_fields or k in SCANNER_KEY_RENAMES}
     try:
         scanner = rig.scanner if rig else validate(ScannerConfig, scanner_data, source)
     except ParameterError:
@@ -318,7 +348,7 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
 _COMMENTS = {
     "format_version": "scanpipe rig description; see docs/rig.md for every key",
     "scanner": "The 2-D laser scanner. dialect: ldoem (SICK LD-OEM 1000 TCP) or paper",
-    "scanner.angular_step_deg": "beam step; LD-OEM: a multiple of 0.125",
+    "scanner.beam_step_deg": "beam step (between samples); LD-OEM: a multiple of 0.125",
     "scanner.scan_hz": "head rotation rate; LD-OEM: 5–20 Hz in whole Hz",
     "scanner.alpha_offset_deg": "calibration: zero offset added to every beam angle",
     "scanner.mount": "calibration: scan frame → platform frame (offset from the motor axis, tilt)",

@@ -7,7 +7,7 @@ Two procedures (:class:`RecordOptions.mode`):
   for ``profiles_per_position`` complete profiles that began after the settle (the profile under
   way when the platform came to rest is not counted), and repeat while the next position is
   within the sweep;
-- ``continuous``: one move to the end of the sweep at a constant pulse rate (the step angle per
+- ``continuous``: one move to the end of the sweep at a constant pulse rate (the motor step per
   head turn: ``steps × scan_hz`` pulses per second) while the controller reports its position
   periodically and the scanner streams.
 
@@ -50,7 +50,7 @@ from scanpipe.acquire.scanner_client import ScannerClient
 from scanpipe.acquire.sink import RecordingSink
 from scanpipe.errors import DeviceError, ScanpipeError
 from scanpipe.params import Params
-from scanpipe.planning import choose_steps, move_time_s
+from scanpipe.planning import DEFAULT_MOTOR_STEP_DEG, choose_steps, move_time_s
 from scanpipe.protocol import ldoem
 from scanpipe.rig import Rig
 
@@ -61,7 +61,7 @@ class RecordOptions(Params):
     """How to record: the procedure, the step, safety and file settings."""
 
     mode: Literal["step", "continuous"] = "step"
-    step_angle_deg: float = Field(0.108, gt=0, le=360)
+    motor_step_deg: float = Field(DEFAULT_MOTOR_STEP_DEG, gt=0, le=360)
     profiles_per_position: int = Field(1, ge=1, le=100)
     #: ldoem: ask for the echo amplitudes too (format mask 0x3DFF instead of 0x39FF).
     with_echo: bool = False
@@ -133,7 +133,7 @@ class Recorder:
         self._start_count: int | None = None  # the controller's count at the scan start
         self._end_count: int | None = None  # … and at the end of the sweep
         self._returned: bool | None = None
-        choice = choose_steps(self.options.step_angle_deg, rig.motor.step_deg,
+        choice = choose_steps(self.options.motor_step_deg, rig.motor.pulse_step_deg,
                               rig.motor.pulse_limit)
         self.step_count = choice.chosen_steps
 
@@ -146,7 +146,7 @@ class Recorder:
         return {
             "mode": self.options.mode,
             "step_count": self.step_count,
-            "step_deg": self.step_count * self.rig.motor.step_deg,
+            "motor_step_deg": self.step_count * self.rig.motor.pulse_step_deg,
             "profiles_per_position": self.options.profiles_per_position,
             "start_time_ns": self.clock_ns(),
             "host": socket.gethostname(),
@@ -309,7 +309,7 @@ class Recorder:
         travel = self.motor.query_travel()
         if self.travel_limit.pulses is None or travel.absolute == 0:
             return
-        away_deg = travel.absolute * self.rig.motor.step_deg
+        away_deg = travel.absolute * self.rig.motor.pulse_step_deg
         if not self.options.home_first:
             raise DeviceError(
                 f"motor: the platform stands {travel.absolute} pulses ({away_deg:.3f}°) from home "
@@ -607,7 +607,7 @@ class Recorder:
             step_count=step_count,
             pulse_limit=self._end_count if self._end_count is not None
             else self.rig.motor.pulse_limit,
-            beta_deg=step_count * self.rig.motor.step_deg + self.rig.motor.beta_offset_deg,
+            beta_deg=step_count * self.rig.motor.pulse_step_deg + self.rig.motor.beta_offset_deg,
             frames=dict(stats.images) if stats else {},
             dropped_frames=sum(c.stats.dropped for c in self.cameras),
             data_rate_bps=rate,
@@ -641,7 +641,7 @@ class Recorder:
             "positions": self.positions_done,
             "positions_planned": self.positions_total,
             "final_step_count": step_count,
-            "final_beta_deg": step_count * self.rig.motor.step_deg,
+            "final_beta_deg": step_count * self.rig.motor.pulse_step_deg,
             "pulse_limit": self._applied_limit(),
             "limit_source": self.travel_limit.source if self.travel_limit else None,
             "returned_to_start": self._returned,

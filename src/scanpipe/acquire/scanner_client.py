@@ -150,7 +150,7 @@ class ScannerClient:
         except ProtocolError as err:
             raise DeviceError(f"scanner: unexpected GET_SYNC_CLOCK reply ({err})") from err
         config = b"".join(angle_to_wire(v).to_bytes(2, "big") for v in (
-            s.angular_step_deg, s.start_angle_deg, s.end_angle_deg))
+            s.beam_step_deg, s.start_angle_deg, s.end_angle_deg))
         # SET_CONFIG body: u16 step, start, end in 1/16° (docs/simulation.md).
         self._request(ldoem.request(ldoem.SERVICE_CONFIG, ldoem.SET_CONFIG, config),
                       ldoem.SERVICE_CONFIG, ldoem.SET_CONFIG)

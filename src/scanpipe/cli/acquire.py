@@ -8,7 +8,16 @@ from typing import Any
 
 import typer
 
-from scanpipe.cli.common import JSON, QUIET, RIG, print_error, print_json
+from scanpipe.cli.common import (
+    JSON,
+    MOTOR_STEP,
+    QUIET,
+    RIG,
+    deprecated_alias,
+    print_error,
+    print_json,
+    take_alias,
+)
 from scanpipe.errors import UsageError
 
 #: Exit codes of ``record`` by final status (a finished file in every case).
@@ -16,7 +25,7 @@ RECORD_EXIT_CODES = {"complete": 0, "interrupted": 130, "failed": 1, "scanner_di
 
 
 def record_options(
-    mode: str, step_angle: float, profiles_per_position: int, cameras: bool,
+    mode: str, motor_step_deg: float, profiles_per_position: int, cameras: bool,
     split_size_mb: float | None, split_duration_s: float | None, speedup: float = 1.0,
     with_echo: bool = False, home_first: bool = False,
 ) -> Any:
@@ -25,7 +34,7 @@ def record_options(
     from scanpipe.params import validate
 
     return validate(RecordOptions, {
-        "mode": mode, "step_angle_deg": step_angle,
+        "mode": mode, "motor_step_deg": motor_step_deg,
         "profiles_per_position": profiles_per_position, "cameras": cameras,
         "split_size_mb": split_size_mb, "split_duration_s": split_duration_s,
         "speedup": speedup, "with_echo": with_echo, "home_first": home_first,
@@ -55,12 +64,11 @@ def run_recorder(recorder: Any, quiet: bool, as_json: bool,
 
 
 def record(
+    ctx: typer.Context,
     out: Path = typer.Option(..., "--out", help="The recording to write (.mcap)."),
     rig_path: Path | None = RIG,
     mode: str = typer.Option("step", "--mode", help="step (step-and-scan) or continuous."),
-    step_angle: float = typer.Option(0.108, "--step-angle",
-                                     help="Motor step in degrees (the closest achievable is used; "
-                                          "see scanpipe plan)."),
+    motor_step_deg: float = MOTOR_STEP,
     profiles_per_position: int = typer.Option(1, "--profiles-per-position",
                                               help="Complete profiles per position (step mode)."),
     no_cameras: bool = typer.Option(False, "--no-cameras", help="Do not record the cameras."),
@@ -78,16 +86,19 @@ def record(
                                   help="Device time runs this much faster (virtual rig only)."),
     quiet: bool = QUIET,
     as_json: bool = JSON,
+    step_angle: float | None = deprecated_alias("--motor-step", "--step-angle"),
 ) -> None:
     """Record a scan: scanner, motor and cameras, raw and timestamped, into one MCAP file."""
     from scanpipe.acquire.recorder import Recorder
     from scanpipe.outpaths import check_output_file
     from scanpipe.rig import load_rig
 
+    motor_step_deg = take_alias(ctx, "motor_step_deg", motor_step_deg, step_angle, "--motor-step",
+                                "--step-angle")
     # A recording is streamed to its name (crash-safe, so a killed recorder keeps what it got).
     check_output_file(out, "--out", (".mcap",), force, [rig_path] if rig_path else [])
     rig = load_rig(rig_path)
-    options = record_options(mode, step_angle, profiles_per_position, not no_cameras,
+    options = record_options(mode, motor_step_deg, profiles_per_position, not no_cameras,
                              split_size_mb, split_duration_s, speedup, echo, home_first)
     code = run_recorder(Recorder(rig, out, options), quiet, as_json)
     if code:

@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import inspect
 import json
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
 import typer
+from pydantic import BaseModel
 
+from scanpipe.errors import UsageError
 from scanpipe.params import Params, apply_assignments, load_toml, validate
+from scanpipe.planning import DEFAULT_MOTOR_STEP_DEG
 
 P = TypeVar("P", bound=Params)
 
@@ -19,6 +24,66 @@ SET = typer.Option(None, "--set", help="Override a parameter: key=value (repeata
 PARAMS_FILE = typer.Option(None, "--params", help="TOML file of parameters.")
 RIG = typer.Option(None, "--rig", help="Rig TOML file (default: the paper's rig).")
 FORCE = typer.Option(False, "--force", help="Overwrite existing output files.")
+MOTOR_STEP = typer.Option(DEFAULT_MOTOR_STEP_DEG, "--motor-step",
+                          help="Motor step in degrees: the platform turn between profiles (the "
+                               "closest achievable is used; see scanpipe plan).")
+
+
+def deprecated_alias(new_flag: str, old_flag: str) -> Any:
+    """A hidden option for the old spelling ``old_flag`` of ``new_flag``; see
+    :func:`take_alias`."""
+    return typer.Option(None, old_flag, hidden=True, help=f"Deprecated: use {new_flag}.")
+
+
+def take_alias(ctx: typer.Context, new_name: str, new_value: Any, old_value: Any,
+               new_flag: str, old_flag: str) -> Any:
+    """The value of an option (parameter ``new_name``) that also has a deprecated spelling.
+
+    ``old_value`` (None when the old spelling was not given) wins with a one-line deprecation
+    note on stderr; both spellings at once are a usage error.
+    """
+    if old_value is None:
+        return new_value
+    source = ctx.get_parameter_source(new_name)
+    if source is not None and source.name == "COMMANDLINE":
+        raise UsageError(f"{old_flag} is the old name of {new_flag}: give only {new_flag}")
+    sys.stderr.write(f"scanpipe: warning: {old_flag} is deprecated; use {new_flag}\n")
+    return old_value
+
+
+def model_flag(field_name: str) -> str:
+    """The command-line spelling of a model field: kebab case, without the unit ``_deg``
+    (``motor_step_deg`` → ``--motor-step``); a boolean gets its ``--no-`` form too."""
+    return "--" + field_name.removesuffix("_deg").replace("_", "-")
+
+
+def model_options(model: type[BaseModel], fields: Sequence[str]) -> list[inspect.Parameter]:
+    """Keyword parameters of a typer command, one per field of ``model``: the field's name,
+    type, default and description (the help), so that the command repeats none of them."""
+    params = []
+    for name in fields:
+        info = model.model_fields[name]
+        flag = model_flag(name)
+        if info.annotation is bool:
+            flag = f"{flag}/--no-{flag[2:]}"
+        option = typer.Option(info.get_default(call_default_factory=True), flag,
+                              help=info.description)
+        params.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY,
+                                        annotation=info.annotation, default=option))
+    return params
+
+
+def with_model_options(model: type[BaseModel], fields: Sequence[str]) -> Callable[
+        [Callable[..., Any]], Callable[..., Any]]:
+    """Give a command that takes ``**values`` one option per field of ``model`` in ``fields``
+    (see :func:`model_options`); typer reads the signature set here."""
+    def decorate(command: Callable[..., Any]) -> Callable[..., Any]:
+        own = [p for p in inspect.signature(command).parameters.values()
+               if p.kind is not inspect.Parameter.VAR_KEYWORD]
+        command.__signature__ = inspect.Signature(  # type: ignore[attr-defined]
+            [*own, *model_options(model, fields)])
+        return command
+    return decorate
 
 
 def print_error(message: str) -> None:

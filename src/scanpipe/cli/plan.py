@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from scanpipe.cli.common import JSON, RIG, print_json
+from scanpipe.cli.common import JSON, MOTOR_STEP, RIG, deprecated_alias, print_json, take_alias
 from scanpipe.planning import ScanPlan, plan_scan
 from scanpipe.rig import load_rig
 
@@ -23,9 +23,9 @@ def format_plan(plan: ScanPlan) -> str:
     """The plan as text for a terminal."""
     s = plan.steps
     lines = [
-        f"minimum step        {s.min_step_deg:g}°",
+        f"pulse step          {s.pulse_step_deg:g}° (the minimum step)",
         f"steps per turn      {s.steps_per_turn}",
-        f"requested           {s.requested_angle_deg:g}° = {s.requested_steps:g} steps",
+        f"requested           {s.requested_motor_step_deg:g}° = {s.requested_steps:g} steps",
         "possible angles:",
     ]
     for i, (steps, angle) in enumerate(zip(s.possible_steps, s.possible_angles_deg, strict=True)):
@@ -49,12 +49,16 @@ def format_plan(plan: ScanPlan) -> str:
 
 
 def plan(
-    angle: float = typer.Option(..., "--angle", help="Requested motor step in degrees."),
+    ctx: typer.Context,
+    motor_step_deg: float = MOTOR_STEP,
     rig_path: Path | None = RIG,
     as_json: bool = JSON,
+    angle: float | None = deprecated_alias("--motor-step", "--angle"),
 ) -> None:
-    """The step arithmetic of paper eq. 1–4 for an angle, and the scan it gives."""
-    result = plan_scan(load_rig(rig_path), angle)
+    """The step arithmetic of paper eq. 1–4 for a motor step, and the scan it gives."""
+    motor_step_deg = take_alias(ctx, "motor_step_deg", motor_step_deg, angle, "--motor-step",
+                                "--angle")
+    result = plan_scan(load_rig(rig_path), motor_step_deg)
     if as_json:
         print_json(result.to_json())
     else:

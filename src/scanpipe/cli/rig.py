@@ -40,8 +40,8 @@ def check(path: Path = typer.Argument(..., help="Rig TOML file to validate.")) -
     rig = load_rig(path)
     cams = ", ".join(c.id for c in rig.cameras) or "no cameras"
     typer.echo(
-        f"{path}: ok — {rig.scanner.dialect} scanner at {rig.scanner.angular_step_deg:g}° and "
-        f"{rig.scanner.scan_hz:g} Hz, motor step {rig.motor.step_deg:g}°, "
+        f"{path}: ok — {rig.scanner.dialect} scanner at {rig.scanner.beam_step_deg:g}° and "
+        f"{rig.scanner.scan_hz:g} Hz, motor step {rig.motor.pulse_step_deg:g}°, "
         f"pulse limit {rig.motor.pulse_limit}, {cams}"
     )
 

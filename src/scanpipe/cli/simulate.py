@@ -15,24 +15,34 @@ from typing import Any
 
 import typer
 
-from scanpipe.cli.common import JSON, QUIET, RIG, print_json
+from scanpipe.cli.common import (
+    JSON,
+    QUIET,
+    RIG,
+    deprecated_alias,
+    print_json,
+    take_alias,
+    with_model_options,
+)
 from scanpipe.errors import RecordingError, UsageError
+from scanpipe.sim.options import SimOptions
+
+#: The :class:`~scanpipe.sim.options.SimOptions` fields that are options of ``simulate``: their
+#: flags, types, defaults and help come from the model (:func:`~scanpipe.cli.common.model_options`).
+SIM_OPTION_FIELDS = ("scene", "mode", "motor_step_deg", "beam_step_deg", "cameras", "camera_scale",
+                     "camera_fps", "seed")
+#: ``--noise-mm`` is in millimetres, the model's ``noise_sigma_m`` in metres.
+NOISE_DEFAULT_MM = SimOptions.model_fields["noise_sigma_m"].default * 1000.0
 
 
-def sim_options(scene: str, rig_path: Path | None, motor_step: float,
-                scanner_step: float | None, noise_mm: float, no_cameras: bool, seed: int,
-                mode: str, camera_scale: float, camera_fps: float | None) -> Any:
-    """Validated :class:`~scanpipe.sim.options.SimOptions` from command-line values."""
+def sim_options(rig_path: Path | None, noise_mm: float, values: dict[str, Any]) -> SimOptions:
+    """Validated :class:`~scanpipe.sim.options.SimOptions` from command-line values (``values``
+    by field name)."""
     from scanpipe.params import validate
     from scanpipe.rig import load_rig
-    from scanpipe.sim.options import SimOptions
 
-    return validate(SimOptions, {
-        "scene": scene, "rig": load_rig(rig_path), "motor_step_deg": motor_step,
-        "scanner_step_deg": scanner_step, "noise_sigma_m": noise_mm / 1000.0,
-        "cameras": not no_cameras, "seed": seed, "mode": mode, "camera_scale": camera_scale,
-        "camera_fps": camera_fps,
-    }, "simulate options")
+    return validate(SimOptions, {**values, "rig": load_rig(rig_path),
+                                 "noise_sigma_m": noise_mm / 1000.0}, "simulate options")
 
 
 def check_outputs(out: Path, truth: Path, scene: str, rig_path: Path | None,
@@ -73,7 +83,7 @@ def atomic_recording(out: Path) -> Iterator[Path]:
                              "and an earlier file of that name is unchanged") from None
 
 
-def simulate_live(out: Path, truth: Path, options: Any, speedup: float, quiet: bool,
+def simulate_live(out: Path, truth: Path, options: SimOptions, speedup: float, quiet: bool,
                   as_json: bool) -> int:
     """Run the emulators and record them through the acquisition recorder; write the truth."""
     from scanpipe.acquire.recorder import Recorder, RecordOptions
@@ -82,7 +92,7 @@ def simulate_live(out: Path, truth: Path, options: Any, speedup: float, quiet: b
 
     with VirtualRig(options, speedup=speedup) as virtual, atomic_recording(out) as tmp:
         record_options = RecordOptions(
-            mode=options.mode, step_angle_deg=options.motor_step_deg, cameras=options.cameras,
+            mode=options.mode, motor_step_deg=options.motor_step_deg, cameras=options.cameras,
             jpeg_quality=options.jpeg_quality, speedup=speedup)
         recorder = Recorder(virtual.client_rig(), tmp, record_options,
                             camera_opener=lambda cam: virtual.camera(cam.source))
@@ -92,40 +102,33 @@ def simulate_live(out: Path, truth: Path, options: Any, speedup: float, quiet: b
     return code
 
 
+@with_model_options(SimOptions, SIM_OPTION_FIELDS)
 def simulate(
+    ctx: typer.Context,
     direct: bool = typer.Option(False, "--direct",
                                 help="Compute the recording without sockets (fast)."),
     out: Path = typer.Option(..., "--out", help="The recording to write (.mcap)."),
     truth: Path = typer.Option(..., "--truth", help="The ground-truth folder to write."),
-    scene: str = typer.Option("room", "--scene",
-                              help="room, box, or a scene file (.obj, .glb, .gltf) in metres."),
     rig_path: Path | None = RIG,
-    motor_step: float = typer.Option(0.108, "--motor-step",
-                                     help="Motor step in degrees (closest achievable is used)."),
-    scanner_step: float | None = typer.Option(None, "--scanner-step",
-                                              help="Scanner angular step in degrees "
-                                                   "(default: the rig's)."),
-    noise_mm: float = typer.Option(10.0, "--noise-mm", help="Range noise σ in millimetres."),
-    no_cameras: bool = typer.Option(False, "--no-cameras", help="Simulate no cameras."),
-    camera_scale: float = typer.Option(0.5, "--camera-scale",
-                                       help="Camera resolution as a fraction of the rig's."),
-    camera_fps: float = typer.Option(1.0, "--camera-fps", help="Camera frame rate."),
-    seed: int = typer.Option(0, "--seed", help="Random seed: the same seed, the same bytes."),
-    mode: str = typer.Option("step", "--mode", help="step (step-and-scan) or continuous."),
+    noise_mm: float = typer.Option(NOISE_DEFAULT_MM, "--noise-mm",
+                                   help="Range noise σ in millimetres."),
     speedup: float = typer.Option(10.0, "--speedup",
                                   help="Without --direct: the emulators' clock speed-up."),
     force: bool = typer.Option(False, "--force",
                                help="Overwrite an existing recording and truth files."),
     quiet: bool = QUIET,
     as_json: bool = JSON,
+    scanner_step: float | None = deprecated_alias("--beam-step", "--scanner-step"),
+    **values: Any,
 ) -> None:
     """Simulate a scan of a virtual rig: a recording plus its ground truth."""
     from scanpipe.progress import rich_progress
     from scanpipe.sim.direct import simulate_direct
 
-    check_outputs(out, truth, scene, rig_path, force)
-    options = sim_options(scene, rig_path, motor_step, scanner_step, noise_mm, no_cameras, seed,
-                          mode, camera_scale, camera_fps)
+    values["beam_step_deg"] = take_alias(ctx, "beam_step_deg", values["beam_step_deg"],
+                                         scanner_step, "--beam-step", "--scanner-step")
+    check_outputs(out, truth, values["scene"], rig_path, force)
+    options = sim_options(rig_path, noise_mm, values)
     check_speedup(speedup)
     if not direct:
         code = simulate_live(out, truth, options, speedup, quiet, as_json)

@@ -2,8 +2,8 @@
 
 Foxglove recognises its well-known schemas only by exact name and field layout, so these are
 transcriptions of the ``foxglove/*.proto`` files of the public ``foxglove/schemas`` repository
-(one file descriptor per message, as published). They live in a private descriptor pool, like
-:mod:`scanpipe.recording.schemas`, so they cannot clash with other registrations.
+(one file descriptor per message, as published), built by :mod:`scanpipe.protobuf` into a
+private descriptor pool, so they cannot clash with other registrations.
 
 Classes: :data:`PointCloud`, :data:`FrameTransform`, :data:`SceneUpdate` and their parts.
 """
@@ -12,29 +12,15 @@ from __future__ import annotations
 
 from typing import Any
 
-from google.protobuf import (
-    descriptor_pb2,
-    descriptor_pool,
-    duration_pb2,
-    message_factory,
-    timestamp_pb2,
-)
+from scanpipe.protobuf import EnumSpecs, FieldSpec, build_pool, file_proto
+from scanpipe.protobuf import message_class as pool_message_class
 
-FieldProto = descriptor_pb2.FieldDescriptorProto
-
-_SCALARS = {
-    "double": FieldProto.TYPE_DOUBLE,
-    "fixed32": FieldProto.TYPE_FIXED32,
-    "bool": FieldProto.TYPE_BOOL,
-    "bytes": FieldProto.TYPE_BYTES,
-    "string": FieldProto.TYPE_STRING,
-}
 _TIMESTAMP = ".google.protobuf.Timestamp"
 _DURATION = ".google.protobuf.Duration"
 
 #: message -> (nested enums {name: [(value, number)]}, [(type, name, number, repeated)]),
 #: in dependency order.
-_MESSAGES: dict[str, tuple[dict[str, list[tuple[str, int]]], list[tuple[str, str, int, bool]]]] = {
+_MESSAGES: dict[str, tuple[EnumSpecs, list[FieldSpec]]] = {
     "Vector3": ({}, [("double", "x", 1, False), ("double", "y", 2, False),
                      ("double", "z", 3, False)]),
     "Point3": ({}, [("double", "x", 1, False), ("double", "y", 2, False),
@@ -120,63 +106,13 @@ _MESSAGES: dict[str, tuple[dict[str, list[tuple[str, int]]], list[tuple[str, str
 }
 
 
-def _camel(name: str) -> str:
-    head, *rest = name.split("_")
-    return head + "".join(part.title() for part in rest)
-
-
-def _file(name: str) -> descriptor_pb2.FileDescriptorProto:
-    """``foxglove/<name>.proto`` as published: one message, its imports."""
-    enums, fields = _MESSAGES[name]
-    proto = descriptor_pb2.FileDescriptorProto(name=f"foxglove/{name}.proto",
-                                               package="foxglove", syntax="proto3")
-    message = proto.message_type.add(name=name)
-    for enum_name, values in enums.items():
-        enum = message.enum_type.add(name=enum_name)
-        for value_name, number in values:
-            enum.value.add(name=value_name, number=number)
-    imports: list[str] = []
-    for type_name, field_name, number, repeated in fields:
-        field = message.field.add(
-            name=field_name, number=number, json_name=_camel(field_name),
-            label=FieldProto.LABEL_REPEATED if repeated else FieldProto.LABEL_OPTIONAL)
-        if type_name in _SCALARS:
-            field.type = _SCALARS[type_name]
-            continue
-        field.type_name = type_name
-        local_enum = type_name.startswith(f".foxglove.{name}.")
-        field.type = FieldProto.TYPE_ENUM if local_enum else FieldProto.TYPE_MESSAGE
-        if type_name == _TIMESTAMP:
-            dependency = "google/protobuf/timestamp.proto"
-        elif type_name == _DURATION:
-            dependency = "google/protobuf/duration.proto"
-        elif local_enum:
-            continue
-        else:
-            dependency = f"foxglove/{type_name.rsplit('.', 1)[-1]}.proto"
-        if dependency not in imports:
-            imports.append(dependency)
-    proto.dependency.extend(sorted(imports))
-    return proto
-
-
-def _build_pool() -> descriptor_pool.DescriptorPool:
-    pool = descriptor_pool.DescriptorPool()
-    for well_known in (timestamp_pb2, duration_pb2):
-        proto = descriptor_pb2.FileDescriptorProto()
-        well_known.DESCRIPTOR.CopyToProto(proto)
-        pool.Add(proto)
-    for name in _MESSAGES:
-        pool.Add(_file(name))
-    return pool
-
-
-POOL = _build_pool()
+POOL = build_pool(file_proto(f"foxglove/{name}.proto", "foxglove", [(name, fields, enums)])
+                  for name, (enums, fields) in _MESSAGES.items())
 
 
 def message_class(name: str) -> Any:
     """The class of ``foxglove.<name>``."""
-    return message_factory.GetMessageClass(POOL.FindMessageTypeByName(f"foxglove.{name}"))
+    return pool_message_class(POOL, f"foxglove.{name}")
 
 
 PointCloud: Any = message_class("PointCloud")

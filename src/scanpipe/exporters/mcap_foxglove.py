@@ -31,7 +31,7 @@ from scanpipe.exporters import foxglove_schemas as fox
 from scanpipe.exporters.glb import glb_bytes
 from scanpipe.exporters.model import CloudModel, MeshModel
 from scanpipe.geometry import platform_rotation
-from scanpipe.recording.schemas import file_descriptor_set
+from scanpipe.protobuf import file_descriptor_set
 
 WORLD_FRAME, RIG_FRAME, PLATFORM_FRAME = "world", "rig", "platform"
 #: world (z up) ← rig (y up): (x, y, z) ↦ (x, −z, y), a +90° rotation about x.

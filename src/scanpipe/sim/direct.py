@@ -72,7 +72,7 @@ def simulate_profiles(scene: Scene, scanner_true: ScannerConfig, session: Sessio
     per_batch = max(1, RAYS_PER_BATCH // len(offsets))
     model = options.measurement()
     beta_offset = options.true_rig().motor.beta_offset_deg
-    step = options.rig.motor.step_deg
+    step = options.rig.motor.pulse_step_deg
     total = len(starts)
     for first in range(0, total, per_batch):
         times = starts[first:first + per_batch, None] + offsets[None, :]
@@ -200,7 +200,7 @@ def simulate_direct(out: Path, truth_dir: Path, options: SimOptions | None = Non
 
     n_frames = 0
     if options.cameras:
-        step = options.rig.motor.step_deg
+        step = options.rig.motor.pulse_step_deg
         for index, cam in enumerate(true.cameras):
             times = camera_times_s(cam.fps, session.end_s, options.seed, index)
             betas = session.timeline.steps_at(times) * step + true.motor.beta_offset_deg

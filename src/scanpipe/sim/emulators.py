@@ -212,7 +212,7 @@ class ScannerEmulator:
         if device is None:
             return self.scanner
         return self.scanner.model_copy(update={
-            "scan_hz": float(device.scan_hz), "angular_step_deg": device.step_ticks / 16.0,
+            "scan_hz": float(device.scan_hz), "beam_step_deg": device.step_ticks / 16.0,
             "start_angle_deg": device.start_ticks / 16.0, "end_angle_deg": device.end_ticks / 16.0,
         })
 
@@ -412,7 +412,7 @@ class VirtualRig:
                                                                    self.options.scene_pose)
         self.clock = SimClock(speedup)
         motor = self.true.motor
-        self.platform = PlatformState(motor.step_deg, motor.beta_offset_deg)
+        self.platform = PlatformState(motor.pulse_step_deg, motor.beta_offset_deg)
         phase = float(np.random.default_rng([self.options.seed, 7]).uniform(
             0.0, 1.0 / self.true.scanner.scan_hz))
         self.scanner = ScannerEmulator(self.scene, self.true.scanner, self.platform, self.clock,

@@ -61,7 +61,7 @@ class LdoemDevice:
 
     def __post_init__(self) -> None:
         self.scan_hz = int(self.scanner.scan_hz)
-        self.step_ticks = round(self.scanner.angular_step_deg * 16)
+        self.step_ticks = round(self.scanner.beam_step_deg * 16)
         self.start_ticks = round(self.scanner.start_angle_deg * 16)
         self.end_ticks = round(self.scanner.end_angle_deg * 16)
 
@@ -69,7 +69,7 @@ class LdoemDevice:
         if not LDOEM_HEAD_HZ[0] <= scan_hz <= LDOEM_HEAD_HZ[1]:
             return f"scan_hz {scan_hz} outside {LDOEM_HEAD_HZ[0]}..{LDOEM_HEAD_HZ[1]} Hz"
         if step_ticks <= 0 or step_ticks % STEP_QUANTUM_TICKS:
-            return f"angular step {step_ticks}/16 deg is not a multiple of 0.125 deg"
+            return f"beam step {step_ticks}/16 deg is not a multiple of 0.125 deg"
         if not 0 <= start < end <= TICKS_PER_TURN:
             return f"sector {start}..{end}/16 deg is not within one turn"
         if (end - start) // step_ticks > MAX_POINTS_PER_SECTOR:

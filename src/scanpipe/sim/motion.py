@@ -147,8 +147,8 @@ class PlatformState:
     count is that minus the position at its last ZERO.
     """
 
-    def __init__(self, step_deg: float, beta_offset_deg: float = 0.0) -> None:
-        self.step_deg = step_deg
+    def __init__(self, pulse_step_deg: float, beta_offset_deg: float = 0.0) -> None:
+        self.pulse_step_deg = pulse_step_deg
         self.beta_offset_deg = beta_offset_deg
         self._lock = threading.Lock()
         self._moves: list[Move] = []
@@ -162,7 +162,7 @@ class PlatformState:
     def beta_deg_at(self, time_s: ArrayLike) -> F64:
         """The true platform angle at each time."""
         steps = self.timeline().steps_at(time_s)
-        return np.asarray(steps * self.step_deg + self.beta_offset_deg, dtype=np.float64)
+        return np.asarray(steps * self.pulse_step_deg + self.beta_offset_deg, dtype=np.float64)
 
     def count_at(self, time_s: float) -> int:
         """The controller's pulse count at ``time_s``."""

@@ -7,7 +7,7 @@ from typing import Literal
 from pydantic import Field
 
 from scanpipe.params import Params
-from scanpipe.planning import choose_steps
+from scanpipe.planning import DEFAULT_MOTOR_STEP_DEG, choose_steps
 from scanpipe.rig import Pose, Rig, default_rig
 from scanpipe.sim.camera import CameraModel, scaled_camera
 from scanpipe.sim.scanner import MeasurementModel
@@ -24,20 +24,28 @@ class SimOptions(Params):
     true rig, so calibration can be tested against it.
     """
 
-    scene: str = "room"
+    scene: str = Field("room", description="room, box, or a scene file (.obj, .glb, .gltf) "
+                                           "in metres.")
     scene_pose: Pose | None = None
     rig: Rig = Field(default_factory=default_rig)
-    mode: Literal["step", "continuous"] = "step"
-    motor_step_deg: float = Field(0.108, gt=0, le=180)
-    scanner_step_deg: float | None = Field(None, gt=0, le=90)
+    mode: Literal["step", "continuous"] = Field(
+        "step", description="step (step-and-scan) or continuous.")
+    motor_step_deg: float = Field(DEFAULT_MOTOR_STEP_DEG, gt=0, le=180,
+                                  description="Motor step in degrees: the platform turn between "
+                                              "profiles (the closest achievable is used).")
+    beam_step_deg: float | None = Field(None, gt=0, le=90,
+                                        description="Beam step in degrees: the angle between "
+                                                    "samples of a profile (default: the rig's).")
     noise_sigma_m: float = Field(0.010, ge=0, le=1)
     dropout_rate: float = Field(0.002, ge=0, le=1)
     grazing_start_deg: float = Field(75.0, ge=0, le=90)
     mixed_pixels: bool = False
     mixed_pixel_rate: float = Field(0.5, ge=0, le=1)
-    cameras: bool = True
-    camera_scale: float = Field(0.5, gt=0, le=1)
-    camera_fps: float | None = Field(1.0, gt=0, le=240)
+    cameras: bool = Field(True, description="Simulate the rig's cameras.")
+    camera_scale: float = Field(0.5, gt=0, le=1,
+                                description="Camera resolution as a fraction of the rig's.")
+    camera_fps: float | None = Field(1.0, gt=0, le=240,
+                                     description="Camera frame rate (None: the rig's).")
     camera_noise_sigma: float = Field(1.0, ge=0, le=50)
     camera_exposure_gain: float = Field(1.0, gt=0, le=4)
     camera_exposure_jitter: float = Field(0.0, ge=0, le=1)
@@ -45,16 +53,16 @@ class SimOptions(Params):
     true_mount: Pose | None = None
     true_alpha_offset_deg: float | None = Field(None, ge=-180, le=180)
     true_beta_offset_deg: float | None = Field(None, ge=-180, le=180)
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, description="Random seed: the same seed, the same bytes.")
     start_time_ns: int = Field(DEFAULT_START_TIME_NS, ge=0)
     report_interval_s: float = Field(0.02, gt=0, le=10)
     link_latency_s: float = Field(0.001, ge=0, le=1)
 
     def nominal_rig(self) -> Rig:
-        """The rig the recording carries: ``rig`` with the scanner step and camera overrides."""
+        """The rig the recording carries: ``rig`` with the beam step and camera overrides."""
         scanner = self.rig.scanner
-        if self.scanner_step_deg is not None:
-            scanner = scanner.model_copy(update={"angular_step_deg": self.scanner_step_deg})
+        if self.beam_step_deg is not None:
+            scanner = scanner.model_copy(update={"beam_step_deg": self.beam_step_deg})
         cameras = tuple(scaled_camera(c, self.camera_scale) for c in self.rig.cameras)
         if self.camera_fps is not None:
             cameras = tuple(c.model_copy(update={"fps": self.camera_fps}) for c in cameras)
@@ -79,7 +87,8 @@ class SimOptions(Params):
     def motor_step_count(self) -> int:
         """Pulses per motor step: the achievable step closest to ``motor_step_deg``."""
         motor = self.rig.motor
-        return choose_steps(self.motor_step_deg, motor.step_deg, motor.pulse_limit).chosen_steps
+        choice = choose_steps(self.motor_step_deg, motor.pulse_step_deg, motor.pulse_limit)
+        return choice.chosen_steps
 
     def measurement(self) -> MeasurementModel:
         """The scanner's measurement model."""

@@ -41,7 +41,7 @@ class MeasurementModel:
 def beam_angles_deg(scanner: ScannerConfig) -> F64:
     """The nominal beam angle of every sample of a profile: ``start + i · step``."""
     return np.asarray(
-        scanner.start_angle_deg + np.arange(scanner.samples_per_profile) * scanner.angular_step_deg,
+        scanner.start_angle_deg + np.arange(scanner.samples_per_profile) * scanner.beam_step_deg,
         dtype=np.float64,
     )
 

@@ -110,7 +110,7 @@ def plan_session(options: SimOptions, true_rig: Rig) -> Session:
     sector = sector_duration_s(scanner)
     phase = float(np.random.default_rng([options.seed, 7]).uniform(0.0, period))
     latency = options.link_latency_s
-    platform = PlatformState(motor.step_deg, motor.beta_offset_deg)
+    platform = PlatformState(motor.pulse_step_deg, motor.beta_offset_deg)
     controller = MotorController(motor, platform, options.report_interval_s)
     session = Session()
     host = _Host(controller, session, latency)

@@ -32,7 +32,7 @@ def profile_frame(dialect: str, index: int, ranges_m: NDArray[np.float32],
 
     profile = Profile(
         frame=index & 0xFFFF, sector=0, start_angle_deg=scanner.start_angle_deg,
-        step_deg=scanner.angular_step_deg, ranges_m=ranges_m, echo=None,
+        step_deg=scanner.beam_step_deg, ranges_m=ranges_m, echo=None,
         device_time_ms=(device_clock_ms(start_s) + clock_offset_ms) & 0xFFFF,
         device_end_time_ms=(device_clock_ms(start_s + sector_duration_s(scanner))
                             + clock_offset_ms) & 0xFFFF)

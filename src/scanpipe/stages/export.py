@@ -30,7 +30,6 @@ from scanpipe.params import Params
 from scanpipe.progress import ProgressFn
 from scanpipe.stage import Stage, StageResult
 
-Format = Literal["obj", "glb", "ply", "las", "laz", "e57", "mcap"]
 FORMATS: tuple[str, ...] = ("obj", "glb", "ply", "las", "laz", "e57", "mcap")
 MESH_ARTIFACTS = ("mesh_vertices", "mesh_faces")
 TEXTURE_ARTIFACTS = ("textured_faces", "texture_pages")
@@ -41,13 +40,6 @@ class FormatError(ExportError, UsageError):
     """An unknown export format, or an output name that contradicts it (a usage error: exit 2)."""
 
     exit_code = 2
-
-
-class ExportParams(Params):
-    """What to write: the format, and the stem every file name derives from."""
-
-    format: Format = "obj"
-    name: str = "scan"
 
 
 def check_format(fmt: str) -> str:

@@ -14,7 +14,7 @@ Each filter is one nested parameter model with ``enabled``; they run in this ord
    outliers), ``replace`` moves every point to it along its beam. Points with fewer than
    ``min_neighbours`` valid neighbours are taken in both cases.
 5. ``smoothing`` (grid): an edge-preserving (bilateral) smoothing of the range image; points
-   move along their beams. Off by default; the grid mesh uses it.
+   move along their beams. On by default; the grid mesh meshes the smoothed range image.
 6. ``double_coverage`` (grid): with more than 180° of travel a 360° profile sees every
    direction twice, at (α, β) and (−α, β + 180°). ``keep`` both, ``merge`` them into the first
    view (mean position; the second is taken), or keep the ``best`` view: the one whose beam

@@ -66,7 +66,7 @@ def platform_speed_deg_s(motor_table: pa.Table, motor: MotorConfig) -> float:
     steps = motor_table.column("step_count").to_numpy().astype(np.float64)
     order = np.argsort(t, kind="stable")
     dt = np.diff(t[order]).astype(np.float64) / 1e9
-    dbeta = np.abs(np.diff(steps[order])) * motor.step_deg
+    dbeta = np.abs(np.diff(steps[order])) * motor.pulse_step_deg
     moving = (dt > 0) & (dbeta > 0)
     return float(np.median(dbeta[moving] / dt[moving])) if moving.any() else 0.0
 
