@@ -89,7 +89,7 @@ class Ctx:
             out = folder / "base.mcap"
             run = run_cli(["simulate", "--direct", "--out", str(out), "--truth",
                            str(folder / "truth"), "--scene", "box", "--motor-step", "5",
-                           "--scanner-step", "2", "--camera-scale", "0.05", "--camera-fps", "1",
+                           "--beam-step", "2", "--camera-scale", "0.05", "--camera-fps", "1",
                            "--seed", str(self.seed), "-q"], folder, timeout_s=120)
             if run.code != 0:
                 raise RuntimeError(f"the base recording could not be made: {run.err}")
@@ -623,7 +623,7 @@ def attack_kills(ctx: Ctx) -> dict[str, Any]:
     for attempt in range(kills):
         out = work / f"kill{attempt}.mcap"
         args = ["simulate", "--out", str(out), "--truth", str(work / f"truth{attempt}"),
-                "--scene", "box", "--motor-step", "5", "--scanner-step", "2", "--no-cameras",
+                "--scene", "box", "--motor-step", "5", "--beam-step", "2", "--no-cameras",
                 "--speedup", "6", "--seed", str(attempt), "-q"]
         process = subprocess.Popen([sys.executable, "-m", "scanpipe.cli.main", *args], cwd=work,
                                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -705,7 +705,7 @@ def _rig_cases(folder: Path) -> list[tuple[str, str]]:
              ("deep table header", "[" + ".".join(["a"] * 3000) + "]\n"),
              ("format_version 99", swap("format_version", "99")),
              ("format_version bool", swap("format_version", "true"))]
-    for key in ("scan_hz", "pulse_limit", "gear_ratio", "angular_step_deg", "settle_s",
+    for key in ("scan_hz", "pulse_limit", "gear_ratio", "beam_step_deg", "settle_s",
                 "width"):
         for label, value in (("nan", "nan"), ("inf", "inf"), ("-inf", "-inf"),
                              ("bool", "true"), ("huge float", "1e308"),
@@ -896,7 +896,7 @@ def attack_bombs(ctx: Ctx) -> dict[str, Any]:
             cases.append((f"scene texture {name}",
                           ["simulate", "--direct", "--scene", str(folder / "scene.obj"),
                            "--out", str(folder / "out.mcap"), "--truth", str(folder / "truth"),
-                           "--motor-step", "30", "--scanner-step", "5", "--no-cameras", "-q"]))
+                           "--motor-step", "30", "--beam-step", "5", "--no-cameras", "-q"]))
         if frames_too:
             rec = work / f"frames_{name}.mcap"
             _bomb_recording(base, data, rec)
@@ -981,7 +981,7 @@ def attack_motor(ctx: Ctx) -> dict[str, Any]:
     beyond = tracebacks = refused = 0
     for _ in range(sequences):
         motor = MotorConfig(pulse_limit=limit)
-        platform = PlatformState(motor.step_deg)
+        platform = PlatformState(motor.pulse_step_deg)
         emulator = MotorEmulator(motor, platform, SimClock(500.0))
         emulator.start()
         actions: list[str] = []
@@ -1059,7 +1059,7 @@ def _consecutive_records(ctx: Ctx, count: int) -> dict[str, Any]:
         "scanner": rig.scanner.model_copy(update={"dialect": "paper"}),
         "motor": rig.motor.model_copy(update={"pulse_limit": limit})})
     options = SimOptions(rig=rig, scene="box", mode="step", motor_step_deg=5.0,
-                         scanner_step_deg=2.0, cameras=False, seed=ctx.seed)
+                         beam_step_deg=2.0, cameras=False, seed=ctx.seed)
     work = ctx.scratch / "records"
     work.mkdir()
     within = tracebacks = 0
@@ -1069,7 +1069,7 @@ def _consecutive_records(ctx: Ctx, count: int) -> dict[str, Any]:
             mode = ("step", "continuous")[index % 2]
             try:
                 Recorder(virtual.client_rig(), work / f"scan{index}.mcap",
-                         RecordOptions(mode=mode, step_angle_deg=12.0, speedup=25.0,
+                         RecordOptions(mode=mode, motor_step_deg=12.0, speedup=25.0,
                                        install_signal_handlers=False, cameras=False)).run()
             except Exception as err:
                 if not _is_scanpipe_error(err):
@@ -1111,7 +1111,7 @@ def attack_overwrites(ctx: Ctx) -> dict[str, Any]:
         "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
         "property float z\nend_header\n0 0 1\n1 0 1\n0 1 1\n")
     (template / "rig.toml").write_text("# mine\n")
-    sim = ["--direct", "--scene", "box", "--motor-step", "30", "--scanner-step", "5",
+    sim = ["--direct", "--scene", "box", "--motor-step", "30", "--beam-step", "5",
            "--no-cameras", "-q"]
     cases: list[tuple[str, list[str]]] = [
         ("simulate --out an existing recording",
