@@ -366,6 +366,20 @@ def _mutate(dialect: Any, rng: random.Random, stream: bytes, frames: list[_Frame
     return kind, bytes(out), touched
 
 
+def _xor_insert(rng: random.Random, stream: bytes, frames: list[_Frame]
+                ) -> tuple[str, bytes, set[int]]:
+    """A crafted insertion: one byte equal to a frame's own XOR checksum, inside its payload.
+
+    The length field then ends the frame one byte early, the pushed-out last payload byte is
+    read as the checksum, and the XOR of the payload (the original's XOR, the inserted byte and
+    the last byte removed) equals it: the 8-bit checksum cannot see this damage.
+    """
+    index = rng.randrange(len(frames) - 1)
+    f = frames[index]
+    at = rng.randint(f.start + 8 + 1, f.end - 2)  # inside the payload, before its last byte
+    return "xor-insert", stream[:at] + stream[f.end - 1:f.end] + stream[at:], {index}
+
+
 def _describe(p: Any) -> str:
     return (f"frame {p.frame} sector {p.sector} start {p.start_angle_deg}° step {p.step_deg}° "
             f"{len(p.ranges_m)} samples t {p.device_time_ms}…{p.device_end_time_ms}")
@@ -392,14 +406,18 @@ def attack_streams(ctx: Ctx) -> dict[str, Any]:
 
     rng = ctx.rng("streams")
     cases = 400 if ctx.quick else 10_000
+    crafted = 20 if ctx.quick else 200  # after the random cases: the checksum-keeping insertion
     intact = recovered = false_frames = tracebacks = refusals = split_differs = 0
     detect_wrong = 0
     per_kind: dict[str, list[int]] = {}
-    for case in range(cases):
+    for case in range(cases + crafted):
         name = ("paper", "ldoem")[case % 2]
         dialect = DIALECTS[name]
         stream, frames = _stream_profiles(dialect, rng, rng.randint(2, 10))
-        kind, damaged, touched = _mutate(dialect, rng, stream, frames)
+        if case < cases:
+            kind, damaged, touched = _mutate(dialect, rng, stream, frames)
+        else:
+            kind, damaged, touched = _xor_insert(rng, stream, frames)
         refs = {f.ref.frame: f.ref for f in frames}
         try:
             decoder = StreamDecoder(dialect)
@@ -447,7 +465,9 @@ def attack_streams(ctx: Ctx) -> dict[str, Any]:
                      _stream_detail(frames, wanted, got, false_here))
     share = 100.0 * recovered / intact if intact else 100.0
     return {
-        "cases": cases,
+        "cases": cases + crafted,
+        "random_cases": cases,
+        "crafted_cases": crafted,
         "intact_frames": intact,
         "intact_recovered": recovered,
         "intact_recovered_pct": round(share, 3),
