@@ -6,7 +6,9 @@
   ``import scanpipe…`` / ``from scanpipe… import`` statements, wherever they stand);
 - the modules that declare the ``points`` columns (a literal ``"origin_x"`` column name in a
   dict or schema outside the schema module counts as a declaration);
-- the spellings of the motor step across code, CLI options and docs.
+- the names of the motor step across code, CLI options and docs (``--motor-step`` and
+  ``motor_step_deg`` are one name in two dresses; hidden deprecated CLI aliases are not
+  counted).
 
 The test suite asserts the first (no circles); the others are for the closing notes.
 """
@@ -19,6 +21,7 @@ import json
 import re
 import sys
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / "src"
@@ -113,6 +116,28 @@ def points_column_declarations(src: Path = SRC) -> list[str]:
     return found
 
 
+def canonical_name(spelling: str) -> str:
+    """One idea's name whatever its dress: ``--motor-step`` and ``motor_step_deg`` are one."""
+    return spelling.lstrip("-").replace("-", "_").removesuffix("_deg")
+
+
+def hidden_cli_flags() -> set[str]:
+    """Every hidden option of every ``scanpipe`` command: the deprecated spellings kept as
+    aliases (they are there to be retired, so they do not count as names in use)."""
+    import typer
+
+    from scanpipe.cli.main import app
+
+    def walk(command: Any) -> set[str]:  # typer's own click: duck-typed
+        flags = {opt for p in command.params if getattr(p, "hidden", False)
+                 for opt in getattr(p, "opts", ())}
+        for sub in getattr(command, "commands", {}).values():
+            flags |= walk(sub)
+        return flags
+
+    return walk(typer.main.get_command(app))
+
+
 def motor_step_spellings(root: Path = ROOT) -> dict[str, int]:
     """How often each spelling of the motor step occurs in src/, README.md and docs/."""
     texts = [p.read_text() for p in [*(root / "src").rglob("*.py"), root / "README.md",
@@ -129,9 +154,12 @@ def figures() -> dict[str, object]:
     circles = import_circles(import_graph())
     declarations = points_column_declarations()
     spellings = motor_step_spellings()
+    hidden = hidden_cli_flags()
+    names = sorted({canonical_name(s) for s in spellings if s not in hidden})
     return {"import_circles": len(circles), "circles": circles,
             "points_column_declarations": len(declarations), "points_declared_in": declarations,
-            "motor_step_names": len(spellings), "motor_step_spellings": spellings}
+            "motor_step_names": len(names), "motor_step_canonical": names,
+            "motor_step_spellings": spellings}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -149,7 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"modules declaring the points columns: {result['points_column_declarations']} "
           f"({', '.join(result['points_declared_in'])})")  # type: ignore[arg-type]
     print(f"names of the motor step: {result['motor_step_names']} "
-          f"{result['motor_step_spellings']}")
+          f"{result['motor_step_canonical']} (spellings, hidden deprecated aliases included: "
+          f"{result['motor_step_spellings']})")
     return 0
 
 

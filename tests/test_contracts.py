@@ -9,7 +9,14 @@ from typing import Any
 import pyarrow as pa
 import pytest
 
-from benchmarks.structure import import_circles, import_graph, points_column_declarations
+from benchmarks.structure import (
+    canonical_name,
+    hidden_cli_flags,
+    import_circles,
+    import_graph,
+    motor_step_spellings,
+    points_column_declarations,
+)
 from scanpipe.artifacts import write_artifact
 from scanpipe.errors import ArtifactError
 from scanpipe.params import Params
@@ -29,6 +36,13 @@ def test_no_import_circles_in_src() -> None:
 
 def test_points_columns_are_declared_only_in_the_schema() -> None:
     assert points_column_declarations() == []
+
+
+def test_the_motor_step_has_one_name_besides_hidden_deprecated_aliases() -> None:
+    hidden = hidden_cli_flags()
+    assert {"--step-angle", "--angle"} <= hidden
+    names = {canonical_name(s) for s in motor_step_spellings() if s not in hidden}
+    assert names == {"motor_step"}
 
 
 def test_every_stage_speaks_in_known_artifacts() -> None:

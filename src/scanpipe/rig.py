@@ -99,11 +99,6 @@ class ScannerConfig(Params):
         """Samples in one profile: the covered sector divided by the beam step."""
         return round((self.end_angle_deg - self.start_angle_deg) / self.beam_step_deg)
 
-    @property
-    def angular_step_deg(self) -> float:
-        """Deprecated: the old name of :attr:`beam_step_deg` (still read by acquire/info.py)."""
-        return self.beam_step_deg
-
 
 #: The largest pulse count any controller can hold: its count is a signed 32-bit integer.
 MAX_PULSE_COUNT = 2**31 - 1
@@ -179,11 +174,6 @@ class MotorConfig(Params):
         """The pulse step: platform rotation per pulse (paper eq. 1, its "minimum step"), full
         step / gear ratio. A scan's motor step is a whole number of these."""
         return self.full_step_deg / self.gear_ratio
-
-    @property
-    def step_deg(self) -> float:
-        """Deprecated: the old name of :attr:`pulse_step_deg` (still read by acquire/info.py)."""
-        return self.pulse_step_deg
 
     @property
     def travel_limit(self) -> int | None:

@@ -93,9 +93,10 @@ def recording_info(recording: Recording, gap_s: float = 1.0) -> dict[str, Any]:
     try:
         parsed = recording.rig()
         rig.update(name=parsed.name, dialect=parsed.scanner.dialect,
-                   angular_step_deg=parsed.scanner.angular_step_deg,
+                   beam_step_deg=parsed.scanner.beam_step_deg,
                    scan_hz=parsed.scanner.scan_hz, pulse_limit=parsed.motor.pulse_limit,
-                   step_deg=parsed.motor.step_deg, cameras=[c.id for c in parsed.cameras])
+                   pulse_step_deg=parsed.motor.pulse_step_deg,
+                   cameras=[c.id for c in parsed.cameras])
     except RecordingError as err:
         rig["error"] = str(err)
     return {
@@ -148,9 +149,9 @@ def format_info(info: dict[str, Any], max_events: int = 20) -> str:
                                                          "step_count", "format_version")))
     rig = info["rig"]
     if "name" in rig:
-        lines.append(f"rig         {rig['name']}: {rig['dialect']} scanner at "
-                     f"{rig['angular_step_deg']:g}° and {rig['scan_hz']:g} Hz, motor step "
-                     f"{rig['step_deg']:g}°, pulse limit {rig['pulse_limit']}, cameras: "
+        lines.append(f"rig         {rig['name']}: {rig['dialect']} scanner, beam step "
+                     f"{rig['beam_step_deg']:g}° at {rig['scan_hz']:g} Hz, pulse step "
+                     f"{rig['pulse_step_deg']:g}°, pulse limit {rig['pulse_limit']}, cameras: "
                      f"{', '.join(rig['cameras']) or 'none'}")
     else:
         lines.append(f"rig         {rig.get('error', 'none stored')}")
