@@ -97,8 +97,45 @@ def _transform(ts: Any, time_s: float, parent: str, child: str, rotation: F64,
             rotation=types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)))
 
 
-def turntable_messages(ts: Any, angle_source: str, scan_topics: tuple[str, ...] = ("/scan",)
-                       ) -> list[tuple[str, str, float, Any]]:
+def image_messages(ts: Any) -> list[tuple[str, str, float, Any]]:
+    """A JPEG CompressedImage camera with its CameraInfo, and a raw rgb8 Image camera."""
+    import cv2
+
+    out: list[tuple[str, str, float, Any]] = []
+    types = ts.types
+    pixels = np.zeros((48, 64, 3), np.uint8)
+    pixels[:, :32] = (0, 0, 255)  # BGR red left half
+    ok, jpeg = cv2.imencode(".jpg", pixels)
+    assert ok
+    k = np.array([50.0, 0, 31.5, 0, 50.0, 23.5, 0, 0, 1])
+    info_fields = ts.fielddefs["sensor_msgs/msg/CameraInfo"][1]
+    names = [f[0] for f in info_fields]
+    lower = "k" in names
+    for i in range(4):
+        t = i * 0.7
+        out.append(("/cam/image/compressed", "sensor_msgs/msg/CompressedImage", t,
+                    types["sensor_msgs/msg/CompressedImage"](
+                        header=_header(ts, t, "cam"), format="jpeg",
+                        data=np.frombuffer(jpeg.tobytes(), np.uint8))))
+        out.append(("/raw/image_raw", "sensor_msgs/msg/Image", t, types["sensor_msgs/msg/Image"](
+            header=_header(ts, t, "raw"), height=48, width=64, encoding="rgb8",
+            is_bigendian=0, step=64 * 3, data=pixels[:, :, ::-1].copy().ravel())))
+    values = {n: None for n in names}
+    values.update({"header": _header(ts, 0.0, "cam"), "height": 48, "width": 64,
+                   "distortion_model": "plumb_bob"})
+    roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                    do_rectify=False)
+    values.update({("d" if lower else "D"): np.zeros(5), ("k" if lower else "K"): k,
+                   ("r" if lower else "R"): np.eye(3).ravel(),
+                   ("p" if lower else "P"): np.zeros(12), "binning_x": 0, "binning_y": 0,
+                   "roi": roi})
+    out.append(("/cam/camera_info", "sensor_msgs/msg/CameraInfo", 0.0,
+                types["sensor_msgs/msg/CameraInfo"](**values)))
+    return out
+
+
+def turntable_messages(ts: Any, angle_source: str, scan_topics: tuple[str, ...] = ("/scan",),
+                       images: bool = False) -> list[tuple[str, str, float, Any]]:
     """(topic, type, time, message) of a turntable scan; JointState ``turntable`` or TF."""
     use_tf = angle_source == "tf"
     r_pl, t_pl = (TF_R_PL, TF_T_PL) if use_tf else (DEFAULT_R_PL, np.zeros(3))
@@ -135,6 +172,8 @@ def turntable_messages(ts: Any, angle_source: str, scan_topics: tuple[str, ...] 
         out.append(("/tf_static", "tf2_msgs/msg/TFMessage", 0.0, tf_type(transforms=[
             _transform(ts, 0.0, "platform", "mount", half, TF_T_PL),
             _transform(ts, 0.0, "mount", "laser", half.T @ TF_R_PL, np.zeros(3))])))
+    if images:
+        out += image_messages(ts)
     return sorted(out, key=lambda m: m[2])
 
 
@@ -206,3 +245,153 @@ def test_tf_bag_takes_the_mount_and_the_yaw(tmp_path: Path, cli: Any) -> None:
     assert result.code == 0, result.err
     _, truth, _ = ros_scan(TF_R_PL, TF_T_PL, YAW0)
     check_against_truth(assembled(tmp_path / "w"), truth)
+
+
+FIXTURES = Path(__file__).parent / "fixtures"
+
+
+@pytest.mark.parametrize("kind", ["ros1", "sqlite3"])
+def test_full_run_on_an_imported_bag_with_images(tmp_path: Path, cli: Any, kind: str) -> None:
+    from scanpipe.recording.reader import read_recording
+
+    bag = write_bag(tmp_path, kind, lambda ts: turntable_messages(ts, "joint", images=True))
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", bag, "--out", out, "--image", "/cam/image/compressed",
+                 "--image", "/raw/image_raw")
+    assert result.code == 0, result.err
+    assert "no CameraInfo" in result.err and "/raw/image_raw" in result.err
+    recording = read_recording(out)
+    rig = recording.rig()
+    cam = rig.camera("cam_image_compressed")
+    assert (cam.width, cam.height, cam.fx, cam.cx, cam.cy) == (64, 48, 50.0, 31.5, 23.5)
+    formats = {(i.camera_id, i.format) for i in recording.images}
+    assert formats == {("cam_image_compressed", "jpeg"), ("raw_image_raw", "png")}
+    import cv2
+
+    png = next(i.data for i in recording.images if i.format == "png")
+    decoded = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert tuple(decoded[0, 0]) == (0, 0, 255) and tuple(decoded[0, 63]) == (0, 0, 0)
+    result = cli("run", out, "--workdir", tmp_path / "w", "-q")
+    assert result.code == 0, result.err
+    assert (tmp_path / "w" / "export").is_dir()
+
+
+def test_ambiguous_scan_topics_are_listed(tmp_path: Path, cli: Any) -> None:
+    bag = write_bag(tmp_path, "sqlite3",
+                    lambda ts: turntable_messages(ts, "joint", ("/front/scan", "/rear/scan")))
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", bag, "--out", out)
+    assert result.code == 1
+    assert result.err.count("\n") == 1
+    assert "2 laser scan topics; choose one with --scan" in result.err
+    assert "/front/scan (sensor_msgs/LaserScan, 60)" in result.err
+    assert "/rear/scan (sensor_msgs/LaserScan, 60)" in result.err
+    assert not out.exists()
+    assert cli("import-bag", bag, "--out", out, "--scan", "/rear/scan").code == 0
+
+
+def test_existing_output_is_not_overwritten_without_force(tmp_path: Path, cli: Any) -> None:
+    bag = write_bag(tmp_path, "mcap", lambda ts: turntable_messages(ts, "joint"))
+    out = tmp_path / "rec.mcap"
+    out.write_bytes(b"precious")
+    result = cli("import-bag", bag, "--out", out)
+    assert result.code == 2
+    assert "already exists; pass --force" in result.err
+    assert out.read_bytes() == b"precious"
+    assert cli("import-bag", bag, "--out", out, "--force").code == 0
+    assert out.read_bytes()[:8] == b"\x89MCAP0\r\n"
+
+
+@pytest.mark.parametrize("damage", ["cut", "garbage"])
+def test_damaged_bag_is_one_line(tmp_path: Path, cli: Any, damage: str) -> None:
+    source = (FIXTURES / "psen_scan_v2_laser.bag").read_bytes()
+    bag = tmp_path / "bad.bag"
+    bag.write_bytes(source[:len(source) // 2] if damage == "cut"
+                    else bytes(range(256)) * 20)
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", bag, "--out", out)
+    assert result.code == 1
+    assert result.err.startswith(f"scanpipe: error: {bag}: not a readable ROS bag")
+    assert result.err.count("\n") == 1
+    assert not out.exists() and list(tmp_path.iterdir()) == [bag]
+
+
+def test_bag_without_laser_scan_names_what_it_holds(tmp_path: Path, cli: Any) -> None:
+    bag = FIXTURES / "psen_scan_v2_zones.bag"  # a real ROS 1 bag: one zone configuration
+    result = cli("import-bag", bag, "--out", tmp_path / "rec.mcap")
+    assert result.code == 1
+    assert result.err == (f"scanpipe: error: {bag}: no laser scan (sensor_msgs/LaserScan or "
+                          "MultiEchoLaserScan) in the bag; found: /laser_1/zoneconfiguration "
+                          "(psen_scan_v2/ZoneSetConfiguration, 1)\n")
+
+
+def test_no_platform_angle_lists_topics(cli: Any, tmp_path: Path) -> None:
+    bag = FIXTURES / "psen_scan_v2_laser.bag"
+    result = cli("import-bag", bag, "--out", tmp_path / "rec.mcap")
+    assert result.code == 1 and result.err.count("\n") == 1
+    assert "no platform angle chosen (no JointState in the bag); pass --joint NAME or --tf" \
+        in result.err
+    assert "/laser_scanner/scan (sensor_msgs/LaserScan, 522)" in result.err
+
+
+@pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
+def test_info_and_run_on_a_bag_say_import_bag(tmp_path: Path, cli: Any, kind: str) -> None:
+    bag = write_bag(tmp_path, kind, lambda ts: turntable_messages(ts, "joint"))
+    target = bag if kind == "ros1" else (bag / f"{bag.name}.mcap" if kind == "mcap" else bag)
+    for command in (["info", target], ["run", target, "--workdir", tmp_path / "w"]):
+        result = cli(*command)
+        assert result.code != 0
+        errors = [line for line in result.err.splitlines() if "error" in line]
+        assert len(errors) == 1, result.err
+        assert "ROS" in errors[0] and "scanpipe import-bag" in errors[0], result.err
+        assert "not an MCAP file" not in result.err
+
+
+def test_public_laser_bag_imports(tmp_path: Path, cli: Any) -> None:
+    """The Pilz PSENscan driver's recorded LaserScan (tests/fixtures/README.md) with a
+    platform angle added: counts, beam angles and ranges as the scanner wrote them."""
+    from rosbags.highlevel import AnyReader
+
+    from scanpipe.recording.reader import read_recording
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    bag = tmp_path / "laser_with_joint.bag"
+    scans: list[Any] = []
+    with AnyReader([FIXTURES / "psen_scan_v2_laser.bag"]) as reader, Writer1(bag) as writer:
+        (conn,) = [c for c in reader.connections if c.topic == "/laser_scanner/scan"]
+        out_conn = writer.add_connection(conn.topic, conn.msgtype, typestore=ts)
+        for c, t, raw in reader.messages(connections=[conn]):
+            writer.write(out_conn, t, raw)  # the scanner's own bytes
+            scans.append((t, reader.deserialize(raw, c.msgtype)))
+        joints = writer.add_connection("/joint_states", "sensor_msgs/msg/JointState",
+                                       typestore=ts)
+        first, last = scans[0][0], scans[-1][0]
+        for k in range(50):
+            t = first + (last - first) * k // 49
+            msg = ts.types["sensor_msgs/msg/JointState"](
+                header=ts.types["std_msgs/msg/Header"](
+                    seq=k, stamp=ts.types["builtin_interfaces/msg/Time"](
+                        sec=t // 10**9, nanosec=t % 10**9), frame_id=""),
+                name=["turntable"], position=np.array([k * 0.05]),
+                velocity=np.zeros(0), effort=np.zeros(0))
+            writer.write(joints, t, ts.serialize_ros1(msg, "sensor_msgs/msg/JointState"))
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", bag, "--out", out, "--json")
+    assert result.code == 0, result.err
+    assert '"profiles": 522' in result.out and '"samples_per_profile": 500' in result.out
+    recording = read_recording(out)
+    assert len(recording.profiles) == 522
+    msg = scans[0][1]
+    p = recording.profiles[0]
+    assert p.start_angle_deg == pytest.approx(math.degrees(msg.angle_min) + 90, abs=1e-9)
+    assert p.step_deg == pytest.approx(math.degrees(msg.angle_increment), abs=1e-12)
+    raw = np.asarray(msg.ranges, np.float32)
+    usable = (raw >= msg.range_min) & (raw <= msg.range_max)
+    np.testing.assert_array_equal(p.ranges_m[usable], raw[usable])
+    assert np.isnan(p.ranges_m[~usable]).all()
+    assert recording.motor.step_count[-1] == round(-math.degrees(49 * 0.05) / 1e-4)
+    rig = recording.rig()
+    assert rig.scanner.beam_step_deg == pytest.approx(0.1, abs=1e-6)
+    assert rig.scanner.max_range_m == pytest.approx(40.0)
+    result = cli("decode", out, "--out", tmp_path / "d")
+    assert result.code == 0, result.err

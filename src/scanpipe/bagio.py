@@ -312,7 +312,8 @@ def joint_angles(path: Path, reader: Any, topics: Sequence[Topic], joint: str | 
         moving = [k for k, v in positions.items()
                   if np.ptp([p for _, p in v]) > _MOVING_RAD]
         if len(moving) != 1:
-            what = ("no JointState joint moves" if not moving else
+            what = ("no JointState in the bag" if not joint_topics else
+                    "no JointState joint moves" if not moving else
                     f"{len(moving)} joints move: {', '.join(f'{k[1]} on {k[0]}' for k in moving)}")
             raise BagError(f"{path}: no platform angle chosen ({what}); pass --joint NAME or "
                            f"--tf PARENT:CHILD; found: {_listing(topics)}")
@@ -367,9 +368,10 @@ def _camera(camera_id: str, info: Any | None, size: tuple[int, int] | None,
     data = base.model_dump()
     data["id"] = camera_id
     data["source"] = "bag"
-    if info is not None and int(info.width) and float(info.k[0]) > 0:
-        k = [float(v) for v in info.k]
-        d = [float(v) for v in info.d][:5]
+    # ROS 2 spells the matrices k and d, ROS 1 (a .bag's own definitions) K and D.
+    k = [float(v) for v in getattr(info, "k", getattr(info, "K", []))] if info else []
+    if info is not None and int(info.width) and len(k) == 9 and k[0] > 0:
+        d = [float(v) for v in getattr(info, "d", getattr(info, "D", []))][:5]
         data.update(width=int(info.width), height=int(info.height), fx=k[0], fy=k[4],
                     cx=k[2], cy=k[5], distortion=d + [0.0] * (5 - len(d)))
     elif size is not None:

@@ -40,9 +40,12 @@ def import_bag(
         return
     lo, hi = report["beta_deg_range"]
     images = ", ".join(f"{k}: {v}" for k, v in report["images"].items()) or "no images"
+    # Texturing needs camera frames: without them the chain ends at the mesh.
+    until = "" if report["images"] else " --to mesh"
     typer.echo(f"{out}: {report['profiles']} profiles × {report['samples_per_profile']} "
                f"samples from {report['scan_topic']}, {report['angle_reports']} platform "
-               f"angles ({lo:.1f}° … {hi:.1f}°), {images}; next: scanpipe run {out}")
+               f"angles ({lo:.1f}° … {hi:.1f}°), {images}; next: scanpipe run {out} "
+               f"--workdir W{until}")
     print_warnings("import-bag", report)
 
 
