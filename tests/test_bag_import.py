@@ -134,6 +134,27 @@ def image_messages(ts: Any) -> list[tuple[str, str, float, Any]]:
     return out
 
 
+def multi_echo(ts: Any, messages: list[tuple[str, str, float, Any]]
+               ) -> list[tuple[str, str, float, Any]]:
+    """The LaserScans as MultiEchoLaserScans: the true range first, a nearer false echo next."""
+    types = ts.types
+    echo = types["sensor_msgs/msg/LaserEcho"]
+    out = []
+    for topic, msgtype, t, msg in messages:
+        if msgtype == "sensor_msgs/msg/LaserScan":
+            fields = {k: getattr(msg, k) for k in ("header", "angle_min", "angle_max",
+                      "angle_increment", "time_increment", "scan_time", "range_min",
+                      "range_max")}
+            msg = types["sensor_msgs/msg/MultiEchoLaserScan"](
+                **fields,
+                ranges=[echo(echoes=np.array([r, 0.3 * r], np.float32)) for r in msg.ranges],
+                intensities=[echo(echoes=np.array([5.0, 1.0], np.float32))
+                             for _ in msg.ranges])
+            msgtype = "sensor_msgs/msg/MultiEchoLaserScan"
+        out.append((topic, msgtype, t, msg))
+    return out
+
+
 def turntable_messages(ts: Any, angle_source: str, scan_topics: tuple[str, ...] = ("/scan",),
                        images: bool = False) -> list[tuple[str, str, float, Any]]:
     """(topic, type, time, message) of a turntable scan; JointState ``turntable`` or TF."""
@@ -234,6 +255,20 @@ def test_joint_state_bag_assembles_the_room(tmp_path: Path, cli: Any, kind: str)
     no_return = (points["sample"] == 5) | (points["sample"] == 6)
     assert np.isnan(points["range_m"][no_return]).all()  # inf, below range_min: no return
     assert np.isfinite(points["range_m"][~no_return]).all()
+
+
+def test_multi_echo_takes_the_first_echo(tmp_path: Path, cli: Any) -> None:
+    bag = write_bag(tmp_path, "sqlite3", lambda ts: multi_echo(ts, turntable_messages(ts, "joint")))
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", bag, "--out", out)
+    assert result.code == 0, result.err
+    assert "MultiEchoLaserScan: the first echo of each beam is taken" in result.err
+    result = cli("run", out, "--workdir", tmp_path / "w", "--to", "assemble", "-q")
+    assert result.code == 0, result.err
+    _, truth, _ = ros_scan(DEFAULT_R_PL, np.zeros(3), 0.0)
+    points = assembled(tmp_path / "w")
+    check_against_truth(points, truth)
+    assert set(np.unique(points["echo"]).tolist()) == {5}
 
 
 def test_tf_bag_takes_the_mount_and_the_yaw(tmp_path: Path, cli: Any) -> None:
