@@ -430,3 +430,65 @@ def test_public_laser_bag_imports(tmp_path: Path, cli: Any) -> None:
     assert rig.scanner.max_range_m == pytest.approx(40.0)
     result = cli("decode", out, "--out", tmp_path / "d")
     assert result.code == 0, result.err
+
+
+@pytest.mark.parametrize(("args", "code", "message"), [
+    (["--scan", "/nope"], 1, "--scan /nope: no such topic; laser scan topics: /scan "
+                             "(sensor_msgs/LaserScan, 60)"),
+    (["--scan", "/joint_states"], 1, "--scan /joint_states: is sensor_msgs/msg/JointState, "
+                                     "not a LaserScan"),
+    (["--joint", "elbow"], 1, "--joint elbow: no JointState reports it"),
+    (["--tf", "base"], 2, "--tf 'base': expected PARENT:CHILD"),
+    (["--tf", "base:platform", "--joint", "turntable"], 2, "--joint and --tf both"),
+    (["--tf", "map:base"], 1, "--tf map:base: no such transform in /tf; transforms found: none"),
+    (["--image", "/scan"], 1, "--image /scan: not an image topic; image topics: no topics"),
+])
+def test_bad_arguments_are_one_line(tmp_path: Path, cli: Any, args: list[str], code: int,
+                                    message: str) -> None:
+    bag = write_bag(tmp_path, "ros1", lambda ts: turntable_messages(ts, "joint"))
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", bag, "--out", out, *args)
+    assert result.code == code
+    assert message in result.err and result.err.count("\n") == 1, result.err
+    assert not out.exists()
+
+
+def test_fixed_joint_is_not_a_platform(tmp_path: Path, cli: Any) -> None:
+    bag = write_bag(tmp_path, "ros1", lambda ts: turntable_messages(ts, "joint"))
+    result = cli("import-bag", bag, "--out", tmp_path / "rec.mcap", "--joint", "fixed_wheel")
+    assert result.code == 0  # named explicitly: taken, even though it stands still
+    from scanpipe.recording.reader import read_recording
+
+    steps = read_recording(tmp_path / "rec.mcap").motor.step_count
+    assert set(steps.tolist()) == {round(-math.degrees(0.5) / 1e-4)}
+
+
+def test_rig_option_keeps_its_calibration(tmp_path: Path, cli: Any) -> None:
+    from scanpipe.recording.reader import read_recording
+    from scanpipe.rig import load_rig
+
+    bag = write_bag(tmp_path, "mcap", lambda ts: turntable_messages(ts, "joint"))
+    rig_file = tmp_path / "rig.toml"
+    assert cli("rig", "init", rig_file).code == 0
+    rig_file.write_text(rig_file.read_text().replace("alpha_offset_deg = 0.0",
+                                                     "alpha_offset_deg = 1.5"))
+    assert load_rig(rig_file).scanner.alpha_offset_deg == 1.5
+    out = tmp_path / "rec.mcap"
+    assert cli("import-bag", bag, "--out", out, "--rig", rig_file).code == 0
+    rig = read_recording(out).rig()
+    assert rig.scanner.alpha_offset_deg == 1.5 and rig.scanner.dialect == "ldoem"
+    assert rig.motor.pulse_step_deg == pytest.approx(1e-4)
+
+
+def test_tf_child_that_moves_off_the_axis_is_refused(tmp_path: Path, cli: Any) -> None:
+    def drifting(ts: Any) -> list[tuple[str, str, float, Any]]:
+        messages = turntable_messages(ts, "tf")
+        for topic, _, t, msg in messages:
+            if topic == "/tf":
+                msg.transforms[0].transform.translation.x = 0.1 * t  # slides, not a turntable
+        return messages
+
+    bag = write_bag(tmp_path, "sqlite3", drifting)
+    result = cli("import-bag", bag, "--out", tmp_path / "rec.mcap", "--tf", "base:platform")
+    assert result.code == 1 and result.err.count("\n") == 1
+    assert "platform does not only turn about base's z" in result.err

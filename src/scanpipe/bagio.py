@@ -285,6 +285,20 @@ def tf_angles(path: Path, transforms: Sequence[Transform], parent: str, child: s
     first = moving[0]
     c, s = math.cos(-yaw[0]), math.sin(-yaw[0])
     unturn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    # The child's pose with its yaw taken out must stay put: anything else is no turntable.
+    cos_y, sin_y = np.cos(yaw - yaw[0]), np.sin(yaw - yaw[0])
+    rotations = np.stack([t.rotation for t in moving])
+    translations = np.stack([t.translation for t in moving])
+    turn_back = np.zeros((yaw.size, 3, 3))
+    turn_back[:, 0, 0], turn_back[:, 0, 1] = cos_y, sin_y
+    turn_back[:, 1, 0], turn_back[:, 1, 1] = -sin_y, cos_y
+    turn_back[:, 2, 2] = 1.0
+    tilt = np.abs(turn_back @ rotations - first.rotation).max()
+    shift = np.abs(np.einsum("nij,nj->ni", turn_back, translations) - first.translation).max()
+    if tilt > 1e-3 or shift > 1e-3:
+        raise BagError(f"{path}: --tf {parent}:{child}: {child} does not only turn about "
+                       f"{parent}'s z (its tilt or offset changes by up to {tilt:.3g} / "
+                       f"{shift:.3g} m over the bag); not a turntable about the vertical")
     return ([(t.time_ns, -math.degrees(float(a))) for t, a in zip(moving, yaw, strict=True)],
             unturn @ first.rotation, unturn @ first.translation)
 
