@@ -247,6 +247,9 @@ def test_joint_state_bag_assembles_the_room(tmp_path: Path, cli: Any, kind: str)
     result = cli("import-bag", bag, "--out", out)
     assert result.code == 0, result.err
     assert "60 profiles × 541 samples" in result.out
+    info = cli("info", out)
+    assert info.code == 0 and "profiles    60 (decoded" in info.out
+    assert "/scanner/profiles               60" in info.out
     result = cli("run", out, "--workdir", tmp_path / "w", "--to", "assemble", "-q")
     assert result.code == 0, result.err
     points = assembled(tmp_path / "w")
