@@ -68,7 +68,7 @@ def test_show_and_stages(cli, recording: Path, tmp_path: Path) -> None:  # type:
     assert info["stage"] == "assemble" and info["rows"] > 0
     assert set(info["inputs"]) == {"profiles", "motor", "rig"}
     text = cli("show", work / "decode" / "profiles.parquet")
-    assert "stage      decode v2" in text.out
+    assert "stage      decode v3" in text.out
     listed = cli("stages")
     for name in ("decode", "assemble", "filter", "mesh", "texture", "export"):
         assert f"{name} (v" in listed.out

@@ -198,6 +198,9 @@ def run_chain(
         raise ParameterError([f"--to {to!r}: not a stage; stages: {', '.join(names)}"], "run")
     if to is not None:
         chain = chain[: names.index(to) + 1]
+    if recording.is_dir() and (recording / "metadata.yaml").is_file():
+        raise ArtifactError(f"{recording}: is a ROS 2 bag, not a scanpipe recording; convert "
+                            f"it with: scanpipe import-bag {recording} --out REC.mcap")
     if not recording.is_file():
         raise ArtifactError(f"{recording}: recording not found")
     if rig_override is not None:

@@ -31,6 +31,7 @@ MessageSpec = tuple[str, Sequence[FieldSpec], EnumSpecs]
 
 SCALARS = {
     "double": FieldProto.TYPE_DOUBLE,
+    "float": FieldProto.TYPE_FLOAT,
     "fixed32": FieldProto.TYPE_FIXED32,
     "uint64": FieldProto.TYPE_UINT64,
     "int64": FieldProto.TYPE_INT64,
@@ -145,6 +146,7 @@ def proto_source(proto: descriptor_pb2.FileDescriptorProto) -> str:
             type_name = names.get(field.type) or field.type_name.rsplit(".", 1)[-1]
             if field.type_name.startswith(".google."):
                 type_name = field.type_name.lstrip(".")
-            lines.append(f"  {type_name} {field.name} = {field.number};")
+            label = "repeated " if field.label == FieldProto.LABEL_REPEATED else ""
+            lines.append(f"  {label}{type_name} {field.name} = {field.number};")
         lines.append("}")
     return "\n".join(lines) + "\n"

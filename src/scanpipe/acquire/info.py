@@ -42,6 +42,9 @@ def _profile_figures(recording: Recording) -> dict[str, Any]:
     from scanpipe.protocol.registry import StreamDecoder, detect_dialect
 
     data = recording.stream("scanner").data
+    if not data and recording.profiles:  # already decoded (/scanner/profiles: import-bag)
+        return {"count": len(recording.profiles), "sectors": len(recording.profiles),
+                "dialect": "decoded"}
     if not data:
         return {"count": 0, "dialect": None}
     try:
@@ -66,6 +69,10 @@ def recording_info(recording: Recording, gap_s: float = 1.0) -> dict[str, Any]:
             "missing_chunks": rx.missing_chunks + tx.missing_chunks,
             **time_figures(rx.log_time_ns, gap_s),
         }
+    if recording.profiles:
+        profile_times = np.array([p.log_time_ns for p in recording.profiles], np.int64)
+        channels["/scanner/profiles"] = {"messages": len(recording.profiles),
+                                         **time_figures(profile_times, gap_s)}
     channels[MOTOR_STATE] = {"messages": int(recording.motor.log_time_ns.size),
                              **time_figures(recording.motor.log_time_ns, gap_s)}
     by_camera: dict[str, list[int]] = {}

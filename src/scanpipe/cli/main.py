@@ -14,6 +14,7 @@ import typer
 from scanpipe import __version__
 from scanpipe.cli import (
     acquire,
+    bag,
     common,
     decode,
     demo,
@@ -38,7 +39,7 @@ app = typer.Typer(
 )
 
 # Every command group, in the order `scanpipe --help` lists them.
-for module in (demo, plan, rig, acquire, simulate, pipeline, decode, points, mesh, texture,
+for module in (demo, plan, rig, acquire, bag, simulate, pipeline, decode, points, mesh, texture,
                results):
     module.register(app)
 

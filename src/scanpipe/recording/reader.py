@@ -43,6 +43,7 @@ from scanpipe.recording.writer import (
     PROFILE,
     RIG_KEY,
     RIG_METADATA,
+    SCANNER_PROFILES,
     SCANNER_STREAM,
     SESSION_METADATA,
 )
@@ -98,6 +99,20 @@ class Image:
     format: str
     frame_id: str
     data: bytes
+
+
+@dataclass(frozen=True)
+class DecodedProfile:
+    """One ``/scanner/profiles`` message: a profile another tool already decoded."""
+
+    log_time_ns: int
+    device_time_ns: int  # 0 = unknown
+    device_end_time_ns: int  # 0 = unknown
+    frame: int
+    start_angle_deg: float
+    step_deg: float
+    ranges_m: NDArray[np.float32]
+    intensities: NDArray[np.float32]
 
 
 @dataclass(frozen=True)
@@ -178,6 +193,7 @@ class Recording:
     chunks_read: int = 0
     chunks_damaged: int = 0
     loss: RecordingLoss = field(default_factory=RecordingLoss)
+    profiles: list[DecodedProfile] = field(default_factory=list)
 
     @property
     def rig_toml(self) -> str | None:
@@ -219,6 +235,7 @@ class _Collector:
         default_factory=lambda: defaultdict(list))
     motor_rows: list[tuple[int, int, int, bool, int]] = field(default_factory=list)
     images: list[Image] = field(default_factory=list)
+    profiles: list[DecodedProfile] = field(default_factory=list)
     events: list[RecordedEvent] = field(default_factory=list)
     counts: Counter[str] = field(default_factory=Counter)
     undecodable: Counter[str] = field(default_factory=Counter)
@@ -285,17 +302,36 @@ def read_recording(path: Path | str) -> Recording:
                 raise RecordingError(f"{path}: {size} bytes, not an MCAP recording")
             with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as data:
                 if data[:len(MAGIC)] != MAGIC:
-                    raise RecordingError(f"{path}: not an MCAP file (bad magic bytes)")
+                    raise RecordingError(f"{path}: {_not_mcap(bytes(data[:16]))}")
                 collector = _Collector()
                 bytes_read = _read_records(data, size, collector)
                 loss = _loss(data, size, collector)
     except FileNotFoundError:
         raise RecordingError(f"{path}: not found") from None
     except IsADirectoryError:
+        if (path / "metadata.yaml").is_file():
+            raise RecordingError(f"{path}: is a ROS 2 bag, not a scanpipe recording; convert it "
+                                 f"with: scanpipe import-bag {path} --out REC.mcap") from None
         raise RecordingError(f"{path}: is a directory, expected an MCAP recording") from None
     except (OSError, ValueError) as err:  # mmap of special files raises ValueError
         raise RecordingError(f"{path}: cannot be read ({err})") from None
+    except RecordingError as err:
+        if str(err).startswith("is a ROS"):
+            raise RecordingError(f"{path}: {err}") from None
+        raise
     return _assemble(path, collector, bytes_read, size, loss)
+
+
+def _not_mcap(head: bytes) -> str:
+    """Why a file is not a recording: a ROS bag is named as one, with the way in."""
+    if head.startswith(b"#ROSBAG V"):
+        kind = "a ROS 1 bag"
+    elif head.startswith(b"SQLite format 3\0"):
+        kind = "an SQLite file (a ROS 2 bag's .db3?)"
+    else:
+        return "not an MCAP file (bad magic bytes)"
+    return (f"is {kind}, not a scanpipe recording; convert it with: scanpipe import-bag "
+            "BAG --out REC.mcap")
 
 
 def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
@@ -577,6 +613,10 @@ def _read_record(opcode: int, body: bytes | memoryview, c: _Collector) -> None:
     elif opcode == OP_HEADER:
         c.profile, c.library = buf.string(), buf.string()
         _check_consumed(buf)
+        if c.profile in ("ros1", "ros2"):
+            raise RecordingError(f"is a ROS {c.profile[-1]} bag (MCAP storage), not a scanpipe "
+                                 "recording; convert it with: scanpipe import-bag BAG --out "
+                                 "REC.mcap")
         if c.profile != PROFILE:
             c.warnings.append(f"MCAP profile {c.profile!r}: not written by scanpipe "
                               f"(expected {PROFILE!r}); reading what is recognisable")
@@ -602,6 +642,12 @@ def _read_message(channel: int, sequence: int, log_time: int, data: bytes, c: _C
             state = schemas.MotorState.FromString(data)
             c.motor_rows.append((log_time, state.step_count, state.target_step_count,
                                  state.moving, state.device_time_us))
+        elif topic == SCANNER_PROFILES:
+            p = schemas.Profile.FromString(data)
+            c.profiles.append(DecodedProfile(
+                log_time, int(p.device_time_ns), int(p.device_end_time_ns), int(p.frame),
+                float(p.start_angle_deg), float(p.step_deg),
+                np.array(p.ranges_m, np.float32), np.array(p.intensities, np.float32)))
         elif topic == EVENTS:
             event = schemas.Event.FromString(data)
             details = json.loads(event.data_json) if event.data_json else {}
@@ -750,4 +796,5 @@ def _assemble(path: Path, c: _Collector, bytes_read: int, size: int,
         events=sorted(c.events, key=lambda e: e.log_time_ns), message_counts=dict(c.counts),
         warnings=warnings, complete=c.complete, bytes_read=bytes_read, file_size=size,
         chunks_read=c.chunks_read, chunks_damaged=c.chunks_damaged, loss=loss,
+        profiles=sorted(c.profiles, key=lambda p: (p.log_time_ns, p.frame)),
     )

@@ -5,7 +5,8 @@ No protoc is needed at run time: the file descriptors below are the code form of
 renders them with :func:`proto_source` and compares with the files); :mod:`scanpipe.protobuf`
 builds them, in a private descriptor pool.
 
-Message classes: :data:`ByteChunk`, :data:`MotorState`, :data:`Event`, :data:`CompressedImage`.
+Message classes: :data:`ByteChunk`, :data:`MotorState`, :data:`Event`, :data:`Profile` (an
+already-decoded profile, e.g. imported from a ROS bag), :data:`CompressedImage`.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ __all__ = [
     "CompressedImage",
     "Event",
     "MotorState",
+    "Profile",
     "file_descriptor_set",
     "foxglove_file",
     "proto_source",
@@ -49,6 +51,10 @@ _SCANPIPE_MESSAGES: list[MessageSpec] = [
                     ("bool", "moving", 3, False), ("uint64", "device_time_us", 4, False)], {}),
     ("Event", [("string", "kind", 1, False), ("string", "message", 2, False),
                ("string", "data_json", 3, False)], {}),
+    ("Profile", [("uint64", "device_time_ns", 1, False), ("uint64", "device_end_time_ns", 2, False),
+                 ("uint64", "frame", 3, False), ("double", "start_angle_deg", 4, False),
+                 ("double", "step_deg", 5, False), ("float", "ranges_m", 6, True),
+                 ("float", "intensities", 7, True)], {}),
 ]
 _FOXGLOVE_MESSAGES: list[MessageSpec] = [
     ("CompressedImage", [(".google.protobuf.Timestamp", "timestamp", 1, False),
@@ -58,7 +64,7 @@ _FOXGLOVE_MESSAGES: list[MessageSpec] = [
 
 
 def scanpipe_file() -> descriptor_pb2.FileDescriptorProto:
-    """``scanpipe/recording.proto``: Direction, ByteChunk, MotorState, Event."""
+    """``scanpipe/recording.proto``: Direction, ByteChunk, MotorState, Event, Profile."""
     return file_proto("scanpipe/recording.proto", "scanpipe", _SCANPIPE_MESSAGES,
                       {"Direction": [("RX", RX), ("TX", TX)]})
 
@@ -73,4 +79,5 @@ POOL = build_pool([scanpipe_file(), foxglove_file()])
 ByteChunk: Any = message_class(POOL, "scanpipe.ByteChunk")
 MotorState: Any = message_class(POOL, "scanpipe.MotorState")
 Event: Any = message_class(POOL, "scanpipe.Event")
+Profile: Any = message_class(POOL, "scanpipe.Profile")
 CompressedImage: Any = message_class(POOL, "foxglove.CompressedImage")

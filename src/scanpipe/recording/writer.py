@@ -40,6 +40,8 @@ PROFILE = "scanpipe"
 SCANNER_STREAM = "/scanner/stream"
 MOTOR_STREAM = "/motor/stream"
 MOTOR_STATE = "/motor/state"
+#: Already-decoded profiles (``scanpipe.Profile``), e.g. imported from a ROS bag.
+SCANNER_PROFILES = "/scanner/profiles"
 EVENTS = "/events"
 RIG_METADATA = "scanpipe.rig"
 RIG_KEY = "rig.toml"
@@ -151,10 +153,16 @@ class RecordingWriter:
         with self._lock:
             self._write(MOTOR_STATE, message, log_time_ns, 0)
 
+    def write_profile(self, log_time_ns: int, profile: Any) -> None:
+        """One already-decoded profile (a ``schemas.Profile`` message) on ``/scanner/profiles``."""
+        with self._lock:
+            self._write(SCANNER_PROFILES, profile, log_time_ns, int(profile.frame))
+
     def write_image(self, camera_id: str, log_time_ns: int, jpeg: bytes,
-                    frame_id: str = "") -> None:
-        """One JPEG frame of a camera, as ``foxglove.CompressedImage`` at its capture time."""
-        message = schemas.CompressedImage(frame_id=frame_id, data=bytes(jpeg), format="jpeg")
+                    frame_id: str = "", image_format: str = "jpeg") -> None:
+        """One JPEG (or PNG) frame of a camera, as ``foxglove.CompressedImage``."""
+        message = schemas.CompressedImage(frame_id=frame_id, data=bytes(jpeg),
+                                          format=image_format)
         message.timestamp.FromNanoseconds(log_time_ns)
         with self._lock:
             seq = self._camera_seq.get(camera_id, 0)

@@ -13,6 +13,10 @@ in the chosen or detected dialect; each profile sector becomes one row. Times:
   (``device_clock``: offset, rate, latencies and any problem, :mod:`scanpipe.clock`).
 - ``frame``: the frame (profile) number, unwrapped across its 16-bit wrap.
 
+A recording with already-decoded profiles (``/scanner/profiles``, e.g. from
+``scanpipe import-bag``) gives one row per message instead: dialect ``decoded``, sector 0,
+device times as stored (0 = unknown → null), intensities as the echo.
+
 The report (stored in the provenance of every artifact) has counts, the time span, rates, gaps,
 the decoder's counters (checksum failures, resyncs, bytes skipped) and the reader's warnings.
 """
@@ -37,7 +41,13 @@ from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, unwrap_counter
 from scanpipe.protocol.registry import DecodedFrame, StreamDecoder, get_dialect, resolve_dialect
-from scanpipe.recording.reader import Image, Recording, StreamData, read_recording
+from scanpipe.recording.reader import (
+    DecodedProfile,
+    Image,
+    Recording,
+    StreamData,
+    read_recording,
+)
 from scanpipe.recording.schemas import RX
 from scanpipe.rig import Rig, default_rig, rig_table
 from scanpipe.schema import FRAMES, MOTOR, PROFILES
@@ -132,6 +142,33 @@ def profiles_table(frames: Sequence[DecodedFrame], stream: StreamData,
     return table, clock
 
 
+def decoded_profiles_table(profiles: Sequence[DecodedProfile]) -> pa.Table:
+    """The ``profiles`` artifact from ``/scanner/profiles`` (profiles decoded by another tool).
+
+    Device times of 0 are unknown (null); intensities become the echo, rounded and clipped to
+    0…65535 (null when a profile has none or their count differs from the ranges').
+    """
+    n = len(profiles)
+    start = np.fromiter((p.device_time_ns for p in profiles), np.int64, n)
+    end = np.fromiter((p.device_end_time_ns for p in profiles), np.int64, n)
+    echo = [np.clip(np.rint(np.nan_to_num(p.intensities)), 0, 65535).astype(np.uint16)
+            if p.intensities.size == p.ranges_m.size and p.ranges_m.size else None
+            for p in profiles]
+    return pa.table([
+        pa.array(np.fromiter((p.log_time_ns for p in profiles), np.int64, n), pa.int64()),
+        pa.array(start, pa.int64(), mask=start == 0),
+        pa.array(end, pa.int64(), mask=(end == 0) | (start == 0)),
+        pa.array(np.fromiter((p.frame for p in profiles), np.int64, n), pa.int64()),
+        pa.array(np.zeros(n, np.int32), pa.int32()),
+        pa.array(np.fromiter((p.start_angle_deg for p in profiles), np.float64, n)),
+        pa.array(np.fromiter((p.step_deg for p in profiles), np.float64, n)),
+        _list_array([p.ranges_m for p in profiles], pa.float32()),
+        _list_array(echo, pa.uint16()),
+        pa.array(np.ones(n, np.bool_), pa.bool_()),
+        pa.array(["decoded"] * n, pa.string()) if n else pa.array([], pa.string()),
+    ], schema=PROFILES_SCHEMA)
+
+
 def motor_table(recording: Recording) -> pa.Table:
     """The ``motor`` artifact: every motor state report in log-time order."""
     m = recording.motor
@@ -203,7 +240,8 @@ def decode_recording(recording: Recording, params: DecodeParams,
     try:
         dialect = resolve_dialect(params.dialect, data)
     except ProtocolError as err:
-        warnings.append(f"{err}; decoding as the rig's dialect {rig.scanner.dialect!r}")
+        if data or not recording.profiles:
+                warnings.append(f"{err}; decoding as the rig's dialect {rig.scanner.dialect!r}")
         dialect = get_dialect(rig.scanner.dialect)
     decoder = StreamDecoder(dialect, params.checksum, params.max_frame_bytes)
     frames: list[DecodedFrame] = []
@@ -213,6 +251,14 @@ def decode_recording(recording: Recording, params: DecodeParams,
         progress("decode scanner stream", min(start + _FEED_BYTES, len(data)), len(data))
     frames += decoder.finish_frames()
     profiles, clock = profiles_table(frames, stream, dialect.name)
+    if recording.profiles:
+        # Profiles another tool decoded (an imported ROS bag); a byte stream beside them is
+        # kept out rather than mixed in: one scan, one source.
+        if profiles.num_rows:
+            warnings.append(f"{recording.path}: both /scanner/stream ({profiles.num_rows} "
+                            f"profiles) and /scanner/profiles ({len(recording.profiles)}); "
+                            "using /scanner/profiles")
+        profiles, clock = decoded_profiles_table(recording.profiles), {"present": False}
     frames_art, unsized = frames_table(recording.images)
     if unsized:
         warnings.append(f"{unsized} camera frames have no readable JPEG/PNG size (width = -1)")
@@ -225,7 +271,7 @@ def decode_recording(recording: Recording, params: DecodeParams,
     cameras = Counter(i.camera_id for i in recording.images)
     motor_stream = recording.stream("motor", RX)
     report: dict[str, Any] = {
-        "dialect": dialect.name,
+        "dialect": "decoded" if recording.profiles else dialect.name,
         "dialect_detected": params.dialect == "auto",
         "checksum_mode": params.checksum,
         "counts": {
@@ -285,7 +331,7 @@ def decode_stage(inputs: Mapping[str, Any], params: DecodeParams,
 
 STAGE = Stage(
     name="decode",
-    version=2,
+    version=3,
     params=DecodeParams,
     inputs=("recording",),
     outputs=("profiles", "motor", "frames", "rig"),

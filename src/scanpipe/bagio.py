@@ -1,0 +1,585 @@
+"""ROS bags in: a ROS 1 ``.bag`` or a ROS 2 bag (SQLite ``.db3`` or MCAP) to a recording.
+
+Read with ``rosbags`` (pure Python, no ROS install). What is taken (docs/import.md):
+
+- **profiles** from ``sensor_msgs/LaserScan`` (or ``MultiEchoLaserScan``: its first echo), one
+  ``scanpipe.Profile`` per message on ``/scanner/profiles``. A range outside
+  ``[range_min, range_max]``, NaN or ±inf is no return (NaN). Times: the header stamp is the
+  first ray's time (ROS convention), the last ray's is ``stamp + (n − 1) · time_increment``
+  (unknown when ``time_increment`` is 0); a zero stamp falls back to the bag's log time.
+- **the beam angle**: a LaserScan angle θ is counter-clockwise about the scanner's z from its
+  +x. scanpipe's scan frame has the return at ``(r sin α, r cos α, 0)``; with
+  ``α = θ + 90°`` that is ``(r cos θ, −r sin θ, 0)``, the ROS point turned 180° about x. So
+  α grows with θ (the beam step is ``angle_increment``, in degrees) and the mount carries the
+  turn: ``p_scan = F · p_laser``, ``F = diag(1, −1, −1)``.
+- **the platform angle** β from ``sensor_msgs/JointState`` (the position of one joint, radians)
+  or from TF (the yaw of CHILD in PARENT). ROS is z-up; scanpipe's rig frame is y-up with the
+  platform turning about y. The rig frame is the ROS base frame mapped by
+  ``G: (x, y, z)_ros → (x, z, −y)_scanpipe`` (a proper rotation, −90° about x). A positive
+  (counter-clockwise seen from above, right-handed about +z) turn ψ of the platform is the
+  right-handed turn about +y in the rig frame, which scanpipe writes as ``β = −ψ``
+  (:func:`scanpipe.geometry.platform_rotation` turns by −β about +y).
+- **motor states**: β as ``MotorState.step_count = round(β / pulse step)`` with a pulse step of
+  :data:`PULSE_STEP_DEG` (1e-4°, i.e. ≤ 0.9 µm at 500 m … 1.7 µm at 1 m: far below any
+  scanner's noise), ``moving = true`` throughout: the assemble stage runs in continuous mode and
+  interpolates β per sample between the angle reports.
+- **the mount**: with ``--tf PARENT:CHILD`` the laser's pose in the platform frame comes from
+  TF (CHILD → the scan's ``frame_id``, static transforms, composed); scanpipe's mount is then
+  ``R = G · R_platform_laser · F``, ``t = G · t_platform_laser``. Otherwise the zero mount
+  (the paper's): the laser's +x horizontal along the platform's x, its +y pointing down, its
+  scan plane holding the motor axis. ``--rig`` gives a calibrated rig instead (its motor step
+  is replaced by :data:`PULSE_STEP_DEG`, the step the angles are written in).
+- **frames** from ``sensor_msgs/CompressedImage`` (JPEG and PNG kept as they are) and
+  ``sensor_msgs/Image`` (``rgb8``, ``bgr8``, ``mono8`` encoded to PNG); a ``CameraInfo`` beside
+  the image topic gives the camera's intrinsics (its pose stays the default: pass ``--rig``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from collections import Counter, defaultdict
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanpipe.errors import RecordingError, UsageError
+from scanpipe.images import encode_png
+from scanpipe.recording import schemas
+from scanpipe.recording.writer import RecordingWriter
+from scanpipe.rig import CameraConfig, Rig, default_rig, rig_from_dict, rig_to_dict
+
+F64 = NDArray[np.float64]
+
+LASER_SCAN = "sensor_msgs/msg/LaserScan"
+MULTI_ECHO = "sensor_msgs/msg/MultiEchoLaserScan"
+JOINT_STATE = "sensor_msgs/msg/JointState"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+RAW_IMAGE = "sensor_msgs/msg/Image"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+SCAN_TYPES = (LASER_SCAN, MULTI_ECHO)
+IMAGE_TYPES = (COMPRESSED_IMAGE, RAW_IMAGE)
+#: The platform turn per pulse the imported angles are written in (see the module docstring).
+PULSE_STEP_DEG = 1e-4
+#: ROS base frame (z up) → scanpipe rig frame (y up): (x, y, z) → (x, z, −y).
+G: F64 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+#: ROS laser frame → scanpipe scan frame for α = θ + 90°: a half turn about x.
+F: F64 = np.diag([1.0, -1.0, -1.0])
+#: A joint counts as moving when its position spans more than this (radians).
+_MOVING_RAD = 1e-6
+_MAX_STEPS = 2**31 - 1
+
+
+class BagError(RecordingError):
+    """A ROS bag that cannot be imported (unreadable, no laser scan, ambiguous topics …)."""
+
+
+@dataclass(frozen=True)
+class Topic:
+    """One topic of a bag: its message type and message count."""
+
+    name: str
+    msgtype: str
+    count: int
+
+    def __str__(self) -> str:
+        return f"{self.name} ({self.msgtype.replace('/msg/', '/')}, {self.count})"
+
+
+@dataclass
+class BagContent:
+    """What :func:`import_bag` read from a bag before writing the recording."""
+
+    profiles: list[Any] = field(default_factory=list)  # (log_ns, schemas.Profile)
+    angles: list[tuple[int, float]] = field(default_factory=list)  # (time_ns, β in degrees)
+    images: list[tuple[str, int, bytes, str, str]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+
+def _stamp_ns(header: Any, log_time_ns: int) -> int:
+    stamp = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    return stamp if stamp > 0 else int(log_time_ns)
+
+
+def _frame(name: str) -> str:
+    return name.lstrip("/")
+
+
+def open_bag(path: Path) -> Any:
+    """An opened ``rosbags`` AnyReader; every failure is one :class:`BagError` line."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    if not path.exists():
+        raise BagError(f"{path}: not found")
+    reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+    try:
+        reader.open()
+    except Exception as err:  # rosbags raises many types for damaged files
+        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise BagError(f"{path}: not a readable ROS bag ({reason}); expected a ROS 1 .bag or "
+                       "a ROS 2 bag (a folder with metadata.yaml, or its .db3/.mcap)") from err
+    return reader
+
+
+def bag_topics(reader: Any) -> list[Topic]:
+    """Every topic of an opened bag, with its type and count, by name."""
+    counts: Counter[tuple[str, str]] = Counter()
+    for c in reader.connections:
+        counts[(c.topic, c.msgtype)] += int(c.msgcount)
+    return [Topic(t, m, n) for (t, m), n in sorted(counts.items())]
+
+
+def _listing(topics: Sequence[Topic]) -> str:
+    return "; ".join(str(t) for t in topics) if topics else "no topics"
+
+
+def choose_scan_topic(path: Path, topics: Sequence[Topic], requested: str | None) -> Topic:
+    """The laser scan topic: the one requested, or the only one; else one error line."""
+    scans = [t for t in topics if t.msgtype in SCAN_TYPES]
+    if requested is not None:
+        match = [t for t in topics if t.name == requested]
+        if not match:
+            raise BagError(f"{path}: --scan {requested}: no such topic; laser scan topics: "
+                           f"{_listing(scans)}")
+        if match[0].msgtype not in SCAN_TYPES:
+            raise BagError(f"{path}: --scan {requested}: is {match[0].msgtype}, not a "
+                           f"LaserScan; laser scan topics: {_listing(scans)}")
+        return match[0]
+    if not scans:
+        raise BagError(f"{path}: no laser scan (sensor_msgs/LaserScan or MultiEchoLaserScan) "
+                       f"in the bag; found: {_listing(topics)}")
+    if len(scans) > 1:
+        raise BagError(f"{path}: {len(scans)} laser scan topics; choose one with --scan: "
+                       f"{_listing(scans)}")
+    return scans[0]
+
+
+def _messages(reader: Any, topics: Sequence[str]) -> Iterator[tuple[Any, int, Any]]:
+    """(connection, log time, message) of the named topics, in log-time order."""
+    connections = [c for c in reader.connections if c.topic in topics]
+    if not connections:
+        return
+    for connection, log_time, raw in reader.messages(connections=connections):
+        yield connection, int(log_time), reader.deserialize(raw, connection.msgtype)
+
+
+def _profile(msg: Any, msgtype: str, log_time_ns: int, index: int
+             ) -> tuple[int, Any, dict[str, float]]:
+    """One LaserScan / MultiEchoLaserScan as (log time, schemas.Profile, its scan facts)."""
+    if msgtype == MULTI_ECHO:
+        ranges = np.array([e.echoes[0] if len(e.echoes) else np.nan for e in msg.ranges],
+                          np.float64)
+        intensities = np.array([e.echoes[0] if len(e.echoes) else 0.0
+                                for e in msg.intensities], np.float64)
+    else:
+        ranges = np.asarray(msg.ranges, np.float64)
+        intensities = np.asarray(msg.intensities, np.float64)
+    lo, hi = float(msg.range_min), float(msg.range_max)
+    with np.errstate(invalid="ignore"):
+        no_return = ~np.isfinite(ranges) | (ranges < lo) | (ranges > hi)
+    ranges = np.where(no_return, np.nan, ranges)
+    start = _stamp_ns(msg.header, log_time_ns)
+    n = ranges.size
+    dt = float(msg.time_increment)
+    end = start + round(max(n - 1, 0) * dt * 1e9) if dt > 0 and math.isfinite(dt) else 0
+    profile = schemas.Profile(
+        device_time_ns=start, device_end_time_ns=end, frame=index,
+        start_angle_deg=math.degrees(float(msg.angle_min)) + 90.0,
+        step_deg=math.degrees(float(msg.angle_increment)),
+        ranges_m=ranges.astype(np.float32).tolist(),
+        intensities=(intensities.astype(np.float32).tolist()
+                     if intensities.size == n else []))
+    facts = {"samples": float(n), "step_deg": profile.step_deg,
+             "angle_min_deg": math.degrees(float(msg.angle_min)),
+             "scan_time_s": float(msg.scan_time), "range_min_m": lo, "range_max_m": hi}
+    return (end or start), profile, facts
+
+
+def quaternion_matrix(x: float, y: float, z: float, w: float) -> F64:
+    """Rotation matrix of a (not necessarily unit) quaternion."""
+    q = np.array([w, x, y, z], np.float64)
+    norm = float(np.linalg.norm(q))
+    if not math.isfinite(norm) or norm < 1e-9:
+        raise ValueError("zero or non-finite quaternion")
+    w, x, y, z = q / norm
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def euler_deg(matrix: F64) -> list[float]:
+    """Euler angles ``(rx, ry, rz)`` in degrees with ``R = Rz·Ry·Rx`` (scanpipe's order)."""
+    ry = math.asin(max(-1.0, min(1.0, -float(matrix[2, 0]))))
+    if abs(float(matrix[2, 0])) < 1 - 1e-12:
+        rx = math.atan2(float(matrix[2, 1]), float(matrix[2, 2]))
+        rz = math.atan2(float(matrix[1, 0]), float(matrix[0, 0]))
+    else:  # gimbal lock: put the whole turn about z into rx
+        rz = 0.0
+        rx = math.atan2(-float(matrix[1, 2]), float(matrix[1, 1]))
+    return [math.degrees(rx), math.degrees(ry), math.degrees(rz)]
+
+
+@dataclass(frozen=True)
+class Transform:
+    """One TF transform: parent → child rotation and translation, at a time."""
+
+    time_ns: int
+    parent: str
+    child: str
+    rotation: F64
+    translation: F64
+
+
+def _transform(t: Any, log_time_ns: int) -> Transform:
+    r, v = t.transform.rotation, t.transform.translation
+    return Transform(_stamp_ns(t.header, log_time_ns), _frame(t.header.frame_id),
+                     _frame(t.child_frame_id), quaternion_matrix(r.x, r.y, r.z, r.w),
+                     np.array([v.x, v.y, v.z], np.float64))
+
+
+def static_chain(path: Path, statics: dict[str, Transform], parent: str, child: str
+                 ) -> tuple[F64, F64]:
+    """Pose of ``child`` in ``parent`` composed from static transforms (child → parent walk)."""
+    rotation, translation = np.eye(3), np.zeros(3)
+    frame, seen = child, set()
+    while frame != parent:
+        if frame in seen or frame not in statics:
+            raise BagError(f"{path}: no static transform chain from {parent!r} to the scan's "
+                           f"frame {child!r} in /tf_static or /tf (frames with a static "
+                           f"parent: {sorted(statics) or 'none'}); pass the mount with --rig")
+        seen.add(frame)
+        t = statics[frame]
+        rotation, translation = t.rotation @ rotation, t.rotation @ translation + t.translation
+        frame = t.parent
+    return rotation, translation
+
+
+def _yaw_rad(rotation: F64) -> float:
+    """The z part of a ZYX (yaw, pitch, roll) decomposition: exact for turns about z."""
+    return math.atan2(float(rotation[1, 0]), float(rotation[0, 0]))
+
+
+def tf_angles(path: Path, transforms: Sequence[Transform], parent: str, child: str
+              ) -> tuple[list[tuple[int, float]], F64, F64]:
+    """β over time from the yaw of ``child`` in ``parent``, and ``child``'s pose on the platform.
+
+    The platform frame is ``parent`` turned by the yaw ψ (β = −ψ, module docstring); ``child``
+    sits in it at ``Rz(−ψ) · pose``, which must not change over the scan (a warning would not
+    do: a tilting child is not a turntable).
+    """
+    moving = [t for t in transforms if t.parent == parent and t.child == child]
+    if not moving:
+        pairs = sorted({f"{t.parent}:{t.child}" for t in transforms})
+        raise BagError(f"{path}: --tf {parent}:{child}: no such transform in /tf; "
+                       f"transforms found: {', '.join(pairs) or 'none'}")
+    moving.sort(key=lambda t: t.time_ns)
+    yaw = np.unwrap(np.array([_yaw_rad(t.rotation) for t in moving]))
+    first = moving[0]
+    c, s = math.cos(-yaw[0]), math.sin(-yaw[0])
+    unturn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    # The child's pose with its yaw taken out must stay put: anything else is no turntable.
+    cos_y, sin_y = np.cos(yaw - yaw[0]), np.sin(yaw - yaw[0])
+    rotations = np.stack([t.rotation for t in moving])
+    translations = np.stack([t.translation for t in moving])
+    turn_back = np.zeros((yaw.size, 3, 3))
+    turn_back[:, 0, 0], turn_back[:, 0, 1] = cos_y, sin_y
+    turn_back[:, 1, 0], turn_back[:, 1, 1] = -sin_y, cos_y
+    turn_back[:, 2, 2] = 1.0
+    tilt = np.abs(turn_back @ rotations - first.rotation).max()
+    shift = np.abs(np.einsum("nij,nj->ni", turn_back, translations) - first.translation).max()
+    if tilt > 1e-3 or shift > 1e-3:
+        raise BagError(f"{path}: --tf {parent}:{child}: {child} does not only turn about "
+                       f"{parent}'s z (its tilt or offset changes by up to {tilt:.3g} / "
+                       f"{shift:.3g} m over the bag); not a turntable about the vertical")
+    return ([(t.time_ns, -math.degrees(float(a))) for t, a in zip(moving, yaw, strict=True)],
+            unturn @ first.rotation, unturn @ first.translation)
+
+
+def joint_angles(path: Path, reader: Any, topics: Sequence[Topic], joint: str | None
+                 ) -> tuple[list[tuple[int, float]], str, str]:
+    """β over time from one joint's position: (angles, joint name, topic)."""
+    joint_topics = [t for t in topics if t.msgtype == JOINT_STATE]
+    positions: dict[tuple[str, str], list[tuple[int, float]]] = defaultdict(list)
+    for connection, log_time, msg in _messages(reader, [t.name for t in joint_topics]):
+        stamp = _stamp_ns(msg.header, log_time)
+        for name, value in zip(msg.name, msg.position, strict=False):
+            if joint is None or name == joint:
+                positions[(connection.topic, str(name))].append((stamp, float(value)))
+    if joint is not None:
+        found = [k for k in positions if k[1] == joint]
+        if not found:
+            raise BagError(f"{path}: --joint {joint}: no JointState reports it; JointState "
+                           f"topics: {_listing(joint_topics)}")
+        if len(found) > 1:
+            raise BagError(f"{path}: --joint {joint}: reported on {len(found)} topics "
+                           f"({', '.join(k[0] for k in found)}); keep one in the bag")
+        key = found[0]
+    else:
+        moving = [k for k, v in positions.items()
+                  if np.ptp([p for _, p in v]) > _MOVING_RAD]
+        if len(moving) != 1:
+            what = ("no JointState in the bag" if not joint_topics else
+                    "no JointState joint moves" if not moving else
+                    f"{len(moving)} joints move: {', '.join(f'{k[1]} on {k[0]}' for k in moving)}")
+            raise BagError(f"{path}: no platform angle chosen ({what}); pass --joint NAME or "
+                           f"--tf PARENT:CHILD; found: {_listing(topics)}")
+        key = moving[0]
+    values = sorted(positions[key])
+    return [(t, -math.degrees(p)) for t, p in values], key[1], key[0]
+
+
+def _camera_id(topic: str) -> str:
+    name = re.sub(r"[^A-Za-z0-9_-]+", "_", topic.strip("/"))
+    return name or "camera"
+
+
+def _image_bytes(msg: Any, msgtype: str) -> tuple[bytes, str] | None:
+    """(encoded bytes, jpeg|png) of an image message; None for an encoding not taken."""
+    if msgtype == COMPRESSED_IMAGE:
+        data = bytes(msg.data)
+        if data[:3] == b"\xff\xd8\xff":
+            return data, "jpeg"
+        if data[:8] == b"\x89PNG\r\n\x1a\n":
+            return data, "png"
+        return None
+    encoding = str(msg.encoding).lower()
+    channels = {"rgb8": 3, "bgr8": 3, "mono8": 1}.get(encoding)
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    raw = np.asarray(msg.data, np.uint8)
+    if channels is None or step < width * channels or raw.size < height * step:
+        return None
+    pixels = raw[:height * step].reshape(height, step)[:, :width * channels]
+    image = pixels.reshape(height, width, channels) if channels == 3 else pixels
+    if encoding == "rgb8":
+        image = image[:, :, ::-1]  # encode_png takes BGR
+    return encode_png(np.ascontiguousarray(image)), "png"
+
+
+def _camera_info(reader: Any, topics: Sequence[Topic], image_topic: str) -> Any | None:
+    """The first CameraInfo of the image topic's namespace (…/camera_info beside it)."""
+    parts = image_topic.rstrip("/").split("/")
+    candidates = []
+    for depth in (1, 2):
+        if len(parts) > depth:
+            candidates.append("/".join([*parts[:-depth], "camera_info"]))
+    infos = [t.name for t in topics if t.msgtype == CAMERA_INFO and t.name in candidates]
+    for _, _, msg in _messages(reader, infos[:1]):
+        return msg
+    return None
+
+
+def _camera(camera_id: str, info: Any | None, size: tuple[int, int] | None,
+            base: CameraConfig) -> CameraConfig:
+    """A camera of the imported rig: intrinsics from CameraInfo when present."""
+    data = base.model_dump()
+    data["id"] = camera_id
+    data["source"] = "bag"
+    # ROS 2 spells the matrices k and d, ROS 1 (a .bag's own definitions) K and D.
+    k = [float(v) for v in getattr(info, "k", getattr(info, "K", []))] if info else []
+    if info is not None and int(info.width) and len(k) == 9 and k[0] > 0:
+        d = [float(v) for v in getattr(info, "d", getattr(info, "D", []))][:5]
+        data.update(width=int(info.width), height=int(info.height), fx=k[0], fy=k[4],
+                    cx=k[2], cy=k[5], distortion=d + [0.0] * (5 - len(d)))
+    elif size is not None:
+        w, h = size
+        focal = 0.5 * w / math.tan(math.radians(30.0))  # 60° horizontal: a guess, say so
+        data.update(width=w, height=h, fx=focal, fy=focal, cx=(w - 1) / 2, cy=(h - 1) / 2)
+    return CameraConfig.model_validate(data)
+
+
+def build_rig(path: Path, facts: dict[str, float], rate_hz: float, mount: tuple[F64, F64] | None,
+              cameras: Sequence[CameraConfig], given: Rig | None, max_steps: int) -> Rig:
+    """The rig of the recording: from the bag (or ``given``), motor step :data:`PULSE_STEP_DEG`."""
+    data = rig_to_dict(given if given is not None else default_rig())
+    motor = data["motor"]
+    motor.update(full_step_deg=PULSE_STEP_DEG, gear_ratio=1.0, unlimited_travel=True,
+                 pulse_limit=max(1, min(max_steps, _MAX_STEPS)))
+    if given is None:
+        scan_hz = 1.0 / facts["scan_time_s"] if facts["scan_time_s"] > 0 else rate_hz
+        start = facts["angle_min_deg"] + 90.0
+        fov = facts["step_deg"] * max(facts["samples"] - 1, 1)
+        lo = min(max(facts["range_min_m"], 0.0), 255.0)
+        hi = min(max(facts["range_max_m"], lo + 0.001), 255.99609375)
+        data["name"] = f"ros-bag-{_camera_id(path.stem)}"[:64]
+        data["scanner"].update(
+            dialect="paper", beam_step_deg=facts["step_deg"],
+            start_angle_deg=start % 360.0, end_angle_deg=min(start % 360.0 + fov, 360.0),
+            scan_hz=min(max(scan_hz, 0.01), 100.0), min_range_m=lo, max_range_m=hi)
+        if mount is not None:
+            rotation, translation = mount
+            data["scanner"]["mount"] = {
+                "rotation_deg": euler_deg(G @ rotation @ F),
+                "translation_m": (G @ translation).tolist()}
+        data["cameras"] = [rig_to_dict_camera(c) for c in cameras]
+    elif cameras:
+        known = {c["id"] for c in data.get("cameras", [])}
+        data["cameras"] = [*data.get("cameras", []),
+                           *(rig_to_dict_camera(c) for c in cameras if c.id not in known)]
+    return rig_from_dict(data, f"{path} (the rig built from the bag)")
+
+
+def rig_to_dict_camera(camera: CameraConfig) -> dict[str, Any]:
+    """A camera as the rig file writes it."""
+    return camera.model_dump(mode="json")
+
+
+def import_bag(bag: Path, out: Path, scan_topic: str | None = None, joint: str | None = None,
+               tf: str | None = None, image_topics: Sequence[str] = (), rig: Rig | None = None
+               ) -> dict[str, Any]:
+    """Write the recording ``out`` from the ROS bag ``bag``; returns a report.
+
+    ``out`` is written beside itself first and renamed into place, so a failed import leaves
+    no file (the output-path policy is the caller's: :func:`scanpipe.outpaths.check_output_file`).
+    """
+    if joint is not None and tf is not None:
+        raise UsageError("--joint and --tf both give the platform angle; pass one")
+    if tf is not None and (tf.count(":") != 1 or not all(tf.split(":"))):
+        raise UsageError(f"--tf {tf!r}: expected PARENT:CHILD (two TF frame names)")
+    reader = open_bag(bag)
+    try:
+        return _import(reader, bag, out, scan_topic, joint, tf, image_topics, rig)
+    except (BagError, UsageError):
+        raise
+    except Exception as err:  # a damaged message deep in a bag
+        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise BagError(f"{bag}: cannot be read ({type(err).__name__}: {reason})") from err
+    finally:
+        reader.close()
+
+
+def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: str | None,
+            tf: str | None, image_topics: Sequence[str], given: Rig | None) -> dict[str, Any]:
+    topics = bag_topics(reader)
+    scan = choose_scan_topic(bag, topics, scan_topic)
+    for name in image_topics:
+        match = [t for t in topics if t.name == name]
+        if not match or match[0].msgtype not in IMAGE_TYPES:
+            images = [t for t in topics if t.msgtype in IMAGE_TYPES]
+            raise BagError(f"{bag}: --image {name}: not an image topic; image topics: "
+                           f"{_listing(images)}")
+    content = BagContent()
+    facts: dict[str, float] = {}
+    frame_ids: Counter[str] = Counter()
+    steps_seen: set[float] = set()
+    for _, log_time, msg in _messages(reader, [scan.name]):
+        log_ns, profile, f = _profile(msg, scan.msgtype, log_time, len(content.profiles))
+        facts = facts or f
+        steps_seen.add(round(profile.step_deg, 9))
+        frame_ids[_frame(msg.header.frame_id)] += 1
+        content.profiles.append((log_ns, profile))
+    if not content.profiles:
+        raise BagError(f"{bag}: {scan}: no messages")
+    if facts["step_deg"] <= 0 or not math.isfinite(facts["step_deg"]):
+        raise BagError(f"{bag}: {scan.name}: angle_increment {facts['step_deg']:g}°: only "
+                       "scans with a positive angle_increment are taken")
+    if len(steps_seen) > 1:
+        raise BagError(f"{bag}: {scan.name}: angle_increment changes during the bag "
+                       f"({sorted(steps_seen)[:4]} …°); one scan must use one beam step")
+    if scan.msgtype == MULTI_ECHO:
+        content.warnings.append(f"{scan.name}: MultiEchoLaserScan: the first echo of each "
+                                "beam is taken, the others are dropped")
+
+    mount: tuple[F64, F64] | None = None
+    source: dict[str, Any]
+    if tf is not None:
+        parent, child = (_frame(p) for p in tf.split(":"))
+        transforms: list[Transform] = []
+        statics: dict[str, Transform] = {}
+        tf_topics = [t.name for t in topics if t.msgtype == TF_MESSAGE]
+        for connection, log_time, msg in _messages(reader, tf_topics):
+            for t in msg.transforms:
+                transform = _transform(t, log_time)
+                if connection.topic.endswith("tf_static") or transform.child != child:
+                    statics.setdefault(transform.child, transform)
+                if not connection.topic.endswith("tf_static"):
+                    transforms.append(transform)
+        content.angles, child_rotation, child_translation = tf_angles(
+            bag, transforms, parent, child)
+        laser_frame = frame_ids.most_common(1)[0][0]
+        statics.pop(child, None)
+        rotation, translation = static_chain(bag, statics, child, laser_frame)
+        mount = (child_rotation @ rotation, child_rotation @ translation + child_translation)
+        source = {"tf": f"{parent}:{child}", "laser_frame": laser_frame}
+    else:
+        content.angles, joint_name, joint_topic = joint_angles(bag, reader, topics, joint)
+        source = {"joint": joint_name, "topic": joint_topic}
+    if len(content.angles) < 2:
+        raise BagError(f"{bag}: {len(content.angles)} platform angle reports; need at least "
+                       "2 to interpolate the angle over the scan")
+
+    cameras: list[CameraConfig] = []
+    skipped: Counter[str] = Counter()
+    for name in image_topics:
+        topic = next(t for t in topics if t.name == name)
+        camera_id = _camera_id(name)
+        size: tuple[int, int] | None = None
+        for _, log_time, msg in _messages(reader, [name]):
+            encoded = _image_bytes(msg, topic.msgtype)
+            if encoded is None:
+                skipped[name] += 1
+                continue
+            if size is None and topic.msgtype == RAW_IMAGE:
+                size = (int(msg.width), int(msg.height))
+            if size is None:
+                from scanpipe.images import image_size
+                size = image_size(encoded[0])
+            content.images.append((camera_id, _stamp_ns(msg.header, log_time), encoded[0],
+                                   encoded[1], _frame(msg.header.frame_id)))
+        info = _camera_info(reader, topics, name)
+        if info is None:
+            content.warnings.append(f"{name}: no CameraInfo beside it: intrinsics guessed "
+                                    "(60° horizontal field of view); pass --rig")
+        cameras.append(_camera(camera_id, info, size, default_rig().cameras[0]))
+    for name, n in skipped.items():
+        content.warnings.append(f"{name}: {n} images in an encoding not taken (only "
+                                "JPEG/PNG CompressedImage and rgb8/bgr8/mono8 Image)")
+
+    times = np.array([t for t, _ in content.profiles], np.int64)
+    rate_hz = (1e9 / float(np.median(np.diff(np.sort(times)))) if times.size > 1
+               and np.median(np.diff(np.sort(times))) > 0 else 10.0)
+    beta = np.array([b for _, b in content.angles])
+    steps = np.rint(beta / PULSE_STEP_DEG)
+    if np.any(np.abs(steps) > _MAX_STEPS):
+        raise BagError(f"{bag}: platform angle reaches {np.max(np.abs(beta)):.0f}°; at most "
+                       f"{_MAX_STEPS * PULSE_STEP_DEG:.0f}° can be imported")
+    rig = build_rig(bag, facts, rate_hz, mount, cameras, given, int(np.max(np.abs(steps))))
+    session = {"mode": "import-bag", "source": str(bag), "scan_topic": scan.name,
+               "angle_source": source}
+    partial = out.with_name(f".{out.name}.{os.getpid()}.partial")
+    try:
+        with RecordingWriter(partial, rig, session) as writer:
+            for log_ns, profile in content.profiles:
+                writer.write_profile(log_ns, profile)
+            for (t, _), count in zip(content.angles, steps, strict=True):
+                writer.write_motor_state(t, int(count), int(count), True, 0)
+            for camera_id, t, data, image_format, frame_id in content.images:
+                writer.write_image(camera_id, t, data, frame_id, image_format)
+        os.replace(partial, out)
+    except OSError as err:
+        raise RecordingError(f"{out}: cannot be written ({err.strerror or err})") from None
+    finally:
+        partial.unlink(missing_ok=True)
+    samples = int(facts["samples"])
+    return {
+        "bag": str(bag), "out": str(out), "scan_topic": str(scan), "angle_source": source,
+        "profiles": len(content.profiles), "samples_per_profile": samples,
+        "angle_reports": len(content.angles),
+        "beta_deg_range": [float(beta.min()), float(beta.max())],
+        "alpha_deg_range": [facts["angle_min_deg"] + 90.0,
+                            facts["angle_min_deg"] + 90.0 + facts["step_deg"] * (samples - 1)],
+        "images": dict(Counter(i[0] for i in content.images)),
+        "mount": rig_to_dict(rig)["scanner"]["mount"],
+        "topics": [str(t) for t in topics], "warnings": content.warnings,
+    }
+
+
+__all__ = ["BagError", "Topic", "bag_topics", "build_rig", "choose_scan_topic", "euler_deg",
+           "import_bag", "open_bag", "quaternion_matrix"]
