@@ -88,3 +88,22 @@ def test_bad_scene_pose_is_a_usage_error(cli: Callable[..., Any], tmp_path: Path
                  "--out", tmp_path / "s.mcap", "--truth", tmp_path / "t")
     assert result.code == 2
     assert "--scene-pose" in result.err and result.err.count("\n") == 1
+
+
+def test_run_without_cameras_exports_an_untextured_model(cli: Callable[..., Any],
+                                                         tmp_path: Path) -> None:
+    import trimesh
+
+    result = cli("simulate", *FAST, "--motor-step", "20", "--out", tmp_path / "s.mcap",
+                 "--truth", tmp_path / "t")
+    assert result.code == 0, result.err
+    result = cli("run", tmp_path / "s.mcap", "--workdir", tmp_path / "w", "-q")
+    assert result.code == 0, result.err
+    assert ("warning: texture: untextured: the rig has no cameras; the model is exported "
+            "without texture") in result.err
+    export = tmp_path / "w" / "export"
+    assert {p.name for p in export.iterdir()} >= {"model.obj", "model.glb", "cloud.ply"}
+    assert "mtllib" not in (export / "model.obj").read_text()
+    assert not list(export.glob("*.png")) and not list(export.glob("*.mtl"))
+    glb = trimesh.load(export / "model.glb", force="mesh")
+    assert len(glb.faces) > 100
