@@ -213,7 +213,7 @@ def test_statistical_outliers_only_without_a_grid_by_default() -> None:
     out = result.tables["points"]
     assert result.report["grid"] is None
     assert set(result.report["skipped"]) == {"depth_edges", "grid_median", "double_coverage",
-                                             "smoothing"}
+                                             "smoothing", "range_gate"}
     x = out.column("x").to_numpy()
     assert not np.any(x > 4.0) and not np.any(x < 0)
     assert taken(result.report, "statistical_outlier") >= 3

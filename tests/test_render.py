@@ -112,3 +112,26 @@ def test_render_command_errors(cli: Callable, tmp_path: Path) -> None:
     assert result.code == 2 and "expected three numbers" in result.err
     assert not (tmp_path / "x").exists()
     _ = pa  # pyarrow is imported for the artifact helpers' types
+
+
+def test_front_preview_of_a_one_sided_scan_looks_at_the_data() -> None:
+    from scanpipe.render import default_perspectives
+
+    # A scan of one wall at x = −2 (and a small patch behind the scanner, so that it stands
+    # inside the bounds): a view along +z from the scanner would see nothing.
+    xyz = np.array([[-2, -1, -1], [-2, 1, -1], [-2, 1, 1], [-2, -1, 1],
+                    [0.5, -1, 0], [0.5, -0.9, 0], [0.5, -1, 0.1]], dtype=np.float32)
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6]], dtype=np.int32)
+    mesh = RenderMesh(xyz, faces)
+    front, _ = default_perspectives(mesh.bounds, width=80, mesh=mesh)
+    assert front.name == "view_front"
+    image = Renderer(mesh).render(front)
+    assert image.hit.mean() > 0.4  # the 2 m × 2 m wall at 2 m fills about half the view
+    assert int(image.rgb[image.hit].max()) > 0  # drawn, not background
+    along_z = PerspectiveView((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 80, 60, 80.0)
+    assert not Renderer(mesh).render(along_z).hit.any()  # what the old default showed
+    # Data all around (a room): the front view still looks along +z.
+    room_xyz, room_faces = box_mesh((4.0, 3.0, 5.0), (0.0, 0.3, 0.0))
+    room = RenderMesh(room_xyz, room_faces)
+    room_front, _ = default_perspectives(room.bounds, mesh=room)
+    assert room_front.target == (0.0, 0.0, 1.0)

@@ -286,8 +286,11 @@ def test_bad_inputs_are_stage_errors(recording: Recording, mesh) -> None:
     with pytest.raises(StageError, match="not a decodable image"):
         STAGE.run({**inputs, "frames": broken})
     no_cams = recording.rig.model_copy(update={"cameras": ()})
-    with pytest.raises(StageError, match="no cameras"):
-        STAGE.run({**inputs, "rig": rig_table(no_cams)})
+    untextured = STAGE.run({**inputs, "rig": rig_table(no_cams)})
+    assert untextured.tables["texture_pages"].num_rows == 0
+    assert set(untextured.tables["textured_faces"].column("page").to_pylist()) == {-1}
+    assert untextured.report["warnings"] == [
+        "untextured: the rig has no cameras; the model is exported without texture"]
 
 
 def test_inverted_normals_are_flipped(recording: Recording, mesh) -> None:

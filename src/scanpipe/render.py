@@ -346,18 +346,46 @@ def load_render_mesh(source: Path) -> RenderMesh:
 # -- default views and the command -----------------------------------------------------------
 
 
+#: Below this length of the mean horizontal direction to the data, the data is all around the
+#: scanner (a room) and the front view looks along +z.
+ALL_AROUND = 0.25
+
+
+def data_direction(vertices: NDArray[np.floating], faces: NDArray[np.integer], origin: F64
+                   ) -> F64:
+    """The unit horizontal (x, z) direction from ``origin`` towards where the surface is: the
+    area-weighted mean of the unit directions to the face centres; +z when it is all around."""
+    corners = np.asarray(vertices, dtype=np.float64)[faces]
+    areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
+                                          corners[:, 2] - corners[:, 0]), axis=1)
+    offsets = corners.mean(axis=1)[:, [0, 2]] - origin[[0, 2]]
+    lengths = np.linalg.norm(offsets, axis=1)
+    use = (lengths > 0) & (areas > 0)
+    offsets = offsets[use] / lengths[use, None]
+    mean = (np.average(offsets, axis=0, weights=areas[use]) if use.any() else np.zeros(2))
+    if float(np.linalg.norm(mean)) < ALL_AROUND:
+        return np.array([0.0, 0.0, 1.0])
+    mean /= np.linalg.norm(mean)
+    return np.array([mean[0], 0.0, mean[1]])
+
+
 def default_perspectives(bounds: F64, origin: Sequence[float] = (0.0, 0.0, 0.0),
-                         width: int = 640, fov_deg: float = 80.0) -> list[PerspectiveView]:
-    """Two views from the scanner looking along +z and −z when it stands inside the model's
-    bounds (a room), else one overview from outside a corner, looking at the centre."""
+                         width: int = 640, fov_deg: float = 80.0,
+                         mesh: RenderMesh | None = None) -> list[PerspectiveView]:
+    """Two views from the scanner when it stands inside the model's bounds (a room): the front
+    one looks towards where the surface of ``mesh`` is (+z when it is all around, or not
+    given), the back one the other way; else one overview from outside a corner, looking at
+    the centre of the bounds."""
     height = max(1, width * 3 // 4)
     o = np.asarray(origin, dtype=np.float64)
     inside = bool(np.all(o > bounds[0]) and np.all(o < bounds[1]))
     if inside:
         eye = vec3(o)
-        return [PerspectiveView(eye, (eye[0], eye[1], eye[2] + 1.0), width, height, fov_deg,
+        ahead = (data_direction(mesh.vertices, mesh.faces, o)
+                 if mesh is not None and len(mesh.faces) else np.array([0.0, 0.0, 1.0]))
+        return [PerspectiveView(eye, vec3(o + ahead), width, height, fov_deg,
                                 name="view_front"),
-                PerspectiveView(eye, (eye[0], eye[1], eye[2] - 1.0), width, height, fov_deg,
+                PerspectiveView(eye, vec3(o - ahead), width, height, fov_deg,
                                 name="view_back")]
     centre = bounds.mean(axis=0)
     extent = float(np.linalg.norm(bounds[1] - bounds[0]))
@@ -399,7 +427,8 @@ def preview_views(mesh: RenderMesh, views: str = "perspective,plan,panorama", wi
                 chosen.append(PerspectiveView(eye_xyz, target_xyz,
                                               width, max(1, width * 3 // 4), fov_deg))
             else:
-                chosen += default_perspectives(mesh.bounds, width=width)
+                chosen += default_perspectives(mesh.bounds, width=width,
+                                               mesh=mesh)
         elif name == "plan":
             chosen.append(PlanView(width))
         else:

@@ -201,8 +201,8 @@ def _previews(workdir: Path, width: int) -> list[str]:
 
     mesh = load_render_mesh(workdir)
     renderer = Renderer(mesh)
-    views: list[View] = [*default_perspectives(mesh.bounds, width=width), PlanView(width),
-                         PanoramaView((0.0, 0.0, 0.0), width)]
+    views: list[View] = [*default_perspectives(mesh.bounds, width=width, mesh=mesh),
+                         PlanView(width), PanoramaView((0.0, 0.0, 0.0), width)]
     return [_figure(renderer.render(view).png(), view.name.replace("_", " "))
             for view in views]
 

@@ -7,6 +7,7 @@ them (:func:`simulate_live`).
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -21,16 +22,18 @@ from scanpipe.cli.common import (
     RIG,
     deprecated_alias,
     print_json,
+    print_warnings,
     take_alias,
     with_model_options,
 )
 from scanpipe.errors import RecordingError, UsageError
+from scanpipe.rig import Pose
 from scanpipe.sim.options import SimOptions
 
 #: The :class:`~scanpipe.sim.options.SimOptions` fields that are options of ``simulate``: their
 #: flags, types, defaults and help come from the model (:func:`~scanpipe.cli.common.model_options`).
-SIM_OPTION_FIELDS = ("scene", "mode", "motor_step_deg", "beam_step_deg", "cameras", "camera_scale",
-                     "camera_fps", "seed")
+SIM_OPTION_FIELDS = ("scene", "scene_up", "mode", "motor_step_deg", "beam_step_deg", "cameras",
+                     "camera_scale", "camera_fps", "seed")
 #: ``--noise-mm`` is in millimetres, the model's ``noise_sigma_m`` in metres.
 NOISE_DEFAULT_MM = SimOptions.model_fields["noise_sigma_m"].default * 1000.0
 
@@ -43,6 +46,22 @@ def sim_options(rig_path: Path | None, noise_mm: float, values: dict[str, Any]) 
 
     return validate(SimOptions, {**values, "rig": load_rig(rig_path),
                                  "noise_sigma_m": noise_mm / 1000.0}, "simulate options")
+
+
+def parse_scene_pose(text: str | None) -> Pose | None:
+    """``--scene-pose "tx,ty,tz[,rx,ry,rz]"`` (metres, degrees) as a :class:`Pose`."""
+    if text is None:
+        return None
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) not in (3, 6) or not all(math.isfinite(v) for v in values):
+        raise UsageError(f"--scene-pose {text!r}: allowed 'tx,ty,tz' or 'tx,ty,tz,rx,ry,rz' "
+                         "(translation in metres, rotation in degrees), finite numbers")
+    rotation = (values[3], values[4], values[5]) if len(values) == 6 else (0.0, 0.0, 0.0)
+    return Pose(translation_m=(values[0], values[1], values[2]), rotation_deg=rotation)
 
 
 def check_outputs(out: Path, truth: Path, scene: str, rig_path: Path | None,
@@ -96,6 +115,7 @@ def simulate_live(out: Path, truth: Path, options: SimOptions, speedup: float, q
             jpeg_quality=options.jpeg_quality, speedup=speedup)
         recorder = Recorder(virtual.client_rig(), tmp, record_options,
                             camera_opener=lambda cam: virtual.camera(cam.source))
+        print_warnings("simulate", {"warnings": virtual.scene.warnings})
         code = run_recorder(recorder, quiet, as_json, {str(tmp): str(out)})
         virtual.stop()
         virtual.write_truth(truth, {"recording": str(out), "speedup": speedup})
@@ -118,6 +138,9 @@ def simulate(
                                help="Overwrite an existing recording and truth files."),
     quiet: bool = QUIET,
     as_json: bool = JSON,
+    scene_pose: str | None = typer.Option(
+        None, "--scene-pose", help="Place the scene file: 'tx,ty,tz' metres, optionally "
+                                   "',rx,ry,rz' degrees (rotation first, then translation)."),
     scanner_step: float | None = deprecated_alias("--beam-step", "--scanner-step"),
     **values: Any,
 ) -> None:
@@ -127,6 +150,7 @@ def simulate(
 
     values["beam_step_deg"] = take_alias(ctx, "beam_step_deg", values["beam_step_deg"],
                                          scanner_step, "--beam-step", "--scanner-step")
+    values["scene_pose"] = parse_scene_pose(scene_pose)
     check_outputs(out, truth, values["scene"], rig_path, force)
     options = sim_options(rig_path, noise_mm, values)
     check_speedup(speedup)
@@ -138,6 +162,7 @@ def simulate(
     with rich_progress(quiet) as progress, atomic_recording(out) as tmp:
         summary = simulate_direct(tmp, truth, options, progress, recording_name=str(out))
     summary["recording"] = str(out)
+    print_warnings("simulate", summary)
     if as_json:
         print_json(summary)
     elif not quiet:

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe import __version__
+from scanpipe.errors import SimulationError
 from scanpipe.images import encode_jpeg_rgb
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import Rig, ScannerConfig, rig_from_dict, rig_to_dict
@@ -61,6 +62,36 @@ def checked_rigs(options: SimOptions) -> tuple[Rig, Rig]:
     nominal = rig_from_dict(rig_to_dict(options.nominal_rig()), "simulation rig")
     true = rig_from_dict(rig_to_dict(options.true_rig()), "simulation true rig")
     return nominal, true
+
+
+#: Below this share of rays returning (over a full turn), the scene is not where the scanner
+#: can see it. A small object alone in front of the scanner still returns a few percent.
+MIN_RETURN_SHARE = 0.01
+#: Profiles cast by the check, evenly over a full turn.
+CHECK_PROFILES = 36
+
+
+def check_scene_in_view(scene: Scene, scanner_true: ScannerConfig, name: str) -> None:
+    """:class:`SimulationError` in one line when (nearly) every ray of a full turn returns
+    nothing: the scene is not around the scanner, or it is in millimetres, or the scanner sits
+    inside a closed mesh nearer than its minimum range."""
+    beta = np.broadcast_to(np.linspace(0.0, 360.0, CHECK_PROFILES, endpoint=False)[:, None],
+                           (CHECK_PROFILES, scanner_true.samples_per_profile))
+    unlimited = scanner_true.model_copy(update={"min_range_m": 0.0, "max_range_m": np.inf})
+    ranges = true_ranges(scene, unlimited, beta).ranges_m
+    share = float(((ranges >= scanner_true.min_range_m)
+                   & (ranges <= scanner_true.max_range_m)).mean())
+    if share < MIN_RETURN_SHARE:
+        low, high = scene.bounds
+        near = float((ranges < scanner_true.min_range_m).mean())
+        far = float((ranges > scanner_true.max_range_m).mean())
+        raise SimulationError(
+            f"scene {name}: only {share:.1%} of the scanner's rays return ({near:.0%} hit "
+            f"nearer than its minimum range {scanner_true.min_range_m:g} m, {far:.0%} beyond "
+            f"{scanner_true.max_range_m:g} m, {1 - share - near - far:.0%} hit nothing; the "
+            f"scene spans {np.round(low, 3).tolist()} to {np.round(high, 3).tolist()} m, the "
+            "scanner is at the origin): place the scene around the scanner with --scene-pose "
+            "(not touching the origin), or convert it to metres if it is in millimetres")
 
 
 def simulate_profiles(scene: Scene, scanner_true: ScannerConfig, session: Session,
@@ -147,7 +178,8 @@ def simulate_direct(out: Path, truth_dir: Path, options: SimOptions | None = Non
     options = options if options is not None else SimOptions()
     started = time.perf_counter()
     nominal, true = checked_rigs(options)
-    scene = resolve_scene(options.scene, options.scene_pose)
+    scene = resolve_scene(options.scene, options.scene_pose, options.scene_up)
+    check_scene_in_view(scene, true.scanner, options.scene)
     session = plan_session(options, true)
     scanner = true.scanner
     dialect = nominal.scanner.dialect
@@ -243,6 +275,7 @@ def simulate_direct(out: Path, truth_dir: Path, options: SimOptions | None = Non
         "motor_step_count": options.motor_step_count(),
         "motor_states": len(session.motor_states), "frames": written_frames,
         "scanner_bytes": scanner_bytes, "duration_s": round(session.end_s, 3),
+        "warnings": list(scene.warnings),
     }
     meta = {
         "seed": options.seed, "options": json.loads(options.model_dump_json()),

@@ -408,8 +408,13 @@ class VirtualRig:
 
         self.options = options if options is not None else SimOptions()
         self.nominal, self.true = checked_rigs(self.options)
-        self.scene = scene if scene is not None else resolve_scene(self.options.scene,
-                                                                   self.options.scene_pose)
+        if scene is None:
+            from scanpipe.sim.direct import check_scene_in_view
+
+            scene = resolve_scene(self.options.scene, self.options.scene_pose,
+                                  self.options.scene_up)
+            check_scene_in_view(scene, self.true.scanner, self.options.scene)
+        self.scene = scene
         self.clock = SimClock(speedup)
         motor = self.true.motor
         self.platform = PlatformState(motor.pulse_step_deg, motor.beta_offset_deg)

@@ -26,7 +26,12 @@ class SimOptions(Params):
 
     scene: str = Field("room", description="room, box, or a scene file (.obj, .glb, .gltf) "
                                            "in metres.")
-    scene_pose: Pose | None = None
+    scene_pose: Pose | None = Field(
+        None, description="Where the scene file goes in the rig frame: rotation (degrees) then "
+                          "translation (metres), after --scene-up.")
+    scene_up: Literal["y", "z"] = Field(
+        "y", description="The up axis of the scene file: y (OBJ, glTF) or z (z-up files; "
+                         "turned to y up).")
     rig: Rig = Field(default_factory=default_rig)
     mode: Literal["step", "continuous"] = Field(
         "step", description="step (step-and-scan) or continuous.")

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.rig import Pose
-from scanpipe.sim.scene import Scene, load_scene
+from scanpipe.sim.scene import Scene, SceneUp, load_scene
 
 U8 = NDArray[np.uint8]
 Vec = tuple[float, float, float]
@@ -223,10 +223,11 @@ def box_room(size_m: tuple[float, float, float] = (6.0, 3.0, 4.0),
     return b.scene()
 
 
-def resolve_scene(name_or_path: str, pose: Pose | None = None) -> Scene:
-    """A built-in scene by name (``room``, ``box``) or a scene file (OBJ, GLB, glTF)."""
+def resolve_scene(name_or_path: str, pose: Pose | None = None, up: SceneUp = "y") -> Scene:
+    """A built-in scene by name (``room``, ``box``) or a scene file (OBJ, GLB, glTF) with its
+    up axis ``up``."""
     if name_or_path == "room":
         return builtin_room()
     if name_or_path == "box":
         return box_room()
-    return load_scene(name_or_path, pose)
+    return load_scene(name_or_path, pose, up=up)

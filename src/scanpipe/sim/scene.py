@@ -8,13 +8,11 @@ the image top) and one RGB texture image per material. Rays are cast with Open3D
 from __future__ import annotations
 
 import base64
-import io
 import json
-import re
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -60,6 +58,8 @@ class Scene:
     triangle_material: NDArray[np.int32]
     textures: list[U8]
     material_names: list[str] = field(default_factory=list)
+    #: What the loader could not use (dropped faces, textures not found …), one line each.
+    warnings: list[str] = field(default_factory=list, compare=False)
     _raycaster: Any = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -234,46 +234,6 @@ class _FastPngImage(Image.Image):
 # Loading user scenes
 # ---------------------------------------------------------------------------------------------
 
-_FACE_TOKEN = re.compile(r"^(-?\d+)(?:/(-?\d*))?(?:/(-?\d*))?$")
-
-
-def resolve_obj_negative_indices(text: str) -> tuple[str, int]:
-    """Rewrite OBJ face indices that are negative (relative) as absolute ones.
-
-    Returns the text and how many indices were rewritten. trimesh mis-reads some files with
-    relative indices, so they are resolved here, against the vertices defined so far.
-    """
-    counts = {"v": 0, "vt": 0, "vn": 0}
-    rewritten = 0
-    lines = text.splitlines()
-    for i, line in enumerate(lines):
-        head, _, rest = line.strip().partition(" ")
-        if head in counts:
-            counts[head] += 1
-        elif head == "f" and "-" in rest:
-            tokens = []
-            for token in rest.split():
-                match = _FACE_TOKEN.match(token)
-                if match is None:
-                    raise SimulationError(f"OBJ line {i + 1}: cannot read face index {token!r}")
-                parts = []
-                for kind, value in zip(("v", "vt", "vn"), match.groups(), strict=True):
-                    if value is None:
-                        continue
-                    if value.startswith("-"):
-                        value = str(counts[kind] + 1 + int(value))
-                        rewritten += 1
-                        if int(value) < 1:
-                            raise SimulationError(
-                                f"OBJ line {i + 1}: relative index {token!r} points before the "
-                                f"first {kind}"
-                            )
-                    parts.append(value)
-                tokens.append("/".join(parts))
-            lines[i] = "f " + " ".join(tokens)
-    return "\n".join(lines) + "\n", rewritten
-
-
 def _rgb_array(image: Image.Image, rows_per_strip: int = 512) -> U8:
     """An RGB array of a Pillow image, converted strip by strip: ``np.asarray(image)`` goes
     through ``tobytes`` and ``convert`` copies the whole image, each a second full copy."""
@@ -342,8 +302,10 @@ def scene_from_trimesh(loaded: Any, source: str = "scene",
     textures: list[U8] = []
     names: list[str] = []
     offset = 0
+    skipped: list[str] = []
     for index, (mesh, transform, placed_name) in enumerate(meshes):
         if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            skipped.append(f"{placed_name or index!s} ({type(mesh).__name__})")
             continue
         faces = np.asarray(mesh.faces, dtype=np.int64)
         if np.linalg.det(transform[:3, :3]) < 0:  # a mirroring node turns the faces inside out
@@ -366,33 +328,13 @@ def scene_from_trimesh(loaded: Any, source: str = "scene",
         offset += len(mesh.vertices)
     if not triangles:
         raise SimulationError(f"{source}: contains no triangles")
-    return Scene(np.concatenate(vertices), np.concatenate(triangles), np.concatenate(uvs),
-                 np.concatenate(materials), textures, names)
-
-
-def _texture_resolver(path: Path, max_texture_px: int, materials: set[str]) -> Any:
-    """A trimesh file resolver that checks every image it hands out from the header, before
-    trimesh decodes it: trimesh swallows errors in textures (Pillow's decompression-bomb error
-    too) and drops the texture without a word, so the problems are kept and raised after."""
-    import trimesh
-
-    class Resolver(trimesh.resolvers.FilePathResolver):  # type: ignore[misc]
-        def __init__(self, source: str) -> None:
-            super().__init__(source)
-            self.problems: list[SimulationError] = []
-
-        def get(self, name: str) -> bytes:
-            data: bytes = super().get(name)
-            if name not in materials:
-                try:
-                    probe_image(data, f"{path}: texture {name!r}", max_texture_px,
-                                SimulationError)
-                except SimulationError as err:
-                    self.problems.append(err)
-                    raise
-            return data
-
-    return Resolver(str(path))
+    scene = Scene(np.concatenate(vertices), np.concatenate(triangles), np.concatenate(uvs),
+                  np.concatenate(materials), textures, names)
+    if skipped:
+        scene.warnings.append(f"{source}: {len(skipped)} geometries without triangles dropped "
+                              f"(lines or points): {', '.join(skipped[:5])}"
+                              + (" …" if len(skipped) > 5 else ""))
+    return scene
 
 
 def _glb_chunks(data: bytes, path: Path) -> tuple[dict[str, Any], bytes]:
@@ -453,10 +395,289 @@ def _check_gltf_images(path: Path, max_texture_px: int) -> None:
                               f"({type(err).__name__}: {err})") from None
 
 
+# ---------------------------------------------------------------------------------------------
+# OBJ / MTL
+# ---------------------------------------------------------------------------------------------
+
+#: Options of an MTL texture statement (``map_Kd -s 2 2 1 -o 0 0 0 file.png``) and how many
+#: values each takes; ``-s``/``-o`` take 1 to 3 numbers.
+_MAP_OPTIONS = {"-blendu": 1, "-blendv": 1, "-bm": 1, "-boost": 1, "-cc": 1, "-clamp": 1,
+                "-imfchan": 1, "-mm": 2, "-texres": 1, "-type": 1, "-s": 3, "-o": 3, "-t": 3}
+#: The colour of faces without a material (grey, as most viewers draw them).
+_DEFAULT_RGB = (200, 200, 200)
+
+
+@dataclass
+class _Material:
+    """One MTL material: diffuse colour, texture file (None: none or not found), uv scale and
+    offset of ``map_Kd``."""
+
+    kd_rgb: tuple[float, float, float] = (_DEFAULT_RGB[0] / 255, _DEFAULT_RGB[1] / 255,
+                                          _DEFAULT_RGB[2] / 255)
+    texture: Path | None = None
+    texture_name: str = ""
+    uv_scale: tuple[float, float] = (1.0, 1.0)
+    uv_offset: tuple[float, float] = (0.0, 0.0)
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _split_map_statement(args: list[str]) -> tuple[dict[str, list[float]], str]:
+    """The options (``-s``, ``-o`` …) and the file name of an MTL ``map_*`` statement (the
+    name is the rest of the line: it may contain spaces)."""
+    options: dict[str, list[float]] = {}
+    i = 0
+    while i < len(args) and args[i].lower() in _MAP_OPTIONS:
+        flag = args[i].lower()
+        count = _MAP_OPTIONS[flag]
+        values = args[i + 1:i + 1 + count]
+        if flag in ("-s", "-o", "-t", "-mm"):  # numbers only, 1 to 3 of them
+            taken = 0
+            while taken < len(values) and _is_number(values[taken]):
+                taken += 1
+            values = values[:taken]
+            options[flag] = [float(v) for v in values]
+        i += 1 + len(values)
+    return options, " ".join(args[i:])
+
+
+def _find_texture(name: str, mtl_dir: Path) -> Path | None:
+    """The image file an MTL names: as written (absolute or relative to the MTL's folder), with
+    Windows separators turned round, else its bare name beside the MTL (files copied from
+    another machine keep an absolute path that does not exist here)."""
+    name = name.strip().strip('"')
+    if not name:
+        return None
+    unix = name.replace("\\", "/")
+    candidates = [Path(unix)] if Path(unix).is_absolute() else []
+    candidates += [mtl_dir / unix, mtl_dir / Path(unix).name]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _read_mtl(path: Path, warnings: list[str]) -> dict[str, _Material]:
+    """The materials of an MTL file; a texture that cannot be found is a warning."""
+    materials: dict[str, _Material] = {}
+    current: _Material | None = None
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as err:
+        warnings.append(f"{path}: material library cannot be read ({err.strerror or err}); "
+                        "its faces are grey")
+        return materials
+    for number, raw in enumerate(text.splitlines(), 1):
+        fields = raw.split("#", 1)[0].split() if not raw.lstrip().startswith("map") else \
+            raw.split()
+        if not fields:
+            continue
+        head = fields[0].lower()
+        if head == "newmtl":
+            current = materials.setdefault(" ".join(fields[1:]), _Material())
+        elif current is None:
+            continue
+        elif head == "kd" and len(fields) >= 4 and all(_is_number(f) for f in fields[1:4]):
+            r, g, b = (float(f) for f in fields[1:4])
+            current.kd_rgb = (r, g, b)
+        elif head == "map_kd":
+            options, name = _split_map_statement(fields[1:])
+            found = _find_texture(name, path.parent)
+            if found is None:
+                warnings.append(f"{path} line {number}: texture {name!r} not found (looked "
+                                f"beside the MTL in {path.parent}); its faces get the flat "
+                                "colour Kd")
+            current.texture, current.texture_name = found, name
+            scale = options.get("-s", [1.0, 1.0])
+            offset = options.get("-o", [0.0, 0.0])
+            current.uv_scale = (scale[0], scale[1] if len(scale) > 1 else 1.0)
+            current.uv_offset = (offset[0], offset[1] if len(offset) > 1 else 0.0)
+    return materials
+
+
+def _float_rows(rows: list[list[str]], width: int, what: str, path: Path) -> F64:
+    """The first ``width`` numbers of each row as an (N, width) array."""
+    if not rows:
+        return np.zeros((0, width))
+    try:
+        return np.array([row[:width] for row in rows], dtype=np.float64).reshape(-1, width)
+    except ValueError as err:
+        raise SimulationError(f"{path}: a {what} line has fewer than {width} numbers or a word "
+                              f"that is not a number ({err})") from None
+
+
+def read_obj(path: Path, max_texture_px: int = MAX_TEXTURE_PX) -> Scene:
+    """Read a Wavefront OBJ (+MTL + images) into a :class:`Scene`, following the format as
+    other tools write it: fields split by any whitespace (tabs, several spaces), negative
+    (relative) indices, ``v``, ``v/vt``, ``v//vn`` and ``v/vt/vn`` corners, polygons
+    (fan-triangulated), texture paths relative to the MTL's folder, absolute or Windows-style,
+    ``map_Kd`` options (``-s``/``-o`` scale and offset the uv).
+
+    What cannot be used is kept in ``Scene.warnings``: lines and points, faces of fewer than
+    three corners, degenerate triangles, a missing MTL, textures not found, unknown materials.
+    """
+    text = path.read_text(encoding="utf-8", errors="replace")
+    v_rows: list[list[str]] = []
+    vt_rows: list[list[str]] = []
+    counts = {"v": 0, "vt": 0, "vn": 0}
+    corners_v: list[int] = []
+    corners_vt: list[int] = []
+    face_sizes: list[int] = []
+    face_material: list[str] = []
+    libraries: list[str] = []
+    material = ""
+    dropped = {"lines (l)": 0, "points (p)": 0, "faces of fewer than 3 corners": 0,
+               "curves and surfaces": 0}
+    for number, raw in enumerate(text.splitlines(), 1):
+        fields = raw.split("#", 1)[0].split()
+        if not fields:
+            continue
+        head = fields[0]
+        if head == "v":
+            v_rows.append(fields[1:4])
+            counts["v"] += 1
+        elif head == "vt":
+            vt_rows.append([*fields[1:3], "0"][:2])
+            counts["vt"] += 1
+        elif head == "vn":
+            counts["vn"] += 1
+        elif head == "f":
+            tokens = fields[1:]
+            if len(tokens) < 3:
+                dropped["faces of fewer than 3 corners"] += 1
+                continue
+            for token in tokens:
+                parts = token.split("/")
+                try:
+                    vi = int(parts[0])
+                    ti = int(parts[1]) if len(parts) > 1 and parts[1] else 0
+                except ValueError:
+                    raise SimulationError(f"{path} line {number}: cannot read face corner "
+                                          f"{token!r} (allowed: v, v/vt, v//vn, v/vt/vn)"
+                                          ) from None
+                vi = vi - 1 if vi > 0 else counts["v"] + vi
+                ti = ti - 1 if ti > 0 else (counts["vt"] + ti if ti < 0 else -1)
+                if not 0 <= vi < counts["v"]:
+                    raise SimulationError(f"{path} line {number}: face corner {token!r} refers "
+                                          "to a vertex that is not defined (there are "
+                                          f"{counts['v']} so far)")
+                if ti >= counts["vt"] or ti < -1:
+                    raise SimulationError(f"{path} line {number}: face corner {token!r} refers "
+                                          "to a texture coordinate that is not defined")
+                corners_v.append(vi)
+                corners_vt.append(ti)
+            face_sizes.append(len(tokens))
+            face_material.append(material)
+        elif head == "usemtl":
+            material = " ".join(fields[1:])
+        elif head == "mtllib":
+            libraries.append(" ".join(fields[1:]))
+        elif head == "l":
+            dropped["lines (l)"] += 1
+        elif head == "p":
+            dropped["points (p)"] += 1
+        elif head in ("curv", "curv2", "surf"):
+            dropped["curves and surfaces"] += 1
+    warnings: list[str] = [f"{path}: {n} {what} dropped (only triangles and polygons are "
+                           "scanned)" for what, n in dropped.items() if n]
+    vertices = _float_rows(v_rows, 3, "v", path)
+    uv_table = _float_rows(vt_rows, 2, "vt", path)
+
+    # Fan triangulation of every polygon, vectorised over corners.
+    sizes = np.asarray(face_sizes, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    per_face = sizes - 2
+    face_of = np.repeat(np.arange(len(sizes)), per_face)
+    k = np.arange(int(per_face.sum())) - np.repeat(np.cumsum(per_face) - per_face, per_face)
+    first = starts[face_of]
+    corner_index = np.stack([first, first + k + 1, first + k + 2], axis=1)
+    cv = np.asarray(corners_v, dtype=np.int64)
+    ct = np.asarray(corners_vt, dtype=np.int64)
+    triangles = cv[corner_index] if len(cv) else np.zeros((0, 3), dtype=np.int64)
+    tri_vt = ct[corner_index] if len(ct) else np.zeros((0, 3), dtype=np.int64)
+
+    p = vertices[triangles]
+    area2 = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1) \
+        if len(triangles) else np.zeros(0)
+    scale = float(np.ptp(vertices, axis=0).max()) if len(vertices) else 0.0
+    degenerate = ((triangles[:, 0] == triangles[:, 1]) | (triangles[:, 1] == triangles[:, 2])
+                  | (triangles[:, 0] == triangles[:, 2]) | (area2 <= (scale * 1e-9) ** 2))
+    if degenerate.any():
+        warnings.append(f"{path}: {int(degenerate.sum())} degenerate triangles (zero area) "
+                        "dropped")
+    keep = ~degenerate
+    triangles, tri_vt, face_of = triangles[keep], tri_vt[keep], face_of[keep]
+    if len(triangles) == 0:
+        raise SimulationError(f"{path}: contains no triangles"
+                              + (f" ({'; '.join(warnings)})" if warnings else ""))
+
+    materials: dict[str, _Material] = {}
+    for library in libraries:
+        mtl = _find_texture(library, path.parent)
+        if mtl is None:
+            warnings.append(f"{path}: material library {library!r} not found beside it; "
+                            "its materials are grey")
+            continue
+        materials.update(_read_mtl(mtl, warnings))
+
+    # One Scene material per OBJ material used.
+    used = sorted(set(face_material), key=face_material.index)
+    names = np.asarray(face_material, dtype=object)
+    material_of_face = np.zeros(len(face_material), dtype=np.int32)
+    textures: list[U8] = []
+    uv = np.full((len(triangles), 3, 2), 0.5)
+    has_vt = (tri_vt >= 0).all(axis=1)
+    if len(uv_table):
+        uv[has_vt] = uv_table[tri_vt[has_vt]]
+    unknown = [name for name in used if name and name not in materials]
+    if unknown:
+        warnings.append(f"{path}: material(s) {', '.join(map(repr, unknown))} not defined in "
+                        "the material library; their faces are grey")
+    for index, name in enumerate(used):
+        material_of_face[names == name] = index
+        spec = materials.get(name, _Material())
+        on_tri = material_of_face[face_of] == index
+        uv[on_tri] = uv[on_tri] * spec.uv_scale + spec.uv_offset
+        textures.append(_obj_texture(spec, path, max_texture_px))
+    uv[..., 1] = 1.0 - uv[..., 1]  # OBJ has v = 0 at the image bottom, the Scene glTF's top
+    scene = Scene(vertices, triangles, uv, material_of_face[face_of], textures,
+                  [name or "default" for name in used])
+    scene.warnings = warnings
+    return scene
+
+
+def _obj_texture(spec: _Material, path: Path, max_texture_px: int) -> U8:
+    """The RGB image of a material: its texture (checked from the header first, then decoded)
+    times nothing (Kd is ignored under a texture, as most viewers do), or its flat Kd."""
+    if spec.texture is not None:
+        what = f"{path}: texture {spec.texture_name!r}"
+        probe_image(spec.texture, what, max_texture_px, SimulationError)
+        try:
+            with Image.open(spec.texture) as image:
+                image.load()
+                return _rgb_array(image)
+        except (OSError, ValueError, Image.DecompressionBombError) as err:
+            raise SimulationError(f"{what}: cannot be decoded ({err})") from None
+    rgb = np.clip(np.asarray(spec.kd_rgb, dtype=np.float64) * 255, 0, 255).astype(np.uint8)
+    return np.full((4, 4, 3), rgb, dtype=np.uint8)
+
+
+#: The axis that is up in a scene file: y (OBJ, glTF) or z (CAD, many scanner tools).
+SceneUp = Literal["y", "z"]
+
+
 def load_scene(path: Path | str, pose: Pose | None = None,
-               max_texture_px: int = MAX_TEXTURE_PX) -> Scene:
-    """Load an OBJ (+MTL + images) or GLB/glTF scene in metres, optionally moved by ``pose``
-    (rotation then translation, into the rig frame).
+               max_texture_px: int = MAX_TEXTURE_PX, up: SceneUp = "y") -> Scene:
+    """Load an OBJ (+MTL + images) or GLB/glTF scene in metres into the rig frame (y up).
+
+    ``up = "z"`` turns a z-up file to y up (x, z, −y) first; then ``pose`` moves it (rotation
+    then translation). What could not be used is listed in ``Scene.warnings``.
 
     Every texture is checked from its header before it is decoded: one of more than
     ``max_texture_px`` pixels (default 8192², the largest atlas page) is a
@@ -476,27 +697,23 @@ def load_scene(path: Path | str, pose: Pose | None = None,
     if not 0 < max_texture_px <= pillow_limit:
         raise SimulationError(f"max_texture_px {max_texture_px}: allowed 1 to "
                               f"{limit_text(pillow_limit)} (Pillow's MAX_IMAGE_PIXELS)")
-    problems: list[SimulationError] = []
-    try:
-        if suffix == ".obj":
-            text = path.read_text(encoding="utf-8", errors="replace")
-            text, _ = resolve_obj_negative_indices(text)
-            materials = {line.strip()[6:].strip() for line in text.splitlines()
-                         if line.strip().startswith("mtllib")}
-            resolver = _texture_resolver(path, max_texture_px, materials)
-            problems = resolver.problems
-            loaded = trimesh.load(io.BytesIO(text.encode()), file_type="obj", resolver=resolver,
-                                  process=False, maintain_order=True)
-        else:
+    if suffix == ".obj":
+        try:
+            scene = read_obj(path, max_texture_px)
+        except OSError as err:
+            raise SimulationError(f"{path}: cannot read the scene: {err}") from err
+    else:
+        try:
             _check_gltf_images(path, max_texture_px)
             loaded = trimesh.load(str(path), process=False)
-    except SimulationError:
-        raise
-    except Exception as err:  # trimesh raises many types on bad files
-        raise SimulationError(f"{path}: cannot read the scene: {err}") from err
-    if problems:
-        raise problems[0]
-    scene = scene_from_trimesh(loaded, str(path), max_texture_px)
+        except SimulationError:
+            raise
+        except Exception as err:  # trimesh raises many types on bad files
+            raise SimulationError(f"{path}: cannot read the scene: {err}") from err
+        scene = scene_from_trimesh(loaded, str(path), max_texture_px)
+    if up == "z":
+        x, y, z = scene.vertices.T
+        scene.vertices = np.stack([x, z, -y], axis=1)
     if pose is not None:
         rotation = rotation_matrix_deg(pose.rotation_deg)
         scene.vertices = scene.vertices @ rotation.T + np.asarray(pose.translation_m)

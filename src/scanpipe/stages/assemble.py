@@ -32,6 +32,7 @@ angle (per sample in continuous mode, in float32) and is broadcast over the grid
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any, Literal
@@ -537,12 +538,19 @@ def assemble_stage(inputs: Mapping[str, Any], params: AssembleParams,
                      *([] if motor_clock_model is None else motor_clock_model.problems())],
     }
     progress("assemble", 4, 4)
+    # The filter's range gate defaults to the scanner's own limits, carried with the points.
+    from scanpipe.stages.filter import SCANNER_RANGE_KEY
+
+    table = table.replace_schema_metadata({
+        **(table.schema.metadata or {}),
+        SCANNER_RANGE_KEY: json.dumps([rig.scanner.min_range_m, rig.scanner.max_range_m]).encode(),
+    })
     return StageResult(tables={"points": table}, report=report)
 
 
 STAGE = Stage(
     name="assemble",
-    version=2,
+    version=3,
     params=AssembleParams,
     inputs=("profiles", "motor", "rig"),
     outputs=("points",),

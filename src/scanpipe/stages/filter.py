@@ -65,15 +65,19 @@ I64 = NDArray[np.int64]
 
 
 class RangeGateParams(Params):
-    """Keep ranges within the scanner's usable interval."""
+    """Keep ranges within the scanner's usable interval: by default (None) the scanner's own
+    ``min_range_m`` / ``max_range_m`` as the rig gave them to assemble (carried in the points'
+    metadata, :data:`SCANNER_RANGE_KEY`); points from another tool have none, and then the
+    bound not set here is not applied."""
 
     enabled: bool = True
-    min_range_m: float = Field(0.5, ge=0)
-    max_range_m: float = Field(250.0, gt=0)
+    min_range_m: float | None = Field(None, ge=0)
+    max_range_m: float | None = Field(None, gt=0)
 
     @model_validator(mode="after")
     def _ordered(self) -> RangeGateParams:
-        if self.max_range_m <= self.min_range_m:
+        if (self.max_range_m is not None and self.min_range_m is not None
+                and self.max_range_m <= self.min_range_m):
             raise ValueError(f"max_range_m ({self.max_range_m}) must be greater than "
                              f"min_range_m ({self.min_range_m})")
         return self
@@ -142,10 +146,18 @@ class VoxelParams(Params):
     size_m: float = Field(0.01, gt=0)
 
 
+#: Schema-metadata key of a points table: JSON ``[min_range_m, max_range_m]`` of the scanner
+#: that measured them (written by assemble from the rig).
+SCANNER_RANGE_KEY = b"scanpipe.scanner_range_m"
+
+
 class FilterParams(Params):
     """Which filters run and how; see the module docstring for the order."""
 
     mode: Literal["remove", "mark"] = "remove"
+    warn_taken_share: float = Field(
+        0.3, gt=0, le=1, description="Warn when one filter takes more than this share of the "
+                                     "points.")
     no_return: NoReturnParams = NoReturnParams()
     range_gate: RangeGateParams = RangeGateParams()
     depth_edges: DepthEdgeParams = DepthEdgeParams()
@@ -447,9 +459,16 @@ def run_filters(cloud: Cloud, params: FilterParams, progress: ProgressFn) -> dic
         if name == "no_return":
             cloud.take(name, ~(np.isfinite(cloud.range_m) & cloud.finite))
         elif name == "range_gate":
-            gate = settings
-            cloud.take(name, (cloud.range_m < gate.min_range_m) |
-                       (cloud.range_m > gate.max_range_m))
+            low, high, source = range_gate_bounds(cloud.table, settings)
+            if low is None and high is None:
+                skipped[name] = source
+                continue
+            mask = np.zeros(cloud.taken.size, bool)
+            if low is not None:
+                mask |= cloud.range_m < low
+            if high is not None:
+                mask |= cloud.range_m > high
+            cloud.take(name, mask, min_range_m=low, max_range_m=high, source=source)
         elif name == "statistical_outlier":
             if cloud.grid is not None and not settings.with_grid:
                 skipped[name] = "the points have a grid (set statistical_outlier.with_grid)"
@@ -480,6 +499,48 @@ def run_filters(cloud: Cloud, params: FilterParams, progress: ProgressFn) -> dic
             double_coverage_filter(cloud, settings)
     progress("filter", len(steps), len(steps))
     return skipped
+
+
+def range_gate_bounds(table: pa.Table, gate: RangeGateParams
+                      ) -> tuple[float | None, float | None, str]:
+    """The range gate's ``(min, max, where they come from)``: the parameters where set, else
+    the scanner's limits from the points' metadata; None where neither says."""
+    import json
+
+    raw = (table.schema.metadata or {}).get(SCANNER_RANGE_KEY)
+    scanner: list[float | None] = [None, None]
+    if raw is not None:
+        try:
+            scanner = [None if v is None else float(v) for v in json.loads(raw)][:2]
+        except (ValueError, TypeError):
+            scanner = [None, None]
+    low = gate.min_range_m if gate.min_range_m is not None else scanner[0]
+    high = gate.max_range_m if gate.max_range_m is not None else scanner[1]
+    if raw is None and (gate.min_range_m is None or gate.max_range_m is None):
+        if low is None and high is None:
+            return None, None, ("the points carry no scanner range (not from assemble); set "
+                                "range_gate.min_range_m / max_range_m")
+        return low, high, "parameters (the points carry no scanner range for the other bound)"
+    if gate.min_range_m is None or gate.max_range_m is None:
+        return low, high, "the scanner's range (rig)" + (
+            " and parameters" if gate.min_range_m is not None or gate.max_range_m is not None
+            else "")
+    return low, high, "parameters"
+
+
+def taken_share_warnings(report: Mapping[str, Any], points_in: int, share: float) -> list[str]:
+    """One warning per filter that took more than ``share`` of the points."""
+    warnings = []
+    for name, entry in report.items():
+        taken = int(entry.get("taken", 0)) if isinstance(entry, Mapping) else 0
+        if points_in and taken > share * points_in:
+            extra = ""
+            if name == "range_gate":
+                extra = (f" (kept {entry.get('min_range_m')} to {entry.get('max_range_m')} m "
+                         f"from {entry.get('source')})")
+            warnings.append(f"filter {name} took {taken / points_in:.0%} of the points "
+                            f"({taken} of {points_in}; warn_taken_share {share:g}){extra}")
+    return warnings
 
 
 def filtered_table(table: pa.Table, cloud: Cloud, mode: str) -> pa.Table:
@@ -526,13 +587,16 @@ def filter_stage(inputs: Mapping[str, Any], params: FilterParams,
         "grid": None if grid is None else {"profiles": grid.shape[0], "samples": grid.shape[1]},
         "filters": cloud.report,
         "skipped": skipped,
+        "warnings": taken_share_warnings(cloud.report, table.num_rows, params.warn_taken_share),
     }
+    if "range_gate" in skipped and params.range_gate.enabled:
+        report["warnings"].append(f"filter range_gate not applied: {skipped['range_gate']}")
     return StageResult(tables={"points": out}, report=report)
 
 
 STAGE = Stage(
     name="filter",
-    version=1,
+    version=2,
     params=FilterParams,
     inputs=("points",),
     outputs=("points",),

@@ -159,14 +159,26 @@ def orient_towards_rig(vertices: NDArray[np.float64], faces: NDArray[np.int64],
     return True
 
 
+def untextured_result(n_faces: int, reason: str, png_compression: int) -> StageResult:
+    """Every face untextured (page −1, no frame) and no atlas page: the export then writes the
+    model without texture. The report says why, as a warning."""
+    return StageResult(
+        tables={"textured_faces": textured_faces_table(
+                    np.full(n_faces, -1, np.int16), np.zeros((n_faces, 3, 2), np.float32),
+                    np.full(n_faces, -1, np.int64), [], np.zeros(0, np.int64)),
+                "texture_pages": pages_table([], png_compression)},
+        report={"untextured": True, "faces": n_faces, "textured_faces": 0,
+                "warnings": [f"untextured: {reason}; the model is exported without texture"]})
+
+
 def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: ProgressFn
             ) -> StageResult:
     """Texture the mesh from the camera frames (the stage function)."""
     started = time.perf_counter()
     vertices, faces, vertex_normals = _mesh_arrays(inputs)
     rig = rig_from_table(inputs["rig"])
-    if not rig.cameras:
-        raise StageError("rig: no cameras; a textured model needs at least one [[cameras]] entry")
+    if not rig.cameras:  # a scan without cameras (simulate --no-cameras): geometry only
+        return untextured_result(len(faces), "the rig has no cameras", params.png_compression)
     known_frames, warnings = known_camera_frames(inputs["frames"], rig)
     if warnings and known_frames.num_rows == 0:
         raise StageError(f"frames: none of the rig's cameras "
