@@ -3,14 +3,21 @@
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
 import typer
 
 from scanpipe.cli.common import JSON, PARAMS_FILE, QUIET, SET, print_json, run_stage_command
-from scanpipe.errors import UsageError
-from scanpipe.protocol.registry import DecodedFrame, StreamDecoder, resolve_dialect
+from scanpipe.errors import ProtocolError, UsageError
+from scanpipe.protocol.registry import (
+    DecodedFrame,
+    Dialect,
+    StreamDecoder,
+    describe_bytes,
+    resolve_dialect,
+)
 
 
 def _floats(values: Any) -> list[float | None]:
@@ -48,14 +55,41 @@ def _format_frame(r: dict[str, Any]) -> str:
             f"{time}  checksum {check}\n    ranges_m: {ranges}{more}")
 
 
+def _request_records(data: bytes, dialect: Dialect) -> tuple[list[dict[str, Any]], dict[str, int]]:
+    """The frames the host sent (requests), each with its offset and payload, and the counters."""
+    reader = dialect.frame_reader()
+    raw = reader.feed(data) + reader.finish()
+    records = [{"offset": r.start_offset, "checksum_ok": r.checksum_ok,
+                "payload_hex": r.payload.hex(" ")} for r in raw]
+    return records, reader.counters.as_dict()
+
+
+def _no_frame(source: str, dialect: Dialect, data: bytes, counters: dict[str, int]) -> str:
+    failed = counters.get("checksum_failures", 0)
+    hint = (f" ({failed} frames failed the checksum: --checksum lenient shows them)"
+            if failed else f"; {describe_bytes(data)}")
+    return (f"{source}: --dialect {dialect.name}: no {dialect.name} frame in its "
+            f"{len(data)} bytes{hint}; try --dialect auto")
+
+
 def frames(
-    capture: Path = typer.Argument(..., help="A raw byte capture of a scanner stream."),
+    capture: Path = typer.Argument(..., help="A raw byte capture of a scanner stream, or a "
+                                             "network capture (.pcap, .pcapng) of its TCP link."),
     dialect: str = typer.Option("auto", "--dialect", help="paper, ldoem or auto."),
     checksum: str = typer.Option("lenient", "--checksum",
                                  help="lenient shows damaged frames marked; strict drops them."),
+    port: int | None = typer.Option(None, "--port",
+                                    help="Network capture: the scanner's TCP port."),
+    stream: str | None = typer.Option(None, "--stream",
+                                      help="Network capture: the scanner's end, HOST:PORT."),
     as_json: bool = JSON,
 ) -> None:
-    """Decode a raw byte capture and print each frame and the decoder's counters."""
+    """Decode a raw byte capture and print each frame and the decoder's counters.
+
+    A network capture (pcap, pcapng) is read as its scanner TCP stream, reassembled: the replies
+    (scanner → host) are decoded as profiles, the requests (host → scanner) listed."""
+    from scanpipe.captureio import is_capture, load_scanner_capture, parse_endpoint
+
     if checksum not in ("strict", "lenient"):
         raise UsageError(f"--checksum {checksum!r}: allowed strict, lenient")
     if dialect not in ("auto", "paper", "ldoem"):
@@ -64,18 +98,58 @@ def frames(
         data = capture.read_bytes()
     except OSError as err:
         raise UsageError(f"{capture}: cannot be read ({err.strerror or err})") from None
-    chosen = resolve_dialect(dialect, data)
+    scan = None
+    if is_capture(data[:4]):
+        scan = load_scanner_capture(capture, port, None if stream is None
+                                    else parse_endpoint(stream))
+        data = scan.received.data
+        source = f"{capture} (scanner {scan.summary()['scanner']})"
+    elif port is not None or stream is not None:
+        raise UsageError(f"--port/--stream: {capture} is not a network capture (pcap, pcapng); "
+                         "they choose a TCP stream of one")
+    else:
+        source = str(capture)
+    try:
+        chosen = resolve_dialect(dialect, data)
+    except ProtocolError as err:
+        raise ProtocolError(f"{source}: {err}") from None
     decoder = StreamDecoder(chosen, "strict" if checksum == "strict" else "lenient")
     decoded = decoder.feed_frames(data) + decoder.finish_frames()
     records = frame_records(decoded)
     counters = decoder.counters.as_dict()
+    if dialect != "auto" and data and counters["frames_decoded"] == 0:
+        raise ProtocolError(_no_frame(source, chosen, data, counters))
+    requests: list[dict[str, Any]] = []
+    request_counters: dict[str, int] = {}
+    if scan is not None:
+        requests, request_counters = _request_records(scan.sent.data, chosen)
+        for warning in scan.warnings:
+            sys.stderr.write(f"warning: frames: {warning}\n")
     if as_json:
-        print_json({"dialect": chosen.name, "frames": records, "counters": counters})
+        result: dict[str, Any] = {"dialect": chosen.name, "frames": records, "counters": counters}
+        if scan is not None:
+            result.update(capture=scan.summary(), requests=requests,
+                          request_counters=request_counters)
+        print_json(result)
         return
-    typer.echo(f"{capture}: {len(data)} bytes, dialect {chosen.name}")
+    if scan is None:
+        typer.echo(f"{capture}: {len(data)} bytes, dialect {chosen.name}")
+    else:
+        rx, tx = scan.received, scan.sent
+        typer.echo(f"{capture}: {scan.kind} capture, stream {scan.stream.describe()}; scanner "
+                   f"{scan.summary()['scanner']}: {rx.byte_count} bytes received, "
+                   f"{tx.byte_count} sent, {len(rx.gaps) + len(tx.gaps)} gaps; dialect "
+                   f"{chosen.name}")
+        typer.echo("replies (scanner → host):")
     for record in records:
         typer.echo(_format_frame(record))
     typer.echo("counters: " + ", ".join(f"{k} {v}" for k, v in counters.items()))
+    if scan is not None:
+        typer.echo(f"requests (host → scanner): {len(requests)} frames")
+        for req in requests:
+            check = "" if req["checksum_ok"] else "  checksum MISMATCH"
+            typer.echo(f"@{req['offset']:<8d} payload {req['payload_hex'][:48]}"
+                       f"{' …' if len(req['payload_hex']) > 48 else ''}{check}")
 
 
 def format_report(report: dict[str, Any]) -> str:

@@ -15,6 +15,7 @@ from scanpipe import __version__
 from scanpipe.cli import (
     acquire,
     bag,
+    capture,
     common,
     decode,
     demo,
@@ -39,8 +40,8 @@ app = typer.Typer(
 )
 
 # Every command group, in the order `scanpipe --help` lists them.
-for module in (demo, plan, rig, acquire, bag, simulate, pipeline, decode, points, mesh, texture,
-               results):
+for module in (demo, plan, rig, acquire, bag, capture, simulate, pipeline, decode, points,
+               mesh, texture, results):
     module.register(app)
 
 

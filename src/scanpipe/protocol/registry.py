@@ -257,7 +257,37 @@ def detect_dialect(data: bytes) -> str:
         if len(data) <= limit:
             break
     raise ProtocolError(f"cannot detect the dialect: no frame of {', '.join(DIALECTS)} "
-                        f"in the first {min(len(data), DETECT_BYTES[-1])} bytes")
+                        f"(tried) in the first {min(len(data), DETECT_BYTES[-1])} bytes; "
+                        f"{describe_bytes(data)}")
+
+
+#: File signatures a user may hand over instead of a raw scanner stream, and what to do then.
+CONTAINERS: tuple[tuple[bytes, str], ...] = (
+    (b"\xd4\xc3\xb2\xa1", "a pcap network capture: scanpipe import-capture or frames read it"),
+    (b"\xa1\xb2\xc3\xd4", "a pcap network capture: scanpipe import-capture or frames read it"),
+    (b"\x4d\x3c\xb2\xa1", "a pcap network capture: scanpipe import-capture or frames read it"),
+    (b"\xa1\xb2\x3c\x4d", "a pcap network capture: scanpipe import-capture or frames read it"),
+    (b"\x0a\x0d\x0d\x0a", "a pcapng network capture: scanpipe import-capture or frames read "
+                           "it"),
+    (b"\x89MCAP", "an MCAP file (a scanpipe recording is read by scanpipe decode)"),
+    (b"#ROSBAG", "a ROS 1 bag"),
+    (b"SQLite format 3\x00", "an SQLite database (a ROS 2 bag?)"),
+    (b"\x1f\x8b", "gzip-compressed: decompress it first"),
+    (b"\x28\xb5\x2f\xfd", "zstd-compressed: decompress it first"),
+    (b"PK\x03\x04", "a zip archive: extract it first"),
+)
+
+
+def describe_bytes(data: bytes) -> str:
+    """What the start of ``data`` is, for an error message: its first bytes in hex and the
+    container it looks like, if any."""
+    if not data:
+        return "the input is empty"
+    head = data[:16].hex(" ") + (" …" if len(data) > 16 else "")
+    for magic, what in CONTAINERS:
+        if data.startswith(magic):
+            return f"it begins {head}: {what}"
+    return f"it begins {head} (not a pcap/pcapng, MCAP or ROS bag container)"
 
 
 def resolve_dialect(name: str, data: bytes) -> Dialect:

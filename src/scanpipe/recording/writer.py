@@ -145,6 +145,12 @@ class RecordingWriter:
             message = schemas.ByteChunk(seq=seq, data=bytes(data), direction=direction)
             self._write(topic, message, log_time_ns, seq)
 
+    def skip_stream_chunk(self, link: Link, direction: int) -> None:
+        """Leave one sequence number of a link unused: bytes known lost (a capture's gap), which
+        readers then count as a missing chunk instead of joining across it silently."""
+        with self._lock:
+            self._seq[(link, direction)] = self._seq.get((link, direction), 0) + 1
+
     def write_motor_state(self, log_time_ns: int, step_count: int, target_step_count: int,
                           moving: bool, device_time_us: int) -> None:
         """One position report of the motor controller."""

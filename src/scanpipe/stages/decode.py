@@ -40,7 +40,13 @@ from scanpipe.images import image_size
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, unwrap_counter
-from scanpipe.protocol.registry import DecodedFrame, StreamDecoder, get_dialect, resolve_dialect
+from scanpipe.protocol.registry import (
+    DecodedFrame,
+    StreamDecoder,
+    describe_bytes,
+    get_dialect,
+    resolve_dialect,
+)
 from scanpipe.recording.reader import (
     DecodedProfile,
     Image,
@@ -250,6 +256,11 @@ def decode_recording(recording: Recording, params: DecodeParams,
         frames += decoder.feed_frames(view[start:start + _FEED_BYTES])
         progress("decode scanner stream", min(start + _FEED_BYTES, len(data)), len(data))
     frames += decoder.finish_frames()
+    if params.dialect != "auto" and data and decoder.counters.frames_decoded == 0:
+        raise StageError(f"{recording.path}: decode.dialect = {params.dialect}: no frame of it "
+                         f"in the {len(data)} bytes received from the scanner "
+                         f"({decoder.counters.checksum_failures} checksum failures; "
+                         f"{describe_bytes(data)}); try decode.dialect = auto")
     profiles, clock = profiles_table(frames, stream, dialect.name)
     if recording.profiles:
         # Profiles another tool decoded (an imported ROS bag); a byte stream beside them is
