@@ -106,6 +106,17 @@ def test_mislabelled_header_is_warned_and_columns_fix_it(tmp_path: Path) -> None
     assert "z-up" in str(report["warnings"]) or report["z_up_converted"]
 
 
+def test_a_non_standard_header_without_columns_is_warned(tmp_path: Path) -> None:
+    path = tmp_path / "h.csv"
+    np.savetxt(path, room_points(np.zeros(3)), delimiter=",", header="x,z,y", comments="")
+    _, report = import_points(path, ImportParams())
+    assert any("taken by the header's names (x, z, y)" in w for w in report["warnings"])
+    plain = tmp_path / "p.csv"
+    np.savetxt(plain, room_points(np.zeros(3)), delimiter=",", header="x,y,z", comments="")
+    _, report = import_points(plain, ImportParams())
+    assert not any("header" in w for w in report["warnings"])
+
+
 def test_up_auto_recognises_a_z_up_cloud() -> None:
     truth = room_points(np.zeros(3))
     z_up = truth[:, [0, 2, 1]] * (1, -1, 1)

@@ -1,25 +1,31 @@
-"""Import point clouds from other tools into a ``points`` artifact (without a grid).
+"""Import point clouds from other tools into a ``points`` artifact (docs/import.md).
 
-Formats, by file extension:
+Formats, by file extension or ``format``:
 
-- ``.ply``: binary or ASCII, read with numpy (vertex colours are kept).
-- ``.xyz``, ``.txt``, ``.csv``, ``.pts``: text, one point a line, separated by commas,
-  semicolons or white space. With a header line (any non-numeric token) the columns are found
-  by name (``x, y, z`` and ``red, green, blue`` or ``r, g, b``; case and a leading ``//`` are
-  ignored); without one the first three columns are x, y, z and, when the next three hold only
-  integers in 0–255, they are the colour.
-- ``.las``, ``.laz``: through laspy (LAZ with lazrs); 16-bit colours become 8-bit.
+- ``ply``: binary or ASCII, read with numpy (vertex colours are kept).
+- ``xyz`` / ``csv`` (``.xyz``, ``.txt``, ``.csv``, ``.pts``): text, one point a line, separated
+  by commas, semicolons or white space. ``columns`` names each column's role; else a header
+  line (any non-numeric token) names them (``x, y, z``, ``red, green, blue`` or ``r, g, b``,
+  ``intensity``, ``range, azimuth, elevation``; case and a leading ``//`` are ignored), with a
+  warning when the header is not plain ``x,y,z[,rgb]`` and a check against the polar columns
+  when it has both; without a header the first three columns are x, y, z and, when the next
+  three hold only integers in 0–255, they are the colour.
+- ``3d``: 3DTK's ``scanNNN.3d`` (left-handed, y up, centimetres; a first line that is not three
+  numbers is the resolution and skipped), with its ``.pose`` (:func:`read_pose`).
+- ``las`` (``.las``, ``.laz``): through laspy (LAZ with lazrs); 16-bit colours become 8-bit.
 
 No header is trusted: every count a header states is checked against the file's size before
 anything is allocated (a binary PLY needs count × record size bytes, an ASCII value at least two
 characters, a LAS file offset + count × record length), so memory stays bounded by the file.
 Every parse failure is an :class:`~scanpipe.errors.ArtifactError` naming the file (and the field).
 
-LAS is z-up; scanpipe's rig frame is y-up, so a z-up file maps as ``(x, y, z) → (x, z, −y)``,
-the inverse of the export's ``(x, y, z) → (x, −z, y)``. ``up = auto`` treats LAS/LAZ as z-up
-and the rest as y-up. Every point gets ``profile = sample = −1`` (no grid), the sensor origin
-given (default the rig origin), ``range_m`` and the angles ``α, β`` of its direction from that
-origin by inverting the paper's eq. 14–16, and ``time_ns`` 0.
+Per file: pose (file frame and units) → metres → z mirrored when left-handed → rig axes. LAS is
+z-up; scanpipe's rig frame is y-up, so a z-up file maps as ``(x, y, z) → (x, z, −y)``, the
+inverse of the export's ``(x, y, z) → (x, −z, y)``. ``up = auto``: LAS/LAZ z-up, 3DTK y-up,
+else :func:`detect_z_up`. No-returns (range 0, at/above ``max_range_m``) are dropped and
+counted. Points get ``profile = sample = −1`` unless ``organised`` gives the grid, the sensor
+origin of their file's pose (else ``origin_m``), ``range_m`` and the angles ``α, β`` of their
+direction from that origin by inverting the paper's eq. 14–16, and ``time_ns`` 0.
 """
 
 from __future__ import annotations
