@@ -1,25 +1,31 @@
-"""Import point clouds from other tools into a ``points`` artifact (without a grid).
+"""Import point clouds from other tools into a ``points`` artifact (docs/import.md).
 
-Formats, by file extension:
+Formats, by file extension or ``format``:
 
-- ``.ply``: binary or ASCII, read with numpy (vertex colours are kept).
-- ``.xyz``, ``.txt``, ``.csv``, ``.pts``: text, one point a line, separated by commas,
-  semicolons or white space. With a header line (any non-numeric token) the columns are found
-  by name (``x, y, z`` and ``red, green, blue`` or ``r, g, b``; case and a leading ``//`` are
-  ignored); without one the first three columns are x, y, z and, when the next three hold only
-  integers in 0–255, they are the colour.
-- ``.las``, ``.laz``: through laspy (LAZ with lazrs); 16-bit colours become 8-bit.
+- ``ply``: binary or ASCII, read with numpy (vertex colours are kept).
+- ``xyz`` / ``csv`` (``.xyz``, ``.txt``, ``.csv``, ``.pts``): text, one point a line, separated
+  by commas, semicolons or white space. ``columns`` names each column's role; else a header
+  line (any non-numeric token) names them (``x, y, z``, ``red, green, blue`` or ``r, g, b``,
+  ``intensity``, ``range, azimuth, elevation``; case and a leading ``//`` are ignored), with a
+  warning when the header is not plain ``x,y,z[,rgb]`` and a check against the polar columns
+  when it has both; without a header the first three columns are x, y, z and, when the next
+  three hold only integers in 0–255, they are the colour.
+- ``3d``: 3DTK's ``scanNNN.3d`` (left-handed, y up, centimetres; a first line that is not three
+  numbers is the resolution and skipped), with its ``.pose`` (:func:`read_pose`).
+- ``las`` (``.las``, ``.laz``): through laspy (LAZ with lazrs); 16-bit colours become 8-bit.
 
 No header is trusted: every count a header states is checked against the file's size before
 anything is allocated (a binary PLY needs count × record size bytes, an ASCII value at least two
 characters, a LAS file offset + count × record length), so memory stays bounded by the file.
 Every parse failure is an :class:`~scanpipe.errors.ArtifactError` naming the file (and the field).
 
-LAS is z-up; scanpipe's rig frame is y-up, so a z-up file maps as ``(x, y, z) → (x, z, −y)``,
-the inverse of the export's ``(x, y, z) → (x, −z, y)``. ``up = auto`` treats LAS/LAZ as z-up
-and the rest as y-up. Every point gets ``profile = sample = −1`` (no grid), the sensor origin
-given (default the rig origin), ``range_m`` and the angles ``α, β`` of its direction from that
-origin by inverting the paper's eq. 14–16, and ``time_ns`` 0.
+Per file: pose (file frame and units) → metres → z mirrored when left-handed → rig axes. LAS is
+z-up; scanpipe's rig frame is y-up, so a z-up file maps as ``(x, y, z) → (x, z, −y)``, the
+inverse of the export's ``(x, y, z) → (x, −z, y)``. ``up = auto``: LAS/LAZ z-up, 3DTK y-up,
+else :func:`detect_z_up`. No-returns (range 0, at/above ``max_range_m``) are dropped and
+counted. Points get ``profile = sample = −1`` unless ``organised`` gives the grid, the sensor
+origin of their file's pose (else ``origin_m``), ``range_m`` and the angles ``α, β`` of their
+direction from that origin by inverting the paper's eq. 14–16, and ``time_ns`` 0.
 """
 
 from __future__ import annotations
@@ -55,7 +61,30 @@ class ImportParams(Params):
     origin_m: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="sensor origin of every point, in the rig frame")
     up: Literal["auto", "y", "z"] = Field(
-        "auto", description="the file's up axis; auto = z for LAS/LAZ, y otherwise")
+        "auto", description="the file's up axis; auto = z for LAS/LAZ, y for 3DTK .3d, "
+                            "else detected from the cloud (see detect_z_up)")
+    format: Literal["auto", "xyz", "csv", "ply", "las", "3d"] = Field(
+        "auto", description="file format; auto = from the extension")
+    columns: str | None = Field(
+        None, description="text columns: each column's role in order (x,y,z,-,intensity; "
+                          "- skips) or ROLE=INDEX pairs; roles x y z red green blue intensity "
+                          "range azimuth elevation")
+    units: Literal["auto", "m", "cm", "mm"] = Field(
+        "auto", description="length unit of the file (and its pose); auto = cm for 3DTK .3d, "
+                            "m otherwise")
+    axes: str | None = Field(
+        None, description="which file axis becomes rig x, y, z, signed (e.g. x,z,-y)")
+    left_handed: bool | None = Field(
+        None, description="the file's frame is left-handed (its z is mirrored); None = true "
+                          "for 3DTK .3d")
+    organised: str | None = Field(
+        None, description="ROWSxCOLS: the file is a grid in row order (profile = row, "
+                          "sample = column)")
+    max_range_m: float | None = Field(
+        None, gt=0, description="ranges at or above this are no-returns (dropped, counted)")
+    extra_files: tuple[str, ...] = Field((), description="more point files merged in")
+    poses: tuple[str, ...] = Field(
+        (), description="one pose file per file (first, then extra_files); '' = none")
 
 
 def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:
@@ -70,7 +99,9 @@ def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:
         return (*_read_ply(path), False)
     if suffix in (".las", ".laz"):
         return (*_read_las(path), True)
-    return (*_read_text(path), False)
+    table = _read_text(path)
+    points, colours, _, _ = _map_columns(path, table, ImportParams(), [])
+    return points, colours, False
 
 
 #: PLY scalar types and their numpy codes (both spellings of the PLY specification).
@@ -312,11 +343,26 @@ def _read_las(path: Path) -> tuple[F64, U8 | None]:
     return points.astype(np.float64), colours
 
 
-_NAMES = {"x": ("x",), "y": ("y",), "z": ("z",), "red": ("red", "r"), "green": ("green", "g"),
-          "blue": ("blue", "b")}
+#: Column roles ``--columns`` and a header may name (aliases in the header, lower case).
+ROLES = {"x": ("x",), "y": ("y",), "z": ("z",), "red": ("red", "r"), "green": ("green", "g"),
+         "blue": ("blue", "b"), "intensity": ("intensity", "reflectance", "i"),
+         "range": ("range", "range_m", "r_m", "distance"),
+         "azimuth": ("azimuth", "azimuth_deg", "az"),
+         "elevation": ("elevation", "elevation_deg", "el")}
+_STANDARD_HEADERS = ({"x", "y", "z"}, {"x", "y", "z", "red", "green", "blue"})
 
 
-def _read_text(path: Path) -> tuple[F64, U8 | None]:
+@dataclass
+class _Table:
+    """A text point file's numbers and, when it has one, its header's column names."""
+
+    data: F64
+    names: list[str] | None
+
+
+def _read_text(path: Path, skip_header: bool = False) -> _Table:
+    """A text table; ``skip_header`` drops a first line that is not three numbers (3DTK's
+    ``.3d`` files start with a resolution line)."""
     try:
         with path.open("r", encoding="utf-8", errors="strict") as handle:
             first = handle.readline()
@@ -334,27 +380,71 @@ def _read_text(path: Path) -> tuple[F64, U8 | None]:
         raise ArtifactError(f"{path}: not a table of numbers ({err})") from err
     if data.shape[0] == 0:
         raise ArtifactError(f"{path}: no points")
-    if header:
+    names = None
+    if header and not skip_header:
         names = [re.sub(r"^//", "", t).strip().lower() for t in tokens]
-        columns = {key: next((names.index(a) for a in aliases if a in names), None)
-                   for key, aliases in _NAMES.items()}
-        missing = [k for k in "xyz" if columns[k] is None]
-        if missing:
-            raise ArtifactError(f"{path}: header has no column {', '.join(missing)} "
-                                f"(found: {', '.join(names)})")
-        xyz_index = [columns[k] for k in "xyz"]
-        rgb_index = [columns[k] for k in ("red", "green", "blue")]
-    else:
-        if data.shape[1] < 3:
-            raise ArtifactError(f"{path}: {data.shape[1]} columns; need at least x, y, z")
-        xyz_index, rgb_index = [0, 1, 2], [3, 4, 5] if data.shape[1] >= 6 else [None]
-    points = data[:, [int(i) for i in xyz_index if i is not None]]
-    colours = None
-    if all(i is not None for i in rgb_index):
-        rgb = data[:, [int(i) for i in rgb_index if i is not None]]
-        if header or (np.all(rgb == np.round(rgb)) and rgb.min() >= 0 and rgb.max() <= 255):
-            colours = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
-    return points, colours
+    return _Table(data, names)
+
+
+def parse_columns(text: str, count: int, where: str) -> dict[str, int]:
+    """Role → column index from ``--columns``: each file column's role in order (``-`` skips
+    one: ``x,y,z,-,intensity``) or ``ROLE=INDEX`` pairs (``x=0,y=2,z=1``)."""
+    items = [t.strip().lower() for t in text.split(",")]
+    mapping: dict[str, int] = {}
+    for position, item in enumerate(items):
+        role, _, index = item.partition("=")
+        if item == "-":
+            continue
+        if role not in ROLES:
+            raise UsageError(f"--columns {text!r}: unknown column {role!r}; allowed: "
+                             f"{', '.join(ROLES)}, - (skip) or ROLE=INDEX")
+        try:
+            column = int(index) if index else position
+        except ValueError:
+            raise UsageError(f"--columns {text!r}: {item!r} is not ROLE=INDEX") from None
+        if not 0 <= column < count:
+            raise UsageError(f"--columns {text!r}: column {column} of {role!r} is not in "
+                             f"{where} ({count} columns)")
+        if role in mapping:
+            raise UsageError(f"--columns {text!r}: {role!r} given twice")
+        mapping[role] = column
+    if not ({"x", "y", "z"} <= set(mapping) or {"range", "azimuth", "elevation"} <= set(mapping)):
+        raise UsageError(f"--columns {text!r}: need x, y, z or range, azimuth, elevation")
+    return mapping
+
+
+def polar_to_xyz(range_m: F64, azimuth_deg: F64, elevation_deg: F64) -> F64:
+    """Points from polar columns, in the file's own z-up frame: azimuth counter-clockwise
+    about z from +x towards +y, elevation up from the x-y plane towards +z (degrees)."""
+    az, el = np.radians(azimuth_deg), np.radians(elevation_deg)
+    return np.stack([range_m * np.cos(el) * np.cos(az), range_m * np.cos(el) * np.sin(az),
+                     range_m * np.sin(el)], axis=1)
+
+
+_PERMUTATIONS = (("x", "y", "z"), ("x", "z", "y"), ("y", "x", "z"), ("y", "z", "x"),
+                 ("z", "x", "y"), ("z", "y", "x"))
+
+
+def _check_header_against_polar(path: Path, xyz: F64, polar: F64, ok: NDArray[np.bool_],
+                                warnings_out: list[str]) -> None:
+    """Warn when the named x, y, z disagree with the file's own range/azimuth/elevation."""
+    if not ok.any():
+        return
+    a, b = xyz[ok], polar[ok]
+    scale = max(float(np.median(np.linalg.norm(b, axis=1))), 1e-9)
+    error = float(np.mean(np.linalg.norm(a - b, axis=1)))
+    if error <= 0.01 * scale:
+        return
+    best = min(_PERMUTATIONS, key=lambda p: float(np.mean(np.linalg.norm(
+        a[:, ["xyz".index(c) for c in p]] - b, axis=1))))
+    best_error = float(np.mean(np.linalg.norm(a[:, ["xyz".index(c) for c in best]] - b,
+                                              axis=1)))
+    hint = (f"its columns named {','.join(best)} fit them as x,y,z (mean {best_error:.3g}); "
+            "the header is probably mislabelled: give --columns"
+            if best_error <= 0.01 * scale else
+            "the polar columns may follow another convention; check and give --columns")
+    warnings_out.append(f"{path}: the header's x, y, z disagree with its range/azimuth/"
+                        f"elevation columns (mean {error:.3g} in file units); {hint}")
 
 
 def _is_number(token: str) -> bool:
@@ -365,9 +455,12 @@ def _is_number(token: str) -> bool:
     return True
 
 
-def points_table(points: F64, colours: U8 | None, origin_m: tuple[float, float, float]) -> pa.Table:
-    """A ``points`` artifact without a grid from rig-frame coordinates (see the module doc)."""
-    origin = np.asarray(origin_m, dtype=np.float64)
+def points_table(points: F64, colours: U8 | None,
+                 origin_m: tuple[float, float, float] | F64,
+                 echo: NDArray[np.uint16] | None = None) -> pa.Table:
+    """A ``points`` artifact without a grid from rig-frame coordinates (see the module doc);
+    ``origin_m`` is one origin or one per point."""
+    origin = np.broadcast_to(np.asarray(origin_m, dtype=np.float64), points.shape)
     rel = points - origin
     range_m = np.linalg.norm(rel, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -387,31 +480,321 @@ def points_table(points: F64, colours: U8 | None, origin_m: tuple[float, float, 
         "sample": pa.array(minus_one),
     }
     for k, name in enumerate(ORIGIN):
-        columns[name] = pa.array(np.full(n, origin[k], np.float32))
+        columns[name] = pa.array(np.ascontiguousarray(origin[:, k], np.float32))
+    if echo is not None:
+        columns["echo"] = pa.array(echo)
     if colours is not None:
         for k, name in enumerate(RGB):
             columns[name] = pa.array(np.ascontiguousarray(colours[:, k]))
     return pa.table(columns)
 
 
+#: Metres per file unit.
+UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+#: Extents (metres) outside which a cloud is implausible for its units.
+MAX_PLAUSIBLE_EXTENT_M = 500.0
+MIN_PLAUSIBLE_EXTENT_M = 0.05
+#: Fewer points than this cannot tell z-up from y-up.
+MIN_POINTS_FOR_UP = 200
+
+
+@dataclass
+class _Scan:
+    """One file's points in its own frame and units, before any mapping."""
+
+    points: F64
+    colours: U8 | None
+    echo: NDArray[np.uint16] | None
+    grid: tuple[NDArray[np.int32], NDArray[np.int32]] | None
+    z_up: bool | None  # the format says (LAS: z-up, 3DTK: y-up); None: unknown
+    units: str
+    left_handed: bool
+    no_return: int
+
+
+def _format_of(path: Path, params: ImportParams) -> str:
+    if params.format != "auto":
+        return params.format
+    suffix = path.suffix.lower()
+    if suffix == ".ply":
+        return "ply"
+    if suffix in (".las", ".laz"):
+        return "las"
+    if suffix == ".3d":
+        return "3d"
+    if suffix in TEXT_SUFFIXES:
+        return "xyz"
+    raise UsageError(f"{path}: unknown point file type {suffix!r}; allowed: "
+                     f"{', '.join((*SUFFIXES, '.3d'))}, or name the format with --format "
+                     "xyz|csv|ply|las|3d")
+
+
+def parse_organised(text: str) -> tuple[int, int]:
+    """``ROWSxCOLS`` → (rows, columns)."""
+    match = re.fullmatch(r"\s*(\d+)\s*[xX×]\s*(\d+)\s*", text)
+    if not match or 0 in (int(match[1]), int(match[2])):
+        raise UsageError(f"--organised {text!r}: expected ROWSxCOLS, e.g. 180x1081")
+    return int(match[1]), int(match[2])
+
+
+def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Scan:
+    if not path.is_file():
+        raise UsageError(f"{path}: not found")
+    fmt = _format_of(path, params)
+    units = params.units if params.units != "auto" else ("cm" if fmt == "3d" else "m")
+    left = params.left_handed if params.left_handed is not None else fmt == "3d"
+    echo = None
+    if fmt in ("ply", "las"):
+        if params.columns:
+            raise UsageError(f"--columns applies to text files, not {fmt} ({path})")
+        raw, colours = _read_ply(path) if fmt == "ply" else _read_las(path)
+        table_range: F64 | None = None
+        z_up: bool | None = fmt == "las"
+    else:
+        table = _read_text(path, skip_header=fmt == "3d")
+        raw, colours, echo, table_range = _map_columns(path, table, params, warnings_out)
+        z_up = False if fmt == "3d" else (True if table_range is not None and params.columns
+                                          and "x" not in params.columns else None)
+    n = len(raw)
+    grid = None
+    if params.organised:
+        rows, cols = parse_organised(params.organised)
+        if rows * cols != n:
+            raise UsageError(f"--organised {params.organised}: {rows} × {cols} = {rows * cols} "
+                             f"cells but {path} has {n} points")
+        index = np.arange(n, dtype=np.int32)
+        grid = (index // cols, index % cols)
+    # No return: a range of 0 (a point at the sensor), or at/above the maximum range.
+    range_file = table_range if table_range is not None else np.linalg.norm(raw, axis=1)
+    finite = np.isfinite(raw).all(axis=1) & np.isfinite(range_file)
+    with np.errstate(invalid="ignore"):
+        no_return = finite & (range_file <= 0)
+        if params.max_range_m is not None:
+            no_return |= finite & (range_file * UNIT_SCALE[units] >= params.max_range_m)
+    keep = finite & ~no_return
+    if np.count_nonzero(~finite):
+        warnings_out.append(f"{path}: {np.count_nonzero(~finite)} rows with NaN/inf dropped")
+    return _Scan(raw[keep], None if colours is None else colours[keep],
+                 None if echo is None else echo[keep],
+                 None if grid is None else (grid[0][keep], grid[1][keep]), z_up, units, left,
+                 int(np.count_nonzero(no_return)))
+
+
+def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: list[str]
+                 ) -> tuple[F64, U8 | None, NDArray[np.uint16] | None, F64 | None]:
+    """Points (file frame), colours, intensity and the polar range column of a text table."""
+    data, names = table.data, table.names
+    if params.columns:
+        roles = parse_columns(params.columns, data.shape[1], str(path))
+    elif names is not None:
+        roles = {}
+        for role, aliases in ROLES.items():
+            found = next((names.index(a) for a in aliases if a in names), None)
+            if found is not None:
+                roles[role] = found
+        missing = [k for k in "xyz" if k not in roles]
+        polar = {"range", "azimuth", "elevation"} <= set(roles)
+        if missing and not polar:
+            raise ArtifactError(f"{path}: header has no column {', '.join(missing)} "
+                                f"(found: {', '.join(names)})")
+        known = set(roles) | {"-"}
+        ordered = [n for n in names if n in ("x", "y", "z")]
+        if set(names) - {a for r in roles for a in ROLES[r]} - known or ordered != sorted(
+                ordered) or set(roles) not in _STANDARD_HEADERS:
+            warnings_out.append(f"{path}: columns taken by the header's names "
+                                f"({', '.join(names)}); a header is not checked against the "
+                                "data: confirm with --columns")
+    else:
+        if data.shape[1] < 3:
+            raise ArtifactError(f"{path}: {data.shape[1]} columns; need at least x, y, z")
+        roles = {"x": 0, "y": 1, "z": 2}
+        if data.shape[1] >= 6:
+            rgb = data[:, 3:6]
+            if np.all(rgb == np.round(rgb)) and rgb.min() >= 0 and rgb.max() <= 255:
+                roles.update(red=3, green=4, blue=5)
+    polar_xyz = None
+    # A range column alone still tells no-returns (0) from points.
+    range_col = data[:, roles["range"]] if "range" in roles else None
+    if range_col is not None and {"azimuth", "elevation"} <= set(roles):
+        polar_xyz = polar_to_xyz(range_col, data[:, roles["azimuth"]],
+                                 data[:, roles["elevation"]])
+    if all(k in roles for k in "xyz"):
+        points = data[:, [roles["x"], roles["y"], roles["z"]]]
+        if polar_xyz is not None and range_col is not None and not params.columns:
+            _check_header_against_polar(path, points, polar_xyz, range_col > 0, warnings_out)
+    else:
+        assert polar_xyz is not None
+        points = polar_xyz
+    colours = None
+    if all(k in roles for k in ("red", "green", "blue")):
+        rgb = data[:, [roles["red"], roles["green"], roles["blue"]]]
+        colours = np.clip(np.rint(np.nan_to_num(rgb)), 0, 255).astype(np.uint8)
+    echo = None
+    if "intensity" in roles:
+        echo = np.clip(np.rint(np.nan_to_num(data[:, roles["intensity"]])), 0,
+                       65535).astype(np.uint16)
+    return points, colours, echo, range_col
+
+
+def read_pose(path: Path) -> F64:
+    """A 4×4 pose (file frame → common frame, file units) from a pose file: a 4×4 matrix
+    (16 numbers, row-major) or a 3DTK ``.pose`` (line 1 position x y z, line 2 Euler angles
+    θx θy θz in degrees; rotation ``Rx·Ry·Rz``, as 3DTK's ``EulerToMatrix4``)."""
+    try:
+        values = np.array(path.read_text(encoding="utf-8").split(), dtype=np.float64)
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        raise UsageError(f"--pose {path}: not a readable pose file ({err})") from None
+    if values.size == 16:
+        matrix = values.reshape(4, 4)
+        if not np.allclose(matrix[3], (0, 0, 0, 1)):
+            raise UsageError(f"--pose {path}: last row of the 4×4 matrix must be 0 0 0 1")
+        return matrix
+    if values.size != 6:
+        raise UsageError(f"--pose {path}: {values.size} numbers; expected 6 (3DTK .pose: "
+                         "x y z, then θx θy θz in degrees) or 16 (a 4×4 matrix)")
+    if not np.isfinite(values).all():
+        raise UsageError(f"--pose {path}: values must be finite")
+    sx, sy, sz = np.sin(np.radians(values[3:]))
+    cx, cy, cz = np.cos(np.radians(values[3:]))
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    matrix = np.eye(4)
+    matrix[:3, :3] = rx @ ry @ rz
+    matrix[:3, 3] = values[:3]
+    return matrix
+
+
+def parse_axes(text: str) -> NDArray[np.float64]:
+    """``--axes x,z,-y``: which file axis (with sign) becomes rig x, y, z; a 3×3 matrix."""
+    items = [t.strip().lower() for t in text.split(",")]
+    matrix = np.zeros((3, 3))
+    axes = [i.lstrip("+-") for i in items]
+    if len(items) != 3 or sorted(axes) != ["x", "y", "z"]:
+        raise UsageError(f"--axes {text!r}: expected a signed permutation of x,y,z "
+                         "(e.g. x,z,-y: rig x = file x, rig y = file z, rig z = −file y)")
+    for row, item in enumerate(items):
+        matrix[row, "xyz".index(axes[row])] = -1.0 if item.startswith("-") else 1.0
+    return matrix
+
+
+Z_UP_AXES = "x,z,-y"
+
+
+def detect_z_up(points: F64) -> tuple[bool, str]:
+    """Whether a cloud is z-up rather than y-up, and why.
+
+    The vertical axis of a room or a site is the shorter of y and z (rooms are wider than
+    high); when the two are within 25 %, the axis whose lowest 3 % of its extent holds more
+    points (a floor) wins.
+    """
+    if len(points) < MIN_POINTS_FOR_UP:
+        return False, f"fewer than {MIN_POINTS_FOR_UP} points: assumed y-up"
+    low, high = np.percentile(points[:, 1:], [1, 99], axis=0)
+    extent = high - low
+    if extent.min() <= 0:
+        return bool(extent[1] <= 0), "one of y, z is flat"
+    ratio = extent[1] / extent[0]
+    if ratio < 0.8 or ratio > 1.25:
+        return bool(ratio < 1), (f"extent y {extent[0]:.3g}, z {extent[1]:.3g}: the shorter is "
+                                 "vertical")
+    floor = [float(np.mean(points[:, 1 + k] <= low[k] + 0.03 * extent[k])) for k in range(2)]
+    return floor[1] > floor[0], (f"extents alike; floor share y {floor[0]:.2f}, "
+                                 f"z {floor[1]:.2f}")
+
+
 def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str, object]]:
-    """Read a point file into a ``points`` table (rig frame, no grid) and a short report."""
-    raw, colours, z_up = read_point_file(path)
-    z_up = z_up if params.up == "auto" else params.up == "z"
-    points = np.stack([raw[:, 0], raw[:, 2], -raw[:, 1]], axis=1) if z_up else raw
-    finite = np.isfinite(points).all(axis=1)
-    points = points[finite]
-    colours = colours[finite] if colours is not None else None
-    table = points_table(points, colours, params.origin_m)
+    """Read point files into one ``points`` table (rig frame) and a short report.
+
+    ``path`` is the first file, ``params.extra_files`` the others; ``params.poses`` gives each
+    its pose file (empty: none). Per file: pose (file frame and units) → metres → right-handed
+    (a left-handed file's z mirrored) → rig axes (``axes``, else ``up``).
+    """
+    files = [path, *(Path(f) for f in params.extra_files)]
+    if params.poses and len(params.poses) != len(files):
+        raise UsageError(f"--pose given {len(params.poses)} times for {len(files)} files; give "
+                         "one per file (in order) or none")
+    notes: list[str] = []
+    scans = [_read_scan(f, params, notes) for f in files]
+    if params.axes and params.up != "auto":
+        raise UsageError("--axes and --up both given; --axes says it all (z-up is "
+                         f"--axes {Z_UP_AXES})")
+    parts: list[F64] = []
+    origins: list[F64] = []
+    for k, scan in enumerate(scans):
+        pose = read_pose(Path(params.poses[k])) if params.poses and params.poses[k] else None
+        pts, origin = scan.points, np.zeros(3)
+        if pose is not None:
+            pts = pts @ pose[:3, :3].T + pose[:3, 3]
+            origin = pose[:3, 3].copy()
+        scale = UNIT_SCALE[scan.units]
+        pts, origin = pts * scale, origin * scale
+        if scan.left_handed:
+            pts = pts * (1.0, 1.0, -1.0)
+            origin = origin * (1.0, 1.0, -1.0)
+        parts.append(pts)
+        origins.append(np.broadcast_to(origin, pts.shape))
+    points = np.concatenate(parts)
+    origin_file = np.concatenate(origins)
+    up_reason = "given"
+    if params.axes:
+        axes = parse_axes(params.axes)
+    else:
+        hints = {s.z_up for s in scans}
+        if params.up != "auto":
+            z_up = params.up == "z"
+        elif hints <= {True, False} and len(hints) == 1:
+            z_up = bool(hints.pop())
+            up_reason = "the format's convention"
+        else:
+            z_up, up_reason = detect_z_up(points)
+            notes.append(f"--up auto chose {'z' if z_up else 'y'}-up ({up_reason}); give --up "
+                         "to override")
+        axes = parse_axes(Z_UP_AXES if z_up else "x,y,z")
+    points = points @ axes.T
+    given_origin = any(params.poses)
+    origin_rig = (origin_file @ axes.T if given_origin
+                  else np.broadcast_to(np.asarray(params.origin_m, np.float64), points.shape))
+    colours = (np.concatenate([s.colours for s in scans if s.colours is not None])
+               if all(s.colours is not None for s in scans) else None)
+    echo = (np.concatenate([s.echo for s in scans if s.echo is not None])
+            if all(s.echo is not None for s in scans) else None)
+    table = points_table(points, colours, origin_rig, echo)
+    grid = None
+    if len(scans) == 1 and scans[0].grid is not None:
+        profile, sample = scans[0].grid
+        table = table.set_column(table.column_names.index("profile"), "profile",
+                                 pa.array(profile))
+        table = table.set_column(table.column_names.index("sample"), "sample",
+                                 pa.array(sample))
+        grid = {"profiles": int(profile.max()) + 1, "samples": int(sample.max()) + 1}
+    elif params.organised and len(scans) > 1:
+        notes.append("--organised with several files: the grid is not kept (one grid per file)")
+    if len(points):
+        extent = float(np.max(np.ptp(points, axis=0)))
+        units = sorted({s.units for s in scans})
+        if extent > MAX_PLAUSIBLE_EXTENT_M:
+            notes.append(f"the cloud is {extent:.4g} m across read as {'/'.join(units)}: "
+                         "implausible for a scan; centimetres or millimetres? give --units")
+        elif extent < MIN_PLAUSIBLE_EXTENT_M:
+            notes.append(f"the cloud is {extent:.3g} m across read as {'/'.join(units)}: "
+                         "implausibly small; the wrong unit? give --units")
     report: dict[str, object] = {
         "file": str(path),
-        "format": path.suffix.lower().lstrip("."),
+        "files": [str(f) for f in files],
+        "format": [_format_of(f, params) for f in files],
+        "units": [s.units for s in scans],
+        "left_handed": [s.left_handed for s in scans],
         "points": table.num_rows,
-        "dropped_not_finite": int(np.count_nonzero(~finite)),
-        "z_up_converted": z_up,
+        "dropped_no_return": sum(s.no_return for s in scans),
+        "axes": axes.astype(int).tolist(),
+        "up_reason": up_reason,
+        "z_up_converted": bool(axes[1, 2] != 0),
         "colours": colours is not None,
-        "grid": None,
+        "grid": grid,
         "bounds_min": points.min(axis=0).tolist() if len(points) else None,
         "bounds_max": points.max(axis=0).tolist() if len(points) else None,
+        "warnings": notes,
     }
     return table, report
+

@@ -62,8 +62,10 @@ class ScannerConfig(Params):
     host: str = Field("192.168.0.1", min_length=1)
     port: int = Field(49152, ge=1, le=65535)
     beam_step_deg: float = Field(0.25, gt=0, le=90)
-    start_angle_deg: float = Field(0.0, ge=0, lt=360)
-    end_angle_deg: float = Field(360.0, gt=0, le=360)
+    #: Negative starts describe scanners whose zero is the middle of their field of view
+    #: (a Hokuyo: −135°…+135°); the LD-OEM's own angles run 0…360°.
+    start_angle_deg: float = Field(0.0, ge=-360, lt=360)
+    end_angle_deg: float = Field(360.0, gt=-360, le=360)
     scan_hz: float = Field(5.0, gt=0, le=100)
     min_range_m: float = Field(0.5, ge=0, le=255.99609375)
     max_range_m: float = Field(250.0, gt=0, le=255.99609375)
@@ -87,6 +89,14 @@ class ScannerConfig(Params):
                 f"end_angle_deg ({self.end_angle_deg}) must be greater than "
                 f"start_angle_deg ({self.start_angle_deg})"
             )
+        if self.end_angle_deg - self.start_angle_deg > 360.0 + 1e-9:
+            raise ValueError(
+                f"end_angle_deg − start_angle_deg = {self.end_angle_deg - self.start_angle_deg:g}"
+                "° is more than a full turn (360°)")
+        if self.dialect == "ldoem" and self.start_angle_deg < 0:
+            raise ValueError(
+                f"start_angle_deg ({self.start_angle_deg:g}) is negative; the LD-OEM's angles "
+                "run 0…360° (a scanner centred on 0°, e.g. −135…135, uses dialect = paper)")
         if self.max_range_m <= self.min_range_m:
             raise ValueError(
                 f"max_range_m ({self.max_range_m}) must be greater than "

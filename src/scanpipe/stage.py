@@ -20,7 +20,7 @@ from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.schema import ARTIFACTS, ArtifactSchema, artifact_schema
 
 #: Inputs that are raw files, not Parquet artifacts: passed as paths, keyed by their bytes.
-RAW_INPUTS = frozenset({"recording", "point_file"})
+RAW_INPUTS = frozenset({"recording", "point_file", "profile_file"})
 
 
 @dataclass

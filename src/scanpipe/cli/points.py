@@ -67,30 +67,89 @@ def _parse_origin(text: str) -> tuple[float, float, float]:
 
 
 def import_points_command(
-    file: Path = typer.Argument(..., help="PLY, XYZ/CSV/TXT/PTS or LAS/LAZ file."),
+    files: list[Path] = typer.Argument(..., help="Point files: PLY, XYZ/CSV/TXT/PTS, LAS/LAZ, "
+                                                  "3DTK .3d (several are merged)."),
     out: Path = OUT,
     origin: str = typer.Option("0,0,0", "--origin",
-                               help="Sensor origin x,y,z in metres (rig frame)."),
+                               help="Sensor origin x,y,z in metres (rig frame) when no --pose."),
     up: str = typer.Option("auto", "--up", help="The file's up axis: auto, y or z."),
+    file_format: str = typer.Option("auto", "--format",
+                                    help="auto (from the extension), xyz, csv, ply, las or 3d."),
+    columns: str | None = typer.Option(None, "--columns",
+                                       help="Text columns: roles in order (x,y,z,-,intensity) "
+                                            "or ROLE=INDEX; see docs/import.md."),
+    units: str = typer.Option("auto", "--units", help="auto, m, cm or mm."),
+    axes: str | None = typer.Option(None, "--axes",
+                                    help="File axis for rig x,y,z, signed (e.g. x,z,-y)."),
+    left_handed: bool | None = typer.Option(None, "--left-handed/--right-handed",
+                                            help="The file's frame handedness (3DTK: left)."),
+    organised: str | None = typer.Option(None, "--organised",
+                                         help="ROWSxCOLS: keep the grid (profile = row)."),
+    max_range: float | None = typer.Option(None, "--max-range",
+                                           help="Ranges at/above this (metres) are no-returns."),
+    pose: list[Path] | None = typer.Option(None, "--pose",
+                                           help="Pose file per input, in order: 4x4 matrix or "
+                                                "3DTK .pose."),
     force: bool = typer.Option(False, "--force",
                                help="Overwrite an existing OUT/points.parquet."),
     quiet: bool = QUIET,
 ) -> None:
-    """Import a foreign point cloud as a points artifact (no grid)."""
+    """Import foreign point clouds as one points artifact (grid kept with --organised)."""
     from scanpipe.outpaths import check_output_file, check_output_folder
 
-    if not file.is_file():
-        raise UsageError(f"{file}: not found (the point file to import)")
+    for file in [*files, *(pose or [])]:
+        if not file.is_file():
+            raise UsageError(f"{file}: not found (a point or pose file to import)")
     target = out / "points.parquet"
-    check_output_folder(out, "--out", [file])
-    check_output_file(target, "--out", (".parquet",), force, [file])
-    report = run_stage_command("import-points", {"point_file": file}, out, None, None, quiet,
-                               {"origin_m": _parse_origin(origin), "up": up})
+    check_output_folder(out, "--out", [*files, *(pose or [])])
+    check_output_file(target, "--out", (".parquet",), force, [*files, *(pose or [])])
+    base: dict[str, object] = {
+        "origin_m": _parse_origin(origin), "up": up, "format": file_format, "columns": columns,
+        "units": units, "axes": axes, "left_handed": left_handed, "organised": organised,
+        "max_range_m": max_range, "extra_files": [str(f) for f in files[1:]],
+        "poses": [str(p) for p in (pose or [])]}
+    report = run_stage_command("import-points", {"point_file": files[0]}, out, None, None,
+                               quiet, base)
+    print_json(report)
+
+
+def import_profiles_command(
+    file: Path = typer.Argument(..., help="Long CSV/Parquet (profile, beam_deg, platform_deg, "
+                                          "range_m) or wide NPZ (ranges, beam_deg, "
+                                          "platform_deg)."),
+    out: Path = OUT,
+    rig_path: Path | None = typer.Option(None, "--rig", help="Rig TOML to start from (mount, "
+                                                             "calibration, motor)."),
+    ranges_col: str = typer.Option("range_m", "--ranges-col", help="Long layout: range column."),
+    units: str = typer.Option("m", "--units", help="Unit of the ranges: m, cm or mm."),
+    max_range: float | None = typer.Option(None, "--max-range",
+                                           help="Ranges at/above this (metres) are no-returns."),
+    force: bool = typer.Option(False, "--force", help="Overwrite existing artifacts in OUT."),
+    quiet: bool = QUIET,
+) -> None:
+    """Import ranges + beam and platform angles as profiles, motor and rig artifacts (then
+    `scanpipe assemble OUT`)."""
+    from scanpipe.outpaths import check_output_file, check_output_folder
+
+    inputs = [file, *([rig_path] if rig_path else [])]
+    for path in inputs:
+        if not path.is_file():
+            raise UsageError(f"{path}: not found")
+    check_output_folder(out, "--out", inputs)
+    for name in ("profiles", "motor", "rig"):
+        check_output_file(out / f"{name}.parquet", "--out", (".parquet",), force, inputs)
+    base: dict[str, object] = {"ranges_col": ranges_col, "units": units,
+                               "max_range_m": max_range}
+    if rig_path is not None:
+        base["rig_toml"] = rig_path.read_text(encoding="utf-8")
+    report = run_stage_command("import-profiles", {"profile_file": file}, out, None, None,
+                               quiet, base)
     print_json(report)
 
 
 def register(app: typer.Typer) -> None:
-    """Add ``assemble``, ``filter`` and ``import-points`` to the main app."""
+    """Add ``assemble``, ``filter``, ``import-points`` and ``import-profiles`` to the app."""
     app.command("assemble")(assemble)
     app.command("filter")(filter_command)
     app.command("import-points")(import_points_command)
+    app.command("import-profiles")(import_profiles_command)

@@ -8,11 +8,21 @@ from __future__ import annotations
 
 from scanpipe.errors import ArtifactError
 from scanpipe.stage import RAW_INPUTS, Stage
-from scanpipe.stages import assemble, decode, export, filter, import_points, mesh, texture
+from scanpipe.stages import (
+    assemble,
+    decode,
+    export,
+    filter,
+    import_points,
+    import_profiles,
+    mesh,
+    texture,
+)
 
 #: Every stage in pipeline order (import-points stands beside decode: both make the first
 #: artifacts, from a recording or from another tool's point file).
-STAGES: tuple[Stage, ...] = (decode.STAGE, import_points.STAGE, assemble.STAGE, filter.STAGE,
+STAGES: tuple[Stage, ...] = (decode.STAGE, import_points.STAGE, import_profiles.STAGE,
+                             assemble.STAGE, filter.STAGE,
                              mesh.STAGE, texture.STAGE, export.STAGE)
 
 
