@@ -30,7 +30,6 @@ import sys
 import tempfile
 import time
 import traceback
-import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -40,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.harness import save, table
+from benchmarks.hostile import black_png, jpeg_header
 
 REPO = Path(__file__).resolve().parents[1]
 SRC = REPO / "src"
@@ -840,35 +840,6 @@ def attack_inputs(ctx: Ctx) -> dict[str, Any]:
 
 
 # -- 5. bombs -----------------------------------------------------------------------------------
-
-def _png_chunk(kind: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
-
-
-def black_png(width: int, height: int, channels: int = 1) -> bytes:
-    """A valid black PNG of ``width`` × ``height`` made without holding its pixels: one deflate
-    segment (full flush) repeated, the zlib checksum of zeros in closed form."""
-    row = bytes(1 + width * channels)
-    rows_per_segment = max(1, min(height, (4 << 20) // len(row)))
-    compressor = zlib.compressobj(9)
-    stream = compressor.compress(row * rows_per_segment) + compressor.flush(zlib.Z_FULL_FLUSH)
-    head, segment = stream[:2], stream[2:]
-    count, rest = divmod(height, rows_per_segment)
-    tail = zlib.compressobj(9)
-    last = (tail.compress(row * rest) if rest else b"") + tail.flush(zlib.Z_FINISH)
-    adler = ((len(row) * height) % 65521) << 16 | 1
-    ihdr = struct.pack(">IIBBBBB", width, height, 8, {1: 0, 3: 2}[channels], 0, 0, 0)
-    return b"".join([b"\x89PNG\r\n\x1a\n", _png_chunk(b"IHDR", ihdr), _png_chunk(b"IDAT", head),
-                     *[_png_chunk(b"IDAT", segment)] * count,
-                     _png_chunk(b"IDAT", last[2:-4] + struct.pack(">I", adler)),
-                     _png_chunk(b"IEND", b"")])
-
-
-def jpeg_header(width: int, height: int) -> bytes:
-    """A JPEG that is only a baseline header claiming ``width`` × ``height``."""
-    sof = struct.pack(">BHHB", 8, height, width, 3) + b"\x01\x11\x00\x02\x11\x00\x03\x11\x00"
-    return b"\xff\xd8\xff\xc0" + struct.pack(">H", len(sof) + 2) + sof + b"\xff\xd9"
-
 
 def _bomb_recording(base: Path, image: bytes, out: Path) -> None:
     """``base`` rewritten with the first frame of each camera replaced by ``image`` (the other

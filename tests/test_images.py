@@ -14,9 +14,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from hostile_images import black_png, glb_with_image, jpeg_header, obj_scene
 from PIL import Image
 
+from benchmarks.hostile import black_png, glb_with_image, jpeg_header, obj_scene
 from scanpipe.errors import ScanpipeError, SimulationError, StageError, UsageError
 from scanpipe.images import (
     MAX_FRAME_PX,

@@ -11,9 +11,9 @@ import json
 from pathlib import Path
 
 import pytest
-from hostile_images import black_png
 from texture_scene import Recording, mesh_tables, record, room_mesh, small_rig
 
+from benchmarks.hostile import black_png
 from scanpipe.artifacts import read_artifact, write_artifact
 from scanpipe.recording.writer import RecordingWriter
 

@@ -1,5 +1,7 @@
 """Small files that claim huge images: what an image bomb looks like, made in milliseconds.
 
+Shared by the chaos suite (``benchmarks/chaos.py``) and the image tests.
+
 A black PNG compresses about 1000:1, and its deflate stream is one full-flush segment repeated
 (a full flush drops the back-references), so a 40 000² PNG is written without ever holding or
 compressing its 1.6 GB of pixels. The zlib checksum of zeros is known in closed form.
