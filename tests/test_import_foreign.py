@@ -235,3 +235,21 @@ def test_rig_accepts_negative_start_for_a_centred_scanner_not_for_the_ldoem(
     rig.write_text('[scanner]\nstart_angle_deg = -119.53\nend_angle_deg = 119.53\n')
     result = cli("rig", "check", rig)
     assert result.code == 2 and "LD-OEM's angles run 0…360" in result.err
+
+
+def test_the_cached_import_follows_the_contents_of_pose_files(tmp_path: Path) -> None:
+    # A pose file edited in place must give a new key, not the artifact of the old pose.
+    from scanpipe.artifacts import read_provenance
+    from scanpipe.cli.main import main
+
+    cloud = tmp_path / "a.xyz"
+    np.savetxt(cloud, np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]))
+    pose = tmp_path / "a.pose"
+    pose.write_text("0 0 0\n0 0 0\n")
+    args = ["import-points", str(cloud), "--pose", str(pose), "--format", "3d", "--out",
+            str(tmp_path / "o"), "--force", "-q"]
+    assert main(args) == 0
+    first = read_provenance(tmp_path / "o" / "points.parquet")["key"]
+    pose.write_text("100 0 0\n0 0 0\n")
+    assert main(args) == 0
+    assert read_provenance(tmp_path / "o" / "points.parquet")["key"] != first

@@ -85,6 +85,9 @@ class ImportParams(Params):
     extra_files: tuple[str, ...] = Field((), description="more point files merged in")
     poses: tuple[str, ...] = Field(
         (), description="one pose file per file (first, then extra_files); '' = none")
+    content_keys: tuple[str, ...] = Field(
+        (), description="content keys of extra_files and poses (the CLI fills them in): the "
+                        "cached artifact follows the files' bytes, not only their names")
 
 
 def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:

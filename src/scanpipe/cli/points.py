@@ -6,6 +6,7 @@ from pathlib import Path
 
 import typer
 
+from scanpipe.artifacts import file_key
 from scanpipe.cli.common import PARAMS_FILE, QUIET, SET, print_json, run_stage_command
 from scanpipe.errors import UsageError
 from scanpipe.pipeline import rig_override_artifact
@@ -107,7 +108,8 @@ def import_points_command(
         "origin_m": _parse_origin(origin), "up": up, "format": file_format, "columns": columns,
         "units": units, "axes": axes, "left_handed": left_handed, "organised": organised,
         "max_range_m": max_range, "extra_files": [str(f) for f in files[1:]],
-        "poses": [str(p) for p in (pose or [])]}
+        "poses": [str(p) for p in (pose or [])],
+        "content_keys": [file_key(f) for f in [*files[1:], *(pose or [])]]}
     report = run_stage_command("import-points", {"point_file": files[0]}, out, None, None,
                                quiet, base)
     print_json(report)
