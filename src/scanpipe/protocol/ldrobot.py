@@ -1,0 +1,747 @@
+"""The ``ldrobot`` dialect: LDRobot LD06 / LD19 / STL-27L serial packets, and revolutions.
+
+These scanners spin and send from power-on, with no command (facts: LDRobot's LD06/LD19
+development manuals and their public SDK, ``ldrobotSensorTeam/ldlidar_sdk``). Every packet is
+47 bytes, little-endian::
+
+    0x54 0x2C | speed u16 (°/s) | start angle u16 (0.01°) | 12 × (distance u16 mm, intensity u8)
+              | end angle u16 (0.01°) | timestamp u16 (ms, wraps at 30 000) | CRC-8
+
+The CRC is the vendor's table-driven CRC-8 (polynomial 0x4D, initial value 0, no reflection)
+over the first 46 bytes. A sample's angle is interpolated between the packet's start and end
+angles (across 360° when the end angle has wrapped); a distance of 0 is no return.
+
+Locating packets. ``0x54 0x2C`` is a weak marker (two bytes, and 0x54 is a common distance
+byte), so a candidate counts only when its CRC holds *and* its fields are plausible (angles
+below 360°, a speed of 1…30 turns/s, a packet span that fits the speed at 2 300…21 600
+samples/s). Candidates are located and checked for a whole buffer at once (numpy over
+packets). Where two good candidates overlap, the one that the stream continues from (a good
+packet exactly 47 bytes later, or the stream's end) wins, then the one that continues a good
+packet (exactly 47 bytes before), then the earlier: a false packet inside real data is not
+followed by a real one, a real one is. A good candidate with no good neighbour on either side
+(both neighbours damaged) is kept only if its angle follows from the last packet kept
+(speed × elapsed time). A bad candidate is a false start: decoding resumes one byte past it;
+one that lies exactly where a packet should be (47 bytes after a good one) is counted as a
+checksum failure, the rest as resyncs.
+
+Revolutions. A profile is one head turn: the samples whose unwrapped angle falls in
+``[k·360°, (k+1)·360°)``. It is resampled onto a fixed grid of ``N`` beams from 0° (``N``
+chosen once per stream from the first revolution's sample step, so every profile of a stream
+shares one grid, as the assemble stage needs): a grid angle between two samples of the same
+surface gets the linear interpolation of their ranges (second order error on a smooth
+surface), across a depth jump or a no-return the nearer sample's value, in a hole left by a
+lost packet NaN. The echo is the nearer sample's intensity. A revolution's device times (its
+first and last grid beam) are interpolated from per-sample times: the packet timestamp is taken
+as its first sample's time and the samples follow at the packet's angular step ÷ speed. They
+are handed out modulo 30 000 ms (the device's wrap), and the decode stage unwraps them against
+the host receive times (:func:`scanpipe.clock.unwrap_device_ms`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanpipe.errors import ProtocolError
+from scanpipe.protocol.framing import FrameCounters
+from scanpipe.protocol.profile import Profile
+
+MARKER = b"\x54\x2c"
+HEADER = 0x54
+VER_LEN = 0x2C
+PACKET_BYTES = 47
+POINTS_PER_PACKET = 12
+#: The device's millisecond timestamp restarts at this value.
+TIME_WRAP_MS = 30_000
+#: Angles on the wire are u16 in 1/100 degree.
+ANGLE_SCALE_PER_DEG = 100.0
+TURN_CDEG = 36_000
+#: Plausible head speeds (°/s): 1…30 turns per second.
+MIN_SPEED_DPS = 360
+MAX_SPEED_DPS = 10_800
+#: Sample rates of the family (LD14 2 300 … STL-27L 21 600 per second), with a margin: the
+#: span of a packet's 11 steps divided by the speed lies between these (seconds).
+MIN_PACKET_SPAN_S = 11 / 21_600 * 0.6
+MAX_PACKET_SPAN_S = 11 / 2_300 * 1.4
+#: Grids per revolution are bounded (36 … 16 384 beams).
+MIN_GRID_BEAMS = 36
+MAX_GRID_BEAMS = 16_384
+#: Two samples of one surface: their ranges differ by less than this share of the nearer, plus
+#: the absolute part below (a wall seen at 80° incidence changes by ~8 % per 0.8° step).
+CONTINUITY_SHARE = 0.10
+CONTINUITY_M = 0.03
+#: An angle predicted from the last kept packet must agree within this (degrees).
+PREDICT_TOLERANCE_DEG = 5.0
+#: Two packets side by side in the stream were measured at most this far apart (s).
+MAX_LINK_S = 0.05
+
+_SPAN_STEPS = POINTS_PER_PACKET - 1
+
+
+def _crc_table() -> NDArray[np.uint8]:
+    table = np.zeros(256, np.uint8)
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x4D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+        table[byte] = crc
+    return table
+
+
+#: The vendor's CRC-8 table (polynomial 0x4D); ``CRC_TABLE[1] == 0x4D``.
+CRC_TABLE = _crc_table()
+_CRC_LIST = CRC_TABLE.tolist()
+
+#: One packet as a numpy record (47 bytes, packed, little-endian).
+PACKET_DTYPE = np.dtype([
+    ("header", "u1"), ("ver_len", "u1"), ("speed", "<u2"), ("start", "<u2"),
+    ("points", [("distance", "<u2"), ("intensity", "u1")], (POINTS_PER_PACKET,)),
+    ("end", "<u2"), ("timestamp", "<u2"), ("crc", "u1"),
+])
+assert PACKET_DTYPE.itemsize == PACKET_BYTES
+
+
+def crc8(data: bytes | bytearray | memoryview) -> int:
+    """The vendor's CRC-8 of ``data`` (table-driven, initial 0)."""
+    crc = 0
+    table = _CRC_LIST
+    for byte in bytes(data):
+        crc = table[crc ^ byte]
+    return crc
+
+
+def crc8_rows(rows: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """The CRC-8 of every row of a 2-D uint8 array (one table look-up per column)."""
+    crc = np.zeros(rows.shape[0], np.uint8)
+    for column in range(rows.shape[1]):
+        crc = CRC_TABLE[crc ^ rows[:, column]]
+    return crc
+
+
+@dataclass(frozen=True)
+class Packets:
+    """Packets as arrays (one entry per packet): where each lay in the stream, its fields, and
+    whether its CRC held."""
+
+    offset: NDArray[np.int64]
+    speed_dps: NDArray[np.uint16]
+    start_cdeg: NDArray[np.uint16]
+    end_cdeg: NDArray[np.uint16]
+    timestamp_ms: NDArray[np.uint16]
+    distance_mm: NDArray[np.uint16]  # (packets, 12)
+    intensity: NDArray[np.uint8]  # (packets, 12)
+    crc_ok: NDArray[np.bool_]
+
+    def __len__(self) -> int:
+        return int(self.offset.size)
+
+    @staticmethod
+    def empty() -> Packets:
+        """No packets."""
+        return Packets.from_records(np.zeros(0, PACKET_DTYPE), np.zeros(0, np.int64),
+                                    np.zeros(0, bool))
+
+    @staticmethod
+    def from_records(records: NDArray[np.void], offsets: NDArray[np.int64],
+                     crc_ok: NDArray[np.bool_]) -> Packets:
+        """Packets from records of :data:`PACKET_DTYPE`."""
+        points = records["points"]
+        return Packets(
+            offset=np.asarray(offsets, np.int64),
+            speed_dps=records["speed"].astype(np.uint16),
+            start_cdeg=records["start"].astype(np.uint16),
+            end_cdeg=records["end"].astype(np.uint16),
+            timestamp_ms=records["timestamp"].astype(np.uint16),
+            distance_mm=points["distance"].astype(np.uint16).reshape(-1, POINTS_PER_PACKET),
+            intensity=points["intensity"].astype(np.uint8).reshape(-1, POINTS_PER_PACKET),
+            crc_ok=np.asarray(crc_ok, bool),
+        )
+
+    def take(self, index: NDArray[np.integer] | NDArray[np.bool_]) -> Packets:
+        """The packets selected by ``index``."""
+        return Packets(self.offset[index], self.speed_dps[index], self.start_cdeg[index],
+                       self.end_cdeg[index], self.timestamp_ms[index],
+                       self.distance_mm[index], self.intensity[index], self.crc_ok[index])
+
+    @staticmethod
+    def concat(parts: Sequence[Packets]) -> Packets:
+        """Packets one after the other."""
+        if not parts:
+            return Packets.empty()
+        return Packets(*(np.concatenate([getattr(p, name) for p in parts])
+                         for name in ("offset", "speed_dps", "start_cdeg", "end_cdeg",
+                                      "timestamp_ms", "distance_mm", "intensity", "crc_ok")))
+
+    def span_cdeg(self) -> NDArray[np.int64]:
+        """Angle from the first to the last sample, in 0.01° (across 360°)."""
+        return (self.end_cdeg.astype(np.int64) - self.start_cdeg.astype(np.int64)) % TURN_CDEG
+
+
+def encode_packets(speed_dps: NDArray[np.integer], start_cdeg: NDArray[np.integer],
+                   distance_mm: NDArray[np.integer], intensity: NDArray[np.integer],
+                   end_cdeg: NDArray[np.integer], timestamp_ms: NDArray[np.integer]) -> bytes:
+    """Packets on the wire, one per row of ``distance_mm`` / ``intensity`` (12 columns)."""
+    distance = np.atleast_2d(np.asarray(distance_mm))
+    n = distance.shape[0]
+    if distance.shape[1:] != (POINTS_PER_PACKET,):
+        raise ProtocolError(f"ldrobot packets carry {POINTS_PER_PACKET} samples each, not "
+                            f"{distance.shape[1:]}")
+    values = {"speed": speed_dps, "start": start_cdeg, "end": end_cdeg,
+              "timestamp": timestamp_ms, "distance": distance, "intensity": intensity}
+    limits = {"intensity": 0xFF}
+    for name, value in values.items():
+        array = np.asarray(value)
+        top = limits.get(name, 0xFFFF)
+        if array.size and (array.min() < 0 or array.max() > top):
+            raise ProtocolError(f"ldrobot packet field {name}: values must lie in 0…{top}")
+    records = np.zeros(n, PACKET_DTYPE)
+    records["header"] = HEADER
+    records["ver_len"] = VER_LEN
+    records["speed"] = speed_dps
+    records["start"] = start_cdeg
+    records["points"]["distance"] = distance
+    records["points"]["intensity"] = np.broadcast_to(np.asarray(intensity), distance.shape)
+    records["end"] = end_cdeg
+    records["timestamp"] = timestamp_ms
+    rows = records.view(np.uint8).reshape(n, PACKET_BYTES)
+    rows[:, -1] = crc8_rows(rows[:, :-1])
+    return rows.tobytes()
+
+
+def packet_plausible(packets: Packets) -> NDArray[np.bool_]:
+    """Whether each packet's fields are ones the device family sends (module docstring)."""
+    speed = packets.speed_dps.astype(np.float64)
+    span_s = packets.span_cdeg() / ANGLE_SCALE_PER_DEG / np.maximum(speed, 1.0)
+    return np.asarray(
+        (packets.start_cdeg < TURN_CDEG) & (packets.end_cdeg < TURN_CDEG)
+        & (packets.timestamp_ms < TIME_WRAP_MS)
+        & (speed >= MIN_SPEED_DPS) & (speed <= MAX_SPEED_DPS)
+        & (span_s >= MIN_PACKET_SPAN_S) & (span_s <= MAX_PACKET_SPAN_S), bool)
+
+
+def _rows_at(buf: NDArray[np.uint8], starts: NDArray[np.int64]) -> NDArray[np.uint8]:
+    """The 47 bytes at each start, as a (n, 47) array (contiguous runs cost one reshape)."""
+    n = starts.size
+    if n and bool(np.all(np.diff(starts) == PACKET_BYTES)):
+        first = int(starts[0])
+        return buf[first:first + n * PACKET_BYTES].reshape(n, PACKET_BYTES)
+    return np.asarray(buf[starts[:, None] + np.arange(PACKET_BYTES, dtype=np.int64)], np.uint8)
+
+
+def _rows_to_packets(rows: NDArray[np.uint8], offsets: NDArray[np.int64],
+                     crc_ok: NDArray[np.bool_]) -> Packets:
+    records = np.ascontiguousarray(rows).view(PACKET_DTYPE).reshape(-1)
+    return Packets.from_records(records, offsets, crc_ok)
+
+
+def parse_packet(data: bytes) -> Packets:
+    """One 47-byte packet (CRC checked, not enforced); :class:`ProtocolError` for another
+    length or header."""
+    if len(data) != PACKET_BYTES or data[:2] != MARKER:
+        raise ProtocolError(f"ldrobot packet: {len(data)} bytes beginning {data[:2].hex(' ')}; "
+                            f"need {PACKET_BYTES} bytes beginning 54 2c")
+    rows = np.frombuffer(data, np.uint8).reshape(1, PACKET_BYTES)
+    ok = crc8_rows(rows[:, :-1]) == rows[:, -1]
+    return _rows_to_packets(rows, np.zeros(1, np.int64), ok)
+
+
+class PacketLocator:
+    """Finds packets in a byte stream fed in chunks of any size (module docstring).
+
+    Decisions depend only on complete data: a candidate is decided once the three packets'
+    worth of bytes after it are in (or at :meth:`finish`), so any split of a stream gives the
+    same packets. ``lenient`` also returns damaged packets that lie where a packet should be
+    (``crc_ok`` False). ``counters.frames_decoded`` counts packets kept with a good CRC.
+    """
+
+    def __init__(self, lenient: bool = False) -> None:
+        self.lenient = lenient
+        self.counters = FrameCounters()
+        self._buffer = np.zeros(0, np.uint8)
+        self._base = 0  # stream offset of _buffer[0]
+        self._last_end = -1  # stream offset one past the last packet kept (good CRC)
+        self._last: Packets | None = None  # the last packet kept (good CRC)
+
+    @property
+    def offset(self) -> int:
+        """Stream offset of the first byte not yet decided."""
+        return self._base
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> Packets:
+        """Add bytes; return the packets they let the locator decide, in stream order."""
+        if len(chunk):
+            self._buffer = np.concatenate([self._buffer, np.frombuffer(chunk, np.uint8)])
+        return self._scan(final=False)
+
+    def finish(self) -> Packets:
+        """End of stream: decide everything left."""
+        return self._scan(final=True)
+
+    def _scan(self, final: bool) -> Packets:
+        buf = self._buffer
+        size = buf.size
+        counters = self.counters
+        # Candidates before ``limit`` are decided now; the three packets after them are in.
+        limit = size if final else size - 3 * PACKET_BYTES
+        if limit <= 0:
+            return Packets.empty()
+        marks = np.flatnonzero((buf[:-1] == HEADER) & (buf[1:] == VER_LEN)).astype(np.int64)
+        complete = marks + PACKET_BYTES <= size
+        # A marker too near the end for a whole packet: a false start once the stream ends.
+        incomplete = int(np.count_nonzero(~complete)) if final else 0
+        cand = marks[complete]
+        rows = _rows_at(buf, cand)
+        crc_ok = crc8_rows(rows[:, :-1]) == rows[:, -1] if cand.size else np.zeros(0, bool)
+        packets = _rows_to_packets(rows, cand + self._base, crc_ok)
+        plausible = packet_plausible(packets)
+        kept = self._choose(cand, crc_ok & plausible, packets, size, final, marks)
+        decided = cand < limit
+        kept_all = kept
+        kept = kept[decided[kept]]
+        starts_kept = cand[kept]
+        keep_mask = np.zeros(cand.size, bool)
+        keep_mask[kept] = True
+        # Damaged packets where a packet should be: right after a kept one, over none.
+        after_kept = np.isin(cand, starts_kept + PACKET_BYTES)
+        if self._last_end >= 0:
+            after_kept |= (cand + self._base) == self._last_end
+        inside, over = _overlaps(cand, cand[kept_all])
+        damaged = decided & ~crc_ok & after_kept & ~inside & ~over
+        counters.checksum_failures += int(np.count_nonzero(damaged))
+        # Markers inside a kept packet are its data, not false starts.
+        counters.resyncs += int(np.count_nonzero(decided & ~keep_mask & ~damaged & ~inside)
+                                ) + incomplete
+        out_index = kept
+        if self.lenient:
+            out_index = np.sort(np.concatenate([kept, np.flatnonzero(damaged & plausible)]))
+        counters.frames_decoded += int(kept.size)
+        consumed = limit
+        if kept.size:
+            consumed = max(consumed, int(starts_kept[-1]) + PACKET_BYTES)
+            self._last_end = self._base + int(starts_kept[-1]) + PACKET_BYTES
+            self._last = packets.take(kept[-1:])
+        consumed = min(consumed, size)
+        counters.bytes_skipped += consumed - int(kept.size) * PACKET_BYTES
+        self._buffer = buf[consumed:].copy()
+        self._base += consumed
+        return packets.take(out_index)
+
+    def _choose(self, cand: NDArray[np.int64], good: NDArray[np.bool_], packets: Packets,
+                size: int, final: bool, marks: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Indices (into ``cand``) of the good candidates kept, in order."""
+        index = np.flatnonzero(good)
+        starts = cand[index]
+        if starts.size == 0:
+            return index
+        picked = packets.take(index)
+        # A neighbour a packet away links a packet only if the head's motion joins them.
+        nxt = np.minimum(np.searchsorted(starts, starts + PACKET_BYTES), starts.size - 1)
+        succ = (starts[nxt] == starts + PACKET_BYTES) & _continuous(picked, np.arange(
+            starts.size), nxt)
+        if final:
+            succ |= starts + PACKET_BYTES == size
+        prv = np.maximum(np.searchsorted(starts, starts - PACKET_BYTES), 0)
+        pred = (starts[prv] == starts - PACKET_BYTES) & _continuous(picked, prv, np.arange(
+            starts.size))
+        if self._last_end >= 0 and self._last is not None:
+            after_last = starts + self._base == self._last_end
+            if after_last.any():
+                both = Packets.concat([self._last, picked.take(after_last)])
+                pred[after_last] = _continuous(both, np.zeros(1, np.int64),
+                                               np.ones(1, np.int64))
+        gaps = np.diff(starts)
+        conflict = np.zeros(starts.size, bool)
+        conflict[1:] |= gaps < PACKET_BYTES
+        conflict[:-1] |= gaps < PACKET_BYTES
+        isolated = ~succ & ~pred
+        # Before any packet was kept, a marker (even of a damaged packet) exactly a packet
+        # away vouches for an isolated one; later, its angle must follow from the last kept.
+        marked = np.isin(starts + PACKET_BYTES, marks) | np.isin(starts - PACKET_BYTES, marks)
+        # The rare cases (overlaps, isolated packets) in Python; the rest is kept as is.
+        if not (conflict.any() or isolated.any()):
+            return index
+        keep = ~conflict & ~isolated
+        last_kept: int | None = None
+        last_end = self._last_end - self._base
+        for k in range(starts.size):
+            if keep[k]:
+                last_kept, last_end = k, int(starts[k]) + PACKET_BYTES
+                continue
+            if int(starts[k]) < last_end:
+                # Overlaps the packet kept last: take it instead only if it is better linked.
+                if last_kept is not None and _rank(succ, pred, k) > _rank(succ, pred, last_kept):
+                    keep[last_kept] = False
+                    keep[k] = True
+                    last_kept, last_end = k, int(starts[k]) + PACKET_BYTES
+                continue
+            later = _next_kept_overlapping(starts, keep, k)
+            if later is not None and _rank(succ, pred, later) >= _rank(succ, pred, k):
+                continue
+            first_ever = bool(marked[k]) and last_kept is None and self._last is None
+            if (isolated[k] and not first_ever
+                    and not self._follows(packets, index[k], last_kept, index)):
+                continue
+            keep[k] = True
+            if later is not None:
+                keep[later] = False
+            last_kept, last_end = k, int(starts[k]) + PACKET_BYTES
+        return np.asarray(index[keep], np.int64)
+
+    def _follows(self, packets: Packets, at: int, last_kept: int | None,
+                 index: NDArray[np.int64]) -> bool:
+        """Whether packet ``at`` continues the last packet kept (angle = speed × time)."""
+        previous = (packets.take(index[last_kept:last_kept + 1]) if last_kept is not None
+                    else self._last)
+        if previous is None:
+            return False
+        current = packets.take(np.array([at]))
+        dt_s = ((int(current.timestamp_ms[0]) - int(previous.timestamp_ms[0]))
+                % TIME_WRAP_MS) / 1000.0
+        if dt_s > 1.0:
+            return False
+        expected = (int(previous.start_cdeg[0]) / ANGLE_SCALE_PER_DEG
+                    + float(previous.speed_dps[0]) * dt_s)
+        actual = int(current.start_cdeg[0]) / ANGLE_SCALE_PER_DEG
+        miss = abs((actual - expected + 180.0) % 360.0 - 180.0)
+        return miss <= PREDICT_TOLERANCE_DEG + float(previous.speed_dps[0]) * 0.002
+
+
+def _continuous(packets: Packets, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[
+        np.bool_]:
+    """Whether packet ``b`` starts where the head reached ``Δt`` after packet ``a`` started
+    (``Δt`` from the timestamps: 1 ms resolution, hence the speed × 1.5 ms margin)."""
+    speed = packets.speed_dps[a].astype(np.float64)
+    d_angle = ((packets.start_cdeg[b].astype(np.int64) - packets.start_cdeg[a].astype(np.int64))
+               % TURN_CDEG) / ANGLE_SCALE_PER_DEG
+    d_time_s = ((packets.timestamp_ms[b].astype(np.int64) - packets.timestamp_ms[a].astype(
+        np.int64)) % TIME_WRAP_MS) / 1000.0
+    miss = np.abs((d_angle - speed * d_time_s + 180.0) % 360.0 - 180.0)
+    same_speed = np.abs(packets.speed_dps[b].astype(np.float64) - speed) <= 0.1 * speed
+    return np.asarray((miss <= 2.0 + speed * 0.0015) & same_speed & (d_time_s <= MAX_LINK_S),
+                      bool)
+
+
+def _rank(succ: NDArray[np.bool_], pred: NDArray[np.bool_], k: int) -> int:
+    return 2 * int(succ[k]) + int(pred[k])
+
+
+def _next_kept_overlapping(starts: NDArray[np.int64], keep: NDArray[np.bool_],
+                           k: int) -> int | None:
+    """The first kept candidate after ``k`` that overlaps it."""
+    j = k + 1
+    while j < starts.size and starts[j] < starts[k] + PACKET_BYTES:
+        if keep[j]:
+            return j
+        j += 1
+    return None
+
+
+def _overlaps(cand: NDArray[np.int64], kept_starts: NDArray[np.int64]
+              ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Whether each candidate begins inside a kept packet, and whether it runs over the start
+    of the next kept packet (a kept packet itself is neither)."""
+    if kept_starts.size == 0 or cand.size == 0:
+        return np.zeros(cand.size, bool), np.zeros(cand.size, bool)
+    at = np.searchsorted(kept_starts, cand, side="right") - 1
+    before = kept_starts[np.maximum(at, 0)]
+    inside = (at >= 0) & (cand > before) & (cand < before + PACKET_BYTES)
+    nxt = np.minimum(at + 1, kept_starts.size - 1)
+    over_next = (kept_starts[nxt] > cand) & (kept_starts[nxt] < cand + PACKET_BYTES)
+    return np.asarray(inside, bool), np.asarray(over_next & ~inside, bool)
+
+
+def locate_packets(data: bytes | bytearray | memoryview,
+                   lenient: bool = False) -> tuple[Packets, FrameCounters]:
+    """All packets of a whole byte stream and the locator's counters."""
+    locator = PacketLocator(lenient)
+    parts = [locator.feed(data), locator.finish()]
+    return Packets.concat(parts), locator.counters
+
+
+# -- revolutions ---------------------------------------------------------------------------
+
+@dataclass
+class _Samples:
+    """Samples waiting to be placed in a revolution, in angle order (unwrapped degrees)."""
+
+    angle_deg: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    time_ms: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    range_m: NDArray[np.float32] = field(default_factory=lambda: np.zeros(0, np.float32))
+    intensity: NDArray[np.uint8] = field(default_factory=lambda: np.zeros(0, np.uint8))
+    ok: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
+    end_offset: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    deg_per_ms: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+
+    def append(self, other: _Samples) -> _Samples:
+        return _Samples(*(np.concatenate([getattr(self, f), getattr(other, f)])
+                          for f in _SAMPLE_FIELDS))
+
+    def take(self, index: slice | NDArray[np.integer]) -> _Samples:
+        return _Samples(*(getattr(self, f)[index] for f in _SAMPLE_FIELDS))
+
+
+_SAMPLE_FIELDS = ("angle_deg", "time_ms", "range_m", "intensity", "ok", "end_offset",
+                  "deg_per_ms")
+
+#: Millimetres to metres, 0 → NaN (no return), one gather per packet set.
+_MM_TABLE = np.arange(1 << 16, dtype=np.float32) / np.float32(1000.0)
+_MM_TABLE[0] = np.nan
+
+
+@dataclass(frozen=True)
+class Revolution:
+    """One head turn on the grid, and the stream offset of the packet that completed it."""
+
+    profile: Profile
+    end_offset: int
+    start_offset: int
+
+
+class RevolutionAssembler:
+    """Packets in (stream order), revolutions out (module docstring). Fixes the grid of ``N``
+    beams at the first revolution, unless ``grid_beams`` is given."""
+
+    def __init__(self, grid_beams: int | None = None) -> None:
+        if grid_beams is not None and not MIN_GRID_BEAMS <= grid_beams <= MAX_GRID_BEAMS:
+            raise ProtocolError(f"grid of {grid_beams} beams: allowed "
+                                f"{MIN_GRID_BEAMS}…{MAX_GRID_BEAMS}")
+        self.grid_beams = grid_beams
+        self._pending = _Samples()
+        self._next_rev = 0
+        self._unwrap_deg: float | None = None  # unwrapped start angle of the last packet
+        self._last_start_cdeg = 0
+        self._last_time_ms: float = 0.0  # unwrapped device ms of the last packet
+        self._last_stamp = 0
+        self._steps: list[float] = []  # sample steps seen before the grid was fixed
+        self._spans: list[float] = []  # the same from single packets (fallback)
+
+    def feed(self, packets: Packets) -> list[Revolution]:
+        """Add packets; return every revolution they complete."""
+        if len(packets):
+            self._pending = self._pending.append(self._samples(packets))
+        return self._emit(final=False)
+
+    def finish(self) -> list[Revolution]:
+        """End of stream: the revolution in progress, if any."""
+        return self._emit(final=True)
+
+    def _samples(self, packets: Packets) -> _Samples:
+        start = packets.start_cdeg.astype(np.int64)
+        stamp = packets.timestamp_ms.astype(np.int64)
+        speed = np.maximum(packets.speed_dps.astype(np.float64), 1.0)
+        prev_start = np.concatenate([[self._last_start_cdeg], start[:-1]])
+        prev_stamp = np.concatenate([[self._last_stamp], stamp[:-1]])
+        d_angle = ((start - prev_start) % TURN_CDEG) / ANGLE_SCALE_PER_DEG
+        d_time = ((stamp - prev_stamp) % TIME_WRAP_MS).astype(np.float64)
+        # Whole turns the head made beyond the angle step (a gap in the stream).
+        turns = np.maximum(np.rint((speed * d_time / 1000.0 - d_angle) / 360.0), 0.0)
+        step = d_angle + 360.0 * turns
+        time_step = d_time
+        if self._unwrap_deg is None:
+            step[0] = start[0] / ANGLE_SCALE_PER_DEG
+            time_step[0] = float(stamp[0])
+            base_deg, base_ms = 0.0, 0.0
+        else:
+            base_deg, base_ms = self._unwrap_deg, self._last_time_ms
+        unwrapped = base_deg + np.cumsum(step)
+        times = base_ms + np.cumsum(time_step)
+        self._unwrap_deg = float(unwrapped[-1])
+        self._last_time_ms = float(times[-1])
+        self._last_start_cdeg = int(start[-1])
+        self._last_stamp = int(stamp[-1])
+        sample_step = packets.span_cdeg() / ANGLE_SCALE_PER_DEG / _SPAN_STEPS
+        if self.grid_beams is None and len(self._steps) < 4096:
+            # Back-to-back packets: their start angles 12 steps apart measure the step to
+            # 1/1200°, ten times finer than one packet's span does.
+            adjacent = np.diff(packets.offset) == PACKET_BYTES
+            pair_step = np.diff(unwrapped) / POINTS_PER_PACKET
+            fits = adjacent & (np.abs(pair_step - sample_step[:-1]) < 0.2 * sample_step[:-1])
+            self._steps.extend(pair_step[fits].tolist())
+            self._spans.extend(sample_step[:64].tolist())
+        i = np.arange(POINTS_PER_PACKET, dtype=np.float64)
+        angle = unwrapped[:, None] + sample_step[:, None] * i
+        deg_per_ms = speed / 1000.0
+        time = times[:, None] + (sample_step / deg_per_ms)[:, None] * i
+        return _Samples(
+            angle_deg=angle.ravel(),
+            time_ms=time.ravel(),
+            range_m=_MM_TABLE[packets.distance_mm].ravel(),
+            intensity=packets.intensity.ravel(),
+            ok=np.repeat(packets.crc_ok, POINTS_PER_PACKET),
+            end_offset=np.repeat(packets.offset + PACKET_BYTES, POINTS_PER_PACKET),
+            deg_per_ms=np.repeat(deg_per_ms, POINTS_PER_PACKET),
+        )
+
+    def _grid(self) -> int:
+        if self.grid_beams is None:
+            steps = np.asarray(self._steps or self._spans, np.float64)
+            steps = steps[steps > 0]
+            if steps.size == 0:
+                raise ProtocolError("ldrobot: no packet with a positive angular span; cannot "
+                                    "choose the revolution grid")
+            beams = round(360.0 / float(np.median(steps)))
+            self.grid_beams = int(np.clip(beams, MIN_GRID_BEAMS, MAX_GRID_BEAMS))
+        return self.grid_beams
+
+    def _emit(self, final: bool) -> list[Revolution]:
+        samples = self._pending
+        if samples.angle_deg.size == 0:
+            return []
+        if np.any(np.diff(samples.angle_deg) < 0):
+            order = np.argsort(samples.angle_deg, kind="stable")
+            samples = samples.take(order)
+        top = float(samples.angle_deg[-1])
+        last_complete = int(np.floor(top / 360.0)) - 1  # revolutions wholly before the newest
+        if final:
+            last_complete = int(np.floor(top / 360.0))
+        if last_complete < self._next_rev:
+            self._pending = samples
+            return []
+        beams = self._grid()
+        revs_of_samples = np.floor(samples.angle_deg / 360.0).astype(np.int64)
+        revs = np.unique(revs_of_samples[(revs_of_samples >= self._next_rev)
+                                         & (revs_of_samples <= last_complete)])
+        out = _resample(samples, revs, beams)
+        # Keep the samples of later revolutions, and the last one before them (interpolation).
+        boundary = (last_complete + 1) * 360.0
+        first_kept = max(int(np.searchsorted(samples.angle_deg, boundary)) - 1, 0)
+        self._pending = samples.take(slice(first_kept, None)) if not final else _Samples()
+        self._next_rev = last_complete + 1
+        return out
+
+
+def _resample(s: _Samples, revs: NDArray[np.int64], beams: int) -> list[Revolution]:
+    """The revolutions ``revs`` on a grid of ``beams`` from 0°, from samples in angle order."""
+    if revs.size == 0:
+        return []
+    step = 360.0 / beams
+    grid = (revs[:, None] * 360.0 + np.arange(beams, dtype=np.float64) * step).ravel()
+    a = s.angle_deg
+    right = np.clip(np.searchsorted(a, grid, side="left"), 0, a.size - 1)
+    left = np.clip(right - 1, 0, a.size - 1)
+    exact = a[right] == grid
+    left = np.where(exact, right, left)
+    a0, a1 = a[left], a[right]
+    gap = a1 - a0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(gap > 0, (grid - a0) / np.where(gap > 0, gap, 1.0), 0.0)
+    d0, d1 = np.abs(grid - a0), np.abs(a1 - grid)
+    nearer = np.where(d0 <= d1, left, right)
+    near_d = np.minimum(d0, d1)
+    r0, r1 = s.range_m[left].astype(np.float64), s.range_m[right].astype(np.float64)
+    inside = (grid >= a0) & (grid <= a1)
+    smooth = (np.isfinite(r0) & np.isfinite(r1) & inside
+              & (np.abs(r1 - r0) <= CONTINUITY_SHARE * np.fmin(r0, r1) + CONTINUITY_M))
+    w = np.clip(w, 0.0, 1.0)
+    ranges = np.where(smooth, r0 + w * (r1 - r0), s.range_m[nearer].astype(np.float64))
+    # A beam in a hole (a lost packet) or outside the samples, farther than half a grid step
+    # from every sample, was not measured.
+    unmeasured = (near_d > 0.5 * step) & (~inside | (gap > 2.0 * step))
+    ranges = np.where(unmeasured, np.nan, ranges).astype(np.float32)
+    echo = s.intensity[nearer].astype(np.uint16)
+    # Times: interpolated inside the samples, extrapolated at the head's speed outside them.
+    near_t = s.time_ms[nearer] + (grid - a[nearer]) / s.deg_per_ms[nearer]
+    times = np.where(inside & (gap > 0), s.time_ms[left] + w * (s.time_ms[right]
+                                                                 - s.time_ms[left]), near_t)
+    ok = s.ok[left] & s.ok[right]
+    ranges = ranges.reshape(revs.size, beams)
+    echo = echo.reshape(revs.size, beams)
+    times = times.reshape(revs.size, beams)
+    ok = ok.reshape(revs.size, beams)
+    first = np.searchsorted(a, revs * 360.0, side="left")
+    last = np.searchsorted(a, (revs + 1) * 360.0, side="left") - 1
+    out = []
+    for row, rev in enumerate(revs.tolist()):
+        lo, hi = int(first[row]), int(last[row])
+        after = min(hi + 1, a.size - 1)
+        profile = Profile(
+            frame=rev & 0xFFFF, sector=0, start_angle_deg=0.0, step_deg=step,
+            ranges_m=ranges[row], echo=echo[row],
+            device_time_ms=int(np.rint(times[row, 0])) % TIME_WRAP_MS,
+            device_end_time_ms=int(np.rint(times[row, -1])) % TIME_WRAP_MS,
+            checksum_ok=bool(ok[row].all() and s.ok[lo:hi + 1].all()))
+        out.append(Revolution(profile, int(s.end_offset[after]),
+                              int(s.end_offset[lo]) - PACKET_BYTES))
+    return out
+
+
+class RevolutionDecoder:
+    """Bytes in (chunks of any size), revolutions out: :class:`PacketLocator` then
+    :class:`RevolutionAssembler`. ``lenient`` keeps damaged packets where a packet should be
+    (their revolution gets ``checksum_ok`` False)."""
+
+    def __init__(self, lenient: bool = False, grid_beams: int | None = None) -> None:
+        self.locator = PacketLocator(lenient)
+        self.assembler = RevolutionAssembler(grid_beams)
+
+    @property
+    def counters(self) -> FrameCounters:
+        """The locator's counters (a frame is a packet)."""
+        return self.locator.counters
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list[Revolution]:
+        """Add bytes; return the revolutions they complete."""
+        return self.assembler.feed(self.locator.feed(chunk))
+
+    def finish(self) -> list[Revolution]:
+        """End of stream: the rest."""
+        return self.assembler.feed(self.locator.finish()) + self.assembler.finish()
+
+
+def decode_revolutions(data: bytes | bytearray | memoryview, lenient: bool = False,
+                       grid_beams: int | None = None) -> tuple[list[Profile], FrameCounters]:
+    """Every revolution of a whole byte stream, and the counters."""
+    decoder = RevolutionDecoder(lenient, grid_beams)
+    revolutions = decoder.feed(data) + decoder.finish()
+    return [r.profile for r in revolutions], decoder.counters
+
+
+def encode_profile(profile: Profile, speed_dps: int = 3600) -> bytes:
+    """A profile as packets: its samples at ``start + i·step`` in packets of 12, the last one
+    padded with no-returns; times from ``device_time_ms`` at the head speed ``speed_dps``."""
+    if not MIN_SPEED_DPS <= speed_dps <= MAX_SPEED_DPS:
+        raise ProtocolError(f"head speed {speed_dps} °/s: allowed "
+                            f"{MIN_SPEED_DPS}…{MAX_SPEED_DPS}")
+    ranges = np.asarray(profile.ranges_m, np.float64)
+    n = ranges.size
+    if n == 0:
+        raise ProtocolError("ldrobot: a profile without samples has no packet")
+    packets = -(-n // POINTS_PER_PACKET)
+    total = packets * POINTS_PER_PACKET
+    mm = np.zeros(total, np.int64)
+    finite = np.isfinite(ranges) & (ranges > 0)
+    mm[:n][finite] = np.clip(np.rint(ranges[finite] * 1000.0), 1, 0xFFFF)
+    echo = np.zeros(total, np.int64)
+    if profile.echo is not None:
+        echo[:n] = np.clip(np.asarray(profile.echo, np.int64), 0, 0xFF)
+    angle = profile.start_angle_deg + np.arange(total) * profile.step_deg
+    cdeg = np.rint(angle * ANGLE_SCALE_PER_DEG).astype(np.int64) % TURN_CDEG
+    rows = np.arange(packets) * POINTS_PER_PACKET
+    t0 = profile.device_time_ms or 0
+    stamp = np.rint(t0 + (angle[rows] - angle[0]) / (speed_dps / 1000.0)).astype(np.int64)
+    return encode_packets(np.full(packets, speed_dps), cdeg[rows],
+                          mm.reshape(packets, POINTS_PER_PACKET),
+                          echo.reshape(packets, POINTS_PER_PACKET),
+                          cdeg[rows + POINTS_PER_PACKET - 1], stamp % TIME_WRAP_MS)
+
+
+def detect_score(data: bytes | bytearray | memoryview) -> int:
+    """How many packets of ``data`` belong to runs of at least three back-to-back good packets
+    (0: not this dialect). A lone ``54 2C`` with a lucky CRC scores nothing."""
+    packets, _ = locate_packets(data)
+    if len(packets) < 3:
+        return 0
+    step = np.diff(packets.offset)
+    chained = np.zeros(len(packets), bool)
+    link = step == PACKET_BYTES
+    chained[1:-1] = link[:-1] & link[1:]
+    if not chained.any():
+        return 0
+    # Every packet of a run of three, not just its middle.
+    run = chained.copy()
+    run[:-1] |= chained[1:]
+    run[1:] |= chained[:-1]
+    return int(np.count_nonzero(run))
