@@ -40,7 +40,7 @@ the host receive times (:func:`scanpipe.clock.unwrap_device_ms`).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -117,7 +117,8 @@ def crc8_rows(rows: NDArray[np.uint8]) -> NDArray[np.uint8]:
     """The CRC-8 of every row of a 2-D uint8 array (one table look-up per column)."""
     crc = np.zeros(rows.shape[0], np.uint8)
     for column in range(rows.shape[1]):
-        crc = CRC_TABLE[crc ^ rows[:, column]]
+        np.bitwise_xor(crc, rows[:, column], out=crc)
+        crc = np.take(CRC_TABLE, crc)
     return crc
 
 
@@ -149,14 +150,17 @@ class Packets:
                      crc_ok: NDArray[np.bool_]) -> Packets:
         """Packets from records of :data:`PACKET_DTYPE`."""
         points = records["points"]
+        # Views where the byte order allows (no copy of the samples until they are used).
         return Packets(
             offset=np.asarray(offsets, np.int64),
             speed_dps=records["speed"].astype(np.uint16),
             start_cdeg=records["start"].astype(np.uint16),
             end_cdeg=records["end"].astype(np.uint16),
             timestamp_ms=records["timestamp"].astype(np.uint16),
-            distance_mm=points["distance"].astype(np.uint16).reshape(-1, POINTS_PER_PACKET),
-            intensity=points["intensity"].astype(np.uint8).reshape(-1, POINTS_PER_PACKET),
+            distance_mm=points["distance"].astype(np.uint16, copy=False).reshape(
+                -1, POINTS_PER_PACKET),
+            intensity=points["intensity"].astype(np.uint8, copy=False).reshape(
+                -1, POINTS_PER_PACKET),
             crc_ok=np.asarray(crc_ok, bool),
         )
 
@@ -225,10 +229,14 @@ def packet_plausible(packets: Packets) -> NDArray[np.bool_]:
 def _rows_at(buf: NDArray[np.uint8], starts: NDArray[np.int64]) -> NDArray[np.uint8]:
     """The 47 bytes at each start, as a (n, 47) array (contiguous runs cost one reshape)."""
     n = starts.size
-    if n and bool(np.all(np.diff(starts) == PACKET_BYTES)):
+    if n == 0:
+        return np.zeros((0, PACKET_BYTES), np.uint8)
+    if bool(np.all(np.diff(starts) == PACKET_BYTES)):
         first = int(starts[0])
         return buf[first:first + n * PACKET_BYTES].reshape(n, PACKET_BYTES)
-    return np.asarray(buf[starts[:, None] + np.arange(PACKET_BYTES, dtype=np.int64)], np.uint8)
+    # Whole 47-byte rows of a sliding window: a row copy each, no per-byte index array.
+    windows = np.lib.stride_tricks.sliding_window_view(buf, PACKET_BYTES)
+    return np.asarray(windows[starts], np.uint8)
 
 
 def _rows_to_packets(rows: NDArray[np.uint8], offsets: NDArray[np.int64],
@@ -305,7 +313,7 @@ class PacketLocator:
         keep_mask = np.zeros(cand.size, bool)
         keep_mask[kept] = True
         # Damaged packets where a packet should be: right after a kept one, over none.
-        after_kept = np.isin(cand, starts_kept + PACKET_BYTES)
+        after_kept = _member(starts_kept + PACKET_BYTES, cand)
         if self._last_end >= 0:
             after_kept |= (cand + self._base) == self._last_end
         inside, over = _overlaps(cand, cand[kept_all])
@@ -327,6 +335,8 @@ class PacketLocator:
         counters.bytes_skipped += consumed - int(kept.size) * PACKET_BYTES
         self._buffer = buf[consumed:].copy()
         self._base += consumed
+        if out_index.size == cand.size:  # every candidate is a packet: the common case
+            return packets
         return packets.take(out_index)
 
     def _choose(self, cand: NDArray[np.int64], good: NDArray[np.bool_], packets: Packets,
@@ -336,7 +346,7 @@ class PacketLocator:
         starts = cand[index]
         if starts.size == 0:
             return index
-        picked = packets.take(index)
+        picked = _Motion.of(packets, index)
         # A neighbour a packet away links a packet only if the head's motion joins them.
         nxt = np.minimum(np.searchsorted(starts, starts + PACKET_BYTES), starts.size - 1)
         succ = (starts[nxt] == starts + PACKET_BYTES) & _continuous(picked, np.arange(
@@ -349,9 +359,10 @@ class PacketLocator:
         if self._last_end >= 0 and self._last is not None:
             after_last = starts + self._base == self._last_end
             if after_last.any():
-                both = Packets.concat([self._last, picked.take(after_last)])
+                last = _Motion.of(self._last, np.zeros(1, np.int64))
+                both = last.then(picked.take(after_last))
                 pred[after_last] = _continuous(both, np.zeros(1, np.int64),
-                                               np.ones(1, np.int64))
+                                               np.arange(1, both.start_cdeg.size))
         gaps = np.diff(starts)
         conflict = np.zeros(starts.size, bool)
         conflict[1:] |= gaps < PACKET_BYTES
@@ -359,7 +370,7 @@ class PacketLocator:
         isolated = ~succ & ~pred
         # Before any packet was kept, a marker (even of a damaged packet) exactly a packet
         # away vouches for an isolated one; later, its angle must follow from the last kept.
-        marked = np.isin(starts + PACKET_BYTES, marks) | np.isin(starts - PACKET_BYTES, marks)
+        marked = _member(marks, starts + PACKET_BYTES) | _member(marks, starts - PACKET_BYTES)
         # The rare cases (overlaps, isolated packets) in Python; the rest is kept as is.
         if not (conflict.any() or isolated.any()):
             return index
@@ -409,7 +420,28 @@ class PacketLocator:
         return miss <= PREDICT_TOLERANCE_DEG + float(previous.speed_dps[0]) * 0.002
 
 
-def _continuous(packets: Packets, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[
+@dataclass(frozen=True)
+class _Motion:
+    """The fields of packets that tell the head's motion (speed, start angle, timestamp)."""
+
+    speed_dps: NDArray[np.uint16]
+    start_cdeg: NDArray[np.uint16]
+    timestamp_ms: NDArray[np.uint16]
+
+    @staticmethod
+    def of(packets: Packets, index: NDArray[np.int64]) -> _Motion:
+        return _Motion(packets.speed_dps[index], packets.start_cdeg[index],
+                       packets.timestamp_ms[index])
+
+    def take(self, index: NDArray[np.bool_] | NDArray[np.int64]) -> _Motion:
+        return _Motion(self.speed_dps[index], self.start_cdeg[index], self.timestamp_ms[index])
+
+    def then(self, other: _Motion) -> _Motion:
+        return _Motion(*(np.concatenate([getattr(self, f), getattr(other, f)])
+                         for f in ("speed_dps", "start_cdeg", "timestamp_ms")))
+
+
+def _continuous(packets: _Motion, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[
         np.bool_]:
     """Whether packet ``b`` starts where the head reached ``Δt`` after packet ``a`` started
     (``Δt`` from the timestamps: 1 ms resolution, hence the speed × 1.5 ms margin)."""
@@ -422,6 +454,14 @@ def _continuous(packets: Packets, a: NDArray[np.int64], b: NDArray[np.int64]) ->
     same_speed = np.abs(packets.speed_dps[b].astype(np.float64) - speed) <= 0.1 * speed
     return np.asarray((miss <= 2.0 + speed * 0.0015) & same_speed & (d_time_s <= MAX_LINK_S),
                       bool)
+
+
+def _member(sorted_values: NDArray[np.int64], queries: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Whether each query is in ``sorted_values`` (ascending): ``np.isin`` by binary search."""
+    if sorted_values.size == 0:
+        return np.zeros(queries.shape, bool)
+    at = np.minimum(np.searchsorted(sorted_values, queries), sorted_values.size - 1)
+    return np.asarray(sorted_values[at] == queries, bool)
 
 
 def _rank(succ: NDArray[np.bool_], pred: NDArray[np.bool_], k: int) -> int:
@@ -463,37 +503,72 @@ def locate_packets(data: bytes | bytearray | memoryview,
 
 # -- revolutions ---------------------------------------------------------------------------
 
-@dataclass
-class _Samples:
-    """Samples waiting to be placed in a revolution, in angle order (unwrapped degrees)."""
-
-    angle_deg: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
-    time_ms: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
-    range_m: NDArray[np.float32] = field(default_factory=lambda: np.zeros(0, np.float32))
-    intensity: NDArray[np.uint8] = field(default_factory=lambda: np.zeros(0, np.uint8))
-    ok: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, bool))
-    end_offset: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
-    deg_per_ms: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
-
-    def append(self, other: _Samples) -> _Samples:
-        return _Samples(*(np.concatenate([getattr(self, f), getattr(other, f)])
-                          for f in _SAMPLE_FIELDS))
-
-    def take(self, index: slice | NDArray[np.integer]) -> _Samples:
-        return _Samples(*(getattr(self, f)[index] for f in _SAMPLE_FIELDS))
-
-
-_SAMPLE_FIELDS = ("angle_deg", "time_ms", "range_m", "intensity", "ok", "end_offset",
-                  "deg_per_ms")
+_PENDING_FIELDS = ("start_deg", "step_deg", "time_ms", "deg_per_ms", "end_offset", "ok",
+                   "range_m", "intensity")
 
 #: Millimetres to metres, 0 → NaN (no return), one gather per packet set.
 _MM_TABLE = np.arange(1 << 16, dtype=np.float32) / np.float32(1000.0)
 _MM_TABLE[0] = np.nan
+_POINT_INDEX32 = np.arange(POINTS_PER_PACKET, dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class _Pending:
+    """Packets waiting to be placed in a revolution (stream order, unwrapped angles):
+    per packet its first sample's angle and device time, the sample step, the head speed,
+    where the packet ended in the stream, its CRC verdict, and its 12 ranges and intensities."""
+
+    start_deg: NDArray[np.float64]
+    step_deg: NDArray[np.float64]
+    time_ms: NDArray[np.float64]
+    deg_per_ms: NDArray[np.float64]
+    end_offset: NDArray[np.int64]
+    ok: NDArray[np.bool_]
+    range_m: NDArray[np.float32]  # (packets, 12)
+    intensity: NDArray[np.uint8]  # (packets, 12)
+
+    @staticmethod
+    def empty() -> _Pending:
+        none = np.zeros(0)
+        return _Pending(none, none, none, none, np.zeros(0, np.int64), np.zeros(0, bool),
+                        np.zeros((0, POINTS_PER_PACKET), np.float32),
+                        np.zeros((0, POINTS_PER_PACKET), np.uint8))
+
+    def __len__(self) -> int:
+        return int(self.start_deg.size)
+
+    def append(self, other: _Pending) -> _Pending:
+        if not len(self):
+            return other
+        return _Pending(*(np.concatenate([getattr(self, f), getattr(other, f)])
+                          for f in _PENDING_FIELDS))
+
+    def tail(self, first: int) -> _Pending:
+        return _Pending(*(getattr(self, f)[first:] for f in _PENDING_FIELDS))
+
+    def sample_angles(self, base_deg: float) -> NDArray[np.float32]:
+        """Every sample's unwrapped angle less ``base_deg``, made non-decreasing: where jitter
+        puts a packet's first sample a hair before the previous packet's last, it takes that
+        angle."""
+        start = (self.start_deg - base_deg).astype(np.float32)
+        step = self.step_deg.astype(np.float32)
+        angles = (start[:, None] + step[:, None] * _POINT_INDEX32).reshape(-1)
+        last = start + step * np.float32(_SPAN_STEPS)
+        if np.any(start[1:] < last[:-1]):
+            np.maximum.accumulate(angles, out=angles)
+        return angles
+
+    def sample_times(self, index: NDArray[np.int64]) -> NDArray[np.float64]:
+        """Device times (unwrapped ms) of the samples at flat ``index``."""
+        packet, within = np.divmod(index, POINTS_PER_PACKET)
+        return np.asarray(self.time_ms[packet] + within * self.step_deg[packet]
+                          / self.deg_per_ms[packet], np.float64)
 
 
 @dataclass(frozen=True)
 class Revolution:
-    """One head turn on the grid, and the stream offset of the packet that completed it."""
+    """One head turn on the grid, and where its packets lay in the stream (the end: that of
+    the packet that completed it)."""
 
     profile: Profile
     end_offset: int
@@ -509,7 +584,7 @@ class RevolutionAssembler:
             raise ProtocolError(f"grid of {grid_beams} beams: allowed "
                                 f"{MIN_GRID_BEAMS}…{MAX_GRID_BEAMS}")
         self.grid_beams = grid_beams
-        self._pending = _Samples()
+        self._pending = _Pending.empty()
         self._next_rev = 0
         self._unwrap_deg: float | None = None  # unwrapped start angle of the last packet
         self._last_start_cdeg = 0
@@ -521,14 +596,14 @@ class RevolutionAssembler:
     def feed(self, packets: Packets) -> list[Revolution]:
         """Add packets; return every revolution they complete."""
         if len(packets):
-            self._pending = self._pending.append(self._samples(packets))
+            self._pending = self._pending.append(self._unwrap(packets))
         return self._emit(final=False)
 
     def finish(self) -> list[Revolution]:
         """End of stream: the revolution in progress, if any."""
         return self._emit(final=True)
 
-    def _samples(self, packets: Packets) -> _Samples:
+    def _unwrap(self, packets: Packets) -> _Pending:
         start = packets.start_cdeg.astype(np.int64)
         stamp = packets.timestamp_ms.astype(np.int64)
         speed = np.maximum(packets.speed_dps.astype(np.float64), 1.0)
@@ -539,15 +614,14 @@ class RevolutionAssembler:
         # Whole turns the head made beyond the angle step (a gap in the stream).
         turns = np.maximum(np.rint((speed * d_time / 1000.0 - d_angle) / 360.0), 0.0)
         step = d_angle + 360.0 * turns
-        time_step = d_time
         if self._unwrap_deg is None:
             step[0] = start[0] / ANGLE_SCALE_PER_DEG
-            time_step[0] = float(stamp[0])
+            d_time[0] = float(stamp[0])
             base_deg, base_ms = 0.0, 0.0
         else:
             base_deg, base_ms = self._unwrap_deg, self._last_time_ms
         unwrapped = base_deg + np.cumsum(step)
-        times = base_ms + np.cumsum(time_step)
+        times = base_ms + np.cumsum(d_time)
         self._unwrap_deg = float(unwrapped[-1])
         self._last_time_ms = float(times[-1])
         self._last_start_cdeg = int(start[-1])
@@ -561,19 +635,11 @@ class RevolutionAssembler:
             fits = adjacent & (np.abs(pair_step - sample_step[:-1]) < 0.2 * sample_step[:-1])
             self._steps.extend(pair_step[fits].tolist())
             self._spans.extend(sample_step[:64].tolist())
-        i = np.arange(POINTS_PER_PACKET, dtype=np.float64)
-        angle = unwrapped[:, None] + sample_step[:, None] * i
-        deg_per_ms = speed / 1000.0
-        time = times[:, None] + (sample_step / deg_per_ms)[:, None] * i
-        return _Samples(
-            angle_deg=angle.ravel(),
-            time_ms=time.ravel(),
-            range_m=_MM_TABLE[packets.distance_mm].ravel(),
-            intensity=packets.intensity.ravel(),
-            ok=np.repeat(packets.crc_ok, POINTS_PER_PACKET),
-            end_offset=np.repeat(packets.offset + PACKET_BYTES, POINTS_PER_PACKET),
-            deg_per_ms=np.repeat(deg_per_ms, POINTS_PER_PACKET),
-        )
+        return _Pending(
+            start_deg=unwrapped, step_deg=sample_step, time_ms=times,
+            deg_per_ms=speed / 1000.0, end_offset=packets.offset + PACKET_BYTES,
+            ok=packets.crc_ok.copy(), range_m=_MM_TABLE[packets.distance_mm],
+            intensity=packets.intensity)
 
     def _grid(self) -> int:
         if self.grid_beams is None:
@@ -587,85 +653,136 @@ class RevolutionAssembler:
         return self.grid_beams
 
     def _emit(self, final: bool) -> list[Revolution]:
-        samples = self._pending
-        if samples.angle_deg.size == 0:
+        pending = self._pending
+        if not len(pending):
             return []
-        if np.any(np.diff(samples.angle_deg) < 0):
-            order = np.argsort(samples.angle_deg, kind="stable")
-            samples = samples.take(order)
-        top = float(samples.angle_deg[-1])
-        last_complete = int(np.floor(top / 360.0)) - 1  # revolutions wholly before the newest
-        if final:
-            last_complete = int(np.floor(top / 360.0))
+        last_angle = float(pending.start_deg[-1] + _SPAN_STEPS * pending.step_deg[-1])
+        # Revolutions wholly before the newest sample are complete (and, at the end, the last).
+        last_complete = int(np.floor(last_angle / 360.0)) - (0 if final else 1)
         if last_complete < self._next_rev:
-            self._pending = samples
             return []
         beams = self._grid()
-        revs_of_samples = np.floor(samples.angle_deg / 360.0).astype(np.int64)
-        revs = np.unique(revs_of_samples[(revs_of_samples >= self._next_rev)
-                                         & (revs_of_samples <= last_complete)])
-        out = _resample(samples, revs, beams)
-        # Keep the samples of later revolutions, and the last one before them (interpolation).
-        boundary = (last_complete + 1) * 360.0
-        first_kept = max(int(np.searchsorted(samples.angle_deg, boundary)) - 1, 0)
-        self._pending = samples.take(slice(first_kept, None)) if not final else _Samples()
+        first_rev = np.floor(pending.start_deg / 360.0).astype(np.int64)
+        last_rev = np.floor((pending.start_deg + _SPAN_STEPS * pending.step_deg) / 360.0
+                            ).astype(np.int64)
+        present = np.concatenate([first_rev, last_rev])
+        present = present[(present >= self._next_rev) & (present <= last_complete)]
+        revs = np.unique(present)
+        out = _resample(pending, revs, beams, first_rev, last_rev)
+        # Keep the packets of later revolutions and the one before them (interpolation).
+        first_kept = max(int(np.searchsorted(last_rev, last_complete + 1)) - 1, 0)
+        self._pending = pending.tail(first_kept) if not final else _Pending.empty()
         self._next_rev = last_complete + 1
         return out
 
 
-def _resample(s: _Samples, revs: NDArray[np.int64], beams: int) -> list[Revolution]:
-    """The revolutions ``revs`` on a grid of ``beams`` from 0°, from samples in angle order."""
+def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
+              first_rev: NDArray[np.int64], last_rev: NDArray[np.int64]) -> list[Revolution]:
+    """The revolutions ``revs`` on a grid of ``beams`` from 0° (module docstring), from the
+    pending packets."""
     if revs.size == 0:
         return []
     step = 360.0 / beams
-    grid = (revs[:, None] * 360.0 + np.arange(beams, dtype=np.float64) * step).ravel()
-    a = s.angle_deg
-    right = np.clip(np.searchsorted(a, grid, side="left"), 0, a.size - 1)
-    left = np.clip(right - 1, 0, a.size - 1)
-    exact = a[right] == grid
-    left = np.where(exact, right, left)
-    a0, a1 = a[left], a[right]
-    gap = a1 - a0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.where(gap > 0, (grid - a0) / np.where(gap > 0, gap, 1.0), 0.0)
-    d0, d1 = np.abs(grid - a0), np.abs(a1 - grid)
-    nearer = np.where(d0 <= d1, left, right)
-    near_d = np.minimum(d0, d1)
-    r0, r1 = s.range_m[left].astype(np.float64), s.range_m[right].astype(np.float64)
-    inside = (grid >= a0) & (grid <= a1)
-    smooth = (np.isfinite(r0) & np.isfinite(r1) & inside
-              & (np.abs(r1 - r0) <= CONTINUITY_SHARE * np.fmin(r0, r1) + CONTINUITY_M))
-    w = np.clip(w, 0.0, 1.0)
-    ranges = np.where(smooth, r0 + w * (r1 - r0), s.range_m[nearer].astype(np.float64))
-    # A beam in a hole (a lost packet) or outside the samples, farther than half a grid step
-    # from every sample, was not measured.
-    unmeasured = (near_d > 0.5 * step) & (~inside | (gap > 2.0 * step))
-    ranges = np.where(unmeasured, np.nan, ranges).astype(np.float32)
-    echo = s.intensity[nearer].astype(np.uint16)
-    # Times: interpolated inside the samples, extrapolated at the head's speed outside them.
-    near_t = s.time_ms[nearer] + (grid - a[nearer]) / s.deg_per_ms[nearer]
-    times = np.where(inside & (gap > 0), s.time_ms[left] + w * (s.time_ms[right]
-                                                                 - s.time_ms[left]), near_t)
-    ok = s.ok[left] & s.ok[right]
+    base = float(revs[0]) * 360.0
+    # Angles relative to the first revolution: float32 keeps 1e-4° over a few turns, and halves
+    # the memory traffic of the per-beam arithmetic below.
+    local = p.sample_angles(base)
+    within = np.arange(beams, dtype=np.float64) * step
+    grid = ((revs - revs[0])[:, None] * 360.0 + within).astype(np.float32).ravel()
+    last_index = local.size - 1
+    right = np.minimum(_first_at_or_after(local, grid, revs, beams, step), last_index)
+    left = np.maximum(right - 1, 0)
+    a0 = local[left]
+    gap = np.maximum(local[right] - a0, np.float32(1e-6))
+    w = (grid - a0) / gap  # 0…1 between the samples
+    nearer = left + (w > np.float32(0.5))
+    flat_range = p.range_m.reshape(-1)
+    r0 = flat_range[left]
+    dr = flat_range[right] - r0
+    # One surface: the jump is small against the range (NaN, a no-return, compares False).
+    smooth = np.abs(dr) <= np.float32(CONTINUITY_SHARE) * r0 + np.float32(CONTINUITY_M)
+    ranges = np.where(smooth, r0 + w * dr, flat_range[nearer])
+    # A beam farther than half a grid step from every sample was not measured: in a hole
+    # (a lost packet) or beyond the first or last sample.
+    half = 0.5 * step
+    hole = np.flatnonzero(gap > np.float32(2.0 * step))
+    if hole.size:
+        w_hole, gap_hole = w[hole], gap[hole]
+        near_d = np.minimum(w_hole, 1 - w_hole) * gap_hole
+        ranges[hole[near_d > half]] = np.nan
+    before = int(np.searchsorted(grid, local[0], side="left"))  # beams before the first sample
+    ranges[:before] = flat_range[0]
+    ranges[:int(np.searchsorted(grid, local[0] - half, side="left"))] = np.nan
+    after = int(np.searchsorted(grid, local[-1], side="right"))  # beams after the last sample
+    if after < grid.size:
+        ranges[after:] = flat_range[last_index]
+        ranges[int(np.searchsorted(grid, local[-1] + half, side="right")):] = np.nan
+        nearer[after:] = last_index
+    echo = p.intensity.reshape(-1)[nearer].astype(np.uint16)
     ranges = ranges.reshape(revs.size, beams)
     echo = echo.reshape(revs.size, beams)
-    times = times.reshape(revs.size, beams)
-    ok = ok.reshape(revs.size, beams)
-    first = np.searchsorted(a, revs * 360.0, side="left")
-    last = np.searchsorted(a, (revs + 1) * 360.0, side="left") - 1
+    # Device times of each revolution's first and last beam: interpolated between the samples,
+    # extrapolated at the head's speed beyond them.
+    first_beam = np.arange(revs.size) * beams
+    ends = np.stack([first_beam, first_beam + beams - 1])
+    times = _beam_times(p, local, grid[ends].astype(np.float64), left[ends], right[ends],
+                        nearer[ends])
+    # A revolution is damaged if any of its packets is.
+    span = int(revs[-1] - revs[0]) + 1
+    bad = np.zeros(span, np.int64)
+    for which in (first_rev, last_rev):
+        sel = (which >= revs[0]) & (which <= revs[-1]) & ~p.ok
+        bad += np.bincount(which[sel] - revs[0], minlength=span)
+    # Stream offsets: a revolution's first packet, and the packet after its last sample.
+    first_packet = np.searchsorted(last_rev, revs, side="left")
+    after_packet = np.searchsorted(first_rev, revs + 1, side="left")
+    start_offsets = p.end_offset[np.minimum(first_packet, len(p) - 1)] - PACKET_BYTES
+    end_offsets = p.end_offset[np.minimum(after_packet, len(p) - 1)]
     out = []
     for row, rev in enumerate(revs.tolist()):
-        lo, hi = int(first[row]), int(last[row])
-        after = min(hi + 1, a.size - 1)
         profile = Profile(
             frame=rev & 0xFFFF, sector=0, start_angle_deg=0.0, step_deg=step,
             ranges_m=ranges[row], echo=echo[row],
-            device_time_ms=int(np.rint(times[row, 0])) % TIME_WRAP_MS,
-            device_end_time_ms=int(np.rint(times[row, -1])) % TIME_WRAP_MS,
-            checksum_ok=bool(ok[row].all() and s.ok[lo:hi + 1].all()))
-        out.append(Revolution(profile, int(s.end_offset[after]),
-                              int(s.end_offset[lo]) - PACKET_BYTES))
+            device_time_ms=int(np.rint(times[0, row])) % TIME_WRAP_MS,
+            device_end_time_ms=int(np.rint(times[1, row])) % TIME_WRAP_MS,
+            checksum_ok=bool(bad[rev - revs[0]] == 0))
+        out.append(Revolution(profile, int(end_offsets[row]), int(start_offsets[row])))
     return out
+
+
+def _consecutive(revs: NDArray[np.int64]) -> bool:
+    return int(revs[-1] - revs[0]) + 1 == revs.size
+
+
+def _first_at_or_after(a: NDArray[np.float32], grid: NDArray[np.float32],
+                       revs: NDArray[np.int64], beams: int, step: float) -> NDArray[np.int64]:
+    """For each grid angle, the index of the first sample at or after it (``a.size`` if none):
+    ``np.searchsorted(a, grid)``, but by counting samples per grid cell (one pass, no binary
+    search) when the revolutions are consecutive, as they are but for gaps in the stream."""
+    if not _consecutive(revs):
+        return np.asarray(np.searchsorted(a, grid, side="left"), np.int64)
+    cells = revs.size * beams
+    step32 = np.float32(step)
+    # One plus the cell of each sample (the grid beam at or below it): 0 before the grid,
+    # ``cells + 1`` after it.
+    cell = (np.maximum(a, -step32) / step32 + np.float32(1)).astype(np.int64)
+    np.minimum(cell, cells + 1, out=cell)
+    below = np.cumsum(np.bincount(cell, minlength=cells + 2))
+    return np.asarray(below[:cells], np.int64)
+
+
+def _beam_times(p: _Pending, a: NDArray[np.float32], grid: NDArray[np.float64],
+                left: NDArray[np.int64], right: NDArray[np.int64],
+                nearer: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Device times (ms) at grid angles (relative, like ``a``), from the samples around them."""
+    a0, a1 = a[left].astype(np.float64), a[right].astype(np.float64)
+    between = (a0 <= grid) & (grid <= a1) & (a1 > a0)
+    w = np.divide(grid - a0, a1 - a0, out=np.zeros_like(grid), where=a1 > a0)
+    t0, t1 = p.sample_times(left), p.sample_times(right)
+    packet = nearer // POINTS_PER_PACKET
+    extrapolated = (p.sample_times(nearer) + (grid - a[nearer].astype(np.float64))
+                    / p.deg_per_ms[packet])
+    return np.asarray(np.where(between, t0 + w * (t1 - t0), extrapolated), np.float64)
 
 
 class RevolutionDecoder:
