@@ -1,0 +1,224 @@
+"""The simulated LDRobot LD06 / LD19 / STL-27L: a head that spins and sends from power-on.
+
+The real devices take no command on their serial line (the LD06's speed is set by a PWM pin;
+some firmwares of the family accept none at all, and none is needed to start them), so the
+emulator models that: packets stream from the moment the port exists, whether anybody reads
+or not. What it models (deterministic for a seed, any packet computable on its own):
+
+- the sample clock: sample ``k`` is measured at ``k / sample_hz`` (4 500/s LD06 and LD19,
+  21 600/s STL-27L), 12 to a packet;
+- the head: ``scan_hz`` turns per second with a slow speed wobble (±0.5 % at 0.37 Hz, a
+  PWM-driven motor), so samples are not on a fixed angular grid and a turn holds a varying
+  number of them; a packet reports its head speed (°/s), the encoder angles of its first and
+  last sample (0.01°, with 0.02° of encoder jitter) and its first sample's time (ms, wrapping
+  at 30 000 like the devices);
+- the beams: the true beam of a sample lies on the straight line between the packet's true
+  start and end angles (what the vendor's interpolation assumes); its range is ray cast at
+  the platform angle of its instant, with Gaussian noise, a base dropout rate plus fading at
+  grazing incidence (a dropout is distance 0 with a low intensity, a "low-confidence" sample),
+  and the device's range window; distances are whole millimetres;
+- intensity: high for a square-on return, falling with incidence and range.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanpipe.errors import SimulationError
+from scanpipe.geometry import rotation_matrix_deg, scan_plane_direction
+from scanpipe.protocol import ldrobot
+from scanpipe.rig import ScannerConfig
+from scanpipe.sim.motion import PlatformState
+from scanpipe.sim.scanner import MeasurementModel
+from scanpipe.sim.scene import Scene
+
+F64 = NDArray[np.float64]
+
+#: The device clock reads this many ms when the simulation starts (then wraps at 30 000).
+CLOCK_ORIGIN_MS = 12_345
+#: The head's speed wobble: relative amplitude and frequency (Hz).
+WOBBLE = 0.005
+WOBBLE_HZ = 0.37
+#: Encoder jitter on the reported start and end angles (degrees, 1 σ).
+ENCODER_JITTER_DEG = 0.02
+
+
+@dataclass(frozen=True)
+class LdrobotModel:
+    """What one model of the family is: link, rates, range window and noise (modelled)."""
+
+    name: str
+    baud: int
+    sample_hz: float
+    scan_hz: float
+    min_range_m: float
+    max_range_m: float
+    noise_sigma_m: float
+
+    @property
+    def samples_per_turn(self) -> float:
+        """Samples in one head turn at the nominal speed."""
+        return self.sample_hz / self.scan_hz
+
+    @property
+    def beam_step_deg(self) -> float:
+        """The angle between two samples at the nominal speed."""
+        return 360.0 / self.samples_per_turn
+
+
+#: The family (LDRobot datasheets: LD06/LD19 0.02–12 m, 4 500 samples/s, 230 400 baud;
+#: STL-27L 0.03–25 m, 21 600 samples/s, 921 600 baud; all 10 Hz nominal). The noise σ is a
+#: modelling choice (the datasheets quote accuracy bands, not a σ).
+LDROBOT_MODELS: dict[str, LdrobotModel] = {
+    "ld06": LdrobotModel("ld06", 230_400, 4_500.0, 10.0, 0.02, 12.0, 0.010),
+    "ld19": LdrobotModel("ld19", 230_400, 4_500.0, 10.0, 0.02, 12.0, 0.010),
+    "stl27l": LdrobotModel("stl27l", 921_600, 21_600.0, 10.0, 0.03, 25.0, 0.010),
+}
+
+
+def ldrobot_model(name: str) -> LdrobotModel:
+    """The model called ``name``; :class:`SimulationError` naming the known ones otherwise."""
+    if name not in LDROBOT_MODELS:
+        raise SimulationError(f"LDRobot model {name!r}: unknown; allowed: "
+                              f"{', '.join(LDROBOT_MODELS)}")
+    return LDROBOT_MODELS[name]
+
+
+@dataclass(frozen=True)
+class HeadPackets:
+    """Packets ``first … first + n − 1`` on the wire, and their truth."""
+
+    first: int
+    data: bytes
+    sample_time_s: F64  # (n, 12): simulation time of every sample
+    beam_deg: F64  # (n, 12): true beam angle (device angle, before the scanner's α offset)
+    beta_deg: F64  # (n, 12): true platform angle at each sample
+    ranges_true_m: F64  # (n, 12): noise-free, NaN = no hit or outside the range window
+
+
+class LdrobotHead:
+    """The spinning head of one device over a scene on a platform (module docstring)."""
+
+    def __init__(self, model: LdrobotModel, scene: Scene, scanner_true: ScannerConfig,
+                 platform: PlatformState, measurement: MeasurementModel,
+                 phase_deg: float = 0.0) -> None:
+        self.model = model
+        self.scene = scene
+        self.scanner = scanner_true
+        self.platform = platform
+        self.measurement = measurement
+        self.phase_deg = phase_deg
+        self._omega_dps = 360.0 * model.scan_hz
+        rng = np.random.default_rng([measurement.seed, 0x1D06])
+        self._wobble_phase = float(rng.uniform(0, 2 * np.pi))
+
+    @property
+    def packet_s(self) -> float:
+        """Time from one packet's first sample to the next packet's."""
+        return ldrobot.POINTS_PER_PACKET / self.model.sample_hz
+
+    def packet_due(self, index: int) -> float:
+        """Simulation time at which packet ``index`` is complete (its last sample taken)."""
+        return (index * ldrobot.POINTS_PER_PACKET + ldrobot.POINTS_PER_PACKET - 1
+                ) / self.model.sample_hz
+
+    def head_deg(self, time_s: F64) -> F64:
+        """The head's true (unwrapped) angle at ``time_s``: the integral of its speed."""
+        w = 2 * np.pi * WOBBLE_HZ
+        t = np.asarray(time_s, np.float64)
+        wobble = -WOBBLE / w * (np.cos(w * t + self._wobble_phase) - np.cos(self._wobble_phase))
+        return np.asarray(self.phase_deg + self._omega_dps * (t + wobble), np.float64)
+
+    def speed_dps(self, time_s: F64) -> F64:
+        """The head's speed at ``time_s`` (°/s)."""
+        w = 2 * np.pi * WOBBLE_HZ
+        t = np.asarray(time_s, np.float64)
+        return np.asarray(self._omega_dps * (1 + WOBBLE * np.sin(w * t + self._wobble_phase)),
+                          np.float64)
+
+    def packets(self, first: int, count: int) -> HeadPackets:
+        """Packets ``first … first + count − 1``: bytes and truth."""
+        if count <= 0:
+            raise SimulationError(f"LDRobot head: {count} packets asked for")
+        n, per = count, ldrobot.POINTS_PER_PACKET
+        index = np.arange(first, first + n, dtype=np.int64)
+        times = (index[:, None] * per + np.arange(per)) / self.model.sample_hz  # (n, 12)
+        start_true = self.head_deg(times[:, 0])
+        end_true = self.head_deg(times[:, -1])
+        beams = start_true[:, None] + (end_true - start_true)[:, None] * (
+            np.arange(per) / (per - 1))
+        beta = self.platform.beta_deg_at(times.ravel()).reshape(n, per)
+        truth, cos_inc = cast_beams(self.scene, self.scanner, beams.ravel(), beta.ravel())
+        truth = truth.reshape(n, per)
+        cos_inc = cos_inc.reshape(n, per)
+        u = self._uniforms(first, n)
+        distance_mm, intensity = self._measure(truth, cos_inc, u)
+        jitter = _normal(u[:, 48:50], u[:, 50:52]).T * ENCODER_JITTER_DEG
+        start_cdeg = np.rint((start_true + jitter[0]) * 100).astype(np.int64) % ldrobot.TURN_CDEG
+        end_cdeg = np.rint((end_true + jitter[1]) * 100).astype(np.int64) % ldrobot.TURN_CDEG
+        speed = np.clip(np.rint(self.speed_dps(times[:, 0])), 0, 0xFFFF).astype(np.int64)
+        stamp = (CLOCK_ORIGIN_MS + np.floor(times[:, 0] * 1000.0).astype(np.int64)
+                 ) % ldrobot.TIME_WRAP_MS
+        data = ldrobot.encode_packets(speed, start_cdeg, distance_mm, intensity, end_cdeg, stamp)
+        return HeadPackets(first, data, times, beams, beta, truth)
+
+    def _uniforms(self, first: int, count: int) -> F64:
+        """The random numbers of packets ``first …``: :data:`_DRAWS` uniforms each, the same
+        for a packet however the packets are batched (a counter-based generator)."""
+        bits = np.random.Philox(key=[self.measurement.seed, 0x1D06])
+        bits.advance(first * _DRAWS // 4)  # Philox counts blocks of four draws
+        return np.random.Generator(bits).random((count, _DRAWS))
+
+    def _measure(self, truth: F64, cos_inc: F64,
+                 u: F64) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        m, model = self.measurement, self.model
+        value = truth + _normal(u[:, 0:12], u[:, 12:24]) * model.noise_sigma_m
+        grazing = np.cos(np.radians(m.grazing_start_deg))
+        p_graze = np.clip((grazing - cos_inc) / max(grazing, 1e-9), 0.0, 1.0)
+        dropped = u[:, 24:36] < m.dropout_rate + (1 - m.dropout_rate) * p_graze
+        lost = (dropped | ~np.isfinite(value) | (value < model.min_range_m)
+                | (value > model.max_range_m))
+        distance = np.where(lost, 0, np.clip(np.rint(value * 1000.0), 1, 0xFFFF))
+        with np.errstate(invalid="ignore"):
+            strength = 40 + 200 * np.nan_to_num(cos_inc) * np.clip(
+                1 - np.nan_to_num(truth) / (2 * model.max_range_m), 0, 1)
+        low = np.floor(u[:, 36:48] * 16)  # a dropout's intensity: 0…15
+        jitter = (u[:, 36:48] - 0.5) * 8
+        intensity = np.where(lost, low, np.clip(np.rint(strength + jitter), 16, 255))
+        return distance.astype(np.int64), intensity.astype(np.int64)
+
+
+#: Uniform draws per packet: 24 for the 12 range noises, 12 dropout draws, 12 for the
+#: intensities, 4 for the two encoder jitters (a multiple of 4: Philox's block).
+_DRAWS = 52
+
+
+def _normal(u1: F64, u2: F64) -> F64:
+    """Standard normal numbers from two uniforms each (Box–Muller)."""
+    return np.asarray(np.sqrt(-2.0 * np.log1p(-u1)) * np.cos(2 * np.pi * u2), np.float64)
+
+
+def cast_beams(scene: Scene, scanner_true: ScannerConfig, beam_deg: F64,
+               beta_deg: F64) -> tuple[F64, F64]:
+    """True ranges (NaN = no hit or outside the scanner's window) and |cos incidence| of beams
+    at device angles ``beam_deg`` (the scanner's α offset added here), each at its own platform
+    angle ``beta_deg`` (flat arrays of one length)."""
+    alpha = np.asarray(beam_deg, np.float64) + scanner_true.alpha_offset_deg
+    mount_r = rotation_matrix_deg(scanner_true.mount.rotation_deg)
+    d = scan_plane_direction(alpha) @ mount_r.T  # (N, 3) in the platform frame
+    t = np.asarray(scanner_true.mount.translation_m, np.float64)
+    beta = np.radians(np.asarray(beta_deg, np.float64))
+    c, s = np.cos(beta), np.sin(beta)
+    directions = np.stack([d[:, 0] * c - d[:, 2] * s, d[:, 1], d[:, 0] * s + d[:, 2] * c],
+                          axis=1)
+    origins = np.stack([t[0] * c - t[2] * s, np.full(c.shape, t[1]), t[0] * s + t[2] * c],
+                       axis=1)
+    hits = scene.cast(origins, directions)
+    ranges = np.asarray(hits.t_hit_m, np.float64)
+    window = (ranges >= scanner_true.min_range_m) & (ranges <= scanner_true.max_range_m)
+    ranges = np.where(np.isfinite(ranges) & window, ranges, np.nan)
+    cos_inc = np.abs(np.einsum("ij,ij->i", hits.normal.astype(np.float64), directions))
+    return ranges, cos_inc

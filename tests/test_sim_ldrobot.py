@@ -1,0 +1,101 @@
+"""The simulated LDRobot head: packets the decoder reads back to the truth, within the noise."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scanpipe.errors import SimulationError
+from scanpipe.protocol import ldrobot as ld
+from scanpipe.rig import default_rig
+from scanpipe.sim.ldrobot_device import (
+    LDROBOT_MODELS,
+    LdrobotHead,
+    cast_beams,
+    ldrobot_model,
+)
+from scanpipe.sim.motion import PlatformState
+from scanpipe.sim.room import resolve_scene
+from scanpipe.sim.scanner import MeasurementModel
+
+
+def head(model: str = "ld06", noise: float = 0.01, dropout: float = 0.002,
+         seed: int = 1) -> LdrobotHead:
+    rig = default_rig()
+    m = ldrobot_model(model)
+    scanner = rig.scanner.model_copy(update={"min_range_m": m.min_range_m,
+                                             "max_range_m": m.max_range_m})
+    return LdrobotHead(m, resolve_scene("room"), scanner,
+                              PlatformState(rig.motor.pulse_step_deg),
+                              MeasurementModel(noise_sigma_m=noise, dropout_rate=dropout,
+                                               seed=seed))
+
+
+def test_packets_do_not_depend_on_batching() -> None:
+    h = head()
+    whole = h.packets(0, 40).data
+    parts = h.packets(0, 13).data + h.packets(13, 1).data + h.packets(14, 26).data
+    assert whole == parts
+    assert head(seed=2).packets(0, 40).data != whole
+
+
+def test_decoded_revolutions_match_the_scene_within_the_noise() -> None:
+    h = head()
+    sent = h.packets(0, 1200)  # 3.2 s of an LD06
+    profiles, counters = ld.decode_revolutions(sent.data)
+    assert counters.frames_decoded == 1200 and counters.resyncs == 0
+    sigma = ldrobot_model("ld06").noise_sigma_m
+    errors = []
+    for p in profiles[1:-1]:
+        grid = np.arange(len(p.ranges_m)) * p.step_deg
+        # The platform stands still: the truth at the grid angles is a cast at β = 0.
+        truth, _ = cast_beams(h.scene, h.scanner, grid, np.zeros(grid.size))
+        both = np.isfinite(truth) & np.isfinite(p.ranges_m)
+        errors.append(p.ranges_m[both] - truth[both])
+    err = np.concatenate(errors)
+    assert err.size > 5000
+    assert np.sqrt(np.mean(err ** 2)) <= 1.1 * sigma
+
+
+def test_the_head_wobbles_and_reports_it() -> None:
+    h = head()
+    sent = h.packets(0, 4000)
+    packets, _ = ld.locate_packets(sent.data)
+    speeds = packets.speed_dps.astype(float)
+    assert 3570 < speeds.min() < speeds.max() < 3630
+    per_turn = np.diff(np.flatnonzero(np.diff(np.floor(sent.beam_deg.ravel() / 360)) > 0))
+    assert len(set(per_turn.tolist())) > 1  # a turn holds a varying number of samples
+    # Reported angles are the truth within the encoder jitter and the 0.01° quantum.
+    start = packets.start_cdeg / 100.0
+    miss = (start - sent.beam_deg[:, 0] + 180) % 360 - 180
+    assert np.abs(miss).max() < 0.1
+
+
+def test_device_clock_wraps_at_30000_ms() -> None:
+    h = head()
+    n = int(20.0 / h.packet_s)  # 20 s: the clock (starting at 12 345 ms) wraps once
+    packets, _ = ld.locate_packets(h.packets(0, n).data)
+    stamps = packets.timestamp_ms.astype(int)
+    assert stamps.max() < 30_000
+    assert np.count_nonzero(np.diff(stamps) < 0) == 1
+
+
+def test_dropouts_are_zero_distance_with_low_intensity() -> None:
+    h = head(dropout=0.2)
+    packets, _ = ld.locate_packets(h.packets(0, 500).data)
+    zero = packets.distance_mm == 0
+    assert 0.15 < zero.mean() < 0.5
+    assert packets.intensity[zero].max() < 16 <= packets.intensity[~zero].min()
+
+
+def test_stl27l_streams_21600_samples_per_second() -> None:
+    h = head("stl27l")
+    assert h.packet_s == pytest.approx(12 / 21_600)
+    profiles, _ = ld.decode_revolutions(h.packets(0, 2000).data)
+    assert 2140 <= len(profiles[1].ranges_m) <= 2180
+    assert LDROBOT_MODELS["stl27l"].baud == 921_600
+
+
+def test_unknown_model() -> None:
+    with pytest.raises(SimulationError, match="allowed: ld06, ld19, stl27l"):
+        ldrobot_model("ld07")
