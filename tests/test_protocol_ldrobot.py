@@ -346,3 +346,14 @@ def test_detection_needs_chained_packets() -> None:
     rng = np.random.default_rng(0)
     noise = rng.integers(0, 256, 400, np.uint8).tobytes()
     assert ld.detect_score(noise + lone + noise + lone + noise) == 0
+
+
+def test_device_times_unwrap_at_30000_against_host_time() -> None:
+    from scanpipe.clock import unwrap_device_ms
+
+    # 100 ms revolutions, then a 45 s pause (longer than the device's wrap), then more.
+    true_ms = np.concatenate([np.arange(0, 20_000, 100), 65_000 + np.arange(0, 20_000, 100)])
+    host_ns = 1_700_000_000_000_000_000 + true_ms * 1_000_000 + 3_000_000
+    raw = (true_ms + 29_000) % 30_000
+    unwrapped = unwrap_device_ms(raw, host_ns, wrap_ms=ld.TIME_WRAP_MS)
+    assert np.array_equal(unwrapped - unwrapped[0], true_ms)
