@@ -18,9 +18,10 @@ samples/s). Candidates are located and checked for a whole buffer at once (numpy
 packets). Where two good candidates overlap, the one that the stream continues from (a good
 packet exactly 47 bytes later, or the stream's end) wins, then the one that continues a good
 packet (exactly 47 bytes before), then the earlier: a false packet inside real data is not
-followed by a real one, a real one is. A good candidate with no good neighbour on either side
-(both neighbours damaged) is kept only if its angle follows from the last packet kept
-(speed × elapsed time). A bad candidate is a false start: decoding resumes one byte past it;
+followed by a real one, a real one is. Neighbours link only if the head's motion joins them
+(the later one starts where the earlier one's speed × the elapsed time puts it; speeds within
+10 %). A good candidate with no linked neighbour (both damaged) is kept only if it continues the
+last packet kept, or the next linked packet continues it, across at most 0.1 s. A bad candidate is a false start: decoding resumes one byte past it;
 one that lies exactly where a packet should be (47 bytes after a good one) is counted as a
 checksum failure, the rest as resyncs.
 
@@ -73,10 +74,9 @@ MAX_GRID_BEAMS = 16_384
 #: the absolute part below (a wall seen at 80° incidence changes by ~8 % per 0.8° step).
 CONTINUITY_SHARE = 0.10
 CONTINUITY_M = 0.03
-#: An angle predicted from the last kept packet must agree within this (degrees).
-PREDICT_TOLERANCE_DEG = 5.0
-#: Two packets side by side in the stream were measured at most this far apart (s).
-MAX_LINK_S = 0.05
+#: A packet with no good neighbour must continue the last packet kept within this time (s):
+#: beyond it, speed drift makes the predicted angle too loose a test.
+MAX_FOLLOW_S = 0.1
 
 _SPAN_STEPS = POINTS_PER_PACKET - 1
 
@@ -393,7 +393,8 @@ class PacketLocator:
                 continue
             first_ever = bool(marked[k]) and last_kept is None and self._last is None
             if (isolated[k] and not first_ever
-                    and not self._follows(packets, index[k], last_kept, index)):
+                    and not self._follows(packets, index[k], last_kept, index)
+                    and not _leads_to(packets, index, keep, k)):
                 continue
             keep[k] = True
             if later is not None:
@@ -403,21 +404,17 @@ class PacketLocator:
 
     def _follows(self, packets: Packets, at: int, last_kept: int | None,
                  index: NDArray[np.int64]) -> bool:
-        """Whether packet ``at`` continues the last packet kept (angle = speed × time)."""
-        previous = (packets.take(index[last_kept:last_kept + 1]) if last_kept is not None
-                    else self._last)
-        if previous is None:
+        """Whether packet ``at`` continues the last packet kept: the same head motion
+        (:func:`_continuous`) across at most :data:`MAX_FOLLOW_S` of lost packets."""
+        if last_kept is not None:
+            previous = _Motion.of(packets, index[last_kept:last_kept + 1])
+        elif self._last is not None:
+            previous = _Motion.of(self._last, np.zeros(1, np.int64))
+        else:
             return False
-        current = packets.take(np.array([at]))
-        dt_s = ((int(current.timestamp_ms[0]) - int(previous.timestamp_ms[0]))
-                % TIME_WRAP_MS) / 1000.0
-        if dt_s > 1.0:
-            return False
-        expected = (int(previous.start_cdeg[0]) / ANGLE_SCALE_PER_DEG
-                    + float(previous.speed_dps[0]) * dt_s)
-        actual = int(current.start_cdeg[0]) / ANGLE_SCALE_PER_DEG
-        miss = abs((actual - expected + 180.0) % 360.0 - 180.0)
-        return miss <= PREDICT_TOLERANCE_DEG + float(previous.speed_dps[0]) * 0.002
+        both = previous.then(_Motion.of(packets, np.array([at])))
+        return bool(_continuous(both, np.zeros(1, np.int64), np.ones(1, np.int64),
+                                MAX_FOLLOW_S)[0])
 
 
 @dataclass(frozen=True)
@@ -441,8 +438,8 @@ class _Motion:
                          for f in ("speed_dps", "start_cdeg", "timestamp_ms")))
 
 
-def _continuous(packets: _Motion, a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[
-        np.bool_]:
+def _continuous(packets: _Motion, a: NDArray[np.int64], b: NDArray[np.int64],
+                max_gap_s: float = 0.05) -> NDArray[np.bool_]:
     """Whether packet ``b`` starts where the head reached ``Δt`` after packet ``a`` started
     (``Δt`` from the timestamps: 1 ms resolution, hence the speed × 1.5 ms margin)."""
     speed = packets.speed_dps[a].astype(np.float64)
@@ -452,7 +449,7 @@ def _continuous(packets: _Motion, a: NDArray[np.int64], b: NDArray[np.int64]) ->
         np.int64)) % TIME_WRAP_MS) / 1000.0
     miss = np.abs((d_angle - speed * d_time_s + 180.0) % 360.0 - 180.0)
     same_speed = np.abs(packets.speed_dps[b].astype(np.float64) - speed) <= 0.1 * speed
-    return np.asarray((miss <= 2.0 + speed * 0.0015) & same_speed & (d_time_s <= MAX_LINK_S),
+    return np.asarray((miss <= 2.0 + speed * 0.0015) & same_speed & (d_time_s <= max_gap_s),
                       bool)
 
 
@@ -462,6 +459,18 @@ def _member(sorted_values: NDArray[np.int64], queries: NDArray[np.int64]) -> NDA
         return np.zeros(queries.shape, bool)
     at = np.minimum(np.searchsorted(sorted_values, queries), sorted_values.size - 1)
     return np.asarray(sorted_values[at] == queries, bool)
+
+
+def _leads_to(packets: Packets, index: NDArray[np.int64], keep: NDArray[np.bool_],
+              k: int) -> bool:
+    """Whether the next linked packet after candidate ``k`` continues it (the same head
+    motion within :data:`MAX_FOLLOW_S`): an isolated packet at the start of a run."""
+    later = np.flatnonzero(keep[k + 1:])
+    if later.size == 0:
+        return False
+    pair = _Motion.of(packets, index[np.array([k, k + 1 + int(later[0])])])
+    return bool(_continuous(pair, np.zeros(1, np.int64), np.ones(1, np.int64),
+                            MAX_FOLLOW_S)[0])
 
 
 def _rank(succ: NDArray[np.bool_], pred: NDArray[np.bool_], k: int) -> int:
