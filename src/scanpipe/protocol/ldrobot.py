@@ -21,7 +21,8 @@ packet (exactly 47 bytes before), then the earlier: a false packet inside real d
 followed by a real one, a real one is. Neighbours link only if the head's motion joins them
 (the later one starts where the earlier one's speed × the elapsed time puts it; speeds within
 10 %). A good candidate with no linked neighbour (both damaged) is kept only if it continues the
-last packet kept, or the next linked packet continues it, across at most 0.1 s. A bad candidate is a false start: decoding resumes one byte past it;
+last packet kept, or the next linked packet continues it, across at most 0.1 s. A bad
+candidate is a false start: decoding resumes one byte past it;
 one that lies exactly where a packet should be (47 bytes after a good one) is counted as a
 checksum failure, the rest as resyncs.
 
