@@ -12,6 +12,7 @@ import typer
 from scanpipe.cli.common import JSON, PARAMS_FILE, QUIET, SET, print_json, run_stage_command
 from scanpipe.errors import ProtocolError, UsageError
 from scanpipe.protocol.registry import (
+    DIALECTS,
     DecodedFrame,
     Dialect,
     StreamDecoder,
@@ -75,7 +76,7 @@ def _no_frame(source: str, dialect: Dialect, data: bytes, counters: dict[str, in
 def frames(
     capture: Path = typer.Argument(..., help="A raw byte capture of a scanner stream, or a "
                                              "network capture (.pcap, .pcapng) of its TCP link."),
-    dialect: str = typer.Option("auto", "--dialect", help="paper, ldoem or auto."),
+    dialect: str = typer.Option("auto", "--dialect", help="paper, ldoem, ldrobot or auto."),
     checksum: str = typer.Option("lenient", "--checksum",
                                  help="lenient shows damaged frames marked; strict drops them."),
     port: int | None = typer.Option(None, "--port",
@@ -92,8 +93,8 @@ def frames(
 
     if checksum not in ("strict", "lenient"):
         raise UsageError(f"--checksum {checksum!r}: allowed strict, lenient")
-    if dialect not in ("auto", "paper", "ldoem"):
-        raise UsageError(f"--dialect {dialect!r}: allowed paper, ldoem, auto")
+    if dialect != "auto" and dialect not in DIALECTS:
+        raise UsageError(f"--dialect {dialect!r}: allowed {', '.join(DIALECTS)}, auto")
     try:
         data = capture.read_bytes()
     except OSError as err:

@@ -2,17 +2,17 @@
 
 >>> from scanpipe.protocol.registry import DIALECTS, StreamDecoder
 >>> sorted(DIALECTS)
-['ldoem', 'paper']
+['ldoem', 'ldrobot', 'paper']
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 from scanpipe.errors import ProtocolError
-from scanpipe.protocol import ldoem, paper
+from scanpipe.protocol import ldoem, ldrobot, paper
 from scanpipe.protocol.framing import (
     NOT_PARSED,
     FrameCounters,
@@ -20,7 +20,7 @@ from scanpipe.protocol.framing import (
     LengthMismatch,
     RawFrame,
 )
-from scanpipe.protocol.profile import Profile
+from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, check_plausible
 
 ChecksumMode = Literal["strict", "lenient"]
 #: How many bytes auto-detection looks at: a first look, then a longer one if that finds nothing.
@@ -35,6 +35,11 @@ class Dialect:
     frame that carries no profile, or raises :class:`ProtocolError` (then a frame with a good
     checksum is a false start). ``check_frame(profiles)`` vets a decoded frame with a good
     checksum (``ImplausibleFrame``) and returns its counter (see ``framing.FrameCheck``).
+
+    A dialect with its own framing (not ``marker, u32 length, payload, XOR``) gives
+    ``own_decoder(lenient)``: a decoder with ``feed``/``finish`` that hand out
+    :class:`OwnFrame` s and ``counters``; its ``detect_score(data)`` counts its frames for
+    ``auto``. ``device_time_wrap_ms`` is where the device's millisecond clock wraps.
     """
 
     name: str
@@ -45,10 +50,16 @@ class Dialect:
     decode_payload: Callable[[bytes, bool], list[Profile] | None]
     check_frame: Callable[[list[Profile] | None], int | None]
     description: str
+    own_decoder: Callable[[bool], OwnDecoder] | None = None
+    detect_score: Callable[[bytes], int] | None = None
+    device_time_wrap_ms: int = DEVICE_TIME_WRAP_MS
 
     def frame_reader(self, max_payload_bytes: int | None = None,
                      confirm: bool = True) -> FrameReader:
         """A fresh frame reader for this dialect's framing (``confirm``: framing module)."""
+        if self.own_decoder is not None:
+            raise ProtocolError(f"dialect {self.name}: has its own framing, not "
+                                "marker/length/XOR frames")
         cap = self.max_payload_bytes if max_payload_bytes is None else max_payload_bytes
         return FrameReader(self.marker, self.min_payload_bytes, cap, self.decode_payload,
                            self.check_frame, confirm)
@@ -62,6 +73,52 @@ class Dialect:
     def detect(self, data: bytes) -> bool:
         """Whether ``data`` holds at least one frame of this dialect (checksum aside)."""
         return _detect_score(self, data) > 0
+
+
+@dataclass(frozen=True)
+class OwnFrame:
+    """A frame of a dialect with its own framing: its profiles and where it lay."""
+
+    profiles: list[Profile]
+    start_offset: int
+    end_offset: int
+    checksum_ok: bool
+
+
+class OwnDecoder(Protocol):
+    """What ``Dialect.own_decoder`` returns."""
+
+    @property
+    def counters(self) -> FrameCounters: ...
+    def feed(self, chunk: bytes | bytearray | memoryview) -> Sequence[OwnFrame]: ...
+    def finish(self) -> Sequence[OwnFrame]: ...
+
+
+class _LdrobotDecoder:
+    """:class:`scanpipe.protocol.ldrobot.RevolutionDecoder` as an :class:`OwnDecoder`: a frame
+    is a revolution."""
+
+    def __init__(self, lenient: bool) -> None:
+        self._decoder = ldrobot.RevolutionDecoder(lenient)
+
+    @property
+    def counters(self) -> FrameCounters:
+        return self._decoder.counters
+
+    @staticmethod
+    def _frames(revolutions: list[ldrobot.Revolution]) -> list[OwnFrame]:
+        return [OwnFrame([r.profile], r.start_offset, r.end_offset, r.profile.checksum_ok)
+                for r in revolutions]
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list[OwnFrame]:
+        return self._frames(self._decoder.feed(chunk))
+
+    def finish(self) -> list[OwnFrame]:
+        return self._frames(self._decoder.finish())
+
+
+def _no_payload(payload: bytes, checksum_ok: bool) -> list[Profile] | None:
+    raise ProtocolError("ldrobot packets have no length-framed payload; use its own decoder")
 
 
 DIALECTS: Mapping[str, Dialect] = {
@@ -84,6 +141,20 @@ DIALECTS: Mapping[str, Dialect] = {
         decode_payload=ldoem.decode_payload,
         check_frame=ldoem.check_frame,
         description="the SICK LD-OEM 1000 TCP protocol (02 'USP' framing, GET_PROFILE replies)",
+    ),
+    "ldrobot": Dialect(
+        name="ldrobot",
+        marker=ldrobot.MARKER,
+        min_payload_bytes=ldrobot.PACKET_BYTES,
+        max_payload_bytes=ldrobot.PACKET_BYTES,
+        encode_profile=ldrobot.encode_profile,
+        decode_payload=_no_payload,
+        check_frame=check_plausible,
+        description="LDRobot LD06/LD19/STL-27L serial packets (54 2C, 47 bytes, CRC-8); a "
+                    "profile is one head turn",
+        own_decoder=_LdrobotDecoder,
+        detect_score=ldrobot.detect_score,
+        device_time_wrap_ms=ldrobot.TIME_WRAP_MS,
     ),
 }
 
@@ -122,12 +193,18 @@ class StreamDecoder:
             raise ProtocolError(f"checksum mode {checksum!r}: allowed strict, lenient")
         self.dialect = get_dialect(dialect) if isinstance(dialect, str) else dialect
         self.checksum: ChecksumMode = checksum
-        self._reader = self.dialect.frame_reader(max_payload_bytes, confirm)
+        self._own = (None if self.dialect.own_decoder is None
+                     else self.dialect.own_decoder(checksum == "lenient"))
+        self._reader = (None if self._own is not None
+                        else self.dialect.frame_reader(max_payload_bytes, confirm))
 
     @property
     def counters(self) -> FrameCounters:
         """Frames decoded, checksum failures, resyncs, bytes skipped, malformed, other frames,
         length mismatches, implausible frames."""
+        if self._own is not None:
+            return self._own.counters
+        assert self._reader is not None
         return self._reader.counters
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[Profile]:
@@ -140,14 +217,20 @@ class StreamDecoder:
 
     def feed_frames(self, chunk: bytes | bytearray | memoryview) -> list[DecodedFrame]:
         """Like :meth:`feed`, grouped by frame, with each frame's end offset in the stream."""
+        if self._own is not None:
+            return _own_frames(self._own.feed(chunk))
+        assert self._reader is not None
         return self._decode(self._reader.feed(chunk))
 
     def finish_frames(self) -> list[DecodedFrame]:
         """Like :meth:`finish`, grouped by frame."""
+        if self._own is not None:
+            return _own_frames(self._own.finish())
+        assert self._reader is not None
         return self._decode(self._reader.finish())
 
     def _decode(self, raw_frames: list[RawFrame]) -> list[DecodedFrame]:
-        counters = self._reader.counters
+        counters = self.counters
         decoded = []
         for raw in raw_frames:
             if not raw.checksum_ok and self.checksum == "strict":
@@ -174,6 +257,12 @@ class StreamDecoder:
                                         raw.checksum_ok, raw.received_checksum,
                                         raw.computed_checksum))
         return decoded
+
+
+def _own_frames(frames: Sequence[OwnFrame]) -> list[DecodedFrame]:
+    """Frames of a dialect with its own framing as :class:`DecodedFrame` s (no XOR bytes)."""
+    return [DecodedFrame(f.profiles, f.start_offset, f.end_offset, f.checksum_ok, 0, 0)
+            for f in frames]
 
 
 def decode_bytes(data: bytes, dialect: Dialect | str, checksum: ChecksumMode = "strict",
@@ -236,6 +325,8 @@ def score_recovery(expected: Sequence[Profile], decoded: Sequence[Profile],
 
 
 def _detect_score(dialect: Dialect, data: bytes, limit: int = DETECT_BYTES[-1]) -> int:
+    if dialect.detect_score is not None:
+        return dialect.detect_score(data[:limit])
     decoder = StreamDecoder(dialect, "lenient")
     decoder.feed(data[:limit])
     decoder.finish()

@@ -72,7 +72,7 @@ _FEED_BYTES = 1 << 20
 class DecodeParams(Params):
     """How the scanner stream is decoded."""
 
-    dialect: Literal["auto", "paper", "ldoem"] = Field(
+    dialect: Literal["auto", "paper", "ldoem", "ldrobot"] = Field(
         "auto", description="wire format of the scanner stream; auto detects it from the bytes")
     checksum: Literal["strict", "lenient"] = Field(
         "strict", description="strict drops frames whose checksum fails; lenient keeps them "
@@ -110,9 +110,10 @@ def _optional_ints(values: Sequence[int | None]) -> tuple[I64, NDArray[np.bool_]
     return ints, present
 
 
-def profiles_table(frames: Sequence[DecodedFrame], stream: StreamData,
-                   dialect: str) -> tuple[pa.Table, dict[str, Any]]:
-    """The ``profiles`` artifact from decoded frames, and the device-clock part of the report."""
+def profiles_table(frames: Sequence[DecodedFrame], stream: StreamData, dialect: str,
+                   wrap_ms: int = DEVICE_TIME_WRAP_MS) -> tuple[pa.Table, dict[str, Any]]:
+    """The ``profiles`` artifact from decoded frames, and the device-clock part of the report
+    (the device's millisecond clock wraps at ``wrap_ms``)."""
     profiles: list[Profile] = [p for f in frames for p in f.profiles]
     n = len(profiles)
     ends = np.repeat(np.fromiter((f.end_offset for f in frames), np.int64, len(frames)),
@@ -121,8 +122,9 @@ def profiles_table(frames: Sequence[DecodedFrame], stream: StreamData,
     start_ms, has_start = _optional_ints([p.device_time_ms for p in profiles])
     end_ms, has_end = _optional_ints([p.device_end_time_ms for p in profiles])
     device_start = np.zeros(n, np.int64)
-    device_start[has_start] = unwrap_device_ms(start_ms[has_start], recv[has_start]) * 1_000_000
-    duration_ms = (end_ms - start_ms) % DEVICE_TIME_WRAP_MS
+    device_start[has_start] = unwrap_device_ms(start_ms[has_start], recv[has_start],
+                                               wrap_ms) * 1_000_000
+    duration_ms = (end_ms - start_ms) % wrap_ms
     device_end = device_start + duration_ms * 1_000_000
     has_end &= has_start
     clock: dict[str, Any] = {"present": bool(has_start.any())}
@@ -261,7 +263,7 @@ def decode_recording(recording: Recording, params: DecodeParams,
                          f"in the {len(data)} bytes received from the scanner "
                          f"({decoder.counters.checksum_failures} checksum failures; "
                          f"{describe_bytes(data)}); try decode.dialect = auto")
-    profiles, clock = profiles_table(frames, stream, dialect.name)
+    profiles, clock = profiles_table(frames, stream, dialect.name, dialect.device_time_wrap_ms)
     if recording.profiles:
         # Profiles another tool decoded (an imported ROS bag); a byte stream beside them is
         # kept out rather than mixed in: one scan, one source.
