@@ -99,3 +99,31 @@ def test_stl27l_streams_21600_samples_per_second() -> None:
 def test_unknown_model() -> None:
     with pytest.raises(SimulationError, match="allowed: ld06, ld19, stl27l"):
         ldrobot_model("ld07")
+
+
+def test_emulator_streams_on_a_pty_without_being_asked() -> None:
+    import time
+
+    import serial
+
+    from scanpipe.sim.clock import SimClock
+    from scanpipe.sim.ldrobot_device import LdrobotEmulator
+
+    emulator = LdrobotEmulator(head(), SimClock(speedup=5.0))
+    emulator.start()
+    try:
+        port = serial.Serial(emulator.port_path, 230_400, timeout=0.05)
+        data = bytearray()
+        deadline = time.monotonic() + 0.6
+        while time.monotonic() < deadline:
+            data += port.read(1 << 16)
+        port.close()
+    finally:
+        emulator.stop()
+    assert emulator.port_path and emulator._master == -1
+    profiles, counters = ld.decode_revolutions(bytes(data))
+    # 0.6 s at 5× is 3 s of device time: ~30 turns of 450 beams (the first one partial).
+    assert 20 <= len(profiles) <= 40 and counters.frames_decoded > 800
+    assert counters.checksum_failures == 0
+    assert [p.frame for p in profiles] == list(range(profiles[0].frame,
+                                                     profiles[0].frame + len(profiles)))

@@ -22,6 +22,11 @@ or not. What it models (deterministic for a seed, any packet computable on its o
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
+import threading
+import tty
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,6 +36,7 @@ from scanpipe.errors import SimulationError
 from scanpipe.geometry import rotation_matrix_deg, scan_plane_direction
 from scanpipe.protocol import ldrobot
 from scanpipe.rig import ScannerConfig
+from scanpipe.sim.clock import SimClock
 from scanpipe.sim.motion import PlatformState
 from scanpipe.sim.scanner import MeasurementModel
 from scanpipe.sim.scene import Scene
@@ -44,6 +50,8 @@ WOBBLE = 0.005
 WOBBLE_HZ = 0.37
 #: Encoder jitter on the reported start and end angles (degrees, 1 σ).
 ENCODER_JITTER_DEG = 0.02
+#: How often the emulator thread looks at the clock at most (real seconds).
+POLL_S = 0.02
 
 
 @dataclass(frozen=True)
@@ -222,3 +230,80 @@ def cast_beams(scene: Scene, scanner_true: ScannerConfig, beam_deg: F64,
     ranges = np.where(np.isfinite(ranges) & window, ranges, np.nan)
     cos_inc = np.abs(np.einsum("ij,ij->i", hits.normal.astype(np.float64), directions))
     return ranges, cos_inc
+
+
+class LdrobotEmulator:
+    """The device on a pseudo-terminal (open :attr:`port_path` like its USB serial port).
+
+    A background thread writes every packet whose last sample has been taken (on the shared
+    :class:`~scanpipe.sim.clock.SimClock`) from :meth:`start` to :meth:`stop`, whether anybody
+    reads or not: like the real device, which never waits for the host. Bytes the terminal
+    cannot take (nobody reading, its buffer full) are lost, as on a UART (``bytes_lost``).
+    """
+
+    def __init__(self, head: LdrobotHead, clock: SimClock) -> None:
+        self.head = head
+        self.clock = clock
+        self.port_path = ""
+        self.packets_sent = 0
+        self.bytes_lost = 0
+        self._master = -1
+        self._slave = -1
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        """Open the pseudo-terminal and start streaming."""
+        try:
+            self._master, self._slave = os.openpty()
+        except OSError as err:
+            raise SimulationError(f"LDRobot emulator: cannot open a pseudo-terminal: {err}"
+                                  ) from err
+        tty.setraw(self._slave)
+        os.set_blocking(self._master, False)
+        self.port_path = os.ttyname(self._slave)
+        self._thread = threading.Thread(target=self._loop, name="ldrobot-emulator",
+                                        daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop streaming and close the pseudo-terminal (idempotent)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        for fd in (self._master, self._slave):
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._master = self._slave = -1
+
+    def _loop(self) -> None:
+        head, per_s = self.head, 1.0 / self.head.packet_s
+        while not self._stop.is_set():
+            now = self.clock.now_s()
+            due = int(np.floor((now - head.packet_due(0)) * per_s)) + 1  # packets complete
+            if due > self.packets_sent:
+                # At most a second of packets per write: a stalled thread catches up in steps.
+                count = min(due - self.packets_sent, int(per_s) + 1)
+                self._write(head.packets(self.packets_sent, count).data)
+                self.packets_sent += count
+                continue
+            self._stop.wait(min(POLL_S, max(head.packet_s * 4 / self.clock.speedup, 0.001)))
+
+    def _write(self, data: bytes) -> None:
+        view = memoryview(data)
+        while view:
+            try:
+                written = os.write(self._master, view)
+            except BlockingIOError:
+                written = 0
+            except OSError as err:
+                if err.errno in (errno.EIO, errno.EAGAIN):
+                    written = 0
+                else:
+                    raise
+            if written == 0:
+                self.bytes_lost += len(view)  # nobody reads fast enough: lost, as on a UART
+                return
+            view = view[written:]
