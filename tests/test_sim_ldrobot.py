@@ -127,3 +127,23 @@ def test_emulator_streams_on_a_pty_without_being_asked() -> None:
     assert counters.checksum_failures == 0
     assert [p.frame for p in profiles] == list(range(profiles[0].frame,
                                                      profiles[0].frame + len(profiles)))
+
+
+def test_limit_checks_of_the_models() -> None:
+    from types import SimpleNamespace
+
+    from scanpipe.device_limits import LDROBOT_LIMITS, ldrobot_limit_checks
+
+    def failing(model: str, **kw: float) -> list[str]:
+        settings = dict(scan_hz=10.0, beam_step_deg=0.8, start_angle_deg=0.0,
+                        end_angle_deg=360.0, min_range_m=0.02, max_range_m=12.0)
+        settings.update(kw)
+        checks = ldrobot_limit_checks(SimpleNamespace(**settings), model)  # type: ignore[arg-type]
+        return [c.name for c in checks if not c.ok]
+
+    assert failing("ld06") == [] and failing("ld19") == []
+    assert failing("ld06", scan_hz=20.0, beam_step_deg=1.6) == ["scan_hz"]
+    assert failing("ld06", beam_step_deg=0.25) == ["beam_step_deg"]
+    assert failing("ld06", max_range_m=25.0) == ["max_range_m"]
+    assert failing("stl27l", beam_step_deg=360 / 2160, min_range_m=0.03, max_range_m=25.0) == []
+    assert LDROBOT_LIMITS["stl27l"].beam_step_deg(10.0) == pytest.approx(1 / 6)

@@ -72,3 +72,59 @@ def device_limit_problems(scanner: ScanSettings) -> list[str]:
     return problems
 
 
+
+
+@dataclass(frozen=True)
+class LdrobotLimits:
+    """One LDRobot model (LDRobot datasheets): serial link, sample rate, head speed range and
+    range window. The head speed is set by the host (PWM) within ``head_hz``; the sample rate
+    is fixed, so the beam step follows from the speed."""
+
+    model: str
+    baud: int
+    sample_hz: float
+    head_hz: tuple[float, float]
+    min_range_m: float
+    max_range_m: float
+
+    def beam_step_deg(self, scan_hz: float) -> float:
+        """The angle between two samples at ``scan_hz`` head turns per second."""
+        return 360.0 * scan_hz / self.sample_hz
+
+
+#: LD06 and LD19: 4 500 samples/s, 5–13 Hz, 0.02–12 m, 230 400 baud; STL-27L: 21 600
+#: samples/s, 6–12 Hz (uncertain: the datasheets quote 10 Hz typical), 0.03–25 m, 921 600 baud.
+LDROBOT_LIMITS: dict[str, LdrobotLimits] = {
+    "ld06": LdrobotLimits("ld06", 230_400, 4_500.0, (5.0, 13.0), 0.02, 12.0),
+    "ld19": LdrobotLimits("ld19", 230_400, 4_500.0, (5.0, 13.0), 0.02, 12.0),
+    "stl27l": LdrobotLimits("stl27l", 921_600, 21_600.0, (6.0, 12.0), 0.03, 25.0),
+}
+
+
+class RangeSettings(ScanSettings, Protocol):
+    """Scanner settings with the range window (``scanpipe.rig.ScannerConfig`` has them)."""
+
+    @property
+    def min_range_m(self) -> float: ...
+    @property
+    def max_range_m(self) -> float: ...
+
+
+def ldrobot_limit_checks(scanner: RangeSettings, model: str) -> tuple[LimitCheck, ...]:
+    """An LDRobot model's limits for the scanner settings of a rig (``model``: a key of
+    :data:`LDROBOT_LIMITS`). The beam step must be what the sample rate gives at ``scan_hz``
+    (within 2 %: the head's speed wobbles and the decoder's grid follows the measured step)."""
+    limits = LDROBOT_LIMITS[model]
+    hz, step = scanner.scan_hz, scanner.beam_step_deg
+    expected = limits.beam_step_deg(hz)
+    low, high = limits.head_hz
+    return (
+        LimitCheck("scan_hz", hz, f"{low:g}–{high:g} Hz", low <= hz <= high),
+        LimitCheck("beam_step_deg", step,
+                   f"360 · scan_hz / {limits.sample_hz:g} samples/s = {expected:.4g}° (±2 %)",
+                   abs(step - expected) <= 0.02 * expected),
+        LimitCheck("min_range_m", scanner.min_range_m, f"≥ {limits.min_range_m:g} m",
+                   scanner.min_range_m >= limits.min_range_m - 1e-9),
+        LimitCheck("max_range_m", scanner.max_range_m, f"≤ {limits.max_range_m:g} m",
+                   scanner.max_range_m <= limits.max_range_m + 1e-9),
+    )

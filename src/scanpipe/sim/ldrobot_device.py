@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from scanpipe.device_limits import LDROBOT_LIMITS, LdrobotLimits
 from scanpipe.errors import SimulationError
 from scanpipe.geometry import rotation_matrix_deg, scan_plane_direction
 from scanpipe.protocol import ldrobot
@@ -56,15 +57,38 @@ POLL_S = 0.02
 
 @dataclass(frozen=True)
 class LdrobotModel:
-    """What one model of the family is: link, rates, range window and noise (modelled)."""
+    """What one model of the family is: its limits (:data:`LDROBOT_LIMITS`), the head speed
+    it runs at, and its range noise (a modelling choice: the datasheets quote accuracy bands,
+    not a σ)."""
 
-    name: str
-    baud: int
-    sample_hz: float
+    limits: LdrobotLimits
     scan_hz: float
-    min_range_m: float
-    max_range_m: float
     noise_sigma_m: float
+
+    @property
+    def name(self) -> str:
+        """The model's key."""
+        return self.limits.model
+
+    @property
+    def sample_hz(self) -> float:
+        """Samples per second (fixed by the model)."""
+        return self.limits.sample_hz
+
+    @property
+    def baud(self) -> int:
+        """The serial link's baud rate."""
+        return self.limits.baud
+
+    @property
+    def min_range_m(self) -> float:
+        """The nearest range it measures."""
+        return self.limits.min_range_m
+
+    @property
+    def max_range_m(self) -> float:
+        """The farthest range it measures."""
+        return self.limits.max_range_m
 
     @property
     def samples_per_turn(self) -> float:
@@ -74,17 +98,12 @@ class LdrobotModel:
     @property
     def beam_step_deg(self) -> float:
         """The angle between two samples at the nominal speed."""
-        return 360.0 / self.samples_per_turn
+        return self.limits.beam_step_deg(self.scan_hz)
 
 
-#: The family (LDRobot datasheets: LD06/LD19 0.02–12 m, 4 500 samples/s, 230 400 baud;
-#: STL-27L 0.03–25 m, 21 600 samples/s, 921 600 baud; all 10 Hz nominal). The noise σ is a
-#: modelling choice (the datasheets quote accuracy bands, not a σ).
+#: The family at its nominal 10 Hz, with a range noise σ of 10 mm.
 LDROBOT_MODELS: dict[str, LdrobotModel] = {
-    "ld06": LdrobotModel("ld06", 230_400, 4_500.0, 10.0, 0.02, 12.0, 0.010),
-    "ld19": LdrobotModel("ld19", 230_400, 4_500.0, 10.0, 0.02, 12.0, 0.010),
-    "stl27l": LdrobotModel("stl27l", 921_600, 21_600.0, 10.0, 0.03, 25.0, 0.010),
-}
+    name: LdrobotModel(limits, 10.0, 0.010) for name, limits in LDROBOT_LIMITS.items()}
 
 
 def ldrobot_model(name: str) -> LdrobotModel:
