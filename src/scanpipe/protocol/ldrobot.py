@@ -48,7 +48,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.errors import ProtocolError
-from scanpipe.protocol.framing import FrameCounters
+from scanpipe.protocol.framing import FrameCounters, RawFrame
 from scanpipe.protocol.profile import Profile
 
 MARKER = b"\x54\x2c"
@@ -872,3 +872,32 @@ def detect_score(data: bytes | bytearray | memoryview) -> int:
     run[:-1] |= chained[1:]
     run[1:] |= chained[:-1]
     return int(np.count_nonzero(run))
+
+
+class RevolutionReader:
+    """Revolutions as frames for the stream decoder (:class:`scanpipe.protocol.registry`):
+    ``feed``/``finish`` return :class:`~scanpipe.protocol.framing.RawFrame` s whose ``parsed``
+    is the revolution's profile, and ``counters`` count packets. Damaged packets are never
+    used (their samples leave a hole in the revolution), so a revolution's checksum holds."""
+
+    def __init__(self, lenient: bool = False) -> None:
+        self._decoder = RevolutionDecoder(lenient)
+
+    @property
+    def counters(self) -> FrameCounters:
+        """The packet counters."""
+        return self._decoder.counters
+
+    @staticmethod
+    def _frames(revolutions: list[Revolution]) -> list[RawFrame]:
+        return [RawFrame(payload=b"", checksum_ok=r.profile.checksum_ok, received_checksum=0,
+                         computed_checksum=0, start_offset=r.start_offset,
+                         end_offset=r.end_offset, parsed=[r.profile]) for r in revolutions]
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list[RawFrame]:
+        """Add bytes; the revolutions they complete."""
+        return self._frames(self._decoder.feed(chunk))
+
+    def finish(self) -> list[RawFrame]:
+        """End of stream: the rest."""
+        return self._frames(self._decoder.finish())
