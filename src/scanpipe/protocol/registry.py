@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 from scanpipe.errors import ProtocolError
 from scanpipe.protocol import ldoem, paper
@@ -25,6 +25,25 @@ from scanpipe.protocol.profile import Profile
 ChecksumMode = Literal["strict", "lenient"]
 #: How many bytes auto-detection looks at: a first look, then a longer one if that finds nothing.
 DETECT_BYTES = (1 << 16, 1 << 20)
+
+
+class FrameSource(Protocol):
+    """What a dialect's frame reader offers (:class:`~scanpipe.protocol.framing.FrameReader`
+    for the shared ``marker, length, payload, XOR`` framing; a dialect with its own framing —
+    text lines, fixed packets, STX…ETX — supplies a reader with the same three members through
+    ``Dialect.reader_factory``): ``feed`` and ``finish`` return :class:`RawFrame` lists (with
+    ``parsed`` set to the frame's profiles, or ``NOT_PARSED``), ``counters`` counts as the
+    framing module does, resyncing one byte past a false start."""
+
+    counters: FrameCounters
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list[RawFrame]: ...
+    def finish(self) -> list[RawFrame]: ...
+
+
+#: ``reader_factory(dialect, max_payload_bytes, confirm)``: a fresh reader for a dialect with
+#: its own framing.
+ReaderFactory = Callable[["Dialect", int, bool], FrameSource]
 
 
 @dataclass(frozen=True)
@@ -45,11 +64,15 @@ class Dialect:
     decode_payload: Callable[[bytes, bool], list[Profile] | None]
     check_frame: Callable[[list[Profile] | None], int | None]
     description: str
+    #: None: the shared framing (:class:`FrameReader` on ``marker``); else the dialect's own.
+    reader_factory: ReaderFactory | None = None
 
     def frame_reader(self, max_payload_bytes: int | None = None,
-                     confirm: bool = True) -> FrameReader:
+                     confirm: bool = True) -> FrameSource:
         """A fresh frame reader for this dialect's framing (``confirm``: framing module)."""
         cap = self.max_payload_bytes if max_payload_bytes is None else max_payload_bytes
+        if self.reader_factory is not None:
+            return self.reader_factory(self, cap, confirm)
         return FrameReader(self.marker, self.min_payload_bytes, cap, self.decode_payload,
                            self.check_frame, confirm)
 
