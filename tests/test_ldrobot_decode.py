@@ -38,10 +38,10 @@ def ld06_stream(seconds: float, t0_ms: int = 0, seed: int = 0) -> bytes:
 
 def test_registered_with_its_own_framing() -> None:
     d = DIALECTS["ldrobot"]
-    assert d.own_decoder is not None and d.device_time_wrap_ms == 30_000
+    assert d.reader_factory is not None and d.detect_score is not None
     profiles, counters = decode_bytes(ld06_stream(1.0), "ldrobot")
-    assert len(profiles) == 10 and counters.frames_decoded == 375
-    assert all(len(p.ranges_m) == 450 for p in profiles)
+    assert len(profiles) == 10 and counters.frames_decoded == 10  # revolutions
+    assert all(len(p.ranges_m) == 450 and p.device_wrap_ticks == 30_000 for p in profiles)
 
 
 def test_auto_finds_ldrobot_and_nothing_else_takes_it() -> None:
@@ -71,9 +71,14 @@ def test_stream_decoder_any_split_and_lenient() -> None:
     assert [f.profiles[0].frame for f in split][:len(whole)] == [
         f.profiles[0].frame for f in whole]
     assert decoder.counters.checksum_failures == 1
+    # A damaged packet's samples are never used, in either mode: its turn has a hole.
     lenient = StreamDecoder("ldrobot", "lenient")
     frames = lenient.feed_frames(bytes(broken)) + lenient.finish_frames()
-    assert [f.checksum_ok for f in frames].count(False) == 1
+    assert all(f.checksum_ok for f in frames) and len(frames) == len(split)
+    intact = decode_bytes(data, "ldrobot")[0]
+    extra = [int(np.isnan(f.profiles[0].ranges_m).sum() - np.isnan(p.ranges_m).sum())
+             for f, p in zip(frames, intact, strict=True)]
+    assert sorted(extra)[-1] >= 11 and sorted(extra)[:-1] == [0] * (len(extra) - 1)
 
 
 def write_recording(path: Path, data: bytes, bytes_per_s: float) -> None:

@@ -32,7 +32,7 @@ from scanpipe.protocol.registry import (
 
 # The length-framed dialects (marker, u32 length, payload, XOR); those with their own framing
 # (ldrobot) have the same properties tested in their own files.
-DIALECT_NAMES = sorted(name for name, d in DIALECTS.items() if d.own_decoder is None)
+DIALECT_NAMES = sorted(name for name, d in DIALECTS.items() if d.reader_factory is None)
 
 
 def random_profile(rng: np.random.Generator, frame: int, samples: int) -> Profile:

@@ -349,11 +349,11 @@ def test_detection_needs_chained_packets() -> None:
 
 
 def test_device_times_unwrap_at_30000_against_host_time() -> None:
-    from scanpipe.clock import unwrap_device_ms
+    from scanpipe.clock import unwrap_device_ticks
 
     # 100 ms revolutions, then a 45 s pause (longer than the device's wrap), then more.
     true_ms = np.concatenate([np.arange(0, 20_000, 100), 65_000 + np.arange(0, 20_000, 100)])
     host_ns = 1_700_000_000_000_000_000 + true_ms * 1_000_000 + 3_000_000
     raw = (true_ms + 29_000) % 30_000
-    unwrapped = unwrap_device_ms(raw, host_ns, wrap_ms=ld.TIME_WRAP_MS)
+    unwrapped = unwrap_device_ticks(raw, host_ns, ld.TIME_WRAP_MS, 1_000_000)
     assert np.array_equal(unwrapped - unwrapped[0], true_ms)

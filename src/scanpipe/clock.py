@@ -121,31 +121,37 @@ def fit_clock(device_ns: I64, host_ns: I64, rate: float | None = None,
                       p99_latency_s=float(np.quantile(above, 0.99)))
 
 
-def unwrap_device_ms(device_ms: NDArray[np.integer], host_ns: I64,
-                     wrap_ms: int = DEVICE_TIME_WRAP_MS) -> I64:
-    """Unwrap millisecond device timestamps that wrap at ``wrap_ms`` (16-bit clocks: 65 536;
-    LDRobot's: 30 000), counting wraps from the host receive times.
+def unwrap_device_ticks(device_ticks: NDArray[np.integer], host_ns: I64,
+                        wrap_ticks: int = DEVICE_TIME_WRAP_MS, tick_ns: int = 1_000_000) -> I64:
+    """Unwrap a device clock that wraps at ``wrap_ticks`` counts of ``tick_ns`` each (the
+    LD-OEM's 16-bit ms, SICK's 32-bit µs), counting wraps from the host receive times.
 
-    Between consecutive stamps the device step is taken modulo ``wrap_ms`` and then corrected by
+    Between consecutive stamps the device step is taken modulo the wrap and then corrected by
     the whole number of wrap periods that best matches the host's elapsed time, scaled by the
     device's rate against the host. That rate comes from the consecutive pairs whose host gap
     is far below a wrap (there the step is unambiguous). The result starts at the first raw
     value.
     """
-    t = np.asarray(device_ms, dtype=np.int64)
+    t = np.asarray(device_ticks, dtype=np.int64)
+    wrap = int(wrap_ticks)
     if t.size == 0:
         return t
-    step = np.diff(t) % wrap_ms
-    host_step_ms = np.diff(np.asarray(host_ns, dtype=np.int64)).astype(np.float64) / 1e6
-    dense = (host_step_ms > 0) & (host_step_ms < wrap_ms / 8) & (
-        step < wrap_ms / 2)
+    step = np.diff(t) % wrap
+    host_step = np.diff(np.asarray(host_ns, dtype=np.int64)).astype(np.float64) / tick_ns
+    dense = (host_step > 0) & (host_step < wrap / 8) & (
+        step < wrap / 2)
     device_per_host = 1.0
-    if np.count_nonzero(dense) >= 4 and host_step_ms[dense].sum() > 0:
-        device_per_host = float(step[dense].sum() / host_step_ms[dense].sum())
+    if np.count_nonzero(dense) >= 4 and host_step[dense].sum() > 0:
+        device_per_host = float(step[dense].sum() / host_step[dense].sum())
         if not np.isfinite(device_per_host) or device_per_host <= 0:
             device_per_host = 1.0
-    expected = host_step_ms * device_per_host
-    wraps = np.rint((expected - step) / wrap_ms).astype(np.int64)
+    expected = host_step * device_per_host
+    wraps = np.rint((expected - step) / wrap).astype(np.int64)
     wraps = np.maximum(wraps, 0)  # device time never runs backwards
-    steps = np.concatenate([[0], np.cumsum(step + wraps * wrap_ms)])
+    steps = np.concatenate([[0], np.cumsum(step + wraps * wrap)])
     return np.asarray(t[0] + steps, dtype=np.int64)
+
+
+def unwrap_device_ms(device_ms: NDArray[np.integer], host_ns: I64) -> I64:
+    """Unwrap 16-bit millisecond device timestamps (:func:`unwrap_device_ticks`)."""
+    return unwrap_device_ticks(device_ms, host_ns, DEVICE_TIME_WRAP_MS, 1_000_000)

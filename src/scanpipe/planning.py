@@ -10,9 +10,10 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from scanpipe.device_limits import LimitCheck, ldoem_limit_checks
+from scanpipe.device_limits import LimitCheck
 from scanpipe.errors import PlanError
 from scanpipe.rig import Rig
+from scanpipe.scanner_models import limit_checks, model_label
 
 #: The motor step of a scan when none is asked for: the paper's lab scan (3 pulses of 0.036°).
 DEFAULT_MOTOR_STEP_DEG = 0.108
@@ -53,6 +54,8 @@ class ScanPlan:
     scan_time_s: float
     step_and_scan_time_s: float
     device_limits: tuple[LimitCheck, ...] = field(default_factory=tuple)
+    #: The scanner model whose limits these are ("LD-OEM" for the paper's rig).
+    device_model: str = "LD-OEM"
 
     def to_json(self) -> dict[str, Any]:
         """Plain data for ``--json``: the step arithmetic at top level, then the scan figures."""
@@ -98,6 +101,12 @@ def choose_steps(motor_step_deg: float, pulse_step_deg: float, pulse_limit: int)
     )
 
 
+#: Bytes per profile of the other dialects: (fixed, per sample without echo). CoLa-B: 9 of
+#: framing, ~90 of telegram header and one 16-bit channel header, 2 per sample (RSSI doubles
+#: it); CoLa-A: about 5 ASCII characters per sample and ~250 of header.
+WIRE_BYTES: dict[str, tuple[int, int]] = {"cola_b": (100, 2), "cola_a": (250, 5)}
+
+
 def frame_bytes(dialect: str, samples: int, with_echo: bool = False) -> int:
     """Bytes on the wire for one profile of ``samples`` points in a dialect's default format.
 
@@ -109,7 +118,11 @@ def frame_bytes(dialect: str, samples: int, with_echo: bool = False) -> int:
         return 9 + 6 + 6 + 14 + (4 if with_echo else 2) * samples + 4
     if dialect == "paper":
         return 9 + 21 + 2 * samples
-    raise PlanError(f"dialect {dialect!r}: unknown; allowed: ldoem, paper")
+    if dialect in WIRE_BYTES:
+        fixed, per_sample = WIRE_BYTES[dialect]
+        return fixed + (2 * per_sample if with_echo else per_sample) * samples
+    raise PlanError(f"dialect {dialect!r}: unknown; allowed: ldoem, paper, "
+                    f"{', '.join(WIRE_BYTES)}")
 
 
 def move_time_s(pulses: int, pulse_rate_hz: float, accel_hz_per_s: float) -> float:
@@ -133,7 +146,7 @@ def plan_scan(rig: Rig, motor_step_deg: float = DEFAULT_MOTOR_STEP_DEG) -> ScanP
     move_s = move_time_s(step_count, motor.pulse_rate_hz, motor.accel_hz_per_s)
     # After a move: settle, then wait out the profile under way and take one whole profile.
     per_position_s = move_s + motor.settle_s + 2.0 / scanner.scan_hz
-    limits = ldoem_limit_checks(scanner) if scanner.dialect == "ldoem" else ()
+    limits = limit_checks(scanner)
     return ScanPlan(
         steps=choice,
         motor_step_count=step_count,
@@ -147,4 +160,5 @@ def plan_scan(rig: Rig, motor_step_deg: float = DEFAULT_MOTOR_STEP_DEG) -> ScanP
         scan_time_s=profiles / scanner.scan_hz,
         step_and_scan_time_s=profiles * per_position_s,
         device_limits=limits,
+        device_model=model_label(scanner.model, scanner.dialect),
     )

@@ -13,9 +13,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from scanpipe.device_limits import device_limit_problems
 from scanpipe.errors import ParameterError, RigError
 from scanpipe.params import Params, load_toml, parse_toml, to_toml, validate
+from scanpipe.scanner_models import DIALECT_NAMES, SCANNER_MODELS, get_model, limit_problems
 
 #: How far from the motor axis a scanner or camera can sit on a turntable rig (and how far the
 #: simulator's scene may be moved): anything farther is a typo in metres (millimetres meant?).
@@ -58,9 +58,16 @@ class ScannerConfig(Params):
     ``beam_step_deg`` is the beam step: the angle between two samples of a profile.
     """
 
-    dialect: Literal["ldoem", "paper"] = "ldoem"
+    #: A row of :data:`scanpipe.scanner_models.SCANNER_MODELS` ("" = unnamed; an ``ldoem``
+    #: dialect without a model is the LD-OEM 1000).
+    model: str = ""
+    dialect: str = "ldoem"
+    #: How the scanner is reached: ``tcp`` (host, port) or ``serial`` (serial_url, baudrate).
+    transport: Literal["tcp", "serial"] = "tcp"
     host: str = Field("192.168.0.1", min_length=1)
     port: int = Field(49152, ge=1, le=65535)
+    serial_url: str = Field("/dev/ttyUSB0", min_length=1)
+    baudrate: int = Field(230400, ge=50, le=12_000_000)
     beam_step_deg: float = Field(0.25, gt=0, le=90)
     #: Negative starts describe scanners whose zero is the middle of their field of view
     #: (a Hokuyo: −135°…+135°); the LD-OEM's own angles run 0…360°.
@@ -82,8 +89,26 @@ class ScannerConfig(Params):
                 raise ValueError(f"{old} is the old name of {new}: give only {new}")
         return {SCANNER_KEY_RENAMES.get(k, k): v for k, v in data.items()}
 
+    @field_validator("dialect")
+    @classmethod
+    def _known_dialect(cls, value: str) -> str:
+        if value not in DIALECT_NAMES:
+            raise ValueError(f"unknown dialect {value!r}; allowed: {', '.join(DIALECT_NAMES)}")
+        return value
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        if value and value not in SCANNER_MODELS:
+            raise ValueError(f"unknown scanner model {value!r}; allowed: "
+                             f"{', '.join(SCANNER_MODELS)} (or leave it out)")
+        return value
+
     @model_validator(mode="after")
     def _ranges_ordered(self) -> ScannerConfig:
+        if self.model and get_model(self.model).dialect != self.dialect:
+            raise ValueError(f"model {self.model} speaks dialect "
+                             f"{get_model(self.model).dialect}, not {self.dialect}")
         if self.end_angle_deg <= self.start_angle_deg:
             raise ValueError(
                 f"end_angle_deg ({self.end_angle_deg}) must be greater than "
@@ -280,9 +305,24 @@ def default_cameras() -> tuple[CameraConfig, ...]:
     )
 
 
-def default_rig() -> Rig:
-    """The paper's rig (LD-OEM 1000 at 0.25°, PK566 with 20:1, 5000 pulses) with two cameras."""
-    return Rig(cameras=default_cameras())
+def default_rig(scanner_model: str | None = None) -> Rig:
+    """The paper's rig (LD-OEM 1000 at 0.25°, PK566 with 20:1, 5000 pulses) with two cameras;
+    with ``scanner_model``, that model's scanner (:mod:`scanpipe.scanner_models`) on it."""
+    if scanner_model is None:
+        return Rig(cameras=default_cameras())
+    return Rig(cameras=default_cameras(), scanner=scanner_for_model(scanner_model))
+
+
+def scanner_for_model(name: str, mount: Pose | None = None) -> ScannerConfig:
+    """The scanner section for a model in its default mode (:class:`RigError` if unknown)."""
+    try:
+        model = get_model(name)
+    except KeyError as err:
+        raise RigError([str(err.args[0])], "--scanner") from None
+    values = model.rig_values()
+    if mount is not None:
+        values["mount"] = mount
+    return ScannerConfig.model_validate(values)
 
 
 def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
@@ -302,8 +342,8 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
         scanner = rig.scanner if rig else validate(ScannerConfig, scanner_data, source)
     except ParameterError:
         scanner = None  # its problems are already in the list above
-    if scanner is not None and scanner.dialect == "ldoem":
-        problems.extend(device_limit_problems(scanner))
+    if scanner is not None:
+        problems.extend(limit_problems(scanner))
     if problems or rig is None:
         raise RigError(problems, source)
     return rig
@@ -347,7 +387,9 @@ def rig_to_dict(rig: Rig) -> dict[str, Any]:
 
 _COMMENTS = {
     "format_version": "scanpipe rig description; see docs/rig.md for every key",
-    "scanner": "The 2-D laser scanner. dialect: ldoem (SICK LD-OEM 1000 TCP) or paper",
+    "scanner": "The 2-D laser scanner. model: see docs/rig.md (ldoem1000, lms111, tim571, …); "
+               "dialect: its wire format; transport: tcp (host, port) or serial (serial_url, "
+               "baudrate)",
     "scanner.beam_step_deg": "beam step (between samples); LD-OEM: a multiple of 0.125",
     "scanner.scan_hz": "head rotation rate; LD-OEM: 5–20 Hz in whole Hz",
     "scanner.alpha_offset_deg": "calibration: zero offset added to every beam angle",

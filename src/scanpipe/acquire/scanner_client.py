@@ -11,6 +11,12 @@ count profiles and to read replies to its own requests. The recording stays the 
   streaming) are
   sent one by one, each waiting for its reply; a refused request is a :class:`DeviceError`.
   Stopping sends CANCEL_PROFILE and waits briefly for its reply.
+- any other dialect: its driver (:data:`scanpipe.acquire.scanner_drivers.DRIVERS`) runs the
+  device's own start-up and stop commands and counts profiles in the received bytes.
+
+The link is TCP (``scanner.transport = tcp``: host, port) or a serial line (``serial``:
+``serial_url`` opened with :func:`serial.serial_for_url` at ``baudrate`` — a device, a pty).
+Before connecting, the rig's settings are checked against the scanner model's limits.
 """
 
 from __future__ import annotations
@@ -24,14 +30,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
+from scanpipe.acquire.scanner_drivers import DRIVERS, ScannerDriver
 from scanpipe.acquire.sink import Link
-from scanpipe.device_limits import device_limit_problems
 from scanpipe.errors import DeviceError, ProtocolError
 from scanpipe.protocol import ldoem
 from scanpipe.protocol.framing import RawFrame
 from scanpipe.protocol.profile import angle_to_wire
 from scanpipe.protocol.registry import DIALECTS, StreamDecoder
 from scanpipe.rig import ScannerConfig
+from scanpipe.scanner_models import limit_problems
 
 RX, TX = 0, 1
 #: Socket read timeout: how often the reader thread looks at its stop flag.
@@ -53,6 +60,45 @@ class ScannerStats:
     tx_bytes: int = 0
     last_profile_ns: int = 0
     connects: int = 0
+
+
+class _SerialLink:
+    """A serial port with the socket calls the client uses; ``recv`` returns b"" only on a
+    closed port (a read time-out raises ``TimeoutError``, like a socket's)."""
+
+    def __init__(self, url: str, baudrate: int) -> None:
+        import serial
+
+        try:
+            self.port = serial.serial_for_url(url, baudrate=baudrate, timeout=POLL_S)
+        except (serial.SerialException, OSError, ValueError) as err:
+            raise DeviceError(f"scanner at {url}: cannot open the serial port ({err}); check "
+                              "scanner.serial_url") from err
+
+    def recv(self, size: int) -> bytes:
+        """Bytes read (at least one), or ``TimeoutError`` when none came within the poll."""
+        import serial
+
+        try:
+            data: bytes = self.port.read(max(1, min(size, self.port.in_waiting)))
+        except (serial.SerialException, OSError) as err:
+            raise OSError(str(err)) from err
+        if not data:
+            raise TimeoutError
+        return data
+
+    def sendall(self, data: bytes) -> None:
+        """Write everything."""
+        import serial
+
+        try:
+            self.port.write(data)
+        except (serial.SerialException, OSError) as err:
+            raise OSError(str(err)) from err
+
+    def close(self) -> None:
+        """Close the port."""
+        self.port.close()
 
 
 class ScannerClient:
@@ -83,7 +129,7 @@ class ScannerClient:
         self.stats = ScannerStats()
         self.ident = ""
         self.device_clock: tuple[int, int] | None = None  # (device ms, host ns)
-        self._sock: socket.socket | None = None
+        self._sock: socket.socket | _SerialLink | None = None
         self._reader: threading.Thread | None = None
         self._closing = threading.Event()
         self._send_lock = threading.Lock()
@@ -92,6 +138,8 @@ class ScannerClient:
         self._replies: queue.Queue[ldoem.Message] = queue.Queue()
         self._want_profile = threading.Event()
         self._connected = False
+        self.driver: ScannerDriver | None = None
+        self._driver_replies: queue.Queue[object] = queue.Queue()
 
     @property
     def dialect(self) -> str:
@@ -106,34 +154,62 @@ class ScannerClient:
     # -- connection -----------------------------------------------------------------------
 
     def connect(self) -> None:
-        """Open the link, run the start-up (ldoem) and start streaming profiles."""
-        if self.dialect == "ldoem":
-            problems = device_limit_problems(self.scanner)
-            if problems:
-                raise DeviceError("; ".join(problems) + " — fix the rig file before recording")
-        host, port = self.scanner.host, self.scanner.port
-        try:
-            sock = socket.create_connection((host, port), timeout=self.connect_timeout_s)
-        except OSError as err:
-            raise DeviceError(f"scanner at {host}:{port}: cannot connect "
-                              f"({err.strerror or err}); check scanner.host and scanner.port"
-                              ) from err
-        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        sock.settimeout(POLL_S)
-        self._sock = sock
+        """Open the link, run the start-up (ldoem, or the dialect's driver) and start
+        streaming profiles."""
+        problems = limit_problems(self.scanner)
+        if problems:
+            raise DeviceError("; ".join(problems) + " — fix the rig file before recording")
+        self.driver = DRIVERS[self.dialect](self.scanner) if self.dialect in DRIVERS else None
+        link: socket.socket | _SerialLink
+        if self.scanner.transport == "serial":
+            link = _SerialLink(self.scanner.serial_url, self.scanner.baudrate)
+        else:
+            host, port = self.scanner.host, self.scanner.port
+            try:
+                link = socket.create_connection((host, port), timeout=self.connect_timeout_s)
+            except OSError as err:
+                raise DeviceError(f"scanner at {host}:{port}: cannot connect "
+                                  f"({err.strerror or err}); check scanner.host and "
+                                  "scanner.port") from err
+            link.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            link.settimeout(POLL_S)
+        self._sock = link
         self._closing.clear()
         self._replies = queue.Queue()
+        self._driver_replies = queue.Queue()
         self._connected = True
         self.stats.connects += 1
-        self._reader = threading.Thread(target=self._read_loop, args=(sock,),
+        self._reader = threading.Thread(target=self._read_loop, args=(link,),
                                          name="scanner-reader", daemon=True)
         self._reader.start()
-        if self.dialect == "ldoem":
-            try:
+        try:
+            if self.driver is not None:
+                self.driver.start(self)
+            elif self.dialect == "ldoem":
                 self._ldoem_start()
-            except DeviceError:
-                self.close(cancel=False)
-                raise
+        except DeviceError:
+            self.close(cancel=False)
+            raise
+
+    def request(self, data: bytes, what: str, accept: Callable[[object], bool],
+                timeout_s: float | None = None) -> object:
+        """For drivers: send ``data`` and wait for the first reply (as the driver's ``feed``
+        returned it) that ``accept`` takes; :class:`DeviceError` naming ``what`` on time-out
+        or a dropped link."""
+        self.send(data)
+        limit = self.reply_timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + limit
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or not self._connected:
+                cause = "the link dropped" if not self._connected else "no reply"
+                raise DeviceError(f"scanner: {cause} to {what} within {limit:g} s")
+            try:
+                reply = self._driver_replies.get(timeout=min(remaining, POLL_S))
+            except queue.Empty:
+                continue
+            if accept(reply):
+                return reply
 
     def _ldoem_start(self) -> None:
         s = self.scanner
@@ -163,7 +239,10 @@ class ScannerClient:
         """Stop streaming (CANCEL_PROFILE for ldoem) and close the link."""
         if self._sock is None:
             return
-        if cancel and self._connected and self.dialect == "ldoem":
+        if cancel and self._connected and self.driver is not None:
+            with contextlib.suppress(DeviceError):
+                self.driver.stop(self)
+        elif cancel and self._connected and self.dialect == "ldoem":
             # Closing anyway if the reply does not come; the raw stream shows what happened.
             with contextlib.suppress(DeviceError):
                 self._request(ldoem.cancel_profile_request(), ldoem.SERVICE_MEASURE,
@@ -220,11 +299,13 @@ class ScannerClient:
 
     # -- reading -------------------------------------------------------------------------
 
-    def _read_loop(self, sock: socket.socket) -> None:
+    def _read_loop(self, sock: socket.socket | _SerialLink) -> None:
         # Live: count a profile when it arrives, not when the next frame confirms it.
+        driver = self.driver
         paper_decoder = (StreamDecoder(DIALECTS["paper"], confirm=False)
-                         if self.dialect == "paper" else None)
-        reader = ldoem.FrameReader(accept_unknown=True) if self.dialect == "ldoem" else None
+                         if self.dialect == "paper" and driver is None else None)
+        reader = (ldoem.FrameReader(accept_unknown=True)
+                  if self.dialect == "ldoem" and driver is None else None)
         reason = ""
         while not self._closing.is_set():
             try:
@@ -240,7 +321,11 @@ class ScannerClient:
                 break
             self.sink.write_stream("scanner", data, RX, now)
             self.stats.rx_bytes += len(data)
-            if paper_decoder is not None:
+            if driver is not None:
+                complete, replies = driver.feed(data)
+                for reply in replies:
+                    self._driver_replies.put(reply)
+            elif paper_decoder is not None:
                 complete = len(paper_decoder.feed_frames(data))
             else:
                 assert reader is not None

@@ -42,7 +42,7 @@ def format_plan(plan: ScanPlan) -> str:
         f"~{plan.step_and_scan_time_s:.0f} s step-and-scan",
     ]
     if plan.device_limits:
-        lines.append("LD-OEM device limits:")
+        lines.append(f"{plan.device_model} device limits:")
         for c in plan.device_limits:
             lines.append(f"  {'ok  ' if c.ok else 'FAIL'} {c.name} = {c.value:g} ({c.limit})")
     return "\n".join(lines)

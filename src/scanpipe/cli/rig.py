@@ -10,6 +10,7 @@ from scanpipe.artifacts import atomic_write_bytes
 from scanpipe.errors import UsageError
 from scanpipe.outpaths import check_output_file
 from scanpipe.rig import default_rig, load_rig, rig_to_toml
+from scanpipe.scanner_models import SCANNER_MODELS
 
 rig_app = typer.Typer(help="Write and check rig descriptions (TOML).", no_args_is_help=True)
 
@@ -18,17 +19,23 @@ rig_app = typer.Typer(help="Write and check rig descriptions (TOML).", no_args_i
 def init(
     path: Path = typer.Argument(Path("rig.toml"), help="Where to write the rig file."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing file."),
+    scanner: str | None = typer.Option(
+        None, "--scanner", help="A scanner model for the rig: " + ", ".join(SCANNER_MODELS)
+        + " (default: the paper's LD-OEM 1000)."),
 ) -> None:
-    """Write the default rig (the paper's) as a commented TOML file.
+    """Write the default rig (the paper's) as a commented TOML file; ``--scanner`` puts
+    another scanner model on it (its dialect, transport, field of view, rate and ranges).
 
     Never overwrites a file without ``--force``, never replaces a folder, and does not create
     missing folders (a typo in the folder should not scatter rig files around).
     """
     if not path.parent.is_dir():
         raise UsageError(f"{path}: folder {path.parent} does not exist; create it first")
+    if scanner is not None and scanner not in SCANNER_MODELS:
+        raise UsageError(f"--scanner {scanner!r}: unknown; allowed: {', '.join(SCANNER_MODELS)}")
     check_output_file(path, "", (".toml",), force)
     try:
-        atomic_write_bytes(path, rig_to_toml(default_rig()).encode())
+        atomic_write_bytes(path, rig_to_toml(default_rig(scanner)).encode())
     except OSError as err:
         raise UsageError(f"{path}: cannot be written ({err.strerror or err})") from None
     typer.echo(f"wrote {path}")
@@ -40,7 +47,8 @@ def check(path: Path = typer.Argument(..., help="Rig TOML file to validate.")) -
     rig = load_rig(path)
     cams = ", ".join(c.id for c in rig.cameras) or "no cameras"
     typer.echo(
-        f"{path}: ok — {rig.scanner.dialect} scanner at {rig.scanner.beam_step_deg:g}° and "
+        f"{path}: ok — {rig.scanner.model or rig.scanner.dialect} scanner at "
+        f"{rig.scanner.beam_step_deg:g}° and "
         f"{rig.scanner.scan_hz:g} Hz, motor step {rig.motor.pulse_step_deg:g}°, "
         f"pulse limit {rig.motor.pulse_limit}, {cams}"
     )

@@ -28,6 +28,7 @@ from scanpipe.cli.common import (
 )
 from scanpipe.errors import RecordingError, UsageError
 from scanpipe.rig import Pose
+from scanpipe.scanner_models import SCANNER_MODELS
 from scanpipe.sim.options import SimOptions
 
 #: The :class:`~scanpipe.sim.options.SimOptions` fields that are options of ``simulate``: their
@@ -38,14 +39,28 @@ SIM_OPTION_FIELDS = ("scene", "scene_up", "mode", "motor_step_deg", "beam_step_d
 NOISE_DEFAULT_MM = SimOptions.model_fields["noise_sigma_m"].default * 1000.0
 
 
-def sim_options(rig_path: Path | None, noise_mm: float, values: dict[str, Any]) -> SimOptions:
+def sim_options(rig_path: Path | None, noise_mm: float | None, values: dict[str, Any],
+                scanner: str | None = None) -> SimOptions:
     """Validated :class:`~scanpipe.sim.options.SimOptions` from command-line values (``values``
-    by field name)."""
+    by field name). ``scanner`` puts that model's scanner on the rig (its mount kept); the
+    noise defaults to the σ of the rig's scanner model (10 mm for an unnamed scanner)."""
     from scanpipe.params import validate
-    from scanpipe.rig import load_rig
+    from scanpipe.rig import load_rig, scanner_for_model
+    from scanpipe.scanner_models import model_of
 
-    return validate(SimOptions, {**values, "rig": load_rig(rig_path),
-                                 "noise_sigma_m": noise_mm / 1000.0}, "simulate options")
+    rig = load_rig(rig_path)
+    if scanner is not None:
+        if scanner not in SCANNER_MODELS:
+            raise UsageError(f"--scanner {scanner!r}: unknown; allowed: "
+                             f"{', '.join(SCANNER_MODELS)}")
+        rig = rig.model_copy(update={"scanner": scanner_for_model(scanner, rig.scanner.mount)})
+    if noise_mm is None:
+        model = model_of(rig.scanner.model, rig.scanner.dialect)
+        noise_m = model.noise_sigma_m if model is not None else NOISE_DEFAULT_MM / 1000.0
+    else:
+        noise_m = noise_mm / 1000.0
+    return validate(SimOptions, {**values, "rig": rig, "noise_sigma_m": noise_m},
+                    "simulate options")
 
 
 def parse_scene_pose(text: str | None) -> Pose | None:
@@ -130,8 +145,12 @@ def simulate(
     out: Path = typer.Option(..., "--out", help="The recording to write (.mcap)."),
     truth: Path = typer.Option(..., "--truth", help="The ground-truth folder to write."),
     rig_path: Path | None = RIG,
-    noise_mm: float = typer.Option(NOISE_DEFAULT_MM, "--noise-mm",
-                                   help="Range noise σ in millimetres."),
+    noise_mm: float | None = typer.Option(
+        None, "--noise-mm", help="Range noise σ in millimetres (default: the scanner model's, "
+                                 f"{NOISE_DEFAULT_MM:g} for an unnamed scanner)."),
+    scanner: str | None = typer.Option(
+        None, "--scanner", help="Simulate this scanner model on the rig: "
+                                + ", ".join(SCANNER_MODELS) + "."),
     speedup: float = typer.Option(10.0, "--speedup",
                                   help="Without --direct: the emulators' clock speed-up."),
     force: bool = typer.Option(False, "--force",
@@ -152,7 +171,7 @@ def simulate(
                                          scanner_step, "--beam-step", "--scanner-step")
     values["scene_pose"] = parse_scene_pose(scene_pose)
     check_outputs(out, truth, values["scene"], rig_path, force)
-    options = sim_options(rig_path, noise_mm, values)
+    options = sim_options(rig_path, noise_mm, values, scanner)
     check_speedup(speedup)
     if not direct:
         code = simulate_live(out, truth, options, speedup, quiet, as_json)

@@ -36,7 +36,8 @@ lost packet NaN. The echo is the nearer sample's intensity. A revolution's devic
 first and last grid beam) are interpolated from per-sample times: the packet timestamp is taken
 as its first sample's time and the samples follow at the packet's angular step ÷ speed. They
 are handed out modulo 30 000 ms (the device's wrap), and the decode stage unwraps them against
-the host receive times (:func:`scanpipe.clock.unwrap_device_ms`).
+the host receive times (``Profile.device_wrap_ticks`` = 30 000;
+:func:`scanpipe.clock.unwrap_device_ticks`).
 """
 
 from __future__ import annotations
@@ -755,7 +756,7 @@ def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
             ranges_m=ranges[row], echo=echo[row],
             device_time_ms=int(np.rint(times[0, row])) % TIME_WRAP_MS,
             device_end_time_ms=int(np.rint(times[1, row])) % TIME_WRAP_MS,
-            checksum_ok=bool(bad[rev - revs[0]] == 0))
+            checksum_ok=bool(bad[rev - revs[0]] == 0), device_wrap_ticks=TIME_WRAP_MS)
         out.append(Revolution(profile, int(end_offsets[row]), int(start_offsets[row])))
     return out
 
@@ -877,19 +878,25 @@ def detect_score(data: bytes | bytearray | memoryview) -> int:
 class RevolutionReader:
     """Revolutions as frames for the stream decoder (:class:`scanpipe.protocol.registry`):
     ``feed``/``finish`` return :class:`~scanpipe.protocol.framing.RawFrame` s whose ``parsed``
-    is the revolution's profile, and ``counters`` count packets. Damaged packets are never
+    is the revolution's profile. ``counters`` are the packet locator's (checksum failures,
+    resyncs, bytes skipped), except ``frames_decoded``, which the caller counts (revolutions,
+    as a frame reader's callers do); :attr:`packets` counts packets. Damaged packets are never
     used (their samples leave a hole in the revolution), so a revolution's checksum holds."""
 
     def __init__(self, lenient: bool = False) -> None:
         self._decoder = RevolutionDecoder(lenient)
+        self.counters = FrameCounters()
 
     @property
-    def counters(self) -> FrameCounters:
-        """The packet counters."""
-        return self._decoder.counters
+    def packets(self) -> int:
+        """Packets kept so far."""
+        return self._decoder.counters.frames_decoded
 
-    @staticmethod
-    def _frames(revolutions: list[Revolution]) -> list[RawFrame]:
+    def _frames(self, revolutions: list[Revolution]) -> list[RawFrame]:
+        mine, theirs = self.counters, self._decoder.counters
+        for name in ("checksum_failures", "resyncs", "bytes_skipped", "malformed_frames",
+                     "other_frames", "length_mismatches", "implausible_frames"):
+            setattr(mine, name, getattr(theirs, name))
         return [RawFrame(payload=b"", checksum_ok=r.profile.checksum_ok, received_checksum=0,
                          computed_checksum=0, start_offset=r.start_offset,
                          end_offset=r.end_offset, parsed=[r.profile]) for r in revolutions]

@@ -31,6 +31,12 @@ class Profile:
     dialect or format mask carries none. ``device_time_ms`` / ``device_end_time_ms`` are the raw
     16-bit millisecond timestamps of the sector's start and end as on the wire (None when absent).
     ``checksum_ok`` is False only for frames returned by the lenient checksum mode.
+
+    Dialects whose device clock is not a 16-bit millisecond counter keep their raw clock
+    values in ``device_time_ms`` / ``device_end_time_ms`` too and say what one count is:
+    ``device_tick_ns`` (1 000 000 = 1 ms; 1000 for the µs counters of SICK CoLa) and
+    ``device_wrap_ticks`` (where the counter wraps: 2¹⁶ for the LD-OEM, 2³² for SICK, 30 000
+    for LDRobot). The decode stage unwraps against host time with them.
     """
 
     frame: int
@@ -42,6 +48,8 @@ class Profile:
     device_time_ms: int | None = None
     device_end_time_ms: int | None = None
     checksum_ok: bool = True
+    device_tick_ns: int = 1_000_000
+    device_wrap_ticks: int = DEVICE_TIME_WRAP_MS
 
     def same_as(self, other: Profile) -> bool:
         """Field-by-field equality, NaN equal to NaN (dataclass ``==`` cannot compare arrays)."""
@@ -98,18 +106,21 @@ def angle_to_wire(angle_deg: float) -> int:
 
 
 def check_plausible(profiles: Sequence[Profile] | None,
-                    max_points: int | None = None) -> int | None:
+                    max_points: int | None = None,
+                    min_start_deg: float = 0.0) -> int | None:
     """The frame counter of a frame's profiles (None for a frame without profiles), or
     :class:`~scanpipe.protocol.framing.ImplausibleFrame` when the angles cannot come from a
     360° scanner: a start angle or step outside 0…360°, a zero step with several samples, or
-    samples spanning more than a turn; or when a sector holds more than ``max_points``."""
+    samples spanning more than a turn; or when a sector holds more than ``max_points``.
+    ``min_start_deg`` lowers the start bound for devices whose zero is inside their field of
+    view (SICK: −45°…225°, Hokuyo: −135°…135°); samples must then still end by 360°."""
     if not profiles:
         return None
     for p in profiles:
         n = len(p.ranges_m)
         start, step = p.start_angle_deg, p.step_deg
         problem = ""
-        if start == start and not 0.0 <= start <= FULL_TURN_DEG:
+        if start == start and not min_start_deg <= start <= FULL_TURN_DEG:
             problem = f"start angle {start}°"
         elif step == step and not 0.0 <= step <= FULL_TURN_DEG:
             problem = f"step {step}°"

@@ -20,11 +20,30 @@ from scanpipe.protocol.framing import (
     LengthMismatch,
     RawFrame,
 )
-from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, check_plausible
+from scanpipe.protocol.profile import Profile, check_plausible
 
 ChecksumMode = Literal["strict", "lenient"]
 #: How many bytes auto-detection looks at: a first look, then a longer one if that finds nothing.
 DETECT_BYTES = (1 << 16, 1 << 20)
+
+
+class FrameSource(Protocol):
+    """What a dialect's frame reader offers (:class:`~scanpipe.protocol.framing.FrameReader`
+    for the shared ``marker, length, payload, XOR`` framing; a dialect with its own framing —
+    text lines, fixed packets, STX…ETX — supplies a reader with the same three members through
+    ``Dialect.reader_factory``): ``feed`` and ``finish`` return :class:`RawFrame` lists (with
+    ``parsed`` set to the frame's profiles, or ``NOT_PARSED``), ``counters`` counts as the
+    framing module does, resyncing one byte past a false start."""
+
+    counters: FrameCounters
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list[RawFrame]: ...
+    def finish(self) -> list[RawFrame]: ...
+
+
+#: ``reader_factory(dialect, max_payload_bytes, confirm)``: a fresh reader for a dialect with
+#: its own framing.
+ReaderFactory = Callable[["Dialect", int, bool], FrameSource]
 
 
 @dataclass(frozen=True)
@@ -35,11 +54,6 @@ class Dialect:
     frame that carries no profile, or raises :class:`ProtocolError` (then a frame with a good
     checksum is a false start). ``check_frame(profiles)`` vets a decoded frame with a good
     checksum (``ImplausibleFrame``) and returns its counter (see ``framing.FrameCheck``).
-
-    A dialect with its own framing (not ``marker, u32 length, payload, XOR``) gives
-    ``own_decoder(lenient)``: a decoder with ``feed``/``finish`` that hand out
-    :class:`OwnFrame` s and ``counters``; its ``detect_score(data)`` counts its frames for
-    ``auto``. ``device_time_wrap_ms`` is where the device's millisecond clock wraps.
     """
 
     name: str
@@ -50,17 +64,18 @@ class Dialect:
     decode_payload: Callable[[bytes, bool], list[Profile] | None]
     check_frame: Callable[[list[Profile] | None], int | None]
     description: str
-    own_decoder: Callable[[bool], OwnDecoder] | None = None
+    #: None: the shared framing (:class:`FrameReader` on ``marker``); else the dialect's own.
+    reader_factory: ReaderFactory | None = None
+    #: None: count frames with a lenient decoder; else the dialect's own count of its frames
+    #: in ``data`` for ``auto`` (a weak marker needs more than one good frame).
     detect_score: Callable[[bytes], int] | None = None
-    device_time_wrap_ms: int = DEVICE_TIME_WRAP_MS
 
     def frame_reader(self, max_payload_bytes: int | None = None,
-                     confirm: bool = True) -> FrameReader:
+                     confirm: bool = True) -> FrameSource:
         """A fresh frame reader for this dialect's framing (``confirm``: framing module)."""
-        if self.own_decoder is not None:
-            raise ProtocolError(f"dialect {self.name}: has its own framing, not "
-                                "marker/length/XOR frames")
         cap = self.max_payload_bytes if max_payload_bytes is None else max_payload_bytes
+        if self.reader_factory is not None:
+            return self.reader_factory(self, cap, confirm)
         return FrameReader(self.marker, self.min_payload_bytes, cap, self.decode_payload,
                            self.check_frame, confirm)
 
@@ -73,48 +88,6 @@ class Dialect:
     def detect(self, data: bytes) -> bool:
         """Whether ``data`` holds at least one frame of this dialect (checksum aside)."""
         return _detect_score(self, data) > 0
-
-
-@dataclass(frozen=True)
-class OwnFrame:
-    """A frame of a dialect with its own framing: its profiles and where it lay."""
-
-    profiles: list[Profile]
-    start_offset: int
-    end_offset: int
-    checksum_ok: bool
-
-
-class OwnDecoder(Protocol):
-    """What ``Dialect.own_decoder`` returns."""
-
-    @property
-    def counters(self) -> FrameCounters: ...
-    def feed(self, chunk: bytes | bytearray | memoryview) -> Sequence[OwnFrame]: ...
-    def finish(self) -> Sequence[OwnFrame]: ...
-
-
-class _LdrobotDecoder:
-    """:class:`scanpipe.protocol.ldrobot.RevolutionDecoder` as an :class:`OwnDecoder`: a frame
-    is a revolution."""
-
-    def __init__(self, lenient: bool) -> None:
-        self._decoder = ldrobot.RevolutionDecoder(lenient)
-
-    @property
-    def counters(self) -> FrameCounters:
-        return self._decoder.counters
-
-    @staticmethod
-    def _frames(revolutions: list[ldrobot.Revolution]) -> list[OwnFrame]:
-        return [OwnFrame([r.profile], r.start_offset, r.end_offset, r.profile.checksum_ok)
-                for r in revolutions]
-
-    def feed(self, chunk: bytes | bytearray | memoryview) -> list[OwnFrame]:
-        return self._frames(self._decoder.feed(chunk))
-
-    def finish(self) -> list[OwnFrame]:
-        return self._frames(self._decoder.finish())
 
 
 def _no_payload(payload: bytes, checksum_ok: bool) -> list[Profile] | None:
@@ -152,9 +125,8 @@ DIALECTS: Mapping[str, Dialect] = {
         check_frame=check_plausible,
         description="LDRobot LD06/LD19/STL-27L serial packets (54 2C, 47 bytes, CRC-8); a "
                     "profile is one head turn",
-        own_decoder=_LdrobotDecoder,
+        reader_factory=lambda dialect, max_payload_bytes, confirm: ldrobot.RevolutionReader(),
         detect_score=ldrobot.detect_score,
-        device_time_wrap_ms=ldrobot.TIME_WRAP_MS,
     ),
 }
 
@@ -193,18 +165,12 @@ class StreamDecoder:
             raise ProtocolError(f"checksum mode {checksum!r}: allowed strict, lenient")
         self.dialect = get_dialect(dialect) if isinstance(dialect, str) else dialect
         self.checksum: ChecksumMode = checksum
-        self._own = (None if self.dialect.own_decoder is None
-                     else self.dialect.own_decoder(checksum == "lenient"))
-        self._reader = (None if self._own is not None
-                        else self.dialect.frame_reader(max_payload_bytes, confirm))
+        self._reader = self.dialect.frame_reader(max_payload_bytes, confirm)
 
     @property
     def counters(self) -> FrameCounters:
         """Frames decoded, checksum failures, resyncs, bytes skipped, malformed, other frames,
         length mismatches, implausible frames."""
-        if self._own is not None:
-            return self._own.counters
-        assert self._reader is not None
         return self._reader.counters
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[Profile]:
@@ -217,16 +183,10 @@ class StreamDecoder:
 
     def feed_frames(self, chunk: bytes | bytearray | memoryview) -> list[DecodedFrame]:
         """Like :meth:`feed`, grouped by frame, with each frame's end offset in the stream."""
-        if self._own is not None:
-            return _own_frames(self._own.feed(chunk))
-        assert self._reader is not None
         return self._decode(self._reader.feed(chunk))
 
     def finish_frames(self) -> list[DecodedFrame]:
         """Like :meth:`finish`, grouped by frame."""
-        if self._own is not None:
-            return _own_frames(self._own.finish())
-        assert self._reader is not None
         return self._decode(self._reader.finish())
 
     def _decode(self, raw_frames: list[RawFrame]) -> list[DecodedFrame]:
@@ -257,12 +217,6 @@ class StreamDecoder:
                                         raw.checksum_ok, raw.received_checksum,
                                         raw.computed_checksum))
         return decoded
-
-
-def _own_frames(frames: Sequence[OwnFrame]) -> list[DecodedFrame]:
-    """Frames of a dialect with its own framing as :class:`DecodedFrame` s (no XOR bytes)."""
-    return [DecodedFrame(f.profiles, f.start_offset, f.end_offset, f.checksum_ok, 0, 0)
-            for f in frames]
 
 
 def decode_bytes(data: bytes, dialect: Dialect | str, checksum: ChecksumMode = "strict",

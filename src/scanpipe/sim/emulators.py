@@ -31,12 +31,13 @@ from scanpipe.rig import CameraConfig, MotorConfig, Rig, ScannerConfig
 from scanpipe.sim.camera import CameraModel, render_rgb
 from scanpipe.sim.clock import SimClock
 from scanpipe.sim.controller import MotorController
-from scanpipe.sim.ldoem_device import LdoemDevice
+from scanpipe.sim.devices import EmulatedDevice, emulated_device
 from scanpipe.sim.motion import PlatformState
 from scanpipe.sim.options import SimOptions
 from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import (
     MeasurementModel,
+    echo_model,
     measure,
     sample_time_offsets_s,
     sector_duration_s,
@@ -44,7 +45,6 @@ from scanpipe.sim.scanner import (
 )
 from scanpipe.sim.scene import Scene
 from scanpipe.sim.truth import truth_table, write_truth
-from scanpipe.sim.wire import device_clock_ms, profile_frame
 
 #: How often idle emulator threads look at their stop flag (real seconds).
 POLL_S = 0.02
@@ -61,13 +61,60 @@ class SentProfile:
     ranges_true_m: NDArray[np.float64]
 
 
-class ScannerEmulator:
-    """The scanner on a loopback TCP port, speaking ``ldoem`` or ``paper``.
+class _PtyEndpoint:
+    """The device side of a pseudo-terminal, with the socket calls the server loop uses.
 
-    ``ldoem``: answers requests (:class:`~scanpipe.sim.ldoem_device.LdoemDevice`) and streams
-    profiles after GET_PROFILE until CANCEL_PROFILE. ``paper``: streams from the moment a client
-    connects. The head turns from the start at ``scan_hz``: profile k starts at
-    ``phase + k / scan_hz`` simulation seconds and is sent when its sector is complete.
+    Writes nobody reads are dropped (counted in ``overruns``), as on a real UART; reads while
+    no client has the terminal open see nothing."""
+
+    def __init__(self, master: int) -> None:
+        self.master = master
+        self.overruns = 0
+
+    def fileno(self) -> int:
+        """The master descriptor (for select)."""
+        return self.master
+
+    def recv(self, size: int) -> bytes:
+        """Bytes from the client; ``b"\\x00"``-free empty reads mean "nothing yet", never EOF."""
+        try:
+            return os.read(self.master, size) or b""
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError as err:
+            if err.errno == errno.EIO:  # no client has the terminal open right now
+                return b""
+            raise
+
+    def sendall(self, data: bytes) -> None:
+        """Write to the client; what does not fit the terminal's buffer is lost."""
+        view = memoryview(data)
+        while view:
+            try:
+                written = os.write(self.master, view)
+            except BlockingIOError:
+                self.overruns += 1
+                return
+            except OSError as err:
+                if err.errno in (errno.EIO, errno.EAGAIN):
+                    self.overruns += 1
+                    return
+                raise
+            view = view[written:]
+
+    def close(self) -> None:
+        """Nothing: the emulator closes the terminal itself."""
+
+
+class ScannerEmulator:
+    """The scanner on its real transport: a loopback TCP port (``scanner.transport = tcp``) or
+    a pseudo-terminal (``serial``: open :attr:`port_path` with pyserial).
+
+    What the device says and when it streams comes from its dialect's
+    :class:`~scanpipe.sim.devices.EmulatedDevice` (the LD-OEM answers requests and streams after
+    GET_PROFILE; ``paper`` streams from the moment a client connects). The head turns from the
+    start at ``scan_hz``: profile k starts at ``phase + k / scan_hz`` simulation seconds and is
+    sent when its sector is complete.
     """
 
     def __init__(self, scene: Scene, scanner_true: ScannerConfig, platform: PlatformState,
@@ -81,12 +128,14 @@ class ScannerEmulator:
         self.phase_s = phase_s
         self._bind = (host, port)
         self._server: socket.socket | None = None
+        self._pty: tuple[int, int] | None = None
+        self.port_path = ""
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._clients: list[socket.socket] = []
         self._lock = threading.Lock()
         self.sent: list[SentProfile] = []
-        self.requests: list[str] = []
+        self.devices: list[EmulatedDevice] = []
 
     @property
     def dialect(self) -> str:
@@ -94,15 +143,34 @@ class ScannerEmulator:
         return self.scanner.dialect
 
     @property
+    def requests(self) -> list[str]:
+        """What the devices were asked, connection after connection (where they log it)."""
+        with self._lock:
+            devices = list(self.devices)
+        return [r for d in devices for r in getattr(d, "requests", [])]
+
+    @property
     def address(self) -> tuple[str, int]:
-        """``(host, port)`` the emulator listens on."""
+        """``(host, port)`` the emulator listens on (TCP transport)."""
         if self._server is None:
-            raise SimulationError("scanner emulator: not started")
+            raise SimulationError("scanner emulator: not started (or not on TCP)")
         host, port = self._server.getsockname()[:2]
         return str(host), int(port)
 
     def start(self) -> None:
-        """Listen and serve clients in background threads."""
+        """Listen (TCP) or open the pseudo-terminal (serial) and serve in background threads."""
+        if self.scanner.transport == "serial":
+            try:
+                master, slave = os.openpty()
+            except OSError as err:
+                raise SimulationError(f"scanner emulator: cannot open a pseudo-terminal: {err}"
+                                      ) from err
+            tty.setraw(slave)
+            os.set_blocking(master, False)
+            self._pty = (master, slave)
+            self.port_path = os.ttyname(slave)
+            self._spawn(self._serve, "scanner-pty", _PtyEndpoint(master))
+            return
         server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
@@ -131,6 +199,11 @@ class ScannerEmulator:
         for thread in self._threads:
             thread.join(timeout=5.0)
         self._threads.clear()
+        if self._pty is not None:
+            for fd in self._pty:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+            self._pty = None
 
     def drop_connections(self) -> None:
         """Close every client connection (a scanner that goes away); keeps listening."""
@@ -157,47 +230,35 @@ class ScannerEmulator:
             self._spawn(self._serve, "scanner-client", client)
 
     # -- one connection --------------------------------------------------------------------
-    def _serve(self, client: socket.socket) -> None:
-        from scanpipe.protocol import ldoem
-
-        device = LdoemDevice(self.scanner) if self.dialect == "ldoem" else None
-        reader = ldoem.FrameReader(accept_unknown=True) if device is not None else None
-        streaming = device is None
+    def _serve(self, client: socket.socket | _PtyEndpoint) -> None:
+        device = emulated_device(self.scanner)
+        with self._lock:
+            self.devices.append(device)
+        serial = isinstance(client, _PtyEndpoint)
         next_k = self._next_head_index(self.clock.now_s())
         try:
             while not self._stop.is_set():
-                config = self._device_config(device)
+                config = device.config()
                 period = 1.0 / config.scan_hz
                 due_s = self.phase_s + next_k * period + sector_duration_s(config)
                 wait_real = (due_s - self.clock.now_s()) / self.clock.speedup
-                timeout = min(max(wait_real, 0.0), POLL_S) if streaming else POLL_S
+                timeout = min(max(wait_real, 0.0), POLL_S) if device.streaming else POLL_S
                 readable, _, _ = select.select([client], [], [], timeout)
                 if readable:
                     data = client.recv(1 << 16)
-                    if not data:
+                    if not data and not serial:
                         return
-                    if device is not None and reader is not None:
-                        for frame in reader.feed(data):
-                            now = self.clock.now_s()
-                            replies = device.handle(frame.payload, device_clock_ms(now))
-                            self.requests.append(frame.payload[:2].hex())
-                            for reply in replies:
-                                client.sendall(reply)
-                            was_streaming = streaming
-                            streaming = device.stream is not None
-                            if streaming and not was_streaming:
-                                next_k = self._next_head_index(now, period)
+                    if data:
+                        was_streaming = device.streaming
+                        now = self.clock.now_s()
+                        for reply in device.receive(data, now):
+                            client.sendall(reply)
+                        if device.streaming and not was_streaming:
+                            next_k = self._next_head_index(now, 1.0 / device.config().scan_hz)
                     continue
-                if streaming and self.clock.now_s() >= due_s:
-                    mask = device.stream.mask if device and device.stream else None
-                    offset = device.clock_ms_offset if device else 0
-                    client.sendall(self._profile(next_k, config, mask, offset))
+                if device.streaming and self.clock.now_s() >= due_s:
+                    client.sendall(self._profile(next_k, config, device))
                     next_k += 1
-                    if device is not None and device.stream is not None:
-                        device.stream.sent += 1
-                        if device.stream.count and device.stream.sent >= device.stream.count:
-                            device.stream = None
-                            streaming = False
         except OSError:
             return
         finally:
@@ -208,25 +269,24 @@ class ScannerEmulator:
         period = period if period is not None else 1.0 / self.scanner.scan_hz
         return max(0, int(np.ceil((now_s - self.phase_s) / period - 1e-9)))
 
-    def _device_config(self, device: LdoemDevice | None) -> ScannerConfig:
-        if device is None:
-            return self.scanner
-        return self.scanner.model_copy(update={
-            "scan_hz": float(device.scan_hz), "beam_step_deg": device.step_ticks / 16.0,
-            "start_angle_deg": device.start_ticks / 16.0, "end_angle_deg": device.end_ticks / 16.0,
-        })
-
-    def _profile(self, k: int, config: ScannerConfig, mask: int | None,
-                 clock_offset_ms: int = 0) -> bytes:
+    def _profile(self, k: int, config: ScannerConfig, device: EmulatedDevice) -> bytes:
         start_s = self.phase_s + k / config.scan_hz
         times = start_s + sample_time_offsets_s(config)
         beta = self.platform.beta_deg_at(times)[None, :]
         truth = true_ranges(self.scene, config, beta)
         measured = measure(truth, self.measurement, k, config)[0]
+        echo = echo_model(truth, measured) if self._sends_echo(config) else None
         with self._lock:
             self.sent.append(SentProfile(k, start_s, float(beta[0, 0]), float(beta[0, -1]),
                                          truth.ranges_m[0]))
-        return profile_frame(self.dialect, k, measured, config, start_s, mask, clock_offset_ms)
+        return device.encode(k, measured, echo, config, start_s)
+
+    @staticmethod
+    def _sends_echo(config: ScannerConfig) -> bool:
+        from scanpipe.scanner_models import model_of
+
+        model = model_of(config.model, config.dialect)
+        return model is not None and model.intensity and config.dialect != "ldoem"
 
     def truth_table(self) -> pa.Table:
         """Per-profile truth of everything sent so far, in sending order (host-clock times)."""
@@ -462,8 +522,12 @@ class VirtualRig:
 
     def client_rig(self) -> Rig:
         """The nominal rig with the scanner, motor and camera sources at the emulators."""
-        host, port = self.scanner.address
-        scanner = self.nominal.scanner.model_copy(update={"host": host, "port": port})
+        if self.nominal.scanner.transport == "serial":
+            scanner = self.nominal.scanner.model_copy(
+                update={"serial_url": self.scanner.port_path})
+        else:
+            host, port = self.scanner.address
+            scanner = self.nominal.scanner.model_copy(update={"host": host, "port": port})
         motor = self.nominal.motor.model_copy(update={"serial_url": self.motor.port_path})
         cameras = tuple(c.model_copy(update={"source": f"sim:{c.id}"})
                         for c in self.nominal.cameras)

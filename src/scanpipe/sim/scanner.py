@@ -125,6 +125,21 @@ def measure(truth: TrueProfiles, model: MeasurementModel, first_profile: int,
     return measured
 
 
+#: The echo of a surface seen head-on at 1 m (u16 counts, like a SICK RSSI channel).
+ECHO_AT_1M = 4000.0
+
+
+def echo_model(truth: TrueProfiles, measured: F32, row: int = 0) -> NDArray[np.uint16]:
+    """The echo intensity of one measured profile: strongest head-on and near, falling with
+    the cosine of incidence and with range (1 / (1 + r²/100)); 0 where there is no return."""
+    cos_inc = truth.cos_incidence[row].astype(np.float64)
+    r = np.nan_to_num(measured.astype(np.float64), nan=0.0)
+    value = ECHO_AT_1M * cos_inc / (1.0 + r * r / 100.0) * 1.01
+    value[~np.isfinite(measured)] = 0.0
+    out: NDArray[np.uint16] = np.clip(np.rint(value), 0, 65535).astype(np.uint16)
+    return out
+
+
 def _mixed_pixels(ranges: F64, model: MeasurementModel, rng: np.random.Generator) -> F64:
     """At a depth edge the beam straddles both surfaces: some samples get a range between them."""
     draws = rng.random(len(ranges))

@@ -34,7 +34,7 @@ import pyarrow.compute as pc
 from numpy.typing import NDArray
 from pydantic import Field
 
-from scanpipe.clock import fit_clock, unwrap_device_ms
+from scanpipe.clock import fit_clock, unwrap_device_ticks
 from scanpipe.errors import ProtocolError, RecordingError, StageError
 from scanpipe.images import image_size
 from scanpipe.params import Params
@@ -110,10 +110,9 @@ def _optional_ints(values: Sequence[int | None]) -> tuple[I64, NDArray[np.bool_]
     return ints, present
 
 
-def profiles_table(frames: Sequence[DecodedFrame], stream: StreamData, dialect: str,
-                   wrap_ms: int = DEVICE_TIME_WRAP_MS) -> tuple[pa.Table, dict[str, Any]]:
-    """The ``profiles`` artifact from decoded frames, and the device-clock part of the report
-    (the device's millisecond clock wraps at ``wrap_ms``)."""
+def profiles_table(frames: Sequence[DecodedFrame], stream: StreamData,
+                   dialect: str) -> tuple[pa.Table, dict[str, Any]]:
+    """The ``profiles`` artifact from decoded frames, and the device-clock part of the report."""
     profiles: list[Profile] = [p for f in frames for p in f.profiles]
     n = len(profiles)
     ends = np.repeat(np.fromiter((f.end_offset for f in frames), np.int64, len(frames)),
@@ -121,11 +120,14 @@ def profiles_table(frames: Sequence[DecodedFrame], stream: StreamData, dialect: 
     recv = stream.time_at(ends)
     start_ms, has_start = _optional_ints([p.device_time_ms for p in profiles])
     end_ms, has_end = _optional_ints([p.device_end_time_ms for p in profiles])
+    # One stream, one device clock: its tick and wrap come with the profiles (16-bit ms, µs …).
+    tick_ns = profiles[0].device_tick_ns if n else 1_000_000
+    wrap = profiles[0].device_wrap_ticks if n else DEVICE_TIME_WRAP_MS
     device_start = np.zeros(n, np.int64)
-    device_start[has_start] = unwrap_device_ms(start_ms[has_start], recv[has_start],
-                                               wrap_ms) * 1_000_000
-    duration_ms = (end_ms - start_ms) % wrap_ms
-    device_end = device_start + duration_ms * 1_000_000
+    device_start[has_start] = unwrap_device_ticks(start_ms[has_start], recv[has_start], wrap,
+                                                  tick_ns) * tick_ns
+    duration_ticks = (end_ms - start_ms) % wrap
+    device_end = device_start + duration_ticks * tick_ns
     has_end &= has_start
     clock: dict[str, Any] = {"present": bool(has_start.any())}
     if has_start.any():
@@ -263,7 +265,7 @@ def decode_recording(recording: Recording, params: DecodeParams,
                          f"in the {len(data)} bytes received from the scanner "
                          f"({decoder.counters.checksum_failures} checksum failures; "
                          f"{describe_bytes(data)}); try decode.dialect = auto")
-    profiles, clock = profiles_table(frames, stream, dialect.name, dialect.device_time_wrap_ms)
+    profiles, clock = profiles_table(frames, stream, dialect.name)
     if recording.profiles:
         # Profiles another tool decoded (an imported ROS bag); a byte stream beside them is
         # kept out rather than mixed in: one scan, one source.
