@@ -357,3 +357,16 @@ def test_device_times_unwrap_at_30000_against_host_time() -> None:
     raw = (true_ms + 29_000) % 30_000
     unwrapped = unwrap_device_ticks(raw, host_ns, ld.TIME_WRAP_MS, 1_000_000)
     assert np.array_equal(unwrapped - unwrapped[0], true_ms)
+
+
+def test_profiles_of_450_beams_round_trip_with_an_overlapping_last_packet() -> None:
+    ranges = (1.0 + 0.5 * np.sin(np.radians(np.arange(450) * 0.8))).astype(np.float32)
+    profiles = [Profile(frame=k, sector=0, start_angle_deg=0.0, step_deg=0.8,
+                        ranges_m=ranges, device_time_ms=100 * k) for k in range(4)]
+    data = b"".join(ld.encode_profile(p) for p in profiles)
+    assert len(data) == 4 * 38 * ld.PACKET_BYTES
+    decoded, counters = ld.decode_revolutions(data)
+    assert counters.frames_decoded == 4 * 38 and len(decoded) == 4
+    for p in decoded:
+        assert len(p.ranges_m) == 450
+        np.testing.assert_allclose(p.ranges_m, ranges, atol=0.0005)

@@ -42,7 +42,7 @@ the host receive times (``Profile.device_wrap_ticks`` = 30 000;
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -557,17 +557,19 @@ class _Pending:
     def tail(self, first: int) -> _Pending:
         return _Pending(*(getattr(self, f)[first:] for f in _PENDING_FIELDS))
 
-    def sample_angles(self, base_deg: float) -> NDArray[np.float32]:
-        """Every sample's unwrapped angle less ``base_deg``, made non-decreasing: where jitter
-        puts a packet's first sample a hair before the previous packet's last, it takes that
-        angle."""
+    def sample_angles(self, base_deg: float) -> tuple[NDArray[np.float32],
+                                                      NDArray[np.int64] | None]:
+        """Every sample's unwrapped angle less ``base_deg``, in angle order, and the order
+        (flat sample indices) when it is not the stream's: where packets overlap (jitter puts
+        a packet's first sample before the previous one's last, or a packet repeats samples)."""
         start = (self.start_deg - base_deg).astype(np.float32)
         step = self.step_deg.astype(np.float32)
         angles = (start[:, None] + step[:, None] * _POINT_INDEX32).reshape(-1)
         last = start + step * np.float32(_SPAN_STEPS)
         if np.any(start[1:] < last[:-1]):
-            np.maximum.accumulate(angles, out=angles)
-        return angles
+            order = np.argsort(angles, kind="stable").astype(np.int64)
+            return angles[order], order
+        return angles, None
 
     def sample_times(self, index: NDArray[np.int64]) -> NDArray[np.float64]:
         """Device times (unwrapped ms) of the samples at flat ``index``."""
@@ -697,7 +699,7 @@ def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
     base = float(revs[0]) * 360.0
     # Angles relative to the first revolution: float32 keeps 1e-4° over a few turns, and halves
     # the memory traffic of the per-beam arithmetic below.
-    local = p.sample_angles(base)
+    local, order = p.sample_angles(base)
     within = np.arange(beams, dtype=np.float64) * step
     grid = ((revs - revs[0])[:, None] * 360.0 + within).astype(np.float32).ravel()
     last_index = local.size - 1
@@ -708,6 +710,9 @@ def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
     w = (grid - a0) / gap  # 0…1 between the samples
     nearer = left + (w > np.float32(0.5))
     flat_range = p.range_m.reshape(-1)
+    flat_intensity = p.intensity.reshape(-1)
+    if order is not None:  # samples in angle order, not stream order
+        flat_range, flat_intensity = flat_range[order], flat_intensity[order]
     r0 = flat_range[left]
     dr = flat_range[right] - r0
     # One surface: the jump is small against the range (NaN, a no-return, compares False).
@@ -729,15 +734,16 @@ def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
         ranges[after:] = flat_range[last_index]
         ranges[int(np.searchsorted(grid, local[-1] + half, side="right")):] = np.nan
         nearer[after:] = last_index
-    echo = p.intensity.reshape(-1)[nearer].astype(np.uint16)
+    echo = flat_intensity[nearer].astype(np.uint16)
     ranges = ranges.reshape(revs.size, beams)
     echo = echo.reshape(revs.size, beams)
     # Device times of each revolution's first and last beam: interpolated between the samples,
     # extrapolated at the head's speed beyond them.
     first_beam = np.arange(revs.size) * beams
     ends = np.stack([first_beam, first_beam + beams - 1])
+    stream_index = (lambda i: i) if order is None else (lambda i: order[i])
     times = _beam_times(p, local, grid[ends].astype(np.float64), left[ends], right[ends],
-                        nearer[ends])
+                        nearer[ends], stream_index)
     # A revolution is damaged if any of its packets is.
     span = int(revs[-1] - revs[0]) + 1
     bad = np.zeros(span, np.int64)
@@ -783,15 +789,18 @@ def _first_at_or_after(a: NDArray[np.float32], grid: NDArray[np.float32],
 
 
 def _beam_times(p: _Pending, a: NDArray[np.float32], grid: NDArray[np.float64],
-                left: NDArray[np.int64], right: NDArray[np.int64],
-                nearer: NDArray[np.int64]) -> NDArray[np.float64]:
-    """Device times (ms) at grid angles (relative, like ``a``), from the samples around them."""
+                left: NDArray[np.int64], right: NDArray[np.int64], nearer: NDArray[np.int64],
+                stream_index: Callable[[NDArray[np.int64]], NDArray[np.int64]]
+                ) -> NDArray[np.float64]:
+    """Device times (ms) at grid angles (relative, like ``a``), from the samples around them
+    (indices into ``a``; ``stream_index`` turns them into the stream's sample indices)."""
     a0, a1 = a[left].astype(np.float64), a[right].astype(np.float64)
     between = (a0 <= grid) & (grid <= a1) & (a1 > a0)
     w = np.divide(grid - a0, a1 - a0, out=np.zeros_like(grid), where=a1 > a0)
-    t0, t1 = p.sample_times(left), p.sample_times(right)
-    packet = nearer // POINTS_PER_PACKET
-    extrapolated = (p.sample_times(nearer) + (grid - a[nearer].astype(np.float64))
+    t0, t1 = p.sample_times(stream_index(left)), p.sample_times(stream_index(right))
+    near = stream_index(nearer)
+    packet = near // POINTS_PER_PACKET
+    extrapolated = (p.sample_times(near) + (grid - a[nearer].astype(np.float64))
                     / p.deg_per_ms[packet])
     return np.asarray(np.where(between, t0 + w * (t1 - t0), extrapolated), np.float64)
 
@@ -828,8 +837,9 @@ def decode_revolutions(data: bytes | bytearray | memoryview, lenient: bool = Fal
 
 
 def encode_profile(profile: Profile, speed_dps: int = 3600) -> bytes:
-    """A profile as packets: its samples at ``start + i·step`` in packets of 12, the last one
-    padded with no-returns; times from ``device_time_ms`` at the head speed ``speed_dps``."""
+    """A profile as packets: its samples at ``start + i·step`` in packets of 12 (the last one
+    repeating samples when 12 does not divide them); times from ``device_time_ms`` at the head
+    speed ``speed_dps``."""
     if not MIN_SPEED_DPS <= speed_dps <= MAX_SPEED_DPS:
         raise ProtocolError(f"head speed {speed_dps} °/s: allowed "
                             f"{MIN_SPEED_DPS}…{MAX_SPEED_DPS}")
@@ -838,7 +848,7 @@ def encode_profile(profile: Profile, speed_dps: int = 3600) -> bytes:
     if n == 0:
         raise ProtocolError("ldrobot: a profile without samples has no packet")
     packets = -(-n // POINTS_PER_PACKET)
-    total = packets * POINTS_PER_PACKET
+    total = max(n, POINTS_PER_PACKET)
     mm = np.zeros(total, np.int64)
     finite = np.isfinite(ranges) & (ranges > 0)
     mm[:n][finite] = np.clip(np.rint(ranges[finite] * 1000.0), 1, 0xFFFF)
@@ -847,12 +857,13 @@ def encode_profile(profile: Profile, speed_dps: int = 3600) -> bytes:
         echo[:n] = np.clip(np.asarray(profile.echo, np.int64), 0, 0xFF)
     angle = profile.start_angle_deg + np.arange(total) * profile.step_deg
     cdeg = np.rint(angle * ANGLE_SCALE_PER_DEG).astype(np.int64) % TURN_CDEG
-    rows = np.arange(packets) * POINTS_PER_PACKET
+    # Whole packets of 12; when 12 does not divide the samples, the last packet repeats some
+    # (it ends on the last sample) rather than spilling past the profile's end.
+    rows = np.minimum(np.arange(packets) * POINTS_PER_PACKET, total - POINTS_PER_PACKET)
     t0 = profile.device_time_ms or 0
     stamp = np.rint(t0 + (angle[rows] - angle[0]) / (speed_dps / 1000.0)).astype(np.int64)
-    return encode_packets(np.full(packets, speed_dps), cdeg[rows],
-                          mm.reshape(packets, POINTS_PER_PACKET),
-                          echo.reshape(packets, POINTS_PER_PACKET),
+    take = rows[:, None] + np.arange(POINTS_PER_PACKET)
+    return encode_packets(np.full(packets, speed_dps), cdeg[rows], mm[take], echo[take],
                           cdeg[rows + POINTS_PER_PACKET - 1], stamp % TIME_WRAP_MS)
 
 
