@@ -20,10 +20,12 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 from scanpipe.device_limits import (
+    LDROBOT_LIMITS,
     LimitCheck,
     ScanSettings,
     device_limit_problems,
     ldoem_limit_checks,
+    ldrobot_limit_checks,
 )
 
 #: Every dialect name a rig may give (the protocol registry holds one entry per name; a test
@@ -112,6 +114,14 @@ def table_limit_checks(model: ScannerModel, scanner: ModelSettings) -> tuple[Lim
     )
 
 
+def _ldrobot_checks(model: str) -> Callable[[ModelSettings], tuple[LimitCheck, ...]]:
+    """The limit check of one LDRobot model (any head speed in its range, the beam step the
+    sample rate gives at it)."""
+    def check(scanner: ModelSettings) -> tuple[LimitCheck, ...]:
+        return ldrobot_limit_checks(scanner, model)
+    return check
+
+
 SCANNER_MODELS: Mapping[str, ScannerModel] = {
     "ldoem1000": ScannerModel(
         name="ldoem1000", description="SICK LD-OEM 1000 (the paper's scanner, 360°)",
@@ -128,6 +138,16 @@ SCANNER_MODELS: Mapping[str, ScannerModel] = {
         dialect="cola_b", transport="tcp", fov_deg=(-45.0, 225.0),
         modes=((15.0, 1.0 / 3.0),), range_m=(0.05, 25.0),
         noise_sigma_m=0.020, intensity=True, port=2112),
+    **{name: ScannerModel(
+        name=name, description=f"LDRobot {label} (360°, {lim.max_range_m:g} m, "
+                               f"{lim.sample_hz:g} samples/s, serial {lim.baud} baud)",
+        dialect="ldrobot", transport="serial", fov_deg=(0.0, 360.0 - lim.beam_step_deg(10.0)),
+        modes=((10.0, lim.beam_step_deg(10.0)),), range_m=(lim.min_range_m, lim.max_range_m),
+        noise_sigma_m=0.010, intensity=True, baudrate=lim.baud,
+        limit_checks=_ldrobot_checks(name))
+       for name, label, lim in (("ld06", "LD06", LDROBOT_LIMITS["ld06"]),
+                                ("ld19", "LD19", LDROBOT_LIMITS["ld19"]),
+                                ("stl27l", "STL-27L", LDROBOT_LIMITS["stl27l"]))},
 }
 
 

@@ -43,3 +43,12 @@ class ScannerDriver(Protocol):
 
 #: The driver of each dialect that has one (``ldoem`` and ``paper`` live in the client).
 DRIVERS: dict[str, Callable[[ScannerConfig], ScannerDriver]] = {}
+
+
+def _register() -> None:
+    from scanpipe.acquire.ldrobot_driver import LdrobotDriver
+
+    DRIVERS["ldrobot"] = LdrobotDriver
+
+
+_register()

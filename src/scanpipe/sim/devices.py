@@ -107,10 +107,17 @@ class LdoemEmulated:
         return frame
 
 
+def _ldrobot(scanner: ScannerConfig) -> EmulatedDevice:
+    from scanpipe.sim.ldrobot_device import LdrobotEmulated
+
+    return LdrobotEmulated(scanner)
+
+
 #: The emulated device of each dialect (a new family adds its entry).
 DEVICES: dict[str, Callable[[ScannerConfig], EmulatedDevice]] = {
     "ldoem": LdoemEmulated,
     "paper": StreamingDevice,
+    "ldrobot": _ldrobot,
 }
 
 

@@ -326,3 +326,71 @@ class LdrobotEmulator:
                 self.bytes_lost += len(view)  # nobody reads fast enough: lost, as on a UART
                 return
             view = view[written:]
+
+
+class LdrobotEmulated:
+    """The LDRobot device for :class:`~scanpipe.sim.emulators.ScannerEmulator` (the shared
+    emulator over a pty, ``transport = serial``): it streams from the moment the port exists
+    and ignores what it is sent (there is no command). Each measured profile (the rig's grid,
+    one head turn) goes out as packets of 12 samples; samples left over at a turn's end ride in
+    the next turn's first packet, so the stream is one continuous run of packets. Each packet
+    carries the head speed (with the ±0.5 % wobble), the encoder angles of its first and last
+    sample (with 0.02° of jitter), its first sample's time on the device clock (ms, wrapping at
+    30 000) and per sample the distance (mm, 0 = no return) and an intensity (the echo model
+    scaled to 16…255; a no-return gets 0…15, a low-confidence sample)."""
+
+    def __init__(self, scanner: ScannerConfig) -> None:
+        self.scanner = scanner
+        self.streaming = True
+        self._carry: tuple[F64, F64, F64, F64] | None = None  # angle, time, mm, intensity
+        rng = np.random.default_rng(0x1D06)
+        self._wobble_phase = float(rng.uniform(0, 2 * np.pi))
+        self._packets = 0
+
+    def receive(self, data: bytes, now_s: float) -> list[bytes]:
+        """No command: nothing to answer."""
+        return []
+
+    def config(self) -> ScannerConfig:
+        """The rig's settings (the head speed is set by PWM, not over the link)."""
+        return self.scanner
+
+    def encode(self, k: int, ranges_m: NDArray[np.float32], echo: NDArray[np.uint16] | None,
+               config: ScannerConfig, start_s: float) -> bytes:
+        """The packets completed by profile ``k`` (its samples after the carried ones)."""
+        n = len(ranges_m)
+        step = config.beam_step_deg
+        angle = config.start_angle_deg + np.arange(n) * step
+        time_s = start_s + (angle - config.start_angle_deg) / (360.0 * config.scan_hz)
+        ranges = np.asarray(ranges_m, np.float64)
+        lost = ~np.isfinite(ranges) | (ranges <= 0)
+        mm = np.where(lost, 0.0, np.clip(np.rint(np.nan_to_num(ranges) * 1000.0), 1, 0xFFFF))
+        low = (np.arange(n) * 7 + k) % 16
+        strong = (np.zeros(n) if echo is None else np.asarray(echo, np.float64)) / 16.0
+        intensity = np.where(lost, low, np.clip(np.rint(strong), 16, 255)).astype(np.float64)
+        angle = angle + 360.0 * k  # unwrapped: the turns follow one another
+        if self._carry is not None:
+            angle, time_s, mm, intensity = (np.concatenate([c, x]) for c, x in zip(
+                self._carry, (angle, time_s, mm, intensity), strict=True))
+        per = ldrobot.POINTS_PER_PACKET
+        packets = angle.size // per
+        used = packets * per
+        self._carry = (np.asarray(angle[used:], np.float64), np.asarray(time_s[used:], np.float64),
+                       np.asarray(mm[used:], np.float64), np.asarray(intensity[used:], np.float64))
+        if packets == 0:
+            return b""
+        a = angle[:used].reshape(packets, per)
+        t = time_s[:used].reshape(packets, per)
+        self._packets += packets
+        u = np.random.default_rng([0x1D06, k]).random((packets, 4))
+        jitter = _normal(u[:, 0:2], u[:, 2:4]).T * ENCODER_JITTER_DEG
+        w = 2 * np.pi * WOBBLE_HZ
+        speed = 360.0 * config.scan_hz * (1 + WOBBLE * np.sin(w * t[:, 0] + self._wobble_phase))
+        start = np.rint((a[:, 0] + jitter[0]) * 100).astype(np.int64) % ldrobot.TURN_CDEG
+        end = np.rint((a[:, -1] + jitter[1]) * 100).astype(np.int64) % ldrobot.TURN_CDEG
+        stamp = (CLOCK_ORIGIN_MS + np.floor(t[:, 0] * 1000.0).astype(np.int64)
+                 ) % ldrobot.TIME_WRAP_MS
+        return ldrobot.encode_packets(
+            np.clip(np.rint(speed), 0, 0xFFFF).astype(np.int64), start,
+            mm[:used].reshape(packets, per).astype(np.int64),
+            intensity[:used].reshape(packets, per).astype(np.int64), end, stamp)
