@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
+
 import pytest
 
 from scanpipe.acquire.scanner_client import ScannerClient
@@ -16,6 +17,7 @@ from scanpipe.sim.ldrobot_device import LdrobotEmulator, LdrobotHead, ldrobot_mo
 from scanpipe.sim.motion import PlatformState
 from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import MeasurementModel
+
 
 def ld06(url: str, **update: object) -> ScannerConfig:
     return scanner_for_model("ld06").model_copy(update={"serial_url": url, **update})

@@ -670,8 +670,12 @@ class RevolutionAssembler:
         if not len(pending):
             return []
         last_angle = float(pending.start_deg[-1] + _SPAN_STEPS * pending.step_deg[-1])
-        # Revolutions wholly before the newest sample are complete (and, at the end, the last).
-        last_complete = int(np.floor(last_angle / 360.0)) - (0 if final else 1)
+        # A turn is complete once the newest sample is within half a sample step of its end:
+        # the next sample belongs to the next turn (and, at the end, the last turn is done).
+        # A turn is resampled from its own samples (and the one before it) only, so when it is
+        # handed out does not change it.
+        reach = last_angle + 0.5 * float(pending.step_deg[-1])
+        last_complete = int(np.floor(reach / 360.0)) - (0 if final else 1)
         if last_complete < self._next_rev:
             return []
         beams = self._grid()
@@ -703,7 +707,11 @@ def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
     within = np.arange(beams, dtype=np.float64) * step
     grid = ((revs - revs[0])[:, None] * 360.0 + within).astype(np.float32).ravel()
     last_index = local.size - 1
-    right = np.minimum(_first_at_or_after(local, grid, revs, beams, step), last_index)
+    # Each turn's beams look no further than the turn's own last sample.
+    turn_end = np.searchsorted(local, ((revs - revs[0] + 1) * 360.0).astype(np.float32),
+                               side="left") - 1
+    cap = np.repeat(np.clip(turn_end, 0, last_index), beams)
+    right = np.minimum(_first_at_or_after(local, grid, revs, beams, step), cap)
     left = np.maximum(right - 1, 0)
     a0 = local[left]
     gap = np.maximum(local[right] - a0, np.float32(1e-6))
@@ -729,11 +737,12 @@ def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
     before = int(np.searchsorted(grid, local[0], side="left"))  # beams before the first sample
     ranges[:before] = flat_range[0]
     ranges[:int(np.searchsorted(grid, local[0] - half, side="left"))] = np.nan
-    after = int(np.searchsorted(grid, local[-1], side="right"))  # beams after the last sample
-    if after < grid.size:
-        ranges[after:] = flat_range[last_index]
-        ranges[int(np.searchsorted(grid, local[-1] + half, side="right")):] = np.nan
-        nearer[after:] = last_index
+    beyond = np.flatnonzero(grid > local[right])  # past the last sample of their turn
+    if beyond.size:
+        last = right[beyond]
+        far = grid[beyond] - local[last] > np.float32(half)
+        ranges[beyond] = np.where(far, np.float32(np.nan), flat_range[last])
+        nearer[beyond] = last
     echo = flat_intensity[nearer].astype(np.uint16)
     ranges = ranges.reshape(revs.size, beams)
     echo = echo.reshape(revs.size, beams)

@@ -67,9 +67,15 @@ class _PtyEndpoint:
     Writes nobody reads are dropped (counted in ``overruns``), as on a real UART; reads while
     no client has the terminal open see nothing."""
 
+    #: While a reader drains the terminal, a write waits this long (real seconds) for room
+    #: before bytes are dropped: the terminal holds only ~4 KiB, a few of an LDRobot's turns at
+    #: a 10× speed-up, and a thread the host schedules late must not lose a burst.
+    DRAIN_WAIT_S = 0.5
+
     def __init__(self, master: int) -> None:
         self.master = master
         self.overruns = 0
+        self._drained = False  # the last write went through: somebody reads
 
     def fileno(self) -> int:
         """The master descriptor (for select)."""
@@ -87,20 +93,27 @@ class _PtyEndpoint:
             raise
 
     def sendall(self, data: bytes) -> None:
-        """Write to the client; what does not fit the terminal's buffer is lost."""
+        """Write to the client; what does not fit the terminal's buffer is lost (after up to
+        :attr:`DRAIN_WAIT_S` of waiting for room while somebody reads)."""
         view = memoryview(data)
         while view:
             try:
                 written = os.write(self.master, view)
             except BlockingIOError:
+                if self._drained and select.select([], [self.master], [],
+                                                   self.DRAIN_WAIT_S)[1]:
+                    continue
+                self._drained = False
                 self.overruns += 1
                 return
             except OSError as err:
                 if err.errno in (errno.EIO, errno.EAGAIN):
+                    self._drained = False
                     self.overruns += 1
                     return
                 raise
             view = view[written:]
+        self._drained = True
 
     def close(self) -> None:
         """Nothing: the emulator closes the terminal itself."""

@@ -332,8 +332,11 @@ class LdrobotEmulated:
     """The LDRobot device for :class:`~scanpipe.sim.emulators.ScannerEmulator` (the shared
     emulator over a pty, ``transport = serial``): it streams from the moment the port exists
     and ignores what it is sent (there is no command). Each measured profile (the rig's grid,
-    one head turn) goes out as packets of 12 samples; samples left over at a turn's end ride in
-    the next turn's first packet, so the stream is one continuous run of packets. Each packet
+    one head turn) goes out as packets of 12 samples the moment the turn is measured; when 12
+    does not divide the turn, its last packet ends on its last sample and repeats a few of the
+    previous packet's (a real head's packet would hold the next turn's first samples, which the
+    shared emulator measures only a turn later: repeating keeps the turn's latency at one
+    packet, as on the device). Each packet
     carries the head speed (with the ±0.5 % wobble), the encoder angles of its first and last
     sample (with 0.02° of jitter), its first sample's time on the device clock (ms, wrapping at
     30 000) and per sample the distance (mm, 0 = no return) and an intensity (the echo model
@@ -342,7 +345,6 @@ class LdrobotEmulated:
     def __init__(self, scanner: ScannerConfig) -> None:
         self.scanner = scanner
         self.streaming = True
-        self._carry: tuple[F64, F64, F64, F64] | None = None  # angle, time, mm, intensity
         rng = np.random.default_rng(0x1D06)
         self._wobble_phase = float(rng.uniform(0, 2 * np.pi))
         self._packets = 0
@@ -368,19 +370,13 @@ class LdrobotEmulated:
         low = (np.arange(n) * 7 + k) % 16
         strong = (np.zeros(n) if echo is None else np.asarray(echo, np.float64)) / 16.0
         intensity = np.where(lost, low, np.clip(np.rint(strong), 16, 255)).astype(np.float64)
-        angle = angle + 360.0 * k  # unwrapped: the turns follow one another
-        if self._carry is not None:
-            angle, time_s, mm, intensity = (np.concatenate([c, x]) for c, x in zip(
-                self._carry, (angle, time_s, mm, intensity), strict=True))
         per = ldrobot.POINTS_PER_PACKET
-        packets = angle.size // per
-        used = packets * per
-        self._carry = (np.asarray(angle[used:], np.float64), np.asarray(time_s[used:], np.float64),
-                       np.asarray(mm[used:], np.float64), np.asarray(intensity[used:], np.float64))
-        if packets == 0:
+        if n < per:
             return b""
-        a = angle[:used].reshape(packets, per)
-        t = time_s[:used].reshape(packets, per)
+        packets = -(-n // per)
+        rows = np.minimum(np.arange(packets) * per, n - per)[:, None] + np.arange(per)
+        a, t = angle[rows], time_s[rows]
+        mm, intensity = mm[rows], intensity[rows]
         self._packets += packets
         u = np.random.default_rng([0x1D06, k]).random((packets, 4))
         jitter = _normal(u[:, 0:2], u[:, 2:4]).T * ENCODER_JITTER_DEG
@@ -391,6 +387,5 @@ class LdrobotEmulated:
         stamp = (CLOCK_ORIGIN_MS + np.floor(t[:, 0] * 1000.0).astype(np.int64)
                  ) % ldrobot.TIME_WRAP_MS
         return ldrobot.encode_packets(
-            np.clip(np.rint(speed), 0, 0xFFFF).astype(np.int64), start,
-            mm[:used].reshape(packets, per).astype(np.int64),
-            intensity[:used].reshape(packets, per).astype(np.int64), end, stamp)
+            np.clip(np.rint(speed), 0, 0xFFFF).astype(np.int64), start, mm.astype(np.int64),
+            intensity.astype(np.int64), end, stamp)
