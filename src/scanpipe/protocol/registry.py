@@ -2,7 +2,7 @@
 
 >>> from scanpipe.protocol.registry import DIALECTS, StreamDecoder
 >>> sorted(DIALECTS)
-['ldoem', 'ldrobot', 'paper']
+['cola_a', 'cola_b', 'ldoem', 'ldrobot', 'paper']
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass
 from typing import Literal, Protocol
 
 from scanpipe.errors import ProtocolError
-from scanpipe.protocol import ldoem, ldrobot, paper
+from scanpipe.protocol import ldoem, ldrobot, paper, sick_cola
 from scanpipe.protocol.framing import (
     NOT_PARSED,
     FrameCounters,
@@ -66,6 +66,9 @@ class Dialect:
     description: str
     #: None: the shared framing (:class:`FrameReader` on ``marker``); else the dialect's own.
     reader_factory: ReaderFactory | None = None
+    #: The device clock of its profiles: one tick in ns and where it wraps (16-bit ms default).
+    device_tick_ns: int = 1_000_000
+    device_wrap_ticks: int = 1 << 16
     #: None: count frames with a lenient decoder; else the dialect's own count of its frames
     #: in ``data`` for ``auto`` (a weak marker needs more than one good frame).
     detect_score: Callable[[bytes], int] | None = None
@@ -115,6 +118,32 @@ DIALECTS: Mapping[str, Dialect] = {
         check_frame=ldoem.check_frame,
         description="the SICK LD-OEM 1000 TCP protocol (02 'USP' framing, GET_PROFILE replies)",
     ),
+    "cola_b": Dialect(
+        name="cola_b",
+        marker=sick_cola.MARKER,
+        min_payload_bytes=4,
+        max_payload_bytes=sick_cola.MAX_PAYLOAD_BYTES,
+        encode_profile=sick_cola.encode_profile,
+        decode_payload=sick_cola.decode_payload,
+        check_frame=sick_cola.check_frame,
+        description="SICK CoLa-B sSN LMDscandata (LMS1xx/5xx, TiM, LMS4000: 02 02 02 02 "
+                    "framing)",
+        device_tick_ns=sick_cola.TICK_NS,
+        device_wrap_ticks=sick_cola.WRAP_TICKS,
+    ),
+    "cola_a": Dialect(
+        name="cola_a",
+        marker=b"\x02",
+        min_payload_bytes=4,
+        max_payload_bytes=sick_cola.MAX_PAYLOAD_BYTES * 3,
+        encode_profile=sick_cola.encode_profile_ascii,
+        decode_payload=sick_cola.decode_ascii,
+        check_frame=sick_cola.check_frame,
+        description="SICK CoLa-A sSN LMDscandata (ASCII hex tokens between STX and ETX)",
+        reader_factory=sick_cola.ascii_reader,
+        device_tick_ns=sick_cola.TICK_NS,
+        device_wrap_ticks=sick_cola.WRAP_TICKS,
+    ),
     "ldrobot": Dialect(
         name="ldrobot",
         marker=ldrobot.MARKER,
@@ -127,6 +156,7 @@ DIALECTS: Mapping[str, Dialect] = {
                     "profile is one head turn",
         reader_factory=lambda dialect, max_payload_bytes, confirm: ldrobot.RevolutionReader(),
         detect_score=ldrobot.detect_score,
+        device_wrap_ticks=ldrobot.TIME_WRAP_MS,
     ),
 }
 
