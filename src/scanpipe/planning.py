@@ -104,7 +104,9 @@ def choose_steps(motor_step_deg: float, pulse_step_deg: float, pulse_limit: int)
 #: Bytes per profile of the other dialects: (fixed, per sample without echo). CoLa-B: 9 of
 #: framing, ~90 of telegram header and one 16-bit channel header, 2 per sample (RSSI doubles
 #: it); CoLa-A: about 5 ASCII characters per sample and ~250 of header.
-WIRE_BYTES: dict[str, tuple[int, int]] = {"cola_b": (100, 2), "cola_a": (250, 5)}
+WIRE_BYTES: dict[str, tuple[int, int]] = {"cola_b": (100, 2), "cola_a": (250, 5),
+                                          # SCIP: 3 characters a value, 66 bytes a 64-char line
+                                          "scip": (60, 4)}
 
 
 def frame_bytes(dialect: str, samples: int, with_echo: bool = False) -> int:

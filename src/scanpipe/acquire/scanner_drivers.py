@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol
 
+from scanpipe.acquire.scip_driver import ScipDriver
 from scanpipe.rig import ScannerConfig
 
 if TYPE_CHECKING:
@@ -42,4 +43,4 @@ class ScannerDriver(Protocol):
 
 
 #: The driver of each dialect that has one (``ldoem`` and ``paper`` live in the client).
-DRIVERS: dict[str, Callable[[ScannerConfig], ScannerDriver]] = {}
+DRIVERS: dict[str, Callable[[ScannerConfig], ScannerDriver]] = {"scip": ScipDriver}

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass
 from typing import Literal, Protocol
 
 from scanpipe.errors import ProtocolError
-from scanpipe.protocol import ldoem, paper
+from scanpipe.protocol import ldoem, paper, scip
 from scanpipe.protocol.framing import (
     NOT_PARSED,
     FrameCounters,
@@ -107,6 +107,17 @@ DIALECTS: Mapping[str, Dialect] = {
         decode_payload=ldoem.decode_payload,
         check_frame=ldoem.check_frame,
         description="the SICK LD-OEM 1000 TCP protocol (02 'USP' framing, GET_PROFILE replies)",
+    ),
+    "scip": Dialect(
+        name="scip",
+        marker=b"",
+        min_payload_bytes=0,
+        max_payload_bytes=scip.MAX_MESSAGE_BYTES,
+        encode_profile=scip.encode_profile,
+        decode_payload=scip.decode_payload,
+        check_frame=scip.check_frame,
+        description="Hokuyo SCIP 2.0 (URG/UST: MD/ME/MS streams, GD/GE/GS scans)",
+        reader_factory=scip.reader_factory,
     ),
 }
 
