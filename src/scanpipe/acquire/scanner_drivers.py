@@ -17,9 +17,11 @@ A new family adds a class and its entry in :data:`DRIVERS` (keyed by dialect nam
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
 from scanpipe.acquire.scip_driver import ScipDriver
+from scanpipe.errors import DeviceError
 from scanpipe.rig import ScannerConfig
 
 if TYPE_CHECKING:
@@ -42,5 +44,101 @@ class ScannerDriver(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class ColaReply:
+    """A CoLa-B answer: ``sEA LMDscandata`` + its argument bytes, ``sFA`` + error code …"""
+
+    kind: str
+    name: str
+    args: bytes
+
+
+class SickColaDriver:
+    """SICK CoLa-B (LMS1xx, TiM5xx) on TCP.
+
+    Start: ``sMN SetAccessMode`` (authorised client), then — for a model with more than one
+    mode — ``sMN mLMPsetscancfg`` with the rig's rate, step and sector (status 0 expected)
+    and ``sMN Run``; then ``sEN LMDscandata 1``. Stop: ``sEN LMDscandata 0``. A refusal
+    (``sFA``, a non-zero status) is a :class:`DeviceError` naming it.
+    """
+
+    def __init__(self, scanner: ScannerConfig) -> None:
+        from scanpipe.protocol import framing, sick_cola
+
+        self.scanner = scanner
+        self.reader = framing.FrameReader(sick_cola.MARKER, 0, sick_cola.MAX_PAYLOAD_BYTES,
+                                          confirm=False)
+
+    def _ask(self, client: ScannerClient, kind: str, name: str, args: bytes,
+             answer_kind: str) -> ColaReply:
+        from scanpipe.protocol import sick_cola
+
+        reply = client.request(sick_cola.command(kind, name, args), f"{kind} {name}",
+                               lambda r: isinstance(r, ColaReply) and (
+                                   r.name == name or r.kind == "sFA"))
+        assert isinstance(reply, ColaReply)
+        if reply.kind == "sFA" or reply.kind != answer_kind:
+            code = int.from_bytes(reply.args[:2], "big") if reply.kind == "sFA" else -1
+            raise DeviceError(f"scanner refused {kind} {name} (sFA error {code}; "
+                              "2 = unknown method, 10 = access denied)")
+        return reply
+
+    def start(self, client: ScannerClient) -> None:
+        """Log in, configure within the model's modes, start the stream."""
+        from scanpipe.protocol import sick_cola
+        from scanpipe.scanner_models import model_of
+
+        s = self.scanner
+        model = model_of(s.model, s.dialect)
+        if model is not None and len(model.modes) > 1:
+            password = sick_cola.CLIENT_PASSWORD.to_bytes(4, "big")
+            login = self._ask(client, "sMN", "SetAccessMode",
+                              bytes([sick_cola.ACCESS_LEVEL_CLIENT]) + password, "sAN")
+            if login.args[:1] != b"\x01":
+                raise DeviceError("scanner refused the log-in (sMN SetAccessMode)")
+            last = s.end_angle_deg - s.beam_step_deg
+            answer = self._ask(client, "sMN", "mLMPsetscancfg", sick_cola.scan_config_args(
+                s.scan_hz, s.beam_step_deg, s.start_angle_deg, last), "sAN")
+            status = answer.args[0] if answer.args else -1
+            if status != 0:
+                meaning = {1: "frequency", 2: "resolution", 3: "frequency and resolution",
+                           4: "scan area"}.get(status, "unknown")
+                raise DeviceError(f"scanner refused the scan configuration "
+                                  f"{s.scan_hz:g} Hz, {s.beam_step_deg:g}°, "
+                                  f"{s.start_angle_deg:g}…{last:g}° (status {status}: "
+                                  f"{meaning} not possible)")
+            self._ask(client, "sMN", "Run", b"", "sAN")
+        answer = self._ask(client, "sEN", "LMDscandata", b"\x01", "sEA")
+        if answer.args[:1] != b"\x01":
+            raise DeviceError("scanner did not confirm sEN LMDscandata 1")
+
+    def stop(self, client: ScannerClient) -> None:
+        """``sEN LMDscandata 0``, waiting briefly for its answer."""
+        self._ask(client, "sEN", "LMDscandata", b"\x00", "sEA")
+
+    def feed(self, data: bytes) -> tuple[int, list[object]]:
+        """Scan telegrams counted, other telegrams returned as replies."""
+        from scanpipe.errors import ProtocolError
+        from scanpipe.protocol import sick_cola
+
+        profiles, replies = 0, list[object]()
+        for frame in self.reader.feed(data):
+            if not frame.checksum_ok:
+                continue
+            if frame.payload[:16] in sick_cola.COMMANDS:
+                profiles += 1
+                continue
+            if frame.payload[:4] == b"sFA ":
+                replies.append(ColaReply("sFA", "", frame.payload[4:]))
+                continue
+            try:
+                kind, name, args = sick_cola.parse_command(frame.payload)
+            except ProtocolError:
+                continue
+            replies.append(ColaReply(kind, name, args))
+        return profiles, replies
+
+
 #: The driver of each dialect that has one (``ldoem`` and ``paper`` live in the client).
-DRIVERS: dict[str, Callable[[ScannerConfig], ScannerDriver]] = {"scip": ScipDriver}
+DRIVERS: dict[str, Callable[[ScannerConfig], ScannerDriver]] = {"cola_b": SickColaDriver,
+                                                            "scip": ScipDriver}

@@ -35,6 +35,7 @@ def frame_records(frames: list[DecodedFrame]) -> list[dict[str, Any]]:
                 "samples": len(p.ranges_m), "ranges_m": _floats(p.ranges_m),
                 "echo": None if p.echo is None else p.echo.tolist(),
                 "device_time_ms": p.device_time_ms, "device_end_time_ms": p.device_end_time_ms,
+                "device_tick_ns": p.device_tick_ns,
                 "checksum_ok": p.checksum_ok,
                 "received_checksum": frame.received_checksum,
                 "computed_checksum": frame.computed_checksum,
@@ -49,7 +50,9 @@ def _format_frame(r: dict[str, Any]) -> str:
              f"{r['computed_checksum']:#04x})")
     ranges = ", ".join("-" if v is None else f"{v:g}" for v in r["ranges_m"][:8])
     more = " …" if r["samples"] > 8 else ""
-    time = "" if r["device_time_ms"] is None else f"  t {r['device_time_ms']} ms"
+    unit = {1_000_000: "ms", 1000: "µs"}.get(r.get("device_tick_ns", 1_000_000),
+                                             f"× {r.get('device_tick_ns')} ns")
+    time = "" if r["device_time_ms"] is None else f"  t {r['device_time_ms']} {unit}"
     return (f"@{r['offset']:<8d} frame {r['frame']:<6d} sector {r['sector']}  start "
             f"{r['start_angle_deg']:g}°  step {r['step_deg']:g}°  {r['samples']} samples"
             f"{time}  checksum {check}\n    ranges_m: {ranges}{more}")
@@ -75,7 +78,7 @@ def _no_frame(source: str, dialect: Dialect, data: bytes, counters: dict[str, in
 def frames(
     capture: Path = typer.Argument(..., help="A raw byte capture of a scanner stream, or a "
                                              "network capture (.pcap, .pcapng) of its TCP link."),
-    dialect: str = typer.Option("auto", "--dialect", help="paper, ldoem or auto."),
+    dialect: str = typer.Option("auto", "--dialect", help="paper, ldoem, cola_b, cola_a or auto."),
     checksum: str = typer.Option("lenient", "--checksum",
                                  help="lenient shows damaged frames marked; strict drops them."),
     port: int | None = typer.Option(None, "--port",

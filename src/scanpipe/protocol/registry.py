@@ -2,7 +2,7 @@
 
 >>> from scanpipe.protocol.registry import DIALECTS, StreamDecoder
 >>> sorted(DIALECTS)
-['ldoem', 'paper']
+['cola_a', 'cola_b', 'ldoem', 'paper']
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass
 from typing import Literal, Protocol
 
 from scanpipe.errors import ProtocolError
-from scanpipe.protocol import ldoem, paper, scip
+from scanpipe.protocol import ldoem, paper, scip, sick_cola
 from scanpipe.protocol.framing import (
     NOT_PARSED,
     FrameCounters,
@@ -66,6 +66,9 @@ class Dialect:
     description: str
     #: None: the shared framing (:class:`FrameReader` on ``marker``); else the dialect's own.
     reader_factory: ReaderFactory | None = None
+    #: The device clock of its profiles: one tick in ns and where it wraps (16-bit ms default).
+    device_tick_ns: int = 1_000_000
+    device_wrap_ticks: int = 1 << 16
 
     def frame_reader(self, max_payload_bytes: int | None = None,
                      confirm: bool = True) -> FrameSource:
@@ -108,6 +111,32 @@ DIALECTS: Mapping[str, Dialect] = {
         check_frame=ldoem.check_frame,
         description="the SICK LD-OEM 1000 TCP protocol (02 'USP' framing, GET_PROFILE replies)",
     ),
+    "cola_b": Dialect(
+        name="cola_b",
+        marker=sick_cola.MARKER,
+        min_payload_bytes=4,
+        max_payload_bytes=sick_cola.MAX_PAYLOAD_BYTES,
+        encode_profile=sick_cola.encode_profile,
+        decode_payload=sick_cola.decode_payload,
+        check_frame=sick_cola.check_frame,
+        description="SICK CoLa-B sSN LMDscandata (LMS1xx/5xx, TiM, LMS4000: 02 02 02 02 "
+                    "framing)",
+        device_tick_ns=sick_cola.TICK_NS,
+        device_wrap_ticks=sick_cola.WRAP_TICKS,
+    ),
+    "cola_a": Dialect(
+        name="cola_a",
+        marker=b"\x02",
+        min_payload_bytes=4,
+        max_payload_bytes=sick_cola.MAX_PAYLOAD_BYTES * 3,
+        encode_profile=sick_cola.encode_profile_ascii,
+        decode_payload=sick_cola.decode_ascii,
+        check_frame=sick_cola.check_frame,
+        description="SICK CoLa-A sSN LMDscandata (ASCII hex tokens between STX and ETX)",
+        reader_factory=sick_cola.ascii_reader,
+        device_tick_ns=sick_cola.TICK_NS,
+        device_wrap_ticks=sick_cola.WRAP_TICKS,
+    ),
     "scip": Dialect(
         name="scip",
         marker=b"",
@@ -118,6 +147,8 @@ DIALECTS: Mapping[str, Dialect] = {
         check_frame=scip.check_frame,
         description="Hokuyo SCIP 2.0 (URG/UST: MD/ME/MS streams, GD/GE/GS scans)",
         reader_factory=scip.reader_factory,
+        device_tick_ns=1_000_000,
+        device_wrap_ticks=scip.TIMESTAMP_WRAP_MS,
     ),
 }
 

@@ -62,7 +62,7 @@ class StreamingDevice:
     def encode(self, k: int, ranges_m: NDArray[np.float32], echo: NDArray[np.uint16] | None,
                config: ScannerConfig, start_s: float) -> bytes:
         """The dialect's frame for the profile."""
-        return profile_frame(config.dialect, k, ranges_m, config, start_s)
+        return profile_frame(config.dialect, k, ranges_m, config, start_s, echo=echo)
 
 
 class LdoemEmulated:
@@ -108,10 +108,98 @@ class LdoemEmulated:
         return frame
 
 
+class SickColaDevice:
+    """A SICK scanner speaking CoLa-B (LMS1xx, TiM5xx): log-in (``sMN SetAccessMode``), scan
+    configuration within its model's modes (``sMN mLMPsetscancfg``, answered with status 0, or
+    1/2/4 for a bad frequency, resolution or sector as the manuals list), ``sMN Run``, and
+    streaming with ``sEN LMDscandata 1`` / ``0`` (answered ``sEA LMDscandata 1/0``). Anything
+    else is answered ``sFA`` with error 2 (unknown method)."""
+
+    def __init__(self, scanner: ScannerConfig) -> None:
+        from scanpipe.protocol import framing, sick_cola
+
+        self.scanner = scanner
+        self.current = scanner
+        self.reader = framing.FrameReader(sick_cola.MARKER, 0, 1 << 16, confirm=False)
+        self.streaming = False
+        self.logged_in = False
+        self.requests: list[str] = []
+
+    def receive(self, data: bytes, now_s: float) -> list[bytes]:
+        """Answer every complete command."""
+        from scanpipe.errors import ProtocolError
+        from scanpipe.protocol import sick_cola
+
+        replies = []
+        for frame in self.reader.feed(data):
+            if not frame.checksum_ok:
+                continue
+            try:
+                kind, name, args = sick_cola.parse_command(frame.payload)
+            except ProtocolError:
+                replies.append(sick_cola.failure(2))
+                continue
+            self.requests.append(f"{kind} {name}")
+            replies.append(self._answer(kind, name, args))
+        return replies
+
+    def _answer(self, kind: str, name: str, args: bytes) -> bytes:
+        from scanpipe.protocol import sick_cola
+        from scanpipe.scanner_models import SCANNER_MODELS
+
+        if (kind, name) == ("sEN", "LMDscandata") and args[:1] in (b"\x00", b"\x01"):
+            self.streaming = args[:1] == b"\x01"
+            return sick_cola.command("sEA", "LMDscandata", args[:1])
+        if (kind, name) == ("sMN", "SetAccessMode") and len(args) == 5:
+            level, password = args[0], int.from_bytes(args[1:5], "big")
+            self.logged_in = (level, password) == (sick_cola.ACCESS_LEVEL_CLIENT,
+                                                   sick_cola.CLIENT_PASSWORD)
+            return sick_cola.command("sAN", "SetAccessMode", bytes([int(self.logged_in)]))
+        if (kind, name) == ("sMN", "mLMPsetscancfg") and len(args) == sick_cola.SCANCFG.size:
+            freq, _sectors, res, start, end = sick_cola.SCANCFG.unpack(args)
+            hz, step = freq / 100.0, res / sick_cola.ANGLE_UNITS_PER_DEG
+            model = SCANNER_MODELS.get(self.scanner.model)
+            modes = model.modes if model else ((self.scanner.scan_hz,
+                                                self.scanner.beam_step_deg),)
+            fov = model.fov_deg if model else (self.scanner.start_angle_deg,
+                                               self.scanner.end_angle_deg)
+            status = 0
+            if not self.logged_in:
+                return sick_cola.failure(10)  # access denied
+            if not any(abs(hz - h) < 1e-3 for h, _ in modes):
+                status = 1
+            elif not any(abs(hz - h) < 1e-3 and abs(step - s) < 1e-3 for h, s in modes):
+                status = 2
+            elif not fov[0] - 1e-6 <= start / 1e4 < end / 1e4 <= fov[1] + 1e-6:
+                status = 4
+            if status == 0:
+                self.current = self.scanner.model_copy(update={
+                    "scan_hz": hz, "beam_step_deg": step, "start_angle_deg": start / 1e4,
+                    "end_angle_deg": end / 1e4 + step})
+            return sick_cola.command("sAN", "mLMPsetscancfg", bytes([status]) + args)
+        if (kind, name) == ("sMN", "Run"):
+            return sick_cola.command("sAN", "Run", b"\x01")
+        if (kind, name) == ("sRN", "DeviceIdent"):
+            ident = f"{self.scanner.model or 'SICK'} scanpipe-sim".encode("ascii")
+            return sick_cola.command("sRA", "DeviceIdent",
+                                     len(ident).to_bytes(2, "big") + ident + b"\x00\x01V1")
+        return sick_cola.failure(2)
+
+    def config(self) -> ScannerConfig:
+        """The configuration set by ``mLMPsetscancfg`` (the rig's until then)."""
+        return self.current
+
+    def encode(self, k: int, ranges_m: NDArray[np.float32], echo: NDArray[np.uint16] | None,
+               config: ScannerConfig, start_s: float) -> bytes:
+        """An ``sSN LMDscandata`` telegram (DIST1, RSSI1 when the model sends intensities)."""
+        return profile_frame(config.dialect, k, ranges_m, config, start_s, echo=echo)
+
+
 #: The emulated device of each dialect (a new family adds its entry).
 DEVICES: dict[str, Callable[[ScannerConfig], EmulatedDevice]] = {
     "ldoem": LdoemEmulated,
     "paper": StreamingDevice,
+    "cola_b": SickColaDevice,
     "scip": ScipDevice,
 }
 

@@ -1,0 +1,638 @@
+"""SICK CoLa scan telegrams (``sSN LMDscandata``): CoLa-B (binary) and CoLa-A (ASCII).
+
+CoLa-B frame: ``02 02 02 02``, u32 big-endian payload length, payload, one XOR byte over the
+payload (the shared framing of :mod:`scanpipe.protocol.framing`). CoLa-A frame: STX (0x02),
+space-separated ASCII tokens, ETX (0x03); numbers are hexadecimal (signed ones in two's
+complement), floats IEEE-754 in hex. Both carry the same fields, in this order (CoLa-B widths):
+
+=========================== =========================================================
+``sSN LMDscandata ``        command (``sRA`` for the answer to a poll)
+version, device number      u16, u16
+serial number               u32
+device status               2 × u8
+telegram, scan counter      u16, u16
+time since start-up         u32 µs (the scan's first sample); time of transmission u32 µs
+inputs, outputs             2 × u8, 2 × u8
+reserved (layer angle)      i16
+scan frequency              u32, 1/100 Hz
+measurement frequency       u32 (100 Hz units on most devices; some firmware sends Hz)
+encoders                    u16 n, n × (u32 position, u16 speed)
+16-bit channels             u16 n, n × (5-char name DIST1…5 / RSSI1…5, f32 scale, f32 offset,
+                            i32 start angle 1/10000°, u16 step 1/10000°, u16 count, count × u16)
+8-bit channels              the same with u8 data
+position                    u16 flag; 1: 6 × f32 (x y z, rotations), u8 rotation type, u8
+device name, comment        u16 flag; 1: u8 length + characters (each)
+time                        u16 flag; 1: u16 year, u8 month day hour minute second, u32 µs
+event                       u16 flag; 1: 4-char type, u32 encoder, u32 µs, i32 angle
+=========================== =========================================================
+
+Range in metres = raw × scale / 1000 + offset (as SICK's driver computes it); raw 0 is "no
+return" (NaN). Angles stay the device's (SICK: −45° … 225°, 90° straight ahead); the rig's
+``alpha_offset_deg`` and mount place them. Where the optional blocks' layout is uncertain see
+docs/protocols.md; the decoder accepts telegrams that end after any whole block flag (firmware
+that omits the trailing flags).
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanpipe.errors import ProtocolError
+from scanpipe.protocol.framing import (
+    FrameCounters,
+    LengthMismatch,
+    RawFrame,
+    encode_frame,
+)
+from scanpipe.protocol.profile import Profile, check_plausible
+
+MARKER = b"\x02\x02\x02\x02"
+COMMANDS = (b"sSN LMDscandata ", b"sRA LMDscandata ")
+#: The device clock: µs, 32 bits.
+TICK_NS = 1000
+WRAP_TICKS = 1 << 32
+ANGLE_UNITS_PER_DEG = 10_000.0
+#: A header of 16 (command) + 46 (fixed fields) + 2 (encoders) + 2 + 2 (channel counts).
+MIN_PAYLOAD_BYTES = 16 + 46 + 2 + 2 + 2
+#: The largest telegram any listed device sends is far below (LMS5xx: 5 echoes × 1141 × 2 + RSSI).
+MAX_PAYLOAD_BYTES = 1 << 17
+MAX_SAMPLES = 16_384
+STX, ETX = 0x02, 0x03
+_HEAD = struct.Struct(">HHI2sHHII2s2shII")
+_CHANNEL = struct.Struct(">5sffiHH")
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One data channel: its name, scale and offset, start angle and step (1/10000°) and raw
+    data (u16 or u8)."""
+
+    name: str
+    scale: float
+    offset: float
+    start_angle: int
+    step: int
+    data: NDArray[np.uint16] | NDArray[np.uint8]
+
+
+@dataclass(frozen=True)
+class ScanTelegram:
+    """Every field of one ``LMDscandata`` telegram (see the module docstring)."""
+
+    version: int = 1
+    device_number: int = 1
+    serial_number: int = 0
+    device_status: bytes = b"\x00\x00"
+    telegram_counter: int = 0
+    scan_counter: int = 0
+    time_since_startup_us: int = 0
+    time_of_transmission_us: int = 0
+    inputs: bytes = b"\x00\x00"
+    outputs: bytes = b"\x00\x00"
+    layer_angle: int = 0
+    scan_frequency_centihz: int = 2500
+    measurement_frequency: int = 0
+    encoders: tuple[tuple[int, int], ...] = ()
+    channels16: tuple[Channel, ...] = ()
+    channels8: tuple[Channel, ...] = ()
+    position: tuple[float, float, float, float, float, float, int, int] | None = None
+    name: str | None = None
+    comment: str | None = None
+    time: tuple[int, int, int, int, int, int, int] | None = None
+    event: tuple[bytes, int, int, int] | None = None
+    command: bytes = COMMANDS[0]
+    trailing_flags: int = 5  # how many optional-block flags the telegram carried
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def channel(self, name: str) -> Channel | None:
+        """The first channel called ``name`` (16-bit first), or None."""
+        for ch in (*self.channels16, *self.channels8):
+            if ch.name == name:
+                return ch
+        return None
+
+
+# -- CoLa-B --------------------------------------------------------------------------------
+
+def _string(payload: bytes, pos: int) -> tuple[str, int]:
+    if pos >= len(payload):
+        raise LengthMismatch("CoLa-B telegram ends inside a string length")
+    n = payload[pos]
+    end = pos + 1 + n
+    if end > len(payload):
+        raise LengthMismatch("CoLa-B telegram ends inside a string")
+    return payload[pos + 1:end].decode("latin-1"), end
+
+
+def parse_telegram(payload: bytes) -> ScanTelegram:
+    """All fields of a CoLa-B ``LMDscandata`` payload; :class:`ProtocolError` when it is not
+    one (:class:`LengthMismatch` when its counts disagree with its length)."""
+    if payload[:16] not in COMMANDS:
+        raise ProtocolError("not an LMDscandata telegram")
+    size = len(payload)
+    if size < MIN_PAYLOAD_BYTES:
+        raise LengthMismatch(f"LMDscandata telegram of {size} bytes: below the fixed header")
+    head = _HEAD.unpack_from(payload, 16)
+    pos = 16 + _HEAD.size
+    n_enc = int.from_bytes(payload[pos:pos + 2], "big")
+    pos += 2
+    if pos + 6 * n_enc + 4 > size:
+        raise LengthMismatch(f"LMDscandata: {n_enc} encoders do not fit {size} bytes")
+    encoders = tuple(struct.unpack_from(">IH", payload, pos + 6 * i) for i in range(n_enc))
+    pos += 6 * n_enc
+    channel_sets: list[tuple[Channel, ...]] = []
+    for width, dtype in ((2, ">u2"), (1, "u1")):
+        if pos + 2 > size:
+            raise LengthMismatch("LMDscandata ends before a channel count")
+        n_ch = int.from_bytes(payload[pos:pos + 2], "big")
+        pos += 2
+        channels = []
+        for _ in range(n_ch):
+            if pos + _CHANNEL.size > size:
+                raise LengthMismatch("LMDscandata ends inside a channel header")
+            name, scale, offset, start, step, count = _CHANNEL.unpack_from(payload, pos)
+            pos += _CHANNEL.size
+            end = pos + width * count
+            if end > size:
+                raise LengthMismatch(f"LMDscandata channel of {count} samples does not fit "
+                                     f"{size} bytes")
+            data = np.frombuffer(payload, dtype=dtype, count=count, offset=pos)
+            channels.append(Channel(name.decode("latin-1"), scale, offset, start, step, data))
+            pos = end
+        channel_sets.append(tuple(channels))
+    optional: dict[str, Any] = {}
+    flags = 0
+    for block in ("position", "name", "comment", "time", "event"):
+        if pos == size:
+            break  # firmware that omits the trailing flags
+        if pos + 2 > size:
+            raise LengthMismatch("LMDscandata ends inside a block flag")
+        flag = int.from_bytes(payload[pos:pos + 2], "big")
+        pos += 2
+        flags += 1
+        if flag == 0:
+            continue
+        if flag != 1:
+            raise ProtocolError(f"LMDscandata {block} flag {flag}: expected 0 or 1")
+        try:
+            if block == "position":
+                optional[block] = struct.unpack_from(">6fBB", payload, pos)
+                pos += 26
+            elif block in ("name", "comment"):
+                optional[block], pos = _string(payload, pos)
+            elif block == "time":
+                optional[block] = struct.unpack_from(">HBBBBBI", payload, pos)
+                pos += 11
+            else:
+                optional[block] = struct.unpack_from(">4sIIi", payload, pos)
+                pos += 16
+        except struct.error as err:
+            raise LengthMismatch(f"LMDscandata ends inside the {block} block") from err
+    if pos != size:
+        raise LengthMismatch(f"LMDscandata of {size} bytes: fields end at byte {pos}")
+    return ScanTelegram(
+        version=head[0], device_number=head[1], serial_number=head[2], device_status=head[3],
+        telegram_counter=head[4], scan_counter=head[5], time_since_startup_us=head[6],
+        time_of_transmission_us=head[7], inputs=head[8], outputs=head[9], layer_angle=head[10],
+        scan_frequency_centihz=head[11], measurement_frequency=head[12], encoders=encoders,
+        channels16=channel_sets[0], channels8=channel_sets[1], command=payload[:16],
+        trailing_flags=flags, **optional)
+
+
+def encode_telegram(t: ScanTelegram) -> bytes:
+    """The CoLa-B payload of a telegram (no framing)."""
+    parts = [t.command, _HEAD.pack(
+        t.version, t.device_number, t.serial_number, t.device_status, t.telegram_counter,
+        t.scan_counter, t.time_since_startup_us, t.time_of_transmission_us, t.inputs, t.outputs,
+        t.layer_angle, t.scan_frequency_centihz, t.measurement_frequency),
+        len(t.encoders).to_bytes(2, "big")]
+    parts += [struct.pack(">IH", p, s) for p, s in t.encoders]
+    for channels, dtype in ((t.channels16, ">u2"), (t.channels8, "u1")):
+        parts.append(len(channels).to_bytes(2, "big"))
+        for ch in channels:
+            parts.append(_CHANNEL.pack(ch.name.encode("latin-1")[:5].ljust(5), ch.scale,
+                                       ch.offset, ch.start_angle, ch.step, len(ch.data)))
+            parts.append(np.asarray(ch.data).astype(dtype).tobytes())
+    blocks: list[bytes] = []
+    if t.position is not None:
+        blocks.append(b"\x00\x01" + struct.pack(">6fBB", *t.position))
+    else:
+        blocks.append(b"\x00\x00")
+    for text in (t.name, t.comment):
+        raw = b"" if text is None else text.encode("latin-1")
+        blocks.append(b"\x00\x00" if text is None else b"\x00\x01" + bytes([len(raw)]) + raw)
+    blocks.append(b"\x00\x00" if t.time is None else b"\x00\x01" + struct.pack(">HBBBBBI",
+                                                                             *t.time))
+    blocks.append(b"\x00\x00" if t.event is None else b"\x00\x01" + struct.pack(">4sIIi",
+                                                                              *t.event))
+    parts += blocks[:t.trailing_flags]
+    return b"".join(parts)
+
+
+# -- telegram ↔ profile -------------------------------------------------------------------
+
+def _range_table(scale: float, offset: float) -> NDArray[np.float32]:
+    table = (np.arange(1 << 16, dtype=np.float64) * (scale / 1000.0) + offset).astype(np.float32)
+    table[0] = np.nan
+    return table
+
+
+_TABLES: dict[tuple[float, float], NDArray[np.float32]] = {(1.0, 0.0): _range_table(1.0, 0.0)}
+
+
+def ranges_from_channel(ch: Channel) -> NDArray[np.float32]:
+    """Metres of a DIST channel (raw × scale / 1000 + offset; raw 0 → NaN)."""
+    key = (ch.scale, ch.offset)
+    table = _TABLES.get(key)
+    if table is None:
+        if not (np.isfinite(ch.scale) and np.isfinite(ch.offset)) or ch.scale <= 0:
+            raise ProtocolError(f"channel {ch.name}: scale {ch.scale} / offset {ch.offset} "
+                                "not usable")
+        if len(_TABLES) < 64:
+            table = _TABLES[key] = _range_table(ch.scale, ch.offset)
+        else:
+            table = _range_table(ch.scale, ch.offset)
+    return table[np.asarray(ch.data, dtype=np.uint16)]
+
+
+def telegram_profile(t: ScanTelegram, checksum_ok: bool = True) -> Profile:
+    """The profile of a telegram: DIST1 ranges, RSSI1 echo (if sent), device times in µs."""
+    dist = t.channel("DIST1")
+    if dist is None:
+        raise ProtocolError("LMDscandata without a DIST1 channel")
+    rssi = t.channel("RSSI1")
+    echo = None
+    if rssi is not None and len(rssi.data) == len(dist.data):
+        echo = np.asarray(rssi.data, dtype=np.uint16)
+    step_deg = dist.step / ANGLE_UNITS_PER_DEG
+    end = None
+    if t.scan_frequency_centihz > 0:
+        span_s = max(len(dist.data) - 1, 0) * step_deg / 360.0 / (
+            t.scan_frequency_centihz / 100.0)
+        end = (t.time_since_startup_us + round(span_s * 1e6)) % WRAP_TICKS
+    return Profile(
+        frame=t.scan_counter, sector=0, start_angle_deg=dist.start_angle / ANGLE_UNITS_PER_DEG,
+        step_deg=step_deg, ranges_m=ranges_from_channel(dist), echo=echo,
+        device_time_ms=t.time_since_startup_us, device_end_time_ms=end,
+        checksum_ok=checksum_ok, device_tick_ns=TICK_NS, device_wrap_ticks=WRAP_TICKS)
+
+
+def profile_telegram(profile: Profile, serial_number: int = 0x01234567) -> ScanTelegram:
+    """A telegram carrying ``profile`` (scale 1 mm, or 2 mm past 65.5 m; RSSI1 if it has an
+    echo); the scan frequency follows its device start and end times (25 Hz without)."""
+    ranges = np.asarray(profile.ranges_m, dtype=np.float64)
+    finite = np.isfinite(ranges) & (ranges > 0)
+    scale = 2.0 if finite.any() and float(ranges[finite].max()) > 65.5 else 1.0
+    raw = np.where(finite, np.rint(np.where(finite, ranges, 0.0) * 1000.0 / scale), 0.0)
+    raw = np.clip(raw, 0, 65535).astype(np.uint16)
+    raw[(raw == 0) & finite] = 1
+    start = round(profile.start_angle_deg * ANGLE_UNITS_PER_DEG)
+    step = round(profile.step_deg * ANGLE_UNITS_PER_DEG)
+    channels = [Channel("DIST1", scale, 0.0, start, step, raw)]
+    if profile.echo is not None:
+        channels.append(Channel("RSSI1", 1.0, 0.0, start, step,
+                                np.asarray(profile.echo, dtype=np.uint16)))
+    t0 = profile.device_time_ms or 0
+    freq = 2500
+    if profile.device_end_time_ms is not None and len(raw) > 1:
+        span_us = (profile.device_end_time_ms - t0) % WRAP_TICKS
+        if span_us > 0:
+            freq = round((len(raw) - 1) * profile.step_deg / 360.0 / (span_us / 1e6) * 100)
+    return ScanTelegram(
+        serial_number=serial_number, telegram_counter=profile.frame & 0xFFFF,
+        scan_counter=profile.frame & 0xFFFF, time_since_startup_us=t0 % WRAP_TICKS,
+        time_of_transmission_us=(t0 + 1000) % WRAP_TICKS, scan_frequency_centihz=freq,
+        measurement_frequency=round(freq / 100 * 360 / max(profile.step_deg, 1e-6) / 100),
+        channels16=tuple(channels))
+
+
+def encode_profile(profile: Profile) -> bytes:
+    """One CoLa-B frame carrying ``profile``."""
+    return encode_frame(MARKER, encode_telegram(profile_telegram(profile)))
+
+
+def decode_payload(payload: bytes, checksum_ok: bool = True) -> list[Profile] | None:
+    """The profile of a CoLa-B payload; None for another CoLa telegram (an ``sEA`` answer …);
+    :class:`ProtocolError` for bytes that are no CoLa telegram at all."""
+    if payload[:16] not in COMMANDS:
+        if len(payload) >= 4 and payload[0] == 0x73 and payload[3] == 0x20 and payload[
+                1:3].isalpha():
+            return None  # sEA, sAN, sWA …: a reply without scan data
+        raise ProtocolError("not a CoLa telegram")
+    return [telegram_profile(parse_telegram(payload), checksum_ok)]
+
+
+def check_frame(profiles: list[Profile] | None) -> int | None:
+    """The scan counter; ``ImplausibleFrame`` for angles or sizes no SICK scanner sends."""
+    return check_plausible(profiles, MAX_SAMPLES, min_start_deg=-360.0)
+
+
+# -- CoLa-A --------------------------------------------------------------------------------
+
+def _hex_tokens(tokens: list[bytes]) -> NDArray[np.int64]:
+    """Hex tokens (1–8 digits each) to integers, vectorised: one pass over their bytes."""
+    if not tokens:
+        return np.zeros(0, np.int64)
+    lengths = np.fromiter((len(t) for t in tokens), np.int64, len(tokens))
+    if lengths.min() < 1 or lengths.max() > 8:
+        raise ProtocolError("CoLa-A: a number token is empty or longer than 8 hex digits")
+    chars = np.frombuffer(b"".join(tokens), np.uint8)
+    nibble = _NIBBLE[chars]
+    if (nibble < 0).any():
+        raise ProtocolError("CoLa-A: a number token is not hexadecimal")
+    ends = np.cumsum(lengths)
+    starts = ends - lengths
+    position = np.arange(chars.size) - np.repeat(ends - 1, lengths)  # ≤ 0 from the right
+    weights = np.left_shift(np.int64(1), (-4 * position).astype(np.int64))
+    result: NDArray[np.int64] = np.add.reduceat(nibble.astype(np.int64) * weights, starts)
+    return result
+
+
+def _nibble_table() -> NDArray[np.int8]:
+    table = np.full(256, -1, np.int8)
+    for i, c in enumerate(b"0123456789ABCDEF"):
+        table[c] = i
+    for i, c in enumerate(b"abcdef"):
+        table[c] = 10 + i
+    return table
+
+
+_NIBBLE = _nibble_table()
+
+
+def _signed32(value: int) -> int:
+    return value - (1 << 32) if value & 0x80000000 else value
+
+
+def _float(value: int) -> float:
+    result: float = struct.unpack(">f", value.to_bytes(4, "big"))[0]
+    return result
+
+
+def parse_ascii(body: bytes) -> ScanTelegram:
+    """All fields of a CoLa-A ``LMDscandata`` telegram (the bytes between STX and ETX)."""
+    tokens = body.split()
+    if len(tokens) < 2 or tokens[0] not in (b"sSN", b"sRA") or tokens[1] != b"LMDscandata":
+        raise ProtocolError("not a CoLa-A LMDscandata telegram")
+    pos = 2
+
+    def take(n: int) -> list[bytes]:
+        nonlocal pos
+        if pos + n > len(tokens):
+            raise LengthMismatch("CoLa-A LMDscandata ends early")
+        out = tokens[pos:pos + n]
+        pos += n
+        return out
+
+    def num(n: int = 1) -> list[int]:
+        return [int(v) for v in _hex_tokens(take(n))]
+
+    version, device_number, serial, s1, s2, tcount, scount, t_start, t_tx, i1, i2, o1, o2, \
+        layer, freq, mfreq = num(16)
+    (n_enc,) = num(1)
+    enc_values = num(2 * n_enc)
+    encoders = tuple((enc_values[2 * i], enc_values[2 * i + 1]) for i in range(n_enc))
+    channel_sets: list[tuple[Channel, ...]] = []
+    for dtype in (np.uint16, np.uint8):
+        (n_ch,) = num(1)
+        channels = []
+        for _ in range(n_ch):
+            (name,) = take(1)
+            scale, offset, start, step, count = num(5)
+            if count > MAX_SAMPLES:
+                raise ProtocolError(f"CoLa-A channel of {count} samples")
+            data = _hex_tokens(take(count))
+            if data.size and data.max() > np.iinfo(dtype).max:
+                raise ProtocolError(f"CoLa-A channel {name!r}: value above its width")
+            typed: NDArray[np.uint16] | NDArray[np.uint8] = (
+                data.astype(np.uint16) if dtype is np.uint16 else data.astype(np.uint8))
+            channels.append(Channel(name.decode("latin-1"), _float(scale), _float(offset),
+                                    _signed32(start), step, typed))
+        channel_sets.append(tuple(channels))
+    optional: dict[str, Any] = {}
+    flags = 0
+    for block in ("position", "name", "comment", "time", "event"):
+        if pos == len(tokens):
+            break
+        (flag,) = num(1)
+        flags += 1
+        if flag == 0:
+            continue
+        if flag != 1:
+            raise ProtocolError(f"CoLa-A {block} flag {flag}: expected 0 or 1")
+        if block == "position":
+            v = num(8)
+            optional[block] = (*[_float(x) for x in v[:6]], v[6], v[7])
+        elif block in ("name", "comment"):
+            (length,) = num(1)
+            text = b" ".join(take(1)) if length else b""
+            optional[block] = text.decode("latin-1")
+        elif block == "time":
+            optional[block] = tuple(num(7))
+        else:
+            (kind,) = take(1)
+            enc, us, angle = num(3)
+            optional[block] = (kind, enc, us, _signed32(angle))
+    if pos != len(tokens):
+        raise LengthMismatch(f"CoLa-A LMDscandata: {len(tokens) - pos} tokens after the fields")
+    return ScanTelegram(
+        version=version, device_number=device_number, serial_number=serial,
+        device_status=bytes([s1 & 0xFF, s2 & 0xFF]), telegram_counter=tcount,
+        scan_counter=scount, time_since_startup_us=t_start, time_of_transmission_us=t_tx,
+        inputs=bytes([i1 & 0xFF, i2 & 0xFF]), outputs=bytes([o1 & 0xFF, o2 & 0xFF]),
+        layer_angle=layer - 0x10000 if layer & 0x8000 else layer,
+        scan_frequency_centihz=freq, measurement_frequency=mfreq, encoders=encoders,
+        channels16=channel_sets[0], channels8=channel_sets[1],
+        command=tokens[0] + b" LMDscandata ", trailing_flags=flags, **optional)
+
+
+def _hex(values: NDArray[np.integer] | list[int]) -> list[bytes]:
+    return [format(int(v), "X").encode() for v in values]
+
+
+def _float_hex(value: float) -> bytes:
+    return struct.pack(">f", value).hex().upper().encode()
+
+
+def encode_ascii(t: ScanTelegram) -> bytes:
+    """A whole CoLa-A frame (STX, tokens, ETX) for a telegram."""
+    tokens: list[bytes] = [t.command[:3], b"LMDscandata"]
+    tokens += _hex([t.version, t.device_number, t.serial_number, t.device_status[0],
+                    t.device_status[1], t.telegram_counter, t.scan_counter,
+                    t.time_since_startup_us, t.time_of_transmission_us, t.inputs[0],
+                    t.inputs[1], t.outputs[0], t.outputs[1], t.layer_angle & 0xFFFF,
+                    t.scan_frequency_centihz, t.measurement_frequency, len(t.encoders)])
+    for p, s in t.encoders:
+        tokens += _hex([p, s])
+    for channels in (t.channels16, t.channels8):
+        tokens += _hex([len(channels)])
+        for ch in channels:
+            tokens += [ch.name.encode("latin-1"), _float_hex(ch.scale), _float_hex(ch.offset)]
+            tokens += _hex([ch.start_angle & 0xFFFFFFFF, ch.step, len(ch.data)])
+            tokens += _hex(np.asarray(ch.data))
+    blocks: list[list[bytes]] = []
+    blocks.append([b"0"] if t.position is None else [b"1", *[_float_hex(v) for v in
+                                                          t.position[:6]],
+                                                     *_hex(list(t.position[6:]))])
+    for text in (t.name, t.comment):
+        if text is None:
+            blocks.append([b"0"])
+        elif " " in text or not text:
+            raise ProtocolError("CoLa-A strings here are one token (no spaces, not empty)")
+        else:
+            blocks.append([b"1", *_hex([len(text)]), text.encode("latin-1")])
+    blocks.append([b"0"] if t.time is None else [b"1", *_hex(list(t.time))])
+    blocks.append([b"0"] if t.event is None else [
+        b"1", t.event[0], *_hex([t.event[1], t.event[2], t.event[3] & 0xFFFFFFFF])])
+    for block in blocks[:t.trailing_flags]:
+        tokens += block
+    return bytes([STX]) + b" ".join(tokens) + bytes([ETX])
+
+
+def encode_profile_ascii(profile: Profile) -> bytes:
+    """One CoLa-A frame carrying ``profile``."""
+    return encode_ascii(profile_telegram(profile))
+
+
+def decode_ascii(body: bytes, checksum_ok: bool = True) -> list[Profile] | None:
+    """The profile of a CoLa-A telegram body; None for another CoLa-A telegram."""
+    if not body.startswith((b"sSN LMDscandata", b"sRA LMDscandata")):
+        if len(body) >= 4 and body[:1] == b"s" and body[3:4] == b" " and body[1:3].isalpha():
+            return None
+        raise ProtocolError("not a CoLa-A telegram")
+    return [telegram_profile(parse_ascii(body), checksum_ok)]
+
+
+class AsciiFrameReader:
+    """STX … ETX frames from a byte stream in chunks of any size, with resync.
+
+    A frame is the bytes between an STX and the next ETX. An STX inside that span means the
+    first one was a false start: decoding resumes at the later STX (one byte past the false
+    start, then the next STX). A frame that does not parse is counted (malformed, or a
+    length mismatch) and skipped; so is a frame longer than the cap. There is no checksum.
+    """
+
+    def __init__(self, max_payload_bytes: int = MAX_PAYLOAD_BYTES * 3,
+                 check: Any = check_frame) -> None:
+        self.max_payload_bytes = max_payload_bytes
+        self.check = check
+        self.counters = FrameCounters()
+        self._buffer = bytearray()
+        self._base = 0
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list[RawFrame]:
+        """Add bytes; return the frames they complete."""
+        self._buffer += chunk
+        return self._scan()
+
+    def finish(self) -> list[RawFrame]:
+        """End of stream: an open frame is a false start; the rest is skipped."""
+        frames = self._scan()
+        if self._buffer:
+            if self._buffer.find(bytes([STX])) >= 0:
+                self.counters.resyncs += 1
+            self.counters.bytes_skipped += len(self._buffer)
+            self._base += len(self._buffer)
+            self._buffer.clear()
+        return frames
+
+    def _scan(self) -> list[RawFrame]:
+        buf = self._buffer
+        frames: list[RawFrame] = []
+        pos = 0
+        while True:
+            start = buf.find(b"\x02", pos)
+            if start < 0:
+                self.counters.bytes_skipped += len(buf) - pos
+                pos = len(buf)
+                break
+            self.counters.bytes_skipped += start - pos
+            pos = start
+            end = buf.find(b"\x03", start + 1)
+            limit = len(buf) if end < 0 else end
+            inner = buf.find(b"\x02", start + 1, limit)
+            if inner >= 0:  # a false start: resume at the later STX
+                self.counters.resyncs += 1
+                self.counters.bytes_skipped += inner - start
+                pos = inner
+                continue
+            if end < 0:
+                if len(buf) - start > self.max_payload_bytes:
+                    self.counters.resyncs += 1
+                    self.counters.bytes_skipped += 1
+                    pos = start + 1
+                    continue
+                break
+            body = bytes(buf[start + 1:end])
+            offset = self._base + start
+            pos = end + 1
+            try:
+                parsed = decode_ascii(body)
+                if parsed is not None:
+                    self.check(parsed)
+            except LengthMismatch:
+                self.counters.length_mismatches += 1
+                self.counters.resyncs += 1
+                self.counters.bytes_skipped += end + 1 - start
+                continue
+            except ProtocolError:
+                self.counters.malformed_frames += 1
+                self.counters.resyncs += 1
+                self.counters.bytes_skipped += end + 1 - start
+                continue
+            frames.append(RawFrame(body, True, 0, 0, offset, self._base + end + 1, parsed))
+        del buf[:pos]
+        self._base += pos
+        return frames
+
+
+def ascii_reader(dialect: Any, max_payload_bytes: int, confirm: bool) -> AsciiFrameReader:
+    """The registry's reader factory for CoLa-A."""
+    return AsciiFrameReader(max_payload_bytes, dialect.check_frame)
+
+
+
+# -- CoLa-B commands (start/stop, log-in, scan configuration) -------------------------------
+
+#: The "authorised client" level and its documented default password (SICK manuals).
+ACCESS_LEVEL_CLIENT = 3
+CLIENT_PASSWORD = 0xF4724744
+SCANCFG = struct.Struct(">IHIii")  # frequency 1/100 Hz, sectors, resolution, start, end
+
+
+def command(kind: str, name: str, args: bytes = b"") -> bytes:
+    """A whole CoLa-B frame ``kind name args`` (``sEN LMDscandata`` + ``b"\\x01"`` …)."""
+    return encode_frame(MARKER, f"{kind} {name} ".encode("ascii") + args)
+
+
+def parse_command(payload: bytes) -> tuple[str, str, bytes]:
+    """``(kind, name, args)`` of a CoLa-B telegram; :class:`ProtocolError` if it is none."""
+    first = payload.find(b" ")
+    second = payload.find(b" ", first + 1)
+    if first != 3 or not payload[:3].isalpha():
+        raise ProtocolError("not a CoLa telegram")
+    if second < 0:  # a name without arguments may end the telegram without its space
+        second = len(payload)
+    try:
+        name = payload[first + 1:second].decode("ascii")
+    except UnicodeDecodeError as err:
+        raise ProtocolError("CoLa telegram name is not ASCII") from err
+    return payload[:3].decode("ascii"), name, payload[second + 1:]
+
+
+def scan_config_args(scan_hz: float, step_deg: float, start_deg: float, end_deg: float) -> bytes:
+    """The arguments of ``sMN mLMPsetscancfg``: one sector from start to end (the last
+    sample's angle), at ``step_deg``."""
+    return SCANCFG.pack(round(scan_hz * 100), 1, round(step_deg * ANGLE_UNITS_PER_DEG),
+                        round(start_deg * ANGLE_UNITS_PER_DEG),
+                        round(end_deg * ANGLE_UNITS_PER_DEG))
+
+
+def failure(code: int) -> bytes:
+    """An ``sFA`` frame with a u16 error code (2: unknown method, 10: access denied)."""
+    return encode_frame(MARKER, b"sFA " + code.to_bytes(2, "big"))
