@@ -73,6 +73,9 @@ DATA_COMMANDS: dict[bytes, tuple[int, int]] = {
     b"MD": (3, 1), b"GD": (3, 1), b"MS": (2, 1), b"GS": (2, 1), b"ME": (3, 2), b"GE": (3, 2),
 }
 MULTI_ECHO_COMMANDS = (b"HD", b"HE", b"ND", b"NE")
+_MULTI_ECHO = re.compile(rb"^[HN][DE]\d{10}(\d{3})?(;[ -~]{0,16})?$")
+#: A streaming echo's scan parameters: command, start, end, cluster, skip (not the count).
+STREAM_PARAM_CHARS = 13
 _STREAM_ECHO = re.compile(rb"^(M[DSE])(\d{4})(\d{4})(\d{2})(\d)(\d{2})(;[ -~]{0,16})?$")
 _SINGLE_ECHO = re.compile(rb"^(G[DSE])(\d{4})(\d{4})(\d{2})(;[ -~]{0,16})?$")
 #: Where a data message's echo line may begin (a resync target at any byte).
@@ -292,6 +295,11 @@ class ScipReader:
         self.last_status: tuple[str, str] | None = None
         self._buf = bytearray()
         self._offset = 0  # stream offset of _buf[0]
+        # The echo line has no check character: a stream's scans must repeat the parameters
+        # the device acknowledged (or, without an acknowledgement, the first scan's; two
+        # scans agreeing on other parameters replace them).
+        self._stream_params: bytes | None = None
+        self._candidate: bytes | None = None
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[RawFrame]:
         """Add bytes; return the messages they complete."""
@@ -362,7 +370,7 @@ class ScipReader:
             raise _Bad
         command = echo[:2]
         if command in MULTI_ECHO_COMMANDS:
-            if len(lines) >= 2 and _status_ok(lines[1]):
+            if len(lines) >= 2 and _status_ok(lines[1]) and _MULTI_ECHO.match(echo):
                 raise ProtocolError(f"SCIP multi-echo data ({command.decode()}): not supported; "
                                     f"stream MD/ME/GD/GE (first echo) instead")
             raise _Bad
@@ -372,9 +380,13 @@ class ScipReader:
         status = lines[1][:2].decode("ascii", "replace")
         if command in DATA_COMMANDS and len(lines) > 2:
             return self._parse_scan(message, lines, offset, end, status_ok)
-        if not status_ok:
-            raise _Bad
+        if not status_ok or _DATA_ECHO.search(message, 1) is not None \
+                or not all(_parameter_ok(line) for line in lines[2:]):
+            raise _Bad  # a reply's further lines are NAME:value;check (VV, PP, II)
         self.last_status = (command.decode("ascii", "replace"), status)
+        if command[:1] == b"M" and command in DATA_COMMANDS and status == "00" \
+                and _STREAM_ECHO.match(echo):
+            self._stream_params, self._candidate = echo[:STREAM_PARAM_CHARS], None
         if command == b"PP" and status == "00":
             self._read_parameters(lines[2:])
         return RawFrame(message, True, 0, 0, offset, end, None)
@@ -395,6 +407,16 @@ class ScipReader:
         if 0 < ares <= 1 << 16 and 0 <= afrt < ares:
             self.geometry = Geometry(ares, afrt, rpm)
             self.geometry_from_device = True
+
+    def _echo_agrees(self, params: bytes) -> bool:
+        if self._stream_params is None or self._stream_params == params:
+            self._stream_params, self._candidate = params, None
+            return True
+        if self._candidate == params:  # two scans agree: the parameters changed
+            self._stream_params, self._candidate = params, None
+            return True
+        self._candidate = params
+        return False
 
     def _parse_scan(self, message: bytes, lines: list[bytes], offset: int, end: int,
                     status_ok: bool) -> RawFrame:
@@ -433,6 +455,8 @@ class ScipReader:
             ok &= check_char(last_line[:tail]) == int(last_line[tail])
             data = np.concatenate([data, last_line[:tail]])
         ok &= check_char(stamp[:4]) == stamp[4] and status_ok
+        if ok and command[:1] == b"M":
+            ok = self._echo_agrees(lines[0][:STREAM_PARAM_CHARS])
         time_ms = int(decode_values(np.frombuffer(stamp[:4], np.uint8), 4)[0])
         values = decode_values(data, chars)
         if per_step == 2:
@@ -458,6 +482,11 @@ class ScipReader:
         else:
             self.counters.checksum_failures += 1
         return RawFrame(message, ok, 0, 0, offset, end, [profile])
+
+
+def _parameter_ok(line: bytes) -> bool:
+    text, _, check = line.rpartition(b";")
+    return len(check) == 1 and bool(text) and check_char(text) == check[0]
 
 
 def _status_ok(line: bytes) -> bool:

@@ -78,7 +78,7 @@ class ScipDevice:
         self.streaming = False
         self.laser_on = False
         self.stream: _Stream | None = None
-        self.commands: list[str] = []
+        self.requests: list[str] = []
         self._line = bytearray()
 
     def receive(self, data: bytes, now_s: float) -> list[bytes]:
@@ -94,7 +94,7 @@ class ScipDevice:
         return replies
 
     def _handle(self, line: bytes, now_s: float) -> bytes:
-        self.commands.append(line[:2].decode("ascii", "replace"))
+        self.requests.append(line[:2].decode("ascii", "replace"))
         command = line[:2]
         spec = self.spec
         if command == b"VV":
