@@ -321,6 +321,21 @@ class ScipReader:
         buf = self._buf
         pos = 0
         while True:
+            pending: list[RawFrame | _Scan] = []
+            pos = self._collect(buf, pos, pending)
+            done, restart = self._finish_scans(pending)
+            frames += done
+            if restart is None:
+                break
+            pos = self._resync(buf, restart - self._offset, len(buf))
+        del buf[:pos]
+        self._offset += pos
+        return frames
+
+    def _collect(self, buf: bytearray, pos: int, pending: list[RawFrame | _Scan]) -> int:
+        """Cut complete messages from ``buf`` at ``pos``: replies parsed, scans checked for
+        structure only (their data is checked and decoded together, :meth:`_finish_scans`)."""
+        while True:
             # A message starts at the buffer start or after a LF; skip stray LFs.
             while pos < len(buf) and buf[pos] == LF:
                 pos += 1
@@ -330,29 +345,17 @@ class ScipReader:
                 if len(buf) - pos > MAX_MESSAGE_BYTES:
                     pos = self._resync(buf, pos, len(buf))
                     continue
-                break
+                return pos
             end += 2
             if end - pos > MAX_MESSAGE_BYTES:
                 pos = self._resync(buf, pos, end)
                 continue
-            message = bytes(buf[pos:end])
             try:
-                frame = self._parse(message, self._offset + pos)
+                pending.append(self._parse(bytes(buf[pos:end]), self._offset + pos))
             except _Bad:
                 pos = self._resync(buf, pos, end)
                 continue
-            except ImplausibleFrame:
-                self.counters.implausible_frames += 1
-                pos = self._resync(buf, pos, end)
-                continue
-            if not frame.checksum_ok and _DATA_ECHO.search(message, 1) is not None:
-                pos = self._resync(buf, pos, end)
-                continue
-            frames.append(frame)
             pos = end
-        del buf[:pos]
-        self._offset += pos
-        return frames
 
     def _resync(self, buf: bytearray, pos: int, end: int) -> int:
         """Past a false start: the next line, or a data echo beginning inside this line."""
@@ -362,7 +365,7 @@ class ScipReader:
         self.counters.bytes_skipped += nxt - pos
         return nxt
 
-    def _parse(self, message: bytes, offset: int) -> RawFrame:
+    def _parse(self, message: bytes, offset: int) -> RawFrame | _Scan:
         lines = message[:-2].split(b"\n")
         echo = lines[0]
         end = offset + len(message)
@@ -384,9 +387,6 @@ class ScipReader:
                 or not all(_parameter_ok(line) for line in lines[2:]):
             raise _Bad  # a reply's further lines are NAME:value;check (VV, PP, II)
         self.last_status = (command.decode("ascii", "replace"), status)
-        if command[:1] == b"M" and command in DATA_COMMANDS and status == "00" \
-                and _STREAM_ECHO.match(echo):
-            self._stream_params, self._candidate = echo[:STREAM_PARAM_CHARS], None
         if command == b"PP" and status == "00":
             self._read_parameters(lines[2:])
         return RawFrame(message, True, 0, 0, offset, end, None)
@@ -419,7 +419,7 @@ class ScipReader:
         return False
 
     def _parse_scan(self, message: bytes, lines: list[bytes], offset: int, end: int,
-                    status_ok: bool) -> RawFrame:
+                    status_ok: bool) -> _Scan:
         command = lines[0][:2]
         match = (_STREAM_ECHO if command[:1] == b"M" else _SINGLE_ECHO).match(lines[0])
         if match is None:
@@ -432,56 +432,131 @@ class ScipReader:
         stamp = lines[2]
         if len(stamp) != 5:
             raise _Bad
-        data_lines = lines[3:]
         n_chars = count * chars * per_step
-        want_lines = -(-n_chars // DATA_LINE_CHARS)
-        if len(data_lines) != want_lines:
+        if len(lines) - 3 != -(-n_chars // DATA_LINE_CHARS):
             raise _Bad
-        arr = np.frombuffer(message, np.uint8)
-        body_start = sum(len(x) + 1 for x in lines[:3])
-        body = arr[body_start:len(message) - 1]  # the data lines, each ending LF
-        full = n_chars // DATA_LINE_CHARS
-        tail = n_chars - full * DATA_LINE_CHARS
-        if body.size != full * (DATA_LINE_CHARS + 2) + (tail + 2 if tail else 0):
+        body_start = len(lines[0]) + len(lines[1]) + len(stamp) + 3
+        full, tail = divmod(n_chars, DATA_LINE_CHARS)
+        if len(message) - 1 - body_start != full * (DATA_LINE_CHARS + 2) + (tail + 2 if tail
+                                                                             else 0):
             raise _Bad
-        head = body[:full * (DATA_LINE_CHARS + 2)].reshape(full, DATA_LINE_CHARS + 2)
-        if full and not (head[:, -1] == LF).all():
-            raise _Bad
-        sums = (head[:, :DATA_LINE_CHARS].sum(axis=1, dtype=np.int64) & 0x3F) + CHAR_OFFSET
-        ok = bool((sums == head[:, DATA_LINE_CHARS]).all())
-        data = head[:, :DATA_LINE_CHARS].ravel()
-        if tail:
-            last_line = body[full * (DATA_LINE_CHARS + 2):]
-            ok &= check_char(last_line[:tail]) == int(last_line[tail])
-            data = np.concatenate([data, last_line[:tail]])
-        ok &= check_char(stamp[:4]) == stamp[4] and status_ok
-        if ok and command[:1] == b"M":
-            ok = self._echo_agrees(lines[0][:STREAM_PARAM_CHARS])
-        time_ms = int(decode_values(np.frombuffer(stamp[:4], np.uint8), 4)[0])
-        values = decode_values(data, chars)
-        if per_step == 2:
-            pairs = values.reshape(-1, 2)
-            mm, intensity = pairs[:, 0], pairs[:, 1]
-            echo: NDArray[np.uint16] | None = np.clip(intensity, 0, 65535).astype(np.uint16)
-        else:
-            mm, echo = values, None
-        ranges = np.where(mm >= MIN_VALID_RANGE_MM, mm.astype(np.float32) / np.float32(1000),
-                          np.float32(np.nan)).astype(np.float32)
+        return _Scan(message, offset, end, body_start, n_chars, chars, per_step, start, last,
+                     cluster, status_ok, command[:1] == b"M", self.geometry)
+
+    def _finish_scans(self, pending: list[RawFrame | _Scan]
+                      ) -> tuple[list[RawFrame], int | None]:
+        """Check and decode the collected scans together (one numpy pass per layout); the
+        frames in order, and the stream offset to resync at when a scan failed its check
+        characters with another message's echo inside it (then later messages are redone)."""
+        scans = [x for x in pending if isinstance(x, _Scan)]
+        layouts: dict[tuple[int, int, int], list[_Scan]] = {}
+        for scan in scans:
+            layouts.setdefault((scan.n_chars, scan.chars, scan.per_step), []).append(scan)
+        for (n_chars, chars, per_step), group in layouts.items():
+            _decode_group(group, n_chars, chars, per_step)
+        frames: list[RawFrame] = []
+        for item in pending:
+            if isinstance(item, RawFrame):
+                echo, _, rest = item.payload.partition(b"\n")
+                if rest[:3] == b"00P" and _STREAM_ECHO.match(echo):  # a stream acknowledged
+                    self._stream_params, self._candidate = echo[:STREAM_PARAM_CHARS], None
+                frames.append(item)
+                continue
+            ok = item.ok
+            if ok and item.stream:
+                ok = self._echo_agrees(item.message[:STREAM_PARAM_CHARS])
+            if not ok and _DATA_ECHO.search(item.message, 1) is not None:
+                return frames, item.offset
+            profile = item.profile(ok)
+            if ok:
+                try:
+                    check_frame([profile])
+                except ImplausibleFrame:
+                    self.counters.implausible_frames += 1
+                    return frames, item.offset
+            else:
+                self.counters.checksum_failures += 1
+            frames.append(RawFrame(item.message, ok, 0, 0, item.offset, item.end, [profile]))
+        return frames, None
+
+
+@dataclass
+class _Scan:
+    """A scan message whose structure is sound; data checked and decoded in a batch."""
+
+    message: bytes
+    offset: int
+    end: int
+    body_start: int
+    n_chars: int
+    chars: int
+    per_step: int
+    start: int
+    last: int
+    cluster: int
+    status_ok: bool
+    stream: bool
+    geometry: Geometry
+    ok: bool = False
+    time_ms: int = 0
+    ranges: NDArray[np.float32] | None = None
+    echo: NDArray[np.uint16] | None = None
+
+    def profile(self, ok: bool) -> Profile:
+        """The decoded profile."""
+        assert self.ranges is not None
         g = self.geometry
         end_ms = None
         if g.scan_rpm > 0:
-            span_s = (last - start + 1) / g.ares * 60.0 / g.scan_rpm
-            end_ms = (time_ms + round(span_s * 1000.0)) % TIMESTAMP_WRAP_MS
-        profile = Profile(frame=time_ms & 0xFFFF, sector=0, start_angle_deg=g.angle_deg(start),
-                          step_deg=cluster * g.step_deg, ranges_m=ranges, echo=echo,
-                          device_time_ms=time_ms, device_end_time_ms=end_ms,
-                          checksum_ok=ok, device_tick_ns=1_000_000,
-                          device_wrap_ticks=TIMESTAMP_WRAP_MS)
-        if ok:
-            check_frame([profile])
-        else:
-            self.counters.checksum_failures += 1
-        return RawFrame(message, ok, 0, 0, offset, end, [profile])
+            span_s = (self.last - self.start + 1) / g.ares * 60.0 / g.scan_rpm
+            end_ms = (self.time_ms + round(span_s * 1000.0)) % TIMESTAMP_WRAP_MS
+        return Profile(frame=self.time_ms & 0xFFFF, sector=0,
+                       start_angle_deg=g.angle_deg(self.start),
+                       step_deg=self.cluster * g.step_deg, ranges_m=self.ranges,
+                       echo=self.echo,
+                       device_time_ms=self.time_ms, device_end_time_ms=end_ms,
+                       checksum_ok=ok, device_tick_ns=1_000_000,
+                       device_wrap_ticks=TIMESTAMP_WRAP_MS)
+
+
+def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -> None:
+    """Check characters and values of scans of one layout, all at once."""
+    k = len(group)
+    full, tail = divmod(n_chars, DATA_LINE_CHARS)
+    line = DATA_LINE_CHARS + 2
+    body_len = full * line + (tail + 2 if tail else 0)
+    # Timestamp line (4 chars + check) sits just before the body.
+    blob = np.frombuffer(b"".join(s.message[s.body_start - 6:s.body_start + body_len]
+                                  for s in group), np.uint8).reshape(k, body_len + 6)
+    stamp = blob[:, :4].astype(np.int32)
+    ok = ((stamp.sum(axis=1) & 0x3F) + CHAR_OFFSET) == blob[:, 4]
+    times = ((stamp - CHAR_OFFSET) & 0x3F) @ np.array([1 << 18, 1 << 12, 1 << 6, 1], np.int32)
+    body = blob[:, 6:]
+    head = body[:, :full * line].reshape(k, full, line)
+    ok &= (head[:, :, DATA_LINE_CHARS + 1] == LF).all(axis=1)
+    sums = (head[:, :, :DATA_LINE_CHARS].sum(axis=2, dtype=np.int32) & 0x3F) + CHAR_OFFSET
+    ok &= (sums == head[:, :, DATA_LINE_CHARS]).all(axis=1)
+    data = head[:, :, :DATA_LINE_CHARS].reshape(k, full * DATA_LINE_CHARS)
+    if tail:
+        rest = body[:, full * line:]
+        tail_sum = (rest[:, :tail].sum(axis=1, dtype=np.int32) & 0x3F) + CHAR_OFFSET
+        ok &= (tail_sum == rest[:, tail]) & (rest[:, tail + 1] == LF)
+        data = np.concatenate([data, rest[:, :tail]], axis=1)
+    digits = (data.reshape(k, -1, chars).astype(np.int32) - CHAR_OFFSET) & 0x3F
+    values = digits[:, :, 0]
+    for c in range(1, chars):
+        values = (values << BITS_PER_CHAR) | digits[:, :, c]
+    echo = None
+    if per_step == 2:
+        echo = np.minimum(values[:, 1::2], 65535).astype(np.uint16)
+        values = values[:, 0::2]
+    ranges = values.astype(np.float32) * np.float32(0.001)
+    ranges[values < MIN_VALID_RANGE_MM] = np.nan
+    for row, scan in enumerate(group):
+        scan.ok = bool(ok[row]) and scan.status_ok
+        scan.time_ms = int(times[row])
+        scan.ranges = ranges[row]
+        scan.echo = None if echo is None else echo[row]
 
 
 def _parameter_ok(line: bytes) -> bool:
