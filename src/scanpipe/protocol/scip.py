@@ -91,6 +91,8 @@ def status_meaning(status: str) -> str:
 
 def check_char(line: bytes | bytearray | memoryview | NDArray[np.uint8]) -> int:
     """The check character of a line: sum of its bytes, lower 6 bits, + 0x30."""
+    if isinstance(line, bytes):
+        return (sum(line) & 0x3F) + CHAR_OFFSET
     return (int(np.frombuffer(line, np.uint8).sum(dtype=np.int64)) & 0x3F) + CHAR_OFFSET
 
 
@@ -366,7 +368,8 @@ class ScipReader:
         return nxt
 
     def _parse(self, message: bytes, offset: int) -> RawFrame | _Scan:
-        lines = message[:-2].split(b"\n")
+        # Scans are split only into echo, status, timestamp and the rest (checked in batch).
+        lines = message[:-2].split(b"\n", 3)
         echo = lines[0]
         end = offset + len(message)
         if len(echo) < 2 or not echo[:2].isalpha() or not echo[:2].isupper():
@@ -383,6 +386,7 @@ class ScipReader:
         status = lines[1][:2].decode("ascii", "replace")
         if command in DATA_COMMANDS and len(lines) > 2:
             return self._parse_scan(message, lines, offset, end, status_ok)
+        lines = message[:-2].split(b"\n")
         if not status_ok or _DATA_ECHO.search(message, 1) is not None \
                 or not all(_parameter_ok(line) for line in lines[2:]):
             raise _Bad  # a reply's further lines are NAME:value;check (VV, PP, II)
@@ -433,8 +437,6 @@ class ScipReader:
         if len(stamp) != 5:
             raise _Bad
         n_chars = count * chars * per_step
-        if len(lines) - 3 != -(-n_chars // DATA_LINE_CHARS):
-            raise _Bad
         body_start = len(lines[0]) + len(lines[1]) + len(stamp) + 3
         full, tail = divmod(n_chars, DATA_LINE_CHARS)
         if len(message) - 1 - body_start != full * (DATA_LINE_CHARS + 2) + (tail + 2 if tail
@@ -534,7 +536,7 @@ def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -
     body = blob[:, 6:]
     head = body[:, :full * line].reshape(k, full, line)
     ok &= (head[:, :, DATA_LINE_CHARS + 1] == LF).all(axis=1)
-    sums = (head[:, :, :DATA_LINE_CHARS].sum(axis=2, dtype=np.int32) & 0x3F) + CHAR_OFFSET
+    sums = (head[:, :, :DATA_LINE_CHARS].sum(axis=2, dtype=np.uint16) & 0x3F) + CHAR_OFFSET
     ok &= (sums == head[:, :, DATA_LINE_CHARS]).all(axis=1)
     data = head[:, :, :DATA_LINE_CHARS].reshape(k, full * DATA_LINE_CHARS)
     if tail:
@@ -542,10 +544,11 @@ def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -
         tail_sum = (rest[:, :tail].sum(axis=1, dtype=np.int32) & 0x3F) + CHAR_OFFSET
         ok &= (tail_sum == rest[:, tail]) & (rest[:, tail + 1] == LF)
         data = np.concatenate([data, rest[:, :tail]], axis=1)
-    digits = (data.reshape(k, -1, chars).astype(np.int32) - CHAR_OFFSET) & 0x3F
-    values = digits[:, :, 0]
+    digits = (data.reshape(k, -1, chars) - np.uint8(CHAR_OFFSET)) & np.uint8(0x3F)
+    values = digits[:, :, 0].astype(np.int32)
     for c in range(1, chars):
-        values = (values << BITS_PER_CHAR) | digits[:, :, c]
+        values <<= BITS_PER_CHAR
+        values |= digits[:, :, c]
     echo = None
     if per_step == 2:
         echo = np.minimum(values[:, 1::2], 65535).astype(np.uint16)
