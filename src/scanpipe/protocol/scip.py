@@ -398,8 +398,8 @@ class ScipReader:
     def _read_parameters(self, lines: list[bytes]) -> None:
         fields: dict[str, str] = {}
         for line in lines:
-            text, _, check = line.rpartition(b";")
-            if len(check) != 1 or check_char(text) != check[0] or b":" not in text:
+            text = line[:-2]
+            if not _parameter_ok(line) or b":" not in text:
                 return  # a damaged PP reply teaches nothing
             name, _, value = text.partition(b":")
             fields[name.decode("ascii", "replace")] = value.decode("ascii", "replace")
@@ -563,8 +563,8 @@ def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -
 
 
 def _parameter_ok(line: bytes) -> bool:
-    text, _, check = line.rpartition(b";")
-    return len(check) == 1 and bool(text) and check_char(text) == check[0]
+    # NAME:value ; check — the check character itself may be a ';'.
+    return len(line) >= 3 and line[-2:-1] == b";" and check_char(line[:-2]) == line[-1]
 
 
 def _status_ok(line: bytes) -> bool:
