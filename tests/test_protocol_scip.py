@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -238,3 +239,25 @@ def test_fuzz_raises_nothing_but_scanpipe_errors(data: bytes, seed: int, checksu
         decoder.feed(mixed[len(mixed) // 2:])
         decoder.finish()
         detect_dialect(mixed)
+
+
+FIXTURES = Path(__file__).parent / "fixtures" / "scip"
+
+
+def test_a_real_utm30lx_scan_decodes() -> None:
+    """Bytes a UTM-30LX sent (tests/fixtures/README.md): every check character passes."""
+    data = (FIXTURES / "utm30lx_md_scan.txt").read_bytes()
+    (p,), counters = decode_bytes(data, "scip")
+    assert counters.checksum_failures == 0 and counters.bytes_skipped == 0
+    # MD 0000…1080, cluster 4: 271 values from −135° in 1° steps, timestamp "03Fn".
+    assert len(p.ranges_m) == 271 and p.start_angle_deg == -135.0 and p.step_deg == 1.0
+    assert p.device_time_ms == (3 << 12) + (22 << 6) + 62
+    assert p.ranges_m[:3].tolist() == pytest.approx([0.213, 0.229, 0.229])
+    assert np.isfinite(p.ranges_m).all() and np.nanmax(p.ranges_m) < 30.0
+
+
+def test_real_urg04lx_vv_and_pp_replies_parse_and_set_the_geometry() -> None:
+    reader = scip.ScipReader()
+    frames = reader.feed((FIXTURES / "urg04lx_pp_vv.txt").read_bytes())
+    assert [f.parsed for f in frames] == [None, None] and reader.counters.resyncs == 0
+    assert reader.geometry == scip.Geometry(1024, 384, 600) and reader.geometry_from_device
