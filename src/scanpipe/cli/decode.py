@@ -78,7 +78,8 @@ def _no_frame(source: str, dialect: Dialect, data: bytes, counters: dict[str, in
 def frames(
     capture: Path = typer.Argument(..., help="A raw byte capture of a scanner stream, or a "
                                              "network capture (.pcap, .pcapng) of its TCP link."),
-    dialect: str = typer.Option("auto", "--dialect", help="paper, ldoem, cola_b, cola_a or auto."),
+    dialect: str = typer.Option("auto", "--dialect",
+                                help="paper, ldoem, cola_b, cola_a, scip or auto."),
     checksum: str = typer.Option("lenient", "--checksum",
                                  help="lenient shows damaged frames marked; strict drops them."),
     port: int | None = typer.Option(None, "--port",
@@ -95,8 +96,10 @@ def frames(
 
     if checksum not in ("strict", "lenient"):
         raise UsageError(f"--checksum {checksum!r}: allowed strict, lenient")
-    if dialect not in ("auto", "paper", "ldoem"):
-        raise UsageError(f"--dialect {dialect!r}: allowed paper, ldoem, auto")
+    from scanpipe.protocol.registry import DIALECTS
+
+    if dialect != "auto" and dialect not in DIALECTS:
+        raise UsageError(f"--dialect {dialect!r}: allowed {', '.join(DIALECTS)}, auto")
     try:
         data = capture.read_bytes()
     except OSError as err:
