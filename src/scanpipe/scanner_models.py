@@ -30,7 +30,7 @@ from scanpipe.device_limits import (
 
 #: Every dialect name a rig may give (the protocol registry holds one entry per name; a test
 #: keeps the two equal). A new family adds its name here and its entry in protocol/registry.py.
-DIALECT_NAMES: tuple[str, ...] = ("ldoem", "paper", "cola_b", "cola_a", "ldrobot")
+DIALECT_NAMES: tuple[str, ...] = ("ldoem", "paper", "cola_b", "cola_a", "ldrobot", "scip")
 Transport = Literal["tcp", "serial"]
 
 
@@ -148,6 +148,17 @@ SCANNER_MODELS: Mapping[str, ScannerModel] = {
        for name, label, lim in (("ld06", "LD06", LDROBOT_LIMITS["ld06"]),
                                 ("ld19", "LD19", LDROBOT_LIMITS["ld19"]),
                                 ("stl27l", "STL-27L", LDROBOT_LIMITS["stl27l"]))},
+    "ust10lx": ScannerModel(
+        name="ust10lx", description="Hokuyo UST-10LX (270°, 10 m, SCIP 2.0 on TCP 10940)",
+        dialect="scip", transport="tcp", fov_deg=(-135.0, 135.0),
+        modes=((40.0, 0.25), (40.0, 0.5), (40.0, 1.0)), range_m=(0.06, 10.0), noise_sigma_m=0.040,
+        intensity=True, port=10940),
+    "urg04lx": ScannerModel(
+        name="urg04lx", description="Hokuyo URG-04LX (240°, 5.6 m, SCIP 2.0 on serial/USB)",
+        dialect="scip", transport="serial", fov_deg=(-119.53125, 119.8828125),
+        modes=((10.0, 360.0 / 1024.0), (10.0, 720.0 / 1024.0)), range_m=(0.02, 5.6),
+        noise_sigma_m=0.030,
+        intensity=False, baudrate=115200),
 }
 
 

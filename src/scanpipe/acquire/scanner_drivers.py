@@ -20,6 +20,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
 
+from scanpipe.acquire.scip_driver import ScipDriver
 from scanpipe.errors import DeviceError
 from scanpipe.rig import ScannerConfig
 
@@ -139,7 +140,8 @@ class SickColaDriver:
 
 
 #: The driver of each dialect that has one (``ldoem`` and ``paper`` live in the client).
-DRIVERS: dict[str, Callable[[ScannerConfig], ScannerDriver]] = {"cola_b": SickColaDriver}
+DRIVERS: dict[str, Callable[[ScannerConfig], ScannerDriver]] = {"cola_b": SickColaDriver,
+                                                            "scip": ScipDriver}
 
 
 def _register() -> None:

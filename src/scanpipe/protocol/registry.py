@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass
 from typing import Literal, Protocol
 
 from scanpipe.errors import ProtocolError
-from scanpipe.protocol import ldoem, ldrobot, paper, sick_cola
+from scanpipe.protocol import ldoem, ldrobot, paper, scip, sick_cola
 from scanpipe.protocol.framing import (
     NOT_PARSED,
     FrameCounters,
@@ -157,6 +157,19 @@ DIALECTS: Mapping[str, Dialect] = {
         reader_factory=lambda dialect, max_payload_bytes, confirm: ldrobot.RevolutionReader(),
         detect_score=ldrobot.detect_score,
         device_wrap_ticks=ldrobot.TIME_WRAP_MS,
+    ),
+    "scip": Dialect(
+        name="scip",
+        marker=b"",
+        min_payload_bytes=0,
+        max_payload_bytes=scip.MAX_MESSAGE_BYTES,
+        encode_profile=scip.encode_profile,
+        decode_payload=scip.decode_payload,
+        check_frame=scip.check_frame,
+        description="Hokuyo SCIP 2.0 (URG/UST: MD/ME/MS streams, GD/GE/GS scans)",
+        reader_factory=scip.reader_factory,
+        device_tick_ns=1_000_000,
+        device_wrap_ticks=scip.TIMESTAMP_WRAP_MS,
     ),
 }
 

@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from scanpipe.rig import ScannerConfig
 from scanpipe.sim.ldoem_device import LdoemDevice
+from scanpipe.sim.scip_device import ScipDevice
 from scanpipe.sim.wire import device_clock_ms, profile_frame
 
 
@@ -206,6 +207,7 @@ DEVICES: dict[str, Callable[[ScannerConfig], EmulatedDevice]] = {
     "paper": StreamingDevice,
     "ldrobot": _ldrobot,
     "cola_b": SickColaDevice,
+    "scip": ScipDevice,
 }
 
 

@@ -1,0 +1,81 @@
+"""The recorder's driver for Hokuyo SCIP 2.0 scanners (URG over serial, UST over TCP).
+
+Start: ``VV`` (who is there), ``PP`` (its geometry: the reply is recorded, so the decoder reads
+ARES/AFRT from the recording), ``BM`` (laser on), then ``MD`` (``ME`` when the model sends
+intensities) over the rig's sector with scan count ``00``: the device streams until ``QT``.
+Step-and-scan and continuous recording both use the stream; the client counts profiles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from scanpipe.errors import DeviceError
+from scanpipe.protocol import scip
+from scanpipe.rig import ScannerConfig
+from scanpipe.scanner_models import model_of
+
+if TYPE_CHECKING:
+    from scanpipe.acquire.scanner_client import ScannerClient
+
+
+@dataclass(frozen=True)
+class ScipReply:
+    """A non-scan reply: its command, status code and the whole message."""
+
+    command: str
+    status: str
+    message: bytes
+
+
+class ScipDriver:
+    """SCIP 2.0 commands for the recorder (see the module docstring)."""
+
+    def __init__(self, scanner: ScannerConfig) -> None:
+        from scanpipe.sim.scip_device import scan_steps, spec_for
+
+        self.scanner = scanner
+        self.spec = spec_for(scanner)
+        self.reader = scip.ScipReader()
+        model = model_of(scanner.model, scanner.dialect)
+        self.command = b"ME" if model is not None and model.intensity else b"MD"
+        self.steps = scan_steps(scanner, self.spec.geometry)
+
+    def _ask(self, client: ScannerClient, line: bytes, ok: tuple[str, ...] = ("00",)) -> str:
+        what = line[:2].decode()
+
+        def accept(reply: object) -> bool:
+            return isinstance(reply, ScipReply) and reply.command == what
+
+        reply = client.request(line + b"\n", f"SCIP {what}", accept)
+        assert isinstance(reply, ScipReply)
+        if reply.status not in ok:
+            raise DeviceError(f"scanner: {what} refused with status {reply.status} "
+                              f"({scip.status_meaning(reply.status)})")
+        return reply.status
+
+    def start(self, client: ScannerClient) -> None:
+        """Identify, read the geometry, laser on, stream the rig's sector."""
+        self._ask(client, b"VV")
+        self._ask(client, b"PP")
+        self._ask(client, b"BM", ok=("00", "02"))
+        start, end, cluster = self.steps
+        self._ask(client, b"%s%04d%04d%02d%01d%02d" % (self.command, start, end, cluster, 0, 0))
+
+    def stop(self, client: ScannerClient) -> None:
+        """``QT``: stop streaming and switch the laser off."""
+        client.send(b"QT\n")
+
+    def feed(self, data: bytes) -> tuple[int, list[object]]:
+        """Scans completed by ``data``, and the other replies in it."""
+        scans = 0
+        replies: list[object] = []
+        for frame in self.reader.feed(data):
+            if frame.parsed is not None:
+                scans += int(frame.checksum_ok)
+                continue
+            lines = frame.payload.split(b"\n")
+            replies.append(ScipReply(lines[0][:2].decode("ascii", "replace"),
+                                     lines[1][:2].decode("ascii", "replace"), frame.payload))
+        return scans, replies
