@@ -228,4 +228,4 @@ def test_cli_frames_text_shows_the_golden_mismatch(tmp_path: Path, cli: CliRunne
     assert "frame 5082" in result.out and "step 72°" in result.out
     assert "MISMATCH (received 0x8a, computed 0x9f)" in result.out
     result = cli("frames", capture, "--dialect", "cola")
-    assert result.code == 2 and "allowed paper, ldoem, auto" in result.err
+    assert result.code == 2 and "allowed paper, ldoem, cola_b, cola_a, auto" in result.err

@@ -95,8 +95,10 @@ def frames(
 
     if checksum not in ("strict", "lenient"):
         raise UsageError(f"--checksum {checksum!r}: allowed strict, lenient")
-    if dialect not in ("auto", "paper", "ldoem"):
-        raise UsageError(f"--dialect {dialect!r}: allowed paper, ldoem, auto")
+    from scanpipe.protocol.registry import DIALECTS
+
+    if dialect != "auto" and dialect not in DIALECTS:
+        raise UsageError(f"--dialect {dialect!r}: allowed {', '.join(DIALECTS)}, auto")
     try:
         data = capture.read_bytes()
     except OSError as err:

@@ -293,6 +293,10 @@ def profile_telegram(profile: Profile, serial_number: int = 0x01234567) -> ScanT
     raw[(raw == 0) & finite] = 1
     start = round(profile.start_angle_deg * ANGLE_UNITS_PER_DEG)
     step = round(profile.step_deg * ANGLE_UNITS_PER_DEG)
+    if not 0 <= step <= 0xFFFF or not -(1 << 31) <= start < (1 << 31) or len(raw) > 0xFFFF:
+        raise ProtocolError(f"profile of {len(raw)} samples at {profile.step_deg}° from "
+                            f"{profile.start_angle_deg}°: LMDscandata holds steps up to "
+                            "6.5535° and 65535 samples")
     channels = [Channel("DIST1", scale, 0.0, start, step, raw)]
     if profile.echo is not None:
         channels.append(Channel("RSSI1", 1.0, 0.0, start, step,
