@@ -30,15 +30,15 @@ from scanpipe.protocol.registry import (
     score_recovery,
 )
 
-# ldrobot's frames are revolutions resampled from fixed packets (no frame per profile); the
-# same properties are tested in tests/test_protocol_ldrobot.py.
-DIALECT_NAMES = sorted(set(DIALECTS) - {"ldrobot"})
+# The shared framing (marker, length, payload, XOR); CoLa-A has its own (test_protocol_sick_cola).
+DIALECT_NAMES = sorted(d for d, v in DIALECTS.items() if v.reader_factory is None)
 
 
-def random_profile(rng: np.random.Generator, frame: int, samples: int) -> Profile:
+def random_profile(rng: np.random.Generator, frame: int, samples: int,
+                   max_step_ticks: int = TICKS_PER_TURN) -> Profile:
     """A plausible profile with random ranges (so every span has a random XOR)."""
     wire = rng.integers(0, 1 << 16, samples)
-    step = int(rng.integers(1, TICKS_PER_TURN // max(samples - 1, 1) + 1))
+    step = int(rng.integers(1, min(TICKS_PER_TURN // max(samples - 1, 1), max_step_ticks) + 1))
     t_ms = int(rng.integers(0, 1 << 16))
     return Profile(frame=frame & 0xFFFF, sector=0,
                    start_angle_deg=int(rng.integers(0, TICKS_PER_TURN)) / 16,
@@ -50,7 +50,8 @@ def random_profile(rng: np.random.Generator, frame: int, samples: int) -> Profil
 def encode(dialect: str, rng: np.random.Generator, frame: int,
            samples: int) -> tuple[bytes, list[Profile]]:
     """One intact frame and its profiles as the dialect decodes them from it alone."""
-    p = random_profile(rng, frame, samples)
+    # SICK steps are u16 in 1/10000°: at most 6.5535° (104/16°).
+    p = random_profile(rng, frame, samples, 104 if dialect.startswith("cola") else TICKS_PER_TURN)
     if dialect == "ldoem" and rng.random() < 0.3:
         data = ldoem.encode_profile_reply([p], mask=ldoem.MASK_RANGES_ECHO)
     else:
@@ -166,10 +167,14 @@ def test_cut_frames_that_pass_the_xor_are_caught(dialect: str, kind: str) -> Non
     for data, expected in forced_cases(dialect, kind, 12):
         for cuts in ([], [len(data) - 3], [len(data) // 2, len(data) - 8]):
             trusting = score(data, expected, dialect, cuts, confirm=False)
-            assert trusting.lost + trusting.false_good > 0  # the XOR alone is fooled
+            if not dialect.startswith("cola"):  # CoLa's strict layout refuses the cut too
+                assert trusting.lost + trusting.false_good > 0  # the XOR alone is fooled
             s = score(data, expected, dialect, cuts)
             assert (s.lost, s.false_good, s.recovered) == (0, 0, len(expected)), (kind, cuts)
-            assert s.counters.implausible_frames == 1
+            # CoLa's strict layout refuses the cut frame as malformed before the checks
+            assert s.counters.implausible_frames + (
+                s.counters.malformed_frames + s.counters.length_mismatches
+                if dialect.startswith("cola") else 0) == 1
 
 
 @pytest.mark.parametrize("dialect", DIALECT_NAMES)
@@ -203,7 +208,8 @@ def test_ldoem_reader_for_request_reply_links_does_not_hold() -> None:
     assert len(reader.feed(ldoem.get_status_request())) == 1
 
 
-@pytest.mark.parametrize("dialect", DIALECT_NAMES)
+# CoLa-B refuses such a cut frame by its layout (malformed), not by the checks: counted there.
+@pytest.mark.parametrize("dialect", [d for d in DIALECT_NAMES if not d.startswith("cola")])
 def test_counters_reach_the_cli_and_the_decode_report(tmp_path: Path, cli: CliRunner,
                                                       dialect: str) -> None:
     data, expected = forced_cases(dialect, "inside", 1)[0]

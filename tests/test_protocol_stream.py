@@ -22,11 +22,8 @@ from scanpipe.protocol.registry import (
     get_dialect,
 )
 
-# ldrobot's frames are revolutions resampled from fixed packets (no frame per profile); the
-# same properties are tested in tests/test_protocol_ldrobot.py.
-# SCIP frames by lines (no marker, length or frame counter): tests/test_protocol_scip.py
-# checks the same properties for it; the fuzz tests below take every dialect.
-DIALECT_NAMES = sorted(set(DIALECTS) - {"ldrobot", "scip"})
+# The shared framing (marker, length, payload, XOR); CoLa-A has its own (test_protocol_sick_cola).
+DIALECT_NAMES = sorted(d for d, v in DIALECTS.items() if v.reader_factory is None)
 
 
 def profile(i: int, n: int = 12) -> Profile:
@@ -100,8 +97,9 @@ def test_false_start_with_every_short_length_before_a_frame(dialect: str) -> Non
 def test_false_start_marker_inside_data_keeps_the_frame(dialect: str) -> None:
     marker = get_dialect(dialect).marker
     wire = np.frombuffer(marker * 4, dtype=">u2")  # ranges whose bytes spell the marker
+    per_m = 1000.0 if dialect.startswith("cola") else 256.0  # SICK: mm on the wire
     inner = Profile(frame=3, sector=0, start_angle_deg=0.0, step_deg=1.0,
-                    ranges_m=(wire / 256).astype(np.float32))
+                    ranges_m=(wire / per_m).astype(np.float32))
     frame = get_dialect(dialect).encode_profile(inner)
     assert frame.count(marker) >= 4
     data = encoded(dialect, 1)[0] + frame + encoded(dialect, 3)[2]

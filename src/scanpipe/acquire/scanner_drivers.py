@@ -18,14 +18,24 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import Protocol
 
 from scanpipe.acquire.scip_driver import ScipDriver
 from scanpipe.errors import DeviceError
 from scanpipe.rig import ScannerConfig
 
-if TYPE_CHECKING:
-    from scanpipe.acquire.scanner_client import ScannerClient
+
+class ScannerClient(Protocol):
+    """What a driver uses of :class:`scanpipe.acquire.scanner_client.ScannerClient`."""
+
+    def send(self, frame: bytes) -> None:
+        """Write bytes to the scanner (recorded as TX)."""
+        ...
+
+    def request(self, data: bytes, what: str, accept: Callable[[object], bool],
+                timeout_s: float | None = None) -> object:
+        """Send and wait for the first reply ``accept`` takes."""
+        ...
 
 
 class ScannerDriver(Protocol):

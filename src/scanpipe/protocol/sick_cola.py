@@ -293,6 +293,10 @@ def profile_telegram(profile: Profile, serial_number: int = 0x01234567) -> ScanT
     raw[(raw == 0) & finite] = 1
     start = round(profile.start_angle_deg * ANGLE_UNITS_PER_DEG)
     step = round(profile.step_deg * ANGLE_UNITS_PER_DEG)
+    if not 0 <= step <= 0xFFFF or not -(1 << 31) <= start < (1 << 31) or len(raw) > 0xFFFF:
+        raise ProtocolError(f"profile of {len(raw)} samples at {profile.step_deg}° from "
+                            f"{profile.start_angle_deg}°: LMDscandata holds steps up to "
+                            "6.5535° and 65535 samples")
     channels = [Channel("DIST1", scale, 0.0, start, step, raw)]
     if profile.echo is not None:
         channels.append(Channel("RSSI1", 1.0, 0.0, start, step,
@@ -335,21 +339,34 @@ def check_frame(profiles: list[Profile] | None) -> int | None:
 # -- CoLa-A --------------------------------------------------------------------------------
 
 def _hex_tokens(tokens: list[bytes]) -> NDArray[np.int64]:
-    """Hex tokens (1–8 digits each) to integers, vectorised: one pass over their bytes."""
-    if not tokens:
-        return np.zeros(0, np.int64)
-    lengths = np.fromiter((len(t) for t in tokens), np.int64, len(tokens))
+    """Hex tokens (1–8 digits each) to integers; long runs (channel data) vectorised in one
+    pass over their bytes."""
+    if len(tokens) < 16:
+        values = []
+        for t in tokens:
+            if not 1 <= len(t) <= 8 or not t.isalnum():
+                raise ProtocolError("CoLa-A: a number token is empty, too long or not hex")
+            try:
+                values.append(int(t, 16))
+            except ValueError as err:
+                raise ProtocolError("CoLa-A: a number token is not hexadecimal") from err
+        return np.array(values, dtype=np.int64)
+    chars = np.frombuffer(b" ".join(tokens), np.uint8)
+    spaces = np.flatnonzero(chars == 0x20)
+    starts = np.concatenate([[0], spaces + 1])
+    ends = np.concatenate([spaces, [chars.size]])
+    lengths = ends - starts
     if lengths.min() < 1 or lengths.max() > 8:
         raise ProtocolError("CoLa-A: a number token is empty or longer than 8 hex digits")
-    chars = np.frombuffer(b"".join(tokens), np.uint8)
-    nibble = _NIBBLE[chars]
+    digits = chars[chars != 0x20]
+    nibble = _NIBBLE[digits]
     if (nibble < 0).any():
         raise ProtocolError("CoLa-A: a number token is not hexadecimal")
-    ends = np.cumsum(lengths)
-    starts = ends - lengths
-    position = np.arange(chars.size) - np.repeat(ends - 1, lengths)  # ≤ 0 from the right
+    token_ends = np.cumsum(lengths)
+    position = np.arange(digits.size) - np.repeat(token_ends - 1, lengths)  # ≤ 0 from the right
     weights = np.left_shift(np.int64(1), (-4 * position).astype(np.int64))
-    result: NDArray[np.int64] = np.add.reduceat(nibble.astype(np.int64) * weights, starts)
+    result: NDArray[np.int64] = np.add.reduceat(nibble.astype(np.int64) * weights,
+                                                token_ends - lengths)
     return result
 
 

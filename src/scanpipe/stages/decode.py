@@ -72,7 +72,7 @@ _FEED_BYTES = 1 << 20
 class DecodeParams(Params):
     """How the scanner stream is decoded."""
 
-    dialect: Literal["auto", "paper", "ldoem", "cola_b", "cola_a", "ldrobot"] = Field(
+    dialect: Literal["auto", "paper", "ldoem", "cola_b", "cola_a", "ldrobot", "scip"] = Field(
         "auto", description="wire format of the scanner stream; auto detects it from the bytes")
     checksum: Literal["strict", "lenient"] = Field(
         "strict", description="strict drops frames whose checksum fails; lenient keeps them "
