@@ -274,13 +274,16 @@ def build_report(workdir: Path, truth: Path | None = None, preview_width: int = 
     calibration = reports.get("calibrate", {})
     if calibration.get("enabled"):
         parts.append("<h2>Mount self-calibration</h2>")
-        rows = [(name, p.get("value"), p.get("sigma"), "yes" if p.get("observable") else "no",
-                 p.get("unit"), p.get("note", ""))
-                for name, p in (calibration.get("parameters") or {}).items()]
-        rows.append(("plane thickness RMS before → after (m)",
-                     calibration.get("residual_before_m"), calibration.get("residual_after_m"),
-                     "", "m", f"{calibration.get('planes')} planes"))
-        parts.append(_table(rows, ("parameter", "value", "1σ", "observable", "unit", "note")))
+        cal_rows: list[tuple[Any, ...]] = [
+            (name, p.get("value"), p.get("sigma"), "yes" if p.get("observable") else "no",
+             p.get("unit"), p.get("note", ""))
+            for name, p in (calibration.get("parameters") or {}).items()]
+        cal_rows.append(("plane thickness RMS before → after (m)",
+                         calibration.get("residual_before_m"),
+                         calibration.get("residual_after_m"), "", "m",
+                         f"{calibration.get('planes')} planes"))
+        parts.append(_table(cal_rows, ("parameter", "value", "1σ", "observable", "unit",
+                                       "note")))
     parts.append("<details><summary>Every stage's report</summary>")
     summary: list[tuple[Any, ...]] = []
     decode = reports.get("decode", {})
