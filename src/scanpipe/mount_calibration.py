@@ -42,11 +42,14 @@ from scanpipe.rig import Pose, Rig
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
+#: How far the fit may move each parameter from the rig's value (rad, rad, m, m): a mount
+#: error beyond these is a wrong rig file, not a calibration.
+BOUNDS = np.array([math.radians(10.0), math.radians(10.0), 0.5, 0.5])
 #: The fitted parameters, in the order of the parameter vector.
 PARAMETERS = ("tilt_x_deg", "alpha_zero_deg", "offset_x_m", "offset_z_m")
 #: A parameter whose 1σ exceeds this is not constrained by the scan (unobservable).
-MAX_SIGMA = {"tilt_x_deg": 0.02, "alpha_zero_deg": 0.02, "offset_x_m": 0.002,
-             "offset_z_m": 0.002}
+MAX_SIGMA = {"tilt_x_deg": 0.2, "alpha_zero_deg": 0.2, "offset_x_m": 0.01,
+             "offset_z_m": 0.01}
 #: Coarse to fine: voxel edge (m), and how far (degrees, metres) a voxel's plane may lie from
 #: the plane it joins (and a point from its plane).
 LEVELS = ((0.5, 10.0, 0.15), (0.5, 4.0, 0.06), (0.4, 2.0, 0.03))
@@ -312,7 +315,10 @@ def _solve(model: _Model, planes: _Planes, x0: F64, free: NDArray[np.bool_],
         assert j is not None
         return j[:, free]
 
-    result = least_squares(fun, x0[free], jac=jac, method="lm",
+    # Bounded: a thickness cost also falls when the scene collapses (a 90° tilt flattens a
+    # floor to a line), so the parameters stay near the rig's values (BOUNDS).
+    result = least_squares(fun, np.clip(x0[free], -BOUNDS[free], BOUNDS[free]), jac=jac,
+                           method="trf", bounds=(-BOUNDS[free], BOUNDS[free]),
                            x_scale=np.array([0.01, 0.01, 0.01, 0.01])[free], max_nfev=20,
                            xtol=1e-7, ftol=1e-9)
     x = x0.copy()
@@ -363,8 +369,10 @@ def fit_mount(samples: ScanSamples, rig: Rig) -> MountFit:
     x = _solve(model, planes, x, free, scale_m=0.02)
     sigma = _sigmas(model, planes, x, free)
     warnings: list[str] = []
+    at_bound = np.abs(x) >= BOUNDS * 0.999
     unobservable = np.array([s is None or s > MAX_SIGMA[n] for n, s in zip(PARAMETERS, sigma,
                                                                               strict=True)])
+    unobservable |= at_bound
     if unobservable.any():
         free = ~unobservable
         x[unobservable] = 0.0
