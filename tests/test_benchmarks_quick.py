@@ -69,7 +69,7 @@ def test_baseline_and_paths_are_compared_on_accuracy_and_time(results: dict[str,
         assert entry["glb_exists"] and Path(entry["glb"]).stat().st_size > 0
         assert positive(entry["end_to_end_s"]) and positive(entry["points_to_textured_mesh_s"])
         assert positive(entry["speedup_over_baseline"])
-        assert set(entry["stage_seconds"]) == {"decode", "assemble", "filter", "mesh",
+        assert set(entry["stage_seconds"]) == {"decode", "calibrate", "assemble", "filter", "mesh",
                                                "texture", "export"}
         assert isinstance(entry["at_least_as_accurate_as_baseline"], bool)
     for acc in (base["accuracy"], comparison["default"]["accuracy"],

@@ -52,8 +52,8 @@ def test_every_stage_speaks_in_known_artifacts() -> None:
 
 
 def test_the_chain_and_the_workdir_order_come_from_the_registry() -> None:
-    assert [s.name for s in chain_stages()] == ["decode", "assemble", "filter", "mesh",
-                                                 "texture", "export"]
+    assert [s.name for s in chain_stages()] == ["decode", "calibrate", "assemble", "filter",
+                                                 "mesh", "texture", "export"]
     assert [s.name for s in chain_stages("point_file")] == ["import-points", "filter", "mesh"]
     assert tuple(registry()) == STAGE_ORDER
 

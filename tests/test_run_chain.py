@@ -39,23 +39,24 @@ def test_caching_rules_on_the_real_chain(cli, recording: Path, tmp_path: Path) -
     grid = ("--set", "mesh.method=grid")
     first = cli("run", recording, "--workdir", work, *grid)
     assert first.code == 0, first.err
-    assert _ran(first.err) == ["decode", "assemble", "filter", "mesh", "texture", "export"]
+    assert _ran(first.err) == ["decode", "calibrate", "assemble", "filter", "mesh", "texture",
+                               "export"]
     assert (work / "export" / "model.obj").is_file() and (work / "export" / "model.glb").is_file()
 
     again = cli("run", recording, "--workdir", work, *grid)
     assert again.code == 0 and _ran(again.err) == []
-    assert len(_reused(again.err)) == 6
+    assert len(_reused(again.err)) == 7
 
     changed = cli("run", recording, "--workdir", work, *grid,
                   "--set", "filter.grid_median.max_deviation_m=0.05")
     assert changed.code == 0
-    assert _reused(changed.err)[:2] == ["decode", "assemble"]
+    assert _reused(changed.err)[:3] == ["decode", "calibrate", "assemble"]
     assert _ran(changed.err)[0] == "filter"
     provenance = read_provenance(work / "filter" / "points.parquet")
     assert provenance["params"]["grid_median"]["max_deviation_m"] == 0.05
 
     partial = cli("run", recording, "--workdir", tmp_path / "w2", "--to", "assemble")
-    assert _ran(partial.err) == ["decode", "assemble"]
+    assert _ran(partial.err) == ["decode", "calibrate", "assemble"]
     assert not (tmp_path / "w2" / "filter").exists()
 
 

@@ -324,7 +324,7 @@ def test_concurrent_runs_with_different_parameters_do_not_mix(scan: Path,
     failures = [err for code, err in results if code != 0]
     assert failures == []
     assert any("waiting for" in err for _, err in results)
-    assert assert_consistent(work) == 6
+    assert assert_consistent(work) == 7  # the chain: 7 stages
     assert sorted(p.name for p in (work / STATE_DIR).iterdir()) == ["lock"]
 
 
@@ -347,7 +347,7 @@ def test_sigkill_during_a_stage_then_the_next_run_completes(scan: Path, tmp_path
     finished = subprocess.run(_cli("run", scan, "--workdir", work, "-q"), env=ENV,
                               capture_output=True, text=True, timeout=300)
     assert finished.returncode == 0, finished.stderr
-    assert assert_consistent(work) == 6
+    assert assert_consistent(work) == 7
     assert sorted(p.name for p in (work / STATE_DIR).iterdir()) == ["lock"]
 
 

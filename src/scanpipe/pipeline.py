@@ -219,6 +219,7 @@ def _run_chain_locked(chain: Sequence[Stage], recording: Path, workdir: Path,
     available: dict[str, Path] = {"recording": recording}
     override_path = rig_override_artifact(rig_override, workdir) if rig_override else None
     records: list[RunRecord] = []
+    rig_made = False
     for stage in chain:
         missing = [n for n in stage.inputs if n not in available]
         if missing:
@@ -228,8 +229,11 @@ def _run_chain_locked(chain: Sequence[Stage], recording: Path, workdir: Path,
                          params.get(stage.name) or stage.params(), progress, force,
                          replace_folder=True)
         available.update(record.outputs)
-        if override_path is not None and "rig" in record.outputs:
+        # The override replaces the recording's rig (decode's), not a rig a later stage
+        # derives from it (calibrate's).
+        if override_path is not None and "rig" in record.outputs and not rig_made:
             available["rig"] = override_path
+        rig_made = rig_made or "rig" in record.outputs
         records.append(record)
         if on_stage is not None:
             on_stage(record)

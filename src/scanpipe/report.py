@@ -271,6 +271,19 @@ def build_report(workdir: Path, truth: Path | None = None, preview_width: int = 
         parts.append(_figure(stage_time_chart(times), "Seconds per stage (from provenance)"))
 
     parts.append("<h2>Details</h2>")
+    calibration = reports.get("calibrate", {})
+    if calibration.get("enabled"):
+        parts.append("<h2>Mount self-calibration</h2>")
+        cal_rows: list[tuple[Any, ...]] = [
+            (name, p.get("value"), p.get("sigma"), "yes" if p.get("observable") else "no",
+             p.get("unit"), p.get("note", ""))
+            for name, p in (calibration.get("parameters") or {}).items()]
+        cal_rows.append(("plane thickness RMS before → after (m)",
+                         calibration.get("residual_before_m"),
+                         calibration.get("residual_after_m"), "", "m",
+                         f"{calibration.get('planes')} planes"))
+        parts.append(_table(cal_rows, ("parameter", "value", "1σ", "observable", "unit",
+                                       "note")))
     parts.append("<details><summary>Every stage's report</summary>")
     summary: list[tuple[Any, ...]] = []
     decode = reports.get("decode", {})
@@ -280,7 +293,7 @@ def build_report(workdir: Path, truth: Path | None = None, preview_width: int = 
     for section in ("counts", "counters", "time_span", "gaps"):
         for key, value in (decode.get(section) or {}).items():
             summary.append((f"decode {section}: {key}", value))
-    for stage in ("assemble", "filter", "mesh", "texture", "export"):
+    for stage in ("calibrate", "assemble", "filter", "mesh", "texture", "export"):
         for key, value in reports.get(stage, {}).items():
             summary.append((f"{stage}: {key}", value))
     parts.append(_table(summary, ("what", "value")) if summary

@@ -111,6 +111,14 @@ RIG = ArtifactSchema(
     "rig", _columns({"toml": pa.string()}),
     "one row: the rig TOML (scanner, motor, cameras, calibration) the later stages compute with",
 )
+CALIBRATION = ArtifactSchema(
+    "calibration",
+    (Column("parameter", pa.string()), Column("value", F64), Column("sigma", F64),
+     Column("observable", pa.bool_()), Column("unit", pa.string()),
+     Column("note", pa.string())),
+    "the mount self-calibration: one row per parameter (value, 1σ from the fit's covariance, "
+    "null when unobservable; whether the scan constrains it); empty when calibrate is off",
+)
 PROFILES = ArtifactSchema(
     "profiles",
     (
@@ -210,7 +218,7 @@ EXPORT_MANIFEST = ArtifactSchema(
 
 #: Every artifact by name.
 ARTIFACTS: dict[str, ArtifactSchema] = {s.name: s for s in (
-    RIG, PROFILES, MOTOR, FRAMES, POINTS, MESH_VERTICES, MESH_FACES, TEXTURED_FACES,
+    RIG, CALIBRATION, PROFILES, MOTOR, FRAMES, POINTS, MESH_VERTICES, MESH_FACES, TEXTURED_FACES,
     TEXTURE_PAGES, EXPORT_MANIFEST)}
 
 

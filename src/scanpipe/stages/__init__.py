@@ -10,6 +10,7 @@ from scanpipe.errors import ArtifactError
 from scanpipe.stage import RAW_INPUTS, Stage
 from scanpipe.stages import (
     assemble,
+    calibrate,
     decode,
     export,
     filter,
@@ -22,7 +23,7 @@ from scanpipe.stages import (
 #: Every stage in pipeline order (import-points stands beside decode: both make the first
 #: artifacts, from a recording or from another tool's point file).
 STAGES: tuple[Stage, ...] = (decode.STAGE, import_points.STAGE, import_profiles.STAGE,
-                             assemble.STAGE, filter.STAGE,
+                             calibrate.STAGE, assemble.STAGE, filter.STAGE,
                              mesh.STAGE, texture.STAGE, export.STAGE)
 
 

@@ -1,0 +1,117 @@
+"""``scanpipe calibrate``: the scanner's mount fitted to one scan (no targets)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from scanpipe.artifacts import atomic_write_bytes, read_artifact
+from scanpipe.cli.common import print_json
+from scanpipe.errors import UsageError
+
+
+def _tables(source: Path) -> dict[str, Any]:
+    """profiles, motor, rig from a recording (decoded in memory) or a workdir/folder."""
+    if source.is_dir():
+        for folder in (source / "decode", source / "import-profiles", source):
+            paths = {n: folder / f"{n}.parquet" for n in ("profiles", "motor", "rig")}
+            if all(p.is_file() for p in paths.values()):
+                return {n: read_artifact(p)[0] for n, p in paths.items()}
+        raise UsageError(f"{source}: no profiles, motor and rig artifacts (looked in "
+                         f"{source / 'decode'} and {source}); give a recording or a workdir "
+                         "that `scanpipe run` decoded")
+    if not source.is_file():
+        raise UsageError(f"{source}: not found (expected a recording REC.mcap or a workdir)")
+    from scanpipe.stages.decode import STAGE as DECODE
+
+    return dict(DECODE.run({"recording": source}).tables)
+
+
+def _rms_to_truth(inputs: dict[str, Any], rig: Any, truth: Any, limit: int = 200_000) -> float:
+    import numpy as np
+
+    from scanpipe.rig import rig_table
+    from scanpipe.stages.assemble import STAGE as ASSEMBLE
+
+    points = ASSEMBLE.run({"profiles": inputs["profiles"], "motor": inputs["motor"],
+                           "rig": rig_table(rig)}).tables["points"]
+    xyz = np.stack([points.column(c).to_numpy(zero_copy_only=False) for c in "xyz"], 1)
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    if len(xyz) > limit:
+        xyz = xyz[np.random.default_rng(0).choice(len(xyz), limit, replace=False)]
+    return float(np.sqrt(np.mean(truth.scene.distance_m(xyz) ** 2)))
+
+
+def calibrate(
+    source: Path = typer.Argument(..., help="A recording (REC.mcap) or a workdir of `run`."),
+    rig_path: Path | None = typer.Option(None, "--rig", help="Start from this rig file "
+                                         "instead of the recording's."),
+    write: Path | None = typer.Option(None, "--write", help="Write the calibrated rig here "
+                                      "(a new TOML file; never the input rig)."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing --write file."),
+    truth: Path | None = typer.Option(None, "--truth", help="A simulation's truth folder: "
+                                      "also report the points' RMS to the true surface."),
+    max_points: int = typer.Option(60_000, "--max-points", min=2_000, max=2_000_000,
+                                   help="Returns drawn for the fit."),
+    as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
+) -> None:
+    """Fit the scanner's mount (tilt, α zero, offsets from the axis) to the scan's planes."""
+    from scanpipe.outpaths import check_output_file
+    from scanpipe.rig import load_rig, rig_table, rig_to_toml
+    from scanpipe.stages.calibrate import run_fit
+
+    if write is not None:
+        inputs = [p for p in (source, rig_path) if p is not None]
+        check_output_file(write, "--write", (".toml",), force, inputs)
+        if not write.parent.is_dir():
+            raise UsageError(f"--write {write}: folder {write.parent} does not exist")
+    true_data = None
+    if truth is not None:
+        from scanpipe.sim.truth import load_truth
+
+        true_data = load_truth(truth)
+    tables = _tables(source)
+    if rig_path is not None:
+        tables["rig"] = rig_table(load_rig(rig_path))
+    fit = run_fit(tables, max_points)
+    report: dict[str, Any] = {"source": str(source), **fit.report()}
+    if true_data is not None:
+        from scanpipe.rig import rig_from_table
+
+        report["rms_to_truth_before_m"] = _rms_to_truth(tables, rig_from_table(tables["rig"]),
+                                                        true_data)
+        report["rms_to_truth_after_m"] = _rms_to_truth(tables, fit.rig, true_data)
+    if write is not None:
+        try:
+            atomic_write_bytes(write, rig_to_toml(fit.rig).encode())
+        except OSError as err:
+            raise UsageError(f"--write {write}: cannot be written ({err.strerror or err})"
+                             ) from None
+        report["written"] = str(write)
+    for warning in fit.warnings:
+        typer.echo(f"warning: {warning}", err=True)
+    if as_json:
+        print_json(report)
+        return
+    for p in fit.parameters:
+        value = f"{p.value * 1000:+.2f} mm" if p.unit == "m" else f"{p.value:+.4f}°"
+        if p.sigma is not None and p.observable:
+            sigma = f"± {p.sigma * 1000:.2f} mm" if p.unit == "m" else f"± {p.sigma:.4f}°"
+        else:
+            sigma = "unobservable (kept)"
+        typer.echo(f"{p.name:16s} {value:>14s}  {sigma}")
+    typer.echo(f"plane thickness RMS {fit.residual_before_m * 1000:.2f} mm → "
+               f"{fit.residual_after_m * 1000:.2f} mm over {fit.planes} planes "
+               f"({fit.points} points)")
+    if "rms_to_truth_after_m" in report:
+        typer.echo(f"RMS to truth {report['rms_to_truth_before_m'] * 1000:.2f} mm → "
+                   f"{report['rms_to_truth_after_m'] * 1000:.2f} mm")
+    if write is not None:
+        typer.echo(f"wrote {write}")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``calibrate`` to the main app."""
+    app.command("calibrate")(calibrate)

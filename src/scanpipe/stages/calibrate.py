@@ -1,0 +1,83 @@
+"""Calibrate: the scanner's mount fitted to the scan itself (see :mod:`scanpipe.mount_calibration`).
+
+Off by default: the stage then passes the rig through unchanged and writes an empty
+``calibration``. On (``--set calibrate.enabled=true``) it assembles the scan with the rig it is
+given (default association parameters), fits the tilt, the α zero and the offsets
+perpendicular to the motor axis to the flatness of the scan's planes, and hands assemble the
+calibrated rig. Being a stage of its own, it is cached: a re-run with other filter or mesh
+parameters reuses the fit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import pyarrow as pa
+from pydantic import Field
+
+from scanpipe.mount_calibration import MountFit, fit_mount, samples_from_points
+from scanpipe.params import Params
+from scanpipe.progress import ProgressFn
+from scanpipe.rig import rig_from_table, rig_table
+from scanpipe.schema import CALIBRATION
+from scanpipe.stage import Stage, StageResult
+
+
+class CalibrateParams(Params):
+    """Whether to self-calibrate the mount, and how many returns the fit uses."""
+
+    enabled: bool = Field(False, strict=True,
+                          description="fit the mount to the scan and give assemble the result")
+    max_points: int = Field(60_000, ge=2_000, le=2_000_000,
+                            description="returns drawn (at random, fixed seed) for the fit")
+
+
+def calibration_table(fit: MountFit | None) -> pa.Table:
+    """The ``calibration`` artifact: one row per parameter (empty without a fit)."""
+    rows = [] if fit is None else fit.parameters
+    return pa.table({
+        "parameter": pa.array([p.name for p in rows], pa.string()),
+        "value": pa.array([p.value for p in rows], pa.float64()),
+        "sigma": pa.array([p.sigma for p in rows], pa.float64()),
+        "observable": pa.array([p.observable for p in rows], pa.bool_()),
+        "unit": pa.array([p.unit for p in rows], pa.string()),
+        "note": pa.array([p.note for p in rows], pa.string()),
+    }, schema=CALIBRATION.arrow_schema)
+
+
+def run_fit(inputs: Mapping[str, Any], max_points: int) -> MountFit:
+    """Assemble with the given rig and fit the mount (the CLI's path too)."""
+    from scanpipe.stages.assemble import STAGE as ASSEMBLE
+
+    rig = rig_from_table(inputs["rig"])
+    points = ASSEMBLE.run({"profiles": inputs["profiles"], "motor": inputs["motor"],
+                           "rig": inputs["rig"]}).tables["points"]
+    return fit_mount(samples_from_points(points, rig, max_points), rig)
+
+
+def calibrate_stage(inputs: Mapping[str, Any], params: CalibrateParams,
+                    progress: ProgressFn) -> StageResult:
+    """The calibrate stage: ``profiles``, ``motor``, ``rig`` → ``calibration``, ``rig``."""
+    if not params.enabled:
+        return StageResult(tables={"calibration": calibration_table(None),
+                                   "rig": inputs["rig"]},
+                           report={"enabled": False})
+    progress("calibrate", 0, 1)
+    fit = run_fit(inputs, params.max_points)
+    progress("calibrate", 1, 1)
+    report = {"enabled": True, **fit.report()}
+    return StageResult(tables={"calibration": calibration_table(fit), "rig": rig_table(fit.rig)},
+                       report=report)
+
+
+STAGE = Stage(
+    name="calibrate",
+    version=1,
+    params=CalibrateParams,
+    inputs=("profiles", "motor", "rig"),
+    outputs=("calibration", "rig"),
+    func=calibrate_stage,
+    description="mount self-calibration from the scan's planes (off unless calibrate.enabled)",
+    libraries=("numpy", "pyarrow", "scipy"),
+)
