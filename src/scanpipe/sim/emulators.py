@@ -37,6 +37,7 @@ from scanpipe.sim.options import SimOptions
 from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import (
     MeasurementModel,
+    echo_amplitude,
     measure,
     sample_time_offsets_s,
     sector_duration_s,
@@ -222,11 +223,12 @@ class ScannerEmulator:
         times = start_s + sample_time_offsets_s(config)
         beta = self.platform.beta_deg_at(times)[None, :]
         truth = true_ranges(self.scene, config, beta)
-        measured = measure(truth, self.measurement, k, config)[0]
+        measured = measure(truth, self.measurement, k, config)
         with self._lock:
             self.sent.append(SentProfile(k, start_s, float(beta[0, 0]), float(beta[0, -1]),
                                          truth.ranges_m[0]))
-        return profile_frame(self.dialect, k, measured, config, start_s, mask, clock_offset_ms)
+        return profile_frame(self.dialect, k, measured[0], config, start_s, mask, clock_offset_ms,
+                             echo_amplitude(measured, truth)[0])
 
     def truth_table(self) -> pa.Table:
         """Per-profile truth of everything sent so far, in sending order (host-clock times)."""

@@ -20,11 +20,12 @@ def device_clock_ms(time_s: float) -> int:
 
 def profile_frame(dialect: str, index: int, ranges_m: NDArray[np.float32],
                   scanner: ScannerConfig, start_s: float, mask: int | None = None,
-                  clock_offset_ms: int = 0) -> bytes:
+                  clock_offset_ms: int = 0, echo: NDArray[np.uint16] | None = None) -> bytes:
     """The frame carrying profile ``index`` (measured at ``start_s``) in ``dialect``.
 
     ``mask`` selects the ldoem fields (the GET_PROFILE request's; default 0x39FF);
-    ``clock_offset_ms`` is what SET_TIME_ABS moved the device clock by.
+    ``clock_offset_ms`` is what SET_TIME_ABS moved the device clock by; ``echo`` the
+    amplitudes (:func:`scanpipe.sim.scanner.echo_amplitude`), sent when the mask asks for them.
     """
     from scanpipe.protocol import ldoem
     from scanpipe.protocol.profile import Profile
@@ -32,7 +33,7 @@ def profile_frame(dialect: str, index: int, ranges_m: NDArray[np.float32],
 
     profile = Profile(
         frame=index & 0xFFFF, sector=0, start_angle_deg=scanner.start_angle_deg,
-        step_deg=scanner.beam_step_deg, ranges_m=ranges_m, echo=None,
+        step_deg=scanner.beam_step_deg, ranges_m=ranges_m, echo=echo,
         device_time_ms=(device_clock_ms(start_s) + clock_offset_ms) & 0xFFFF,
         device_end_time_ms=(device_clock_ms(start_s + sector_duration_s(scanner))
                             + clock_offset_ms) & 0xFFFF)
