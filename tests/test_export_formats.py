@@ -237,3 +237,20 @@ def _check_colmap(folder: Path, work: Path) -> None:
         ours, depth = project_points(points[front, 1:4], cam, float(chosen.beta_deg[k]))
         np.testing.assert_allclose(ours, uv, atol=1e-3)
         np.testing.assert_allclose(depth, cam_xyz[front, 2], atol=1e-6)
+
+
+def test_bad_las_version_and_colmap_without_frames_are_one_line_errors(  # type: ignore[no-untyped-def]
+        cli, tmp_path: Path) -> None:
+    folder = tmp_path / "flat"
+    folder.mkdir()
+    pq.write_table(points_table(), folder / "points.parquet")
+    kept = tmp_path / "x.las"
+    kept.write_bytes(b"valid before")
+    bad = cli("export", folder, "-f", "las", "--las-version", "1.3", "--out", kept, "--force")
+    assert bad.code == 2
+    assert bad.err.strip() == ("scanpipe: error: --las-version '1.3': allowed: 1.2, 1.4")
+    assert kept.read_bytes() == b"valid before"
+    no_frames = cli("export", folder, "-f", "colmap", "--out", tmp_path / "c")
+    assert no_frames.code != 0 and len(no_frames.err.strip().splitlines()) == 1
+    assert "colmap export needs camera frames" in no_frames.err
+    assert not (tmp_path / "c" / "scan_colmap").exists()

@@ -31,6 +31,7 @@ from scanpipe.stages.export import (
     TEXTURE_ARTIFACTS,
     FormatError,
     check_format,
+    check_las_version,
     export_files,
     prepare_tables,
 )
@@ -114,6 +115,7 @@ def export_folder(folder: Path, fmt: str, out: Path, force: bool = False,
     artifact, or the recording a workdir was made from), even with it.
     """
     fmt = check_format(fmt)
+    check_las_version(las_version)
     stem, out_dir = stem_and_folder(out, fmt)
     check_output_folder(out_dir)
     inputs = folder_inputs(folder)

@@ -64,6 +64,13 @@ def check_format(fmt: str) -> str:
     return lowered
 
 
+def check_las_version(version: str) -> str:
+    """``version`` when it is a LAS version the exporter writes, else a FormatError."""
+    if version not in LAS_VERSIONS:
+        raise FormatError(f"--las-version {version!r}: allowed: {', '.join(LAS_VERSIONS)}")
+    return version
+
+
 def models_from_tables(tables: Mapping[str, pa.Table]) -> tuple[MeshModel | None,
                                                                    CloudModel | None]:
     """The mesh (with texture when both texture artifacts exist) and the cloud, where given."""
@@ -118,8 +125,7 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
     """The files of one export, by name; the first is the main file. ``tables`` as
     :func:`prepare_tables` gives them."""
     fmt = check_format(fmt)
-    if las_version not in LAS_VERSIONS:
-        raise FormatError(f"--las-version {las_version!r}: allowed: {', '.join(LAS_VERSIONS)}")
+    check_las_version(las_version)
     mesh, cloud = models_from_tables(tables)
     if fmt in ("obj", "glb") or (fmt == "ply" and mesh is not None):
         if mesh is None:
