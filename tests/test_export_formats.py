@@ -254,3 +254,57 @@ def test_bad_las_version_and_colmap_without_frames_are_one_line_errors(  # type:
     assert no_frames.code != 0 and len(no_frames.err.strip().splitlines()) == 1
     assert "colmap export needs camera frames" in no_frames.err
     assert not (tmp_path / "c" / "scan_colmap").exists()
+
+
+# -- COPC: laspy's CopcReader, and the specification's invariants read with struct -------------
+
+
+def test_copc_reads_in_laspy_and_keeps_the_spec_invariants(tmp_path: Path) -> None:
+    table = points_table(profiles=40, samples=60)
+    path = _write({"points": table}, "copc", tmp_path)
+    assert path.name == "scan.copc.laz"
+    assert json.loads((tmp_path / "scan.copc.laz.pipeline.json").read_text())[
+        "pipeline"][0]["type"] == "readers.copc"
+    data = path.read_bytes()
+    plain = laspy.read(_write({"points": table}, "las", tmp_path))
+    with laspy.CopcReader.open(path) as reader:
+        everything = reader.query()
+        coarse = reader.query(resolution=float(reader.copc_info.spacing))
+    assert len(everything) == len(table) and 0 < len(coarse) < len(table)
+    # the same points as the LAS export, in octree order
+    key = np.lexsort((np.asarray(plain.Z), np.asarray(plain.Y), np.asarray(plain.X)))
+    got = np.lexsort((np.asarray(everything.Z), np.asarray(everything.Y),
+                      np.asarray(everything.X)))
+    for field in ("X", "Y", "Z", "intensity", "red", "gps_time", "point_source_id"):
+        np.testing.assert_array_equal(np.asarray(everything[field])[got],
+                                      np.asarray(plain[field])[key])
+    # spec: LAS 1.4, format 6/7 with the LAZ bit, the COPC info VLR first at byte 375
+    assert (data[24], data[25]) == (1, 4) and data[104] & 0x3F == 7 and data[104] & 0x80
+    assert data[375 + 2:375 + 6] == b"copc" and struct.unpack_from("<H", data, 375 + 18)[0] == 1
+    info = struct.unpack_from("<5d2Q2d", data, 375 + 54)
+    center, halfsize, root_offset, root_size = np.array(info[:3]), info[3], info[5], info[6]
+    evlr_start, n_evlrs = struct.unpack_from("<QI", data, 235)
+    assert n_evlrs == 1 and data[evlr_start + 2:evlr_start + 6] == b"copc"
+    assert struct.unpack_from("<H", data, evlr_start + 18)[0] == 1000
+    assert root_offset == evlr_start + 60 and root_size % 32 == 0
+    entries = [struct.unpack_from("<4iQii", data, root_offset + 32 * k)
+               for k in range(root_size // 32)]
+    keys = {e[:4] for e in entries}
+    assert (0, 0, 0, 0) in keys and sum(e[6] for e in entries) == len(table)
+    for d, x, y, z in keys - {(0, 0, 0, 0)}:  # every node's parent is in the hierarchy
+        assert (d - 1, x // 2, y // 2, z // 2) in keys
+    point_start = struct.unpack_from("<I", data, 96)[0]
+    offsets = [e[4] for e in entries]
+    assert offsets[0] == point_start + 8  # after the chunk-table offset
+    sizes = [e[5] for e in entries]
+    assert all(a + s == b for a, s, b in zip(offsets[:-1], sizes[:-1], offsets[1:], strict=True))
+    # the points of each node (file order) lie inside its voxel
+    whole = laspy.read(path)
+    xyz = np.column_stack([whole.x, whole.y, whole.z])
+    start = 0
+    for d, x, y, z, _, _, count in entries:
+        size = 2 * halfsize / 2**d
+        low = center - halfsize + size * np.array([x, y, z])
+        inside = xyz[start:start + count]
+        assert np.all(inside >= low - 1e-9) and np.all(inside <= low + size + 1e-9)
+        start += count

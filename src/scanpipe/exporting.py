@@ -28,6 +28,7 @@ from scanpipe.stages.export import (
     CAMERA_ARTIFACTS,
     INPUT_ARTIFACTS,
     MESH_ARTIFACTS,
+    SUFFIXES,
     TEXTURE_ARTIFACTS,
     FormatError,
     check_format,
@@ -73,19 +74,22 @@ def stem_and_folder(out: Path, fmt: str) -> tuple[str, Path]:
     """``--out`` as (stem, folder): ``room.obj`` → ("room", .); a path without a suffix is a
     folder (created if needed) → ("scan", that folder). Nothing is appended to a path, and a
     device or a file where a folder is meant is refused (see :mod:`scanpipe.outpaths`)."""
-    suffix = out.suffix.lower().lstrip(".")
+    wanted = SUFFIXES.get(fmt, f".{fmt}")  # ``.copc.laz`` for copc
     if out.is_dir():
         return "scan", out
-    if suffix and suffix != fmt:
-        raise FormatError(f"--out {out}: the extension .{suffix} does not match --format {fmt}")
-    if out.exists():
-        check_output_file(out, "--out", (f".{fmt}",), force=True)  # a device, a FIFO …
-    if not suffix:
+    if out.name.lower().endswith(wanted) and len(out.name) > len(wanted):
         if out.exists():
-            raise FormatError(f"--out {out}: is a file without a suffix; give a file name "
-                              f"ending in .{fmt}, or a folder")
-        return "scan", out
-    return out.stem, out.parent
+            check_output_file(out, "--out", (wanted,), force=True)  # a device, a FIFO …
+        return out.name[:-len(wanted)], out.parent
+    suffix = out.suffix.lower()
+    if suffix:
+        raise FormatError(f"--out {out}: the extension {suffix} does not match --format {fmt} "
+                          f"(expected a name ending in {wanted})")
+    if out.exists():
+        check_output_file(out, "--out", (wanted,), force=True)
+        raise FormatError(f"--out {out}: is a file without a suffix; give a file name "
+                          f"ending in {wanted}, or a folder")
+    return "scan", out
 
 
 def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
@@ -97,7 +101,7 @@ def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
                             "<stage>/<name>.parquet)")
     # the camera artifacts colour the points (as in ``run``) and pose the COLMAP frames
     wanted: tuple[str, ...] = (*INPUT_ARTIFACTS, *CAMERA_ARTIFACTS)
-    if fmt in ("las", "laz", "e57", "colmap"):
+    if fmt in ("las", "laz", "copc", "e57", "colmap"):
         wanted = ("points", *CAMERA_ARTIFACTS)
     elif fmt in ("obj", "glb"):
         wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)
@@ -120,7 +124,8 @@ def export_folder(folder: Path, fmt: str, out: Path, force: bool = False,
     check_output_folder(out_dir)
     inputs = folder_inputs(folder)
     # The main file first, before the (slow) reading; then every file the export makes.
-    main = out_dir / (f"{stem}_colmap" if fmt == "colmap" else f"{stem}.{fmt}")
+    main = out_dir / (f"{stem}_colmap" if fmt == "colmap"
+                      else f"{stem}{SUFFIXES.get(fmt, '.' + fmt)}")
     if fmt != "colmap":
         check_output_files([main], "--out", force, inputs)
     tables, _ = prepare_tables(load_tables(folder, fmt), progress=progress)

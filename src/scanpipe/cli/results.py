@@ -13,7 +13,7 @@ from scanpipe.cli.common import FORCE, JSON, QUIET, print_json
 def export(
     folder: Path = typer.Argument(..., help="Folder with the artifacts (a workdir or flat)."),
     fmt: str = typer.Option(..., "--format", "-f",
-                            help="obj | glb | ply | las | laz | e57 | mcap | colmap"),
+                            help="obj | glb | ply | las | laz | copc | e57 | mcap | colmap"),
     out: Path = typer.Option(..., "--out", "-o",
                              help="Output file ending in the format's suffix (its stem names "
                                   "every file written), or a folder (a path without a suffix)."),

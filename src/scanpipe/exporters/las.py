@@ -97,6 +97,19 @@ def las_bytes(cloud: CloudModel, compressed: bool = False, version: str = "1.2",
     header.vlrs.append(laspy.VLR(PROVENANCE_USER_ID, PROVENANCE_RECORD_ID,
                                  "scanpipe provenance (JSON)", record))
     las = laspy.LasData(header)
+    fill_points(las, cloud, xyz, version)
+    stream = io.BytesIO()
+    try:
+        las.write(stream, do_compress=compressed,
+                  laz_backend=laspy.LazBackend.Lazrs if compressed else None)
+    except laspy.errors.LaspyException as err:
+        raise ExportError(f"LAS/LAZ writer failed: {err}") from err
+    return stream.getvalue()
+
+
+def fill_points(las: Any, cloud: CloudModel, xyz: NDArray[np.float64], version: str) -> None:
+    """Set every point field of ``las`` (a ``laspy.LasData``) from the cloud, as the module
+    docstring describes; ``xyz`` is the cloud in the z-up frame."""
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     if cloud.intensity is not None:
         las.intensity = cloud.intensity
@@ -114,22 +127,16 @@ def las_bytes(cloud: CloudModel, compressed: bool = False, version: str = "1.2",
             las.scan_angle_rank = np.clip(np.rint(angle), -90, 90).astype(np.int8)
         else:
             las.scan_angle = np.clip(np.rint(angle / 0.006), -30000, 30000).astype(np.int16)
-    stream = io.BytesIO()
-    try:
-        las.write(stream, do_compress=compressed,
-                  laz_backend=laspy.LazBackend.Lazrs if compressed else None)
-    except laspy.errors.LaspyException as err:
-        raise ExportError(f"LAS/LAZ writer failed: {err}") from err
-    return stream.getvalue()
 
 
-def pdal_pipeline_bytes(las_name: str) -> bytes:
+def pdal_pipeline_bytes(las_name: str, reader: str = "readers.las") -> bytes:
     """A PDAL pipeline beside a LAS/LAZ export that reads it back (``pdal pipeline
-    NAME.pipeline.json`` or ``pdal info``): ``readers.las`` on the file, next to it, with the
+    NAME.pipeline.json`` or ``pdal info``): ``reader`` (``readers.las``, or ``readers.copc``
+    for COPC) on the file, next to it, with the
     file's own SRS (the local WKT VLR) and ``default_srs`` set to the same, so a PDAL built
     without that VLR's support still labels the points in the rig frame."""
     pipeline = {"pipeline": [{
-        "type": "readers.las",
+        "type": reader,
         "filename": las_name,
         "default_srs": LOCAL_WKT,
         "tag": "scanpipe_points",

@@ -40,7 +40,9 @@ from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.stage import Stage, StageResult
 
-FORMATS: tuple[str, ...] = ("obj", "glb", "ply", "las", "laz", "e57", "mcap", "colmap")
+FORMATS: tuple[str, ...] = ("obj", "glb", "ply", "las", "laz", "copc", "e57", "mcap", "colmap")
+#: The file suffix of a format where it is not the format's name.
+SUFFIXES = {"copc": ".copc.laz"}
 MESH_ARTIFACTS = ("mesh_vertices", "mesh_faces")
 TEXTURE_ARTIFACTS = ("textured_faces", "texture_pages")
 #: What colouring the points and posing the frames need (optional for every format but colmap).
@@ -150,6 +152,12 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
         return {f"{stem}.{fmt}": las_bytes(cloud, compressed=fmt == "laz", version=las_version,
                                            provenance=provenance),
                 f"{stem}.{fmt}.pipeline.json": pdal_pipeline_bytes(f"{stem}.{fmt}")}
+    if fmt == "copc":
+        from scanpipe.exporters.copc import copc_bytes
+
+        return {f"{stem}.copc.laz": copc_bytes(cloud, provenance),
+                f"{stem}.copc.laz.pipeline.json": pdal_pipeline_bytes(f"{stem}.copc.laz",
+                                                                       "readers.copc")}
     return {f"{stem}.e57": e57_bytes(cloud, stem, provenance_bytes(provenance).decode())}
 
 
@@ -180,7 +188,7 @@ def _colmap(tables: Mapping[str, pa.Table], cloud: CloudModel | None, stem: str,
 
 
 MeshFormat = Literal["obj", "glb", "ply", "mcap"]
-CloudFormat = Literal["ply", "las", "laz", "e57", "colmap"]
+CloudFormat = Literal["ply", "las", "laz", "copc", "e57", "colmap"]
 
 
 class ExportStageParams(Params):
