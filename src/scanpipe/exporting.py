@@ -23,13 +23,18 @@ from scanpipe.outpaths import (
     check_output_folder,
     folder_inputs,
 )
+from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.stages.export import (
+    CAMERA_ARTIFACTS,
     INPUT_ARTIFACTS,
     MESH_ARTIFACTS,
+    SUFFIXES,
     TEXTURE_ARTIFACTS,
     FormatError,
     check_format,
+    check_las_version,
     export_files,
+    prepare_tables,
 )
 from scanpipe.workdir import find_artifacts
 
@@ -44,7 +49,9 @@ def write_files(files: Mapping[str, bytes], out_dir: Path) -> list[Path]:
     try:
         for name, data in files.items():
             target = out_dir / name
-            fd, tmp_name = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out_dir)
+            target.parent.mkdir(parents=True, exist_ok=True)  # COLMAP's images/, sparse/0/
+            fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp",
+                                            dir=target.parent)
             staged.append((Path(tmp_name), target))
             os.fchmod(fd, FILE_MODE)
             with os.fdopen(fd, "wb") as handle:
@@ -67,49 +74,61 @@ def stem_and_folder(out: Path, fmt: str) -> tuple[str, Path]:
     """``--out`` as (stem, folder): ``room.obj`` → ("room", .); a path without a suffix is a
     folder (created if needed) → ("scan", that folder). Nothing is appended to a path, and a
     device or a file where a folder is meant is refused (see :mod:`scanpipe.outpaths`)."""
-    suffix = out.suffix.lower().lstrip(".")
+    wanted = SUFFIXES.get(fmt, f".{fmt}")  # ``.copc.laz`` for copc
     if out.is_dir():
         return "scan", out
-    if suffix and suffix != fmt:
-        raise FormatError(f"--out {out}: the extension .{suffix} does not match --format {fmt}")
-    if out.exists():
-        check_output_file(out, "--out", (f".{fmt}",), force=True)  # a device, a FIFO …
-    if not suffix:
+    if out.name.lower().endswith(wanted) and len(out.name) > len(wanted):
         if out.exists():
-            raise FormatError(f"--out {out}: is a file without a suffix; give a file name "
-                              f"ending in .{fmt}, or a folder")
-        return "scan", out
-    return out.stem, out.parent
+            check_output_file(out, "--out", (wanted,), force=True)  # a device, a FIFO …
+        return out.name[:-len(wanted)], out.parent
+    suffix = out.suffix.lower()
+    if suffix:
+        raise FormatError(f"--out {out}: the extension {suffix} does not match --format {fmt} "
+                          f"(expected a name ending in {wanted})")
+    if out.exists():
+        check_output_file(out, "--out", (wanted,), force=True)
+        raise FormatError(f"--out {out}: is a file without a suffix; give a file name "
+                          f"ending in {wanted}, or a folder")
+    return "scan", out
 
 
 def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
     """The artifacts an export of ``fmt`` can use from ``folder`` (flat or per stage)."""
-    found = find_artifacts(folder, INPUT_ARTIFACTS)
-    if not found:
+    found = find_artifacts(folder, (*INPUT_ARTIFACTS, *CAMERA_ARTIFACTS))
+    if not set(found) & set(INPUT_ARTIFACTS) and fmt != "colmap":
         raise ArtifactError(f"{folder}: no artifacts to export (looked for "
                             f"{', '.join(INPUT_ARTIFACTS)} as <name>.parquet or "
                             "<stage>/<name>.parquet)")
-    wanted: tuple[str, ...] = INPUT_ARTIFACTS
-    if fmt in ("las", "laz", "e57"):
-        wanted = ("points",)
+    # the camera artifacts colour the points (as in ``run``) and pose the COLMAP frames
+    wanted: tuple[str, ...] = (*INPUT_ARTIFACTS, *CAMERA_ARTIFACTS)
+    if fmt in ("las", "laz", "copc", "e57", "colmap"):
+        wanted = ("points", *CAMERA_ARTIFACTS)
     elif fmt in ("obj", "glb"):
         wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)
     return {name: read_artifact(path)[0] for name, path in found.items() if name in wanted}
 
 
-def export_folder(folder: Path, fmt: str, out: Path, force: bool = False) -> list[Path]:
+def export_folder(folder: Path, fmt: str, out: Path, force: bool = False,
+                  las_version: str = "1.2", progress: ProgressFn = no_progress) -> list[Path]:
     """``scanpipe export``: read the artifacts in ``folder`` and write ``fmt`` to ``out``.
+
+    The points are coloured from the camera frames as ``scanpipe run`` does (one code path:
+    :func:`scanpipe.stages.export.prepare_tables`).
 
     No existing file is replaced without ``force``, and none may be one of the inputs (an
     artifact, or the recording a workdir was made from), even with it.
     """
     fmt = check_format(fmt)
+    check_las_version(las_version)
     stem, out_dir = stem_and_folder(out, fmt)
     check_output_folder(out_dir)
     inputs = folder_inputs(folder)
     # The main file first, before the (slow) reading; then every file the export makes.
-    check_output_files([out_dir / f"{stem}.{fmt}"], "--out", force, inputs)
-    tables = load_tables(folder, fmt)
-    files = export_files(tables, fmt, stem)
+    main = out_dir / (f"{stem}_colmap" if fmt == "colmap"
+                      else f"{stem}{SUFFIXES.get(fmt, '.' + fmt)}")
+    if fmt != "colmap":
+        check_output_files([main], "--out", force, inputs)
+    tables, _ = prepare_tables(load_tables(folder, fmt), progress=progress)
+    files = export_files(tables, fmt, stem, las_version)
     check_output_files([out_dir / name for name in files], "--out", force, inputs)
     return write_files(files, out_dir)

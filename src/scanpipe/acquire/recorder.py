@@ -64,7 +64,7 @@ class RecordOptions(Params):
     motor_step_deg: float = Field(DEFAULT_MOTOR_STEP_DEG, gt=0, le=360)
     profiles_per_position: int = Field(1, ge=1, le=100)
     #: ldoem: ask for the echo amplitudes too (format mask 0x3DFF instead of 0x39FF).
-    with_echo: bool = False
+    with_echo: bool = True
     cameras: bool = True
     jpeg_quality: int = Field(90, ge=1, le=100)
     fsync_interval_s: float = Field(1.0, gt=0, le=1.0)

@@ -72,8 +72,9 @@ def record(
     profiles_per_position: int = typer.Option(1, "--profiles-per-position",
                                               help="Complete profiles per position (step mode)."),
     no_cameras: bool = typer.Option(False, "--no-cameras", help="Do not record the cameras."),
-    echo: bool = typer.Option(False, "--echo",
-                              help="ldoem: record echo amplitudes too (format mask 0x3DFF)."),
+    echo: bool = typer.Option(True, "--echo/--no-echo",
+                              help="ldoem: record echo amplitudes (format mask 0x3DFF) or "
+                                   "ranges only (0x39FF)."),
     split_size_mb: float | None = typer.Option(None, "--split-size-mb",
                                                help="Start a new file part after this many MB."),
     split_duration_s: float | None = typer.Option(None, "--split-duration",

@@ -13,17 +13,21 @@ from scanpipe.cli.common import FORCE, JSON, QUIET, print_json
 def export(
     folder: Path = typer.Argument(..., help="Folder with the artifacts (a workdir or flat)."),
     fmt: str = typer.Option(..., "--format", "-f",
-                            help="obj | glb | ply | las | laz | e57 | mcap"),
+                            help="obj | glb | ply | las | laz | copc | e57 | mcap | colmap"),
     out: Path = typer.Option(..., "--out", "-o",
                              help="Output file ending in the format's suffix (its stem names "
                                   "every file written), or a folder (a path without a suffix)."),
+    las_version: str = typer.Option("1.2", "--las-version",
+                                    help="LAS/LAZ version: 1.2 (point formats 0-3, read by "
+                                         "most tools) or 1.4 (formats 6-7)."),
     force: bool = FORCE,
     quiet: bool = QUIET,
 ) -> None:
-    """Write the mesh (OBJ/GLB/PLY), the points (LAS/LAZ/E57/PLY) or both (MCAP, Foxglove)."""
+    """Write the mesh (OBJ/GLB/PLY), the points (LAS/LAZ/E57/PLY), both (MCAP, Foxglove) or
+    the frames with their poses and the points (COLMAP)."""
     from scanpipe.exporting import export_folder
 
-    written = export_folder(folder, fmt, out, force)
+    written = export_folder(folder, fmt, out, force, las_version)
     if not quiet:
         for path in written:
             sys.stderr.write(f"wrote {path}\n")

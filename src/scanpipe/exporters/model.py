@@ -66,6 +66,8 @@ class CloudModel:
     range_m: F32 | None = None
     profile: NDArray[np.int32] | None = None
     beta_deg: NDArray[np.float64] | None = None
+    alpha_deg: NDArray[np.float64] | None = None
+    sample: NDArray[np.int32] | None = None
 
 
 def rig_to_z_up(xyz: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -130,10 +132,13 @@ def mesh_from_tables(
 
 
 def cloud_from_table(points: pa.Table) -> CloudModel:
-    """Check a points artifact and build a cloud model (rows with non-finite xyz dropped)."""
+    """Check a points artifact and build a cloud model (rows with non-finite xyz dropped, and
+    rows a filter marked in mark mode: ``filtered_by`` not null)."""
     POINTS.check(points, XYZ)
     xyz = _xyz(points, XYZ)
     keep = np.all(np.isfinite(xyz), axis=1)
+    if "filtered_by" in points.column_names:
+        keep &= points.column("filtered_by").is_null().to_numpy(zero_copy_only=False)
 
     def optional(name: str, dtype: type[np.generic]) -> NDArray[np.generic] | None:
         if name not in points.column_names or points.column(name).null_count:
@@ -150,6 +155,8 @@ def cloud_from_table(points: pa.Table) -> CloudModel:
         range_m=optional("range_m", np.float32),  # type: ignore[arg-type]
         profile=optional("profile", np.int32),  # type: ignore[arg-type]
         beta_deg=optional("beta_deg", np.float64),  # type: ignore[arg-type]
+        alpha_deg=optional("alpha_deg", np.float64),  # type: ignore[arg-type]
+        sample=optional("sample", np.int32),  # type: ignore[arg-type]
     )
 
 

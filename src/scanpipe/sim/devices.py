@@ -99,7 +99,7 @@ class LdoemEmulated:
         stream = self.device.stream
         mask = stream.mask if stream is not None else None
         frame = profile_frame("ldoem", k, ranges_m, config, start_s, mask,
-                              self.device.clock_ms_offset)
+                              self.device.clock_ms_offset, echo)
         if stream is not None:
             stream.sent += 1
             if stream.count and stream.sent >= stream.count:

@@ -30,6 +30,7 @@ from scanpipe.sim.ldoem_device import LdoemDevice
 from scanpipe.sim.options import SimOptions
 from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import (
+    echo_amplitude,
     measure,
     sample_time_offsets_s,
     sector_duration_s,
@@ -55,6 +56,8 @@ class ProfileBatch:
     true_m: NDArray[np.float64]
     beta_first_deg: NDArray[np.float64]
     beta_last_deg: NDArray[np.float64]
+    #: Echo amplitude of every measured sample (0 = no return).
+    echo: NDArray[np.uint16] | None = None
 
 
 def checked_rigs(options: SimOptions) -> tuple[Rig, Rig]:
@@ -110,7 +113,8 @@ def simulate_profiles(scene: Scene, scanner_true: ScannerConfig, session: Sessio
         beta = session.timeline.steps_at(times) * step + beta_offset
         truth = true_ranges(scene, scanner_true, beta)
         measured = measure(truth, model, first, scanner_true)
-        yield ProfileBatch(first, measured, truth.ranges_m, beta[:, 0].copy(), beta[:, -1].copy())
+        yield ProfileBatch(first, measured, truth.ranges_m, beta[:, 0].copy(), beta[:, -1].copy(),
+                           echo_amplitude(measured, truth))
         progress("scanner profiles", min(first + per_batch, total), total)
 
 
@@ -156,7 +160,7 @@ def _ldoem_startup(scanner: ScannerConfig, options: SimOptions
     t = 0.0
     for request in (ldoem.get_ident_request(), ldoem.get_status_request(),
                     ldoem.rotate_request(int(scanner.scan_hz)),
-                    ldoem.get_profile_request(0, ldoem.MASK_RANGES)):
+                    ldoem.get_profile_request(0, ldoem.MASK_RANGES_ECHO)):
         exchange.append((t, TX, request))
         t += options.link_latency_s
         payload = request[8:-1]
@@ -209,12 +213,16 @@ def simulate_direct(out: Path, truth_dir: Path, options: SimOptions | None = Non
     frames: list[bytes] = []
     recv_s: list[float] = []
     sector = sector_duration_s(scanner)
+    # what the recorder asks for by default: ranges and echo amplitudes
+    from scanpipe.protocol.ldoem import MASK_RANGES_ECHO
+    ldoem_mask = MASK_RANGES_ECHO if dialect == "ldoem" else None
     for batch in simulate_profiles(scene, scanner, session, options, progress):
         true_rows.append(batch)
         for row in range(batch.measured_m.shape[0]):
             k = batch.first + row
-            frames.append(profile_frame(dialect, k, batch.measured_m[row], scanner,
-                                        float(session.profile_start_s[k])))
+            frames.append(profile_frame(
+                dialect, k, batch.measured_m[row], scanner, float(session.profile_start_s[k]),
+                mask=ldoem_mask, echo=None if batch.echo is None else batch.echo[row]))
             recv_s.append(float(session.profile_start_s[k]) + sector + options.link_latency_s)
     scanner_bytes = 0
     for t_s, chunk in chunk_stream(frames, recv_s, rng):

@@ -37,7 +37,7 @@ from scanpipe.sim.options import SimOptions
 from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import (
     MeasurementModel,
-    echo_model,
+    echo_amplitude,
     measure,
     sample_time_offsets_s,
     sector_duration_s,
@@ -288,7 +288,8 @@ class ScannerEmulator:
         beta = self.platform.beta_deg_at(times)[None, :]
         truth = true_ranges(self.scene, config, beta)
         measured = measure(truth, self.measurement, k, config)[0]
-        echo = echo_model(truth, measured) if self._sends_echo(config) else None
+        echo = (echo_amplitude(measured[None, :], truth)[0] if self._sends_echo(config)
+                else None)
         with self._lock:
             self.sent.append(SentProfile(k, start_s, float(beta[0, 0]), float(beta[0, -1]),
                                          truth.ranges_m[0]))
@@ -296,10 +297,13 @@ class ScannerEmulator:
 
     @staticmethod
     def _sends_echo(config: ScannerConfig) -> bool:
+        # The LD-OEM sends echoes when the GET_PROFILE mask asks for them (wire.profile_frame).
         from scanpipe.scanner_models import model_of
 
+        if config.dialect == "ldoem":
+            return True
         model = model_of(config.model, config.dialect)
-        return model is not None and model.intensity and config.dialect != "ldoem"
+        return model is not None and model.intensity
 
     def truth_table(self) -> pa.Table:
         """Per-profile truth of everything sent so far, in sending order (host-clock times)."""

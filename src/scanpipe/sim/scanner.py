@@ -8,6 +8,11 @@ the user believes may differ. The measurement model, deterministic per (seed, pr
 Gaussian range noise, dropouts (a base rate plus grazing incidence), optional mixed pixels at
 depth edges, and the scanner's minimum and maximum range. Quantisation to 1/256 m happens in
 the wire encoders; the truth stays noise-free and un-quantised.
+
+The echo amplitude (:func:`echo_amplitude`) follows the lidar equation for a diffuse target:
+``ECHO_AT_1M · ρ · cos θ / r²`` (r in metres, at least ``ECHO_NEAR_M``), clipped to u16, where
+ρ is the reflectance of the hit surface (the luminance of its texture, at least
+``MIN_REFLECTANCE``) and θ the incidence angle; 0 where there is no return.
 """
 
 from __future__ import annotations
@@ -63,6 +68,35 @@ class TrueProfiles:
 
     ranges_m: F64
     cos_incidence: F32
+    #: Diffuse reflectance 0..1 of the surface hit (None: unknown, taken as 0.5).
+    reflectance: F32 | None = None
+
+
+#: Echo of a white (ρ = 1) surface at 1 m, hit head-on (u16 counts).
+ECHO_AT_1M = 40_000.0
+#: Closer than this the receiver saturates: the range fall-off stops.
+ECHO_NEAR_M = 0.8
+#: Even black paint returns a little.
+MIN_REFLECTANCE = 0.05
+#: Rec. 709 luma weights: a texture's RGB to its reflectance.
+_LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+def surface_reflectance(rgb: NDArray[np.uint8]) -> F32:
+    """Diffuse reflectance 0..1 of surfaces of colour ``rgb`` (N, 3): their luminance, at least
+    :data:`MIN_REFLECTANCE`."""
+    luma = (np.asarray(rgb, dtype=np.float32) @ _LUMA) / 255.0
+    return np.asarray(np.maximum(luma, MIN_REFLECTANCE), dtype=np.float32)
+
+
+def echo_amplitude(measured_m: NDArray[np.floating], truth: TrueProfiles) -> NDArray[np.uint16]:
+    """The echo of every measured sample (same shape as ``measured_m``; 0 = no return)."""
+    rho = (np.full(truth.cos_incidence.shape, 0.5, np.float32) if truth.reflectance is None
+           else truth.reflectance)
+    r = np.maximum(np.nan_to_num(np.asarray(measured_m, np.float32), nan=1.0), ECHO_NEAR_M)
+    echo = ECHO_AT_1M * rho * truth.cos_incidence / (r * r)
+    echo = np.where(np.isfinite(measured_m), np.clip(np.rint(echo), 1, 65535), 0)
+    return np.asarray(echo, dtype=np.uint16)
 
 
 def true_ranges(scene: Scene, scanner_true: ScannerConfig, beta_deg: F64) -> TrueProfiles:
@@ -90,7 +124,8 @@ def true_ranges(scene: Scene, scanner_true: ScannerConfig, beta_deg: F64) -> Tru
     ranges = np.where(np.isfinite(ranges) & in_window, ranges, np.nan)
     cos_inc = np.abs(np.einsum("ij,ij->i", hits.normal.astype(np.float64),
                                directions.reshape(-1, 3))).astype(np.float32)
-    return TrueProfiles(ranges, cos_inc.reshape(beta.shape))
+    reflectance = surface_reflectance(scene.color_at(hits.triangle_id, hits.barycentric))
+    return TrueProfiles(ranges, cos_inc.reshape(beta.shape), reflectance.reshape(beta.shape))
 
 
 def profile_rng(seed: int, profile: int) -> np.random.Generator:
@@ -127,17 +162,6 @@ def measure(truth: TrueProfiles, model: MeasurementModel, first_profile: int,
 
 #: The echo of a surface seen head-on at 1 m (u16 counts, like a SICK RSSI channel).
 ECHO_AT_1M = 4000.0
-
-
-def echo_model(truth: TrueProfiles, measured: F32, row: int = 0) -> NDArray[np.uint16]:
-    """The echo intensity of one measured profile: strongest head-on and near, falling with
-    the cosine of incidence and with range (1 / (1 + r²/100)); 0 where there is no return."""
-    cos_inc = truth.cos_incidence[row].astype(np.float64)
-    r = np.nan_to_num(measured.astype(np.float64), nan=0.0)
-    value = ECHO_AT_1M * cos_inc / (1.0 + r * r / 100.0) * 1.01
-    value[~np.isfinite(measured)] = 0.0
-    out: NDArray[np.uint16] = np.clip(np.rint(value), 0, 65535).astype(np.uint16)
-    return out
 
 
 def _mixed_pixels(ranges: F64, model: MeasurementModel, rng: np.random.Generator) -> F64:

@@ -29,8 +29,8 @@ def profile_frame(dialect: str, index: int, ranges_m: NDArray[np.float32],
     """The frame carrying profile ``index`` (measured at ``start_s``) in ``dialect``.
 
     ``mask`` selects the ldoem fields (the GET_PROFILE request's; default 0x39FF);
-    ``clock_offset_ms`` is what SET_TIME_ABS moved the device clock by; ``echo`` the echo
-    intensities of a device that sends them.
+    ``clock_offset_ms`` is what SET_TIME_ABS moved the device clock by; ``echo`` the
+    amplitudes (:func:`scanpipe.sim.scanner.echo_amplitude`), sent when the mask asks for them.
     """
     from scanpipe.protocol import ldoem
     from scanpipe.protocol.profile import Profile

@@ -1,4 +1,5 @@
-"""Export: artifacts to files other tools open (OBJ, GLB, PLY, LAS/LAZ, E57, Foxglove MCAP).
+"""Export: artifacts to files other tools open (OBJ, GLB, PLY, LAS/LAZ, E57, Foxglove MCAP,
+COLMAP).
 
 Pure: :func:`export_files` turns tables into ``{file name: bytes}`` (the shape of
 :attr:`scanpipe.stage.StageResult.files`), and the chain's export stage is that plus a
@@ -6,34 +7,49 @@ manifest. Writing files for ``scanpipe export`` is the shell's: :mod:`scanpipe.e
 
 What each format takes: ``obj`` and ``glb`` the mesh (+ texture when present); ``las``,
 ``laz`` and ``e57`` the points; ``ply`` the mesh, or the points when there is no mesh;
-``mcap`` both when present (the points for scrubbing the scan, the mesh as a model).
+``mcap`` both when present (the points for scrubbing the scan, the mesh as a model);
+``colmap`` the camera frames, their poses and the points.
+
+One code path for ``scanpipe run`` and ``scanpipe export``: :func:`prepare_tables` colours the
+points from the camera frames (when there are frames) for both, and :func:`export_files`
+writes every format from the same tables, with the provenance of the exported artifacts
+(:func:`provenance_of`) in the files' metadata where the format has room.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 from collections.abc import Mapping
-from typing import Literal
+from typing import Any, Literal
 
 import pyarrow as pa
 from pydantic import Field
 
+from scanpipe import __version__
+from scanpipe.artifacts import PROVENANCE_KEY
 from scanpipe.errors import ArtifactError, ExportError, UsageError
 from scanpipe.exporters.e57 import e57_bytes
 from scanpipe.exporters.glb import glb_bytes
-from scanpipe.exporters.las import las_bytes
+from scanpipe.exporters.las import LAS_VERSIONS, las_bytes, pdal_pipeline_bytes, provenance_bytes
 from scanpipe.exporters.mcap_foxglove import foxglove_mcap_bytes
 from scanpipe.exporters.model import CloudModel, MeshModel, cloud_from_table, mesh_from_tables
 from scanpipe.exporters.obj import obj_files
 from scanpipe.exporters.ply import ply_cloud_bytes, ply_mesh_bytes
 from scanpipe.params import Params
-from scanpipe.progress import ProgressFn
+from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.stage import Stage, StageResult
 
-FORMATS: tuple[str, ...] = ("obj", "glb", "ply", "las", "laz", "e57", "mcap")
+FORMATS: tuple[str, ...] = ("obj", "glb", "ply", "las", "laz", "copc", "e57", "mcap", "colmap")
+#: The file suffix of a format where it is not the format's name.
+SUFFIXES = {"copc": ".copc.laz"}
 MESH_ARTIFACTS = ("mesh_vertices", "mesh_faces")
 TEXTURE_ARTIFACTS = ("textured_faces", "texture_pages")
+#: What colouring the points and posing the frames need (optional for every format but colmap).
+CAMERA_ARTIFACTS = ("frames", "motor", "rig")
 INPUT_ARTIFACTS = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points")
+#: The frame spacing (degrees of platform angle) of point colouring and the COLMAP export.
+FRAME_SPACING_DEG = 5.0
 
 
 class FormatError(ExportError, UsageError):
@@ -50,6 +66,13 @@ def check_format(fmt: str) -> str:
     return lowered
 
 
+def check_las_version(version: str) -> str:
+    """``version`` when it is a LAS version the exporter writes, else a FormatError."""
+    if version not in LAS_VERSIONS:
+        raise FormatError(f"--las-version {version!r}: allowed: {', '.join(LAS_VERSIONS)}")
+    return version
+
+
 def models_from_tables(tables: Mapping[str, pa.Table]) -> tuple[MeshModel | None,
                                                                    CloudModel | None]:
     """The mesh (with texture when both texture artifacts exist) and the cloud, where given."""
@@ -63,9 +86,48 @@ def models_from_tables(tables: Mapping[str, pa.Table]) -> tuple[MeshModel | None
     return mesh, cloud
 
 
-def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str) -> dict[str, bytes]:
-    """The files of one export, by name; the first is the main file."""
+def provenance_of(tables: Mapping[str, pa.Table]) -> dict[str, Any]:
+    """What an exported file records about its making: the scanpipe version and, per artifact
+    it was made from, the key, stage and parameters (from the artifact's Parquet metadata)."""
+    record: dict[str, Any] = {"scanpipe": __version__, "artifacts": {}}
+    for name, table in sorted(tables.items()):
+        raw = (table.schema.metadata or {}).get(PROVENANCE_KEY)
+        if raw is None:
+            continue
+        try:
+            meta = json.loads(raw)
+        except ValueError:
+            continue
+        if isinstance(meta, dict):
+            record["artifacts"][name] = {k: meta.get(k) for k in ("key", "stage", "params")}
+    return record
+
+
+def prepare_tables(tables: Mapping[str, pa.Table], colors: bool = True,
+                   progress: ProgressFn = no_progress) -> tuple[dict[str, pa.Table], bool]:
+    """The tables every export format reads, and whether the points were coloured: the points
+    get ``red/green/blue`` from the camera frames when ``colors`` and there are frames (the
+    same for ``run`` and ``export``; the points artifact's provenance is kept)."""
+    out = dict(tables)
+    points = out.get("points")
+    if (not colors or points is None or not all(n in out for n in CAMERA_ARTIFACTS)
+            or out["frames"].num_rows == 0):
+        return out, False
+    from scanpipe.rig import rig_from_table
+    from scanpipe.texturing.projective import colorize_points
+
+    coloured = colorize_points(points, out["frames"], out["motor"], rig_from_table(out["rig"]),
+                               spacing_deg=FRAME_SPACING_DEG, progress=progress)
+    out["points"] = coloured.replace_schema_metadata(points.schema.metadata)
+    return out, True
+
+
+def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
+                 las_version: str = "1.2") -> dict[str, bytes]:
+    """The files of one export, by name; the first is the main file. ``tables`` as
+    :func:`prepare_tables` gives them."""
     fmt = check_format(fmt)
+    check_las_version(las_version)
     mesh, cloud = models_from_tables(tables)
     if fmt in ("obj", "glb") or (fmt == "ply" and mesh is not None):
         if mesh is None:
@@ -78,18 +140,55 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str) -> dict[st
         return {f"{stem}.ply": ply_mesh_bytes(mesh)}
     if fmt == "mcap":
         return {f"{stem}.mcap": foxglove_mcap_bytes(cloud, mesh, stem)}
+    provenance = provenance_of({k: v for k, v in tables.items() if k == "points"})
+    if fmt == "colmap":
+        return _colmap(tables, cloud, stem, provenance)
     if cloud is None:
         raise ArtifactError(f"{fmt} export needs a points artifact; found: "
                             f"{', '.join(sorted(tables)) or 'nothing'}")
     if fmt == "ply":
         return {f"{stem}.ply": ply_cloud_bytes(cloud)}
     if fmt in ("las", "laz"):
-        return {f"{stem}.{fmt}": las_bytes(cloud, compressed=fmt == "laz")}
-    return {f"{stem}.e57": e57_bytes(cloud, stem)}
+        return {f"{stem}.{fmt}": las_bytes(cloud, compressed=fmt == "laz", version=las_version,
+                                           provenance=provenance),
+                f"{stem}.{fmt}.pipeline.json": pdal_pipeline_bytes(f"{stem}.{fmt}")}
+    if fmt == "copc":
+        from scanpipe.exporters.copc import copc_bytes
+
+        return {f"{stem}.copc.laz": copc_bytes(cloud, provenance),
+                f"{stem}.copc.laz.pipeline.json": pdal_pipeline_bytes(f"{stem}.copc.laz",
+                                                                       "readers.copc")}
+    return {f"{stem}.e57": e57_bytes(cloud, stem, provenance_bytes(provenance).decode())}
+
+
+def _colmap(tables: Mapping[str, pa.Table], cloud: CloudModel | None, stem: str,
+            provenance: Mapping[str, Any]) -> dict[str, bytes]:
+    missing = [n for n in CAMERA_ARTIFACTS if n not in tables]
+    if missing or tables["frames"].num_rows == 0:
+        raise ArtifactError("colmap export needs camera frames (frames, motor and rig "
+                            f"artifacts with frames); found: {', '.join(sorted(tables))}")
+    from scanpipe.camera import camera_pose_in_rig
+    from scanpipe.exporters.colmap import colmap_files
+    from scanpipe.rig import rig_from_table
+    from scanpipe.texturing.frames import choose_frames
+
+    chosen = choose_frames(tables["frames"], tables["motor"], rig_from_table(tables["rig"]),
+                           FRAME_SPACING_DEG)
+    formats = tables["frames"].column("format").to_pylist() if (
+        "format" in tables["frames"].column_names) else []
+    by_sequence = dict(zip(tables["frames"].column("sequence").to_pylist(),
+                           formats or ["jpeg"] * tables["frames"].num_rows, strict=True))
+    names = [f"{cam.id}_{int(seq):06d}."
+             f"{'png' if by_sequence.get(int(seq)) == 'png' else 'jpg'}"
+             for cam, seq in zip(chosen.cameras, chosen.sequences, strict=True)]
+    poses = [camera_pose_in_rig(cam, float(beta))
+             for cam, beta in zip(chosen.cameras, chosen.beta_deg, strict=True)]
+    return colmap_files(stem, chosen.cameras, poses, chosen.encoded, names, cloud,
+                        provenance_bytes(provenance).decode())
 
 
 MeshFormat = Literal["obj", "glb", "ply", "mcap"]
-CloudFormat = Literal["ply", "las", "laz", "e57"]
+CloudFormat = Literal["ply", "las", "laz", "copc", "e57", "colmap"]
 
 
 class ExportStageParams(Params):
@@ -105,6 +204,8 @@ class ExportStageParams(Params):
                             description="stem of the point-cloud files")
     cloud_colors: bool = Field(
         True, description="colour the cloud from the camera frames (when there are frames)")
+    las_version: Literal["1.2", "1.4"] = Field(
+        "1.2", description="LAS version of las/laz: 1.2 (formats 0-3, widely read) or 1.4")
 
 
 def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
@@ -114,22 +215,17 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
         raise UsageError(f"export.name and export.cloud_name are both {params.name!r}: "
                          "the mesh and the cloud files would overwrite each other")
     files: dict[str, bytes] = {}
-    mesh_tables = {k: v for k, v in inputs.items() if k != "points"}
+    tables, coloured = prepare_tables(
+        inputs, params.cloud_colors and bool(params.cloud_formats or "mcap" in
+                                             params.mesh_formats), progress)
+    mesh_tables = {k: v for k, v in tables.items() if k not in ("points", *CAMERA_ARTIFACTS)}
     jobs: list[tuple[str, Mapping[str, pa.Table], str]] = [
-        (fmt, mesh_tables, params.name) for fmt in params.mesh_formats]
-    points = inputs["points"]
-    coloured = False
-    if params.cloud_formats and params.cloud_colors and inputs["frames"].num_rows:
-        from scanpipe.rig import rig_from_table
-        from scanpipe.texturing.projective import colorize_points
-
-        points = colorize_points(points, inputs["frames"], inputs["motor"],
-                                 rig_from_table(inputs["rig"]), progress=progress)
-        coloured = True
-    jobs += [(fmt, {"points": points}, params.cloud_name) for fmt in params.cloud_formats]
-    for done, (fmt, tables, stem) in enumerate(jobs):
+        (fmt, tables if fmt == "mcap" else mesh_tables, params.name)
+        for fmt in params.mesh_formats]
+    jobs += [(fmt, tables, params.cloud_name) for fmt in params.cloud_formats]
+    for done, (fmt, job_tables, stem) in enumerate(jobs):
         progress("export", done, len(jobs))
-        files.update(export_files(tables, fmt, stem))
+        files.update(export_files(job_tables, fmt, stem, params.las_version))
     progress("export", len(jobs), len(jobs))
     manifest = pa.table({
         "file": pa.array(list(files), pa.string()),
@@ -144,11 +240,12 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
 
 STAGE = Stage(
     name="export",
-    version=1,
+    version=2,
     params=ExportStageParams,
     inputs=(*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points", "frames", "motor", "rig"),
     outputs=("export_manifest",),
     func=export_stage,  # type: ignore[arg-type]
-    description="write the textured mesh (OBJ+MTL+PNG, GLB) and the cloud (PLY, LAS, E57)",
+    description="write the textured mesh (OBJ+MTL+PNG, GLB) and the cloud (PLY, LAS, E57, "
+                "COLMAP)",
     libraries=("numpy", "pyarrow", "cv2", "laspy", "pye57"),
 )

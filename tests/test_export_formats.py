@@ -1,0 +1,310 @@
+"""LAS 1.2/1.4 records, the PDAL pipeline, structured E57 and COLMAP, each read back by its
+library and by a small independent reader written from the format's documentation; and
+``run`` and ``export`` giving the same points, colours and intensities."""
+
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pyarrow.parquet as pq
+import pye57
+import pytest
+from result_tables import points_table
+from test_export_clouds import _e57_xml, _write, _z_up
+
+from scanpipe.camera import intrinsic_matrix, project_points
+from scanpipe.exporters.e57 import E57Scan, write_e57
+from scanpipe.exporters.las import (
+    LOCAL_WKT,
+    adjusted_gps_time_s,
+    scan_angle_from_nadir_deg,
+    unix_time_ns,
+)
+from scanpipe.exporters.model import cloud_from_table
+from scanpipe.rig import rig_from_table
+from scanpipe.sim.direct import simulate_direct
+from scanpipe.sim.options import SimOptions
+from scanpipe.stages.export import export_files
+from scanpipe.texturing.frames import choose_frames
+
+# -- LAS: an independent header and VLR reader (ASPRS LAS 1.2 / 1.4 specifications) ----------
+
+
+def _las_records(data: bytes) -> dict:
+    assert data[:4] == b"LASF"
+    header_size = struct.unpack_from("<H", data, 94)[0]
+    n_vlrs = struct.unpack_from("<I", data, 100)[0]
+    vlrs, pos = {}, header_size
+    for _ in range(n_vlrs):
+        user = data[pos + 2:pos + 18].rstrip(b"\0").decode()
+        record_id, length = struct.unpack_from("<HH", data, pos + 18)
+        vlrs[(user, record_id)] = data[pos + 54:pos + 54 + length]
+        pos += 54 + length
+    return {"version": (data[24], data[25]),
+            "global_encoding": struct.unpack_from("<H", data, 6)[0],
+            "format": data[104] & 0x3F, "vlrs": vlrs,
+            "software": data[58:90].rstrip(b"\0").decode()}
+
+
+@pytest.mark.parametrize("version", ["1.2", "1.4"])
+def test_las_records_time_source_angle_and_provenance(tmp_path: Path, version: str) -> None:
+    table = points_table()
+    files = export_files({"points": table}, "las", "scan", las_version=version)
+    assert list(files) == ["scan.las", "scan.las.pipeline.json"]
+    data = files["scan.las"]
+    head = _las_records(data)
+    assert head["version"] == (1, int(version[2]))
+    assert head["format"] == (3 if version == "1.2" else 7)
+    assert head["global_encoding"] & 1  # adjusted standard GPS time
+    assert bool(head["global_encoding"] & 16) == (version == "1.4")  # WKT bit (1.4 only)
+    assert head["vlrs"][("LASF_Projection", 2112)].rstrip(b"\0").decode() == LOCAL_WKT
+    record = json.loads(head["vlrs"][("scanpipe", 1)])
+    assert record["scanpipe"] and head["software"] == "scanpipe"
+    path = tmp_path / "scan.las"
+    path.write_bytes(data)
+    las = laspy.read(path)
+    np.testing.assert_array_equal(np.asarray(las.intensity), table.column("echo").to_numpy())
+    np.testing.assert_array_equal(np.asarray(las.point_source_id),
+                                  table.column("profile").to_numpy() + 1)
+    time_ns = table.column("time_ns").to_numpy()
+    assert np.max(np.abs(unix_time_ns(np.asarray(las.gps_time)) - time_ns)) < 1000  # < 1 µs
+    gps_s = time_ns[0] / 1e9 - 315964800 + 18  # seconds since the GPS epoch
+    assert abs(float(np.asarray(las.gps_time)[0]) - (gps_s - 1e9)) < 1e-6
+    angle = scan_angle_from_nadir_deg(table.column("alpha_deg").to_numpy())
+    if version == "1.2":
+        np.testing.assert_array_equal(np.asarray(las.scan_angle_rank),
+                                      np.clip(np.rint(angle), -90, 90))
+    else:
+        np.testing.assert_allclose(np.asarray(las.scan_angle) * 0.006, angle, atol=0.003)
+
+
+def test_gps_time_conversion_and_scan_angle_are_exact_at_known_values() -> None:
+    # 1980-01-06T00:00:00Z + 1e9 GPS s, minus the 18 leap seconds, as Unix time
+    unix_ns = np.array([(315_964_800 + 1_000_000_000 - 18) * 10**9], np.int64)
+    assert adjusted_gps_time_s(unix_ns)[0] == 0.0
+    assert unix_time_ns(np.array([0.0]))[0] == unix_ns[0]
+    np.testing.assert_array_equal(scan_angle_from_nadir_deg(np.array([180.0, 90.0, 270.0, 0.0])),
+                                  [0.0, -90.0, 90.0, -180.0])
+
+
+def test_pdal_pipeline_reads_the_file_beside_it(tmp_path: Path) -> None:
+    path = _write({"points": points_table()}, "laz", tmp_path)
+    pipeline = json.loads((tmp_path / "scan.laz.pipeline.json").read_text())
+    (reader,) = pipeline["pipeline"]
+    assert reader["type"] == "readers.las" and reader["default_srs"] == LOCAL_WKT
+    assert (tmp_path / reader["filename"]).samefile(path)
+
+
+# -- E57 -------------------------------------------------------------------------------------------
+
+
+def test_e57_scan_keeps_the_grid_intensity_colour_and_provenance(tmp_path: Path) -> None:
+    table = points_table()
+    path = _write({"points": table}, "e57", tmp_path)
+    reader = pye57.E57(str(path))
+    scan = reader.read_scan_raw(0)
+    np.testing.assert_array_equal(scan["rowIndex"], table.column("profile").to_numpy())
+    np.testing.assert_array_equal(scan["columnIndex"], table.column("sample").to_numpy())
+    np.testing.assert_array_equal(scan["intensity"], table.column("echo").to_numpy())
+    np.testing.assert_array_equal(scan["colorGreen"], table.column("green").to_numpy())
+    reader.close()
+    node = _e57_xml(path.read_bytes()).find("./data3D/vectorChild")
+    assert node is not None and node.findtext("sensorVendor") == "scanpipe"
+    assert "scanpipe" in json.loads(node.findtext("sensorModel") or "{}")
+    bounds = node.find("indexBounds")
+    assert bounds is not None and int(bounds.findtext("rowMaximum") or -1) == 5
+    assert int(bounds.findtext("columnMaximum") or -1) == 9
+    names = {child.tag for child in node.find("points").find("prototype")}  # type: ignore[union-attr]
+    assert {"rowIndex", "columnIndex", "intensity", "colorRed"} <= names
+
+
+def test_write_e57_writes_one_scan_per_position_with_its_pose(tmp_path: Path) -> None:
+    first, second = (cloud_from_table(points_table(seed=s)) for s in (0, 1))
+    half = np.sqrt(0.5)
+    path = tmp_path / "site.e57"
+    write_e57(path, [E57Scan(first, "position 1"),
+                     E57Scan(second, "position 2", (half, 0.0, 0.0, half), (5.0, -2.0, 0.0))])
+    reader = pye57.E57(str(path))
+    assert reader.scan_count == 2
+    pose = reader.get_header(1)
+    np.testing.assert_allclose(pose.translation, [5.0, -2.0, 0.0])
+    np.testing.assert_allclose(pose.rotation, [half, 0, 0, half])
+    local = reader.read_scan_raw(1)
+    np.testing.assert_allclose(local["cartesianX"], _z_up(second.xyz.astype(float))[:, 0],
+                               atol=1e-6)
+    reader.close()
+    scans = _e57_xml(path.read_bytes()).findall("./data3D/vectorChild")
+    assert [s.findtext("name") for s in scans] == ["position 1", "position 2"]
+    assert float(scans[1].findtext("pose/translation/x") or 0) == 5.0
+
+
+# -- the chain: run and export agree; COLMAP ----------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("formats")
+    simulate_direct(root / "scan.mcap", root / "truth", SimOptions(
+        beam_step_deg=4.0, motor_step_deg=10.0, camera_scale=0.125, camera_fps=0.5, seed=2))
+    return root
+
+
+def test_run_and_export_give_the_same_points_colours_and_intensities(cli, workdir: Path,  # type: ignore[no-untyped-def]
+                                                                     tmp_path: Path) -> None:
+    work = tmp_path / "w"
+    done = cli("run", workdir / "scan.mcap", "--workdir", work, "--set", "mesh.method=grid",
+               "--set", 'export.cloud_formats=["las", "e57", "colmap"]',
+               "--set", 'export.mesh_formats=["glb"]')
+    assert done.code == 0, done.err
+    ran = laspy.read(work / "export" / "cloud.las")
+    assert int(np.asarray(ran.intensity).max()) > 0  # the simulated echo, end to end
+    assert len(np.unique(np.asarray(ran.red))) > 10  # coloured from the frames
+    for fmt in ("las", "e57"):
+        exported = cli("export", work, "-f", fmt, "--out", tmp_path / f"x.{fmt}")
+        assert exported.code == 0, exported.err
+    las = laspy.read(tmp_path / "x.las")
+    for field in ("X", "Y", "Z", "intensity", "red", "green", "blue", "gps_time"):
+        np.testing.assert_array_equal(np.asarray(las[field]), np.asarray(ran[field]))
+    a, b = pye57.E57(str(tmp_path / "x.e57")), pye57.E57(str(work / "export" / "cloud.e57"))
+    sa, sb = a.read_scan_raw(0), b.read_scan_raw(0)
+    for key in ("cartesianX", "intensity", "colorRed", "rowIndex"):
+        np.testing.assert_array_equal(sa[key], sb[key])
+    a.close()
+    b.close()
+    key = pq.read_schema(work / "filter" / "points.parquet").metadata[b"scanpipe.provenance"]
+    record = json.loads(laspy.read(tmp_path / "x.las").header.vlrs[1].record_data)
+    assert record["artifacts"]["points"]["key"] == json.loads(key)["key"]
+    _check_colmap(work / "export" / "cloud_colmap", work)
+
+
+def _read_colmap(folder: Path) -> tuple[dict, list, np.ndarray]:
+    """cameras.txt, images.txt, points3D.txt per COLMAP's documented text format."""
+    def lines(name: str) -> list[str]:
+        text = (folder / "sparse" / "0" / name).read_text().split("\n")
+        return [line for line in text if not line.startswith("#")]
+
+    cameras = {}
+    for line in lines("cameras.txt"):
+        if line.strip():
+            cid, model, width, height, *params = line.split()
+            cameras[int(cid)] = (model, int(width), int(height), [float(p) for p in params])
+    body = lines("images.txt")
+    images = []
+    for k in range(0, len(body) - 1, 2):  # two lines per image, the second (POINTS2D) empty
+        if not body[k].strip():
+            break
+        iid, qw, qx, qy, qz, tx, ty, tz, cid, name = body[k].split()
+        assert body[k + 1] == ""
+        images.append((int(iid), np.array([qw, qx, qy, qz], float), np.array([tx, ty, tz], float),
+                       int(cid), name))
+    points = np.array([[float(v) for v in line.split()[:7]] for line in lines("points3D.txt")
+                       if line.strip()])
+    return cameras, images, points
+
+
+def _rotation(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _check_colmap(folder: Path, work: Path) -> None:
+    cameras, images, points = _read_colmap(folder)
+    assert cameras and images and len(points) > 100
+    assert np.all(points[:, 4:7] <= 255) and np.all(np.diff(points[:, 0]) == 1)
+    rig = rig_from_table(pq.read_table(work / "decode" / "rig.parquet"))
+    chosen = choose_frames(pq.read_table(work / "decode" / "frames.parquet"),
+                           pq.read_table(work / "decode" / "motor.parquet"), rig, 5.0)
+    assert len(images) == len(chosen)
+    cams = {c.id: c for c in rig.cameras}
+    for k, (_, q, t, cid, name) in enumerate(images):
+        assert (folder / "images" / name).read_bytes() == chosen.encoded[k]
+        assert abs(np.linalg.norm(q) - 1) < 1e-9
+        model, width, height, params = cameras[cid]
+        cam = cams[name.rsplit("_", 1)[0]]
+        assert model == "OPENCV" and len(params) == 8 and cam.id == chosen.cameras[k].id
+        assert (width, height) == (cam.width, cam.height)
+        np.testing.assert_allclose(params[:4], intrinsic_matrix(cam)[[0, 1, 0, 1], [0, 1, 2, 2]])
+        # COLMAP's world→camera pose and pinhole put every point where scanpipe projects it
+        cam_xyz = points[:, 1:4] @ _rotation(q).T + t
+        front = cam_xyz[:, 2] > 0.1
+        uv = cam_xyz[front, :2] / cam_xyz[front, 2:] * params[:2] + params[2:4]
+        ours, depth = project_points(points[front, 1:4], cam, float(chosen.beta_deg[k]))
+        np.testing.assert_allclose(ours, uv, atol=1e-3)
+        np.testing.assert_allclose(depth, cam_xyz[front, 2], atol=1e-6)
+
+
+def test_bad_las_version_and_colmap_without_frames_are_one_line_errors(  # type: ignore[no-untyped-def]
+        cli, tmp_path: Path) -> None:
+    folder = tmp_path / "flat"
+    folder.mkdir()
+    pq.write_table(points_table(), folder / "points.parquet")
+    kept = tmp_path / "x.las"
+    kept.write_bytes(b"valid before")
+    bad = cli("export", folder, "-f", "las", "--las-version", "1.3", "--out", kept, "--force")
+    assert bad.code == 2
+    assert bad.err.strip() == ("scanpipe: error: --las-version '1.3': allowed: 1.2, 1.4")
+    assert kept.read_bytes() == b"valid before"
+    no_frames = cli("export", folder, "-f", "colmap", "--out", tmp_path / "c")
+    assert no_frames.code != 0 and len(no_frames.err.strip().splitlines()) == 1
+    assert "colmap export needs camera frames" in no_frames.err
+    assert not (tmp_path / "c" / "scan_colmap").exists()
+
+
+# -- COPC: laspy's CopcReader, and the specification's invariants read with struct -------------
+
+
+def test_copc_reads_in_laspy_and_keeps_the_spec_invariants(tmp_path: Path) -> None:
+    table = points_table(profiles=40, samples=60)
+    path = _write({"points": table}, "copc", tmp_path)
+    assert path.name == "scan.copc.laz"
+    assert json.loads((tmp_path / "scan.copc.laz.pipeline.json").read_text())[
+        "pipeline"][0]["type"] == "readers.copc"
+    data = path.read_bytes()
+    plain = laspy.read(_write({"points": table}, "las", tmp_path))
+    with laspy.CopcReader.open(path) as reader:
+        everything = reader.query()
+        coarse = reader.query(resolution=float(reader.copc_info.spacing))
+    assert len(everything) == len(table) and 0 < len(coarse) < len(table)
+    # the same points as the LAS export, in octree order
+    key = np.lexsort((np.asarray(plain.Z), np.asarray(plain.Y), np.asarray(plain.X)))
+    got = np.lexsort((np.asarray(everything.Z), np.asarray(everything.Y),
+                      np.asarray(everything.X)))
+    for field in ("X", "Y", "Z", "intensity", "red", "gps_time", "point_source_id"):
+        np.testing.assert_array_equal(np.asarray(everything[field])[got],
+                                      np.asarray(plain[field])[key])
+    # spec: LAS 1.4, format 6/7 with the LAZ bit, the COPC info VLR first at byte 375
+    assert (data[24], data[25]) == (1, 4) and data[104] & 0x3F == 7 and data[104] & 0x80
+    assert data[375 + 2:375 + 6] == b"copc" and struct.unpack_from("<H", data, 375 + 18)[0] == 1
+    info = struct.unpack_from("<5d2Q2d", data, 375 + 54)
+    center, halfsize, root_offset, root_size = np.array(info[:3]), info[3], info[5], info[6]
+    evlr_start, n_evlrs = struct.unpack_from("<QI", data, 235)
+    assert n_evlrs == 1 and data[evlr_start + 2:evlr_start + 6] == b"copc"
+    assert struct.unpack_from("<H", data, evlr_start + 18)[0] == 1000
+    assert root_offset == evlr_start + 60 and root_size % 32 == 0
+    entries = [struct.unpack_from("<4iQii", data, root_offset + 32 * k)
+               for k in range(root_size // 32)]
+    keys = {e[:4] for e in entries}
+    assert (0, 0, 0, 0) in keys and sum(e[6] for e in entries) == len(table)
+    for d, x, y, z in keys - {(0, 0, 0, 0)}:  # every node's parent is in the hierarchy
+        assert (d - 1, x // 2, y // 2, z // 2) in keys
+    point_start = struct.unpack_from("<I", data, 96)[0]
+    offsets = [e[4] for e in entries]
+    assert offsets[0] == point_start + 8  # after the chunk-table offset
+    sizes = [e[5] for e in entries]
+    assert all(a + s == b for a, s, b in zip(offsets[:-1], sizes[:-1], offsets[1:], strict=True))
+    # the points of each node (file order) lie inside its voxel
+    whole = laspy.read(path)
+    xyz = np.column_stack([whole.x, whole.y, whole.z])
+    start = 0
+    for d, x, y, z, _, _, count in entries:
+        size = 2 * halfsize / 2**d
+        low = center - halfsize + size * np.array([x, y, z])
+        inside = xyz[start:start + count]
+        assert np.all(inside >= low - 1e-9) and np.all(inside <= low + size + 1e-9)
+        start += count
