@@ -9,6 +9,7 @@ from typing import Any
 import typer
 
 from scanpipe.cli.common import (
+    FORCE,
     JSON,
     MOTOR_STEP,
     QUIET,
@@ -106,21 +107,57 @@ def record(
 
 
 def info(
-    recording: Path = typer.Argument(..., help="The recording (.mcap)."),
+    recording: Path = typer.Argument(..., help="The recording, or any MCAP file (.mcap)."),
     gap: float = typer.Option(1.0, "--gap", help="Count pauses longer than this many seconds."),
     as_json: bool = JSON,
 ) -> None:
-    """Channels, counts, durations, rates, gaps, events and the rig of a recording."""
+    """Channels, counts, durations, rates, gaps, events and the rig of a recording; for any
+    other MCAP file its channels, schemas, message counts and time range (like mcap info)."""
     from scanpipe.acquire.info import format_info, recording_info
-    from scanpipe.recording.reader import read_recording
+    from scanpipe.recording.catalogue import catalogue_info, format_catalogue
+    from scanpipe.recording.reader import read_catalogue, read_recording
+    from scanpipe.recording.writer import PROFILE
 
     if gap <= 0:
         raise UsageError(f"--gap {gap!r}: must be greater than 0 seconds")
-    result = recording_info(read_recording(recording), gap)
+    catalogue = catalogue_info(read_catalogue(recording))
+    if catalogue["profile"] != PROFILE:  # not a scanpipe recording: the generic view
+        if as_json:
+            print_json({"recording": False, "mcap": catalogue})
+        else:
+            typer.echo(format_catalogue(catalogue))
+        return
+    result = {"recording": True, **recording_info(read_recording(recording), gap),
+              "mcap": catalogue}
     if as_json:
         print_json(result)
     else:
         typer.echo(format_info(result))
+
+
+def recover(
+    damaged: Path = typer.Argument(..., help="The damaged MCAP file."),
+    out: Path = typer.Option(..., "--out", "-o", help="The new MCAP file to write."),
+    force: bool = FORCE,
+    as_json: bool = JSON,
+) -> None:
+    """Copy every message that can be read from a damaged MCAP file (a killed writer, a cut
+    copy, damaged chunks) into a new, valid MCAP file."""
+    from scanpipe.outpaths import check_output_file
+    from scanpipe.recording.catalogue import recover_mcap
+
+    check_output_file(out, "--out", (".mcap",), force, inputs=[damaged])
+    report = recover_mcap(damaged, out)
+    if as_json:
+        print_json(report)
+        return
+    loss = report["loss"]
+    bound = "" if loss["exact"] else "at least "
+    typer.echo(f"{out}: {report['messages']} messages on {report['channels']} channels "
+               f"recovered from {damaged}; lost {bound}{loss['chunks']} chunks "
+               f"({loss['bytes']} bytes)")
+    for warning in report["warnings"]:
+        sys.stderr.write(f"warning: recover: {warning}\n")
 
 
 def import_video(
@@ -171,4 +208,5 @@ def register(app: typer.Typer) -> None:
     """Add ``record``, ``info`` and ``import-video`` to the main app."""
     app.command("record")(record)
     app.command("info")(info)
+    app.command("recover")(recover)
     app.command("import-video")(import_video)
