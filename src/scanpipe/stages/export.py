@@ -22,7 +22,7 @@ from scanpipe.errors import ArtifactError, ExportError, UsageError
 from scanpipe.exporters.e57 import e57_bytes
 from scanpipe.exporters.glb import glb_bytes
 from scanpipe.exporters.las import las_bytes
-from scanpipe.exporters.mcap_foxglove import foxglove_mcap_bytes
+from scanpipe.exporters.mcap_foxglove import camera_views_from_tables, foxglove_export_files
 from scanpipe.exporters.model import CloudModel, MeshModel, cloud_from_table, mesh_from_tables
 from scanpipe.exporters.obj import obj_files
 from scanpipe.exporters.ply import ply_cloud_bytes, ply_mesh_bytes
@@ -33,7 +33,9 @@ from scanpipe.stage import Stage, StageResult
 FORMATS: tuple[str, ...] = ("obj", "glb", "ply", "las", "laz", "e57", "mcap")
 MESH_ARTIFACTS = ("mesh_vertices", "mesh_faces")
 TEXTURE_ARTIFACTS = ("textured_faces", "texture_pages")
-INPUT_ARTIFACTS = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points")
+#: What the Foxglove export shows besides the scan: the camera frames, placed by rig and motor.
+CAMERA_ARTIFACTS = ("frames", "motor", "rig")
+INPUT_ARTIFACTS = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points", *CAMERA_ARTIFACTS)
 
 
 class FormatError(ExportError, UsageError):
@@ -77,7 +79,7 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str) -> dict[st
             return {f"{stem}.glb": glb_bytes(mesh, stem)}
         return {f"{stem}.ply": ply_mesh_bytes(mesh)}
     if fmt == "mcap":
-        return {f"{stem}.mcap": foxglove_mcap_bytes(cloud, mesh, stem)}
+        return foxglove_export_files(cloud, mesh, stem, camera_views_from_tables(tables))
     if cloud is None:
         raise ArtifactError(f"{fmt} export needs a points artifact; found: "
                             f"{', '.join(sorted(tables)) or 'nothing'}")
