@@ -11,10 +11,13 @@ import typer
 from scanpipe.cli.common import (
     FORCE,
     JSON,
+    LIVE,
+    LIVE_HOST,
     MOTOR_STEP,
     QUIET,
     RIG,
     deprecated_alias,
+    live_taps,
     print_error,
     print_json,
     take_alias,
@@ -85,6 +88,8 @@ def record(
                                          "home before scanning (otherwise refused)."),
     speedup: float = typer.Option(1.0, "--speedup", hidden=True,
                                   help="Device time runs this much faster (virtual rig only)."),
+    live: int | None = LIVE,
+    live_host: str = LIVE_HOST,
     quiet: bool = QUIET,
     as_json: bool = JSON,
     step_angle: float | None = deprecated_alias("--motor-step", "--step-angle"),
@@ -101,7 +106,8 @@ def record(
     rig = load_rig(rig_path)
     options = record_options(mode, motor_step_deg, profiles_per_position, not no_cameras,
                              split_size_mb, split_duration_s, speedup, echo, home_first)
-    code = run_recorder(Recorder(rig, out, options), quiet, as_json)
+    with live_taps(rig, live, live_host, quiet) as taps:
+        code = run_recorder(Recorder(rig, out, options, taps=taps), quiet, as_json)
     if code:
         raise typer.Exit(code)
 

@@ -61,7 +61,7 @@ def _root(
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the console script; returns the exit code."""
-    args = list(sys.argv[1:] if argv is None else argv)
+    args = common.expand_optional_values(list(sys.argv[1:] if argv is None else argv))
     try:
         result = app(args=args, prog_name="scanpipe", standalone_mode=False)
     except ScanpipeError as err:
