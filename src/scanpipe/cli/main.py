@@ -71,6 +71,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(err.exit_code)
     except typer.TyperException as err:  # usage errors: bad option, bad value, missing argument
         formatter = getattr(err, "format_message", None)
+        if type(err).__name__ == "NoArgsIsHelpError" and callable(formatter):
+            # A bare `scanpipe` (or command group): its help on stdout and exit code 2, as
+            # typer itself does (click vendored by typer: matched by name, not a private import).
+            sys.stdout.write(str(formatter()).rstrip("\n") + "\n")
+            return int(getattr(err, "exit_code", 2))
+        formatter = getattr(err, "format_message", None)
         message = (formatter() if callable(formatter) else str(err)).replace("\n", " ")
         ctx = getattr(err, "ctx", None)
         hint = f" (see: {ctx.command_path} --help)" if ctx is not None else ""
