@@ -21,6 +21,10 @@ P = TypeVar("P", bound=Params)
 
 QUIET = typer.Option(False, "--quiet", "-q", help="No progress display.")
 JSON = typer.Option(False, "--json", help="Print one JSON object instead of a table.")
+#: ``--json`` of a command whose report is always one JSON object on stdout (the single-stage
+#: commands): accepted, so that a script can pass ``--json`` to every command.
+JSON_ALWAYS = typer.Option(True, "--json", help="Print one JSON object (always, for this "
+                                                  "command).")
 SET = typer.Option(None, "--set", help="Override a parameter: key=value (repeatable).")
 PARAMS_FILE = typer.Option(None, "--params", help="TOML file of parameters.")
 RIG = typer.Option(None, "--rig", help="Rig TOML file (default: the paper's rig).")

@@ -7,9 +7,10 @@ from pathlib import Path
 import typer
 
 from scanpipe.artifacts import atomic_write_bytes
+from scanpipe.cli.common import JSON, print_json
 from scanpipe.errors import UsageError
 from scanpipe.outpaths import check_output_file
-from scanpipe.rig import default_rig, load_rig, rig_to_toml
+from scanpipe.rig import default_rig, load_rig, rig_to_dict, rig_to_toml
 
 rig_app = typer.Typer(help="Write and check rig descriptions (TOML).", no_args_is_help=True)
 
@@ -18,6 +19,7 @@ rig_app = typer.Typer(help="Write and check rig descriptions (TOML).", no_args_i
 def init(
     path: Path = typer.Argument(Path("rig.toml"), help="Where to write the rig file."),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing file."),
+    as_json: bool = JSON,
 ) -> None:
     """Write the default rig (the paper's) as a commented TOML file.
 
@@ -31,13 +33,20 @@ def init(
         atomic_write_bytes(path, rig_to_toml(default_rig()).encode())
     except OSError as err:
         raise UsageError(f"{path}: cannot be written ({err.strerror or err})") from None
-    typer.echo(f"wrote {path}")
+    if as_json:
+        print_json({"wrote": str(path)})
+    else:
+        typer.echo(f"wrote {path}")
 
 
 @rig_app.command("check")
-def check(path: Path = typer.Argument(..., help="Rig TOML file to validate.")) -> None:
+def check(path: Path = typer.Argument(..., help="Rig TOML file to validate."),
+          as_json: bool = JSON) -> None:
     """Validate a rig file; report every problem at once (file, key, value, what is allowed)."""
     rig = load_rig(path)
+    if as_json:  # valid (a bad file is the one-line error and exit code 2, as without --json)
+        print_json({"path": str(path), "valid": True, "rig": rig_to_dict(rig)})
+        return
     cams = ", ".join(c.id for c in rig.cameras) or "no cameras"
     typer.echo(
         f"{path}: ok — {rig.scanner.dialect} scanner at {rig.scanner.beam_step_deg:g}° and "
