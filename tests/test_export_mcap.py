@@ -214,3 +214,22 @@ def test_mcap_of_points_only_and_of_a_cloud_without_grid(tmp_path: Path) -> None
     write_files(export_files({"points": no_grid}, "mcap", "flat"), tmp_path)
     messages = _read(tmp_path / "flat.mcap")
     assert set(messages) == {"/tf", "/scan/cloud"}
+
+
+def test_export_stage_mcap_carries_the_cloud_and_cameras() -> None:
+    from scanpipe.progress import no_progress
+    from scanpipe.stages.export import ExportStageParams, export_stage
+
+    rig = default_rig()
+    inputs = {"points": points_table(profiles=4, samples=5), **textured_quad(),
+              **_camera_tables(rig)}
+    result = export_stage(inputs, ExportStageParams(mesh_formats=("mcap",), cloud_formats=(),
+                                                    cloud_colors=False), no_progress)
+    assert set(result.files) == {"model.mcap", "model.layout.json"}
+    reader = make_reader(io.BytesIO(result.files["model.mcap"]))
+    summary = reader.get_summary()
+    assert summary is not None and summary.statistics is not None
+    counts = {summary.channels[i].topic: n
+              for i, n in summary.statistics.channel_message_counts.items()}
+    assert counts["/scan/cloud"] == 1 and counts["/model"] == 1
+    assert counts["/camera/cam0/image"] == 3

@@ -117,17 +117,20 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
                          "the mesh and the cloud files would overwrite each other")
     files: dict[str, bytes] = {}
     mesh_tables = {k: v for k, v in inputs.items() if k != "points"}
-    jobs: list[tuple[str, Mapping[str, pa.Table], str]] = [
-        (fmt, mesh_tables, params.name) for fmt in params.mesh_formats]
     points = inputs["points"]
     coloured = False
-    if params.cloud_formats and params.cloud_colors and inputs["frames"].num_rows:
+    wants_points = bool(params.cloud_formats) or "mcap" in params.mesh_formats
+    if wants_points and params.cloud_colors and inputs["frames"].num_rows:
         from scanpipe.rig import rig_from_table
         from scanpipe.texturing.projective import colorize_points
 
         points = colorize_points(points, inputs["frames"], inputs["motor"],
                                  rig_from_table(inputs["rig"]), progress=progress)
         coloured = True
+    # The Foxglove file shows the scan too: the mesh job of mcap gets the (coloured) points.
+    jobs: list[tuple[str, Mapping[str, pa.Table], str]] = [
+        (fmt, {**mesh_tables, "points": points} if fmt == "mcap" else mesh_tables, params.name)
+        for fmt in params.mesh_formats]
     jobs += [(fmt, {"points": points}, params.cloud_name) for fmt in params.cloud_formats]
     for done, (fmt, tables, stem) in enumerate(jobs):
         progress("export", done, len(jobs))
@@ -146,7 +149,7 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
 
 STAGE = Stage(
     name="export",
-    version=1,
+    version=2,  # 2: the Foxglove file has the cloud, camera images and a layout beside it
     params=ExportStageParams,
     inputs=(*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points", "frames", "motor", "rig"),
     outputs=("export_manifest",),
