@@ -185,3 +185,23 @@ def test_recover_not_an_mcap_file(cli, tmp_path: Path) -> None:  # type: ignore[
     assert result.code != 0 and "nothing to recover" in result.err
     assert not out.exists()
     assert struct.unpack_from("<B", header_only.read_bytes(), 8)[0] == 1  # a header record
+
+
+def test_info_recording_has_the_generic_catalogue_too(cli, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    from scanpipe.sim.direct import simulate_direct
+    from scanpipe.sim.options import SimOptions
+
+    recording = tmp_path / "scan.mcap"
+    simulate_direct(recording, tmp_path / "truth",
+                    SimOptions(motor_step_deg=20.0, beam_step_deg=4.0, cameras=False))
+    result = cli("info", recording, "--json")
+    assert result.code == 0, result.err
+    info = json.loads(result.out)
+    assert info["recording"] is True and info["complete"] is True
+    by_topic = {c["topic"]: c for c in info["mcap"]["channels"]}
+    assert by_topic["/scanner/stream"]["messages"] == info["channels"]["/scanner/stream"][
+        "messages"]
+    assert by_topic["/motor/state"]["schema"] == "scanpipe.MotorState"
+    with recording.open("rb") as handle:
+        stats = make_reader(handle).get_summary().statistics  # type: ignore[union-attr]
+    assert info["mcap"]["messages"] == stats.message_count

@@ -121,20 +121,25 @@ def info(
     other MCAP file its channels, schemas, message counts and time range (like mcap info)."""
     from scanpipe.acquire.info import format_info, recording_info
     from scanpipe.recording.catalogue import catalogue_info, format_catalogue
-    from scanpipe.recording.reader import read_catalogue, read_recording
+    from scanpipe.recording.reader import (
+        header_profile,
+        read_catalogue,
+        read_recording_and_catalogue,
+    )
     from scanpipe.recording.writer import PROFILE
 
     if gap <= 0:
         raise UsageError(f"--gap {gap!r}: must be greater than 0 seconds")
-    catalogue = catalogue_info(read_catalogue(recording))
-    if catalogue["profile"] != PROFILE:  # not a scanpipe recording: the generic view
+    if header_profile(recording) != PROFILE:  # not a scanpipe recording: the generic view
+        catalogue = catalogue_info(read_catalogue(recording))
         if as_json:
             print_json({"recording": False, "mcap": catalogue})
         else:
             typer.echo(format_catalogue(catalogue))
         return
-    result = {"recording": True, **recording_info(read_recording(recording), gap),
-              "mcap": catalogue}
+    read, catalogue_read = read_recording_and_catalogue(recording)
+    result = {"recording": True, **recording_info(read, gap),
+              "mcap": catalogue_info(catalogue_read)}
     if as_json:
         print_json(result)
     else:

@@ -387,6 +387,34 @@ def read_catalogue(path: Path | str, on_message: MessageSink | None = None) -> M
     path = Path(path)
     collector = _Collector(generic=True, on_message=on_message)
     bytes_read, size, loss = _scan(path, collector)
+    return _catalogue(path, collector, bytes_read, size, loss)
+
+
+def read_recording_and_catalogue(path: Path | str) -> tuple[Recording, McapCatalogue]:
+    """A recording and its generic catalogue from one pass (``scanpipe info``)."""
+    path = Path(path)
+    collector = _Collector()
+    bytes_read, size, loss = _scan(path, collector)
+    return (_assemble(path, collector, bytes_read, size, loss),
+            _catalogue(path, collector, bytes_read, size, loss))
+
+
+def header_profile(path: Path | str) -> str | None:
+    """The MCAP profile in a file's header record, or None when the file does not start with a
+    readable header (the full readers then say why)."""
+    try:
+        with Path(path).open("rb") as handle:
+            head = handle.read(len(MAGIC) + 9 + 4 + 4096)
+        if head[:len(MAGIC)] != MAGIC or head[len(MAGIC)] != OP_HEADER:
+            return None
+        buf = _Buffer(head, len(MAGIC) + 9)
+        return buf.string()
+    except (OSError, *_DAMAGE):
+        return None
+
+
+def _catalogue(path: Path, collector: _Collector, bytes_read: int, size: int,
+               loss: RecordingLoss) -> McapCatalogue:
     warnings = list(collector.warnings)
     unknown = sum(collector.unknown_channels.values())
     if unknown:
