@@ -1,7 +1,7 @@
-"""Benchmark: intact messages saved from damaged MCAP files, ``scanpipe recover`` against the official
-``mcap`` readers (the seeking ``make_reader`` and the linear ``NonSeekingReader``, both stopped
-at their first exception, as a user's script would be). A message counts as saved when its
-bytes equal the original's; messages yielded with other bytes are counted as wrong.
+"""Benchmark: intact messages saved from damaged MCAP files, ``scanpipe recover`` against the
+official ``mcap`` readers (the seeking ``make_reader`` and the linear ``NonSeekingReader``,
+both stopped at their first exception, as a user's script would be). A message counts as saved
+when its bytes equal the original's; messages yielded with other bytes are counted as wrong.
 
 Damage kinds, each over several seeds: a cut (the writer killed), one damaged chunk, a damaged
 chunk plus a cut, and random byte flips. ``python benchmarks/bench_recover.py [--quick]`` prints
