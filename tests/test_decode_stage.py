@@ -228,4 +228,5 @@ def test_cli_frames_text_shows_the_golden_mismatch(tmp_path: Path, cli: CliRunne
     assert "frame 5082" in result.out and "step 72°" in result.out
     assert "MISMATCH (received 0x8a, computed 0x9f)" in result.out
     result = cli("frames", capture, "--dialect", "cola")
-    assert result.code == 2 and "allowed paper, ldoem, cola_b, cola_a, ldrobot, scip, auto" in result.err
+    assert result.code == 2
+    assert "allowed paper, ldoem, cola_b, cola_a, ldrobot, scip, auto" in result.err

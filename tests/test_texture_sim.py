@@ -122,3 +122,16 @@ def test_whole_chain_texture_psnr(simulated: dict[str, Any]) -> None:
     figures = texture_psnr(render_mesh(tables, vertices, faces), simulated["reference"],
                            views=8, width=160)
     assert figures["texture_psnr_db"] >= 24.0, figures
+
+
+def test_every_progress_bar_finishes(simulated: dict[str, Any]) -> None:
+    """The texture stage's bars (frame rating, atlas …) each end at their total."""
+    last: dict[str, tuple[float, float | None]] = {}
+
+    def record(task: str, done: float, total: float | None = None) -> None:
+        last[task] = (done, total)
+
+    registry()["texture"].run(simulated["inputs"], progress=record)
+    assert {"rate frames", "atlas"} <= set(last)
+    unfinished = {task: v for task, v in last.items() if v[1] is not None and v[0] != v[1]}
+    assert unfinished == {}

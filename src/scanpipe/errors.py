@@ -68,3 +68,11 @@ class SimulationError(ScanpipeError):
 
 class ExportError(ScanpipeError):
     """A result could not be exported to the requested format or path."""
+
+
+class MissingDependencyError(ScanpipeError):
+    """An optional package a feature needs is not installed; the message says how to install."""
+
+
+class LiveError(UsageError):
+    """The live view could not be served (the port is taken or not allowed)."""

@@ -105,6 +105,8 @@ def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
         wanted = ("points", *CAMERA_ARTIFACTS)
     elif fmt in ("obj", "glb"):
         wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)
+    elif fmt == "ply":
+        wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points")
     return {name: read_artifact(path)[0] for name, path in found.items() if name in wanted}
 
 

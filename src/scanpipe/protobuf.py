@@ -1,7 +1,7 @@
 """Protobuf message classes from file descriptors written in code: no protoc at run time.
 
-The one builder behind the recording format (:mod:`scanpipe.recording.schemas`) and the Foxglove
-schemas the exporters write (:mod:`scanpipe.exporters.foxglove_schemas`). A message is a name,
+The builder behind the recording format (:mod:`scanpipe.recording.schemas`); the Foxglove
+exports use the official ``foxglove-schemas-protobuf`` classes. A message is a name,
 its fields ``(type, name, number, repeated)`` in declaration order and its nested enums; a field
 type is a scalar name (``"uint64"``) or a full name (``".foxglove.Pose"``). Each module keeps its
 classes in a private descriptor pool, so another package registering the same names (say

@@ -152,8 +152,9 @@ class MotorClient:
 
     def connect(self) -> None:
         """Open the serial URL and start reading."""
-        import serial
+        from scanpipe.extras import require
 
+        serial = require("serial", "the motor controller's serial link (record, simulate)")
         url = self.motor.serial_url
         try:
             self._port = serial.serial_for_url(url, baudrate=self.motor.baudrate, timeout=POLL_S)

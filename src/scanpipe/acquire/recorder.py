@@ -34,7 +34,7 @@ import signal
 import socket
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
@@ -47,7 +47,7 @@ from scanpipe.acquire.cameras import CameraThread, FrameSource, is_device_index,
 from scanpipe.acquire.display import RecorderStatus
 from scanpipe.acquire.motor_client import MotorClient, TravelLimit
 from scanpipe.acquire.scanner_client import ScannerClient
-from scanpipe.acquire.sink import RecordingSink
+from scanpipe.acquire.sink import RecordingSink, SinkTap
 from scanpipe.errors import DeviceError, ScanpipeError
 from scanpipe.params import Params
 from scanpipe.planning import DEFAULT_MOTOR_STEP_DEG, choose_steps, move_time_s
@@ -105,8 +105,10 @@ class Recorder:
         camera_opener: CameraOpener | None = None,
         writer_factory: Callable[[Path, Rig, Mapping[str, Any]], Any] | None = None,
         clock_ns: Callable[[], int] = time.time_ns,
+        taps: Sequence[SinkTap] = (),
     ) -> None:
         self.rig = rig
+        self.taps = list(taps)
         self.out = out
         self.options = options or RecordOptions()
         self.camera_opener = camera_opener or open_capture
@@ -161,7 +163,7 @@ class Recorder:
         self.sink = RecordingSink(
             self.out, self.rig, self.session_metadata(), self.writer_factory,
             split_bytes=int(opts.split_size_mb * 1e6) if opts.split_size_mb else None,
-            split_s=opts.split_duration_s, clock_ns=self.clock_ns)
+            split_s=opts.split_duration_s, clock_ns=self.clock_ns, taps=self.taps)
         flusher = threading.Thread(target=self._flush_loop, name="recording-flush", daemon=True)
         flusher.start()
         try:

@@ -28,6 +28,9 @@ from scanpipe.rig import ScannerConfig
 class ScannerClient(Protocol):
     """What a driver uses of :class:`scanpipe.acquire.scanner_client.ScannerClient`."""
 
+    #: The device's identification, shown in the recording's events.
+    ident: str
+
     def send(self, frame: bytes) -> None:
         """Write bytes to the scanner (recorded as TX)."""
         ...

@@ -13,10 +13,10 @@ import os
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 from scanpipe.errors import RecordingError
 from scanpipe.rig import Rig
@@ -52,6 +52,20 @@ class SinkStats:
         return sum(self.stream_bytes.values()) + self.image_bytes
 
 
+class SinkTap(Protocol):
+    """Sees what goes into the recording (the live view): called under the sink's lock, so it
+    must only hand the data on (a queue), never block."""
+
+    def on_stream(self, link: str, data: bytes, direction: int, log_time_ns: int) -> None: ...
+
+    def on_motor_state(self, log_time_ns: int, step_count: int) -> None: ...
+
+    def on_image(self, camera_id: str, log_time_ns: int, data: bytes) -> None: ...
+
+    def on_event(self, kind: str, message: str, data: Mapping[str, Any],
+                 log_time_ns: int) -> None: ...
+
+
 class RecordingSink:
     """Thread-safe front of the recording writer: counts, events, optional splitting.
 
@@ -77,8 +91,10 @@ class RecordingSink:
         split_bytes: int | None = None,
         split_s: float | None = None,
         clock_ns: Callable[[], int] = time.time_ns,
+        taps: Sequence[SinkTap] = (),
     ) -> None:
         self.out = out
+        self.taps = list(taps)
         self.rig = rig
         self.session = dict(session)
         self._factory = writer_factory
@@ -129,6 +145,8 @@ class RecordingSink:
                 self._maybe_split(log_time_ns)
                 self._writer.write_stream(link, data, direction, log_time_ns)
             self.stats.stream_bytes[f"{link} {'RX' if direction == RX else 'TX'}"] += len(data)
+            for tap in self.taps:
+                tap.on_stream(link, data, direction, log_time_ns)
 
     def write_motor_state(self, log_time_ns: int, step_count: int, target_step_count: int,
                           moving: bool, device_time_us: int) -> None:
@@ -140,6 +158,8 @@ class RecordingSink:
                 self._writer.write_motor_state(log_time_ns, step_count, target_step_count,
                                                moving, device_time_us)
             self.stats.motor_states += 1
+            for tap in self.taps:
+                tap.on_motor_state(log_time_ns, step_count)
 
     def write_image(self, camera_id: str, log_time_ns: int, jpeg: bytes,
                     frame_id: str = "") -> None:
@@ -152,6 +172,8 @@ class RecordingSink:
                 self._writer.write_image(camera_id, log_time_ns, jpeg, frame_id)
             self.stats.images[camera_id] += 1
             self.stats.image_bytes += len(jpeg)
+            for tap in self.taps:
+                tap.on_image(camera_id, log_time_ns, jpeg)
 
     def event(self, kind: str, message: str, data: Mapping[str, Any] | None = None,
               log_time_ns: int | None = None) -> None:
@@ -161,6 +183,8 @@ class RecordingSink:
             self.stats.events[kind] += 1
             self.stats.event_log.append(
                 {"time_ns": when, "kind": kind, "message": message, "data": dict(data or {})})
+            for tap in self.taps:
+                tap.on_event(kind, message, dict(data or {}), when)
             if not self._closed:
                 with self._failing():
                     self._writer.write_event(when, kind, message, dict(data or {}))

@@ -9,11 +9,15 @@ from typing import Any
 import typer
 
 from scanpipe.cli.common import (
+    FORCE,
     JSON,
+    LIVE,
+    LIVE_HOST,
     MOTOR_STEP,
     QUIET,
     RIG,
     deprecated_alias,
+    live_taps,
     print_error,
     print_json,
     take_alias,
@@ -85,6 +89,8 @@ def record(
                                          "home before scanning (otherwise refused)."),
     speedup: float = typer.Option(1.0, "--speedup", hidden=True,
                                   help="Device time runs this much faster (virtual rig only)."),
+    live: int | None = LIVE,
+    live_host: str = LIVE_HOST,
     quiet: bool = QUIET,
     as_json: bool = JSON,
     step_angle: float | None = deprecated_alias("--motor-step", "--step-angle"),
@@ -101,27 +107,69 @@ def record(
     rig = load_rig(rig_path)
     options = record_options(mode, motor_step_deg, profiles_per_position, not no_cameras,
                              split_size_mb, split_duration_s, speedup, echo, home_first)
-    code = run_recorder(Recorder(rig, out, options), quiet, as_json)
+    with live_taps(rig, live, live_host, quiet) as taps:
+        code = run_recorder(Recorder(rig, out, options, taps=taps), quiet, as_json)
     if code:
         raise typer.Exit(code)
 
 
 def info(
-    recording: Path = typer.Argument(..., help="The recording (.mcap)."),
+    recording: Path = typer.Argument(..., help="The recording, or any MCAP file (.mcap)."),
     gap: float = typer.Option(1.0, "--gap", help="Count pauses longer than this many seconds."),
     as_json: bool = JSON,
 ) -> None:
-    """Channels, counts, durations, rates, gaps, events and the rig of a recording."""
+    """Channels, counts, durations, rates, gaps, events and the rig of a recording; for any
+    other MCAP file its channels, schemas, message counts and time range (like mcap info)."""
     from scanpipe.acquire.info import format_info, recording_info
-    from scanpipe.recording.reader import read_recording
+    from scanpipe.recording.catalogue import catalogue_info, format_catalogue
+    from scanpipe.recording.reader import (
+        header_profile,
+        read_catalogue,
+        read_recording_and_catalogue,
+    )
+    from scanpipe.recording.writer import PROFILE
 
     if gap <= 0:
         raise UsageError(f"--gap {gap!r}: must be greater than 0 seconds")
-    result = recording_info(read_recording(recording), gap)
+    if header_profile(recording) != PROFILE:  # not a scanpipe recording: the generic view
+        catalogue = catalogue_info(read_catalogue(recording))
+        if as_json:
+            print_json({"recording": False, "mcap": catalogue})
+        else:
+            typer.echo(format_catalogue(catalogue))
+        return
+    read, catalogue_read = read_recording_and_catalogue(recording)
+    result = {"recording": True, **recording_info(read, gap),
+              "mcap": catalogue_info(catalogue_read)}
     if as_json:
         print_json(result)
     else:
         typer.echo(format_info(result))
+
+
+def recover(
+    damaged: Path = typer.Argument(..., help="The damaged MCAP file."),
+    out: Path = typer.Option(..., "--out", "-o", help="The new MCAP file to write."),
+    force: bool = FORCE,
+    as_json: bool = JSON,
+) -> None:
+    """Copy every message that can be read from a damaged MCAP file (a killed writer, a cut
+    copy, damaged chunks) into a new, valid MCAP file."""
+    from scanpipe.outpaths import check_output_file
+    from scanpipe.recording.catalogue import recover_mcap
+
+    check_output_file(out, "--out", (".mcap",), force, inputs=[damaged])
+    report = recover_mcap(damaged, out)
+    if as_json:
+        print_json(report)
+        return
+    loss = report["loss"]
+    bound = "" if loss["exact"] else "at least "
+    typer.echo(f"{out}: {report['messages']} messages on {report['channels']} channels "
+               f"recovered from {damaged}; lost {bound}{loss['chunks']} chunks "
+               f"({loss['bytes']} bytes)")
+    for warning in report["warnings"]:
+        sys.stderr.write(f"warning: recover: {warning}\n")
 
 
 def import_video(
@@ -172,4 +220,5 @@ def register(app: typer.Typer) -> None:
     """Add ``record``, ``info`` and ``import-video`` to the main app."""
     app.command("record")(record)
     app.command("info")(info)
+    app.command("recover")(recover)
     app.command("import-video")(import_video)

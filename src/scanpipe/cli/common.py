@@ -5,7 +5,8 @@ from __future__ import annotations
 import inspect
 import json
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -20,10 +21,22 @@ P = TypeVar("P", bound=Params)
 
 QUIET = typer.Option(False, "--quiet", "-q", help="No progress display.")
 JSON = typer.Option(False, "--json", help="Print one JSON object instead of a table.")
+#: ``--json`` of a command whose report is always one JSON object on stdout (the single-stage
+#: commands): accepted, so that a script can pass ``--json`` to every command.
+JSON_ALWAYS = typer.Option(True, "--json", help="Print one JSON object (always, for this "
+                                                  "command).")
 SET = typer.Option(None, "--set", help="Override a parameter: key=value (repeatable).")
 PARAMS_FILE = typer.Option(None, "--params", help="TOML file of parameters.")
 RIG = typer.Option(None, "--rig", help="Rig TOML file (default: the paper's rig).")
 FORCE = typer.Option(False, "--force", help="Overwrite existing output files.")
+#: The port of ``--live`` given without one (Foxglove's default WebSocket port).
+LIVE_DEFAULT_PORT = 8765
+LIVE = typer.Option(None, "--live", min=0, max=65535, metavar="[PORT]",
+                    help=f"Serve the scan as it grows to Foxglove (WebSocket) on PORT (default "
+                         f"{LIVE_DEFAULT_PORT}; 0: any free port): the cloud so far, the platform "
+                         "angle, the camera images and the events. Needs scanpipe[live].")
+LIVE_HOST = typer.Option("127.0.0.1", "--live-host",
+                         help="Address the live view listens on (0.0.0.0: every interface).")
 MOTOR_STEP = typer.Option(DEFAULT_MOTOR_STEP_DEG, "--motor-step",
                           help="Motor step in degrees: the platform turn between profiles (the "
                                "closest achievable is used; see scanpipe plan).")
@@ -84,6 +97,39 @@ def with_model_options(model: type[BaseModel], fields: Sequence[str]) -> Callabl
             [*own, *model_options(model, fields)])
         return command
     return decorate
+
+
+def expand_optional_values(args: list[str]) -> list[str]:
+    """``--live`` without a port (the next word is not a number) means the default port."""
+    expanded = []
+    for index, arg in enumerate(args):
+        expanded.append(arg)
+        if arg == "--":
+            return expanded + args[index + 1:]
+        if arg == "--live" and not (index + 1 < len(args) and args[index + 1].isdigit()):
+            expanded.append(str(LIVE_DEFAULT_PORT))
+    return expanded
+
+
+@contextmanager
+def live_taps(rig: Any, port: int | None, host: str, quiet: bool) -> Iterator[list[Any]]:
+    """The sink taps of ``--live``: a started :class:`~scanpipe.live.LiveView` (stopped on
+    exit), or none when ``port`` is None."""
+    if port is None:
+        yield []
+        return
+    from scanpipe.live import LiveView
+
+    view = LiveView(rig, port, host)
+    sys.stderr.write(f"live: serving the scan on {view.url} (Foxglove: Open connection → "
+                     "Foxglove WebSocket)\n")
+    try:
+        yield [view]
+    finally:
+        view.close()
+        if not quiet and (view.dropped or view.errors):
+            sys.stderr.write(f"warning: live: {view.dropped} items dropped (the view fell "
+                             f"behind), {view.errors} could not be shown\n")
 
 
 def print_error(message: str) -> None:

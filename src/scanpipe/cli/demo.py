@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from scanpipe.cli.common import PARAMS_FILE, QUIET, SET, build_params
+from scanpipe.cli.common import JSON, PARAMS_FILE, QUIET, SET, build_params, print_json
 from scanpipe.demo import DemoOptions, run_demo
 from scanpipe.progress import rich_progress
 
@@ -18,6 +18,7 @@ def demo(
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
+    as_json: bool = JSON,
 ) -> None:
     """Simulate the built-in room, run the whole pipeline, export, render, evaluate, report."""
     options = build_params(DemoOptions, params_file, assignments)
@@ -30,6 +31,11 @@ def demo(
     with rich_progress(quiet) as progress:
         result = run_demo(out, options, progress, say)
     e = result.evaluation
+    if as_json:
+        print_json({"out": str(out), "seconds": time.perf_counter() - started,
+                    "files": {k: str(v) for k, v in result.files.items()},
+                    "stage_seconds": result.seconds, "evaluation": e})
+        return
 
     def metric(key: str, scale: float = 1.0, unit: str = "", digits: int = 1) -> str:
         value = e.get(key)

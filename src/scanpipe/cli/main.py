@@ -62,7 +62,7 @@ def _root(
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the console script; returns the exit code."""
-    args = list(sys.argv[1:] if argv is None else argv)
+    args = common.expand_optional_values(list(sys.argv[1:] if argv is None else argv))
     try:
         result = app(args=args, prog_name="scanpipe", standalone_mode=False)
     except ScanpipeError as err:
@@ -71,6 +71,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except typer.Exit as err:
         return int(err.exit_code)
     except typer.TyperException as err:  # usage errors: bad option, bad value, missing argument
+        formatter = getattr(err, "format_message", None)
+        if type(err).__name__ == "NoArgsIsHelpError" and callable(formatter):
+            # A bare `scanpipe` (or command group): its help on stdout and exit code 2, as
+            # typer itself does (click vendored by typer: matched by name, not a private import).
+            sys.stdout.write(str(formatter()).rstrip("\n") + "\n")
+            return int(getattr(err, "exit_code", 2))
         formatter = getattr(err, "format_message", None)
         message = (formatter() if callable(formatter) else str(err)).replace("\n", " ")
         ctx = getattr(err, "ctx", None)

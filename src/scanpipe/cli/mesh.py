@@ -7,7 +7,7 @@ from typing import Any
 
 import typer
 
-from scanpipe.cli.common import PARAMS_FILE, QUIET, SET, print_json, run_stage_command
+from scanpipe.cli.common import JSON_ALWAYS, PARAMS_FILE, QUIET, SET, print_json, run_stage_command
 from scanpipe.errors import UsageError
 from scanpipe.workdir import find_artifact
 
@@ -21,6 +21,7 @@ def mesh_command(
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
+    as_json: bool = JSON_ALWAYS,
 ) -> None:
     """Points → triangle mesh: normals, Poisson or grid triangulation, clean-up, decimation."""
     if not folder.is_dir():

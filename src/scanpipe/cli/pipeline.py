@@ -50,6 +50,7 @@ def run(
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
+    as_json: bool = JSON,
 ) -> None:
     """Run the chain decode → … → export, reusing every artifact whose key is unchanged."""
     params = pipeline_params_from_cli(params_file, assignments)
@@ -60,10 +61,17 @@ def run(
                             progress=progress,
                             on_stage=lambda record: _print_record(record, quiet),
                             lock_wait_s=wait_s)
+    ran = sum(not r.reused for r in records)
+    total = sum(r.seconds for r in records)
     if not quiet:
-        ran = sum(not r.reused for r in records)
-        total = sum(r.seconds for r in records)
         sys.stderr.write(f"{ran} ran, {len(records) - ran} reused, {total:.2f} s\n")
+    if as_json:
+        print_json({"recording": str(recording), "workdir": str(workdir), "ran": ran,
+                    "reused": len(records) - ran, "seconds": total,
+                    "stages": [{"stage": r.stage, "key": r.key, "reused": r.reused,
+                                "seconds": r.seconds,
+                                "outputs": {k: str(v) for k, v in r.outputs.items()},
+                                "report": r.report} for r in records]})
 
 
 def show(

@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from scanpipe.artifacts import file_key
-from scanpipe.cli.common import PARAMS_FILE, QUIET, SET, print_json, run_stage_command
+from scanpipe.cli.common import JSON_ALWAYS, PARAMS_FILE, QUIET, SET, print_json, run_stage_command
 from scanpipe.errors import UsageError
 from scanpipe.pipeline import rig_override_artifact
 
@@ -30,6 +30,7 @@ def assemble(
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
+    as_json: bool = JSON_ALWAYS,
 ) -> None:
     """Profiles + motor states → calibrated points on the profile × sample grid."""
     inputs = {name: _artifact_in(folder, name) for name in ("profiles", "motor")}
@@ -46,6 +47,7 @@ def filter_command(
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
+    as_json: bool = JSON_ALWAYS,
 ) -> None:
     """Range gate, no-returns, depth edges, grid median, smoothing, double coverage, outliers,
     voxels: remove or mark points."""
@@ -94,6 +96,7 @@ def import_points_command(
     force: bool = typer.Option(False, "--force",
                                help="Overwrite an existing OUT/points.parquet."),
     quiet: bool = QUIET,
+    as_json: bool = JSON_ALWAYS,
 ) -> None:
     """Import foreign point clouds as one points artifact (grid kept with --organised)."""
     from scanpipe.outpaths import check_output_file, check_output_folder
@@ -128,6 +131,7 @@ def import_profiles_command(
                                            help="Ranges at/above this (metres) are no-returns."),
     force: bool = typer.Option(False, "--force", help="Overwrite existing artifacts in OUT."),
     quiet: bool = QUIET,
+    as_json: bool = JSON_ALWAYS,
 ) -> None:
     """Import ranges + beam and platform angles as profiles, motor and rig artifacts (then
     `scanpipe assemble OUT`)."""

@@ -4,10 +4,23 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
 
 import typer
 
 from scanpipe.cli.common import FORCE, JSON, QUIET, print_json
+
+
+def _report_written(paths: list[Path], quiet: bool, as_json: bool,
+                    extra: dict[str, Any] | None = None) -> None:
+    """The files a command wrote: one JSON object on stdout with ``--json``, else a line each
+    on stderr (none with ``--quiet``)."""
+    if as_json:
+        print_json({**(extra or {}), "files": [str(p) for p in paths],
+                    "bytes": {str(p): p.stat().st_size for p in paths if p.is_file()}})
+    elif not quiet:
+        for path in paths:
+            sys.stderr.write(f"wrote {path}\n")
 
 
 def export(
@@ -22,15 +35,14 @@ def export(
                                          "most tools) or 1.4 (formats 6-7)."),
     force: bool = FORCE,
     quiet: bool = QUIET,
+    as_json: bool = JSON,
 ) -> None:
     """Write the mesh (OBJ/GLB/PLY), the points (LAS/LAZ/E57/PLY), both (MCAP, Foxglove) or
     the frames with their poses and the points (COLMAP)."""
     from scanpipe.exporting import export_folder
 
     written = export_folder(folder, fmt, out, force, las_version)
-    if not quiet:
-        for path in written:
-            sys.stderr.write(f"wrote {path}\n")
+    _report_written(written, quiet, as_json, {"format": fmt.lower().lstrip(".")})
 
 
 def render(
@@ -46,15 +58,14 @@ def render(
                               help="Horizontal field of view (degrees)."),
     force: bool = FORCE,
     quiet: bool = QUIET,
+    as_json: bool = JSON,
 ) -> None:
     """PNG previews by ray casting: perspective views, a plan view, a panorama from the origin."""
     from scanpipe.render import render_previews
 
     written = render_previews(folder, out, width=width, views=views, eye=eye, target=target,
                               fov_deg=fov, overwrite=force)
-    if not quiet:
-        for path in written:
-            sys.stderr.write(f"wrote {path}\n")
+    _report_written(written, quiet, as_json)
 
 
 def evaluate(
@@ -82,6 +93,7 @@ def report(
                                            "if present)."),
     force: bool = FORCE,
     quiet: bool = QUIET,
+    as_json: bool = JSON,
 ) -> None:
     """One self-contained HTML report: summary, counts, plots, previews, evaluation."""
     from scanpipe.outpaths import check_output_file, folder_inputs
@@ -94,8 +106,7 @@ def report(
             inputs += [truth, *folder_inputs(truth)] if truth.is_dir() else [truth]
         check_output_file(out, "--out", (".html", ".htm"), force, inputs)
     path = write_report(workdir, out, truth)
-    if not quiet:
-        sys.stderr.write(f"wrote {path}\n")
+    _report_written([path], quiet, as_json)
 
 
 def register(app: typer.Typer) -> None:

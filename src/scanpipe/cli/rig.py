@@ -7,9 +7,10 @@ from pathlib import Path
 import typer
 
 from scanpipe.artifacts import atomic_write_bytes
+from scanpipe.cli.common import JSON, print_json
 from scanpipe.errors import UsageError
 from scanpipe.outpaths import check_output_file
-from scanpipe.rig import default_rig, load_rig, rig_to_toml
+from scanpipe.rig import default_rig, load_rig, rig_to_dict, rig_to_toml
 from scanpipe.scanner_models import SCANNER_MODELS
 
 rig_app = typer.Typer(help="Write and check rig descriptions (TOML).", no_args_is_help=True)
@@ -22,6 +23,7 @@ def init(
     scanner: str | None = typer.Option(
         None, "--scanner", help="A scanner model for the rig: " + ", ".join(SCANNER_MODELS)
         + " (default: the paper's LD-OEM 1000)."),
+    as_json: bool = JSON,
 ) -> None:
     """Write the default rig (the paper's) as a commented TOML file; ``--scanner`` puts
     another scanner model on it (its dialect, transport, field of view, rate and ranges).
@@ -38,13 +40,20 @@ def init(
         atomic_write_bytes(path, rig_to_toml(default_rig(scanner)).encode())
     except OSError as err:
         raise UsageError(f"{path}: cannot be written ({err.strerror or err})") from None
-    typer.echo(f"wrote {path}")
+    if as_json:
+        print_json({"wrote": str(path)})
+    else:
+        typer.echo(f"wrote {path}")
 
 
 @rig_app.command("check")
-def check(path: Path = typer.Argument(..., help="Rig TOML file to validate.")) -> None:
+def check(path: Path = typer.Argument(..., help="Rig TOML file to validate."),
+          as_json: bool = JSON) -> None:
     """Validate a rig file; report every problem at once (file, key, value, what is allowed)."""
     rig = load_rig(path)
+    if as_json:  # valid (a bad file is the one-line error and exit code 2, as without --json)
+        print_json({"path": str(path), "valid": True, "rig": rig_to_dict(rig)})
+        return
     cams = ", ".join(c.id for c in rig.cameras) or "no cameras"
     typer.echo(
         f"{path}: ok — {rig.scanner.model or rig.scanner.dialect} scanner at "

@@ -18,9 +18,12 @@ import typer
 
 from scanpipe.cli.common import (
     JSON,
+    LIVE,
+    LIVE_HOST,
     QUIET,
     RIG,
     deprecated_alias,
+    live_taps,
     print_json,
     print_warnings,
     take_alias,
@@ -118,18 +121,19 @@ def atomic_recording(out: Path) -> Iterator[Path]:
 
 
 def simulate_live(out: Path, truth: Path, options: SimOptions, speedup: float, quiet: bool,
-                  as_json: bool) -> int:
+                  as_json: bool, live: int | None = None, live_host: str = "127.0.0.1") -> int:
     """Run the emulators and record them through the acquisition recorder; write the truth."""
     from scanpipe.acquire.recorder import Recorder, RecordOptions
     from scanpipe.cli.acquire import run_recorder
     from scanpipe.sim.emulators import VirtualRig
 
-    with VirtualRig(options, speedup=speedup) as virtual, atomic_recording(out) as tmp:
+    with VirtualRig(options, speedup=speedup) as virtual, atomic_recording(out) as tmp, \
+            live_taps(options.rig, live, live_host, quiet) as taps:
         record_options = RecordOptions(
             mode=options.mode, motor_step_deg=options.motor_step_deg, cameras=options.cameras,
             jpeg_quality=options.jpeg_quality, speedup=speedup)
         recorder = Recorder(virtual.client_rig(), tmp, record_options,
-                            camera_opener=lambda cam: virtual.camera(cam.source))
+                            camera_opener=lambda cam: virtual.camera(cam.source), taps=taps)
         print_warnings("simulate", {"warnings": virtual.scene.warnings})
         code = run_recorder(recorder, quiet, as_json, {str(tmp): str(out)})
         virtual.stop()
@@ -155,6 +159,8 @@ def simulate(
                                   help="Without --direct: the emulators' clock speed-up."),
     force: bool = typer.Option(False, "--force",
                                help="Overwrite an existing recording and truth files."),
+    live: int | None = LIVE,
+    live_host: str = LIVE_HOST,
     quiet: bool = QUIET,
     as_json: bool = JSON,
     scene_pose: str | None = typer.Option(
@@ -170,11 +176,14 @@ def simulate(
     values["beam_step_deg"] = take_alias(ctx, "beam_step_deg", values["beam_step_deg"],
                                          scanner_step, "--beam-step", "--scanner-step")
     values["scene_pose"] = parse_scene_pose(scene_pose)
+    if direct and live is not None:
+        raise UsageError("--live serves a scan as it is recorded; it cannot be combined with "
+                         "--direct (drop one)")
     check_outputs(out, truth, values["scene"], rig_path, force)
     options = sim_options(rig_path, noise_mm, values, scanner)
     check_speedup(speedup)
     if not direct:
-        code = simulate_live(out, truth, options, speedup, quiet, as_json)
+        code = simulate_live(out, truth, options, speedup, quiet, as_json, live, live_host)
         if code:
             raise typer.Exit(code)
         return

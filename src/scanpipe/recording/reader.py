@@ -26,7 +26,7 @@ import zlib
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import zstandard
@@ -50,7 +50,9 @@ from scanpipe.recording.writer import (
 from scanpipe.rig import Rig
 
 MAGIC = b"\x89MCAP0\r\n"
-OP_HEADER, OP_FOOTER, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x01, 0x02, 0x04, 0x05, 0x06
+OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL = 0x01, 0x02, 0x03, 0x04
+OP_MESSAGE, OP_CHUNK = 0x05, 0x06
+OP_ATTACHMENT = 0x09
 OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_METADATA, OP_DATA_END = 0x07, 0x08, 0x0C, 0x0F
 KNOWN_OPCODES = frozenset(range(0x01, 0x10))
 #: A chunk may not claim to inflate beyond this (never allocate from an unchecked length).
@@ -224,6 +226,75 @@ class Recording:
         return self.streams.get((link, direction), empty)
 
 
+@dataclass(frozen=True)
+class McapSchema:
+    """One schema record of an MCAP file."""
+
+    id: int
+    name: str
+    encoding: str
+    data: bytes
+
+
+@dataclass
+class McapChannel:
+    """One channel record of an MCAP file, with what was read of its messages."""
+
+    id: int
+    schema_id: int
+    topic: str
+    message_encoding: str
+    metadata: dict[str, str]
+    messages: int = 0
+    first_ns: int | None = None
+    last_ns: int | None = None
+
+
+@dataclass(frozen=True)
+class McapAttachment:
+    """One attachment record of an MCAP file."""
+
+    log_time_ns: int
+    create_time_ns: int
+    name: str
+    media_type: str
+    data: bytes
+
+
+class MessageSink(Protocol):
+    """Called for every message read: channel id, sequence, log and publish time, payload."""
+
+    def __call__(self, channel_id: int, sequence: int, log_time_ns: int, publish_time_ns: int,
+                 data: bytes) -> None: ...
+
+
+@dataclass
+class McapCatalogue:
+    """What :func:`read_catalogue` read from any MCAP file: header, schemas, channels with
+    message counts and log-time ranges, metadata, attachments, and the damage met."""
+
+    path: Path
+    profile: str
+    library: str
+    schemas: dict[int, McapSchema]
+    channels: dict[int, McapChannel]
+    metadata: dict[str, dict[str, str]]
+    attachments: list[McapAttachment]
+    unknown_channel_messages: int
+    warnings: list[str]
+    complete: bool
+    bytes_read: int
+    file_size: int
+    chunks_read: int
+    chunks_damaged: int
+    loss: RecordingLoss
+
+    @property
+    def messages(self) -> int:
+        """Messages read on known channels."""
+        return sum(c.messages for c in self.channels.values())
+
+
 @dataclass
 class _Collector:
     """What the pass over the records gathers before it is turned into a Recording."""
@@ -248,6 +319,12 @@ class _Collector:
     complete: bool = False
     good_chunks: dict[int, tuple[int, int]] = field(default_factory=dict)  # offset → times
     lost: list[LostRegion] = field(default_factory=list)
+    # The generic catalogue of any MCAP file (see :func:`read_catalogue`).
+    generic: bool = False  # any MCAP: no scanpipe decoding, no profile checks
+    schemas: dict[int, McapSchema] = field(default_factory=dict)
+    channel_info: dict[int, McapChannel] = field(default_factory=dict)
+    attachments: list[McapAttachment] = field(default_factory=list)
+    on_message: MessageSink | None = None
 
 
 class _Buffer:
@@ -295,6 +372,65 @@ class _Buffer:
 def read_recording(path: Path | str) -> Recording:
     """Read a recording in one linear pass; see the module docstring for damage handling."""
     path = Path(path)
+    collector = _Collector()
+    bytes_read, size, loss = _scan(path, collector)
+    return _assemble(path, collector, bytes_read, size, loss)
+
+
+def read_catalogue(path: Path | str, on_message: MessageSink | None = None) -> McapCatalogue:
+    """Read any MCAP file (not only recordings) in the same tolerant linear pass: its schemas,
+    channels, message counts and log-time ranges, metadata and attachments.
+
+    ``on_message`` is called for every message read (what ``scanpipe recover`` copies). Damage
+    is handled as in :func:`read_recording`; only a missing or non-MCAP file raises.
+    """
+    path = Path(path)
+    collector = _Collector(generic=True, on_message=on_message)
+    bytes_read, size, loss = _scan(path, collector)
+    return _catalogue(path, collector, bytes_read, size, loss)
+
+
+def read_recording_and_catalogue(path: Path | str) -> tuple[Recording, McapCatalogue]:
+    """A recording and its generic catalogue from one pass (``scanpipe info``)."""
+    path = Path(path)
+    collector = _Collector()
+    bytes_read, size, loss = _scan(path, collector)
+    return (_assemble(path, collector, bytes_read, size, loss),
+            _catalogue(path, collector, bytes_read, size, loss))
+
+
+def header_profile(path: Path | str) -> str | None:
+    """The MCAP profile in a file's header record, or None when the file does not start with a
+    readable header (the full readers then say why)."""
+    try:
+        with Path(path).open("rb") as handle:
+            head = handle.read(len(MAGIC) + 9 + 4 + 4096)
+        if head[:len(MAGIC)] != MAGIC or head[len(MAGIC)] != OP_HEADER:
+            return None
+        buf = _Buffer(head, len(MAGIC) + 9)
+        return buf.string()
+    except (OSError, *_DAMAGE):
+        return None
+
+
+def _catalogue(path: Path, collector: _Collector, bytes_read: int, size: int,
+               loss: RecordingLoss) -> McapCatalogue:
+    warnings = list(collector.warnings)
+    unknown = sum(collector.unknown_channels.values())
+    if unknown:
+        warnings.append(f"{unknown} messages on channels without a channel record "
+                        f"{sorted(collector.unknown_channels)} were skipped")
+    return McapCatalogue(
+        path=path, profile=collector.profile, library=collector.library,
+        schemas=dict(collector.schemas), channels=dict(collector.channel_info),
+        metadata=dict(collector.metadata), attachments=list(collector.attachments),
+        unknown_channel_messages=unknown, warnings=warnings, complete=collector.complete,
+        bytes_read=bytes_read, file_size=size, chunks_read=collector.chunks_read,
+        chunks_damaged=collector.chunks_damaged, loss=loss)
+
+
+def _scan(path: Path, collector: _Collector) -> tuple[int, int, RecordingLoss]:
+    """The linear pass over one file: ``(bytes read, file size, loss)``."""
     try:
         with path.open("rb") as handle:
             size = path.stat().st_size
@@ -303,7 +439,6 @@ def read_recording(path: Path | str) -> Recording:
             with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as data:
                 if data[:len(MAGIC)] != MAGIC:
                     raise RecordingError(f"{path}: {_not_mcap(bytes(data[:16]))}")
-                collector = _Collector()
                 bytes_read = _read_records(data, size, collector)
                 loss = _loss(data, size, collector)
     except FileNotFoundError:
@@ -319,7 +454,7 @@ def read_recording(path: Path | str) -> Recording:
         if str(err).startswith("is a ROS"):
             raise RecordingError(f"{path}: {err}") from None
         raise
-    return _assemble(path, collector, bytes_read, size, loss)
+    return bytes_read, size, loss
 
 
 def _not_mcap(head: bytes) -> str:
@@ -596,13 +731,39 @@ def _read_chunk_records(records: bytes, offset: int, start_ns: int, end_ns: int,
 def _read_record(opcode: int, body: bytes | memoryview, c: _Collector) -> None:
     buf = _Buffer(body)
     if opcode == OP_MESSAGE:
-        channel, sequence, log_time = buf.u16(), buf.u32(), buf.u64()
-        buf.pos += 8  # publish time
+        channel, sequence, log_time, publish_time = buf.u16(), buf.u32(), buf.u64(), buf.u64()
+        info = c.channel_info.get(channel)
+        if info is not None:
+            info.messages += 1
+            info.first_ns = log_time if info.first_ns is None else min(info.first_ns, log_time)
+            info.last_ns = log_time if info.last_ns is None else max(info.last_ns, log_time)
+        if c.generic:
+            if info is None:
+                c.unknown_channels[channel] += 1
+            elif c.on_message is not None:
+                c.on_message(channel, sequence, log_time, publish_time, bytes(body[buf.pos:]))
+            return
         _read_message(channel, sequence, log_time, bytes(body[buf.pos:]), c)
     elif opcode == OP_CHANNEL:
-        channel = buf.u16()
-        buf.u16()  # schema id: the topic says which scanpipe message it carries
-        c.channels[channel] = buf.string()
+        channel, schema_id = buf.u16(), buf.u16()
+        topic = buf.string()
+        c.channels[channel] = topic
+        if channel not in c.channel_info:
+            encoding = buf.string()
+            c.channel_info[channel] = McapChannel(channel, schema_id, topic, encoding,
+                                                  buf.string_map())
+    elif opcode == OP_SCHEMA:
+        schema_id, name, encoding = buf.u16(), buf.string(), buf.string()
+        c.schemas.setdefault(schema_id, McapSchema(schema_id, name, encoding,
+                                                   buf.raw(buf.u32())))
+    elif opcode == OP_ATTACHMENT:
+        log_time, create_time = buf.u64(), buf.u64()
+        name, media_type = buf.string(), buf.string()
+        payload = buf.raw(buf.u64())
+        (crc,) = struct.unpack_from("<I", body, buf.pos)
+        if crc and zlib.crc32(bytes(body[:buf.pos])) != crc:
+            raise ValueError(f"attachment {name!r}: CRC mismatch")
+        c.attachments.append(McapAttachment(log_time, create_time, name, media_type, payload))
     elif opcode == OP_METADATA:
         name = buf.string()
         values = buf.string_map()
@@ -613,6 +774,8 @@ def _read_record(opcode: int, body: bytes | memoryview, c: _Collector) -> None:
     elif opcode == OP_HEADER:
         c.profile, c.library = buf.string(), buf.string()
         _check_consumed(buf)
+        if c.generic:
+            return
         if c.profile in ("ros1", "ros2"):
             raise RecordingError(f"is a ROS {c.profile[-1]} bag (MCAP storage), not a scanpipe "
                                  "recording; convert it with: scanpipe import-bag BAG --out "

@@ -32,7 +32,7 @@ from scanpipe.errors import ArtifactError, ExportError, UsageError
 from scanpipe.exporters.e57 import e57_bytes
 from scanpipe.exporters.glb import glb_bytes
 from scanpipe.exporters.las import LAS_VERSIONS, las_bytes, pdal_pipeline_bytes, provenance_bytes
-from scanpipe.exporters.mcap_foxglove import foxglove_mcap_bytes
+from scanpipe.exporters.mcap_foxglove import camera_views_from_tables, foxglove_export_files
 from scanpipe.exporters.model import CloudModel, MeshModel, cloud_from_table, mesh_from_tables
 from scanpipe.exporters.obj import obj_files
 from scanpipe.exporters.ply import ply_cloud_bytes, ply_mesh_bytes
@@ -139,7 +139,7 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
             return {f"{stem}.glb": glb_bytes(mesh, stem)}
         return {f"{stem}.ply": ply_mesh_bytes(mesh)}
     if fmt == "mcap":
-        return {f"{stem}.mcap": foxglove_mcap_bytes(cloud, mesh, stem)}
+        return foxglove_export_files(cloud, mesh, stem, camera_views_from_tables(tables))
     provenance = provenance_of({k: v for k, v in tables.items() if k == "points"})
     if fmt == "colmap":
         return _colmap(tables, cloud, stem, provenance)
@@ -240,7 +240,8 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
 
 STAGE = Stage(
     name="export",
-    version=2,
+    version=3,  # 2: coloured points in every format, LAS 1.2, COPC, COLMAP; 3: the Foxglove
+    # file has the cloud, camera images and a layout beside it
     params=ExportStageParams,
     inputs=(*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points", "frames", "motor", "rig"),
     outputs=("export_manifest",),

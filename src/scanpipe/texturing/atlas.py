@@ -153,6 +153,7 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         pages[page[r]][oy[r]:oy[r] + h, ox[r]:ox[r] + w] = patch
         if r % 64 == 0:
             progress("atlas", r + 1, len(boxes))
+    progress("atlas", len(boxes), len(boxes))
     face_page = np.full(n_faces, -1, dtype=np.int16)
     face_uv = np.empty((n_faces, 3, 2), dtype=np.float32)
     face_uv[:, :, 0] = (NEUTRAL_PX / 2) / sizes[0][0]

@@ -190,6 +190,7 @@ def choose_frames(
                                 f"frame {sequences[row]} of {camera_ids[row]!r}")
         if i % 16 == 0:
             progress("rate frames", i, len(kept))
+    progress("rate frames", len(kept), len(kept))
     if spacing_deg > 0:
         bins = np.round(beta / spacing_deg).astype(np.int64)
         group = np.lexsort((-sharp, bins, camera_ids[kept].astype(str)))
