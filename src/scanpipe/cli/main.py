@@ -15,6 +15,7 @@ from scanpipe import __version__
 from scanpipe.cli import (
     acquire,
     bag,
+    batch,
     capture,
     common,
     decode,
@@ -40,7 +41,7 @@ app = typer.Typer(
 )
 
 # Every command group, in the order `scanpipe --help` lists them.
-for module in (demo, plan, rig, acquire, bag, capture, simulate, pipeline, decode, points,
+for module in (demo, plan, rig, acquire, bag, capture, simulate, pipeline, batch, decode, points,
                mesh, texture, results):
     module.register(app)
 
