@@ -135,15 +135,14 @@ def run_item(item: BatchItem, params: Mapping[str, Params], to: str | None = Non
     """The chain on one recording into its workdir; every failure is caught into the result."""
     result = ItemResult(item.name, str(item.recording), str(item.workdir))
     started = time.perf_counter()
+    records: list[RunRecord] = []  # filled stage by stage: kept up to a failure
     try:
-        stages = _chain(to)
-        records = run_chain(item.recording, item.workdir, params, stages=stages, force=force,
-                            lock_wait_s=lock_wait_s)
+        run_chain(item.recording, item.workdir, params, stages=_chain(to), force=force,
+                  lock_wait_s=lock_wait_s, on_stage=records.append)
     except Exception as err:  # isolate it: the batch reports it and goes on
         _fail(result, err)
-    else:
-        result.stages = [_record_dict(r) for r in records]
-        result.warnings = [w for r in records for w in _warnings(r)]
+    result.stages = [_record_dict(r) for r in records]
+    result.warnings = [w for r in records for w in _warnings(r)]
     result.seconds = round(time.perf_counter() - started, 4)
     return result
 

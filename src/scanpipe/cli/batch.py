@@ -55,9 +55,6 @@ def batch(
     """Run the chain over many recordings, reusing every artifact whose key is unchanged; a
     failing recording is reported and the others finish (exit code 1 at the end)."""
     params = pipeline_params_from_cli(params_file, assignments)
-    if not quiet:
-        sys.stderr.write(f"scanpipe batch: {len(recordings)} recording(s) → {workdir} "
-                         f"({engine})\n")
     with rich_progress(quiet) as progress:
         summary = run_batch(recordings, workdir, params, engine=engine, workers=workers,
                             address=address, to=to, force=force, lock_wait_s=wait_s,
