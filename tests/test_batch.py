@@ -155,3 +155,13 @@ def test_workdir_that_is_a_file_is_refused(cli, recordings: list[Path], tmp_path
     result = cli("batch", recordings[0], "--workdir", target)
     assert result.code == 2 and "exists and is not a folder" in result.err
     assert target.read_text() == "mine"
+
+
+def test_foreign_batch_json_is_kept(cli, recordings: list[Path], tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    (tmp_path / "w").mkdir()
+    (tmp_path / "w" / "batch.json").write_text("my notes")
+    result = cli("batch", recordings[0], "--workdir", tmp_path / "w")
+    assert result.code == 2 and "batch.json: exists and is not a scanpipe batch summary" in \
+        result.err
+    assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["batch.json"]
+    assert (tmp_path / "w" / "batch.json").read_text() == "my notes"

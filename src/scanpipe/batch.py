@@ -321,6 +321,20 @@ def _carry_result(item: BatchItem, carry: Mapping[str, Any]) -> ItemResult:
                       seconds=round(carry.get("seconds", 0.0), 4), warnings=carry["warnings"])
 
 
+def _check_manifest(path: Path) -> None:
+    """Refuse to replace a ``batch.json`` that a batch did not write (someone's file)."""
+    if not path.exists():
+        return
+    try:
+        data = json.loads(path.read_text())
+        ours = isinstance(data, dict) and {"engine", "items"} <= data.keys()
+    except (OSError, UnicodeDecodeError, ValueError):
+        ours = False
+    if not ours:
+        raise UsageError(f"{path}: exists and is not a scanpipe batch summary; use another "
+                         "--workdir")
+
+
 # -- the batch -----------------------------------------------------------------------------------
 
 def run_batch(
@@ -350,6 +364,7 @@ def run_batch(
         raise UsageError(f"--workers {workers}: must be at least 1")
     _chain(to)  # a bad --to is refused before any work
     items = plan_batch(recordings, root)
+    _check_manifest(root / MANIFEST)
     if engine == "ray":
         import_ray()  # the install hint before any folder is made
     root.mkdir(parents=True, exist_ok=True)
