@@ -106,7 +106,11 @@ def test_local_and_ray_give_the_same_artifacts(recordings: list[Path], ray_local
                                                tmp_path: Path) -> None:
     params = pipeline_params_from_cli(None, GRID)
     local = run_batch(recordings, tmp_path / "local", params, workers=2)
-    on_ray = run_batch(recordings, tmp_path / "ray", params, engine="ray", workers=2)
+    calls: list[tuple[str, float, float | None]] = []
+    on_ray = run_batch(recordings, tmp_path / "ray", params, engine="ray", workers=2,
+                       progress=lambda task, done, total=None: calls.append((task, done, total)))
+    assert calls[-1] == ("recordings", 3, 3) or calls[-1] == ("stages", 18, 18)
+    assert ("recordings", 3, 3) in calls and ("stages", 18, 18) in calls
     assert [i["ok"] for i in on_ray["items"]] == [True, True, False]
     assert on_ray["items"][2]["error"] == local["items"][2]["error"]
     for a, b in zip(local["items"], on_ray["items"], strict=True):

@@ -311,7 +311,13 @@ def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: 
                 stage_done()
                 if ref in last:
                     item = last.pop(ref)
-                    done(_carry_result(item, ray.get(ref)))
+                    try:
+                        carry = ray.get(ref)
+                    except Exception as err:  # Ray's own failures: a worker or node lost
+                        first = (str(err).strip().splitlines() or [""])[0]
+                        carry = {"error": f"Ray task failed: {type(err).__name__}: {first}",
+                                 "records": [], "warnings": []}
+                    done(_carry_result(item, carry))
 
 
 def _carry_result(item: BatchItem, carry: Mapping[str, Any]) -> ItemResult:
