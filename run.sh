@@ -41,7 +41,7 @@ setup() {
   if [ "$(cat "$VENV/.setup-stamp" 2>/dev/null)" != "$stamp" ]; then
     echo "run.sh: installing scanpipe and its dependencies into $VENV" >&2
     "$VENV/bin/python" -m pip install -q --upgrade pip
-    "$VENV/bin/python" -m pip install -q -e ".[dev]"
+    "$VENV/bin/python" -m pip install -q -e ".[dev,ray]"  # ray: the batch tests on a local Ray
     echo "$stamp" > "$VENV/.setup-stamp"
   fi
 }

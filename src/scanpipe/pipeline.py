@@ -37,7 +37,8 @@ from scanpipe.stage import RAW_INPUTS, Stage, StageResult
 from scanpipe.stages import chain_stages, get_stage, registry
 from scanpipe.workdir import DEFAULT_LOCK_WAIT_S, lock_root, workdir_lock
 
-__all__ = ["RunRecord", "Stage", "StageResult", "execute", "get_stage", "registry",
+__all__ = ["RunRecord", "Stage", "StageResult", "chain_step", "check_recording", "execute",
+           "get_stage", "registry",
            "rig_override_artifact", "run_chain", "validate_pipeline_params"]
 
 
@@ -198,11 +199,7 @@ def run_chain(
         raise ParameterError([f"--to {to!r}: not a stage; stages: {', '.join(names)}"], "run")
     if to is not None:
         chain = chain[: names.index(to) + 1]
-    if recording.is_dir() and (recording / "metadata.yaml").is_file():
-        raise ArtifactError(f"{recording}: is a ROS 2 bag, not a scanpipe recording; convert "
-                            f"it with: scanpipe import-bag {recording} --out REC.mcap")
-    if not recording.is_file():
-        raise ArtifactError(f"{recording}: recording not found")
+    check_recording(recording)
     if rig_override is not None:
         from scanpipe.rig import load_rig
 
@@ -221,13 +218,7 @@ def _run_chain_locked(chain: Sequence[Stage], recording: Path, workdir: Path,
     records: list[RunRecord] = []
     rig_made = False
     for stage in chain:
-        missing = [n for n in stage.inputs if n not in available]
-        if missing:
-            raise ArtifactError(f"stage {stage.name!r} needs {', '.join(missing)}, "
-                                "which no earlier stage produces")
-        record = execute(stage, {n: available[n] for n in stage.inputs}, workdir / stage.name,
-                         params.get(stage.name) or stage.params(), progress, force,
-                         replace_folder=True)
+        record = chain_step(stage, available, workdir, params, force, progress)
         available.update(record.outputs)
         # The override replaces the recording's rig (decode's), not a rig a later stage
         # derives from it (calibrate's).
@@ -238,6 +229,31 @@ def _run_chain_locked(chain: Sequence[Stage], recording: Path, workdir: Path,
         if on_stage is not None:
             on_stage(record)
     return records
+
+
+def check_recording(recording: Path) -> None:
+    """Refuse what is not a recording file (a missing path, a ROS 2 bag folder) in one line."""
+    if recording.is_dir() and (recording / "metadata.yaml").is_file():
+        raise ArtifactError(f"{recording}: is a ROS 2 bag, not a scanpipe recording; convert "
+                            f"it with: scanpipe import-bag {recording} --out REC.mcap")
+    if not recording.is_file():
+        raise ArtifactError(f"{recording}: recording not found")
+
+
+def chain_step(stage: Stage, available: Mapping[str, Path], workdir: Path,
+               params: Mapping[str, Params], force: bool = False,
+               progress: ProgressFn = no_progress,
+               lock_wait_s: float = DEFAULT_LOCK_WAIT_S) -> RunRecord:
+    """One stage of the chain into ``workdir/<stage>/``, its inputs taken from ``available``
+    (artifact name → path of the nearest upstream producer). :func:`run_chain` calls it per
+    stage; so does a batch that runs each stage as its own task (:mod:`scanpipe.batch`)."""
+    missing = [n for n in stage.inputs if n not in available]
+    if missing:
+        raise ArtifactError(f"stage {stage.name!r} needs {', '.join(missing)}, "
+                            "which no earlier stage produces")
+    return execute(stage, {n: available[n] for n in stage.inputs}, workdir / stage.name,
+                   params.get(stage.name) or stage.params(), progress, force,
+                   replace_folder=True, lock_wait_s=lock_wait_s)
 
 
 def rig_override_artifact(path: Path, workdir: Path) -> Path:

@@ -15,6 +15,7 @@ from scanpipe import __version__
 from scanpipe.cli import (
     acquire,
     bag,
+    batch,
     calibrate,
     capture,
     common,
@@ -41,7 +42,7 @@ app = typer.Typer(
 )
 
 # Every command group, in the order `scanpipe --help` lists them.
-for module in (demo, plan, rig, acquire, bag, capture, simulate, pipeline, decode, points,
+for module in (demo, plan, rig, acquire, bag, capture, simulate, pipeline, batch, decode, points,
                calibrate, mesh, texture, results):
     module.register(app)
 

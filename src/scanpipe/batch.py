@@ -1,0 +1,409 @@
+"""Batches: the chain over many recordings, one workdir each, in a process pool or on Ray.
+
+Each recording gets its own workdir ``W/<stem>-<8 hex>`` (:func:`workdir_name`): the stem for
+people, the hash of the recording's absolute path so that equal file names from different
+folders never share a workdir, and a name that does not depend on the rest of the batch, so a
+re-run with more or fewer recordings finds its cache. Each workdir has its own lock
+(:func:`scanpipe.workdir.workdir_lock`), so workers never wait on each other.
+
+``local`` runs :func:`scanpipe.pipeline.run_chain` per recording in a process pool (spawned
+workers, each limited to its share of the CPU's threads). ``ray`` runs one Ray task per recording
+per stage (:func:`scanpipe.pipeline.chain_step`): the tasks of one recording are chained by
+object refs carrying only paths, keys and reports, while the tables go through the cached
+artifacts in the workdir, exactly as a local run writes them — so both engines give the same
+artifacts and keys, a re-run reuses them, and the workdir must be on a file system every Ray
+node sees. A failing recording is reported with its one-line error and the others finish.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import json
+import multiprocessing as mp
+import os
+import re
+import time
+import traceback
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from scanpipe.artifacts import atomic_write_bytes
+from scanpipe.errors import ScanpipeError, UsageError
+from scanpipe.params import Params
+from scanpipe.pipeline import RunRecord, chain_step, check_recording, run_chain
+from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.stages import chain_stages, get_stage
+from scanpipe.workdir import DEFAULT_LOCK_WAIT_S
+
+ENGINES = ("local", "ray")
+RAY_INSTALL = "pip install 'scanpipe[ray]'"
+#: The batch's summary, written into ``W`` at the end of every batch.
+MANIFEST = "batch.json"
+#: Environment variables that size the thread pools of numpy's BLAS, OpenMP (Open3D) and friends.
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@dataclass(frozen=True)
+class BatchItem:
+    """One recording of a batch and its workdir."""
+
+    recording: Path
+    workdir: Path
+
+    @property
+    def name(self) -> str:
+        """The workdir's folder name, which names the recording in messages."""
+        return self.workdir.name
+
+
+@dataclass
+class ItemResult:
+    """What the batch did for one recording."""
+
+    name: str
+    recording: str
+    workdir: str
+    ok: bool = True
+    error: str = ""
+    #: The traceback of an unexpected exception (a bug), kept in the manifest only.
+    detail: str = ""
+    stages: list[dict[str, Any]] = field(default_factory=list)
+    seconds: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+
+
+def workdir_name(recording: Path) -> str:
+    """``<stem>-<first 8 hex of sha256(absolute path)>``, the stem reduced to ``[A-Za-z0-9._-]``."""
+    stem = re.sub(r"[^A-Za-z0-9._-]+", "_", recording.stem).lstrip(".")[:60] or "recording"
+    digest = hashlib.sha256(str(recording.resolve()).encode()).hexdigest()[:8]
+    return f"{stem}-{digest}"
+
+
+def plan_batch(recordings: Sequence[Path], root: Path) -> list[BatchItem]:
+    """The batch's items in the given order; a recording given twice is a usage error.
+
+    Missing recordings are not refused here: each is reported as a failed item.
+    """
+    if not recordings:
+        raise UsageError("no recordings given")
+    if root.exists() and not root.is_dir():
+        raise UsageError(f"--workdir {root}: exists and is not a folder")
+    items: list[BatchItem] = []
+    seen: dict[Path, Path] = {}
+    for recording in recordings:
+        resolved = recording.resolve()
+        if resolved in seen:
+            raise UsageError(f"{recording}: given twice (also as {seen[resolved]})")
+        seen[resolved] = recording
+        items.append(BatchItem(resolved, root / workdir_name(recording)))
+    return items
+
+
+def _one_line(err: BaseException) -> str:
+    text = str(err).strip().splitlines()
+    first = text[0] if text else ""
+    if isinstance(err, ScanpipeError):
+        return first if len(text) <= 1 else f"{first} {' '.join(t.strip() for t in text[1:])}"
+    return f"internal error: {type(err).__name__}: {first}"
+
+
+def _fail(result: ItemResult, err: BaseException) -> ItemResult:
+    result.ok = False
+    result.error = _one_line(err)
+    if not isinstance(err, ScanpipeError):
+        result.detail = "".join(traceback.format_exception(err))
+    return result
+
+
+def _record_dict(record: RunRecord) -> dict[str, Any]:
+    return {"stage": record.stage, "key": record.key, "reused": record.reused,
+            "seconds": round(record.seconds, 4)}
+
+
+def _warnings(record: RunRecord) -> list[str]:
+    if record.reused:  # a reused stage's warnings were shown when it ran
+        return []
+    return [f"{record.stage}: {w}" for w in record.report.get("warnings", [])]
+
+
+def run_item(item: BatchItem, params: Mapping[str, Params], to: str | None = None,
+             force: bool = False, lock_wait_s: float = DEFAULT_LOCK_WAIT_S) -> ItemResult:
+    """The chain on one recording into its workdir; every failure is caught into the result."""
+    result = ItemResult(item.name, str(item.recording), str(item.workdir))
+    started = time.perf_counter()
+    records: list[RunRecord] = []  # filled stage by stage: kept up to a failure
+    try:
+        run_chain(item.recording, item.workdir, params, stages=_chain(to), force=force,
+                  lock_wait_s=lock_wait_s, on_stage=records.append)
+    except Exception as err:  # isolate it: the batch reports it and goes on
+        _fail(result, err)
+    result.stages = [_record_dict(r) for r in records]
+    result.warnings = [w for r in records for w in _warnings(r)]
+    result.seconds = round(time.perf_counter() - started, 4)
+    return result
+
+
+def _chain(to: str | None) -> list[Any]:
+    stages = list(chain_stages("recording"))
+    names = [s.name for s in stages]
+    if to is None:
+        return stages
+    if to not in names:
+        raise UsageError(f"--to {to!r}: not a stage; stages: {', '.join(names)}")
+    return stages[: names.index(to) + 1]
+
+
+# -- local: a process pool -----------------------------------------------------------------------
+
+def _limit_threads(threads: int) -> None:
+    """Pool initializer: OpenCV's threads too (the environment sized the others)."""
+    import cv2
+
+    cv2.setNumThreads(threads)
+
+
+@contextmanager
+def _thread_env(threads: int) -> Iterator[None]:
+    """The thread variables (unless the user set them) for the workers spawned meanwhile."""
+    saved = {name: os.environ.get(name) for name in THREAD_VARS}
+    for name in THREAD_VARS:
+        os.environ.setdefault(name, str(threads))
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def _run_local(items: Sequence[BatchItem], params: Mapping[str, Params], workers: int,
+               to: str | None, force: bool, lock_wait_s: float,
+               done: Callable[[ItemResult], None]) -> None:
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    queue = list(reversed(items))
+    with _thread_env(threads):
+        while queue:
+            # A worker killed by a signal breaks the pool: the items it held fail, the rest go
+            # on in a new pool.
+            pool = cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
+                                          initializer=_limit_threads, initargs=(threads,))
+            running: dict[cf.Future[ItemResult], BatchItem] = {}
+            try:
+                while queue or running:
+                    while queue and len(running) < workers:
+                        item = queue.pop()
+                        running[pool.submit(run_item, item, params, to, force,
+                                            lock_wait_s)] = item
+                    finished, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
+                    for future in finished:
+                        item = running.pop(future)
+                        try:
+                            done(future.result())
+                        except cf.process.BrokenProcessPool:
+                            lost = [item, *running.values()]
+                            running.clear()
+                            for other in lost:
+                                done(_fail(ItemResult(other.name, str(other.recording),
+                                                      str(other.workdir)),
+                                           ScanpipeError(
+                                               "the worker process died while this recording "
+                                               f"ran (with {len(lost) - 1} other(s)); re-run "
+                                               "the batch to retry it")))
+                            raise
+            except cf.process.BrokenProcessPool:
+                continue
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
+
+
+# -- ray: one task per recording per stage -------------------------------------------------------
+
+def import_ray() -> Any:
+    """The ``ray`` module, or a one-line :class:`UsageError` saying how to install it."""
+    try:
+        import ray
+    except ImportError as err:
+        raise UsageError(f"--engine ray needs Ray, which is not installed: {RAY_INSTALL}"
+                         ) from err
+    return ray
+
+
+def stage_task(stage_name: str, item: BatchItem, carry: dict[str, Any],
+               params: Mapping[str, Params], force: bool, lock_wait_s: float
+               ) -> dict[str, Any]:
+    """One stage of one recording (a Ray task): ``carry`` is what the previous stage's task
+    returned (available artifact paths, records, the first error), passed on updated."""
+    if carry.get("error"):
+        return carry  # an earlier stage failed: nothing to do, the error travels on
+    result = ItemResult(item.name, str(item.recording), str(item.workdir))
+    started = time.perf_counter()
+    carry = {**carry, "available": dict(carry["available"]), "records": list(carry["records"]),
+             "warnings": list(carry["warnings"])}
+    try:
+        if stage_name == carry["first"]:
+            check_recording(item.recording)
+        record = chain_step(get_stage(stage_name), carry["available"], item.workdir, params,
+                            force, lock_wait_s=lock_wait_s)
+    except Exception as err:  # isolate it: carried to the end of this recording's chain
+        _fail(result, err)
+        carry.update(error=result.error, detail=result.detail)
+    else:
+        carry["available"].update(record.outputs)
+        carry["records"].append(_record_dict(record))
+        carry["warnings"].extend(_warnings(record))
+    carry["seconds"] = carry.get("seconds", 0.0) + time.perf_counter() - started
+    return carry
+
+
+@contextmanager
+def ray_session(workers: int | None, address: str | None) -> Iterator[Any]:
+    """Ray, connected: the session already open in this process (tests), else a new one — a
+    local Ray with ``workers`` CPUs, or the cluster at ``address`` — shut down at the end."""
+    ray = import_ray()
+    if ray.is_initialized():
+        yield ray
+        return
+    import logging
+
+    try:
+        if address is None:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False,
+                     logging_level=logging.WARNING)
+        else:
+            ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+    except Exception as err:  # Ray raises ConnectionError, ValueError, RuntimeError, …
+        where = f"the Ray cluster at {address}" if address else "a local Ray"
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise UsageError(f"--engine ray: cannot start or reach {where}: {first}") from err
+    try:
+        yield ray
+    finally:
+        ray.shutdown()
+
+
+def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: int | None,
+             address: str | None, to: str | None, force: bool, lock_wait_s: float,
+             done: Callable[[ItemResult], None], stage_done: Callable[[], None]) -> None:
+    stages = [s.name for s in _chain(to)]
+    with ray_session(workers, address) as ray:
+        limit = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
+        task = ray.remote(num_cpus=1)(stage_task)
+        queue = list(reversed(items))
+        last: dict[Any, BatchItem] = {}  # the last stage's ref of each recording in flight
+        pending: list[Any] = []  # every ref not yet finished, for progress
+        while queue or last:
+            while queue and len(last) < limit:
+                item = queue.pop()
+                carry: Any = {"available": {"recording": item.recording}, "records": [],
+                              "warnings": [], "first": stages[0]}
+                for name in stages:
+                    carry = task.remote(name, item, carry, params, force, lock_wait_s)
+                    pending.append(carry)
+                last[carry] = item
+            ready, pending = ray.wait(pending, num_returns=1)
+            for ref in ready:
+                stage_done()
+                if ref in last:
+                    item = last.pop(ref)
+                    try:
+                        carry = ray.get(ref)
+                    except Exception as err:  # Ray's own failures: a worker or node lost
+                        first = (str(err).strip().splitlines() or [""])[0]
+                        carry = {"error": f"Ray task failed: {type(err).__name__}: {first}",
+                                 "records": [], "warnings": []}
+                    done(_carry_result(item, carry))
+
+
+def _carry_result(item: BatchItem, carry: Mapping[str, Any]) -> ItemResult:
+    return ItemResult(item.name, str(item.recording), str(item.workdir),
+                      ok=not carry.get("error"), error=carry.get("error", ""),
+                      detail=carry.get("detail", ""), stages=carry["records"],
+                      seconds=round(carry.get("seconds", 0.0), 4), warnings=carry["warnings"])
+
+
+def _check_manifest(path: Path) -> None:
+    """Refuse to replace a ``batch.json`` that a batch did not write (someone's file)."""
+    if not path.exists():
+        return
+    try:
+        data = json.loads(path.read_text())
+        ours = isinstance(data, dict) and {"engine", "items"} <= data.keys()
+    except (OSError, UnicodeDecodeError, ValueError):
+        ours = False
+    if not ours:
+        raise UsageError(f"{path}: exists and is not a scanpipe batch summary; use another "
+                         "--workdir")
+
+
+# -- the batch -----------------------------------------------------------------------------------
+
+def run_batch(
+    recordings: Sequence[Path],
+    root: Path,
+    params: Mapping[str, Params],
+    engine: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
+    to: str | None = None,
+    force: bool = False,
+    lock_wait_s: float = DEFAULT_LOCK_WAIT_S,
+    progress: ProgressFn = no_progress,
+    on_item: Callable[[ItemResult], None] | None = None,
+) -> dict[str, Any]:
+    """Run the chain over ``recordings`` into ``root/<workdir_name>/`` on ``engine``.
+
+    ``workers``: processes (local; default the CPU count) or recordings in flight (Ray; default
+    the cluster's CPUs). Returns the summary also written to ``root/batch.json``: one entry per
+    recording in the given order (``ok``, ``error``, per-stage keys), counts and wall time.
+    """
+    if engine not in ENGINES:
+        raise UsageError(f"--engine {engine!r}: use one of {', '.join(ENGINES)}")
+    if address is not None and engine != "ray":
+        raise UsageError("--address is for --engine ray")
+    if workers is not None and workers < 1:
+        raise UsageError(f"--workers {workers}: must be at least 1")
+    _chain(to)  # a bad --to is refused before any work
+    items = plan_batch(recordings, root)
+    _check_manifest(root / MANIFEST)
+    if engine == "ray":
+        import_ray()  # the install hint before any folder is made
+    root.mkdir(parents=True, exist_ok=True)
+    results: dict[str, ItemResult] = {}
+    n_stages = len(_chain(to))
+    counts = {"stages": 0}
+
+    def done(result: ItemResult) -> None:
+        results[result.name] = result
+        progress("recordings", len(results), len(items))
+        if on_item is not None:
+            on_item(result)
+
+    def stage_done() -> None:
+        counts["stages"] += 1
+        progress("stages", counts["stages"], len(items) * n_stages)
+
+    started = time.perf_counter()
+    progress("recordings", 0, len(items))
+    if engine == "local":
+        _run_local(items, params, workers or os.cpu_count() or 1, to, force, lock_wait_s, done)
+    else:
+        _run_ray(items, params, workers, address, to, force, lock_wait_s, done, stage_done)
+    ordered = [results[item.name] for item in items]
+    summary = {
+        "engine": engine,
+        "workers": workers,
+        "address": address,
+        "workdir": str(root),
+        "recordings": len(items),
+        "failed": sum(not r.ok for r in ordered),
+        "seconds": round(time.perf_counter() - started, 3),
+        "items": [asdict(r) for r in ordered],
+    }
+    atomic_write_bytes(root / MANIFEST, json.dumps(summary, indent=2).encode())
+    return summary

@@ -1,0 +1,171 @@
+"""``scanpipe batch`` on real simulated recordings: workdir names, failure isolation, the cache,
+the missing-Ray message, and equal artifacts from the local pool and a local Ray."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+import pytest
+
+from scanpipe.artifacts import read_artifact
+from scanpipe.batch import plan_batch, run_batch, workdir_name
+from scanpipe.cli.pipeline import pipeline_params_from_cli
+from scanpipe.sim.direct import simulate_direct
+from scanpipe.sim.options import SimOptions
+
+pytestmark = pytest.mark.slow
+GRID = ["mesh.method=grid"]
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Two small recordings with the same file name in two folders, and a damaged one."""
+    root = tmp_path_factory.mktemp("recs")
+    paths = []
+    for seed, folder in ((1, "x"), (2, "y")):
+        path = root / folder / "scan.mcap"
+        path.parent.mkdir()
+        simulate_direct(path, root / folder / "truth", SimOptions(
+            beam_step_deg=4.0, motor_step_deg=6.0, cameras=False, seed=seed))
+        paths.append(path)
+    bad = root / "bad.mcap"
+    bad.write_bytes(b"not a recording")
+    return [*paths, bad]
+
+
+@pytest.fixture(scope="module")
+def ray_local() -> Iterator[Any]:
+    """One local Ray for the module, with 2 CPUs (starting one takes seconds)."""
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield ray
+    ray.shutdown()
+
+
+def _tables(workdir: Path) -> dict[str, Any]:
+    return {str(p.relative_to(workdir)): read_artifact(p)[0]
+            for p in sorted(workdir.glob("*/*.parquet"))}
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal tables, bit for bit (``Table.equals`` says NaN differs from itself), metadata
+    (provenance: times, paths) aside."""
+    def data(table: Any) -> bytes:
+        sink = pa.BufferOutputStream()
+        table = table.replace_schema_metadata(None).combine_chunks()
+        with pa.ipc.new_stream(sink, table.schema) as writer:
+            writer.write_table(table)
+        return bytes(sink.getvalue())
+    return data(a) == data(b)
+
+
+def test_names_keep_equal_file_names_apart(recordings: list[Path], tmp_path: Path) -> None:
+    items = plan_batch(recordings, tmp_path / "w")
+    names = [i.name for i in items]
+    assert len(set(names)) == 3
+    assert names[0].startswith("scan-") and names[1].startswith("scan-")
+    assert names[0] == workdir_name(recordings[0])  # stable: independent of the rest
+
+
+def test_local_isolates_a_failure_and_reuses_the_cache(cli, recordings: list[Path],  # type: ignore[no-untyped-def]
+                                                      tmp_path: Path) -> None:
+    work = tmp_path / "w"
+    missing = tmp_path / "nope.mcap"
+    first = cli("batch", *recordings, missing, "--workdir", work, "--workers", "2",
+                "--set", *GRID, "--to", "filter")
+    assert first.code == 1
+    assert first.err.strip().splitlines()[-1] == (
+        f"scanpipe: error: 2 of 4 recordings failed ({workdir_name(recordings[2])}, "
+        f"{workdir_name(missing)}); re-run the same command after fixing them: finished "
+        "stages are reused")
+    assert f"FAILED  {recordings[2]}: not an MCAP file (bad magic bytes)" in first.err
+    assert f"FAILED  {missing}: recording not found" in first.err
+    assert "Traceback" not in first.err
+    summary = json.loads((work / "batch.json").read_text())
+    assert [i["ok"] for i in summary["items"]] == [True, True, False, False]
+    assert [s["stage"] for s in summary["items"][0]["stages"]] == ["decode", "assemble",
+                                                                     "filter"]
+    assert (work / workdir_name(recordings[0]) / "filter" / "points.parquet").is_file()
+    # the re-run continues where the first stopped: three stages reused, three run
+    again = cli("batch", *recordings[:2], "--workdir", work, "--workers", "1",
+                "--set", *GRID, "--json")
+    assert again.code == 0, again.err
+    result = json.loads(again.out)
+    for item in result["items"]:
+        assert [s["reused"] for s in item["stages"]] == [True] * 3 + [False] * 3
+    assert (work / workdir_name(recordings[1]) / "export" / "model.glb").is_file()
+
+
+def test_local_and_ray_give_the_same_artifacts(recordings: list[Path], ray_local: Any,
+                                               tmp_path: Path) -> None:
+    params = pipeline_params_from_cli(None, GRID)
+    local = run_batch(recordings, tmp_path / "local", params, workers=2)
+    calls: list[tuple[str, float, float | None]] = []
+    on_ray = run_batch(recordings, tmp_path / "ray", params, engine="ray", workers=2,
+                       progress=lambda task, done, total=None: calls.append((task, done, total)))
+    assert calls[-1] == ("recordings", 3, 3) or calls[-1] == ("stages", 18, 18)
+    assert ("recordings", 3, 3) in calls and ("stages", 18, 18) in calls
+    assert [i["ok"] for i in on_ray["items"]] == [True, True, False]
+    assert on_ray["items"][2]["error"] == local["items"][2]["error"]
+    for a, b in zip(local["items"], on_ray["items"], strict=True):
+        assert [(s["stage"], s["key"]) for s in a["stages"]] == \
+            [(s["stage"], s["key"]) for s in b["stages"]]
+    for item in local["items"][:2]:
+        tables_local = _tables(Path(item["workdir"]))
+        tables_ray = _tables(tmp_path / "ray" / item["name"])
+        assert len(tables_local) >= 10 and tables_local.keys() == tables_ray.keys()
+        for name, table in tables_local.items():
+            assert _same(table, tables_ray[name]), name
+    again = run_batch(recordings[:1], tmp_path / "ray", params, engine="ray")
+    assert all(s["reused"] for s in again["items"][0]["stages"])
+
+
+def test_ray_missing_says_how_to_install(cli, recordings: list[Path], tmp_path: Path,  # type: ignore[no-untyped-def]
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray → ImportError
+    result = cli("batch", recordings[0], "--workdir", tmp_path / "w", "--engine", "ray")
+    assert result.code == 2
+    assert result.err.strip() == ("scanpipe: error: --engine ray needs Ray, which is not "
+                                  "installed: pip install 'scanpipe[ray]'")
+    assert not (tmp_path / "w").exists()
+
+
+@pytest.mark.parametrize(("extra", "needle"), [
+    (["--engine", "spark"], "--engine 'spark': use one of local, ray"),
+    (["--address", "10.0.0.1:6379"], "--address is for --engine ray"),
+    (["--to", "mesher"], "--to 'mesher': not a stage"),
+    (["TWICE"], "given twice"),
+])
+def test_bad_usage(cli, recordings: list[Path], tmp_path: Path, extra: list[str],  # type: ignore[no-untyped-def]
+                   needle: str) -> None:
+    (tmp_path / "w").mkdir()
+    (tmp_path / "w" / "keep.txt").write_text("mine")
+    args = [str(recordings[0]) if a == "TWICE" else a for a in extra]
+    result = cli("batch", recordings[0], "--workdir", tmp_path / "w", *args)
+    assert result.code == 2
+    assert result.err.count("\n") == 1 and needle in result.err, result.err
+    assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["keep.txt"]
+
+
+def test_workdir_that_is_a_file_is_refused(cli, recordings: list[Path], tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    target = tmp_path / "w"
+    target.write_text("mine")
+    result = cli("batch", recordings[0], "--workdir", target)
+    assert result.code == 2 and "exists and is not a folder" in result.err
+    assert target.read_text() == "mine"
+
+
+def test_foreign_batch_json_is_kept(cli, recordings: list[Path], tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    (tmp_path / "w").mkdir()
+    (tmp_path / "w" / "batch.json").write_text("my notes")
+    result = cli("batch", recordings[0], "--workdir", tmp_path / "w")
+    assert result.code == 2 and "batch.json: exists and is not a scanpipe batch summary" in \
+        result.err
+    assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["batch.json"]
+    assert (tmp_path / "w" / "batch.json").read_text() == "my notes"
