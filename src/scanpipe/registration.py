@@ -54,6 +54,10 @@ class RegisterParams(Params):
                                               "pairs whose prior positions are this close.")
     max_edge_disagreement_m: float = Field(0.02, gt=0)
     max_edge_disagreement_deg: float = Field(0.5, gt=0)
+    prior_gate_m: float = Field(1.5, gt=0, description="With a prior: a pair whose result "
+                                "moves the scans this far from the prior's relative pose is "
+                                "left out (a match to a look-alike place).")
+    prior_gate_deg: float = Field(30.0, gt=0, le=180)
     seed: int = Field(0, ge=0)
 
 
@@ -171,10 +175,15 @@ def register_pair(clouds: list[ScanClouds], target: int, source: int, params: Re
         if best is None or fitness > best.fitness + 1e-3:
             best = PairResult(target, source, transform, fitness, rmse, label, False)
     assert best is not None
+    prior_gap = (pose_error(best.transform, invert(prior[target]) @ prior[source])
+                 if prior is not None else (0.0, 0.0))
     if best.fitness < params.min_overlap:
         best.reason = f"overlap {best.fitness:.1%} < min_overlap {params.min_overlap:.0%}"
     elif best.rmse_m > params.max_rmse_m:
         best.reason = f"residual {best.rmse_m * 1000:.1f} mm > max_rmse_m"
+    elif prior_gap[0] > params.prior_gate_m or prior_gap[1] > params.prior_gate_deg:
+        best.reason = (f"{prior_gap[0]:.2f} m / {prior_gap[1]:.0f}° from the prior's relative "
+                       "pose (prior_gate_m / _deg): a look-alike place")
     else:
         best.accepted = True
         info = o3d.pipelines.registration.get_information_matrix_from_point_clouds(
