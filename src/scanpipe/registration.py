@@ -170,10 +170,17 @@ def register_pair(clouds: list[ScanClouds], target: int, source: int, params: Re
     if prior is not None:
         guesses.append(("prior", invert(prior[target]) @ prior[source]))
     best: PairResult | None = None
+    best_rank: tuple[bool, float] = (False, -1.0)
     for label, guess in guesses:
         transform, fitness, rmse = refine(clouds[source], clouds[target], guess, params)
-        if best is None or fitness > best.fitness + 1e-3:
-            best = PairResult(target, source, transform, fitness, rmse, label, False)
+        gap = (pose_error(transform, invert(prior[target]) @ prior[source])
+               if prior is not None else (0.0, 0.0))
+        # a result near the prior beats a better-fitting one at a look-alike place
+        rank = (gap[0] <= params.prior_gate_m and gap[1] <= params.prior_gate_deg, fitness)
+        if best is None or rank[0] > best_rank[0] or (
+                rank[0] == best_rank[0] and fitness > best.fitness + 1e-3):
+            best, best_rank = PairResult(target, source, transform, fitness, rmse, label,
+                                         False), rank
     assert best is not None
     prior_gap = (pose_error(best.transform, invert(prior[target]) @ prior[source])
                  if prior is not None else (0.0, 0.0))
