@@ -215,11 +215,24 @@ EXPORT_MANIFEST = ArtifactSchema(
     (Column("file", pa.string()), Column("bytes", I64), Column("sha256", pa.string())),
     "the files the export stage wrote beside it",
 )
+POSES = ArtifactSchema(
+    "poses",
+    (
+        Column("scan", pa.string(), description="the scan (its workdir or recording name)"),
+        *_columns(dict.fromkeys(("tx_m", "ty_m", "tz_m"), F64),
+                  description="translation: where the scan's rig origin is in the site frame"),
+        *_columns(dict.fromkeys(("qw", "qx", "qy", "qz"), F64),
+                  description="rotation rig → site as a unit quaternion"),
+        Column("covariance", pa.list_(F64), False, "6 × 6 row-major, site frame, twist order "
+                                                   "rx, ry, rz, tx, ty, tz (rad², m²); null: none"),
+    ),
+    "one rigid pose per scan of a site: p_site = R p_rig + t",
+)
 
 #: Every artifact by name.
 ARTIFACTS: dict[str, ArtifactSchema] = {s.name: s for s in (
     RIG, CALIBRATION, PROFILES, MOTOR, FRAMES, POINTS, MESH_VERTICES, MESH_FACES, TEXTURED_FACES,
-    TEXTURE_PAGES, EXPORT_MANIFEST)}
+    TEXTURE_PAGES, EXPORT_MANIFEST, POSES)}
 
 
 def artifact_schema(name: str) -> ArtifactSchema:

@@ -28,6 +28,7 @@ from scanpipe.cli import (
     results,
     rig,
     simulate,
+    site,
     texture,
 )
 from scanpipe.errors import ScanpipeError
@@ -43,7 +44,7 @@ app = typer.Typer(
 
 # Every command group, in the order `scanpipe --help` lists them.
 for module in (demo, plan, rig, acquire, bag, capture, simulate, pipeline, batch, decode, points,
-               calibrate, mesh, texture, results):
+               calibrate, mesh, texture, results, site):
     module.register(app)
 
 

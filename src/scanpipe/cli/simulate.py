@@ -167,6 +167,16 @@ def simulate(
         None, "--scene-pose", help="Place the scene file: 'tx,ty,tz' metres, optionally "
                                    "',rx,ry,rz' degrees (rotation first, then translation)."),
     scanner_step: float | None = deprecated_alias("--beam-step", "--scanner-step"),
+    site: int | None = typer.Option(
+        None, "--site", min=2, max=200,
+        help="Scan the built-in site from this many positions: --out is then a folder of "
+             "recordings, --truth holds the true poses (see docs/sites.md); needs --direct."),
+    prior_error_m: float | None = typer.Option(
+        None, "--prior-error-m", min=0.0, max=10.0,
+        help="With --site: also write a rough odometry prior, positions off by up to this."),
+    prior_error_deg: float = typer.Option(
+        10.0, "--prior-error-deg", min=0.0, max=180.0,
+        help="With --prior-error-m: headings off by up to this many degrees."),
     **values: Any,
 ) -> None:
     """Simulate a scan of a virtual rig: a recording plus its ground truth."""
@@ -176,6 +186,12 @@ def simulate(
     values["beam_step_deg"] = take_alias(ctx, "beam_step_deg", values["beam_step_deg"],
                                          scanner_step, "--beam-step", "--scanner-step")
     values["scene_pose"] = parse_scene_pose(scene_pose)
+    if site is not None:
+        simulate_site_command(out, truth, site, direct, rig_path, noise_mm, values, force, quiet,
+                              as_json, prior_error_m, prior_error_deg)
+        return
+    if prior_error_m is not None:
+        raise UsageError("--prior-error-m: only with --site N")
     if direct and live is not None:
         raise UsageError("--live serves a scan as it is recorded; it cannot be combined with "
                          "--direct (drop one)")
@@ -198,6 +214,48 @@ def simulate(
             f"simulate: {summary['profiles']} profiles × {summary['samples_per_profile']} "
             f"samples, {summary['motor_states']} motor states, {summary['frames']} frames "
             f"in {summary['seconds']:.1f} s → {out}, truth in {truth}\n")
+
+
+def simulate_site_command(out: Path, truth: Path, count: int, direct: bool,
+                          rig_path: Path | None, noise_mm: float | None, values: dict[str, Any],
+                          force: bool, quiet: bool, as_json: bool, prior_error_m: float | None,
+                          prior_error_deg: float) -> None:
+    """``simulate --site N``: N recordings of the built-in site, the true poses, a prior."""
+    from scanpipe.outpaths import check_output_files, check_output_folder
+    from scanpipe.progress import rich_progress
+    from scanpipe.sim.site import (
+        PRIOR_POSES_FILE,
+        SITE_META_FILE,
+        SITE_POSES_FILE,
+        SITE_SCENE_FILE,
+        position_name,
+        simulate_site,
+    )
+
+    if not direct:
+        raise UsageError("--site: only with --direct (the emulators scan one position)")
+    if values["scene"] != "room" or values["scene_pose"] is not None:
+        raise UsageError("--site: the site is the built-in one; leave out --scene and "
+                         "--scene-pose")
+    inputs = [rig_path] if rig_path is not None else []
+    check_output_folder(out, "--out", inputs)
+    check_output_folder(truth, "--truth", [out, *inputs])
+    names = [position_name(i) for i in range(count)]
+    files = [out / f"{n}.mcap" for n in names] + [out / PRIOR_POSES_FILE]
+    files += [truth / f for f in (SITE_POSES_FILE, SITE_SCENE_FILE, SITE_META_FILE)]
+    files += [truth / n / "scene.glb" for n in names]
+    check_output_files(files, "--out/--truth", force, inputs)
+    out.mkdir(parents=True, exist_ok=True)
+    options = sim_options(rig_path, noise_mm, {**values, "scene_pose": None})
+    with rich_progress(quiet) as progress:
+        summary = simulate_site(out, truth, options, count, prior_error_m, prior_error_deg,
+                                progress=progress)
+    print_warnings("simulate", summary)
+    if as_json:
+        print_json(summary)
+    elif not quiet:
+        sys.stderr.write(f"simulate: {count} positions of the site in {summary['seconds']:.1f} s "
+                         f"→ {out}, true poses in {truth / SITE_POSES_FILE}\n")
 
 
 def register(app: typer.Typer) -> None:

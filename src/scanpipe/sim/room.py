@@ -223,11 +223,78 @@ def box_room(size_m: tuple[float, float, float] = (6.0, 3.0, 4.0),
     return b.scene()
 
 
+@lru_cache(maxsize=1)
+def _site_cached() -> Scene:
+    """The site of :mod:`scanpipe.sim.site` (x: room A −7…−2, corridor −2…2, room B 2…7)."""
+    b = _Builder()
+    y0, y1 = FLOOR_Y_M, CEILING_Y_M
+    height = y1 - y0
+    big = (512, 512)
+    x0, x1, z0, z1 = -7.0, 7.0, -3.0, 3.0
+    dx, dz = x1 - x0, z1 - z0
+    b.wall((x0, y0, z1), (dx, 0, 0), (0, 0, -dz), b.material("SF", big))      # floor
+    b.wall((x0, y1, z0), (dx, 0, 0), (0, 0, dz), b.material("SC", big))       # ceiling
+    b.wall((x1, y0, z1), (-dx, 0, 0), (0, height, 0), b.material("SN", big))  # north, z = 3
+    b.wall((x0, y0, z0), (dx, 0, 0), (0, height, 0), b.material("SS", big))   # south, z = −3
+    b.wall((x0, y0, z1), (0, 0, -dz), (0, height, 0), b.material("SW", big))  # west, x = −7
+    b.wall((x1, y0, z0), (0, 0, dz), (0, height, 0), b.material("SE", big))  # east, x = 7
+    door_top = (0.95 - y0) / height
+    # partitions at x = ±2 from z = −3 to 3, each with a door into the corridor (z in [−1, 1])
+    b.wall((-2.0, y0, z0), (0, 0, dz), (0, height, 0), b.material("PA", big),
+           ((2.3 / dz, 0.0, 3.6 / dz, door_top),))     # door z ∈ [−0.7, 0.6]
+    b.wall((2.0, y0, z0), (0, 0, dz), (0, height, 0), b.material("PB", big),
+           ((2.4 / dz, 0.0, 3.8 / dz, door_top),))     # door z ∈ [−0.6, 0.8]
+    # corridor walls at z = ±1 between the partitions; a niche in the north one
+    b.wall((-2.0, y0, 1.0), (4.0, 0, 0), (0, height, 0), b.material("CN", big),
+           ((0.55, 0.0, 0.75, door_top),))
+    b.wall((-2.0, y0, -1.0), (4.0, 0, 0), (0, height, 0), b.material("CS", big))
+    b.wall((0.2, y0, 1.0), (0, 0, 0.5), (0, 2.15, 0), b.material("CW", big))   # niche sides
+    b.wall((1.0, y0, 1.0), (0, 0, 0.5), (0, 2.15, 0), b.material("CE", big))
+    b.wall((0.2, y0, 1.5), (0.8, 0, 0), (0, 2.15, 0), b.material("CB", big))
+    # room A: a table, boxes, a column
+    top_y = y0 + 0.75
+    b.box((-5.6, 1.6), (1.4, 0.04, 0.8), top_y - 0.04, "T", yaw_deg=12)
+    for lx, lz in ((-6.2, 1.3), (-5.0, 1.2), (-6.1, 2.0), (-4.9, 1.9)):
+        b.box((lx, lz), (0.05, 0.71, 0.05), y0, "L", yaw_deg=12)
+    b.box((-4.2, -2.2), (0.8, 0.6, 0.5), y0, "B", yaw_deg=25)
+    b.box((-6.3, -2.3), (0.5, 1.2, 0.5), y0, "K")
+    b.prism((-3.6, -0.6), 0.2, (y0, y1), 8, "P")
+    b.box((-2.6, 2.4), (0.6, 1.8, 0.4), y0, "W", yaw_deg=-8)
+    # corridor: a low cabinet and a pillar
+    b.box((-0.6, -0.75), (0.9, 0.8, 0.35), y0, "C")
+    b.prism((1.5, 0.6), 0.12, (y0, y1), 6, "Q")
+    # room B: shelves, boxes, a round column, a slanted board
+    b.box((5.9, -2.5), (1.6, 2.0, 0.4), y0, "S", yaw_deg=4)
+    b.box((3.4, 2.3), (0.7, 0.9, 0.7), y0, "D", yaw_deg=-30)
+    b.box((6.3, 1.2), (0.5, 0.5, 0.5), y0, "E", yaw_deg=40)
+    b.box((4.4, -1.8), (0.4, 0.45, 0.9), y0, "G", yaw_deg=10)
+    b.prism((4.3, 0.9), 0.25, (y0, y1), 12, "R")
+    b.quad((2.6, y0, -2.6), (0.0, 1.6, 0.0), (1.2, 0.0, 0.6), b.material("V"))
+    return b.scene()
+
+
+
+
+def builtin_site() -> Scene:
+    """The built-in site (two rooms and a corridor, 14 × 6 × 3 m) in the site frame; a fresh
+    copy (callers may move its vertices)."""
+    cached = _site_cached()
+    return Scene(cached.vertices.copy(), cached.triangles, cached.triangle_uvs,
+                 cached.triangle_material, cached.textures, list(cached.material_names))
+
+
 def resolve_scene(name_or_path: str, pose: Pose | None = None, up: SceneUp = "y") -> Scene:
-    """A built-in scene by name (``room``, ``box``) or a scene file (OBJ, GLB, glTF) with its
-    up axis ``up``."""
-    if name_or_path == "room":
-        return builtin_room()
-    if name_or_path == "box":
-        return box_room()
+    """A built-in scene by name (``room``, ``box``, ``site``) or a scene file (OBJ, GLB, glTF)
+    with its up axis ``up``; ``pose`` moves a built-in scene too (rotation, then translation)."""
+    if name_or_path in ("room", "box", "site"):
+        if name_or_path == "site":
+            scene = builtin_site()
+        else:
+            scene = builtin_room() if name_or_path == "room" else box_room()
+        if pose is not None:
+            from scanpipe.geometry import rotation_matrix_deg
+
+            rotation = rotation_matrix_deg(pose.rotation_deg)
+            scene.vertices = scene.vertices @ rotation.T + np.asarray(pose.translation_m)
+        return scene
     return load_scene(name_or_path, pose, up=up)

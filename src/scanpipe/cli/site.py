@@ -1,0 +1,54 @@
+"""``scanpipe register``: the scans of a site aligned into one frame (see docs/sites.md)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import typer
+
+from scanpipe.cli.common import (
+    JSON,
+    PARAMS_FILE,
+    QUIET,
+    SET,
+    build_params,
+    print_json,
+    print_warnings,
+)
+
+
+def register_command(
+    workdirs: list[Path] = typer.Argument(..., help="The workdir of each scan (after filter)."),
+    out: Path = typer.Option(..., "--out", help="The site folder to write."),
+    prior: Path | None = typer.Option(None, "--prior", help="Prior poses (a poses Parquet "
+                                                            "file), e.g. from odometry."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an earlier site result."),
+    assignments: list[str] | None = SET,
+    params_file: Path | None = PARAMS_FILE,
+    quiet: bool = QUIET,
+    as_json: bool = JSON,
+) -> None:
+    """Register the scans of a site: pairwise alignment, pose graph, merged points."""
+    from scanpipe.registration import RegisterParams
+    from scanpipe.site import register_site
+
+    params = build_params(RegisterParams, params_file, assignments, None)
+    report = register_site(list(workdirs), out, params, prior, force)
+    print_warnings("register", report)
+    if as_json:
+        print_json(report)
+    elif not quiet:
+        for pair in report["pairs"]:
+            state = "kept" if pair["accepted"] else f"left out ({pair['reason']})"
+            sys.stderr.write(f"register: {pair['target']}–{pair['source']}: overlap "
+                             f"{pair['overlap']:.1%}, residual {pair['rmse_m'] * 1000:.1f} mm, "
+                             f"{state}\n")
+        sys.stderr.write(f"register: {len(report['scans']) - len(report['unregistered'])} of "
+                         f"{len(report['scans'])} scans → {report['poses']}, merged "
+                         f"{report['merge']['points_out']} points → {report['points']}\n")
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``register`` to the main app."""
+    app.command("register")(register_command)

@@ -1,0 +1,172 @@
+"""The shell of ``scanpipe register``: scans of a site (workdirs) → poses, merged cloud, model.
+
+```
+SITE_DIR/poses.parquet     one pose per scan (rig → site), covariance where available
+SITE_DIR/points.parquet    every scan's filtered points in the site frame, double coverage
+                           between scans resolved (the best view kept per voxel)
+SITE_DIR/mesh/ …           the mesh stage over the merged points (Poisson: no single grid)
+SITE_DIR/site.e57          one scan per position with its pose (each in its own frame)
+SITE_DIR/site.las, site.glb, site.obj (+ .mtl)
+```
+
+Double coverage between scans is resolved like the filter's ``best`` view within one scan: in
+each voxel of ``merge_voxel_m`` seen by several scans, only the scan whose beams meet the surface
+closest to head-on (ties: the nearer scanner) keeps its points.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+from numpy.typing import NDArray
+
+from scanpipe.artifacts import artifact_key, read_artifact, write_artifact
+from scanpipe.errors import ArtifactError, UsageError
+from scanpipe.poses import poses_from_table, poses_table
+from scanpipe.registration import RegisterParams, prepare_scan, register_scans
+from scanpipe.schema import ORIGIN, POINTS, POSES, XYZ
+from scanpipe.workdir import find_artifact
+
+F64 = NDArray[np.float64]
+POSES_FILE = "poses.parquet"
+POINTS_FILE = "points.parquet"
+#: Voxel edge (m) within which two scans' points count as the same surface.
+MERGE_VOXEL_M = 0.03
+
+
+def scan_points(workdir: Path) -> tuple[pa.Table, str]:
+    """The (filtered) points of one scan's workdir and their key."""
+    if not workdir.is_dir():
+        raise UsageError(f"{workdir}: not a folder (give the workdir of each scan)")
+    path = find_artifact(workdir, "points")
+    if path is None:
+        raise UsageError(f"{workdir}: no points artifact; run `scanpipe run RECORDING "
+                         f"--workdir {workdir} --to filter` first")
+    table, provenance = read_artifact(path, POINTS)
+    return table, str(provenance.get("key", path))
+
+
+def _columns(table: pa.Table, names: Sequence[str]) -> F64:
+    return np.stack([table.column(n).to_numpy(zero_copy_only=False) for n in names],
+                    axis=1).astype(np.float64)
+
+
+def read_prior(path: Path, names: list[str]) -> list[F64]:
+    """Prior poses for ``names`` from a ``poses`` artifact (every scan must have one)."""
+    if not path.is_file():
+        raise UsageError(f"--prior {path}: not found (a poses Parquet file)")
+    table, _ = read_artifact(path)
+    poses = poses_from_table(table, where=f"--prior {path}")
+    missing = [n for n in names if n not in poses]
+    if missing:
+        raise UsageError(f"--prior {path}: no pose for scans {', '.join(missing)} (it has "
+                         f"{', '.join(sorted(poses)) or 'none'}); scans are named after their "
+                         "workdir folders")
+    return [poses[n] for n in names]
+
+
+def _transform(xyz: F64, pose: F64) -> F64:
+    return np.asarray(xyz @ pose[:3, :3].T + pose[:3, 3], np.float64)
+
+
+def view_quality(xyz: F64, origin: F64, normals: F64) -> F64:
+    """|cos| of the incidence of each beam on the surface divided by the range (higher is
+    better: head-on and near)."""
+    beam = xyz - origin
+    distance = np.linalg.norm(beam, axis=1)
+    cosine = np.abs(np.einsum("ij,ij->i", beam, normals)) / np.maximum(distance, 1e-9)
+    return np.asarray(cosine / np.maximum(distance, 1e-3), np.float64)
+
+
+def merge_scans(tables: list[pa.Table], poses: list[F64], voxel_m: float = MERGE_VOXEL_M
+                ) -> tuple[pa.Table, dict[str, Any]]:
+    """All scans' points in the site frame; per voxel seen by several scans, only the scan
+    with the best mean :func:`view_quality` keeps its points (no grid: profile = sample = −1)."""
+    from scanpipe.normals import knn_normals
+
+    parts, quality, scan_id = [], [], []
+    for k, (table, pose) in enumerate(zip(tables, poses, strict=True)):
+        xyz = _transform(_columns(table, XYZ), pose)
+        origin = _transform(_columns(table, ORIGIN), pose)
+        finite = np.all(np.isfinite(xyz), axis=1)
+        table, xyz, origin = table.filter(pa.array(finite)), xyz[finite], origin[finite]
+        normals = knn_normals(xyz.astype(np.float32), origin.astype(np.float32), 12)
+        quality.append(view_quality(xyz, origin, normals.astype(np.float64)))
+        scan_id.append(np.full(len(xyz), k, np.int64))
+        columns = {name: table.column(name) for name in table.column_names}
+        for axis, name in enumerate(XYZ):
+            columns[name] = pa.array(xyz[:, axis].astype(np.float32))
+        for axis, name in enumerate(ORIGIN):
+            columns[name] = pa.array(origin[:, axis].astype(np.float32))
+        columns["profile"] = pa.array(np.full(len(xyz), -1, np.int32))
+        columns["sample"] = pa.array(np.full(len(xyz), -1, np.int32))
+        columns.pop("filtered_by", None)
+        parts.append(pa.table(columns))
+    merged = pa.concat_tables(parts, promote_options="permissive")
+    xyz = _columns(merged, XYZ)
+    scans = np.concatenate(scan_id)
+    score = np.concatenate(quality)
+    keys = np.floor(xyz / voxel_m).astype(np.int64)
+    _, voxel = np.unique(keys, axis=0, return_inverse=True)
+    voxel = voxel.ravel()
+    # mean quality per (voxel, scan); the best scan per voxel keeps its points
+    pair = voxel * len(tables) + scans
+    pair_ids, pair_of = np.unique(pair, return_inverse=True)
+    mean = np.bincount(pair_of, weights=score) / np.bincount(pair_of)
+    pair_voxel = pair_ids // len(tables)
+    order = np.lexsort((-mean, pair_voxel))
+    first = np.concatenate([[True], pair_voxel[order][1:] != pair_voxel[order][:-1]])
+    winner = np.zeros(len(pair_ids), bool)
+    winner[order[first]] = True
+    keep = winner[pair_of]
+    report = {"points_in": len(xyz), "points_out": int(keep.sum()),
+              "double_coverage_taken": int((~keep).sum()), "merge_voxel_m": voxel_m}
+    return merged.filter(pa.array(keep)), report
+
+
+def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
+                  prior_path: Path | None = None, force: bool = False,
+                  progress: Any = None) -> dict[str, Any]:
+    """``scanpipe register``: register the scans, write the poses and the merged points."""
+    from scanpipe.outpaths import check_output_files, check_output_folder
+
+    if len(workdirs) < 2:
+        raise UsageError(f"register: {len(workdirs)} workdir given; a site needs at least 2")
+    names = [w.resolve().name for w in workdirs]
+    if len(set(names)) != len(names):
+        raise UsageError("register: two workdirs share a folder name ("
+                         f"{', '.join(sorted({n for n in names if names.count(n) > 1}))}); "
+                         "scans are named after their workdir folders")
+    check_output_folder(out, "--out", workdirs)
+    check_output_files([out / POSES_FILE, out / POINTS_FILE], "--out", force, workdirs)
+    loaded = [scan_points(w) for w in workdirs]
+    prior = read_prior(prior_path, names) if prior_path is not None else None
+    clouds = [prepare_scan(n, _columns(t, XYZ), _columns(t, ORIGIN), params)
+              for n, (t, _) in zip(names, loaded, strict=True)]
+    poses, covs, report = register_scans(clouds, params, prior, progress)
+    done = [k for k, p in enumerate(poses) if p is not None]
+    if len(done) < 2:
+        raise ArtifactError("register: no two scans could be aligned (see the pairs: "
+                            + "; ".join(f"{p['target']}–{p['source']}: {p['reason']}"
+                                        for p in report["pairs"]) + ")")
+    key = artifact_key("register", 1, params.model_dump(mode="json"),
+                       {n: k for n, (_, k) in zip(names, loaded, strict=True)}, {})
+    provenance = {"stage": "register", "key": key, "params": params.model_dump(mode="json"),
+                  "inputs": [str(w) for w in workdirs], "report": report}
+    table = poses_table([names[k] for k in done], [poses[k] for k in done],  # type: ignore[misc]
+                        [covs[k] for k in done])
+    POSES.check(table)
+    out.mkdir(parents=True, exist_ok=True)
+    merged, merge_report = merge_scans([loaded[k][0] for k in done],
+                                       [poses[k] for k in done])  # type: ignore[misc]
+    write_artifact(out / POSES_FILE, table, provenance)
+    write_artifact(out / POINTS_FILE, merged, {**provenance, "stage": "merge",
+                                               "report": merge_report})
+    report["merge"] = merge_report
+    report["poses"] = str(out / POSES_FILE)
+    report["points"] = str(out / POINTS_FILE)
+    return report
