@@ -27,6 +27,7 @@ from scanpipe.cli import (
     rig,
     simulate,
     texture,
+    view,
 )
 from scanpipe.errors import ScanpipeError
 
@@ -41,7 +42,7 @@ app = typer.Typer(
 
 # Every command group, in the order `scanpipe --help` lists them.
 for module in (demo, plan, rig, acquire, bag, capture, simulate, pipeline, decode, points,
-               mesh, texture, results):
+               mesh, texture, results, view):
     module.register(app)
 
 
