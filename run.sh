@@ -47,6 +47,12 @@ setup() {
 }
 
 setup_test_tools() {
+  # Debian's Chromium renders the report's 3-D view in the tests (driven by Playwright).
+  if ! command -v chromium >/dev/null; then
+    echo "run.sh: installing Chromium for the viewer tests" >&2
+    $(sudo_prefix) apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $(sudo_prefix) apt-get install -y -qq chromium >/dev/null
+  fi
   # The Khronos glTF-Validator (npm) checks our GLB files in the tests.
   local validator=".cache/gltf-validator/node_modules/gltf-validator"
   [ -d "$validator" ] && return 0

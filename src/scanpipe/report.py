@@ -1,8 +1,10 @@
 """``scanpipe report``: one self-contained HTML file about a workdir.
 
-Everything is inside the file (images as base64 ``data:`` URIs, inline CSS, no scripts, no
-links to other files): the scan summary, the decode and filter counts from the provenance
-reports, plots (range histogram, coverage over α × β, time-sync residuals, stage times),
+Everything is inside the file (images as base64 ``data:`` URIs, inline CSS, no links to other
+files, nothing fetched from the network): the scan summary, an interactive 3-D view of the
+textured model (:mod:`scanpipe.viewer`: three.js and the GLB inside the page; the only script),
+the decode and filter counts from the provenance reports, plots (range histogram, coverage
+over α × β, time-sync residuals, stage times),
 rendered previews of the mesh, and the evaluation table when a truth is given or found
 (``WORKDIR/truth``).
 """
@@ -207,8 +209,9 @@ def _previews(workdir: Path, width: int) -> list[str]:
             for view in views]
 
 
-def build_report(workdir: Path, truth: Path | None = None, preview_width: int = 480) -> str:
-    """The report's HTML text."""
+def build_report(workdir: Path, truth: Path | None = None, preview_width: int = 480,
+                 viewer: bool = True) -> str:
+    """The report's HTML text (``viewer``: with the interactive 3-D view of the model)."""
     from scanpipe.evaluate import evaluate_result, stage_times
 
     if not workdir.is_dir():
@@ -236,7 +239,15 @@ def build_report(workdir: Path, truth: Path | None = None, preview_width: int = 
     parts.append("<h2>At a glance</h2>")
     parts.append(_table(_glance(reports, times, evaluation), ("what", "value")))
 
-    if find_artifact(workdir, "mesh_vertices") and find_artifact(workdir, "mesh_faces"):
+    has_mesh = bool(find_artifact(workdir, "mesh_vertices")
+                    and find_artifact(workdir, "mesh_faces"))
+    if has_mesh and viewer:
+        from scanpipe.viewer import report_section
+
+        parts.append("<h2>3-D view</h2>")
+        parts.append(report_section(workdir))
+
+    if has_mesh:
         parts.append("<h2>Previews</h2>")
         try:
             parts += _previews(workdir, preview_width)
@@ -360,10 +371,11 @@ def _found_truth(workdir: Path) -> Path | None:
     return None
 
 
-def write_report(workdir: Path, out: Path | None = None, truth: Path | None = None) -> Path:
+def write_report(workdir: Path, out: Path | None = None, truth: Path | None = None,
+                 viewer: bool = True) -> Path:
     """Write the report (default ``WORKDIR/report.html``) atomically; returns its path."""
     path = out if out is not None else workdir / "report.html"
-    text = build_report(workdir, truth)
+    text = build_report(workdir, truth, viewer=viewer)
     try:
         atomic_write_bytes(path, text.encode("utf-8"))
     except OSError as err:

@@ -30,6 +30,7 @@ from scanpipe.cli import (
     simulate,
     site,
     texture,
+    view,
 )
 from scanpipe.errors import ScanpipeError
 
@@ -44,7 +45,7 @@ app = typer.Typer(
 
 # Every command group, in the order `scanpipe --help` lists them.
 for module in (demo, plan, rig, acquire, bag, capture, simulate, pipeline, batch, decode, points,
-               calibrate, mesh, texture, results, site):
+               calibrate, mesh, texture, results, site, view):
     module.register(app)
 
 

@@ -91,11 +91,14 @@ def report(
     truth: Path | None = typer.Option(None, "--truth",
                                       help="Truth folder or mesh (default: WORKDIR/truth "
                                            "if present)."),
+    viewer: bool = typer.Option(True, "--viewer/--no-viewer",
+                                help="Include the interactive 3-D view of the model (the "
+                                     "model and three.js inside the page, ~0.6 MB + model)."),
     force: bool = FORCE,
     quiet: bool = QUIET,
     as_json: bool = JSON,
 ) -> None:
-    """One self-contained HTML report: summary, counts, plots, previews, evaluation."""
+    """One self-contained HTML report: summary, counts, 3-D view, plots, previews, evaluation."""
     from scanpipe.outpaths import check_output_file, folder_inputs
     from scanpipe.report import write_report
 
@@ -105,7 +108,7 @@ def report(
         if truth is not None:
             inputs += [truth, *folder_inputs(truth)] if truth.is_dir() else [truth]
         check_output_file(out, "--out", (".html", ".htm"), force, inputs)
-    path = write_report(workdir, out, truth)
+    path = write_report(workdir, out, truth, viewer=viewer)
     _report_written([path], quiet, as_json)
 
 
