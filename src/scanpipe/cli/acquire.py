@@ -131,12 +131,17 @@ def info(
 
     if gap <= 0:
         raise UsageError(f"--gap {gap!r}: must be greater than 0 seconds")
-    if header_profile(recording) != PROFILE:  # not a scanpipe recording: the generic view
+    profile = header_profile(recording)
+    if profile != PROFILE:  # not a scanpipe recording: the generic view
         catalogue = catalogue_info(read_catalogue(recording))
         if as_json:
             print_json({"recording": False, "mcap": catalogue})
         else:
             typer.echo(format_catalogue(catalogue))
+        if profile in ("ros1", "ros2"):
+            sys.stderr.write(f"{recording}: a ROS bag, not a scanpipe recording: `scanpipe "
+                             "import-bag` makes a recording of its LaserScan, joint and image "
+                             "topics\n")
         return
     read, catalogue_read = read_recording_and_catalogue(recording)
     result = {"recording": True, **recording_info(read, gap),
