@@ -89,16 +89,16 @@ def test_local_isolates_a_failure_and_reuses_the_cache(cli, recordings: list[Pat
     assert "Traceback" not in first.err
     summary = json.loads((work / "batch.json").read_text())
     assert [i["ok"] for i in summary["items"]] == [True, True, False, False]
-    assert [s["stage"] for s in summary["items"][0]["stages"]] == ["decode", "assemble",
-                                                                     "filter"]
+    assert [s["stage"] for s in summary["items"][0]["stages"]] == ["decode", "calibrate",
+                                                                     "assemble", "filter"]
     assert (work / workdir_name(recordings[0]) / "filter" / "points.parquet").is_file()
-    # the re-run continues where the first stopped: three stages reused, three run
+    # the re-run continues where the first stopped: four stages reused, three run
     again = cli("batch", *recordings[:2], "--workdir", work, "--workers", "1",
                 "--set", *GRID, "--json")
     assert again.code == 0, again.err
     result = json.loads(again.out)
     for item in result["items"]:
-        assert [s["reused"] for s in item["stages"]] == [True] * 3 + [False] * 3
+        assert [s["reused"] for s in item["stages"]] == [True] * 4 + [False] * 3
     assert (work / workdir_name(recordings[1]) / "export" / "model.glb").is_file()
 
 
@@ -109,8 +109,9 @@ def test_local_and_ray_give_the_same_artifacts(recordings: list[Path], ray_local
     calls: list[tuple[str, float, float | None]] = []
     on_ray = run_batch(recordings, tmp_path / "ray", params, engine="ray", workers=2,
                        progress=lambda task, done, total=None: calls.append((task, done, total)))
-    assert calls[-1] == ("recordings", 3, 3) or calls[-1] == ("stages", 18, 18)
-    assert ("recordings", 3, 3) in calls and ("stages", 18, 18) in calls
+    # 3 recordings × 7 stages (decode, calibrate, assemble, filter, mesh, texture, export)
+    assert calls[-1] == ("recordings", 3, 3) or calls[-1] == ("stages", 21, 21)
+    assert ("recordings", 3, 3) in calls and ("stages", 21, 21) in calls
     assert [i["ok"] for i in on_ray["items"]] == [True, True, False]
     assert on_ray["items"][2]["error"] == local["items"][2]["error"]
     for a, b in zip(local["items"], on_ray["items"], strict=True):

@@ -379,7 +379,7 @@ def test_auto_detect_failure_says_what_it_saw(head: bytes, what: str, tmp_path: 
     with pytest.raises(ProtocolError) as err:
         detect_dialect(head + b"\0" * 64)
     message = str(err.value)
-    assert "paper, ldoem, cola_b, cola_a (tried)" in message and what in message
+    assert "paper, ldoem, cola_b, cola_a, ldrobot, scip (tried)" in message and what in message
     assert head[:4].hex(" ") in message and "\n" not in message
     if not head.startswith(bytes.fromhex("0a0d0d0a")):
         path = tmp_path / "x.bin"

@@ -75,9 +75,9 @@ def test_run_json_reports_every_stage(cli, tmp_path: Path) -> None:  # type: ign
                  "--json")
     assert result.code == 0, result.err
     report = json.loads(result.out)
-    assert [s["stage"] for s in report["stages"]] == ["decode", "assemble"]
-    assert report["ran"] == 2 and report["reused"] == 0
-    assert Path(report["stages"][1]["outputs"]["points"]).is_file()
+    assert [s["stage"] for s in report["stages"]] == ["decode", "calibrate", "assemble"]
+    assert report["ran"] == 3 and report["reused"] == 0
+    assert Path(report["stages"][2]["outputs"]["points"]).is_file()
     again = json.loads(cli("run", recording, "--workdir", tmp_path / "work", "--to", "assemble",
                            "-q", "--json").out)
-    assert again["reused"] == 2
+    assert again["reused"] == 3

@@ -49,7 +49,7 @@ def test_run_and_read_recording_on_a_simulated_scan(tmp_path: Path) -> None:
     read = scanpipe.read_recording(recording)
     assert read.complete and read.rig().scanner.beam_step_deg == 2.0
     records = scanpipe.run(recording, tmp_path / "work", {"assemble": {}}, to="assemble")
-    assert [r.stage for r in records] == ["decode", "assemble"]
+    assert [r.stage for r in records] == ["decode", "calibrate", "assemble"]
     assert records[-1].outputs["points"].is_file()
     again = scanpipe.run(recording, tmp_path / "work", to="assemble")
     assert all(r.reused for r in again)

@@ -15,7 +15,7 @@ from scanpipe.protocol.ldrobot import RevolutionDecoder
 from scanpipe.rig import ScannerConfig
 
 if TYPE_CHECKING:
-    from scanpipe.acquire.scanner_drivers import ScannerClient
+    from scanpipe.acquire.driver_types import ScannerClient
 
 
 class LdrobotDriver:

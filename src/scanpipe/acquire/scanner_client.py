@@ -30,7 +30,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from scanpipe.acquire.scanner_drivers import DRIVERS, ScannerDriver
+from scanpipe.acquire.driver_types import ScannerDriver
+from scanpipe.acquire.scanner_drivers import DRIVERS
 from scanpipe.acquire.sink import Link
 from scanpipe.errors import DeviceError, ProtocolError
 from scanpipe.protocol import ldoem

@@ -17,7 +17,7 @@ from scanpipe.rig import ScannerConfig
 from scanpipe.scanner_models import model_of
 
 if TYPE_CHECKING:
-    from scanpipe.acquire.scanner_drivers import ScannerClient
+    from scanpipe.acquire.driver_types import ScannerClient
 
 
 @dataclass(frozen=True)
