@@ -143,6 +143,27 @@ def test_write_e57_writes_one_scan_per_position_with_its_pose(tmp_path: Path) ->
     assert float(scans[1].findtext("pose/translation/x") or 0) == 5.0
 
 
+def test_write_e57_keeps_a_png_frame_and_its_description(tmp_path: Path) -> None:
+    import cv2
+
+    ok, png = cv2.imencode(".png", np.arange(16 * 24 * 3, dtype=np.uint8).reshape(16, 24, 3))
+    assert ok
+    image = E57Image(png.tobytes(), 24, 16, 30.0, 32.0, 11.5, 7.5, (1.0, 0.0, 0.0, 0.0),
+                     (0.5, -1.0, 2.0), "cam0_000001.png", "png", "lens distortion: 0.1")
+    path = tmp_path / "site.e57"
+    write_e57(path, [E57Scan(cloud_from_table(points_table()))], [image])
+    reader = pye57.E57(str(path))
+    node = reader.image_file.root()["images2D"][0]
+    blob = node["pinholeRepresentation"]["pngImage"]
+    data = np.zeros(blob.byteCount(), np.uint8)
+    blob.read(data, 0, blob.byteCount())
+    assert data.tobytes() == png.tobytes()
+    assert node["description"].value() == "lens distortion: 0.1"
+    assert not node["pinholeRepresentation"].isDefined("jpegImage")
+    assert [node["pose"]["translation"][a].value() for a in "xyz"] == [0.5, -1.0, 2.0]
+    reader.close()
+
+
 def test_write_e57_refuses_an_image_format_it_cannot_name(tmp_path: Path) -> None:
     image = E57Image(b"BM..", 16, 16, 20.0, 20.0, 7.5, 7.5, (1.0, 0.0, 0.0, 0.0),
                      (0.0, 0.0, 0.0), "cam0_000001.bmp", "bmp")
