@@ -17,7 +17,8 @@ from result_tables import points_table
 from test_export_clouds import _e57_xml, _write, _z_up
 
 from scanpipe.camera import intrinsic_matrix, project_points
-from scanpipe.exporters.e57 import E57Scan, write_e57
+from scanpipe.errors import ExportError
+from scanpipe.exporters.e57 import E57Image, E57Scan, write_e57
 from scanpipe.exporters.las import (
     LOCAL_WKT,
     adjusted_gps_time_s,
@@ -142,6 +143,37 @@ def test_write_e57_writes_one_scan_per_position_with_its_pose(tmp_path: Path) ->
     assert float(scans[1].findtext("pose/translation/x") or 0) == 5.0
 
 
+def test_write_e57_keeps_a_png_frame_and_its_description(tmp_path: Path) -> None:
+    import cv2
+
+    ok, png = cv2.imencode(".png", np.arange(16 * 24 * 3, dtype=np.uint8).reshape(16, 24, 3))
+    assert ok
+    image = E57Image(png.tobytes(), 24, 16, 30.0, 32.0, 11.5, 7.5, (1.0, 0.0, 0.0, 0.0),
+                     (0.5, -1.0, 2.0), "cam0_000001.png", "png", "lens distortion: 0.1")
+    path = tmp_path / "site.e57"
+    write_e57(path, [E57Scan(cloud_from_table(points_table()))], [image])
+    reader = pye57.E57(str(path))
+    node = reader.image_file.root()["images2D"][0]
+    blob = node["pinholeRepresentation"]["pngImage"]
+    data = np.zeros(blob.byteCount(), np.uint8)
+    blob.read(data, 0, blob.byteCount())
+    assert data.tobytes() == png.tobytes()
+    assert node["description"].value() == "lens distortion: 0.1"
+    assert not node["pinholeRepresentation"].isDefined("jpegImage")
+    assert [node["pose"]["translation"][a].value() for a in "xyz"] == [0.5, -1.0, 2.0]
+    reader.close()
+
+
+def test_write_e57_refuses_an_image_format_it_cannot_name(tmp_path: Path) -> None:
+    image = E57Image(b"BM..", 16, 16, 20.0, 20.0, 7.5, 7.5, (1.0, 0.0, 0.0, 0.0),
+                     (0.0, 0.0, 0.0), "cam0_000001.bmp", "bmp")
+    path = tmp_path / "site.e57"
+    with pytest.raises(ExportError, match=r"image 'cam0_000001.bmp': format 'bmp'; "
+                                          r"allowed: jpeg, png"):
+        write_e57(path, [E57Scan(cloud_from_table(points_table()))], [image])
+    assert not path.exists()
+
+
 # -- the chain: run and export agree; COLMAP ----------------------------------------------------
 
 
@@ -175,10 +207,55 @@ def test_run_and_export_give_the_same_points_colours_and_intensities(cli, workdi
         np.testing.assert_array_equal(sa[key], sb[key])
     a.close()
     b.close()
+    for e57 in (tmp_path / "x.e57", work / "export" / "cloud.e57"):
+        _check_e57_images(e57, work)
     key = pq.read_schema(work / "filter" / "points.parquet").metadata[b"scanpipe.provenance"]
     record = json.loads(laspy.read(tmp_path / "x.las").header.vlrs[1].record_data)
     assert record["artifacts"]["points"]["key"] == json.loads(key)["key"]
     _check_colmap(work / "export" / "cloud_colmap", work)
+
+
+def _check_e57_images(path: Path, work: Path) -> None:
+    """The frames as images2D read back with pye57.libe57: blob bytes, pinhole intrinsics, and
+    the pose + pinhole (E57 camera frame taken as x right, y down, z forward) put the file's
+    points where scanpipe projects them."""
+    rig = rig_from_table(pq.read_table(work / "decode" / "rig.parquet"))
+    chosen = choose_frames(pq.read_table(work / "decode" / "frames.parquet"),
+                           pq.read_table(work / "decode" / "motor.parquet"), rig, 5.0)
+    reader = pye57.E57(str(path))
+    scan = reader.read_scan_raw(0)
+    file_xyz = np.stack([scan[f"cartesian{a}"] for a in "XYZ"], axis=1)
+    rig_xyz = np.stack([file_xyz[:, 0], file_xyz[:, 2], -file_xyz[:, 1]], axis=1)  # z-up → rig
+    images = reader.image_file.root()["images2D"]
+    assert images.childCount() == len(chosen) > 0
+    checked = 0
+    for k in range(images.childCount()):
+        node, cam = images[k], chosen.cameras[k]
+        pinhole = node["pinholeRepresentation"]
+        blob = pinhole["jpegImage"]
+        data = np.zeros(blob.byteCount(), np.uint8)
+        blob.read(data, 0, blob.byteCount())
+        assert data.tobytes() == chosen.encoded[k]
+        assert (pinhole["imageWidth"].value(), pinhole["imageHeight"].value()) == (
+            cam.width, cam.height)
+        f_m = pinhole["focalLength"].value()
+        fx, fy = f_m / pinhole["pixelWidth"].value(), f_m / pinhole["pixelHeight"].value()
+        cx, cy = pinhole["principalPointX"].value(), pinhole["principalPointY"].value()
+        np.testing.assert_allclose([fx, fy, cx, cy], [cam.fx, cam.fy, cam.cx, cam.cy],
+                                   rtol=1e-12)
+        q = np.array([node["pose"]["rotation"][a].value() for a in "wxyz"])
+        t = np.array([node["pose"]["translation"][a].value() for a in "xyz"])
+        assert abs(np.linalg.norm(q) - 1) < 1e-9
+        cam_xyz = (file_xyz - t) @ _rotation(q)  # file → camera: Rᵀ (p − t)
+        ours, depth = project_points(rig_xyz, cam, float(chosen.beta_deg[k]))
+        seen = ((cam_xyz[:, 2] > 0.1) & (ours[:, 0] >= 0) & (ours[:, 0] < cam.width)
+                & (ours[:, 1] >= 0) & (ours[:, 1] < cam.height))
+        uv = cam_xyz[seen, :2] / cam_xyz[seen, 2:] * [fx, fy] + [cx, cy]
+        np.testing.assert_allclose(uv, ours[seen], atol=0.01)
+        np.testing.assert_allclose(cam_xyz[seen, 2], depth[seen], atol=1e-6)
+        checked += int(seen.sum())
+    reader.close()
+    assert checked > 50
 
 
 def _read_colmap(folder: Path) -> tuple[dict, list, np.ndarray]:

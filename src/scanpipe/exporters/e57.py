@@ -5,6 +5,13 @@ scan's own frame → the file's frame), ``rowIndex`` / ``columnIndex`` (the scan
 sample) where the cloud has a grid, ``intensity`` (the echo value, limits 0..65535) and the
 8-bit colour. The provenance record (JSON) is the scan's ``sensorModel`` string (pye57 fixes
 ``description``), ``sensorVendor`` is ``scanpipe`` and ``sensorSoftwareVersion`` its version.
+
+One ``images2D`` entry per :class:`E57Image` (a camera frame): the recorded JPEG/PNG bytes in a
+``pinholeRepresentation`` and the camera's ``pose`` (camera frame → the file's frame, the frame
+the points are written in). E57's camera frame (ASTM E2807, pinholeRepresentation: the
+principal point is where the camera's z axis meets the image plane; image x to the right along
+the columns, y down along the rows) is taken as OpenCV's optical frame: x right, y down, z
+forward (see docs/export.md).
 """
 
 from __future__ import annotations
@@ -21,6 +28,11 @@ from numpy.typing import NDArray
 from scanpipe.errors import ExportError
 from scanpipe.exporters.model import CloudModel, rig_to_z_up
 
+#: The pixel pitch written as ``pixelWidth`` (metres). E57 stores the focal length in metres
+#: and the pixel size; only their ratio (the focal length in pixels) is known from a
+#: calibration, so the pitch is nominal and ``focalLength = fx · pitch``.
+NOMINAL_PIXEL_M = 1e-6
+
 
 @dataclass(frozen=True)
 class E57Scan:
@@ -34,6 +46,29 @@ class E57Scan:
     name: str = "scan"
     rotation_wxyz: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     translation_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class E57Image:
+    """One camera frame: the encoded image, its pinhole intrinsics (pixels) and pose.
+
+    ``rotation_wxyz`` / ``translation_m`` map the camera's optical frame (x right, y down,
+    z forward) into the file's frame. ``image_format``: ``jpeg`` or ``png`` (the blob's name).
+    ``description``: free text (e.g. the lens distortion the pinhole model leaves out).
+    """
+
+    data: bytes
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    rotation_wxyz: tuple[float, float, float, float]
+    translation_m: tuple[float, float, float]
+    name: str = "image"
+    image_format: str = "jpeg"
     description: str = ""
 
 
@@ -55,8 +90,9 @@ def _scan_data(cloud: CloudModel) -> dict[str, NDArray[Any]]:
     return data
 
 
-def write_e57(path: Path, scans: Sequence[E57Scan]) -> None:
-    """Write ``scans`` (one ``data3D`` entry each, in order) to the E57 file ``path``."""
+def write_e57(path: Path, scans: Sequence[E57Scan], images: Sequence[E57Image] = ()) -> None:
+    """Write ``scans`` (one ``data3D`` entry each, in order) and ``images`` (one ``images2D``
+    entry each) to the E57 file ``path``."""
     import pye57  # here, not at import: only an E57 export needs it
 
     if not scans:
@@ -64,6 +100,10 @@ def write_e57(path: Path, scans: Sequence[E57Scan]) -> None:
     for scan in scans:
         if len(scan.cloud.xyz) == 0:
             raise ExportError(f"scan {scan.name!r}: no points to write")
+    for image in images:
+        if image.image_format not in ("jpeg", "png"):
+            raise ExportError(f"image {image.name!r}: format {image.image_format!r}; "
+                              "allowed: jpeg, png")
     try:
         writer = pye57.E57(str(path), mode="w")
         try:
@@ -72,6 +112,8 @@ def write_e57(path: Path, scans: Sequence[E57Scan]) -> None:
                                       rotation=np.asarray(scan.rotation_wxyz, np.float64),
                                       translation=np.asarray(scan.translation_m, np.float64))
                 _describe(writer, len(writer.data3d) - 1, scan)
+            for image in images:
+                _write_image(writer.image_file, image)
         finally:
             writer.close()
     except ExportError:
@@ -95,10 +137,52 @@ def _describe(writer: Any, index: int, scan: E57Scan) -> None:
         node.set("sensorModel", libe57.StringNode(writer.image_file, scan.description))
 
 
-def e57_bytes(cloud: CloudModel, name: str = "scan", description: str = "") -> bytes:
-    """The cloud as an E57 file of one scan (libE57Format writes only to paths: via a
-    temporary file)."""
+def _write_image(imf: Any, image: E57Image) -> None:
+    """Append ``image`` to the root's ``images2D`` vector (created on first use)."""
+    import uuid
+
+    import pye57.libe57 as libe57
+
+    root = imf.root()
+    if not root.isDefined("images2D"):
+        root.set("images2D", libe57.VectorNode(imf, True))
+    node = libe57.StructureNode(imf)
+    node.set("guid", libe57.StringNode(imf, "{" + str(uuid.uuid4()).upper() + "}"))
+    node.set("name", libe57.StringNode(imf, image.name))
+    if image.description:
+        node.set("description", libe57.StringNode(imf, image.description))
+    node.set("sensorVendor", libe57.StringNode(imf, "scanpipe"))
+    pose = libe57.StructureNode(imf)
+    rotation = libe57.StructureNode(imf)
+    for key, value in zip("wxyz", image.rotation_wxyz, strict=True):
+        rotation.set(key, libe57.FloatNode(imf, float(value)))
+    translation = libe57.StructureNode(imf)
+    for key, value in zip("xyz", image.translation_m, strict=True):
+        translation.set(key, libe57.FloatNode(imf, float(value)))
+    pose.set("rotation", rotation)
+    pose.set("translation", translation)
+    node.set("pose", pose)
+    pinhole = libe57.StructureNode(imf)
+    blob = libe57.BlobNode(imf, len(image.data))
+    pinhole.set(f"{image.image_format}Image", blob)
+    pinhole.set("imageWidth", libe57.IntegerNode(imf, image.width_px))
+    pinhole.set("imageHeight", libe57.IntegerNode(imf, image.height_px))
+    pinhole.set("focalLength", libe57.FloatNode(imf, image.fx_px * NOMINAL_PIXEL_M))
+    pinhole.set("pixelWidth", libe57.FloatNode(imf, NOMINAL_PIXEL_M))
+    pinhole.set("pixelHeight", libe57.FloatNode(imf, NOMINAL_PIXEL_M * image.fx_px / image.fy_px))
+    pinhole.set("principalPointX", libe57.FloatNode(imf, image.cx_px))
+    pinhole.set("principalPointY", libe57.FloatNode(imf, image.cy_px))
+    node.set("pinholeRepresentation", pinhole)
+    libe57.VectorNode(root.get("images2D")).append(node)
+    # The blob is written once it is attached to the file's tree.
+    blob.write(np.frombuffer(image.data, dtype=np.uint8).copy(), 0, len(image.data))
+
+
+def e57_bytes(cloud: CloudModel, name: str = "scan", description: str = "",
+              images: Sequence[E57Image] = ()) -> bytes:
+    """The cloud as an E57 file of one scan, with ``images`` (libE57Format writes only to
+    paths: via a temporary file)."""
     with tempfile.TemporaryDirectory(prefix="scanpipe-e57-") as tmp:
         path = Path(tmp) / "scan.e57"
-        write_e57(path, [E57Scan(cloud, name, description=description)])
+        write_e57(path, [E57Scan(cloud, name, description=description)], images)
         return path.read_bytes()

@@ -6,7 +6,8 @@ Pure: :func:`export_files` turns tables into ``{file name: bytes}`` (the shape o
 manifest. Writing files for ``scanpipe export`` is the shell's: :mod:`scanpipe.exporting`.
 
 What each format takes: ``obj`` and ``glb`` the mesh (+ texture when present); ``las``,
-``laz`` and ``e57`` the points; ``ply`` the mesh, or the points when there is no mesh;
+``laz`` and ``e57`` the points (``e57`` also the camera frames when there are frames);
+``ply`` the mesh, or the points when there is no mesh;
 ``mcap`` both when present (the points for scrubbing the scan, the mesh as a model);
 ``colmap`` the camera frames, their poses and the points.
 
@@ -21,24 +22,35 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
+import numpy as np
 import pyarrow as pa
 from pydantic import Field
 
 from scanpipe import __version__
 from scanpipe.artifacts import PROVENANCE_KEY
 from scanpipe.errors import ArtifactError, ExportError, UsageError
-from scanpipe.exporters.e57 import e57_bytes
+from scanpipe.exporters.e57 import E57Image, e57_bytes
 from scanpipe.exporters.glb import glb_bytes
 from scanpipe.exporters.las import LAS_VERSIONS, las_bytes, pdal_pipeline_bytes, provenance_bytes
 from scanpipe.exporters.mcap_foxglove import camera_views_from_tables, foxglove_export_files
-from scanpipe.exporters.model import CloudModel, MeshModel, cloud_from_table, mesh_from_tables
+from scanpipe.exporters.model import (
+    CloudModel,
+    MeshModel,
+    cloud_from_table,
+    mesh_from_tables,
+    rig_to_z_up,
+)
 from scanpipe.exporters.obj import obj_files
 from scanpipe.exporters.ply import ply_cloud_bytes, ply_mesh_bytes
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.stage import Stage, StageResult
+
+if TYPE_CHECKING:
+    from scanpipe.camera import F64
+    from scanpipe.rig import CameraConfig
 
 FORMATS: tuple[str, ...] = ("obj", "glb", "ply", "las", "laz", "copc", "e57", "mcap", "colmap")
 #: The file suffix of a format where it is not the format's name.
@@ -158,17 +170,15 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
         return {f"{stem}.copc.laz": copc_bytes(cloud, provenance),
                 f"{stem}.copc.laz.pipeline.json": pdal_pipeline_bytes(f"{stem}.copc.laz",
                                                                        "readers.copc")}
-    return {f"{stem}.e57": e57_bytes(cloud, stem, provenance_bytes(provenance).decode())}
+    return {f"{stem}.e57": e57_bytes(cloud, stem, provenance_bytes(provenance).decode(),
+                                     e57_images(tables))}
 
 
-def _colmap(tables: Mapping[str, pa.Table], cloud: CloudModel | None, stem: str,
-            provenance: Mapping[str, Any]) -> dict[str, bytes]:
-    missing = [n for n in CAMERA_ARTIFACTS if n not in tables]
-    if missing or tables["frames"].num_rows == 0:
-        raise ArtifactError("colmap export needs camera frames (frames, motor and rig "
-                            f"artifacts with frames); found: {', '.join(sorted(tables))}")
+def _chosen_frames(tables: Mapping[str, pa.Table]) -> tuple[
+        list[CameraConfig], list[tuple[F64, F64]], list[bytes], list[str], list[str]]:
+    """The frames COLMAP and E57 carry (the sharpest per camera every FRAME_SPACING_DEG):
+    their cameras, poses camera → rig, encoded bytes, formats (jpeg/png) and file names."""
     from scanpipe.camera import camera_pose_in_rig
-    from scanpipe.exporters.colmap import colmap_files
     from scanpipe.rig import rig_from_table
     from scanpipe.texturing.frames import choose_frames
 
@@ -178,13 +188,48 @@ def _colmap(tables: Mapping[str, pa.Table], cloud: CloudModel | None, stem: str,
         "format" in tables["frames"].column_names) else []
     by_sequence = dict(zip(tables["frames"].column("sequence").to_pylist(),
                            formats or ["jpeg"] * tables["frames"].num_rows, strict=True))
-    names = [f"{cam.id}_{int(seq):06d}."
-             f"{'png' if by_sequence.get(int(seq)) == 'png' else 'jpg'}"
-             for cam, seq in zip(chosen.cameras, chosen.sequences, strict=True)]
+    kinds = ["png" if by_sequence.get(int(seq)) == "png" else "jpeg"
+             for seq in chosen.sequences]
+    names = [f"{cam.id}_{int(seq):06d}.{'png' if kind == 'png' else 'jpg'}"
+             for cam, seq, kind in zip(chosen.cameras, chosen.sequences, kinds, strict=True)]
     poses = [camera_pose_in_rig(cam, float(beta))
              for cam, beta in zip(chosen.cameras, chosen.beta_deg, strict=True)]
-    return colmap_files(stem, chosen.cameras, poses, chosen.encoded, names, cloud,
+    return list(chosen.cameras), poses, list(chosen.encoded), kinds, names
+
+
+def _colmap(tables: Mapping[str, pa.Table], cloud: CloudModel | None, stem: str,
+            provenance: Mapping[str, Any]) -> dict[str, bytes]:
+    missing = [n for n in CAMERA_ARTIFACTS if n not in tables]
+    if missing or tables["frames"].num_rows == 0:
+        raise ArtifactError("colmap export needs camera frames (frames, motor and rig "
+                            f"artifacts with frames); found: {', '.join(sorted(tables))}")
+    from scanpipe.exporters.colmap import colmap_files
+
+    cameras, poses, encoded, _, names = _chosen_frames(tables)
+    return colmap_files(stem, cameras, poses, encoded, names, cloud,
                         provenance_bytes(provenance).decode())
+
+
+def e57_images(tables: Mapping[str, pa.Table]) -> list[E57Image]:
+    """The camera frames as E57 images (none without frames), posed in the file's z-up frame
+    (the frame the points are written in: :func:`rig_to_z_up`)."""
+    if not all(n in tables for n in CAMERA_ARTIFACTS) or tables["frames"].num_rows == 0:
+        return []
+    from scanpipe.exporters.colmap import quaternion_wxyz
+
+    images = []
+    for cam, (rotation, translation), data, kind, name in zip(
+            *_chosen_frames(tables), strict=True):
+        to_file = rig_to_z_up(np.asarray(rotation).T).T  # M @ R: camera → file frame
+        q = quaternion_wxyz(to_file)
+        t = rig_to_z_up(np.asarray(translation)[None, :])[0]
+        note = ("" if not any(cam.distortion) else
+                "lens distortion (OpenCV k1 k2 p1 p2 k3) not in the pinhole model: "
+                + " ".join(f"{float(v):.17g}" for v in cam.distortion))
+        images.append(E57Image(data, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+                               (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
+                               (float(t[0]), float(t[1]), float(t[2])), name, kind, note))
+    return images
 
 
 MeshFormat = Literal["obj", "glb", "ply", "mcap"]
@@ -240,8 +285,8 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
 
 STAGE = Stage(
     name="export",
-    version=3,  # 2: coloured points in every format, LAS 1.2, COPC, COLMAP; 3: the Foxglove
-    # file has the cloud, camera images and a layout beside it
+    version=4,  # 2: coloured points in every format, LAS 1.2, COPC, COLMAP; 3: the Foxglove
+    # file has the cloud, camera images and a layout beside it; 4: E57 carries the frames
     params=ExportStageParams,
     inputs=(*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points", "frames", "motor", "rig"),
     outputs=("export_manifest",),
