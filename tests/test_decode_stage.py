@@ -230,3 +230,27 @@ def test_cli_frames_text_shows_the_golden_mismatch(tmp_path: Path, cli: CliRunne
     result = cli("frames", capture, "--dialect", "cola")
     assert result.code == 2
     assert "allowed paper, ldoem, cola_b, cola_a, ldrobot, scip, auto" in result.err
+
+
+def test_scip_without_a_pp_reply_warns_of_the_assumed_geometry(tmp_path: Path) -> None:
+    """A SCIP capture whose PP reply was not recorded decodes with the UST/UTM geometry: said,
+    not silent (a URG-04LX's angles would be wrong); with the PP reply in front, no warning."""
+    from scanpipe.protocol import scip
+
+    ust = [Profile(frame=i, sector=0, start_angle_deg=-135.0, step_deg=0.25,
+                   ranges_m=np.full(1081, 2.0, np.float32), echo=None,
+                   device_time_ms=1000 + 25 * i, device_end_time_ms=1000 + 25 * i + 20)
+           for i in range(5)]
+    rig = default_rig()
+    rig = rig.model_copy(update={"scanner": rig.scanner.model_copy(update={"dialect": "scip"})})
+    bare = [scip.encode_profile(p) for p in ust]
+    write_scan(tmp_path / "bare.mcap", list(bare), rig)
+    tables, report = decode(tmp_path / "bare.mcap", tmp_path / "out1", dialect="scip")
+    assert tables["profiles"].num_rows == 5
+    assert any("no SCIP PP reply" in w and "ARES 1440" in w for w in report["warnings"])
+    pp = scip.parameter_reply(b"PP", scip.pp_fields(scip.UST_GEOMETRY, "UST-10LX", 60, 10000,
+                                                    1440, 2400))
+    write_scan(tmp_path / "pp.mcap", [pp + bare[0], *bare[1:]], rig)
+    tables, report = decode(tmp_path / "pp.mcap", tmp_path / "out2", dialect="scip")
+    assert tables["profiles"].num_rows == 5
+    assert not any("no SCIP PP reply" in w for w in report["warnings"])

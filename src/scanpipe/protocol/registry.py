@@ -211,6 +211,11 @@ class StreamDecoder:
         self._reader = self.dialect.frame_reader(max_payload_bytes, confirm)
 
     @property
+    def reader(self) -> FrameSource:
+        """The dialect's frame reader (what it learnt from the stream, e.g. SCIP geometry)."""
+        return self._reader
+
+    @property
     def counters(self) -> FrameCounters:
         """Frames decoded, checksum failures, resyncs, bytes skipped, malformed, other frames,
         length mismatches, implausible frames."""
