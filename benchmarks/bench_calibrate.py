@@ -29,12 +29,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from harness import save, table
 
 from scanpipe.mount_calibration import observable_invariants
-from scanpipe.rig import Pose, Rig, default_rig, rig_table
+from scanpipe.rig import Pose, Rig, default_rig
 from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
 from scanpipe.sim.truth import load_truth
-from scanpipe.stages.assemble import STAGE as ASSEMBLE
-from scanpipe.stages.calibrate import run_fit
+from scanpipe.stages.calibrate import rms_to_truth, run_fit
 from scanpipe.stages.decode import STAGE as DECODE
 
 SIGMA_M = 0.010
@@ -56,16 +55,6 @@ def true_mount(seed: int) -> tuple[Pose, float]:
     rx, rz = rng.uniform(-3.0, 3.0, 2)
     return Pose(translation_m=(dx, 0.0, dz), rotation_deg=(rx, 0.0, rz)), float(
         rng.uniform(-1.0, 1.0))
-
-
-def rms_to_truth(tables: dict[str, Any], rig: Rig, truth: Any, limit: int = 200_000) -> float:
-    points = ASSEMBLE.run({"profiles": tables["profiles"], "motor": tables["motor"],
-                           "rig": rig_table(rig)}).tables["points"]
-    xyz = np.stack([points.column(c).to_numpy(zero_copy_only=False) for c in "xyz"], 1)
-    xyz = xyz[np.isfinite(xyz).all(axis=1)]
-    if len(xyz) > limit:
-        xyz = xyz[np.random.default_rng(0).choice(len(xyz), limit, replace=False)]
-    return float(np.sqrt(np.mean(truth.scene.distance_m(xyz) ** 2)))
 
 
 def one(seed: int, travel: int, motor_step: float, beam_step: float, max_points: int,

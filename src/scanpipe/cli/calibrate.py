@@ -29,21 +29,6 @@ def _tables(source: Path) -> dict[str, Any]:
     return dict(DECODE.run({"recording": source}).tables)
 
 
-def _rms_to_truth(inputs: dict[str, Any], rig: Any, truth: Any, limit: int = 200_000) -> float:
-    import numpy as np
-
-    from scanpipe.rig import rig_table
-    from scanpipe.stages.assemble import STAGE as ASSEMBLE
-
-    points = ASSEMBLE.run({"profiles": inputs["profiles"], "motor": inputs["motor"],
-                           "rig": rig_table(rig)}).tables["points"]
-    xyz = np.stack([points.column(c).to_numpy(zero_copy_only=False) for c in "xyz"], 1)
-    xyz = xyz[np.isfinite(xyz).all(axis=1)]
-    if len(xyz) > limit:
-        xyz = xyz[np.random.default_rng(0).choice(len(xyz), limit, replace=False)]
-    return float(np.sqrt(np.mean(truth.scene.distance_m(xyz) ** 2)))
-
-
 def calibrate(
     source: Path = typer.Argument(..., help="A recording (REC.mcap) or a workdir of `run`."),
     rig_path: Path | None = typer.Option(None, "--rig", help="Start from this rig file "
@@ -60,7 +45,7 @@ def calibrate(
     """Fit the scanner's mount (tilt, α zero, offsets from the axis) to the scan's planes."""
     from scanpipe.outpaths import check_output_file
     from scanpipe.rig import load_rig, rig_table, rig_to_toml
-    from scanpipe.stages.calibrate import run_fit
+    from scanpipe.stages.calibrate import rms_to_truth, run_fit
 
     if write is not None:
         inputs = [p for p in (source, rig_path) if p is not None]
@@ -80,9 +65,9 @@ def calibrate(
     if true_data is not None:
         from scanpipe.rig import rig_from_table
 
-        report["rms_to_truth_before_m"] = _rms_to_truth(tables, rig_from_table(tables["rig"]),
+        report["rms_to_truth_before_m"] = rms_to_truth(tables, rig_from_table(tables["rig"]),
                                                         true_data)
-        report["rms_to_truth_after_m"] = _rms_to_truth(tables, fit.rig, true_data)
+        report["rms_to_truth_after_m"] = rms_to_truth(tables, fit.rig, true_data)
     if write is not None:
         try:
             atomic_write_bytes(write, rig_to_toml(fit.rig).encode())

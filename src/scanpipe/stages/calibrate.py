@@ -19,7 +19,7 @@ from pydantic import Field
 from scanpipe.mount_calibration import MountFit, fit_mount, samples_from_points
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn
-from scanpipe.rig import rig_from_table, rig_table
+from scanpipe.rig import Rig, rig_from_table, rig_table
 from scanpipe.schema import CALIBRATION
 from scanpipe.stage import Stage, StageResult
 
@@ -44,6 +44,23 @@ def calibration_table(fit: MountFit | None) -> pa.Table:
         "unit": pa.array([p.unit for p in rows], pa.string()),
         "note": pa.array([p.note for p in rows], pa.string()),
     }, schema=CALIBRATION.arrow_schema)
+
+
+def rms_to_truth(inputs: Mapping[str, Any], rig: Rig, truth: Any,
+                 limit: int = 200_000) -> float:
+    """The RMS distance (m) to the true scene of the points ``rig`` assembles from ``inputs``
+    (profiles, motor), over at most ``limit`` points drawn at random (seeded)."""
+    import numpy as np
+
+    from scanpipe.stages.assemble import STAGE as ASSEMBLE
+
+    points = ASSEMBLE.run({"profiles": inputs["profiles"], "motor": inputs["motor"],
+                           "rig": rig_table(rig)}).tables["points"]
+    xyz = np.stack([points.column(c).to_numpy(zero_copy_only=False) for c in "xyz"], 1)
+    xyz = xyz[np.isfinite(xyz).all(axis=1)]
+    if len(xyz) > limit:
+        xyz = xyz[np.random.default_rng(0).choice(len(xyz), limit, replace=False)]
+    return float(np.sqrt(np.mean(truth.scene.distance_m(xyz) ** 2)))
 
 
 def run_fit(inputs: Mapping[str, Any], max_points: int) -> MountFit:
