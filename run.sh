@@ -53,17 +53,26 @@ setup_test_tools() {
     $(sudo_prefix) apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $(sudo_prefix) apt-get install -y -qq chromium >/dev/null
   fi
-  # The Khronos glTF-Validator (npm) checks our GLB files in the tests.
+  # Node.js tools the tests run on our files: the Khronos glTF-Validator (GLB) and loaders.gl
+  # (a second, independent LAS/LAZ reader).
   local validator=".cache/gltf-validator/node_modules/gltf-validator"
-  [ -d "$validator" ] && return 0
+  local loaders=".cache/loaders-gl/node_modules/@loaders.gl/las"
+  [ -d "$validator" ] && [ -d "$loaders" ] && return 0
   if ! command -v npm >/dev/null; then
-    echo "run.sh: installing Node.js and npm for the glTF-Validator" >&2
+    echo "run.sh: installing Node.js and npm for the glTF-Validator and loaders.gl" >&2
     $(sudo_prefix) apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $(sudo_prefix) apt-get install -y -qq nodejs npm >/dev/null
   fi
-  echo "run.sh: installing the Khronos glTF-Validator into .cache/" >&2
-  npm install --silent --no-audit --no-fund --prefix .cache/gltf-validator \
-    gltf-validator@2.0.0-dev.3.10 >/dev/null
+  if [ ! -d "$validator" ]; then
+    echo "run.sh: installing the Khronos glTF-Validator into .cache/" >&2
+    npm install --silent --no-audit --no-fund --prefix .cache/gltf-validator \
+      gltf-validator@2.0.0-dev.3.10 >/dev/null
+  fi
+  if [ ! -d "$loaders" ]; then
+    echo "run.sh: installing loaders.gl (LAS reader) into .cache/" >&2
+    npm install --silent --no-audit --no-fund --prefix .cache/loaders-gl \
+      @loaders.gl/core@4.4.5 @loaders.gl/las@4.5.1 >/dev/null
+  fi
 }
 
 case "${1:-}" in

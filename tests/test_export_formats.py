@@ -217,8 +217,9 @@ def test_run_and_export_give_the_same_points_colours_and_intensities(cli, workdi
 
 def _check_e57_images(path: Path, work: Path) -> None:
     """The frames as images2D read back with pye57.libe57: blob bytes, pinhole intrinsics, and
-    the pose + pinhole (E57 camera frame taken as x right, y down, z forward) put the file's
-    points where scanpipe projects them."""
+    the pose + pinhole read as CloudCompare's E57 reader does (ccCameraSensor: depth = −z,
+    u = cx + f·x/depth, v = cy − f·y/depth) put the file's points where scanpipe projects
+    them."""
     rig = rig_from_table(pq.read_table(work / "decode" / "rig.parquet"))
     chosen = choose_frames(pq.read_table(work / "decode" / "frames.parquet"),
                            pq.read_table(work / "decode" / "motor.parquet"), rig, 5.0)
@@ -248,11 +249,13 @@ def _check_e57_images(path: Path, work: Path) -> None:
         assert abs(np.linalg.norm(q) - 1) < 1e-9
         cam_xyz = (file_xyz - t) @ _rotation(q)  # file → camera: Rᵀ (p − t)
         ours, depth = project_points(rig_xyz, cam, float(chosen.beta_deg[k]))
-        seen = ((cam_xyz[:, 2] > 0.1) & (ours[:, 0] >= 0) & (ours[:, 0] < cam.width)
+        seen = ((-cam_xyz[:, 2] > 0.1) & (ours[:, 0] >= 0) & (ours[:, 0] < cam.width)
                 & (ours[:, 1] >= 0) & (ours[:, 1] < cam.height))
-        uv = cam_xyz[seen, :2] / cam_xyz[seen, 2:] * [fx, fy] + [cx, cy]
+        cc_depth = -cam_xyz[seen, 2]
+        uv = np.stack([cx + fx * cam_xyz[seen, 0] / cc_depth,
+                       cy - fy * cam_xyz[seen, 1] / cc_depth], axis=1)
         np.testing.assert_allclose(uv, ours[seen], atol=0.01)
-        np.testing.assert_allclose(cam_xyz[seen, 2], depth[seen], atol=1e-6)
+        np.testing.assert_allclose(cc_depth, depth[seen], atol=1e-6)
         checked += int(seen.sum())
     reader.close()
     assert checked > 50
@@ -385,3 +388,44 @@ def test_copc_reads_in_laspy_and_keeps_the_spec_invariants(tmp_path: Path) -> No
         inside = xyz[start:start + count]
         assert np.all(inside >= low - 1e-9) and np.all(inside <= low + size + 1e-9)
         start += count
+
+
+def test_e57_frames_are_undistorted_to_the_pinhole_they_are_written_with() -> None:
+    """E57's pinhole has no distortion terms: a frame from a lens with distortion is written
+    undistorted, so a point seen at its distorted pixel in the recorded frame lies at the
+    plain pinhole pixel K·(x/z, y/z) of the written one."""
+    import cv2
+
+    from scanpipe.camera import project_points
+    from scanpipe.images import decode_image_bytes, encode_png
+    from scanpipe.rig import default_cameras
+    from scanpipe.stages.export import pinhole_image
+
+    cam = default_cameras()[0]
+    cam = cam.model_copy(update={"width": 640, "height": 360, "fx": 500.0, "fy": 500.0,
+                                 "cx": 320.0, "cy": 180.0,
+                                 "distortion": (-0.28, 0.09, 0.001, -0.0008, 0.0)})
+    no_lens = cam.model_copy(update={"distortion": (0.0, 0.0, 0.0, 0.0, 0.0)})
+    rng = np.random.default_rng(1)
+    # points on a wall 3 m in front of the camera, towards the image corners
+    from scanpipe.camera import pixel_rays
+
+    origins, rays = pixel_rays(no_lens, 0.0, stride=1)
+    rays = rays.reshape(cam.height, cam.width, 3)
+    picks = [(40, 60), (300, 580), (50, 600), (320, 40)]
+    for row, col in picks:
+        target = origins.reshape(-1, 3)[0] + 3.0 * rays[row, col] * (1 + 0.1 * rng.random())
+        distorted, _ = project_points(target[None, :], cam, 0.0)
+        ideal, _ = project_points(target[None, :], no_lens, 0.0)
+        frame = np.zeros((cam.height, cam.width, 3), np.uint8)
+        cv2.circle(frame, tuple(round(float(v)) for v in distorted[0]), 3, (255, 255, 255), -1)
+        written = decode_image_bytes(pinhole_image(encode_png(frame), "png", cam), "test")
+        ys, xs = np.nonzero(written[:, :, 0] > 60)
+        weights = written[ys, xs, 0].astype(np.float64)
+        centre = [np.average(xs, weights=weights), np.average(ys, weights=weights)]
+        # the dot was drawn at the distorted pixel rounded to whole pixels: within 1 px
+        np.testing.assert_allclose(centre, ideal[0], atol=1.0)
+        assert np.linalg.norm(distorted[0] - ideal[0]) > 3  # the lens did move it
+    # without distortion the bytes are passed through unchanged
+    data = encode_png(np.zeros((8, 8, 3), np.uint8))
+    assert pinhole_image(data, "png", no_lens) is data

@@ -128,3 +128,116 @@ def test_glb_needs_a_mesh_with_faces() -> None:
              "mesh_faces": tables["mesh_faces"].slice(0, 0)}
     with pytest.raises(ExportError, match="no faces"):
         export_files(empty, "glb", "x")
+
+
+def _draco_glb(tables: dict, tmp_path: Path, stem: str) -> Path:
+    write_files(export_files(tables, "glb", stem, draco=True), tmp_path)
+    return tmp_path / f"{stem}.glb"
+
+
+def _plain_rows(document: dict, binary: bytes, primitive: dict) -> np.ndarray:
+    """Per vertex (x, y, z, u, v) of an uncompressed primitive (u = v = 0 untextured)."""
+    def read(accessor_index: int, width: int) -> np.ndarray:
+        accessor = document["accessors"][accessor_index]
+        view = document["bufferViews"][accessor["bufferView"]]
+        return np.frombuffer(binary, np.float32, accessor["count"] * width,
+                             view["byteOffset"]).reshape(-1, width)
+
+    xyz = read(primitive["attributes"]["POSITION"], 3)
+    uv = (read(primitive["attributes"]["TEXCOORD_0"], 2) if "TEXCOORD_0" in
+          primitive["attributes"] else np.zeros((len(xyz), 2), np.float32))
+    return np.hstack([xyz, uv]).astype(np.float64)
+
+
+def _canonical_triangles(corners: np.ndarray) -> np.ndarray:
+    """Triangles (n, 3 corners, xyz) as rows that ignore which corner comes first but keep the
+    winding: each rotated to start at its smallest corner, then the rows sorted."""
+    rounded = np.round(corners, 3)
+    key = rounded @ np.array([1e6, 1e3, 1.0])
+    first = np.argmin(key, axis=1)
+    order = (first[:, None] + np.arange(3)[None, :]) % 3
+    rotated = np.take_along_axis(rounded, order[:, :, None], axis=1).reshape(len(corners), 9)
+    return rotated[np.lexsort(rotated.T[::-1])]
+
+
+def test_draco_glb_passes_the_validator_and_decodes_to_the_same_mesh(tmp_path: Path) -> None:
+    """KHR_draco_mesh_compression: the validator checks the document around the bitstreams (it
+    cannot decode them and says so as an info); Draco's own decoder gives back every triangle
+    with positions within the 16-bit quantum and texture coordinates within the 14-bit one."""
+    import DracoPy
+    from scipy.spatial import cKDTree
+
+    for name, tables in (("quad", textured_quad()), ("box", textured_box(pages=3)),
+                         ("plain", {k: v for k, v in textured_box().items()
+                                    if k.startswith("mesh_")})):
+        packed = _draco_glb(tables, tmp_path / "draco", name)
+        issues = validate(packed)
+        assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, (name, issues)
+        codes = {m["code"] for m in issues["messages"]}
+        assert "UNSUPPORTED_EXTENSION" in codes  # the validator did not decode the geometry
+        document, binary = _chunks(packed.read_bytes())
+        plain_document, plain_binary = _chunks(_glb(tables, tmp_path, name).read_bytes())
+        assert document["extensionsRequired"] == ["KHR_draco_mesh_compression"]
+        primitives = document["meshes"][0]["primitives"]
+        plain_primitives = plain_document["meshes"][0]["primitives"]
+        assert len(primitives) == len(plain_primitives)
+        assert len(packed.read_bytes()) > 0
+        for primitive, plain in zip(primitives, plain_primitives, strict=True):
+            extension = primitive["extensions"]["KHR_draco_mesh_compression"]
+            assert "bufferView" not in document["accessors"][primitive["indices"]]
+            view = document["bufferViews"][extension["bufferView"]]
+            mesh = DracoPy.decode(binary[view["byteOffset"]:view["byteOffset"]
+                                         + view["byteLength"]])
+            by_id = {a["unique_id"]: np.asarray(a["data"]) for a in mesh.attributes}
+            xyz = by_id[extension["attributes"]["POSITION"]]
+            uv = (by_id[extension["attributes"]["TEXCOORD_0"]]
+                  if "TEXCOORD_0" in extension["attributes"] else np.zeros((len(xyz), 2)))
+            rows = np.hstack([xyz, uv])
+            expected = _plain_rows(plain_document, plain_binary, plain)
+            position = document["accessors"][primitive["attributes"]["POSITION"]]
+            assert position["count"] == len(xyz)
+            np.testing.assert_allclose(position["min"], xyz.min(axis=0), atol=1e-6)
+            np.testing.assert_allclose(position["max"], xyz.max(axis=0), atol=1e-6)
+            extent = float(np.ptp(expected[:, :3], axis=0).max())
+            tolerance = extent / 2**16 + 1 / 2**14
+            # every decoded vertex is an original one and every original is decoded
+            assert cKDTree(expected).query(rows)[0].max() <= tolerance, name
+            assert cKDTree(rows).query(expected)[0].max() <= tolerance, name
+            # the same triangles, as sets of corner positions
+            faces = np.asarray(mesh.faces).reshape(-1, 3)
+            plain_count = plain_document["accessors"][plain["indices"]]["count"] // 3
+            assert len(faces) == plain_count
+            corners = _canonical_triangles(xyz[faces])
+            indices_view = plain_document["bufferViews"][
+                plain_document["accessors"][plain["indices"]]["bufferView"]]
+            plain_faces = np.frombuffer(plain_binary, np.uint32, plain_count * 3,
+                                        indices_view["byteOffset"]).reshape(-1, 3)
+            want = _canonical_triangles(expected[plain_faces, :3])
+            np.testing.assert_allclose(corners, want, atol=2e-3)
+
+
+def test_draco_makes_a_large_mesh_several_times_smaller(tmp_path: Path) -> None:
+    from scanpipe.exporters.glb import glb_bytes
+    from scanpipe.exporters.model import MeshModel
+
+    n = 200
+    u, v = np.meshgrid(np.linspace(0, 4, n), np.linspace(0, 3, n))
+    vertices = np.stack([u.ravel(), v.ravel(), 0.05 * np.sin(u.ravel() * 3)], 1)
+    cell = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    faces = np.concatenate([np.stack([cell, cell + 1, cell + n], 1),
+                            np.stack([cell + 1, cell + n + 1, cell + n], 1)]).astype(np.int32)
+    mesh = MeshModel(vertices.astype(np.float32), faces)
+    plain, packed = glb_bytes(mesh), glb_bytes(mesh, draco=True)
+    assert len(packed) * 5 < len(plain), (len(packed), len(plain))
+
+
+def test_glb_carries_its_provenance_in_asset_extras(tmp_path: Path) -> None:
+    from scanpipe.exporters.glb import glb_bytes
+    from scanpipe.exporters.model import mesh_from_tables
+
+    tables = textured_quad()
+    mesh = mesh_from_tables(tables["mesh_vertices"], tables["mesh_faces"])
+    record = {"scanpipe": "9.9", "artifacts": {"mesh_faces": {"key": "abc", "stage": "mesh"}}}
+    for draco in (False, True):
+        document, _ = _chunks(glb_bytes(mesh, "m", record, draco=draco))
+        assert document["asset"]["extras"]["scanpipe"] == record

@@ -79,6 +79,10 @@ def test_the_report_shows_the_textured_model(cli: Callable, workdir: Path,
     assert state == "ready", page.inner_text("#scanpipe-viewer-status")
     info = page.evaluate("window.scanpipeViewerInfo")
     assert info["triangles"] == 12 and info["textured"] is True
+    # The page's model is Draco-compressed; three.js decoded it to the box's true extent.
+    assert "KHR_draco_mesh_compression" in html
+    np.testing.assert_allclose(info["min"], [-2.0, -1.2, -2.5], atol=1e-3)
+    np.testing.assert_allclose(info["max"], [2.0, 1.8, 2.5], atol=1e-3)
     assert model_share(rgb) > 0.1
     assert has_texture_colours(rgb)
     # From the scanner's place (inside the box) the faces towards it are drawn, not culled.
@@ -121,6 +125,31 @@ def test_scanpipe_view_serves_the_model(workdir: Path, browser: Browser) -> None
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_plain_and_draco_models_draw_alike(workdir: Path, browser: Browser,
+                                           tmp_path: Path) -> None:
+    """The same model, uncompressed and Draco-compressed, gives the same extent, triangle
+    count and picture (within the 16-bit quantum and a few pixels of rasterisation)."""
+    from scanpipe.viewer import model_glb, viewer_page
+
+    pictures, infos = [], []
+    for draco in (False, True):
+        glb = model_glb(workdir, draco=draco)
+        assert (b"KHR_draco_mesh_compression" in glb) is draco
+        page_file = tmp_path / f"draco{draco}.html"
+        page_file.write_text(viewer_page("model", glb=glb))
+        page = browser.new_page(viewport={"width": 640, "height": 480})
+        state, rgb = rendered(page, page_file.as_uri())
+        assert state == "ready", page.inner_text("#scanpipe-viewer-status")
+        infos.append(page.evaluate("window.scanpipeViewerInfo"))
+        pictures.append(rgb)
+        page.close()
+    assert infos[0]["triangles"] == infos[1]["triangles"] == 12
+    np.testing.assert_allclose(infos[0]["min"], infos[1]["min"], atol=1e-3)
+    np.testing.assert_allclose(infos[0]["max"], infos[1]["max"], atol=1e-3)
+    differing = np.mean(np.abs(pictures[0] - pictures[1]).max(axis=2) > 40)
+    assert differing < 0.01 and has_texture_colours(pictures[1])
 
 
 def test_report_without_viewer_has_no_script(cli: Callable, workdir: Path) -> None:

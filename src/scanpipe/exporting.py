@@ -111,7 +111,8 @@ def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
 
 
 def export_folder(folder: Path, fmt: str, out: Path, force: bool = False,
-                  las_version: str = "1.2", progress: ProgressFn = no_progress) -> list[Path]:
+                  las_version: str = "1.2", progress: ProgressFn = no_progress,
+                  draco: bool = False) -> list[Path]:
     """``scanpipe export``: read the artifacts in ``folder`` and write ``fmt`` to ``out``.
 
     The points are coloured from the camera frames as ``scanpipe run`` does (one code path:
@@ -122,6 +123,8 @@ def export_folder(folder: Path, fmt: str, out: Path, force: bool = False,
     """
     fmt = check_format(fmt)
     check_las_version(las_version)
+    if draco and fmt != "glb":
+        raise FormatError(f"--draco compresses GLB files; --format is {fmt!r}")
     stem, out_dir = stem_and_folder(out, fmt)
     check_output_folder(out_dir)
     inputs = folder_inputs(folder)
@@ -131,6 +134,6 @@ def export_folder(folder: Path, fmt: str, out: Path, force: bool = False,
     if fmt != "colmap":
         check_output_files([main], "--out", force, inputs)
     tables, _ = prepare_tables(load_tables(folder, fmt), progress=progress)
-    files = export_files(tables, fmt, stem, las_version)
+    files = export_files(tables, fmt, stem, las_version, draco)
     check_output_files([out_dir / name for name in files], "--out", force, inputs)
     return write_files(files, out_dir)

@@ -33,6 +33,9 @@ def export(
     las_version: str = typer.Option("1.2", "--las-version",
                                     help="LAS/LAZ version: 1.2 (point formats 0-3, read by "
                                          "most tools) or 1.4 (formats 6-7)."),
+    draco: bool = typer.Option(False, "--draco",
+                               help="GLB only: Draco-compress the geometry (about 8x smaller; "
+                                    "the reader must support KHR_draco_mesh_compression)."),
     force: bool = FORCE,
     quiet: bool = QUIET,
     as_json: bool = JSON,
@@ -41,7 +44,7 @@ def export(
     the frames with their poses and the points (COLMAP)."""
     from scanpipe.exporting import export_folder
 
-    written = export_folder(folder, fmt, out, force, las_version)
+    written = export_folder(folder, fmt, out, force, las_version, draco=draco)
     _report_written(written, quiet, as_json, {"format": fmt.lower().lstrip(".")})
 
 

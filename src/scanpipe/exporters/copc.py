@@ -31,9 +31,8 @@ from scanpipe.exporters.las import (
     PROVENANCE_USER_ID,
     SCALE_M,
     fill_points,
-    provenance_bytes,
 )
-from scanpipe.exporters.model import CloudModel, rig_to_z_up
+from scanpipe.exporters.model import CloudModel, provenance_bytes, rig_to_z_up
 
 #: Cells per node edge at which a depth keeps one point each.
 GRID_CELLS = 64

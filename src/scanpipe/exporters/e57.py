@@ -8,10 +8,9 @@ sample) where the cloud has a grid, ``intensity`` (the echo value, limits 0..655
 
 One ``images2D`` entry per :class:`E57Image` (a camera frame): the recorded JPEG/PNG bytes in a
 ``pinholeRepresentation`` and the camera's ``pose`` (camera frame → the file's frame, the frame
-the points are written in). E57's camera frame (ASTM E2807, pinholeRepresentation: the
-principal point is where the camera's z axis meets the image plane; image x to the right along
-the columns, y down along the rows) is taken as OpenCV's optical frame: x right, y down, z
-forward (see docs/export.md).
+the points are written in). The camera frame follows CloudCompare's E57 reader (the
+open-source reader of E57 images in widest use): x right, y up, looking along −z, so a point
+(x, y, z) in it lands at ``u = cx + fx·x/(−z)``, ``v = cy − fy·y/(−z)`` (see docs/export.md).
 """
 
 from __future__ import annotations
@@ -53,9 +52,9 @@ class E57Scan:
 class E57Image:
     """One camera frame: the encoded image, its pinhole intrinsics (pixels) and pose.
 
-    ``rotation_wxyz`` / ``translation_m`` map the camera's optical frame (x right, y down,
-    z forward) into the file's frame. ``image_format``: ``jpeg`` or ``png`` (the blob's name).
-    ``description``: free text (e.g. the lens distortion the pinhole model leaves out).
+    ``rotation_wxyz`` / ``translation_m`` map the camera frame (x right, y up, looking along
+    −z) into the file's frame. ``image_format``: ``jpeg`` or ``png`` (the blob's name).
+    ``description``: free text (e.g. the distortion the image was undistorted from).
     """
 
     data: bytes

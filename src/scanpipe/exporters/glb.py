@@ -5,12 +5,20 @@ untextured faces. The texture stage gives UVs per face corner, glTF needs them p
 vertex is split where its corners carry different UVs (unique (vertex, u, v) triples).
 Everything the Khronos glTF-Validator checks is respected: 4-byte alignment, POSITION min/max,
 unit normals, buffer-view targets, index bounds.
+
+With ``draco`` each primitive's geometry is one Draco bitstream (``KHR_draco_mesh_compression``,
+encoded by DracoPy, Google's Draco library): positions quantised to 16 bits over the model's
+extent (0.15 mm over a 10 m room, far below a scanner's noise), texture coordinates to 14 bits
+(a quarter texel of a 4096-pixel page), normals to 10 bits. The accessors then carry counts and
+bounds of the *decoded* data, read back from the bitstream (Draco may reorder and, at
+non-manifold edges, duplicate vertices).
 """
 
 from __future__ import annotations
 
 import json
 import struct
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -23,6 +31,14 @@ from scanpipe.exporters.model import MeshModel, split_by_uv, unit_normals
 FLOAT, UNSIGNED_BYTE, UNSIGNED_INT = 5126, 5121, 5125
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 LINEAR, LINEAR_MIPMAP_LINEAR, CLAMP_TO_EDGE = 9729, 9987, 33071
+DRACO = "KHR_draco_mesh_compression"
+#: Draco quantisation (bits) of positions, texture coordinates and normals: see the docstring.
+POSITION_BITS, TEXCOORD_BITS, NORMAL_BITS = 16, 14, 10
+#: Draco's speed/size trade-off, 0..10: on the demo model 4 gives the size of 7 (7.4 MiB) in
+#: two thirds of its time; 10 saves 0.5 % more.
+DRACO_LEVEL = 4
+#: Draco's attribute types, by which the decoded attributes are matched to glTF's names.
+_DRACO_TYPES = {"POSITION": 0, "NORMAL": 1, "COLOR_0": 2, "TEXCOORD_0": 3}
 
 
 class _Builder:
@@ -62,13 +78,55 @@ class _Builder:
         self.accessors.append(accessor)
         return len(self.accessors) - 1
 
+    def draco_primitive(self, positions: NDArray[np.float32], normals: NDArray[np.float32],
+                        triangles: NDArray[np.integer], uv: NDArray[np.float32] | None,
+                        rgba: NDArray[np.uint8] | None) -> dict[str, Any]:
+        """A primitive whose geometry is one Draco bitstream, and its data-less accessors."""
+        import DracoPy as draco  # here, not at import: only a Draco GLB needs it
+        encoded = draco.encode(
+            positions.astype(np.float64), triangles.reshape(-1, 3).astype(np.uint32),
+            quantization_bits=POSITION_BITS, compression_level=DRACO_LEVEL,
+            tex_coord=None if uv is None else uv.astype(np.float64),
+            tex_coord_quantization_bits=TEXCOORD_BITS,
+            normals=normals.astype(np.float64), normal_quantization_bits=NORMAL_BITS,
+            colors=rgba)
+        decoded = draco.decode(encoded)
+        by_type = {a["attribute_type"]: a for a in decoded.attributes}
+        names = ["POSITION", "NORMAL"] + (["TEXCOORD_0"] if uv is not None else []) + (
+            ["COLOR_0"] if rgba is not None and uv is None else [])
+        count = len(decoded.points)
+        shapes = {"POSITION": ("VEC3", FLOAT), "NORMAL": ("VEC3", FLOAT),
+                  "TEXCOORD_0": ("VEC2", FLOAT), "COLOR_0": ("VEC4", UNSIGNED_BYTE)}
+        attributes: dict[str, int] = {}
+        for name in names:
+            kind, component = shapes[name]
+            accessor: dict[str, Any] = {"componentType": component, "count": count,
+                                        "type": kind}
+            if name == "POSITION":
+                points = np.asarray(decoded.points, dtype=np.float32)
+                accessor["min"] = [float(v) for v in points.min(axis=0)]
+                accessor["max"] = [float(v) for v in points.max(axis=0)]
+            if name == "COLOR_0":
+                accessor["normalized"] = True
+            self.accessors.append(accessor)
+            attributes[name] = len(self.accessors) - 1
+        self.accessors.append({"componentType": UNSIGNED_INT,
+                               "count": int(np.asarray(decoded.faces).size), "type": "SCALAR"})
+        extension = {"bufferView": self.view(bytes(encoded)),
+                     "attributes": {name: int(by_type[_DRACO_TYPES[name]]["unique_id"])
+                                    for name in names}}
+        return {"attributes": attributes, "indices": len(self.accessors) - 1,
+                "extensions": {DRACO: extension}}
+
 
 def _number(value: np.generic) -> float | int:
     return int(value) if np.issubdtype(value.dtype, np.integer) else float(value)
 
 
-def glb_bytes(mesh: MeshModel, name: str = "scan") -> bytes:
-    """The mesh as one GLB file (bytes)."""
+def glb_bytes(mesh: MeshModel, name: str = "scan", provenance: Mapping[str, Any] | None = None,
+              draco: bool = False) -> bytes:
+    """The mesh as one GLB file (bytes): ``provenance`` in ``asset.extras.scanpipe``, the
+    geometry Draco-compressed with ``draco``."""
     if len(mesh.faces) == 0:
         raise ExportError("mesh has no faces: a glTF mesh needs at least one triangle")
     normals = unit_normals(mesh)
@@ -82,6 +140,13 @@ def glb_bytes(mesh: MeshModel, name: str = "scan") -> bytes:
 
     def add_primitive(source: NDArray[np.int64], indices: NDArray[np.integer],
                       uv: NDArray[np.float32] | None, material: int) -> None:
+        rgba = None if uv is not None or mesh.colors is None else np.concatenate(
+            [mesh.colors[source], np.full((len(source), 1), 255, np.uint8)], axis=1)
+        if draco:
+            primitive = builder.draco_primitive(mesh.vertices[source].astype(np.float32),
+                                                normals[source], indices, uv, rgba)
+            primitives.append({**primitive, "material": material, "mode": 4})
+            return
         attributes = {
             "POSITION": builder.accessor(mesh.vertices[source].astype(np.float32), "VEC3",
                                          FLOAT, ARRAY_BUFFER, bounds=True),
@@ -90,9 +155,7 @@ def glb_bytes(mesh: MeshModel, name: str = "scan") -> bytes:
         if uv is not None:
             attributes["TEXCOORD_0"] = builder.accessor(uv.astype(np.float32), "VEC2", FLOAT,
                                                         ARRAY_BUFFER)
-        elif mesh.colors is not None:
-            rgba = np.concatenate([mesh.colors[source],
-                                   np.full((len(source), 1), 255, np.uint8)], axis=1)
+        elif rgba is not None:
             attributes["COLOR_0"] = builder.accessor(rgba, "VEC4", UNSIGNED_BYTE,
                                                      ARRAY_BUFFER, normalized=True)
         index_accessor = builder.accessor(indices.astype(np.uint32), "SCALAR", UNSIGNED_INT,
@@ -133,7 +196,8 @@ def glb_bytes(mesh: MeshModel, name: str = "scan") -> bytes:
 
     binary = b"".join(builder.blobs)
     document: dict[str, Any] = {
-        "asset": {"version": "2.0", "generator": f"scanpipe {__version__}"},
+        "asset": {"version": "2.0", "generator": f"scanpipe {__version__}",
+                  "extras": {"scanpipe": dict(provenance or {})}},
         "scene": 0,
         "scenes": [{"name": name, "nodes": [0]}],
         "nodes": [{"name": name, "mesh": 0}],
@@ -143,6 +207,8 @@ def glb_bytes(mesh: MeshModel, name: str = "scan") -> bytes:
         "bufferViews": builder.views,
         "buffers": [{"byteLength": len(binary)}],
     }
+    if draco:
+        document["extensionsUsed"] = document["extensionsRequired"] = [DRACO]
     if images:
         document["images"] = images
         document["textures"] = textures

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.errors import ExportError
-from scanpipe.exporters.model import CloudModel, rig_to_z_up
+from scanpipe.exporters.model import CloudModel, provenance_bytes, rig_to_z_up
 
 #: Coordinate resolution: 0.1 mm, well below the scanner's 3.9 mm range step.
 SCALE_M = 0.0001
@@ -59,11 +59,6 @@ def scan_angle_from_nadir_deg(alpha_deg: NDArray[np.floating]) -> NDArray[np.flo
     """The beam angle α as a signed angle from nadir (α = 180°), in [−180, 180)."""
     return np.asarray(np.mod(np.asarray(alpha_deg, np.float64), 360.0) - 180.0,
                       dtype=np.float64)
-
-
-def provenance_bytes(provenance: Mapping[str, Any]) -> bytes:
-    """The provenance record as compact JSON (what the VLR and other formats carry)."""
-    return json.dumps(provenance, sort_keys=True, separators=(",", ":"), default=str).encode()
 
 
 def las_bytes(cloud: CloudModel, compressed: bool = False, version: str = "1.2",

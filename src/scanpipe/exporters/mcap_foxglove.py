@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 from scanpipe import __version__
 from scanpipe.errors import ExportError, RigError
 from scanpipe.exporters.glb import glb_bytes
-from scanpipe.exporters.model import CloudModel, MeshModel
+from scanpipe.exporters.model import CloudModel, MeshModel, provenance_bytes
 from scanpipe.geometry import camera_to_platform, platform_rotation
 from scanpipe.protobuf import file_descriptor_set
 from scanpipe.rig import CameraConfig, Rig
@@ -53,6 +53,8 @@ from scanpipe.rig import CameraConfig, Rig
 #: saying "protobuf messages of the official Foxglove schemas, frames world/rig/platform/camera_*".
 #: It tells an export apart from a recording (profile ``scanpipe``) for ``scanpipe info``.
 EXPORT_PROFILE = "scanpipe.foxglove"
+#: The MCAP metadata record holding the export's provenance (one key, ``json``).
+PROVENANCE_METADATA = "scanpipe.provenance"
 WORLD_FRAME, RIG_FRAME, PLATFORM_FRAME = "world", "rig", "platform"
 #: world (z up) ← rig (y up): (x, y, z) ↦ (x, −z, y), a +90° rotation about x.
 WORLD_FROM_RIG = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
@@ -215,9 +217,11 @@ def camera_views_from_tables(tables: Mapping[str, pa.Table]) -> CameraViews | No
 
 
 def foxglove_mcap_bytes(cloud: CloudModel | None, mesh: MeshModel | None,
-                        name: str = "scan", cameras: CameraViews | None = None) -> bytes:
+                        name: str = "scan", cameras: CameraViews | None = None,
+                        provenance: Mapping[str, Any] | None = None) -> bytes:
     """The Foxglove MCAP file (bytes) of a cloud, a mesh, or both, with the camera frames
-    when ``cameras`` is given."""
+    when ``cameras`` is given and the ``provenance`` record as the metadata record
+    ``scanpipe.provenance`` (key ``json``)."""
     if cloud is None and mesh is None and cameras is None:
         raise ExportError("mcap export needs points, a mesh or camera frames; found none")
     now_ns = time.time_ns()
@@ -230,6 +234,8 @@ def foxglove_mcap_bytes(cloud: CloudModel | None, mesh: MeshModel | None,
     stream = io.BytesIO()
     writer = Writer(stream, compression=CompressionType.ZSTD)
     writer.start(profile=EXPORT_PROFILE, library=f"scanpipe {__version__}")
+    writer.add_metadata(PROVENANCE_METADATA,  # type: ignore[no-untyped-call]
+                        {"json": provenance_bytes(provenance or {}).decode()})
     topics = _Topics(writer)
     topics.write("/tf", world_transform(start_ns), start_ns)
     if cloud is not None and len(cloud.xyz):
@@ -243,7 +249,8 @@ def foxglove_mcap_bytes(cloud: CloudModel | None, mesh: MeshModel | None,
         entity = update.entities.add(frame_id=WORLD_FRAME, id="model", frame_locked=True)
         _stamp(entity, end_ns)
         entity.metadata.add(key="source", value=f"scanpipe {__version__}: {name}")
-        model = entity.models.add(media_type="model/gltf-binary", data=glb_bytes(mesh, name))
+        model = entity.models.add(media_type="model/gltf-binary",
+                                  data=glb_bytes(mesh, name, provenance))
         model.pose.orientation.w = 1.0
         model.scale.x = model.scale.y = model.scale.z = 1.0
         topics.write("/model", update, end_ns)
@@ -252,9 +259,10 @@ def foxglove_mcap_bytes(cloud: CloudModel | None, mesh: MeshModel | None,
 
 
 def foxglove_export_files(cloud: CloudModel | None, mesh: MeshModel | None, stem: str,
-                          cameras: CameraViews | None = None) -> dict[str, bytes]:
+                          cameras: CameraViews | None = None,
+                          provenance: Mapping[str, Any] | None = None) -> dict[str, bytes]:
     """``{stem}.mcap`` and the Foxglove layout ``{stem}.layout.json`` that shows it."""
-    data = foxglove_mcap_bytes(cloud, mesh, stem, cameras)
+    data = foxglove_mcap_bytes(cloud, mesh, stem, cameras, provenance)
     camera_ids = ([] if cameras is None else
                   sorted(set(cameras.frames.column("camera_id").to_pylist())))
     layout = foxglove_layout(

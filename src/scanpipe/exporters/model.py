@@ -8,7 +8,10 @@ rig frame (y up); :func:`rig_to_z_up` gives the (x, −z, y) frame of LAS and E5
 
 from __future__ import annotations
 
+import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -68,6 +71,16 @@ class CloudModel:
     beta_deg: NDArray[np.float64] | None = None
     alpha_deg: NDArray[np.float64] | None = None
     sample: NDArray[np.int32] | None = None
+
+
+#: How text formats (OBJ, MTL, PLY) mark their provenance comment: ``<tag> {json}``.
+PROVENANCE_TAG = "scanpipe-provenance"
+
+
+def provenance_bytes(provenance: Mapping[str, Any]) -> bytes:
+    """The provenance record (scanpipe version, artifact keys, stages and parameters) as compact
+    one-line JSON: what LAS VLRs, E57, OBJ/PLY comments, GLB extras and MCAP metadata carry."""
+    return json.dumps(provenance, sort_keys=True, separators=(",", ":"), default=str).encode()
 
 
 def rig_to_z_up(xyz: NDArray[np.floating]) -> NDArray[np.float64]:

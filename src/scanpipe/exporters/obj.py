@@ -12,11 +12,19 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
 from scanpipe import __version__
-from scanpipe.exporters.model import MeshModel, split_by_uv, unit_normals
+from scanpipe.exporters.model import (
+    PROVENANCE_TAG,
+    MeshModel,
+    provenance_bytes,
+    split_by_uv,
+    unit_normals,
+)
 from scanpipe.exporters.textfmt import Fixed, Ints, Part, float_rows, render_lines
 from scanpipe.images import encode_png
 
@@ -57,11 +65,15 @@ def _face_lines(faces: np.ndarray, vt: np.ndarray | None, with_normals: bool) ->
     return render_lines(rows, parts)
 
 
-def obj_files(mesh: MeshModel, stem: str) -> dict[str, bytes]:
-    """The OBJ export of ``mesh`` as ``{file name: bytes}`` (``<stem>.obj`` comes first)."""
+def obj_files(mesh: MeshModel, stem: str,
+              provenance: Mapping[str, Any] | None = None) -> dict[str, bytes]:
+    """The OBJ export of ``mesh`` as ``{file name: bytes}`` (``<stem>.obj`` comes first), with
+    the ``provenance`` record as a ``# scanpipe-provenance {json}`` comment in OBJ and MTL."""
     base = safe_stem(stem)
     obj_name, mtl_name = f"{stem}.obj", f"{base}.mtl"
-    chunks: list[bytes] = [f"# scanpipe {__version__} OBJ export; y up, metres\n".encode()]
+    record = f"{PROVENANCE_TAG} {provenance_bytes(provenance or {}).decode()}"
+    chunks: list[bytes] = [f"# scanpipe {__version__} OBJ export; y up, metres\n# {record}\n"
+                           .encode()]
     files: dict[str, bytes] = {}
     normals = unit_normals(mesh)
     textured = mesh.textured
@@ -98,7 +110,7 @@ def obj_files(mesh: MeshModel, stem: str) -> dict[str, bytes]:
     # which some faces have none. It samples their material's plain grey map.
     plain_vt = len(uv_obj)
     chunks.append(float_rows(b"vt ", np.vstack([uv_obj, [[0.0, 0.0]]]), 6))
-    mtl: list[str] = [f"# scanpipe {__version__} materials for {obj_name}"]
+    mtl: list[str] = [f"# scanpipe {__version__} materials for {obj_name}", f"# {record}"]
     page_ids, starts, counts = np.unique(pages_sorted, return_index=True, return_counts=True)
     untextured_count = int(np.count_nonzero(pages_sorted < 0))
     for page, start, count in zip(page_ids.tolist(), starts.tolist(), counts.tolist(),

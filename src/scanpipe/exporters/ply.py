@@ -7,6 +7,8 @@ the vertex's corners), so the PLY shows the same colours a textured viewer would
 from __future__ import annotations
 
 import io
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -14,7 +16,13 @@ from PIL import Image
 
 from scanpipe import __version__
 from scanpipe.errors import ExportError
-from scanpipe.exporters.model import CloudModel, MeshModel, unit_normals
+from scanpipe.exporters.model import (
+    PROVENANCE_TAG,
+    CloudModel,
+    MeshModel,
+    provenance_bytes,
+    unit_normals,
+)
 from scanpipe.images import MAX_TEXTURE_PX, probe_image
 
 
@@ -62,17 +70,19 @@ def vertex_colors_from_texture(mesh: MeshModel) -> NDArray[np.uint8] | None:
 
 
 def _header(comment: str, vertex_count: int, properties: list[str],
-            face_count: int | None) -> bytes:
+            face_count: int | None, provenance: Mapping[str, Any] | None) -> bytes:
+    record = provenance_bytes(provenance or {}).decode()
     lines = ["ply", "format binary_little_endian 1.0", f"comment {comment}",
-             f"element vertex {vertex_count}", *properties]
+             f"comment {PROVENANCE_TAG} {record}", f"element vertex {vertex_count}", *properties]
     if face_count is not None:
         lines += [f"element face {face_count}", "property list uchar int vertex_indices"]
     lines.append("end_header")
     return ("\n".join(lines) + "\n").encode()
 
 
-def ply_mesh_bytes(mesh: MeshModel) -> bytes:
-    """A binary PLY of the mesh with normals and vertex colours (from the texture if needed)."""
+def ply_mesh_bytes(mesh: MeshModel, provenance: Mapping[str, Any] | None = None) -> bytes:
+    """A binary PLY of the mesh with normals and vertex colours (from the texture if needed),
+    the ``provenance`` record in a header comment."""
     colors = mesh.colors if mesh.colors is not None else vertex_colors_from_texture(mesh)
     fields = [(n, "<f4") for n in ("x", "y", "z", "nx", "ny", "nz")]
     properties = [f"property float {n}" for n, _ in fields]
@@ -91,12 +101,13 @@ def ply_mesh_bytes(mesh: MeshModel) -> bytes:
     faces["n"] = 3
     faces["i"] = mesh.faces
     header = _header(f"scanpipe {__version__} mesh; y up, metres", len(vertices), properties,
-                     len(faces))
+                     len(faces), provenance)
     return header + vertices.tobytes() + faces.tobytes()
 
 
-def ply_cloud_bytes(cloud: CloudModel) -> bytes:
-    """A binary PLY of the points with intensity (echo) and colour when present."""
+def ply_cloud_bytes(cloud: CloudModel, provenance: Mapping[str, Any] | None = None) -> bytes:
+    """A binary PLY of the points with intensity (echo) and colour when present, the
+    ``provenance`` record in a header comment."""
     fields: list[tuple[str, str]] = [(n, "<f4") for n in ("x", "y", "z")]
     properties = [f"property float {n}" for n in ("x", "y", "z")]
     if cloud.intensity is not None:
@@ -114,5 +125,5 @@ def ply_cloud_bytes(cloud: CloudModel) -> bytes:
         for j, n in enumerate(("red", "green", "blue")):
             vertices[n] = cloud.colors[:, j]
     header = _header(f"scanpipe {__version__} points; y up, metres", len(vertices),
-                     properties, None)
+                     properties, None, provenance)
     return header + vertices.tobytes()

@@ -33,13 +33,14 @@ from scanpipe.artifacts import PROVENANCE_KEY
 from scanpipe.errors import ArtifactError, ExportError, UsageError
 from scanpipe.exporters.e57 import E57Image, e57_bytes
 from scanpipe.exporters.glb import glb_bytes
-from scanpipe.exporters.las import LAS_VERSIONS, las_bytes, pdal_pipeline_bytes, provenance_bytes
+from scanpipe.exporters.las import LAS_VERSIONS, las_bytes, pdal_pipeline_bytes
 from scanpipe.exporters.mcap_foxglove import camera_views_from_tables, foxglove_export_files
 from scanpipe.exporters.model import (
     CloudModel,
     MeshModel,
     cloud_from_table,
     mesh_from_tables,
+    provenance_bytes,
     rig_to_z_up,
 )
 from scanpipe.exporters.obj import obj_files
@@ -135,9 +136,9 @@ def prepare_tables(tables: Mapping[str, pa.Table], colors: bool = True,
 
 
 def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
-                 las_version: str = "1.2") -> dict[str, bytes]:
+                 las_version: str = "1.2", draco: bool = False) -> dict[str, bytes]:
     """The files of one export, by name; the first is the main file. ``tables`` as
-    :func:`prepare_tables` gives them."""
+    :func:`prepare_tables` gives them; ``draco`` compresses a GLB's geometry."""
     fmt = check_format(fmt)
     check_las_version(las_version)
     mesh, cloud = models_from_tables(tables)
@@ -145,13 +146,16 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
         if mesh is None:
             raise ArtifactError(f"{fmt} export needs a mesh (mesh_vertices and mesh_faces "
                                 f"artifacts); found: {', '.join(sorted(tables)) or 'nothing'}")
+        provenance = provenance_of({k: v for k, v in tables.items()
+                                    if k in (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)})
         if fmt == "obj":
-            return obj_files(mesh, stem)
+            return obj_files(mesh, stem, provenance)
         if fmt == "glb":
-            return {f"{stem}.glb": glb_bytes(mesh, stem)}
-        return {f"{stem}.ply": ply_mesh_bytes(mesh)}
+            return {f"{stem}.glb": glb_bytes(mesh, stem, provenance, draco)}
+        return {f"{stem}.ply": ply_mesh_bytes(mesh, provenance)}
     if fmt == "mcap":
-        return foxglove_export_files(cloud, mesh, stem, camera_views_from_tables(tables))
+        return foxglove_export_files(cloud, mesh, stem, camera_views_from_tables(tables),
+                                     provenance_of(tables))
     provenance = provenance_of({k: v for k, v in tables.items() if k == "points"})
     if fmt == "colmap":
         return _colmap(tables, cloud, stem, provenance)
@@ -159,7 +163,7 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
         raise ArtifactError(f"{fmt} export needs a points artifact; found: "
                             f"{', '.join(sorted(tables)) or 'nothing'}")
     if fmt == "ply":
-        return {f"{stem}.ply": ply_cloud_bytes(cloud)}
+        return {f"{stem}.ply": ply_cloud_bytes(cloud, provenance)}
     if fmt in ("las", "laz"):
         return {f"{stem}.{fmt}": las_bytes(cloud, compressed=fmt == "laz", version=las_version,
                                            provenance=provenance),
@@ -210,9 +214,34 @@ def _colmap(tables: Mapping[str, pa.Table], cloud: CloudModel | None, stem: str,
                         provenance_bytes(provenance).decode())
 
 
+#: The E57 camera frame as CloudCompare's E57 reader uses it (the image pose becomes a
+#: ``ccCameraSensor`` unchanged; that sensor looks along −z with image y up:
+#: ``u = cx + f·x/(−z)``, ``v = cy − f·y/(−z)``) in OpenCV's optical frame (x right, y down,
+#: z forward): x kept, y and z negated.
+E57_CAMERA_FROM_OPENCV = np.diag([1.0, -1.0, -1.0])
+
+
+def pinhole_image(data: bytes, kind: str, cam: CameraConfig) -> bytes:
+    """The frame as an exact pinhole image of ``cam``'s K: undistorted (same size and K) when
+    the camera has distortion coefficients, re-encoded as ``kind`` (jpeg/png); unchanged
+    otherwise. E57's pinhole model has no distortion terms."""
+    if not any(cam.distortion):
+        return data
+    import cv2
+
+    from scanpipe.camera import intrinsic_matrix
+    from scanpipe.images import decode_image_bytes, encode_jpeg, encode_png
+
+    image = decode_image_bytes(data, f"frame of camera {cam.id}")
+    k = intrinsic_matrix(cam)
+    flat = cv2.undistort(image, k, np.asarray(cam.distortion, np.float64), None, k)
+    return encode_png(flat) if kind == "png" else encode_jpeg(flat, quality=95)
+
+
 def e57_images(tables: Mapping[str, pa.Table]) -> list[E57Image]:
     """The camera frames as E57 images (none without frames), posed in the file's z-up frame
-    (the frame the points are written in: :func:`rig_to_z_up`)."""
+    (the frame the points are written in: :func:`rig_to_z_up`) with CloudCompare's camera axes
+    (:data:`E57_CAMERA_FROM_OPENCV`), undistorted when the lens has distortion."""
     if not all(n in tables for n in CAMERA_ARTIFACTS) or tables["frames"].num_rows == 0:
         return []
     from scanpipe.exporters.colmap import quaternion_wxyz
@@ -220,13 +249,15 @@ def e57_images(tables: Mapping[str, pa.Table]) -> list[E57Image]:
     images = []
     for cam, (rotation, translation), data, kind, name in zip(
             *_chosen_frames(tables), strict=True):
-        to_file = rig_to_z_up(np.asarray(rotation).T).T  # M @ R: camera → file frame
+        # camera (E57 axes) → OpenCV axes → rig → file: M @ R @ E
+        to_file = rig_to_z_up((np.asarray(rotation) @ E57_CAMERA_FROM_OPENCV).T).T
         q = quaternion_wxyz(to_file)
         t = rig_to_z_up(np.asarray(translation)[None, :])[0]
         note = ("" if not any(cam.distortion) else
-                "lens distortion (OpenCV k1 k2 p1 p2 k3) not in the pinhole model: "
+                "undistorted from OpenCV k1 k2 p1 p2 k3 = "
                 + " ".join(f"{float(v):.17g}" for v in cam.distortion))
-        images.append(E57Image(data, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+        images.append(E57Image(pinhole_image(data, kind, cam), cam.width, cam.height, cam.fx,
+                               cam.fy, cam.cx, cam.cy,
                                (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
                                (float(t[0]), float(t[1]), float(t[2])), name, kind, note))
     return images
@@ -251,6 +282,8 @@ class ExportStageParams(Params):
         True, description="colour the cloud from the camera frames (when there are frames)")
     las_version: Literal["1.2", "1.4"] = Field(
         "1.2", description="LAS version of las/laz: 1.2 (formats 0-3, widely read) or 1.4")
+    glb_draco: bool = Field(
+        False, description="Draco-compress the GLB's geometry (KHR_draco_mesh_compression)")
 
 
 def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
@@ -270,7 +303,7 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
     jobs += [(fmt, tables, params.cloud_name) for fmt in params.cloud_formats]
     for done, (fmt, job_tables, stem) in enumerate(jobs):
         progress("export", done, len(jobs))
-        files.update(export_files(job_tables, fmt, stem, params.las_version))
+        files.update(export_files(job_tables, fmt, stem, params.las_version, params.glb_draco))
     progress("export", len(jobs), len(jobs))
     manifest = pa.table({
         "file": pa.array(list(files), pa.string()),

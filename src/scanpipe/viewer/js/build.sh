@@ -6,3 +6,4 @@ cd "$(dirname "$0")"
 npm ci --no-audit --no-fund
 npm run build
 cp node_modules/three/LICENSE ../assets/three-LICENSE.txt
+# The Draco decoder bundled with it is Apache-2.0: ../assets/draco-LICENSE.txt (kept by hand).

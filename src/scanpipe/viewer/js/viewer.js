@@ -9,6 +9,11 @@ import {
   SRGBColorSpace, Vector3, WebGLRenderer,
 } from "three";
 import { GLTFLoader } from "three/examples/jsm/loaders/GLTFLoader.js";
+import { DRACOLoader } from "three/examples/jsm/loaders/DRACOLoader.js";
+// The Draco decoder (a GLB written with --draco) is bundled, not fetched: the page works offline
+// and from file://.
+import dracoWrapper from "three/examples/jsm/libs/draco/gltf/draco_wasm_wrapper.js" with { type: "text" };
+import dracoWasm from "three/examples/jsm/libs/draco/gltf/draco_decoder.wasm" with { type: "bytes" };
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
 
 function setState(state, message) {
@@ -81,6 +86,13 @@ function countGeometry(root) {
   return { triangles, vertices, textured };
 }
 
+/** DRACOLoader with its decoder from the bundle instead of a decoder path. */
+class EmbeddedDracoLoader extends DRACOLoader {
+  _loadLibrary(url, responseType) {
+    return Promise.resolve(responseType === "arraybuffer" ? dracoWasm.slice().buffer : dracoWrapper);
+  }
+}
+
 async function start(options) {
   setState("loading", "Loading the model…");
   const canvas = document.getElementById(options.canvasId);
@@ -94,7 +106,8 @@ async function start(options) {
   sun.position.set(1, 2, 1.5);
   scene.add(sun);
 
-  const gltf = await new GLTFLoader().parseAsync(await modelBytes(options), "");
+  const gltf = await new GLTFLoader().setDRACOLoader(new EmbeddedDracoLoader())
+    .parseAsync(await modelBytes(options), "");
   const model = gltf.scene;
   scene.add(model);
   const info = countGeometry(model);
@@ -140,7 +153,7 @@ async function start(options) {
   }
   views.outside();
   draw();
-  window.scanpipeViewerInfo = { ...info, radius };
+  window.scanpipeViewerInfo = { ...info, radius, min: box.min.toArray(), max: box.max.toArray() };
   setState("ready", `${info.triangles.toLocaleString("en")} triangles` +
     (info.textured ? ", textured" : ", untextured") + " · drag to turn, scroll to zoom");
 }
