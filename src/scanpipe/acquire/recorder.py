@@ -30,6 +30,7 @@ the recording cleanly. Every such incident is an event on
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import socket
 import threading
@@ -52,6 +53,7 @@ from scanpipe.errors import DeviceError, ScanpipeError
 from scanpipe.params import Params
 from scanpipe.planning import DEFAULT_MOTOR_STEP_DEG, choose_steps, move_time_s
 from scanpipe.protocol import ldoem
+from scanpipe.recording.writer import SCAN_END_EVENT
 from scanpipe.rig import Rig
 
 CameraOpener = Callable[[Any], FrameSource]
@@ -419,6 +421,12 @@ class Recorder:
         """Stop the motor, the scanner stream and the cameras; every step is tried."""
         assert self.sink is not None
         self.phase = "stopping"
+        # A follower (run --follow) makes the model now, not after the shut-down and the way
+        # back; what is recorded after this (the stream until it stops, the way back) comes
+        # with the end of the recording.
+        self.sink.event(SCAN_END_EVENT, f"scan ended ({self.status})", {"status": self.status})
+        with contextlib.suppress(OSError, ScanpipeError):  # a failing disk is reported later
+            self.sink.flush()
         if self.motor is not None and self.motor.connected:
             state = self.motor.state
             if self.status != "complete" or (state is not None and state.moving):
