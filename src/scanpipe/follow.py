@@ -148,7 +148,8 @@ def open_growing(recording: Path, timeout_s: float, poll_s: float = DEFAULT_POLL
 def check_recording_shape(recording: Path) -> None:
     """Refuse in one line what cannot become a recording file (a folder, a ROS 2 bag)."""
     if recording.is_dir():
-        check_recording(recording)  # names a ROS 2 bag as one
+        if (recording / "metadata.yaml").is_file():
+            check_recording(recording)  # names a ROS 2 bag as one, with the way in
         raise RecordingError(f"{recording}: is a directory, expected an MCAP recording")
 
 

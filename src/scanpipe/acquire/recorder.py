@@ -424,9 +424,11 @@ class Recorder:
         # A follower (run --follow) makes the model now, not after the shut-down and the way
         # back; what is recorded after this (the stream until it stops, the way back) comes
         # with the end of the recording.
-        self.sink.event(SCAN_END_EVENT, f"scan ended ({self.status})", {"status": self.status})
-        with contextlib.suppress(OSError, ScanpipeError):  # a failing disk is reported later
-            self.sink.flush()
+        if self._start_count is not None:  # the scan had started
+            self.sink.event(SCAN_END_EVENT, f"scan ended ({self.status})",
+                            {"status": self.status})
+            with contextlib.suppress(OSError, ScanpipeError):  # a failing disk: reported later
+                self.sink.flush()
         if self.motor is not None and self.motor.connected:
             state = self.motor.state
             if self.status != "complete" or (state is not None and state.moving):
@@ -625,6 +627,8 @@ class Recorder:
             time_left_s=self.time_left_s(),
             events=sum(stats.events.values()) if stats else 0,
             last_event=last,
+            start_count=self._start_count,
+            samples_per_profile=self.rig.scanner.samples_per_profile,
         )
 
     def _applied_limit(self) -> int:
