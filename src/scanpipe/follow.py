@@ -57,6 +57,7 @@ from scanpipe.protocol.registry import (
 from scanpipe.recording.reader import Recording, RecordingTail, StreamData, read_recording
 from scanpipe.recording.schemas import RX
 from scanpipe.recording.writer import RIG_KEY, RIG_METADATA, SCAN_END_EVENT, SESSION_METADATA
+from scanpipe.rig import Rig
 from scanpipe.stage import Stage, StageResult
 from scanpipe.stages.decode import DecodedStream, DecodeParams, decode_recording
 from scanpipe.workdir import DEFAULT_LOCK_WAIT_S, workdir_lock
@@ -103,6 +104,8 @@ class FollowResult:
     scan_end_seen_ns: int | None = None
     #: The stages whose results at the scan's end were the batch results (equal inputs).
     reused_from_scan_end: list[str] = field(default_factory=list)
+    #: The stages that ran again, with the inputs (and their columns) that had changed.
+    changed_after_scan_end: dict[str, dict[str, list[str]]] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     preview: dict[str, Any] = field(default_factory=dict)
 
@@ -124,12 +127,13 @@ def temporary_names(recording: Path) -> list[Path]:
 
 def open_growing(recording: Path, timeout_s: float, poll_s: float = DEFAULT_POLL_S
                  ) -> tuple[Path, IO[bytes]]:
-    """The file to tail and an open handle on it: ``recording`` itself, or the temporary file
-    of a writer that has not renamed it yet; waits up to ``timeout_s`` for either to appear."""
+    """The file to tail and an open handle on it: the temporary file of a writer that will
+    rename it to ``recording`` (first: it replaces an older file of that name), or
+    ``recording`` itself; waits up to ``timeout_s`` for either to appear."""
     check_recording_shape(recording)
     deadline = time.monotonic() + timeout_s
     while True:
-        for path in [recording, *temporary_names(recording)]:
+        for path in [*temporary_names(recording), recording]:
             try:
                 return path, path.open("rb")
             except FileNotFoundError:
@@ -343,6 +347,7 @@ def follow_chain(
     if source != recording:
         result.warnings += _check_renamed(recording, source, timeout_s, poll_s)
     result.reused_from_scan_end = model.reused
+    result.changed_after_scan_end = model.changed
     if model.problem is not None:
         result.warnings.append(f"the model at the scan's end failed: {model.problem}")
     return result
@@ -375,6 +380,8 @@ class ScanEndModel:
         self.ready_ns: int | None = None
         self.problem: str | None = None
         self.reused: list[str] = []
+        #: Per stage that ran again: the inputs whose columns changed after the scan's end.
+        self.changed: dict[str, dict[str, list[str]]] = {}
 
     def build(self, tail: RecordingTail, stream: StreamFollower) -> None:
         """Run the chain up to the mesh on the recording so far and write the model."""
@@ -424,9 +431,11 @@ class ScanEndModel:
     def _reuse_or_call(self, stage: Stage) -> Callable[[Mapping[str, Any]], StageResult]:
         def compute(loaded: Mapping[str, Any]) -> StageResult:
             before = self.inputs[stage.name]
-            if all(tables_identical(loaded[n], before[n]) for n in stage.inputs):
+            changed = {n: _changed_columns(loaded[n], before[n]) for n in stage.inputs}
+            if not any(changed.values()):
                 self.reused.append(stage.name)
                 return self.results[stage.name]
+            self.changed[stage.name] = {n: c for n, c in changed.items() if c}
             return stage.call(loaded, self.params.get(stage.name) or stage.params())
 
         return compute
@@ -441,6 +450,16 @@ def tables_identical(a: pa.Table, b: pa.Table) -> bool:
         return False
     return all(_arrays_identical(a.column(i).combine_chunks(), b.column(i).combine_chunks())
                for i in range(a.num_columns))
+
+
+def _changed_columns(a: pa.Table, b: pa.Table) -> list[str]:
+    """What differs between two tables: rows, schema, or the names of the columns."""
+    if a.num_rows != b.num_rows:
+        return [f"rows {b.num_rows} → {a.num_rows}"]
+    if not a.schema.equals(b.schema, check_metadata=True):
+        return ["schema"]
+    return [name for i, name in enumerate(a.column_names)
+            if not _arrays_identical(a.column(i).combine_chunks(), b.column(i).combine_chunks())]
 
 
 def _arrays_identical(a: pa.Array, b: pa.Array) -> bool:
@@ -604,6 +623,8 @@ class LivePreview:
         self._last = -float("inf")
         self._seam: pa.Table | None = None  # the last filtered position, meshed again
         self._meshes: list[Mesh] = []
+        self._rig: Rig | None = None
+        self._rig_table: pa.Table | None = None
 
     def update(self, tail: RecordingTail, stream: StreamFollower) -> None:
         """Take the new data into the live model."""
@@ -628,14 +649,17 @@ class LivePreview:
         if not stream.frames or stream.dialect is None:
             return
         motor = tail.motor()
-        rig_toml = tail.metadata.get(RIG_METADATA, {}).get(RIG_KEY)
-        rig = rig_from_toml(rig_toml) if rig_toml else default_rig()
+        if self._rig is None:  # the metadata come first in the file
+            rig_toml = tail.metadata.get(RIG_METADATA, {}).get(RIG_KEY)
+            self._rig = rig_from_toml(rig_toml) if rig_toml else default_rig()
+            self._rig_table = rig_table(self._rig)
+        rig = self._rig
         if motor.step_count.size and rig.motor.pulse_limit > 0:
             travel = float(motor.step_count.max() - motor.step_count[0])
             self.coverage = min(1.0, travel / rig.motor.pulse_limit)
         profiles, _ = profiles_table(stream.frames, stream.receive_times(), stream.dialect.name)
         points = assemble_stage({"profiles": profiles, "motor": motor_states_table(motor),
-                                 "rig": rig_table(rig)}, self.assemble_params,
+                                 "rig": self._rig_table}, self.assemble_params,
                                 no_progress).tables["points"]
         self.positions = _positions(points)
         ready = self.positions - self.halo

@@ -421,14 +421,6 @@ class Recorder:
         """Stop the motor, the scanner stream and the cameras; every step is tried."""
         assert self.sink is not None
         self.phase = "stopping"
-        # A follower (run --follow) makes the model now, not after the shut-down and the way
-        # back; what is recorded after this (the stream until it stops, the way back) comes
-        # with the end of the recording.
-        if self._start_count is not None:  # the scan had started
-            self.sink.event(SCAN_END_EVENT, f"scan ended ({self.status})",
-                            {"status": self.status})
-            with contextlib.suppress(OSError, ScanpipeError):  # a failing disk: reported later
-                self.sink.flush()
         if self.motor is not None and self.motor.connected:
             state = self.motor.state
             if self.status != "complete" or (state is not None and state.moving):
@@ -439,6 +431,13 @@ class Recorder:
                     self.sink.event("motor_error", f"STOP failed: {err}")
         if self.scanner is not None:
             self.scanner.close(cancel=True)
+        # A follower (run --follow) makes the model now, with every profile recorded, not
+        # after the cameras' shut-down and the way back (which come with the recording's end).
+        if self._start_count is not None:  # the scan had started
+            self.sink.event(SCAN_END_EVENT, f"scan ended ({self.status})",
+                            {"status": self.status})
+            with contextlib.suppress(OSError, ScanpipeError):  # a failing disk: reported later
+                self.sink.flush()
         self.stop_event.set()
         for thread in self.cameras:
             thread.join(timeout=2.0)

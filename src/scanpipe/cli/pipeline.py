@@ -113,6 +113,7 @@ def run(
                 "end_seen_ns": followed.end_seen_ns,
                 "scan_end_seen_ns": followed.scan_end_seen_ns,
                 "reused_from_scan_end": followed.reused_from_scan_end,
+                "changed_after_scan_end": followed.changed_after_scan_end,
                 "model_ready_ns": followed.model_ready_ns,
                 "model_latency_s": followed.model_latency_s,
                 "warnings": followed.warnings, "preview": followed.preview}
