@@ -118,6 +118,7 @@ def run(quick: bool, speedup: float) -> dict[str, Any]:
         "changed_after_scan_end": info["changed_after_scan_end"],
         "final_chain_s": sum(s["seconds"] for s in report["stages"]),
         "preview": info["preview"], "warnings": info["warnings"],
+        "visible_lag_s": info["visible_lag_s"],
         "batch_run_s": batch_s, "batch_stage_s": {s["stage"]: s["seconds"]
                                                   for s in json.loads(batch.stdout)["stages"]},
         "artifacts_equal_to_batch": equal, "all_equal": all(equal.values()),
@@ -137,6 +138,9 @@ def show(results: dict[str, Any]) -> None:
         ("scan_end event read after it", seconds(results["scan_end_seen_after_last_profile_s"]),
          ""),
         ("end record read after it", seconds(results["end_seen_after_last_profile_s"]), ""),
+        ("new profiles read after their receipt (median, max over polls)",
+         f"{seconds(results['visible_lag_s']['median'])}, "
+         f"{seconds(results['visible_lag_s']['max'])}", "the writer's flushes + the polls"),
         ("final chain (artifacts) after the end", seconds(results["final_chain_s"]),
          f"decode {results['decode']}; from the scan's end: "
          f"{', '.join(results['reused_from_scan_end']) or 'nothing'}"),

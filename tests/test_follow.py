@@ -134,6 +134,7 @@ def test_a_live_simulation_followed_from_another_process_equals_the_batch_run(
     assert "mesh" in report["reused_from_scan_end"]
     assert report["model_latency_s"] is not None and report["model_latency_s"] > 0
     assert report["preview"]["positions"] > 0 and report["preview"]["problem"] is None
+    assert report["visible_lag_s"]["count"] > 0
     assert (tmp_path / "follow" / FOLLOW_FOLDER / MODEL_FILE).stat().st_size > 0
     batch = cli("run", rec, "--workdir", tmp_path / "batch", "--to", "mesh")
     assert batch.code == 0, batch.err

@@ -29,6 +29,7 @@ growing without an end record (a killed recorder) is processed as it is after
 from __future__ import annotations
 
 import copy
+import os
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -54,7 +55,13 @@ from scanpipe.protocol.registry import (
     get_dialect,
     resolve_dialect,
 )
-from scanpipe.recording.reader import Recording, RecordingTail, StreamData, read_recording
+from scanpipe.recording.reader import (
+    Recording,
+    RecordingTail,
+    StreamData,
+    read_recording,
+    writer_finished,
+)
 from scanpipe.recording.schemas import RX
 from scanpipe.recording.writer import RIG_KEY, RIG_METADATA, SCAN_END_EVENT, SESSION_METADATA
 from scanpipe.rig import Rig
@@ -108,6 +115,8 @@ class FollowResult:
     changed_after_scan_end: dict[str, dict[str, list[str]]] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     preview: dict[str, Any] = field(default_factory=dict)
+    #: Per poll that found new profiles: seconds from the newest one's receipt to reading it.
+    visible_lag_s: list[float] = field(default_factory=list)
 
     @property
     def model_latency_s(self) -> float | None:
@@ -307,8 +316,8 @@ def follow_chain(
             stream = StreamFollower(decode_params)
             live = LivePreview(params) if preview and _preview_possible(chain) else None
             model = ScanEndModel(chain, params, rig_override, workdir / FOLLOW_FOLDER)
-            result = _follow(tail, stream, live, recording, source, timeout_s, poll_s,
-                             on_status, lambda: model.build(tail, stream))
+            result = _follow(tail, stream, live, recording, source, handle, timeout_s,
+                             poll_s, on_status, lambda: model.build(tail, stream))
             if model.ready_ns is not None:
                 result.model_ready_ns = model.ready_ns
             compute = model.reuse()
@@ -324,11 +333,10 @@ def follow_chain(
                 result.decode = "batch (" + (f"the tail stopped: {tail.stuck}" if tail.stuck
                                              else "no end record") + ")"
             if "decode" not in compute:
-                # The finished file as the batch reads it; read through the handle's path
-                # while the writer may still be renaming it.
-                path = source if source.exists() else recording
-                compute["decode"] = _decode_from(read_recording(path), decode_params, None,
-                                                 recording)
+                # The file as the batch reads it, through the handle: the writer may be
+                # renaming it, and a file of the final name may be an older recording.
+                compute["decode"] = _decode_from(read_recording(recording, handle),
+                                                 decode_params, None)
             keys = {"recording": stream_key(handle)}
         if live is not None:
             result.preview = live.summary()
@@ -492,11 +500,8 @@ def _warm_up(chain: list[Stage]) -> None:
     threading.Thread(target=load, name="scanpipe-follow-warm-up", daemon=True).start()
 
 
-def _decode_from(recording: Recording, params: DecodeParams, decoded: DecodedStream | None,
-                 path: Path | None = None) -> Callable[[Mapping[str, Any]], StageResult]:
-    if path is not None:
-        recording.path = path  # named as the batch run names it, whatever file was read
-
+def _decode_from(recording: Recording, params: DecodeParams, decoded: DecodedStream | None
+                 ) -> Callable[[Mapping[str, Any]], StageResult]:
     def compute(_: Mapping[str, Any]) -> StageResult:
         return decode_recording(recording, params, decoded=decoded)
 
@@ -504,17 +509,16 @@ def _decode_from(recording: Recording, params: DecodeParams, decoded: DecodedStr
 
 
 def _follow(tail: RecordingTail, stream: StreamFollower, live: LivePreview | None,
-            recording: Path, source: Path, timeout_s: float, poll_s: float,
-            on_status: Callable[[FollowStatus], None] | None,
+            recording: Path, source: Path, handle: IO[bytes], timeout_s: float,
+            poll_s: float, on_status: Callable[[FollowStatus], None] | None,
             at_scan_end: Callable[[], None]) -> FollowResult:
     """Poll until the end record, a stuck tail whose writer finished, or no growth; call
     ``at_scan_end`` once when the recorder says the scan has ended."""
-    from scanpipe.recording.reader import writer_finished
-
     started = time.monotonic()
     result = FollowResult(recording, [], complete=False, decode="")
     last_size, last_growth = -1, time.monotonic()
     scan_ended = False
+    lags_s = result.visible_lag_s
     while True:
         size = tail.size
         if size != last_size:
@@ -526,8 +530,9 @@ def _follow(tail: RecordingTail, stream: StreamFollower, live: LivePreview | Non
                                  "without --split-size-mb / --split-duration), a split one "
                                  "is processed part by part after it ends")
             new = stream.add(tail.new_stream_parts("scanner", RX))
-            if new:
+            if new and stream.newest_receive_ns is not None:
                 result.last_profile_ns = stream.newest_receive_ns
+                lags_s.append((time.time_ns() - stream.newest_receive_ns) / 1e9)
             if not scan_ended and SCAN_END_EVENT in tail.event_kinds():
                 scan_ended = True
                 result.scan_end_seen_ns = time.time_ns()
@@ -536,16 +541,13 @@ def _follow(tail: RecordingTail, stream: StreamFollower, live: LivePreview | Non
                 live.update(tail, stream)
             if on_status is not None:
                 on_status(_status(tail, stream, live, started, result.last_profile_ns))
-        if tail.complete:
+        if tail.complete or (tail.stuck is not None and writer_finished(handle)):
             result.complete = True
             result.end_seen_ns = time.time_ns()
-            return result
-        if tail.stuck is not None and writer_finished(source):
-            result.complete = True
-            result.end_seen_ns = time.time_ns()
+            _wait_finished(handle, recording, timeout_s, poll_s, result.warnings)
             return result
         if time.monotonic() - last_growth >= timeout_s:
-            if not source.exists() and not recording.exists():
+            if os.fstat(handle.fileno()).st_nlink == 0:
                 raise RecordingError(f"{source}: deleted by its writer before it finished (the "
                                      "recording was abandoned); nothing was processed")
             result.warnings.append(
@@ -554,6 +556,19 @@ def _follow(tail: RecordingTail, stream: StreamFollower, live: LivePreview | Non
                 "decode report lists what was lost")
             return result
         time.sleep(poll_s)
+
+
+def _wait_finished(handle: IO[bytes], recording: Path, timeout_s: float, poll_s: float,
+                   warnings: list[str]) -> None:
+    """After the data end record the writer adds the summary and the footer: the recording's
+    key is the hash of the finished file, so wait for its closing bytes."""
+    deadline = time.monotonic() + timeout_s
+    while not writer_finished(handle):
+        if time.monotonic() >= deadline:
+            warnings.append(f"{recording}: its writer has not finished the file (summary, "
+                            f"footer) {timeout_s:g} s after its data end; processed as it is")
+            return
+        time.sleep(poll_s / 4)
 
 
 def _status(tail: RecordingTail, stream: StreamFollower, live: LivePreview | None,

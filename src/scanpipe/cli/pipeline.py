@@ -116,8 +116,17 @@ def run(
                 "changed_after_scan_end": followed.changed_after_scan_end,
                 "model_ready_ns": followed.model_ready_ns,
                 "model_latency_s": followed.model_latency_s,
-                "warnings": followed.warnings, "preview": followed.preview}
+                "warnings": followed.warnings, "preview": followed.preview,
+                "visible_lag_s": _spread(followed.visible_lag_s)}
         print_json(info)
+
+
+def _spread(values: list[float]) -> dict[str, float | int | None]:
+    """Count, median and maximum of some seconds."""
+    ordered = sorted(values)
+    return {"count": len(ordered),
+            "median": ordered[len(ordered) // 2] if ordered else None,
+            "max": ordered[-1] if ordered else None}
 
 
 def _status_printer(quiet: bool) -> Callable[[FollowStatus], None]:

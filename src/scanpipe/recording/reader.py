@@ -18,6 +18,7 @@ dozen exception types.
 from __future__ import annotations
 
 import bisect
+import contextlib
 import io
 import json
 import mmap
@@ -370,11 +371,14 @@ class _Buffer:
         return result
 
 
-def read_recording(path: Path | str) -> Recording:
-    """Read a recording in one linear pass; see the module docstring for damage handling."""
+def read_recording(path: Path | str, handle: IO[bytes] | None = None) -> Recording:
+    """Read a recording in one linear pass; see the module docstring for damage handling.
+
+    ``handle``: read this open file (named ``path`` in the result and in messages) instead of
+    opening ``path`` (a follower's file, which its writer may have renamed or deleted)."""
     path = Path(path)
     collector = _Collector()
-    bytes_read, size, loss = _scan(path, collector)
+    bytes_read, size, loss = _scan(path, collector, handle)
     return _assemble(path, collector, bytes_read, size, loss)
 
 
@@ -430,11 +434,12 @@ def _catalogue(path: Path, collector: _Collector, bytes_read: int, size: int,
         chunks_damaged=collector.chunks_damaged, loss=loss)
 
 
-def _scan(path: Path, collector: _Collector) -> tuple[int, int, RecordingLoss]:
+def _scan(path: Path, collector: _Collector, opened: IO[bytes] | None = None
+          ) -> tuple[int, int, RecordingLoss]:
     """The linear pass over one file: ``(bytes read, file size, loss)``."""
     try:
-        with path.open("rb") as handle:
-            size = path.stat().st_size
+        with contextlib.nullcontext(opened) if opened is not None else path.open("rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
             if size < len(MAGIC):
                 raise RecordingError(f"{path}: {size} bytes, not an MCAP recording")
             with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as data:
@@ -1117,16 +1122,12 @@ def _next_record_complete(data: mmap.mmap, pos: int, size: int) -> bool:
     return bool(length <= size - pos - 9)
 
 
-def writer_finished(path: Path | str) -> bool:
-    """Whether a recording's file ends as a finished MCAP file does (the closing magic bytes):
-    its writer closed it."""
+def writer_finished(handle: IO[bytes]) -> bool:
+    """Whether an open recording ends as a finished MCAP file does (the closing magic bytes
+    after the footer): its writer closed it."""
     try:
-        with Path(path).open("rb") as handle:
-            handle.seek(0, os.SEEK_END)
-            size = handle.tell()
-            if size < 2 * len(MAGIC):
-                return False
-            handle.seek(size - len(MAGIC))
-            return handle.read(len(MAGIC)) == MAGIC
+        size = os.fstat(handle.fileno()).st_size
+        return size >= 2 * len(MAGIC) and os.pread(handle.fileno(), len(MAGIC),
+                                                   size - len(MAGIC)) == MAGIC
     except OSError:
         return False
