@@ -108,6 +108,47 @@ def test_follow_a_file_growing_in_pieces_equals_the_batch_run(
     assert again.code == 0 and " ran in " not in again.err  # same keys: all reused
 
 
+def test_follow_a_writers_temporary_file_renamed_over_an_older_recording(
+        recording: Path, tmp_path: Path) -> None:
+    rec = tmp_path / "scan.mcap"
+    rec.write_bytes(b"an older recording of the same name")
+    temporary = tmp_path / ".scan.mcap.x1y2.tmp"  # how simulate writes (artifacts.atomic_path)
+    temporary.write_bytes(b"")
+
+    def write_then_rename() -> None:
+        _grow(recording.read_bytes(), temporary, 20, 0.03)
+        os.replace(temporary, rec)
+
+    writer = threading.Thread(target=write_then_rename)
+    writer.start()
+    result = follow_chain(rec, tmp_path / "follow", {}, to="assemble", timeout_s=5,
+                          poll_s=0.02)
+    writer.join()
+    assert result.complete and result.decode == "incremental" and result.warnings == []
+    run_chain(rec, tmp_path / "batch", {}, to="assemble")
+    differences = workdir_differences(tmp_path / "follow", tmp_path / "batch")
+    assert differences and all(not d for d in differences.values()), differences
+
+
+def test_a_followed_file_deleted_by_its_writer_is_an_error(
+        recording: Path, tmp_path: Path, cli: Callable[..., Any]) -> None:
+    rec = tmp_path / "scan.mcap"
+    temporary = tmp_path / ".scan.mcap.x1y2.tmp"
+    temporary.write_bytes(recording.read_bytes()[:5000])
+
+    def abandon() -> None:
+        time.sleep(0.5)
+        temporary.unlink()
+
+    writer = threading.Thread(target=abandon)
+    writer.start()
+    result = cli("run", rec, "-w", tmp_path / "w", "--follow", "--follow-timeout", "1",
+                 "--quiet")
+    writer.join()
+    _one_line_error(result, 1, str(temporary), "deleted by its writer", "abandoned")
+    assert not (tmp_path / "w" / "decode").exists()
+
+
 @pytest.mark.slow
 def test_a_live_simulation_followed_from_another_process_equals_the_batch_run(
         tmp_path: Path, cli: Callable[..., Any]) -> None:
