@@ -300,8 +300,10 @@ def follow_chain(
     every poll that found new data. The workdir's lock is held from the start.
     """
     chain = chain_to(stages, to)
-    if timeout_s <= 0 or poll_s <= 0:
-        raise UsageError(f"--follow-timeout {timeout_s!r}: must be > 0")
+    if not timeout_s > 0:
+        raise UsageError(f"--follow-timeout {timeout_s!r}: must be > 0 (seconds)")
+    if not poll_s > 0:
+        raise UsageError(f"poll_s {poll_s!r}: must be > 0 (seconds)")
     if rig_override is not None:
         from scanpipe.rig import load_rig
 

@@ -134,7 +134,7 @@ def _status_printer(quiet: bool) -> Callable[[FollowStatus], None]:
     shown = {"step": -1}
 
     def show(status: FollowStatus) -> None:
-        if quiet:
+        if quiet or not status.profiles:
             return
         step = (int(status.coverage * 10) if status.coverage is not None
                 else int(status.elapsed_s // 10))
