@@ -10,13 +10,18 @@ as the data arrives, so the model is ready seconds after the last profile:
   invariant: any cut of a stream decodes the same); a live preview assembles, filters and
   grid-meshes the new platform positions plus a seam of the previous ones
   (:class:`LivePreview`), for the coverage, point and face counts shown while recording.
+- **the model** when the recorder writes its ``scan_end`` event (the scanner stream stopped;
+  the platform's way back to the start still to come): the chain up to the mesh on the
+  recording so far, in memory, the mesh written to ``W/follow/model.ply``
+  (:class:`ScanEndModel`).
 - **finalised** when the end record arrives, by the batch computations, because they use the
   whole scan: decode's tables (the device clock's unwrap and fit, the frame counter's unwrap,
   the report) from the frames decoded already; assemble (the clock fit that places every
   profile in time, the step/continuous choice, the grid's layout); filter (double coverage pairs
   a position with the one 180° away; the outlier and voxel filters are global); mesh (the
   stride chosen from the point count, the seam closed between the last and first position,
-  the clean-up's small-component removal, one vertex numbering). Then the rest of the chain.
+  the clean-up's small-component removal, one vertex numbering). A stage whose inputs are
+  then bit for bit those it had at ``scan_end`` takes that result. Then the rest of the chain.
 
 So the artifacts equal a batch ``scanpipe run`` on the finished file, keys included: a later
 ``scanpipe run`` on the same workdir reuses them. Anything the tail cannot read as the batch
@@ -400,6 +405,8 @@ class ScanEndModel:
         except ScanpipeError as err:  # the finished recording gets the batch run and its error
             self.problem = str(err)
             self.results, self.inputs = {}, {}
+        except OSError as err:  # the model file: the artifacts still come at the end
+            self.problem = f"{self.folder / MODEL_FILE}: cannot be written ({err})"
 
     def _build(self, tail: RecordingTail, stream: StreamFollower) -> None:
         from scanpipe.artifacts import atomic_write_bytes
