@@ -23,7 +23,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -88,13 +88,19 @@ def artifact_key(
 
 def file_key(path: Path) -> str:
     """The key of a raw input file: the hash of its bytes."""
-    digest = hashlib.sha256()
     try:
         with path.open("rb") as handle:
-            for block in iter(lambda: handle.read(1 << 20), b""):
-                digest.update(block)
+            return stream_key(handle)
     except OSError as err:
         raise ArtifactError(f"{path}: cannot be read ({err.strerror or err})") from None
+
+
+def stream_key(handle: IO[bytes]) -> str:
+    """:func:`file_key` of an open file, read from its start (OSError propagates)."""
+    digest = hashlib.sha256()
+    handle.seek(0)
+    for block in iter(lambda: handle.read(1 << 20), b""):
+        digest.update(block)
     return digest.hexdigest()[:24]
 
 

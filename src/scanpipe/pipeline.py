@@ -15,9 +15,11 @@ from __future__ import annotations
 import difflib
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
+
+import pyarrow as pa
 
 from scanpipe import __version__
 from scanpipe.artifacts import (
@@ -37,9 +39,9 @@ from scanpipe.stage import RAW_INPUTS, Stage, StageResult
 from scanpipe.stages import chain_stages, get_stage, registry
 from scanpipe.workdir import DEFAULT_LOCK_WAIT_S, lock_root, workdir_lock
 
-__all__ = ["RunRecord", "Stage", "StageResult", "chain_step", "check_recording", "execute",
-           "get_stage", "registry",
-           "rig_override_artifact", "run_chain", "validate_pipeline_params"]
+__all__ = ["InMemory", "RunRecord", "Stage", "StageResult", "chain_step", "chain_to",
+           "check_recording", "execute", "get_stage", "registry", "rig_override_artifact",
+           "run_chain", "run_locked_chain", "validate_pipeline_params"]
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,9 @@ class RunRecord:
     seconds: float
     outputs: dict[str, Path]
     report: dict[str, Any]
+    #: The output tables in memory, when the caller asked to keep them (``keep_tables``) and
+    #: the stage ran; empty otherwise (read them from ``outputs``).
+    tables: Mapping[str, pa.Table] = field(default_factory=dict, repr=False, compare=False)
 
 
 def input_key(name: str, path: Path) -> str:
@@ -78,24 +83,47 @@ def execute(
     force: bool = False,
     replace_folder: bool = False,
     lock_wait_s: float = DEFAULT_LOCK_WAIT_S,
+    hold: InMemory | None = None,
 ) -> RunRecord:
     """Run ``stage`` on artifact files, reusing outputs whose key is unchanged.
 
     The outputs replace the previous ones together, under the lock of ``out_dir``'s workdir.
     ``replace_folder``: ``out_dir`` is the stage's own folder in a workdir (``W/<stage>/``),
     replaced as a whole; otherwise only the stage's files in ``out_dir`` are replaced.
+    ``hold``: inputs already in memory, a computation replacing the stage's call, and whether
+    to keep the outputs in memory (see :class:`InMemory`).
     """
     missing = [name for name in stage.inputs if name not in inputs]
     if missing:
         raise ArtifactError(f"stage {stage.name!r} needs inputs: {', '.join(missing)}")
     with workdir_lock(lock_root(out_dir, replace_folder), lock_wait_s):
         recover(out_dir.parent if replace_folder else out_dir)
-        return _execute_locked(stage, inputs, out_dir, params, progress, force, replace_folder)
+        return _execute_locked(stage, inputs, out_dir, params, progress, force, replace_folder,
+                               hold or InMemory())
+
+
+@dataclass(frozen=True)
+class InMemory:
+    """What a caller that holds artifacts in memory gives :func:`execute`
+    (``scanpipe run --follow``): nothing here changes a key or a written byte.
+
+    ``tables``: inputs already in memory, equal to their files (not read again); ``compute``:
+    computes the stage's result from its loaded inputs instead of the stage's own call — the
+    same result by construction (the follow runner's decode of a stream decoded as it grew);
+    ``keep_tables``: return the outputs in :attr:`RunRecord.tables`; ``keys``: the keys of raw
+    inputs computed already from the same bytes (the file may not be at its path yet).
+    """
+
+    tables: Mapping[str, pa.Table] = field(default_factory=dict)
+    keys: Mapping[str, str] = field(default_factory=dict)
+    compute: Callable[[Mapping[str, Any]], StageResult] | None = None
+    keep_tables: bool = False
 
 
 def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, params: Params,
-                    progress: ProgressFn, force: bool, replace_folder: bool) -> RunRecord:
-    keys = {name: input_key(name, inputs[name]) for name in stage.inputs}
+                    progress: ProgressFn, force: bool, replace_folder: bool,
+                    hold: InMemory) -> RunRecord:
+    keys = {name: hold.keys.get(name) or input_key(name, inputs[name]) for name in stage.inputs}
     libraries = library_versions(stage.libraries)
     params_data = params.model_dump(mode="json")
     key = artifact_key(stage.name, stage.version, params_data, keys, libraries)
@@ -106,9 +134,17 @@ def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, par
 
     loaded: dict[str, Any] = {}
     for name in stage.inputs:
-        loaded[name] = inputs[name] if name in RAW_INPUTS else read_artifact(inputs[name])[0]
+        if name in RAW_INPUTS:
+            loaded[name] = inputs[name]
+        else:
+            held = hold.tables.get(name)
+            loaded[name] = held if held is not None else read_artifact(inputs[name])[0]
     started = time.perf_counter()
-    result = stage.call(loaded, params, progress)  # inputs and outputs checked by schema
+    if hold.compute is not None:
+        result = hold.compute(loaded)
+        stage.check_result(result)
+    else:
+        result = stage.call(loaded, params, progress)  # inputs and outputs checked by schema
     seconds = time.perf_counter() - started
     provenance = {
         "key": key,
@@ -127,7 +163,8 @@ def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, par
     tables = {name: (table, {**provenance, "artifact": name, "rows": table.num_rows})
               for name, table in result.tables.items()}
     write_together(out_dir, stage.name, tables, result.files, replace_folder)
-    return RunRecord(stage.name, key, False, seconds, outputs, result.report)
+    return RunRecord(stage.name, key, False, seconds, outputs, result.report,
+                     dict(result.tables) if hold.keep_tables else {})
 
 
 def _reusable(outputs: Mapping[str, Path], out_dir: Path, key: str) -> bool:
@@ -193,38 +230,58 @@ def run_chain(
     The whole chain holds the workdir's lock, so a second run on the same workdir waits up to
     ``lock_wait_s`` seconds (then :class:`ArtifactError`) and two runs never mix artifacts.
     """
-    chain = list(stages if stages is not None else chain_stages("recording"))
-    names = [s.name for s in chain]
-    if to is not None and to not in names:
-        raise ParameterError([f"--to {to!r}: not a stage; stages: {', '.join(names)}"], "run")
-    if to is not None:
-        chain = chain[: names.index(to) + 1]
+    chain = chain_to(stages, to)
     check_recording(recording)
     if rig_override is not None:
         from scanpipe.rig import load_rig
 
         load_rig(rig_override)  # a bad rig file is refused before the workdir is touched
     with workdir_lock(workdir, lock_wait_s):
-        return _run_chain_locked(chain, recording, workdir, params, force, rig_override,
+        return run_locked_chain(chain, recording, workdir, params, force, rig_override,
                                  progress, on_stage)
 
 
-def _run_chain_locked(chain: Sequence[Stage], recording: Path, workdir: Path,
+def chain_to(stages: Sequence[Stage] | None, to: str | None) -> list[Stage]:
+    """The stages of a chain from a recording (``stages``, else the registry's), up to ``to``."""
+    chain = list(stages if stages is not None else chain_stages("recording"))
+    names = [s.name for s in chain]
+    if to is not None and to not in names:
+        raise ParameterError([f"--to {to!r}: not a stage; stages: {', '.join(names)}"], "run")
+    return chain if to is None else chain[: names.index(to) + 1]
+
+
+def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
                       params: Mapping[str, Params], force: bool, rig_override: Path | None,
-                      progress: ProgressFn, on_stage: Callable[[RunRecord], None] | None
-                      ) -> list[RunRecord]:
+                      progress: ProgressFn, on_stage: Callable[[RunRecord], None] | None,
+                      compute: Mapping[str, Callable[[Mapping[str, Any]], StageResult]]
+                      | None = None, in_memory: bool = False,
+                      raw_keys: Mapping[str, str] | None = None) -> list[RunRecord]:
+    """The chain, while the caller holds the workdir's lock. ``compute``: a stage's result
+    computed otherwise (see :class:`InMemory`); ``in_memory``: each stage's outputs are handed
+    to the next ones in memory as well as written (``scanpipe run --follow``), not read back."""
     available: dict[str, Path] = {"recording": recording}
+    tables: dict[str, pa.Table] = {}
     override_path = rig_override_artifact(rig_override, workdir) if rig_override else None
     records: list[RunRecord] = []
     rig_made = False
-    for stage in chain:
-        record = chain_step(stage, available, workdir, params, force, progress)
+    for index, stage in enumerate(chain):
+        hold = InMemory(tables={n: tables[n] for n in stage.inputs if n in tables},
+                        compute=(compute or {}).get(stage.name), keep_tables=in_memory,
+                        keys={n: k for n, k in (raw_keys or {}).items() if n in stage.inputs})
+        record = chain_step(stage, available, workdir, params, force, progress, hold=hold)
         available.update(record.outputs)
+        for name in record.outputs:  # reused outputs are read back from their files
+            tables.pop(name, None)
+        tables.update(record.tables)
         # The override replaces the recording's rig (decode's), not a rig a later stage
         # derives from it (calibrate's).
         if override_path is not None and "rig" in record.outputs and not rig_made:
             available["rig"] = override_path
+            tables.pop("rig", None)
         rig_made = rig_made or "rig" in record.outputs
+        needed = {n for later in chain[index + 1:] for n in later.inputs}
+        tables = {n: t for n, t in tables.items() if n in needed}
+        record = replace(record, tables={})  # the chain's records hold no tables
         records.append(record)
         if on_stage is not None:
             on_stage(record)
@@ -243,7 +300,8 @@ def check_recording(recording: Path) -> None:
 def chain_step(stage: Stage, available: Mapping[str, Path], workdir: Path,
                params: Mapping[str, Params], force: bool = False,
                progress: ProgressFn = no_progress,
-               lock_wait_s: float = DEFAULT_LOCK_WAIT_S) -> RunRecord:
+               lock_wait_s: float = DEFAULT_LOCK_WAIT_S, hold: InMemory | None = None
+               ) -> RunRecord:
     """One stage of the chain into ``workdir/<stage>/``, its inputs taken from ``available``
     (artifact name → path of the nearest upstream producer). :func:`run_chain` calls it per
     stage; so does a batch that runs each stage as its own task (:mod:`scanpipe.batch`)."""
@@ -253,7 +311,7 @@ def chain_step(stage: Stage, available: Mapping[str, Path], workdir: Path,
                             "which no earlier stage produces")
     return execute(stage, {n: available[n] for n in stage.inputs}, workdir / stage.name,
                    params.get(stage.name) or stage.params(), progress, force,
-                   replace_folder=True, lock_wait_s=lock_wait_s)
+                   replace_folder=True, lock_wait_s=lock_wait_s, hold=hold)
 
 
 def rig_override_artifact(path: Path, workdir: Path) -> Path:

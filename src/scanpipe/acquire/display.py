@@ -29,6 +29,26 @@ class RecorderStatus:
     time_left_s: float | None = None
     events: int = 0
     last_event: str = ""
+    #: The controller's count where the scan started (None before it starts), and the samples
+    #: of one profile: the coverage so far (share of the planned range, points).
+    start_count: int | None = None
+    samples_per_profile: int = 0
+
+
+def coverage(status: RecorderStatus) -> tuple[float | None, int]:
+    """``(share of the planned platform range covered, points so far)``.
+
+    The range runs from the scan's start count to ``pulse_limit`` (the sweep's end count); the
+    share is None before the scan starts. Points: one profile per position in step mode
+    (``positions_done``), every profile in continuous mode, times the samples of a profile.
+    """
+    profiles = status.positions_done if status.mode == "step" else status.profiles
+    points = profiles * status.samples_per_profile
+    if status.start_count is None:
+        return None, points
+    planned = status.pulse_limit - status.start_count
+    done = status.step_count - status.start_count
+    return (min(1.0, max(0.0, done / planned)) if planned > 0 else None), points
 
 
 def format_bytes(n: float) -> str:
@@ -57,8 +77,11 @@ def status_lines(status: RecorderStatus) -> list[tuple[str, str]]:
     frames = ", ".join(f"{cam} {n}" for cam, n in status.frames.items()) or "no cameras"
     if status.dropped_frames:
         frames += f" ({status.dropped_frames} dropped)"
+    share, points = coverage(status)
+    covered = "?" if share is None else f"{share:.0%} of the planned range"
     return [
         ("mode", f"{status.mode} — {status.phase}"),
+        ("coverage", f"{covered}, {points:,} points so far"),
         ("elapsed", format_duration(status.elapsed_s)),
         ("time left", format_duration(status.time_left_s)),
         ("profiles", str(status.profiles)),

@@ -30,6 +30,7 @@ the recording cleanly. Every such incident is an event on
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import socket
 import threading
@@ -52,6 +53,7 @@ from scanpipe.errors import DeviceError, ScanpipeError
 from scanpipe.params import Params
 from scanpipe.planning import DEFAULT_MOTOR_STEP_DEG, choose_steps, move_time_s
 from scanpipe.protocol import ldoem
+from scanpipe.recording.writer import SCAN_END_EVENT
 from scanpipe.rig import Rig
 
 CameraOpener = Callable[[Any], FrameSource]
@@ -429,6 +431,13 @@ class Recorder:
                     self.sink.event("motor_error", f"STOP failed: {err}")
         if self.scanner is not None:
             self.scanner.close(cancel=True)
+        # A follower (run --follow) makes the model now, with every profile recorded, not
+        # after the cameras' shut-down and the way back (which come with the recording's end).
+        if self._start_count is not None:  # the scan had started
+            self.sink.event(SCAN_END_EVENT, f"scan ended ({self.status})",
+                            {"status": self.status})
+            with contextlib.suppress(OSError, ScanpipeError):  # a failing disk: reported later
+                self.sink.flush()
         self.stop_event.set()
         for thread in self.cameras:
             thread.join(timeout=2.0)
@@ -617,6 +626,8 @@ class Recorder:
             time_left_s=self.time_left_s(),
             events=sum(stats.events.values()) if stats else 0,
             last_event=last,
+            start_count=self._start_count,
+            samples_per_profile=self.rig.scanner.samples_per_profile,
         )
 
     def _applied_limit(self) -> int:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin
 
@@ -12,8 +13,16 @@ import typer
 from pydantic import BaseModel
 
 from scanpipe.artifacts import read_provenance
-from scanpipe.cli.common import JSON, PARAMS_FILE, QUIET, SET, print_json, print_warnings
+from scanpipe.cli.common import (
+    JSON,
+    PARAMS_FILE,
+    QUIET,
+    SET,
+    print_json,
+    print_warnings,
+)
 from scanpipe.errors import ArtifactError
+from scanpipe.follow import DEFAULT_FOLLOW_TIMEOUT_S, FollowResult, FollowStatus, follow_chain
 from scanpipe.params import apply_assignments, load_toml
 from scanpipe.pipeline import RunRecord, Stage, registry, run_chain, validate_pipeline_params
 from scanpipe.progress import rich_progress
@@ -51,27 +60,94 @@ def run(
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
     as_json: bool = JSON,
+    follow: bool = typer.Option(
+        False, "--follow", help="Process the recording while it is being written (record, "
+                                "simulate): the model is ready seconds after the scan ends, "
+                                "equal to a run on the finished file."),
+    follow_timeout_s: float = typer.Option(
+        DEFAULT_FOLLOW_TIMEOUT_S, "--follow-timeout", min=0.1,
+        help="With --follow: seconds to wait for the recording to appear, and without growth "
+             "before a recording that never ends (a killed recorder) is processed as it is."),
 ) -> None:
     """Run the chain decode → … → export, reusing every artifact whose key is unchanged."""
     params = pipeline_params_from_cli(params_file, assignments)
     if not quiet:
-        sys.stderr.write(f"scanpipe run {recording} → {workdir}\n")
+        sys.stderr.write(f"scanpipe run {recording} → {workdir}"
+                         + (" (following the recording)" if follow else "") + "\n")
+    followed: FollowResult | None = None
     with rich_progress(quiet) as progress:
-        records = run_chain(recording, workdir, params, to=to, force=force, rig_override=rig,
-                            progress=progress,
-                            on_stage=lambda record: _print_record(record, quiet),
-                            lock_wait_s=wait_s)
+        if follow:
+            followed = follow_chain(recording, workdir, params, to=to, force=force,
+                                    rig_override=rig, progress=progress,
+                                    on_stage=lambda record: _print_record(record, quiet),
+                                    on_status=_status_printer(quiet), lock_wait_s=wait_s,
+                                    timeout_s=follow_timeout_s)
+            records = followed.records
+            print_warnings("follow", {"warnings": followed.warnings})
+        else:
+            records = run_chain(recording, workdir, params, to=to, force=force,
+                                rig_override=rig, progress=progress,
+                                on_stage=lambda record: _print_record(record, quiet),
+                                lock_wait_s=wait_s)
     ran = sum(not r.reused for r in records)
     total = sum(r.seconds for r in records)
     if not quiet:
         sys.stderr.write(f"{ran} ran, {len(records) - ran} reused, {total:.2f} s\n")
+        if followed is not None and followed.model_latency_s is not None:
+            sys.stderr.write(f"follow: the model was ready {followed.model_latency_s:.2f} s "
+                             f"after the last profile; decode {followed.decode}; taken from "
+                             "the scan's end: "
+                             f"{', '.join(followed.reused_from_scan_end) or 'nothing'}\n")
     if as_json:
-        print_json({"recording": str(recording), "workdir": str(workdir), "ran": ran,
-                    "reused": len(records) - ran, "seconds": total,
-                    "stages": [{"stage": r.stage, "key": r.key, "reused": r.reused,
-                                "seconds": r.seconds,
-                                "outputs": {k: str(v) for k, v in r.outputs.items()},
-                                "report": r.report} for r in records]})
+        info: dict[str, Any] = {
+            "recording": str(recording), "workdir": str(workdir), "ran": ran,
+            "reused": len(records) - ran, "seconds": total,
+            "stages": [{"stage": r.stage, "key": r.key, "reused": r.reused,
+                        "seconds": r.seconds,
+                        "outputs": {k: str(v) for k, v in r.outputs.items()},
+                        "report": r.report} for r in records]}
+        if followed is not None:
+            info["follow"] = {
+                "complete": followed.complete, "decode": followed.decode,
+                "last_profile_ns": followed.last_profile_ns,
+                "end_seen_ns": followed.end_seen_ns,
+                "scan_end_seen_ns": followed.scan_end_seen_ns,
+                "reused_from_scan_end": followed.reused_from_scan_end,
+                "changed_after_scan_end": followed.changed_after_scan_end,
+                "model_ready_ns": followed.model_ready_ns,
+                "model_latency_s": followed.model_latency_s,
+                "warnings": followed.warnings, "preview": followed.preview,
+                "visible_lag_s": _spread(followed.visible_lag_s)}
+        print_json(info)
+
+
+def _spread(values: list[float]) -> dict[str, float | int | None]:
+    """Count, median and maximum of some seconds."""
+    ordered = sorted(values)
+    return {"count": len(ordered),
+            "median": ordered[len(ordered) // 2] if ordered else None,
+            "max": ordered[-1] if ordered else None}
+
+
+def _status_printer(quiet: bool) -> Callable[[FollowStatus], None]:
+    """One line on stderr per tenth of the platform range covered (or per 10 s without a plan)."""
+    shown = {"step": -1}
+
+    def show(status: FollowStatus) -> None:
+        if quiet or not status.profiles:
+            return
+        step = (int(status.coverage * 10) if status.coverage is not None
+                else int(status.elapsed_s // 10))
+        if step <= shown["step"]:
+            return
+        shown["step"] = step
+        share = f"{status.coverage:.0%} of the platform range, " if status.coverage else ""
+        lag = f", {status.lag_s:.1f} s behind" if status.lag_s is not None else ""
+        sys.stderr.write(f"  follow     {share}{status.profiles} profiles, "
+                         f"{status.positions} positions, {status.points} points, "
+                         f"{status.faces} faces{lag}\n")
+
+    return show
 
 
 def show(

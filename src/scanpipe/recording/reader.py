@@ -18,15 +18,17 @@ dozen exception types.
 from __future__ import annotations
 
 import bisect
+import contextlib
 import io
 import json
 import mmap
+import os
 import struct
 import zlib
 from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import IO, Any, Protocol
 
 import numpy as np
 import zstandard
@@ -369,11 +371,14 @@ class _Buffer:
         return result
 
 
-def read_recording(path: Path | str) -> Recording:
-    """Read a recording in one linear pass; see the module docstring for damage handling."""
+def read_recording(path: Path | str, handle: IO[bytes] | None = None) -> Recording:
+    """Read a recording in one linear pass; see the module docstring for damage handling.
+
+    ``handle``: read this open file (named ``path`` in the result and in messages) instead of
+    opening ``path`` (a follower's file, which its writer may have renamed or deleted)."""
     path = Path(path)
     collector = _Collector()
-    bytes_read, size, loss = _scan(path, collector)
+    bytes_read, size, loss = _scan(path, collector, handle)
     return _assemble(path, collector, bytes_read, size, loss)
 
 
@@ -429,11 +434,12 @@ def _catalogue(path: Path, collector: _Collector, bytes_read: int, size: int,
         chunks_damaged=collector.chunks_damaged, loss=loss)
 
 
-def _scan(path: Path, collector: _Collector) -> tuple[int, int, RecordingLoss]:
+def _scan(path: Path, collector: _Collector, opened: IO[bytes] | None = None
+          ) -> tuple[int, int, RecordingLoss]:
     """The linear pass over one file: ``(bytes read, file size, loss)``."""
     try:
-        with path.open("rb") as handle:
-            size = path.stat().st_size
+        with contextlib.nullcontext(opened) if opened is not None else path.open("rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
             if size < len(MAGIC):
                 raise RecordingError(f"{path}: {size} bytes, not an MCAP recording")
             with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as data:
@@ -825,6 +831,18 @@ def _read_message(channel: int, sequence: int, log_time: int, data: bytes, c: _C
         c.undecodable[topic] += 1
 
 
+def _motor_states(motor_rows: list[tuple[int, int, int, bool, int]]) -> MotorStates:
+    """The motor state reports as columns in log-time order."""
+    rows = sorted(motor_rows, key=lambda r: r[0])
+    return MotorStates(
+        log_time_ns=np.array([r[0] for r in rows], np.int64),
+        step_count=np.array([r[1] for r in rows], np.int64),
+        target_step_count=np.array([r[2] for r in rows], np.int64),
+        moving=np.array([r[3] for r in rows], np.bool_),
+        device_time_us=np.array([r[4] for r in rows], np.uint64).astype(np.int64),
+    )
+
+
 def _summary_chunks(data: mmap.mmap, size: int) -> list[tuple[int, int, int]] | None:
     """(offset, start_ns, end_ns) of every chunk the summary section indexes, or None when the
     file has no summary or its CRC does not confirm it."""
@@ -945,14 +963,7 @@ def _assemble(path: Path, c: _Collector, bytes_read: int, size: int,
             log_time_ns=np.fromiter((p[1] for p in parts), np.int64, len(parts)),
             missing_chunks=missing,
         )
-    rows = sorted(c.motor_rows, key=lambda r: r[0])
-    motor = MotorStates(
-        log_time_ns=np.array([r[0] for r in rows], np.int64),
-        step_count=np.array([r[1] for r in rows], np.int64),
-        target_step_count=np.array([r[2] for r in rows], np.int64),
-        moving=np.array([r[3] for r in rows], np.bool_),
-        device_time_us=np.array([r[4] for r in rows], np.uint64).astype(np.int64),
-    )
+    motor = _motor_states(c.motor_rows)
     return Recording(
         path=path, profile=c.profile, library=c.library, metadata=c.metadata, streams=streams,
         motor=motor, images=sorted(c.images, key=lambda i: (i.camera_id, i.log_time_ns)),
@@ -961,3 +972,162 @@ def _assemble(path: Path, c: _Collector, bytes_read: int, size: int,
         chunks_read=c.chunks_read, chunks_damaged=c.chunks_damaged, loss=loss,
         profiles=sorted(c.profiles, key=lambda p: (p.log_time_ns, p.frame)),
     )
+
+
+class RecordingTail:
+    """Reads a recording while its writer is still appending to it (``scanpipe run --follow``).
+
+    Each :meth:`poll` parses the records that have become complete since the last one, with the
+    same record functions and in the same order as :func:`read_recording`, so once the data end
+    record is read :meth:`recording` is exactly what :func:`read_recording` returns for the
+    finished file. The tail never guesses: a record that does not check out (damage, an unknown
+    opcode) stops it where it is (:attr:`stuck`), and the caller reads the finished file with
+    :func:`read_recording` instead, which handles damage.
+
+    ``handle`` is an open binary file, read through its descriptor, so the tail keeps reading
+    the same file when it is renamed into place (``scanpipe simulate`` writes a temporary name).
+    """
+
+    def __init__(self, path: Path, handle: IO[bytes]) -> None:
+        self.path = Path(path)
+        self._fd = handle.fileno()
+        self._collector = _Collector()
+        self.position = 0  # the offset of the first record not yet parsed
+        self.bytes_read = 0  # where the batch reader would stop (after the data end record)
+        self.stuck: str | None = None
+        self._taken: dict[tuple[str, int], int] = defaultdict(int)
+
+    @property
+    def complete(self) -> bool:
+        """Whether the data end record has been read (the writer finished)."""
+        return self._collector.complete
+
+    @property
+    def size(self) -> int:
+        """The file's size now, in bytes."""
+        return os.fstat(self._fd).st_size
+
+    @property
+    def warnings(self) -> list[str]:
+        """What the record functions noted so far (a damaged chunk …)."""
+        return list(self._collector.warnings)
+
+    @property
+    def metadata(self) -> dict[str, dict[str, str]]:
+        """The metadata records read so far (the rig, the session)."""
+        return self._collector.metadata
+
+    @property
+    def motor_states(self) -> int:
+        """Motor state reports read so far."""
+        return len(self._collector.motor_rows)
+
+    def event_kinds(self) -> list[str]:
+        """The kinds of the events read so far, in the order read."""
+        return [e.kind for e in self._collector.events]
+
+    def snapshot(self) -> Recording:
+        """What has been read so far, as a :class:`Recording` (its loss not counted: the file is
+        not finished)."""
+        return _assemble(self.path, self._collector, self.position, self.size, RecordingLoss())
+
+    def motor(self) -> MotorStates:
+        """The motor state reports read so far, in log-time order."""
+        return _motor_states(self._collector.motor_rows)
+
+    def new_stream_parts(self, link: str, direction: int) -> list[tuple[int, int, bytes]]:
+        """``(seq, log time, bytes)`` of one link's chunks read since the last call."""
+        parts = self._collector.stream_parts.get((link, direction), [])
+        start = self._taken[(link, direction)]
+        self._taken[(link, direction)] = len(parts)
+        return parts[start:]
+
+    def poll(self) -> bool:
+        """Parse every record completed since the last poll; True when any was parsed."""
+        if self.complete or self.stuck is not None:
+            return False
+        size = self.size
+        if size <= max(self.position, len(MAGIC)):
+            return False
+        with mmap.mmap(self._fd, size, access=mmap.ACCESS_READ) as data:
+            if self.position == 0:
+                if data[:len(MAGIC)] != MAGIC:
+                    raise RecordingError(f"{self.path}: {_not_mcap(bytes(data[:16]))}")
+                self.position = len(MAGIC)
+            start = self.position
+            try:
+                self._parse(data, size)
+            except RecordingError as err:  # a ROS bag's header: the batch reader's message
+                raise RecordingError(f"{self.path}: {err}") from None
+            return self.position > start
+
+    def _parse(self, data: mmap.mmap, size: int) -> None:
+        c, pos = self._collector, self.position
+        while pos + 9 <= size:
+            opcode = data[pos]
+            (length,) = struct.unpack_from("<Q", data, pos + 1)
+            if opcode not in KNOWN_OPCODES:
+                self.stuck = f"unknown record opcode {opcode:#04x} at byte {pos}"
+                break
+            end = pos + 9 + length
+            if end > size:
+                break  # the record is still being written
+            if opcode in (OP_DATA_END, OP_FOOTER):
+                if length != _END_LENGTHS[opcode]:
+                    self.stuck = f"end record at byte {pos} has a wrong length ({length})"
+                    break
+                c.complete = True
+                self.bytes_read = end
+                pos = end
+                break
+            if opcode == OP_CHUNK:
+                if _chunk_end(data, pos, size, check_length=True) is None:
+                    self.stuck = f"chunk at byte {pos}: its length field does not match"
+                    break
+            elif not _next_record_complete(data, end, size):
+                break  # the next record confirms this one's length: wait for it
+            elif _chunk_end(data, pos, size, check_length=True) is not None or \
+                    not _length_confirmed(data, pos, opcode, length, size):
+                self.stuck = f"record {opcode:#04x} at byte {pos}: its length is not confirmed"
+                break
+            body = data[pos + 9:end]
+            try:
+                if opcode == OP_CHUNK:
+                    _read_chunk(body, pos, c)
+                else:
+                    _read_record(opcode, body, c)
+            except _DAMAGE as err:
+                self.stuck = f"record {opcode:#04x} at byte {pos} is damaged ({err})"
+                break
+            pos = end
+        self.position = pos
+
+    def recording(self) -> Recording:
+        """The whole recording, as :func:`read_recording` reads the finished file; only once
+        :attr:`complete` and not :attr:`stuck`."""
+        if not self.complete or self.stuck is not None:
+            raise RecordingError(f"{self.path}: the tail has not read the whole recording "
+                                 "(read the finished file instead)")
+        size = self.size
+        with mmap.mmap(self._fd, size, access=mmap.ACCESS_READ) as data:
+            loss = _loss(data, size, self._collector)
+        return _assemble(self.path, self._collector, self.bytes_read, size, loss)
+
+
+def _next_record_complete(data: mmap.mmap, pos: int, size: int) -> bool:
+    """Whether the record starting at ``pos`` is wholly in the file (by its length field)."""
+    if pos + 9 > size:
+        return False
+    (length,) = struct.unpack_from("<Q", data, pos + 1)
+    return bool(length <= size - pos - 9)
+
+
+def writer_finished(handle: IO[bytes]) -> bool:
+    """Whether an open recording ends as a finished MCAP file does (the closing magic bytes
+    after the footer): its writer closed it."""
+    try:
+        size = os.fstat(handle.fileno()).st_size
+        return size >= 2 * len(MAGIC) and os.pread(handle.fileno(), len(MAGIC),
+                                                   size - len(MAGIC)) == MAGIC
+    except OSError:
+        return False

@@ -43,6 +43,9 @@ MOTOR_STATE = "/motor/state"
 #: Already-decoded profiles (``scanpipe.Profile``), e.g. imported from a ROS bag.
 SCANNER_PROFILES = "/scanner/profiles"
 EVENTS = "/events"
+#: The event the recorder writes when the scan has ended (scanner and cameras stopped), before
+#: the platform returns to the start: a follower (``run --follow``) finishes the model then.
+SCAN_END_EVENT = "scan_end"
 RIG_METADATA = "scanpipe.rig"
 RIG_KEY = "rig.toml"
 SESSION_METADATA = "scanpipe.session"

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -43,6 +44,7 @@ from scanpipe.protocol import scip
 from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, unwrap_counter
 from scanpipe.protocol.registry import (
     DecodedFrame,
+    Dialect,
     StreamDecoder,
     describe_bytes,
     get_dialect,
@@ -51,6 +53,7 @@ from scanpipe.protocol.registry import (
 from scanpipe.recording.reader import (
     DecodedProfile,
     Image,
+    MotorStates,
     Recording,
     StreamData,
     read_recording,
@@ -182,7 +185,11 @@ def decoded_profiles_table(profiles: Sequence[DecodedProfile]) -> pa.Table:
 
 def motor_table(recording: Recording) -> pa.Table:
     """The ``motor`` artifact: every motor state report in log-time order."""
-    m = recording.motor
+    return motor_states_table(recording.motor)
+
+
+def motor_states_table(m: MotorStates) -> pa.Table:
+    """The ``motor`` artifact of motor state reports (in log-time order)."""
     return pa.table([pa.array(m.log_time_ns, pa.int64()), pa.array(m.step_count, pa.int64()),
                      pa.array(m.target_step_count, pa.int64()), pa.array(m.moving, pa.bool_()),
                      pa.array(m.device_time_us, pa.int64())], schema=MOTOR_SCHEMA)
@@ -241,26 +248,42 @@ def _recording_rig(recording: Recording, warnings: list[str]) -> tuple[Rig, pa.T
     return rig, rig_table(rig)
 
 
+@dataclass
+class DecodedStream:
+    """The scanner stream (``/scanner/stream``, RX) already decoded, all of it and finished
+    (``scanpipe run --follow`` decodes it while it grows): the dialect, the decoder with its
+    counters, the frames."""
+
+    dialect: Dialect
+    decoder: StreamDecoder
+    frames: list[DecodedFrame]
+
+
 def decode_recording(recording: Recording, params: DecodeParams,
-                     progress: ProgressFn = no_progress) -> StageResult:
-    """The decode stage on a recording already read (pure: no file access)."""
+                     progress: ProgressFn = no_progress,
+                     decoded: DecodedStream | None = None) -> StageResult:
+    """The decode stage on a recording already read (pure: no file access); ``decoded``: its
+    scanner stream decoded already, with ``params``."""
     warnings = list(recording.warnings)
     rig, rig_artifact = _recording_rig(recording, warnings)
     stream = recording.stream("scanner", RX)
     data = stream.data
-    try:
-        dialect = resolve_dialect(params.dialect, data)
-    except ProtocolError as err:
-        if data or not recording.profiles:
+    if decoded is not None:
+        dialect, decoder, frames = decoded.dialect, decoded.decoder, decoded.frames
+    else:
+        try:
+            dialect = resolve_dialect(params.dialect, data)
+        except ProtocolError as err:
+            if data or not recording.profiles:
                 warnings.append(f"{err}; decoding as the rig's dialect {rig.scanner.dialect!r}")
-        dialect = get_dialect(rig.scanner.dialect)
-    decoder = StreamDecoder(dialect, params.checksum, params.max_frame_bytes)
-    frames: list[DecodedFrame] = []
-    view = memoryview(data)
-    for start in range(0, len(data), _FEED_BYTES):
-        frames += decoder.feed_frames(view[start:start + _FEED_BYTES])
-        progress("decode scanner stream", min(start + _FEED_BYTES, len(data)), len(data))
-    frames += decoder.finish_frames()
+            dialect = get_dialect(rig.scanner.dialect)
+        decoder = StreamDecoder(dialect, params.checksum, params.max_frame_bytes)
+        frames = []
+        view = memoryview(data)
+        for start in range(0, len(data), _FEED_BYTES):
+            frames += decoder.feed_frames(view[start:start + _FEED_BYTES])
+            progress("decode scanner stream", min(start + _FEED_BYTES, len(data)), len(data))
+        frames += decoder.finish_frames()
     if params.dialect != "auto" and data and decoder.counters.frames_decoded == 0:
         raise StageError(f"{recording.path}: decode.dialect = {params.dialect}: no frame of it "
                          f"in the {len(data)} bytes received from the scanner "
