@@ -69,9 +69,10 @@ def run(scale: str, positions: int, workers: int, say: Any) -> dict[str, Any]:
         def step(name: str, *args: str) -> dict[str, Any]:
             say(name)
             started = time.perf_counter()
-            out = _scanpipe(*args)
-            seconds[name] = round(time.perf_counter() - started, 2)
-            return out
+            try:
+                return _scanpipe(*args)
+            finally:
+                seconds[name] = round(time.perf_counter() - started, 2)
 
         step("simulate", "simulate", "--site", str(positions), "--direct", "--out", str(recs),
              "--truth", str(truth), "--noise-mm", str(NOISE_MM), "--prior-error-m", "0.5",

@@ -29,6 +29,7 @@ to one face, never leave a gap.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import tempfile
 from collections.abc import Mapping
@@ -41,7 +42,13 @@ import pyarrow as pa
 from numpy.typing import NDArray
 from pydantic import Field
 
-from scanpipe.artifacts import PROVENANCE_KEY, artifact_key, read_artifact, write_artifact
+from scanpipe.artifacts import (
+    PROVENANCE_KEY,
+    artifact_key,
+    canonical_json,
+    read_artifact,
+    write_artifact,
+)
 from scanpipe.errors import UsageError
 from scanpipe.exporters.e57 import E57Image, E57Scan, write_e57
 from scanpipe.exporters.model import MeshModel, cloud_from_table, mesh_from_tables, unit_normals
@@ -274,17 +281,18 @@ def _compose(pose_zup: tuple[tuple[float, ...], tuple[float, ...]], image: E57Im
                    name=f"{scan}_{image.name}")
 
 
-def site_e57_bytes(scans: list[SiteScan], coloured: list[pa.Table], images: bool,
-                   provenance: str) -> bytes:
-    """The site as one E57 file: a data3D scan per position in its own frame with its pose,
-    and (with ``images``) each position's camera frames posed in the file's frame."""
-    from scanpipe.stages.export import e57_images
+def site_e57_bytes(scans: list[SiteScan], coloured: list[pa.Table], images: bool) -> bytes:
+    """The site as one E57 file: a data3D scan per position in its own frame with its pose
+    and the provenance of its points, and (with ``images``) each position's camera frames
+    posed in the file's frame."""
+    from scanpipe.exporters.las import provenance_bytes
+    from scanpipe.stages.export import e57_images, provenance_of
 
     entries, pictures = [], []
     for scan, points in zip(scans, coloured, strict=True):
         pose = z_up_pose(scan.pose)
-        entries.append(E57Scan(cloud_from_table(points), scan.name, pose[0], pose[1],
-                               provenance))
+        record = provenance_bytes(provenance_of({"points": points})).decode()
+        entries.append(E57Scan(cloud_from_table(points), scan.name, pose[0], pose[1], record))
         if images:
             pictures += [_compose(pose, image, scan.name)
                          for image in e57_images({**scan.tables, "points": points})]
@@ -312,7 +320,7 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
     ``out`` (see the module docstring). Scans without a pose are left out with a warning."""
     from scanpipe.exporting import write_files
     from scanpipe.outpaths import check_output_files, check_output_folder
-    from scanpipe.stages.export import export_files, prepare_tables, provenance_of
+    from scanpipe.stages.export import export_files, prepare_tables
     from scanpipe.stages.mesh import usable_points
 
     if not workdirs:
@@ -365,9 +373,8 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
     progress("site-model", len(chosen) + 2, steps)
     inputs = {f"{s.name}/{a}": k for s in scans for a, k in s.keys.items()}
     used_poses = poses_table([s.name for s in scans], [s.pose for s in scans])
-    inputs["poses"] = str(poses_path)
-    inputs["poses_sha"] = artifact_key("poses", 1, {}, {}, {"table": json.dumps(
-        used_poses.to_pydict(), sort_keys=True, default=str)})
+    inputs["poses"] = hashlib.sha256(canonical_json(used_poses.to_pydict()).encode()
+                                     ).hexdigest()[:24]
     key = artifact_key("site-model", MODEL_VERSION, params.model_dump(mode="json"), inputs, {})
     report: dict[str, Any] = {"scans": [s.name for s in scans], "merge": merge_report,
                               "fuse": fuse_report, "poses": str(poses_path)}
@@ -380,9 +387,7 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
     files.update(export_files(tables, "las", MODEL_STEM, params.las_version))
     files.update(export_files(tables, "glb", MODEL_STEM))
     files.update(export_files(tables, "obj", MODEL_STEM))
-    files[f"{MODEL_STEM}.e57"] = site_e57_bytes(
-        scans, coloured, params.images,
-        json.dumps(provenance_of({"points": tables["points"]}), sort_keys=True))
+    files[f"{MODEL_STEM}.e57"] = site_e57_bytes(scans, coloured, params.images)
     progress("site-model", len(chosen) + 3, steps)
     check_output_files([out / f for f in files if f not in export_names], "--out", force,
                        [*workdirs, poses_path])
