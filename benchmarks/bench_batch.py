@@ -77,7 +77,7 @@ def ray_task_costs(ray: Any) -> dict[str, float]:
             "per_task_in_flight_ms": round(in_flight_s / EMPTY_TASKS * 1e3, 3)}
 
 
-def _import_chain() -> int:
+def _import_chain(_: int = 0) -> int:
     """What a spawned batch worker does before its first recording: import the chain."""
     from scanpipe.stages import chain_stages as stages
 

@@ -127,6 +127,8 @@ def test_site_model_is_accurate_against_the_true_scene(site: Path, model: Path) 
     # 0.5 σ target is for the 1° × 0.5° lab scan: benchmarks/bench_site.py)
     assert report["mesh_mean_m"] <= SIGMA_M
     assert report["precision"] >= 0.9
+    # each scan's texture stays on its surface once placed in the site frame
+    assert report["texture_psnr_db"] is not None and report["texture_psnr_db"] >= 24.0
     # fusing loses no surface: as complete as all the scans' own meshes together
     truth = load_site_truth(site / "truth")
     parts = []
@@ -206,6 +208,15 @@ def test_site_exports_open_with_their_readers(site: Path, model: Path) -> None:
     # GLB and OBJ: the fused mesh
     glb = trimesh.load(model / "site.glb", force="mesh")
     assert len(glb.faces) == faces.num_rows
+    # the texture: each scan's own, kept with its faces (the same share textured)
+    textured = pq.read_table(model / "model" / "textured_faces.parquet")
+    own = [pq.read_table(Path(w) / "texture" / "textured_faces.parquet").column("page")
+           .to_numpy() for w in workdirs(site)]
+    own_share = np.mean(np.concatenate(own) >= 0)
+    assert own_share > 0.2
+    assert abs(np.mean(textured.column("page").to_numpy() >= 0) - own_share) < 0.03
+    sources = {str(c).split("/")[0] for c in textured.column("camera_id").to_pylist() if c}
+    assert sources == {f"pos{i:02d}" for i in range(POSITIONS)}  # texture from every scan
     assert (model / "site.obj").is_file() and (model / "site.mtl").is_file()
     assert list(model.glob("site_page*.png")) or list(model.glob("site*.png"))
 

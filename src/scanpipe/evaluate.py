@@ -423,6 +423,7 @@ def evaluate_site(result: Path, truth: Path, tau_m: float = 0.02, samples: int =
         "points_mean_m": None, "points_rms_m": None, "points_p95_m": None, "points_count": 0,
         "mesh_mean_m": None, "mesh_rms_m": None, "mesh_p95_m": None, "completeness": None,
         "precision": None, "fscore": None, "visible_truth_share": None,
+        "texture_psnr_db": None, "texture_pixels": 0, "texture_views": 0,
     }
     model = result / "model" if (result / "model").is_dir() else result
     model_poses_path = find_artifact(model, "poses") or poses_path
@@ -443,11 +444,34 @@ def evaluate_site(result: Path, truth: Path, tau_m: float = 0.02, samples: int =
         mesh = load_render_mesh(model)
         vertices = (np.asarray(mesh.vertices, np.float64) @ model_to_truth[:3, :3].T
                     + model_to_truth[:3, 3])
-        moved = RenderMesh(vertices.astype(np.float32), mesh.faces)
+        moved = RenderMesh(vertices.astype(np.float32), mesh.faces, mesh.vertex_colors,
+                           mesh.face_uvs, mesh.face_pages, mesh.pages)
         origins = [site.origins[model_names[n]] for n in sorted(model_names)]
         report.update(site_mesh_metrics(moved, site, origins, tau_m, samples, 0,
                                         truth_surface))
+        report.update(site_texture_psnr(moved, site, origins))
     return report
+
+
+def site_texture_psnr(result: RenderMesh, truth: SiteTruth, origins: Sequence[F64],
+                      views: int = 8, width: int = 160) -> dict[str, Any]:
+    """:func:`texture_psnr` from every scan position's viewpoints together (the squared error
+    summed over all their pixels)."""
+    squared, pixels, count = 0.0, 0, 0
+    for origin in origins:
+        one = texture_psnr(result, Reference(truth.mesh, vec3(origin)), views, width)
+        count += one["texture_views"]
+        if one["texture_psnr_db"] is None:
+            continue
+        mse = 0.0 if math.isinf(one["texture_psnr_db"]) else 255.0**2 / 10 ** (
+            one["texture_psnr_db"] / 10)
+        squared += mse * one["texture_pixels"]
+        pixels += one["texture_pixels"]
+    if pixels == 0:
+        return {"texture_psnr_db": None, "texture_pixels": 0, "texture_views": count}
+    mse = squared / pixels
+    return {"texture_psnr_db": math.inf if mse == 0 else 10 * math.log10(255.0**2 / mse),
+            "texture_pixels": pixels, "texture_views": count}
 
 
 def format_site_evaluation(report: dict[str, Any]) -> str:
@@ -470,6 +494,10 @@ def format_site_evaluation(report: dict[str, Any]) -> str:
                      f"{report['precision'] * 100:.1f} %   completeness "
                      f"{report['completeness'] * 100:.1f} %   F {report['fscore']:.3f} at "
                      f"τ = {report['tau_m'] * 1000:g} mm")
+        psnr = report.get("texture_psnr_db")
+        lines.append(f"texture  PSNR {'n/a' if psnr is None else f'{psnr:.2f} dB'} over "
+                     f"{report.get('texture_pixels', 0)} pixels in "
+                     f"{report.get('texture_views', 0)} views (from every position)")
     else:
         lines.append("mesh     n/a (no model: run scanpipe site-model)")
     return "\n".join(lines)
