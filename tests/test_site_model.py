@@ -257,6 +257,17 @@ def test_site_model_cli_refusals(cli: Callable[..., Any], site: Path, model: Pat
                  "-q")
     assert result.code == 0, result.err
     assert "warning: site-model: pos02: no pose" in result.err
+    # register's output as it stands: OUT/poses.parquet (and its merged points, kept)
+    registered = tmp_path / "registered"
+    registered.mkdir()
+    write_artifact(registered / "poses.parquet", poses_table(list(true), list(true.values())),
+                   {})
+    (registered / "points.parquet").write_bytes(b"register's merged points")
+    result = cli("site-model", *dirs, "--out", str(registered), "-q", "--json")
+    assert result.code == 0, result.err
+    assert (registered / "points.parquet").read_bytes() == b"register's merged points"
+    assert poses_from_table(pq.read_table(registered / "model" / "poses.parquet")).keys() == \
+        true.keys()
 
 
 @pytest.mark.slow
