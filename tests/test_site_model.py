@@ -193,10 +193,22 @@ def test_site_exports_open_with_their_readers(site: Path, model: Path) -> None:
             raw = reader.read_scan_raw(index)
             assert "rowIndex" in raw and "columnIndex" in raw  # the scan grid is kept
             assert "colorRed" in raw and "intensity" in raw
-        images = pye57.libe57.VectorNode(reader.image_file.root().get("images2D"))
+        # the images: each position's camera frames, posed in the site frame beside where
+        # that position's scanner stood (the cameras ride on the platform, ≤ 0.3 m off)
+        e57 = pye57.libe57
+        images = e57.VectorNode(reader.image_file.root().get("images2D"))
         assert images.childCount() > 0
-        first = pye57.libe57.StructureNode(images.get(0))
-        assert pye57.libe57.StringNode(first.get("name")).value().startswith("pos00_")
+        names = set()
+        for k in range(images.childCount()):
+            image = e57.StructureNode(images.get(k))
+            name = e57.StringNode(image.get("name")).value()
+            names.add(name.split("_")[0])
+            translation = e57.StructureNode(e57.StructureNode(image.get("pose")).get(
+                "translation"))
+            centre = [e57.FloatNode(translation.get(a)).value() for a in "xyz"]
+            scanner = rig_to_z_up(truth.origins[name.split("_")[0]][None, :])[0]
+            assert np.linalg.norm(np.asarray(centre) - scanner) < 0.3, name
+        assert names == {f"pos{i:02d}" for i in range(POSITIONS)}
     finally:
         reader.close()
     # LAS: the merged cloud
