@@ -295,6 +295,10 @@ def test_eval_cli_on_a_site(cli: Callable[..., Any], site: Path, model: Path) ->
     assert report["mesh_mean_m"] is not None
     text = format_site_evaluation(report)
     assert "pos02" in text and "completeness" in text
+    # one scan's workdir against a site truth: refused in one line (it has no poses)
+    result = cli("eval", workdirs(site)[0], "--truth", str(site / "truth"))
+    assert result.code != 0 and "no poses artifact" in result.err
+    assert "Traceback" not in result.err and len(result.err.strip().splitlines()) == 1
     # a single-scan truth folder is no site truth: eval on it stays the one-scan evaluation
     result = cli("eval", str(site / "truth"), "--truth", str(site / "truth" / "nowhere"))
     assert result.code == 2 and "not found" in result.err
