@@ -281,24 +281,27 @@ def _compose(pose_zup: tuple[tuple[float, ...], tuple[float, ...]], image: E57Im
                    name=f"{scan}_{image.name}")
 
 
-def site_e57_bytes(scans: list[SiteScan], coloured: list[pa.Table], images: bool) -> bytes:
-    """The site as one E57 file: a data3D scan per position in its own frame with its pose
-    and the provenance of its points, and (with ``images``) each position's camera frames
-    posed in the file's frame."""
+def scan_e57(scan: SiteScan, points: pa.Table, images: bool
+             ) -> tuple[E57Scan, list[E57Image]]:
+    """One position's E57 scan (its own frame, its pose, the provenance of its points) and,
+    with ``images``, its camera frames posed in the file's (site's) frame."""
     from scanpipe.exporters.las import provenance_bytes
     from scanpipe.stages.export import e57_images, provenance_of
 
-    entries, pictures = [], []
-    for scan, points in zip(scans, coloured, strict=True):
-        pose = z_up_pose(scan.pose)
-        record = provenance_bytes(provenance_of({"points": points})).decode()
-        entries.append(E57Scan(cloud_from_table(points), scan.name, pose[0], pose[1], record))
-        if images:
-            pictures += [_compose(pose, image, scan.name)
-                         for image in e57_images({**scan.tables, "points": points})]
+    pose = z_up_pose(scan.pose)
+    record = provenance_bytes(provenance_of({"points": points})).decode()
+    entry = E57Scan(cloud_from_table(points), scan.name, pose[0], pose[1], record)
+    pictures = ([_compose(pose, image, scan.name)
+                 for image in e57_images({**scan.tables, "points": points})] if images else [])
+    return entry, pictures
+
+
+def site_e57_bytes(scans: list[E57Scan], images: list[E57Image]) -> bytes:
+    """The site as one E57 file: a data3D scan per position, then the images
+    (libE57Format writes only to paths: via a temporary file)."""
     with tempfile.TemporaryDirectory(prefix="scanpipe-site-e57-") as tmp:
         path = Path(tmp) / "site.e57"
-        write_e57(path, entries, pictures)
+        write_e57(path, scans, images)
         return path.read_bytes()
 
 
@@ -351,35 +354,45 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
                        + [model_dir / f"{a}.parquet" for a in MODEL_ARTIFACTS],
                        "--out", force, [*workdirs, poses_path])
     steps = 4 + len(chosen)
-    scans = []
+    # one scan at a time: only what the model needs is kept (not the scan's camera frames)
+    names_kept, poses_kept, keys, coloured, placed, positions = [], [], [], [], [], []
+    e57_scans: list[E57Scan] = []
+    e57_pictures: list[E57Image] = []
     for done, (workdir, name) in enumerate(chosen):
         progress("site-model", done, steps)
-        scans.append(load_scan(workdir, name, poses[matched[name]]))
-    # each scan's points coloured from its own frames (as `scanpipe run` exports them)
-    coloured = []
-    for scan in scans:
+        scan = load_scan(workdir, name, poses[matched[name]])
         if "texture_pages" not in scan.tables:
             warnings.append(f"{scan.name}: no texture artifacts; its part of the model is "
                             "untextured")
+        # its points coloured from its own frames (as `scanpipe run` exports them)
         tables, _ = prepare_tables({**scan.tables, "points": usable_points(scan.tables["points"])})
         coloured.append(tables["points"])
+        entry, pictures = scan_e57(scan, tables["points"], params.images)
+        e57_scans.append(entry)
+        e57_pictures += pictures
+        placed.append(_scan_mesh(scan))
+        positions.append(scanner_position(scan))
+        names_kept.append(scan.name)
+        poses_kept.append(scan.pose)
+        keys.append((scan.name, scan.keys, str(scan.workdir)))
+        del scan, tables
     progress("site-model", len(chosen), steps)
-    merged, merge_report = merge_scans(coloured, [s.pose for s in scans], params.merge_voxel_m)
+    merged, merge_report = merge_scans(coloured, poses_kept, params.merge_voxel_m)
     progress("site-model", len(chosen) + 1, steps)
-    placed = [_scan_mesh(s) for s in scans]
     mesh, camera, frame, fuse_report = fuse_meshes(
-        [p[0] for p in placed], [scanner_position(s) for s in scans], params.fuse_voxel_m,
+        [p[0] for p in placed], positions, params.fuse_voxel_m,
         [p[1] for p in placed], [p[2] for p in placed])
+    del placed
     progress("site-model", len(chosen) + 2, steps)
-    inputs = {f"{s.name}/{a}": k for s in scans for a, k in s.keys.items()}
-    used_poses = poses_table([s.name for s in scans], [s.pose for s in scans])
+    inputs = {f"{n}/{a}": k for n, scan_keys, _ in keys for a, k in scan_keys.items()}
+    used_poses = poses_table(names_kept, poses_kept)
     inputs["poses"] = hashlib.sha256(canonical_json(used_poses.to_pydict()).encode()
                                      ).hexdigest()[:24]
     key = artifact_key("site-model", MODEL_VERSION, params.model_dump(mode="json"), inputs, {})
-    report: dict[str, Any] = {"scans": [s.name for s in scans], "merge": merge_report,
+    report: dict[str, Any] = {"scans": names_kept, "merge": merge_report,
                               "fuse": fuse_report, "poses": str(poses_path)}
     provenance = {"stage": "site-model", "key": key, "params": params.model_dump(mode="json"),
-                  "inputs": {s.name: str(s.workdir) for s in scans}, "report": report}
+                  "inputs": {n: w for n, _, w in keys}, "report": report}
     tables = {"poses": used_poses, "points": merged, **mesh_tables(mesh, camera, frame)}
     tables = {n: t.replace_schema_metadata({PROVENANCE_KEY: json.dumps(
         {**provenance, "stage": f"site-model/{n}"})}) for n, t in tables.items()}
@@ -387,7 +400,7 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
     files.update(export_files(tables, "las", MODEL_STEM, params.las_version))
     files.update(export_files(tables, "glb", MODEL_STEM))
     files.update(export_files(tables, "obj", MODEL_STEM))
-    files[f"{MODEL_STEM}.e57"] = site_e57_bytes(scans, coloured, params.images)
+    files[f"{MODEL_STEM}.e57"] = site_e57_bytes(e57_scans, e57_pictures)
     progress("site-model", len(chosen) + 3, steps)
     check_output_files([out / f for f in files if f not in export_names], "--out", force,
                        [*workdirs, poses_path])
