@@ -256,6 +256,15 @@ def test_site_model_cli_refusals(cli: Callable[..., Any], site: Path, model: Pat
     result = cli("site-model", str(bare), dirs[1], "--out", str(tmp_path / "s2"), "--poses",
                  str(site / "truth" / "poses.parquet"))
     assert result.code == 2 and "no mesh_vertices, mesh_faces artifact" in result.err
+    # a --poses file that is no Parquet, or no poses artifact: one line each, nothing written
+    garbage = tmp_path / "garbage.parquet"
+    garbage.write_bytes(b"not parquet")
+    result = cli("site-model", *dirs, "--out", str(tmp_path / "s5"), "--poses", str(garbage))
+    assert result.code == 1 and "not a readable Parquet file" in result.err
+    result = cli("site-model", *dirs, "--out", str(tmp_path / "s5"), "--poses",
+                 str(Path(dirs[0]) / "filter" / "points.parquet"))
+    assert result.code == 1 and "missing column 'scan'" in result.err
+    assert not (tmp_path / "s5").exists()
     # poses naming none of the scans
     other = tmp_path / "other.parquet"
     write_artifact(other, poses_table(["elsewhere"], [np.eye(4)]), {})
