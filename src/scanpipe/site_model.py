@@ -285,11 +285,10 @@ def scan_e57(scan: SiteScan, points: pa.Table, images: bool
              ) -> tuple[E57Scan, list[E57Image]]:
     """One position's E57 scan (its own frame, its pose, the provenance of its points) and,
     with ``images``, its camera frames posed in the file's (site's) frame."""
-    from scanpipe.exporters.las import provenance_bytes
     from scanpipe.stages.export import e57_images, provenance_of
 
     pose = z_up_pose(scan.pose)
-    record = provenance_bytes(provenance_of({"points": points})).decode()
+    record = canonical_json(provenance_of({"points": points}))  # as the one-scan E57 has it
     entry = E57Scan(cloud_from_table(points), scan.name, pose[0], pose[1], record)
     pictures = ([_compose(pose, image, scan.name)
                  for image in e57_images({**scan.tables, "points": points})] if images else [])
