@@ -109,6 +109,19 @@ def test_match_scan_names() -> None:
                                                              "pos01-1a2b3c4d": "pos01"}
 
 
+def test_a_prior_reaches_batch_workdirs(tmp_path: Path) -> None:
+    from scanpipe.errors import UsageError
+    from scanpipe.site import read_prior
+
+    pose = pose_matrix((0.0, 30.0, 0.0), (1.0, 0.0, 2.0))
+    write_artifact(tmp_path / "prior.parquet", poses_table(["pos00", "pos01"],
+                                                           [np.eye(4), pose]), {})
+    got = read_prior(tmp_path / "prior.parquet", ["pos00-0badc0de", "pos01-1a2b3c4d"])
+    assert np.allclose(got[0], np.eye(4)) and np.allclose(got[1], pose)
+    with pytest.raises(UsageError, match="no pose for scans pos02-1a2b3c4d"):
+        read_prior(tmp_path / "prior.parquet", ["pos00", "pos02-1a2b3c4d"])
+
+
 def test_z_up_pose_maps_the_scan_frame_into_the_site_frame() -> None:
     pose = pose_matrix((0.2, 73.0, -0.1), (1.0, 0.5, -2.0))
     q, t = z_up_pose(pose)
