@@ -278,3 +278,226 @@ def format_evaluation(report: dict[str, Any]) -> str:
     if times:
         lines.append("stages   " + "   ".join(f"{k} {v:.2f} s" for k, v in times.items()))
     return "\n".join(lines)
+
+
+# -- sites: many scan positions, one model ---------------------------------------------------
+
+#: The scene of a site truth folder (``scanpipe simulate --site``), in the site frame.
+SITE_SCENE_FILE = "site_scene.glb"
+
+
+@dataclass(frozen=True)
+class SiteTruth:
+    """The true site: its surface (site frame), each position's true pose (rig → site) and
+    where each scanner stood (site frame), and the scanner's range limits."""
+
+    mesh: RenderMesh
+    poses: dict[str, F64]
+    origins: dict[str, F64]
+    min_range_m: float = 0.0
+    max_range_m: float = math.inf
+
+
+def is_site_truth(truth: Path) -> bool:
+    """Whether ``truth`` is the truth folder of a simulated site."""
+    return truth.is_dir() and (truth / SITE_SCENE_FILE).is_file()
+
+
+def load_site_truth(truth: Path) -> SiteTruth:
+    """A site truth folder: ``site_scene.glb``, ``poses.parquet`` and a folder per position
+    with its ``rig.toml`` (the scanner's height and range limits)."""
+    from scanpipe.artifacts import read_artifact
+    from scanpipe.poses import poses_from_table
+    from scanpipe.rig import load_rig
+
+    poses_path = truth / "poses.parquet"
+    if not poses_path.is_file():
+        raise ArtifactError(f"{truth}: a site truth folder without poses.parquet; give the "
+                            "--truth folder `scanpipe simulate --site` wrote")
+    poses = poses_from_table(read_artifact(poses_path)[0], where=str(poses_path))
+    origins: dict[str, F64] = {}
+    min_range, max_range = 0.0, math.inf
+    for name, pose in poses.items():
+        height = 0.0
+        rig_file = truth / name / "rig.toml"
+        if rig_file.is_file():
+            rig = load_rig(rig_file)
+            height = float(rig.scanner.mount.translation_m[1])
+            min_range, max_range = rig.scanner.min_range_m, rig.scanner.max_range_m
+        origins[name] = np.asarray(pose[:3, :3] @ np.array([0.0, height, 0.0]) + pose[:3, 3],
+                                   np.float64)
+    return SiteTruth(load_mesh_file(truth / SITE_SCENE_FILE), poses, origins, min_range,
+                     max_range)
+
+
+def site_alignment(estimated: dict[str, F64], truth: dict[str, F64],
+                   names: dict[str, str]) -> tuple[F64, str]:
+    """The rigid transform from the result's site frame to the truth's, fixed by the first
+    matched scan (the anchor): poses are compared relative to it, as registration fixes it."""
+    if not names:
+        raise ArtifactError(f"no scan of the result ({', '.join(sorted(estimated))}) is a "
+                            f"position of the truth ({', '.join(sorted(truth))})")
+    from scanpipe.poses import invert
+
+    anchor = sorted(names)[0]
+    return np.asarray(truth[names[anchor]] @ invert(estimated[anchor]), np.float64), anchor
+
+
+def seen_from_any(surface: SurfaceDistance, points: F64, origins: Sequence[F64],
+                  min_range_m: float = 0.0, max_range_m: float = math.inf
+                  ) -> NDArray[np.bool_]:
+    """Which surface points at least one of the scanners at ``origins`` sees
+    (:func:`visible_from` for each)."""
+    seen = np.zeros(len(points), dtype=bool)
+    for origin in origins:
+        rest = ~seen
+        seen[rest] = visible_from(surface, points[rest], [float(v) for v in origin],
+                                  min_range_m, max_range_m)
+    return seen
+
+
+def site_mesh_metrics(result: RenderMesh, truth: SiteTruth, origins: Sequence[F64],
+                      tau_m: float = 0.02, samples: int = 100_000, seed: int = 0,
+                      truth_surface: SurfaceDistance | None = None) -> dict[str, Any]:
+    """:func:`mesh_metrics` of a site model (in the truth's frame): completeness over the true
+    surface that any of the scanners at ``origins`` could see."""
+    truth_surface = truth_surface or SurfaceDistance(truth.mesh)
+    on_result = sample_surface(result.vertices, result.faces, samples, seed)
+    to_truth = truth_surface.distance_m(on_result)
+    on_truth = sample_surface(truth.mesh.vertices, truth.mesh.faces, samples, seed + 1)
+    seen = seen_from_any(truth_surface, on_truth, origins, truth.min_range_m, truth.max_range_m)
+    to_result = SurfaceDistance(result).distance_m(on_truth[seen])
+    precision = float(np.mean(to_truth < tau_m)) if to_truth.size else 0.0
+    completeness = float(np.mean(to_result < tau_m)) if to_result.size else 0.0
+    fscore = (2 * precision * completeness / (precision + completeness)
+              if precision + completeness > 0 else 0.0)
+    stats = distance_stats(to_truth)
+    return {"mesh_mean_m": stats["mean_m"], "mesh_rms_m": stats["rms_m"],
+            "mesh_p95_m": stats["p95_m"], "precision": precision,
+            "completeness": completeness, "fscore": fscore, "tau_m": tau_m,
+            "visible_truth_share": float(np.mean(seen)) if seen.size else 0.0}
+
+
+def _site_poses(path: Path) -> dict[str, F64]:
+    from scanpipe.artifacts import read_artifact
+    from scanpipe.poses import poses_from_table
+
+    return poses_from_table(read_artifact(path)[0], where=str(path))
+
+
+def evaluate_site(result: Path, truth: Path, tau_m: float = 0.02, samples: int = 100_000
+                  ) -> dict[str, Any]:
+    """``scanpipe eval`` on a site: ``result`` is a site folder (``scanpipe register`` /
+    ``site-model`` output) or its ``model`` folder, ``truth`` a site truth folder.
+
+    Pose errors of every matched scan relative to the anchor scan (:func:`site_alignment`);
+    the merged points and the model's mesh, moved into the truth's frame by the poses they were
+    built with, against the true scene (completeness over what any position could see).
+    """
+    from scanpipe.poses import pose_error
+    from scanpipe.site import match_scan_names
+
+    if not result.is_dir():
+        raise UsageError(f"{result}: not a folder (give a site folder from scanpipe register "
+                         "or site-model)")
+    site = load_site_truth(truth)
+    poses_path = find_artifact(result, "poses")
+    if poses_path is None:
+        raise ArtifactError(f"{result}: no poses artifact (poses.parquet); give the --out "
+                            "folder of scanpipe register or site-model")
+    estimated = _site_poses(poses_path)
+    names = match_scan_names(list(estimated), list(site.poses))
+    to_truth, anchor = site_alignment(estimated, site.poses, names)
+    errors = {}
+    for name in sorted(names):
+        dt, dr = pose_error(to_truth @ estimated[name], site.poses[names[name]])
+        errors[name] = {"translation_m": dt, "rotation_deg": dr}
+    report: dict[str, Any] = {
+        "result": str(result), "truth": str(truth), "tau_m": tau_m, "poses": str(poses_path),
+        "anchor": anchor, "pose_errors": errors,
+        "pose_max_translation_m": max((e["translation_m"] for e in errors.values()),
+                                      default=None),
+        "pose_max_rotation_deg": max((e["rotation_deg"] for e in errors.values()),
+                                     default=None),
+        "unmatched_scans": sorted(set(estimated) - set(names)),
+        "points_mean_m": None, "points_rms_m": None, "points_p95_m": None, "points_count": 0,
+        "mesh_mean_m": None, "mesh_rms_m": None, "mesh_p95_m": None, "completeness": None,
+        "precision": None, "fscore": None, "visible_truth_share": None,
+        "texture_psnr_db": None, "texture_pixels": 0, "texture_views": 0,
+    }
+    model = result / "model" if (result / "model").is_dir() else result
+    model_poses_path = find_artifact(model, "poses") or poses_path
+    model_poses = _site_poses(model_poses_path)
+    model_names = match_scan_names(list(model_poses), list(site.poses))
+    model_to_truth, _ = site_alignment(model_poses, site.poses, model_names)
+    report["model_poses"] = str(model_poses_path)
+    truth_surface = SurfaceDistance(site.mesh)
+    points_path = find_artifact(model, "points")
+    if points_path is not None:
+        xyz = _points_xyz(points_path)
+        xyz = xyz @ model_to_truth[:3, :3].T + model_to_truth[:3, 3]
+        stats = distance_stats(truth_surface.distance_m(xyz))
+        report.update(points_mean_m=stats["mean_m"], points_rms_m=stats["rms_m"],
+                      points_p95_m=stats["p95_m"], points_count=stats["count"])
+    if (find_artifact(model, "mesh_vertices") is not None
+            and find_artifact(model, "mesh_faces") is not None):
+        mesh = load_render_mesh(model)
+        vertices = (np.asarray(mesh.vertices, np.float64) @ model_to_truth[:3, :3].T
+                    + model_to_truth[:3, 3])
+        moved = RenderMesh(vertices.astype(np.float32), mesh.faces, mesh.vertex_colors,
+                           mesh.face_uvs, mesh.face_pages, mesh.pages)
+        origins = [site.origins[model_names[n]] for n in sorted(model_names)]
+        report.update(site_mesh_metrics(moved, site, origins, tau_m, samples, 0,
+                                        truth_surface))
+        report.update(site_texture_psnr(moved, site, origins))
+    return report
+
+
+def site_texture_psnr(result: RenderMesh, truth: SiteTruth, origins: Sequence[F64],
+                      views: int = 8, width: int = 160) -> dict[str, Any]:
+    """:func:`texture_psnr` from every scan position's viewpoints together (the squared error
+    summed over all their pixels)."""
+    squared, pixels, count = 0.0, 0, 0
+    for origin in origins:
+        one = texture_psnr(result, Reference(truth.mesh, vec3(origin)), views, width)
+        count += one["texture_views"]
+        if one["texture_psnr_db"] is None:
+            continue
+        mse = 0.0 if math.isinf(one["texture_psnr_db"]) else 255.0**2 / 10 ** (
+            one["texture_psnr_db"] / 10)
+        squared += mse * one["texture_pixels"]
+        pixels += one["texture_pixels"]
+    if pixels == 0:
+        return {"texture_psnr_db": None, "texture_pixels": 0, "texture_views": count}
+    mse = squared / pixels
+    return {"texture_psnr_db": math.inf if mse == 0 else 10 * math.log10(255.0**2 / mse),
+            "texture_pixels": pixels, "texture_views": count}
+
+
+def format_site_evaluation(report: dict[str, Any]) -> str:
+    """The site evaluation as a text table."""
+
+    def mm(value: float | None) -> str:
+        return "n/a" if value is None else f"{value * 1000:.2f} mm"
+
+    lines = [f"result   {report['result']}", f"truth    {report['truth']}",
+             f"poses    {report['poses']} (relative to {report['anchor']})"]
+    for name, error in report["pose_errors"].items():
+        lines.append(f"  {name:<16} {mm(error['translation_m'])}   "
+                     f"{error['rotation_deg']:.4f}°")
+    if report["unmatched_scans"]:
+        lines.append(f"  not in the truth: {', '.join(report['unmatched_scans'])}")
+    lines.append(f"points   mean {mm(report['points_mean_m'])}   RMS "
+                 f"{mm(report['points_rms_m'])}   ({report['points_count']} points)")
+    if report["mesh_mean_m"] is not None:
+        lines.append(f"mesh     accuracy {mm(report['mesh_mean_m'])}   precision "
+                     f"{report['precision'] * 100:.1f} %   completeness "
+                     f"{report['completeness'] * 100:.1f} %   F {report['fscore']:.3f} at "
+                     f"τ = {report['tau_m'] * 1000:g} mm")
+        psnr = report.get("texture_psnr_db")
+        lines.append(f"texture  PSNR {'n/a' if psnr is None else f'{psnr:.2f} dB'} over "
+                     f"{report.get('texture_pixels', 0)} pixels in "
+                     f"{report.get('texture_views', 0)} views (from every position)")
+    else:
+        lines.append("mesh     n/a (no model: run scanpipe site-model)")
+    return "\n".join(lines)

@@ -55,18 +55,35 @@ def _columns(table: pa.Table, names: Sequence[str]) -> F64:
                     axis=1).astype(np.float64)
 
 
+def match_scan_names(names: Sequence[str], known: Sequence[str]) -> dict[str, str]:
+    """Scan name → the name it has in ``known`` (a poses artifact, a truth folder): the same
+    name, else the name without a batch workdir's ``-<8 hex>`` suffix (``pos03-1a2b3c4d`` →
+    ``pos03``, see :func:`scanpipe.batch.workdir_name`). Names with no match are left out."""
+    present = set(known)
+    matched = {}
+    for name in names:
+        stem, tail = name[:-9], name[-9:]
+        if name in present:
+            matched[name] = name
+        elif (tail.startswith("-") and all(c in "0123456789abcdef" for c in tail[1:])
+              and stem in present):
+            matched[name] = stem
+    return matched
+
+
 def read_prior(path: Path, names: list[str]) -> list[F64]:
     """Prior poses for ``names`` from a ``poses`` artifact (every scan must have one)."""
     if not path.is_file():
         raise UsageError(f"--prior {path}: not found (a poses Parquet file)")
     table, _ = read_artifact(path)
     poses = poses_from_table(table, where=f"--prior {path}")
-    missing = [n for n in names if n not in poses]
+    matched = match_scan_names(names, list(poses))
+    missing = [n for n in names if n not in matched]
     if missing:
         raise UsageError(f"--prior {path}: no pose for scans {', '.join(missing)} (it has "
                          f"{', '.join(sorted(poses)) or 'none'}); scans are named after their "
                          "workdir folders")
-    return [poses[n] for n in names]
+    return [poses[matched[n]] for n in names]
 
 
 def _transform(xyz: F64, pose: F64) -> F64:
@@ -80,6 +97,25 @@ def view_quality(xyz: F64, origin: F64, normals: F64) -> F64:
     distance = np.linalg.norm(beam, axis=1)
     cosine = np.abs(np.einsum("ij,ij->i", beam, normals)) / np.maximum(distance, 1e-9)
     return np.asarray(cosine / np.maximum(distance, 1e-3), np.float64)
+
+
+def voxel_winners(xyz: F64, scans: NDArray[np.int64], score: F64, count: int, voxel_m: float
+                  ) -> NDArray[np.bool_]:
+    """Which rows belong to the scan that wins their voxel: per voxel of ``voxel_m`` the scan
+    (of ``count``) with the highest mean ``score`` over its rows there wins."""
+    keys = np.floor(xyz / voxel_m).astype(np.int64)
+    _, voxel = np.unique(keys, axis=0, return_inverse=True)
+    voxel = voxel.ravel()
+    pair = voxel * count + scans
+    pair_ids, pair_of = np.unique(pair, return_inverse=True)
+    pair_of = pair_of.ravel()
+    mean = np.bincount(pair_of, weights=score) / np.bincount(pair_of)
+    pair_voxel = pair_ids // count
+    order = np.lexsort((-mean, pair_voxel))
+    first = np.concatenate([[True], pair_voxel[order][1:] != pair_voxel[order][:-1]])
+    winner = np.zeros(len(pair_ids), bool)
+    winner[order[first]] = True
+    return np.asarray(winner[pair_of])
 
 
 def merge_scans(tables: list[pa.Table], poses: list[F64], voxel_m: float = MERGE_VOXEL_M
@@ -110,19 +146,7 @@ def merge_scans(tables: list[pa.Table], poses: list[F64], voxel_m: float = MERGE
     xyz = _columns(merged, XYZ)
     scans = np.concatenate(scan_id)
     score = np.concatenate(quality)
-    keys = np.floor(xyz / voxel_m).astype(np.int64)
-    _, voxel = np.unique(keys, axis=0, return_inverse=True)
-    voxel = voxel.ravel()
-    # mean quality per (voxel, scan); the best scan per voxel keeps its points
-    pair = voxel * len(tables) + scans
-    pair_ids, pair_of = np.unique(pair, return_inverse=True)
-    mean = np.bincount(pair_of, weights=score) / np.bincount(pair_of)
-    pair_voxel = pair_ids // len(tables)
-    order = np.lexsort((-mean, pair_voxel))
-    first = np.concatenate([[True], pair_voxel[order][1:] != pair_voxel[order][:-1]])
-    winner = np.zeros(len(pair_ids), bool)
-    winner[order[first]] = True
-    keep = winner[pair_of]
+    keep = voxel_winners(xyz, scans, score, len(tables), voxel_m)
     report = {"points_in": len(xyz), "points_out": int(keep.sum()),
               "double_coverage_taken": int((~keep).sum()), "merge_voxel_m": voxel_m}
     return merged.filter(pa.array(keep)), report

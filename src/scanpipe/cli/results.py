@@ -73,18 +73,28 @@ def render(
 
 def evaluate(
     result: Path = typer.Argument(..., help="A workdir or folder of artifacts."),
-    truth: Path = typer.Option(..., "--truth", help="Truth folder (virtual rig) or a mesh file."),
+    truth: Path = typer.Option(..., "--truth", help="Truth folder (virtual rig or site) or a "
+                                                    "mesh file."),
     tau_m: float = typer.Option(0.02, "--tau", min=1e-6, help="F-score threshold τ in metres."),
     as_json: bool = JSON,
 ) -> None:
-    """Accuracy against ground truth: points, mesh (F-score at τ), texture PSNR, stage times."""
-    from scanpipe.evaluate import evaluate_result, format_evaluation
+    """Accuracy against ground truth: points, mesh (F-score at τ), texture PSNR, stage times;
+    on a site (a site truth folder): pose errors and the merged model against the scene."""
+    from scanpipe.evaluate import (
+        evaluate_result,
+        evaluate_site,
+        format_evaluation,
+        format_site_evaluation,
+        is_site_truth,
+    )
 
-    report = evaluate_result(result, truth, tau_m=tau_m)
+    site = is_site_truth(truth)
+    report = (evaluate_site(result, truth, tau_m=tau_m) if site
+              else evaluate_result(result, truth, tau_m=tau_m))
     if as_json:
         print_json(report)
     else:
-        typer.echo(format_evaluation(report))
+        typer.echo(format_site_evaluation(report) if site else format_evaluation(report))
 
 
 def report(

@@ -49,6 +49,32 @@ def register_command(
                          f"{report['merge']['points_out']} points → {report['points']}\n")
 
 
+def site_model_command(
+    workdirs: list[Path] = typer.Argument(..., help="The workdir of each scan (after texture)."),
+    out: Path = typer.Option(..., "--out", help="The site folder (from scanpipe register)."),
+    poses: Path | None = typer.Option(None, "--poses", help="Poses to use instead of "
+                                      "OUT/poses.parquet (a poses Parquet file)."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an earlier model."),
+    assignments: list[str] | None = SET,
+    params_file: Path | None = PARAMS_FILE,
+    quiet: bool = QUIET,
+    as_json: bool = JSON,
+) -> None:
+    """The merged model of a site: fused textured mesh, merged cloud, E57/LAS/GLB/OBJ."""
+    from scanpipe.progress import rich_progress
+    from scanpipe.site_model import SiteModelParams, build_site_model, model_summary
+
+    params = build_params(SiteModelParams, params_file, assignments, None)
+    with rich_progress(quiet or as_json) as progress:
+        report = build_site_model(list(workdirs), out, params, poses, force, progress)
+    print_warnings("site-model", report)
+    if as_json:
+        print_json(report)
+    elif not quiet:
+        sys.stderr.write(model_summary(report) + "\n")
+
+
 def register(app: typer.Typer) -> None:
-    """Add ``register`` to the main app."""
+    """Add ``register`` and ``site-model`` to the main app."""
     app.command("register")(register_command)
+    app.command("site-model")(site_model_command)

@@ -1,0 +1,168 @@
+"""``python -m benchmarks.bench_site [--scale small|lab] [--positions N] [--workers N]``: a
+virtual site end to end on the user's path — ``simulate --site`` (with a rough prior),
+``batch``, ``register --prior``, ``site-model``, ``eval`` — timing every step, and the merged
+model's accuracy against the true scene; prints a table and writes
+``benchmarks/results/site-<scale>-<date>.json``.
+
+The model is built twice: with the registered poses (what a user gets) and with the true poses
+(``site-model --poses truth/poses.parquet``: the model's own accuracy, free of registration
+error). Targets (issue 21), on the true-pose model: mean distance to the true scene ≤ 0.5 σ,
+completeness ≥ 95 % at τ = 2 cm. The ``lab`` scale is the figure (6 positions, 1° motor step,
+0.5° beam step — the resolution of the single-scan mesh target, docs/meshing.md); ``small`` is a
+smoke run (6 positions, 3° × 1°) whose accuracy is not the figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from benchmarks.harness import machine, save, table
+from scanpipe.cli.main import main as scanpipe_main
+
+#: `simulate --site` settings per scale (σ = 10 mm, the unnamed scanner's noise).
+SCALES: dict[str, dict[str, Any]] = {
+    # the coarse smoke scan's ICP residuals (31–33 mm) exceed register's 30 mm default: the
+    # smoke run widens it so that the whole path runs; its pose errors are not the figure
+    "small": {"positions": 6, "settings": ["--motor-step", "3", "--beam-step", "1",
+                                           "--camera-scale", "0.125", "--camera-fps", "0.5"],
+              "register": ["--set", "max_rmse_m=0.05"]},
+    "lab": {"positions": 6, "settings": ["--motor-step", "1", "--beam-step", "0.5",
+                                         "--camera-scale", "0.25", "--camera-fps", "1"],
+            "register": []},
+}
+NOISE_MM = 10.0
+MEAN_TARGET_SIGMA = 0.5
+COMPLETENESS_TARGET = 0.95
+
+
+def _scanpipe(*args: str, json_out: Path | None = None) -> dict[str, Any]:
+    """Run one scanpipe command (``--json`` output captured into ``json_out``); raise on
+    failure."""
+    import contextlib
+    import io
+
+    buffer = io.StringIO()
+    with contextlib.redirect_stdout(buffer):
+        code = scanpipe_main(list(args))
+    if code != 0:
+        raise RuntimeError(f"scanpipe {' '.join(args)}: exit code {code}")
+    text = buffer.getvalue()
+    if json_out is not None:
+        json_out.write_text(text)
+    return json.loads(text) if text.strip().startswith("{") else {}
+
+
+def run(scale: str, positions: int, workers: int, say: Any) -> dict[str, Any]:
+    """Every step, timed; returns the results (JSON-ready)."""
+    settings = SCALES[scale]["settings"]
+    results: dict[str, Any] = {"machine": machine(), "scale": scale, "positions": positions,
+                               "simulate_settings": settings,
+                               "register_settings": SCALES[scale]["register"], "noise_mm": NOISE_MM,
+                               "workers": workers, "seconds": {}}
+    seconds = results["seconds"]
+    with tempfile.TemporaryDirectory(prefix="bench-site-") as scratch:
+        root = Path(scratch)
+        recs, truth, work, site = root / "recs", root / "truth", root / "work", root / "site"
+
+        def step(name: str, *args: str) -> dict[str, Any]:
+            say(name)
+            started = time.perf_counter()
+            try:
+                return _scanpipe(*args)
+            finally:
+                seconds[name] = round(time.perf_counter() - started, 2)
+
+        step("simulate", "simulate", "--site", str(positions), "--direct", "--out", str(recs),
+             "--truth", str(truth), "--noise-mm", str(NOISE_MM), "--prior-error-m", "0.5",
+             "--prior-error-deg", "10", "-q", *settings)
+        step("batch", "batch", *sorted(str(p) for p in recs.glob("pos*.mcap")), "--workdir",
+             str(work), "--workers", str(workers), "-q", "--json")
+        workdirs = sorted(str(p) for p in work.iterdir() if p.is_dir())
+        try:  # registration's own accuracy is not this benchmark's: a failure is recorded
+            registered = step("register", "register", *workdirs, "--out", str(site),
+                              "--prior", str(recs / "prior_poses.parquet"), "-q", "--json",
+                              *SCALES[scale]["register"])
+        except RuntimeError as err:
+            results["register_error"] = str(err)
+            results["eval_registered"] = None
+        else:
+            results["register_pairs"] = [
+                {k: p.get(k) for k in ("target", "source", "overlap", "rmse_m", "accepted",
+                                       "reason")} for p in registered.get("pairs", [])]
+            step("site-model", "site-model", *workdirs, "--out", str(site), "-q", "--json")
+            results["eval_registered"] = step("eval", "eval", str(site), "--truth",
+                                              str(truth), "--json")
+        true_site = root / "site-true"
+        model = step("site-model (true poses)", "site-model", *workdirs, "--out",
+                     str(true_site), "--poses", str(truth / "poses.parquet"), "-q", "--json")
+        results["model"] = {k: model.get(k) for k in ("faces", "points", "merge", "fuse")}
+        results["eval_true_poses"] = step("eval (true poses)", "eval", str(true_site),
+                                          "--truth", str(truth), "--json")
+    true_eval = results["eval_true_poses"]
+    results["targets"] = [
+        {"figure": "mesh_mean_m (true poses)", "value": true_eval["mesh_mean_m"],
+         "target": f"<= {MEAN_TARGET_SIGMA * NOISE_MM / 1000:g}",
+         "ok": true_eval["mesh_mean_m"] <= MEAN_TARGET_SIGMA * NOISE_MM / 1000},
+        {"figure": "completeness (true poses)", "value": true_eval["completeness"],
+         "target": f">= {COMPLETENESS_TARGET}",
+         "ok": true_eval["completeness"] >= COMPLETENESS_TARGET},
+    ]
+    return results
+
+
+def report(results: dict[str, Any]) -> str:
+    """The results as a text table."""
+    rows = [(name, f"{s:.1f}") for name, s in results["seconds"].items()]
+    lines = [table(rows, ("step", "wall s")), ""]
+    for label, key in (("registered poses", "eval_registered"),
+                       ("true poses", "eval_true_poses")):
+        e = results[key]
+        if e is None:
+            lines.append(f"{label}: registration failed: {results.get('register_error')}")
+            continue
+        lines.append(
+            f"{label}: pose error max {e['pose_max_translation_m'] * 1000:.2f} mm / "
+            f"{e['pose_max_rotation_deg']:.3f}°; mesh mean {e['mesh_mean_m'] * 1000:.2f} mm, "
+            f"precision {e['precision']:.1%}, completeness {e['completeness']:.1%} at 2 cm; "
+            f"points mean {e['points_mean_m'] * 1000:.2f} mm")
+    lines += [f"{t['figure']}: {t['value']:.4f} (target {t['target']}: "
+              f"{'ok' if t['ok'] else 'MISSED'})" for t in results["targets"]]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; returns 1 when a target is missed at lab scale."""
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_site",
+                                     description=__doc__)
+    parser.add_argument("--scale", choices=sorted(SCALES), default="lab",
+                        help="lab: the figure (6 positions, 1° × 0.5°); small: a smoke run")
+    parser.add_argument("--positions", type=int, default=None,
+                        help="scan positions (default 6)")
+    parser.add_argument("--workers", type=int, default=2, help="batch workers (default 2)")
+    args = parser.parse_args(argv)
+    positions = args.positions or SCALES[args.scale]["positions"]
+    if positions < 2:
+        parser.error(f"--positions {positions}: a site needs at least 2")
+    started = time.perf_counter()
+
+    def say(text: str) -> None:
+        print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
+
+    results = run(args.scale, positions, args.workers, say)
+    results["benchmark_s"] = round(time.perf_counter() - started, 1)
+    saved = save(results, f"site-{args.scale}-{dt.date.today().isoformat()}")
+    print(report(results))
+    print(f"\nsaved {saved}")
+    missed = not all(t["ok"] for t in results["targets"])
+    return 1 if missed and args.scale == "lab" else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
