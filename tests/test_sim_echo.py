@@ -28,7 +28,8 @@ def test_echo_falls_with_range_incidence_and_darkness() -> None:
     truth = _truth([1.0, 2.0, 2.0, 2.0, 2.0], [1.0, 1.0, 0.5, 1.0, 1.0],
                    [1.0, 1.0, 1.0, 0.25, 1.0])
     echo = echo_amplitude(measured, truth)[0].astype(float)
-    assert echo[0] == ECHO_AT_1M
+    # the documented scale (docs/simulation.md): a white wall head-on at 1 m gives 40 000
+    assert echo[0] == ECHO_AT_1M == 40_000
     assert echo[1] == ECHO_AT_1M / 4          # 1/r²
     assert echo[2] == ECHO_AT_1M / 8          # cos θ
     assert echo[3] == ECHO_AT_1M / 16         # reflectance

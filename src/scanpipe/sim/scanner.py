@@ -160,9 +160,6 @@ def measure(truth: TrueProfiles, model: MeasurementModel, first_profile: int,
     return measured
 
 
-#: The echo of a surface seen head-on at 1 m (u16 counts, like a SICK RSSI channel).
-ECHO_AT_1M = 4000.0
-
 
 def _mixed_pixels(ranges: F64, model: MeasurementModel, rng: np.random.Generator) -> F64:
     """At a depth edge the beam straddles both surfaces: some samples get a range between them."""
