@@ -368,7 +368,8 @@ class LdrobotEmulated:
         lost = ~np.isfinite(ranges) | (ranges <= 0)
         mm = np.where(lost, 0.0, np.clip(np.rint(np.nan_to_num(ranges) * 1000.0), 1, 0xFFFF))
         low = (np.arange(n) * 7 + k) % 16
-        strong = (np.zeros(n) if echo is None else np.asarray(echo, np.float64)) / 16.0
+        # the u16 echo model (40 000 head-on at 1 m, white) to the u8 intensity: 250 there
+        strong = (np.zeros(n) if echo is None else np.asarray(echo, np.float64)) / 160.0
         intensity = np.where(lost, low, np.clip(np.rint(strong), 16, 255)).astype(np.float64)
         per = ldrobot.POINTS_PER_PACKET
         if n < per:
