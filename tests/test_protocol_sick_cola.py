@@ -115,6 +115,62 @@ def test_cola_a_hand_built() -> None:
     assert detect_dialect(b"junk" + ascii_example() * 2) == "cola_a"
 
 
+@settings(max_examples=60, deadline=None)
+@given(numbers=st.lists(st.integers(0, 0xFFFFFFFF), min_size=1, max_size=200),
+       widths=st.lists(st.integers(0, 7), min_size=1, max_size=200), lower=st.booleans())
+def test_bulk_hex_tokens_match_int(numbers: list[int], widths: list[int], lower: bool) -> None:
+    """The vectorised tokeniser reads every 1–8 digit token (zero-padded, either case) as
+    ``int(token, 16)``; longer tokens and non-hex ones are flagged, never misread."""
+    texts = [format(n, "X").zfill(min(8, len(format(n, "X")) + w)) for n, w in
+             zip(numbers, widths * len(numbers), strict=False)]
+    if lower:
+        texts = [t.lower() for t in texts]
+    body = " ".join(texts).encode() + b" 123456789 12G4 \x01"
+    padded = sick_cola._PAD + b"\x02" + body + b"\x03"
+    tok = sick_cola._tokenise(padded, len(sick_cola._PAD), len(padded))
+    n = len(texts)
+    assert tok.values[:n].tolist() == [int(t, 16) for t in texts]
+    assert tok.bad == [n, n + 1, n + 2]  # 9 digits, a G, a control byte
+    assert tok.numbers(0, n) and not tok.numbers(0, n + 1)
+
+
+def _with_data(tokens: bytes) -> bytes:
+    """``ascii_example`` with its three DIST1 values replaced by ``tokens``."""
+    return ascii_example().replace(b" 3E8 0 9C4 ", b" " + tokens + b" ")
+
+
+def test_cola_a_data_tokens_vectorised_edge_cases() -> None:
+    # zero-padded, lower-case, double spaces: the same values
+    (p,), counters = decode_bytes(_with_data(b"000003E8  0 9c4"), "cola_a")
+    assert counters.frames_decoded == 1
+    assert np.array_equal(p.ranges_m, [1.0, np.nan, 2.5], equal_nan=True)
+    # a value above 16 bits, a non-hex digit, a 9-digit token: refused, counted, not misread
+    for bad in (b"103E8 0 9C4", b"3G8 0 9C4", b"0000003E8 0 9C4"):
+        profiles, counters = decode_bytes(_with_data(bad) + ascii_example(), "cola_a")
+        assert len(profiles) == 1 and counters.malformed_frames == 1, bad
+    # a token too many: a length mismatch (one too few reads as a telegram that omits its
+    # last block flag, which the format allows)
+    profiles, counters = decode_bytes(_with_data(b"3E8 0 9C4 7") + ascii_example(), "cola_a")
+    assert len(profiles) == 1 and counters.length_mismatches == 1
+
+
+def test_cola_a_counters_across_batches_and_false_starts() -> None:
+    """Garbage, false starts and a frame split over feeds count the same as one whole feed."""
+    from scanpipe.protocol.registry import StreamDecoder
+
+    frames = [sick_cola.encode_profile_ascii(profile(301, k, k % 2 == 0)) for k in range(40)]
+    data = b"zz\x02\x02" + frames[0] + b"\x03junk\x02half" + b"".join(frames[1:])
+    whole, counters = decode_bytes(data, "cola_a")
+    assert len(whole) == 40 and counters.resyncs == 3 and counters.bytes_skipped == 2 + 2 + 5 + 5
+    decoder = StreamDecoder("cola_a")
+    out = []
+    for i in range(0, len(data), 997):
+        out += decoder.feed(data[i:i + 997])
+    out += decoder.finish()
+    assert len(out) == 40 and all(a.same_as(b) for a, b in zip(out, whole, strict=True))
+    assert decoder.counters == counters
+
+
 def profile(n: int, k: int, echo: bool) -> Profile:
     rng = np.random.default_rng([n, k])
     raw = rng.integers(0, 20000, n)
