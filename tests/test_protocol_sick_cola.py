@@ -303,3 +303,22 @@ def test_real_sick_capture_decodes_like_the_driver() -> None:
     assert np.all(np.diff(frames) == 1)
     times = np.array([p.device_time_ms for p in profiles], np.int64)
     assert np.diff(times) == pytest.approx(1e6 / 15, rel=0.01)  # 15 Hz in µs
+
+
+def test_cola_a_commands_round_trip_and_read_the_manuals_decimal_form() -> None:
+    args = sick_cola.scan_config_args(25.0, 0.5, -45.0, 225.0)
+    frame = sick_cola.command_ascii("sMN", "mLMPsetscancfg", args)
+    assert frame == b"\x02sMN mLMPsetscancfg 9C4 1 1388 FFF92230 225510\x03"
+    assert sick_cola.parse_command_ascii(frame[1:-1]) == ("sMN", "mLMPsetscancfg", args)
+    # the manuals write signed decimal: the same bytes
+    manual = b"sMN mLMPsetscancfg +2500 +1 +5000 -450000 +2250000"
+    assert sick_cola.parse_command_ascii(manual)[2] == args
+    assert sick_cola.parse_command_ascii(b"sFA A") == ("sFA", "", b"\x00\x0a")
+    assert sick_cola.command_ascii("sFA", "", b"\x00\x02") == b"\x02sFA 2\x03"
+    assert sick_cola.parse_command_ascii(b"sWA LMDscandatacfg") == ("sWA", "LMDscandatacfg", b"")
+    for bad, message in ((b"sEN LMDscandata 1 2", "2 arguments, expected 1"),
+                         (b"sEN LMDscandata 100", "outside its 8-bit field"),
+                         (b"sMN SetAccessMode 3 XYZ", "not a number"),
+                         (b"hello", "not a CoLa-A telegram")):
+        with pytest.raises(ScanpipeError, match=message):
+            sick_cola.parse_command_ascii(bad)

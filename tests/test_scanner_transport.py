@@ -62,6 +62,40 @@ def test_sick_start_and_stop_commands_are_the_devices_own() -> None:
     assert sent.count(b"sEN LMDscandata \x01") == 1 and sent.count(b"sEN LMDscandata \x00") == 1
 
 
+def test_sick_cola_a_speaks_ascii_both_ways() -> None:
+    """An LMS1xx on its CoLa-A port: the same start-up and stop, as STX … ETX telegrams."""
+    options = _options({"dialect": "cola_a", "port": 2111}, model="lms111")
+    with VirtualRig(options, speedup=2.0, scene=box_room()) as virtual:
+        sink = Sink()
+        client = ScannerClient(virtual.client_rig().scanner, sink)
+        client.connect()
+        assert client.wait_for_profiles(time.time_ns() - 1, 2, timeout_s=5.0)
+        client.close()
+        requests = virtual.scanner.requests
+    assert requests == ["sMN SetAccessMode", "sMN mLMPsetscancfg", "sMN Run",
+                        "sEN LMDscandata", "sEN LMDscandata"]
+    sent = b"".join(d for _, d, direction in sink.chunks if direction == 1)
+    assert sent == (b"\x02sMN SetAccessMode 3 F4724744\x03"
+                    b"\x02sMN mLMPsetscancfg 9C4 1 1388 FFF92230 225510\x03\x02sMN Run\x03"
+                    b"\x02sEN LMDscandata 1\x03\x02sEN LMDscandata 0\x03")
+    received = b"".join(d for _, d, direction in sink.chunks if direction == 0)
+    assert received.startswith(b"\x02sAN SetAccessMode 1\x03")
+    assert b"\x02sSN LMDscandata " in received and b"\x02\x02\x02\x02" not in received
+
+
+def test_cola_a_refusal_names_the_status(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A mode the device lacks comes back as ``sAN mLMPsetscancfg 2 …`` in ASCII."""
+    monkeypatch.setattr(scanner_client, "limit_problems", lambda scanner: [])
+    options = _options({"dialect": "cola_a", "port": 2111}, model="lms111")
+    with VirtualRig(options, speedup=2.0, scene=box_room()) as virtual:
+        scanner = virtual.client_rig().scanner.model_copy(update={"scan_hz": 50.0,
+                                                                  "beam_step_deg": 0.25})
+        client = ScannerClient(scanner, Sink())
+        with pytest.raises(DeviceError, match=r"status 2: resolution not possible"):
+            client.connect()
+        assert not client.connected
+
+
 def test_settings_outside_the_model_are_refused_before_connecting() -> None:
     with VirtualRig(_options(model="lms111"), speedup=2.0, scene=box_room()) as virtual:
         scanner = virtual.client_rig().scanner.model_copy(update={"scan_hz": 50.0,

@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import ProtocolError
 from scanpipe.protocol.framing import (
+    NOT_PARSED,
     FrameCounters,
     LengthMismatch,
     RawFrame,
@@ -614,9 +615,10 @@ class AsciiFrameReader:
     """
 
     def __init__(self, max_payload_bytes: int = MAX_PAYLOAD_BYTES * 3,
-                 check: Any = check_frame) -> None:
+                 check: Any = check_frame, parse: bool = True) -> None:
         self.max_payload_bytes = max_payload_bytes
         self.check = check
+        self.parse = parse
         self.counters = FrameCounters()
         self._buffer = bytearray()
         self._base = 0
@@ -670,6 +672,12 @@ class AsciiFrameReader:
             pos = end + 1
         frames: list[RawFrame] = []
         done = 0
+        if not self.parse:  # frames only (a command link): ``parsed`` is NOT_PARSED
+            for start, end in spans:
+                offset = self._base + start - len(_PAD)
+                frames.append(RawFrame(bytes(padded[start + 1:end]), True, 0, 0, offset,
+                                       offset + end + 1 - start, NOT_PARSED))
+            done = len(spans)
         while done < len(spans):  # batches of whole frames, tokenised together
             first = spans[done][0]
             stop = done + 1
@@ -751,3 +759,80 @@ def scan_config_args(scan_hz: float, step_deg: float, start_deg: float, end_deg:
 def failure(code: int) -> bytes:
     """An ``sFA`` frame with a u16 error code (2: unknown method, 10: access denied)."""
     return encode_frame(MARKER, b"sFA " + code.to_bytes(2, "big"))
+
+
+# -- CoLa-A commands: the same telegrams as ASCII tokens ------------------------------------
+
+#: The argument fields of the commands and answers scanpipe exchanges, as ``struct`` formats
+#: of their CoLa-B bytes. CoLa-A sends one token per field: unsigned hex, signed fields in
+#: two's complement hex (what the LMDscandata telegram does), or decimal with a sign (``+5000``,
+#: ``-450000``: the manuals' own examples), which the parser also reads.
+ARGUMENTS: dict[tuple[str, str], str] = {
+    ("sMN", "SetAccessMode"): ">BI", ("sAN", "SetAccessMode"): ">B",
+    ("sMN", "mLMPsetscancfg"): ">" + SCANCFG.format.lstrip(">"),
+    ("sAN", "mLMPsetscancfg"): ">B" + SCANCFG.format.lstrip(">"),
+    ("sMN", "Run"): "", ("sAN", "Run"): ">B",
+    ("sEN", "LMDscandata"): ">B", ("sEA", "LMDscandata"): ">B",
+    ("sRN", "DeviceIdent"): "",
+}
+
+
+def _ascii_field(value: int, code: str) -> bytes:
+    width = struct.calcsize(">" + code) * 8
+    return format(value & ((1 << width) - 1), "X").encode()
+
+
+def _field_value(token: bytes, code: str) -> int:
+    width = struct.calcsize(">" + code) * 8
+    try:
+        value = int(token, 10) if token[:1] in b"+-" else int(token, 16)
+    except ValueError as err:
+        raise ProtocolError(f"CoLa-A argument {token!r}: not a number") from err
+    if code.islower() and token[:1] not in b"+-" and value >= 1 << (width - 1):
+        value -= 1 << width  # two's complement hex
+    low, high = (-(1 << (width - 1)), (1 << (width - 1)) - 1) if code.islower() else (
+        0, (1 << width) - 1)
+    if not low <= value <= high:
+        raise ProtocolError(f"CoLa-A argument {token!r}: outside its {width}-bit field")
+    return value
+
+
+def command_ascii(kind: str, name: str, args: bytes = b"") -> bytes:
+    """The CoLa-A frame (STX … ETX) of the telegram whose CoLa-B arguments are ``args``
+    (fields as :data:`ARGUMENTS` lists them; ``sFA``: the error code)."""
+    if kind == "sFA":
+        return bytes([STX]) + b"sFA " + format(int.from_bytes(args[:2], "big"), "X").encode() \
+            + bytes([ETX])
+    fmt = ARGUMENTS.get((kind, name))
+    if fmt is None:
+        raise ProtocolError(f"CoLa-A: no argument layout for {kind} {name}")
+    tokens = [kind.encode("ascii"), name.encode("ascii")]
+    if fmt:
+        tokens += [_ascii_field(v, c) for v, c in zip(struct.unpack(fmt, args),
+                                                     fmt.lstrip(">"), strict=True)]
+    return bytes([STX]) + b" ".join(tokens) + bytes([ETX])
+
+
+def parse_command_ascii(body: bytes) -> tuple[str, str, bytes]:
+    """``(kind, name, args)`` of a CoLa-A telegram body, the arguments packed as their CoLa-B
+    bytes (so one handler serves both flavours); :class:`ProtocolError` if it is no telegram
+    scanpipe knows. An ``sFA`` answer is ``("sFA", "", u16 error code)``."""
+    tokens = body.split(b" ")
+    if len(tokens[0]) != 3 or not tokens[0].isalpha() or not tokens[0].startswith(b"s"):
+        raise ProtocolError("not a CoLa-A telegram")
+    kind = tokens[0].decode("ascii")
+    if kind == "sFA":
+        code = _field_value(tokens[1], "H") if len(tokens) == 2 else 0xFFFF
+        return kind, "", code.to_bytes(2, "big")
+    if len(tokens) < 2:
+        raise ProtocolError(f"CoLa-A {kind} telegram without a name")
+    name = tokens[1].decode("latin-1")
+    fmt = ARGUMENTS.get((kind, name))
+    if fmt is None:  # a telegram scanpipe does not speak: no arguments read
+        return kind, name, b""
+    codes = fmt.lstrip(">")
+    if len(tokens) - 2 != len(codes):
+        raise ProtocolError(f"CoLa-A {kind} {name}: {len(tokens) - 2} arguments, expected "
+                            f"{len(codes)}")
+    return kind, name, struct.pack(fmt, *[_field_value(t, c) for t, c in zip(
+        tokens[2:], codes, strict=True)])
