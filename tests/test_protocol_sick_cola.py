@@ -322,3 +322,53 @@ def test_cola_a_commands_round_trip_and_read_the_manuals_decimal_form() -> None:
                          (b"hello", "not a CoLa-A telegram")):
         with pytest.raises(ScanpipeError, match=message):
             sick_cola.parse_command_ascii(bad)
+
+
+LMS111_FIXTURE = FIXTURE.parent / "lms111_pcapng_excerpt.json"
+
+
+def _json_capture_stream(path: Path) -> bytes:
+    """The TCP payloads of a pcap_json_converter capture (both directions, in order)."""
+    import json
+
+    entries = json.loads(path.read_text())
+    return b"".join(bytes.fromhex(e["_source"]["layers"]["tcp"]["tcp.payload"].replace(":", ""))
+                    for e in entries)
+
+
+def test_real_lms111_capture_decodes_like_the_driver() -> None:
+    """A real LMS111 (firmware V1.80) talking to SICK's driver: every scan decodes to the
+    driver's ranges sample for sample; the driver's start-up telegrams are the bytes our
+    recorder sends; the telegram's time block (flag 1, 11 bytes) fits the layout exactly."""
+    stream = _json_capture_stream(LMS111_FIXTURE)
+    profiles, counters = decode_bytes(stream, "cola_b")
+    reference = _reference_scans(stream)
+    assert len(profiles) == len(reference) == 9 and counters.malformed_frames == 0
+    assert counters.length_mismatches == 0 and counters.checksum_failures == 0
+    for p, (counter, start, step, ranges) in zip(profiles, reference, strict=True):
+        assert p.frame == counter and p.start_angle_deg == start == -45.0
+        assert p.step_deg == step == 0.5 and len(p.ranges_m) == 541
+        expected = np.array(ranges, np.float64)
+        got = p.ranges_m.astype(np.float64)
+        assert np.array_equal(np.isnan(got), expected == 0.0)
+        assert np.allclose(got[expected > 0], expected[expected > 0], atol=1e-6)
+    assert np.all(np.diff([p.frame for p in profiles]) == 1)
+    times = np.array([p.device_time_ms for p in profiles], np.int64)
+    assert np.diff(times) == pytest.approx(20_000, rel=0.02)  # 50 Hz in µs (the device jitters)
+    first = stream.find(b"sSN LMDscandata ")
+    length = int.from_bytes(stream[first - 4:first], "big")
+    t = sick_cola.parse_telegram(stream[first:first + length])
+    assert t.scan_frequency_centihz == 5000 and t.trailing_flags == 5 and t.time is not None
+    # what scanpipe's driver sends is what SICK's driver sent this device
+    assert sick_cola.command("sMN", "SetAccessMode", bytes([3]) + sick_cola.CLIENT_PASSWORD
+                             .to_bytes(4, "big")) in stream
+    assert sick_cola.command("sEN", "LMDscandata", b"\x01") in stream
+    # the same scans as CoLa-A decode to the same ranges
+    telegrams = []
+    at = stream.find(b"sSN LMDscandata ")
+    while at >= 0:
+        size = int.from_bytes(stream[at - 4:at], "big")
+        telegrams.append(sick_cola.parse_telegram(stream[at:at + size]))
+        at = stream.find(b"sSN LMDscandata ", at + size)
+    again, _ = decode_bytes(b"".join(sick_cola.encode_ascii(t) for t in telegrams), "cola_a")
+    assert len(again) == 9 and all(a.same_as(b) for a, b in zip(again, profiles, strict=True))
