@@ -114,3 +114,43 @@ def test_the_emulated_scanner_refuses_a_mode_it_lacks(monkeypatch: pytest.Monkey
         with pytest.raises(DeviceError, match=r"status 2: resolution not possible"):
             client.connect()
         assert not client.connected
+
+
+class _NoSink:
+    def write_stream(self, link: str, data: bytes, direction: int, log_time_ns: int) -> None:
+        pass
+
+
+def test_a_late_profile_is_not_fresh_at_a_stopped_position() -> None:
+    """A stop at 850 ms (host), scans every 100 ms of 75 ms sectors: scans received on time
+    place the head's turns; a scan that began before the stop but arrives after it (a lagging
+    link) does not count, the next one that began after it does."""
+    client = ScannerClient(default_rig().scanner, _NoSink())  # type: ignore[arg-type]
+    ms = 1_000_000
+    period, sector = 100 * ms, 75 * ms
+    for k in range(8):  # on time: received 1 ms after each sector ends (k · 100 + 75 + 1 ms)
+        client._profiles_arrived(1, k * period + sector + ms, [k])
+    stop = 850 * ms  # the scan under way (counter 8) began at 800 ms
+    assert client._fresh_count(stop, 1, period, sector)[0] == 0
+    client._profiles_arrived(1, 990 * ms, [8])  # 114 ms late: began before the stop
+    assert client._fresh_count(stop, 1, period, sector)[0] == 0
+    client._profiles_arrived(1, 1000 * ms, [9])  # began at 900 ms, after the stop
+    fresh, hold_ns = client._fresh_count(stop, 1, period, sector)
+    # then hold still half a turn plus the 90th-percentile delay past the least-delayed
+    # placement (delays 0 × 8, 24 and 114 ms: 24 ms)
+    assert fresh == 1 and hold_ns == 1000 * ms + period // 2 + 24 * ms
+    # counters wrap at 2¹⁶ without breaking the placement
+    client._last_counter = None
+    client._profile_times.clear()
+    client._profile_counters.clear()
+    for i, k in enumerate(range(65534, 65540)):
+        client._profiles_arrived(1, i * period + sector + ms, [k & 0xFFFF])
+    assert client._profile_counters[-1] == 65539
+    assert client._fresh_count(3 * period + 2 * ms, 2, period, sector)[0] == 2  # began 400, 500
+
+
+def test_without_counters_the_first_profile_after_a_stop_is_not_counted() -> None:
+    client = ScannerClient(default_rig().scanner, _NoSink())  # type: ignore[arg-type]
+    for t in (10, 20, 30):
+        client._profiles_arrived(1, t)
+    assert client._fresh_count(15, 1, 10, 5) == (1, 0)  # 20 and 30 arrived after; 20 may be stale
