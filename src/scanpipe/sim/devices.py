@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from scanpipe.rig import ScannerConfig
 from scanpipe.sim.ldoem_device import LdoemDevice
 from scanpipe.sim.scip_device import ScipDevice
+from scanpipe.sim.streaming_device import StreamingDevice
 from scanpipe.sim.wire import device_clock_ms, profile_frame
 
 
@@ -41,28 +42,6 @@ class EmulatedDevice(Protocol):
         """The bytes carrying profile ``k`` (measured from ``start_s``), as the device sends
         them; ``sent_one`` bookkeeping (a counted stream) happens here too."""
         ...
-
-
-class StreamingDevice:
-    """A device that streams from the moment the link is up and ignores what it is sent
-    (the ``paper`` dialect; LDRobot units behave so too)."""
-
-    def __init__(self, scanner: ScannerConfig) -> None:
-        self.scanner = scanner
-        self.streaming = True
-
-    def receive(self, data: bytes, now_s: float) -> list[bytes]:
-        """Nothing to answer."""
-        return []
-
-    def config(self) -> ScannerConfig:
-        """The rig's settings."""
-        return self.scanner
-
-    def encode(self, k: int, ranges_m: NDArray[np.float32], echo: NDArray[np.uint16] | None,
-               config: ScannerConfig, start_s: float) -> bytes:
-        """The dialect's frame for the profile."""
-        return profile_frame(config.dialect, k, ranges_m, config, start_s, echo=echo)
 
 
 class LdoemEmulated:

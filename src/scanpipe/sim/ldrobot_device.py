@@ -37,10 +37,10 @@ from scanpipe.errors import SimulationError
 from scanpipe.protocol import ldrobot
 from scanpipe.rig import ScannerConfig
 from scanpipe.sim.clock import SimClock
-from scanpipe.sim.devices import StreamingDevice
 from scanpipe.sim.motion import PlatformState
 from scanpipe.sim.scanner import MeasurementModel, true_ranges
 from scanpipe.sim.scene import Scene
+from scanpipe.sim.streaming_device import StreamingDevice
 
 F64 = NDArray[np.float64]
 
