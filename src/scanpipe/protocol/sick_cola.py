@@ -409,8 +409,11 @@ def _tokenise(padded: bytes | bytearray, begin: int, end: int) -> _Tokens:
     seps = np.flatnonzero(cls == 0)
     seps += begin
     starts, ends = seps[:-1] + 1, seps[1:]
-    keep = ends > starts  # separators next to each other leave no token
-    if not keep.all():
+    # Separators next to each other leave empty tokens. Those between one frame's ETX and the
+    # next one's STX lie outside every frame's tokens and may stay; others (two spaces) go.
+    empty = np.flatnonzero(ends == starts)
+    if empty.size and not (np.frombuffer(padded, np.uint8)[starts[empty] - 1] == ETX).all():
+        keep = ends > starts
         starts, ends = starts[keep], ends[keep]
     lengths = ends - starts
     # Each token's last 4 bytes as one big-endian word (the last 8 for the few longer ones),
@@ -684,7 +687,10 @@ class AsciiFrameReader:
             while stop < len(spans) and spans[stop][1] - first < _BATCH_BYTES:
                 stop += 1
             tok = _tokenise(padded, first, spans[stop - 1][1] + 1)
-            bounds = np.searchsorted(tok.starts, np.array(spans[done:stop])).tolist()
+            # a frame's tokens start after its STX and before its ETX
+            edges = np.array(spans[done:stop], np.int64)
+            edges[:, 0] += 1
+            bounds = np.searchsorted(tok.starts, edges).tolist()
             for (start, end), (lo, hi) in zip(spans[done:stop], bounds, strict=True):
                 frames += self._frame(padded, tok, lo, hi, start, end)
             done = stop
