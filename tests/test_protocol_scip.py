@@ -261,3 +261,14 @@ def test_real_urg04lx_vv_and_pp_replies_parse_and_set_the_geometry() -> None:
     frames = reader.feed((FIXTURES / "urg04lx_pp_vv.txt").read_bytes())
     assert [f.parsed for f in frames] == [None, None] and reader.counters.resyncs == 0
     assert reader.geometry == scip.Geometry(1024, 384, 600) and reader.geometry_from_device
+
+
+def test_the_reader_reports_its_own_warning_through_the_decoder() -> None:
+    """Readers report what they doubt through ``StreamDecoder.warnings`` (no attribute of one
+    reader read by name): SCIP scans without a PP reply say so; other readers say nothing."""
+    from scanpipe.protocol.registry import StreamDecoder, reader_warnings
+    from scanpipe.protocol.scip import ScipReader
+
+    assert reader_warnings(ScipReader()) == []  # nothing decoded yet
+    for name in ("cola_b", "cola_a", "ldoem", "paper", "ldrobot"):
+        assert StreamDecoder(name).warnings == []

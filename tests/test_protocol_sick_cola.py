@@ -115,6 +115,62 @@ def test_cola_a_hand_built() -> None:
     assert detect_dialect(b"junk" + ascii_example() * 2) == "cola_a"
 
 
+@settings(max_examples=60, deadline=None)
+@given(numbers=st.lists(st.integers(0, 0xFFFFFFFF), min_size=1, max_size=200),
+       widths=st.lists(st.integers(0, 7), min_size=1, max_size=200), lower=st.booleans())
+def test_bulk_hex_tokens_match_int(numbers: list[int], widths: list[int], lower: bool) -> None:
+    """The vectorised tokeniser reads every 1–8 digit token (zero-padded, either case) as
+    ``int(token, 16)``; longer tokens and non-hex ones are flagged, never misread."""
+    texts = [format(n, "X").zfill(min(8, len(format(n, "X")) + w)) for n, w in
+             zip(numbers, widths * len(numbers), strict=False)]
+    if lower:
+        texts = [t.lower() for t in texts]
+    body = " ".join(texts).encode() + b" 123456789 12G4 \x01"
+    padded = sick_cola._PAD + b"\x02" + body + b"\x03"
+    tok = sick_cola._tokenise(padded, len(sick_cola._PAD), len(padded))
+    n = len(texts)
+    assert tok.values[:n].tolist() == [int(t, 16) for t in texts]
+    assert tok.bad == [n, n + 1, n + 2]  # 9 digits, a G, a control byte
+    assert tok.numbers(0, n) and not tok.numbers(0, n + 1)
+
+
+def _with_data(tokens: bytes) -> bytes:
+    """``ascii_example`` with its three DIST1 values replaced by ``tokens``."""
+    return ascii_example().replace(b" 3E8 0 9C4 ", b" " + tokens + b" ")
+
+
+def test_cola_a_data_tokens_vectorised_edge_cases() -> None:
+    # zero-padded, lower-case, double spaces: the same values
+    (p,), counters = decode_bytes(_with_data(b"000003E8  0 9c4"), "cola_a")
+    assert counters.frames_decoded == 1
+    assert np.array_equal(p.ranges_m, [1.0, np.nan, 2.5], equal_nan=True)
+    # a value above 16 bits, a non-hex digit, a 9-digit token: refused, counted, not misread
+    for bad in (b"103E8 0 9C4", b"3G8 0 9C4", b"0000003E8 0 9C4"):
+        profiles, counters = decode_bytes(_with_data(bad) + ascii_example(), "cola_a")
+        assert len(profiles) == 1 and counters.malformed_frames == 1, bad
+    # a token too many: a length mismatch (one too few reads as a telegram that omits its
+    # last block flag, which the format allows)
+    profiles, counters = decode_bytes(_with_data(b"3E8 0 9C4 7") + ascii_example(), "cola_a")
+    assert len(profiles) == 1 and counters.length_mismatches == 1
+
+
+def test_cola_a_counters_across_batches_and_false_starts() -> None:
+    """Garbage, false starts and a frame split over feeds count the same as one whole feed."""
+    from scanpipe.protocol.registry import StreamDecoder
+
+    frames = [sick_cola.encode_profile_ascii(profile(301, k, k % 2 == 0)) for k in range(40)]
+    data = b"zz\x02\x02" + frames[0] + b"\x03junk\x02half" + b"".join(frames[1:])
+    whole, counters = decode_bytes(data, "cola_a")
+    assert len(whole) == 40 and counters.resyncs == 3 and counters.bytes_skipped == 2 + 2 + 5 + 5
+    decoder = StreamDecoder("cola_a")
+    out = []
+    for i in range(0, len(data), 997):
+        out += decoder.feed(data[i:i + 997])
+    out += decoder.finish()
+    assert len(out) == 40 and all(a.same_as(b) for a, b in zip(out, whole, strict=True))
+    assert decoder.counters == counters
+
+
 def profile(n: int, k: int, echo: bool) -> Profile:
     rng = np.random.default_rng([n, k])
     raw = rng.integers(0, 20000, n)
@@ -247,3 +303,72 @@ def test_real_sick_capture_decodes_like_the_driver() -> None:
     assert np.all(np.diff(frames) == 1)
     times = np.array([p.device_time_ms for p in profiles], np.int64)
     assert np.diff(times) == pytest.approx(1e6 / 15, rel=0.01)  # 15 Hz in µs
+
+
+def test_cola_a_commands_round_trip_and_read_the_manuals_decimal_form() -> None:
+    args = sick_cola.scan_config_args(25.0, 0.5, -45.0, 225.0)
+    frame = sick_cola.command_ascii("sMN", "mLMPsetscancfg", args)
+    assert frame == b"\x02sMN mLMPsetscancfg 9C4 1 1388 FFF92230 225510\x03"
+    assert sick_cola.parse_command_ascii(frame[1:-1]) == ("sMN", "mLMPsetscancfg", args)
+    # the manuals write signed decimal: the same bytes
+    manual = b"sMN mLMPsetscancfg +2500 +1 +5000 -450000 +2250000"
+    assert sick_cola.parse_command_ascii(manual)[2] == args
+    assert sick_cola.parse_command_ascii(b"sFA A") == ("sFA", "", b"\x00\x0a")
+    assert sick_cola.command_ascii("sFA", "", b"\x00\x02") == b"\x02sFA 2\x03"
+    assert sick_cola.parse_command_ascii(b"sWA LMDscandatacfg") == ("sWA", "LMDscandatacfg", b"")
+    for bad, message in ((b"sEN LMDscandata 1 2", "2 arguments, expected 1"),
+                         (b"sEN LMDscandata 100", "outside its 8-bit field"),
+                         (b"sMN SetAccessMode 3 XYZ", "not a number"),
+                         (b"hello", "not a CoLa-A telegram")):
+        with pytest.raises(ScanpipeError, match=message):
+            sick_cola.parse_command_ascii(bad)
+
+
+LMS111_FIXTURE = FIXTURE.parent / "lms111_pcapng_excerpt.json"
+
+
+def _json_capture_stream(path: Path) -> bytes:
+    """The TCP payloads of a pcap_json_converter capture (both directions, in order)."""
+    import json
+
+    entries = json.loads(path.read_text())
+    return b"".join(bytes.fromhex(e["_source"]["layers"]["tcp"]["tcp.payload"].replace(":", ""))
+                    for e in entries)
+
+
+def test_real_lms111_capture_decodes_like_the_driver() -> None:
+    """A real LMS111 (firmware V1.80) talking to SICK's driver: every scan decodes to the
+    driver's ranges sample for sample; the driver's start-up telegrams are the bytes our
+    recorder sends; the telegram's time block (flag 1, 11 bytes) fits the layout exactly."""
+    stream = _json_capture_stream(LMS111_FIXTURE)
+    profiles, counters = decode_bytes(stream, "cola_b")
+    reference = _reference_scans(stream)
+    assert len(profiles) == len(reference) == 9 and counters.malformed_frames == 0
+    assert counters.length_mismatches == 0 and counters.checksum_failures == 0
+    for p, (counter, start, step, ranges) in zip(profiles, reference, strict=True):
+        assert p.frame == counter and p.start_angle_deg == start == -45.0
+        assert p.step_deg == step == 0.5 and len(p.ranges_m) == 541
+        expected = np.array(ranges, np.float64)
+        got = p.ranges_m.astype(np.float64)
+        assert np.array_equal(np.isnan(got), expected == 0.0)
+        assert np.allclose(got[expected > 0], expected[expected > 0], atol=1e-6)
+    assert np.all(np.diff([p.frame for p in profiles]) == 1)
+    times = np.array([p.device_time_ms for p in profiles], np.int64)
+    assert np.diff(times) == pytest.approx(20_000, rel=0.02)  # 50 Hz in µs (the device jitters)
+    first = stream.find(b"sSN LMDscandata ")
+    length = int.from_bytes(stream[first - 4:first], "big")
+    t = sick_cola.parse_telegram(stream[first:first + length])
+    assert t.scan_frequency_centihz == 5000 and t.trailing_flags == 5 and t.time is not None
+    # what scanpipe's driver sends is what SICK's driver sent this device
+    assert sick_cola.command("sMN", "SetAccessMode", bytes([3]) + sick_cola.CLIENT_PASSWORD
+                             .to_bytes(4, "big")) in stream
+    assert sick_cola.command("sEN", "LMDscandata", b"\x01") in stream
+    # the same scans as CoLa-A decode to the same ranges
+    telegrams = []
+    at = stream.find(b"sSN LMDscandata ")
+    while at >= 0:
+        size = int.from_bytes(stream[at - 4:at], "big")
+        telegrams.append(sick_cola.parse_telegram(stream[at:at + size]))
+        at = stream.find(b"sSN LMDscandata ", at + size)
+    again, _ = decode_bytes(b"".join(sick_cola.encode_ascii(t) for t in telegrams), "cola_a")
+    assert len(again) == 9 and all(a.same_as(b) for a, b in zip(again, profiles, strict=True))

@@ -70,7 +70,16 @@ def test_model_limits_are_checked_in_the_rig(tmp_path: Path, cli: Callable[..., 
     bad = path.read_text().replace('dialect = "cola_b"', 'dialect = "ldoem"')
     path.write_text(bad)
     result = cli("rig", "check", path)
-    assert result.code == 2 and "model lms111 speaks dialect cola_b, not ldoem" in result.err
+    assert result.code == 2 and "model lms111 speaks dialect cola_b or cola_a, not ldoem" \
+        in result.err
+    # the LMS1xx's other flavour is accepted; a TiM571 (CoLa-B only here) refuses it
+    path.write_text(text.replace("scan_hz = 30.0", "scan_hz = 25.0").replace(
+        'dialect = "cola_b"', 'dialect = "cola_a"'))
+    assert cli("rig", "check", path).code == 0
+    assert cli("rig", "init", path, "--scanner", "tim571", "--force").code == 0
+    path.write_text(path.read_text().replace('dialect = "cola_b"', 'dialect = "cola_a"'))
+    result = cli("rig", "check", path)
+    assert result.code == 2 and "model tim571 speaks dialect cola_b, not cola_a" in result.err
 
 
 def test_old_rig_files_load_as_the_ld_oem(tmp_path: Path) -> None:
@@ -119,19 +128,27 @@ def test_a_simulated_270_degree_scanner_runs_the_whole_chain(tmp_path: Path,
 
 
 @pytest.mark.slow
-def test_lms111_live_through_the_emulator_and_run(tmp_path: Path,
-                                                  cli: Callable[..., Any]) -> None:
-    """The user's path: simulate live (CoLa-B on TCP, sEN LMDscandata) → run; points within
-    1.1 σ of the LMS111's noise, intensities kept as echo."""
+@pytest.mark.parametrize("dialect", ["cola_b", "cola_a"])
+def test_lms111_live_through_the_emulator_and_run(tmp_path: Path, cli: Callable[..., Any],
+                                                  dialect: str) -> None:
+    """The user's path: simulate live (CoLa-B on TCP 2112, or CoLa-A on 2111 selected by the
+    rig's dialect; sEN LMDscandata) → run; points within 1.1 σ of the LMS111's noise,
+    intensities kept as echo."""
+    from scanpipe.rig import default_rig, scanner_for_model
+
     rec, truth, work = tmp_path / "s.mcap", tmp_path / "t", tmp_path / "w"
-    result = cli("simulate", "--scanner", "lms111", "--out", rec, "--truth", truth,
+    rig = tmp_path / "rig.toml"
+    scanner = scanner_for_model("lms111").model_copy(update={
+        "dialect": dialect, "port": SCANNER_MODELS["lms111"].rig_values(dialect)["port"]})
+    rig.write_text(rig_to_toml(default_rig().model_copy(update={"scanner": scanner})))
+    result = cli("simulate", "--rig", rig, "--out", rec, "--truth", truth,
                  "--mode", "continuous", "--motor-step", "1.44", "--no-cameras",
                  "--speedup", "2", "--seed", "4", "--quiet")
     assert result.code == 0, result.err
     result = cli("run", rec, "--workdir", work, "--quiet")
     assert result.code == 0 and "Traceback" not in result.err
     profiles = pq.read_table(work / "decode" / "profiles.parquet")
-    assert set(profiles.column("dialect").to_pylist()) == {"cola_b"}
+    assert set(profiles.column("dialect").to_pylist()) == {dialect}
     assert profiles.column("echo").null_count == 0
     report = read_provenance(work / "assemble" / "points.parquet")["report"]
     assert report["time_source"] == "device"

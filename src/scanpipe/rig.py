@@ -106,9 +106,9 @@ class ScannerConfig(Params):
 
     @model_validator(mode="after")
     def _ranges_ordered(self) -> ScannerConfig:
-        if self.model and get_model(self.model).dialect != self.dialect:
+        if self.model and self.dialect not in get_model(self.model).dialects:
             raise ValueError(f"model {self.model} speaks dialect "
-                             f"{get_model(self.model).dialect}, not {self.dialect}")
+                             f"{' or '.join(get_model(self.model).dialects)}, not {self.dialect}")
         if self.end_angle_deg <= self.start_angle_deg:
             raise ValueError(
                 f"end_angle_deg ({self.end_angle_deg}) must be greater than "

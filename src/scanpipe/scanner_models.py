@@ -51,6 +51,8 @@ class ScannerModel:
     writes ``end_angle_deg`` one beam step past the last sample (sectors are half-open).
     ``modes`` are the (scan_hz, beam_step_deg) pairs the device offers. ``limit_checks``
     replaces the table check for devices whose limits are not a list of modes (the LD-OEM).
+    ``other_dialects`` are further dialects the device speaks, each with its TCP port (the
+    LMS1xx: CoLa-A on 2111 beside CoLa-B on 2112); a rig selects one with its ``dialect``.
     """
 
     name: str
@@ -65,6 +67,12 @@ class ScannerModel:
     port: int = 2112
     baudrate: int = 0
     limit_checks: Callable[[ModelSettings], tuple[LimitCheck, ...]] | None = None
+    other_dialects: Mapping[str, int] | None = None
+
+    @property
+    def dialects(self) -> tuple[str, ...]:
+        """Every dialect the device speaks, its default first."""
+        return (self.dialect, *(self.other_dialects or {}))
 
     @property
     def scan_hz(self) -> float:
@@ -76,19 +84,21 @@ class ScannerModel:
         """The default beam step (the first mode's)."""
         return self.modes[0][1]
 
-    def rig_values(self) -> dict[str, object]:
-        """The ``[scanner]`` keys of a rig for this model in its default mode."""
+    def rig_values(self, dialect: str = "") -> dict[str, object]:
+        """The ``[scanner]`` keys of a rig for this model in its default mode (and
+        ``dialect``, one of :attr:`dialects`, with its port; the default one if empty)."""
+        dialect = dialect or self.dialect
         step = self.beam_step_deg
         start, last = self.fov_deg
         samples = round((last - start) / step) + (0 if self.dialect == "ldoem" else 1)
         values: dict[str, object] = {
-            "model": self.name, "dialect": self.dialect, "transport": self.transport,
+            "model": self.name, "dialect": dialect, "transport": self.transport,
             "beam_step_deg": step, "scan_hz": self.scan_hz,
             "start_angle_deg": start, "end_angle_deg": start + samples * step,
             "min_range_m": self.range_m[0], "max_range_m": self.range_m[1],
         }
         if self.transport == "tcp":
-            values["port"] = self.port
+            values["port"] = (self.other_dialects or {}).get(dialect, self.port)
         else:
             values["baudrate"] = self.baudrate
         return values
@@ -132,7 +142,7 @@ SCANNER_MODELS: Mapping[str, ScannerModel] = {
         name="lms111", description="SICK LMS111 (270°, 20 m, CoLa-B on TCP 2112)",
         dialect="cola_b", transport="tcp", fov_deg=(-45.0, 225.0),
         modes=((25.0, 0.5), (25.0, 0.25), (50.0, 0.5)), range_m=(0.5, 20.0),
-        noise_sigma_m=0.012, intensity=True, port=2112),
+        noise_sigma_m=0.012, intensity=True, port=2112, other_dialects={"cola_a": 2111}),
     "tim571": ScannerModel(
         name="tim571", description="SICK TiM571 (270°, 25 m, CoLa-B on TCP 2112)",
         dialect="cola_b", transport="tcp", fov_deg=(-45.0, 225.0),

@@ -4,9 +4,11 @@ Two procedures (:class:`RecordOptions.mode`):
 
 - ``step`` (the paper's step-and-scan): from the start, move by the chosen step count
   (:func:`scanpipe.planning.choose_steps`), wait for the move to end and the settle time, then
-  for ``profiles_per_position`` complete profiles that began after the settle (the profile under
-  way when the platform came to rest is not counted), and repeat while the next position is
-  within the sweep;
+  for ``profiles_per_position`` complete profiles that began after the settle — placed by their
+  frame counters, so a scan sent late (a lagging link) that began before the settle is not
+  counted; without counters the first profile received is not counted — and a margin
+  (:meth:`~scanpipe.acquire.scanner_client.ScannerClient.wait_for_fresh_profiles`), and repeat
+  while the next position is within the sweep;
 - ``continuous``: one move to the end of the sweep at a constant pulse rate (the motor step per
   head turn: ``steps × scan_hz`` pulses per second) while the controller reports its position
   periodically and the scanner streams.
@@ -511,6 +513,7 @@ class Recorder:
         targets = self._targets(self._start_count)
         self.positions_total = len(targets)
         scan_period_s = self._device_s(1.0 / scanner.scan_hz)
+        sector_fraction = min(1.0, (scanner.end_angle_deg - scanner.start_angle_deg) / 360.0)
         profile_timeout = (opts.profiles_per_position + 3) * scan_period_s + opts.reply_timeout_s
         self.motor.set_rate(self.rig.motor.pulse_rate_hz)
         index = 0
@@ -527,9 +530,11 @@ class Recorder:
                 raise RecordingStopped
             settled_ns = self.clock_ns()
             self.phase = f"scanning at {targets[index]}"
-            # +1: the first profile after the settle may have begun before it.
-            if not self.scanner.wait_for_profiles(settled_ns, opts.profiles_per_position + 1,
-                                                  profile_timeout, self.stop_event):
+            # Profiles that began after the settle: one sent late may have begun before it.
+            if not self.scanner.wait_for_fresh_profiles(
+                    settled_ns, opts.profiles_per_position, round(scan_period_s * 1e9),
+                    round(scan_period_s * sector_fraction * 1e9), profile_timeout,
+                    self.stop_event):
                 self._check_stop()
                 if self._scanner_lost.is_set() or not self.scanner.connected:
                     self._scanner_lost.set()

@@ -44,6 +44,11 @@ from scanpipe.scanner_models import limit_problems
 RX, TX = 0, 1
 #: Socket read timeout: how often the reader thread looks at its stop flag.
 POLL_S = 0.1
+#: Frame counters wrap here (u16: LD-OEM, paper, SICK scan counter).
+COUNTER_PERIOD = 1 << 16
+#: Profiles that place the head's turns for :meth:`ScannerClient.wait_for_fresh_profiles`
+#: (a few seconds: a device's rate error stays far below a scan over them).
+FRESH_WINDOW = 64
 
 
 class StreamSink(Protocol):
@@ -136,6 +141,9 @@ class ScannerClient:
         self._send_lock = threading.Lock()
         self._profiles_changed = threading.Condition()
         self._profile_times: list[int] = []  # recv times of recent profiles (bounded)
+        #: Their frame counters (unwrapped; None where the link gives none): one per head turn.
+        self._profile_counters: list[int | None] = []
+        self._last_counter: int | None = None
         self._replies: queue.Queue[ldoem.Message] = queue.Queue()
         self._want_profile = threading.Event()
         self._connected = False
@@ -322,17 +330,21 @@ class ScannerClient:
                 break
             self.sink.write_stream("scanner", data, RX, now)
             self.stats.rx_bytes += len(data)
+            counters: list[int] | None = None
             if driver is not None:
                 complete, replies = driver.feed(data)
                 for reply in replies:
                     self._driver_replies.put(reply)
             elif paper_decoder is not None:
-                complete = len(paper_decoder.feed_frames(data))
+                counters = [f.profiles[0].frame for f in paper_decoder.feed_frames(data)
+                            if f.profiles]
+                complete = len(counters)
             else:
                 assert reader is not None
-                complete = self._ldoem_frames(reader.feed(data))
+                counters = self._ldoem_frames(reader.feed(data))
+                complete = len(counters)
             if complete:
-                self._profiles_arrived(complete, now)
+                self._profiles_arrived(complete, now, counters)
         if not self._closing.is_set():
             self._connected = False
             with self._profiles_changed:
@@ -340,8 +352,9 @@ class ScannerClient:
             if self.on_disconnect is not None:
                 self.on_disconnect(reason)
 
-    def _ldoem_frames(self, frames: list[RawFrame]) -> int:
-        profiles = 0
+    def _ldoem_frames(self, frames: list[RawFrame]) -> list[int]:
+        """The frame counters of the profile replies (the replies to requests queued)."""
+        counters = []
         for frame in frames:
             if not frame.checksum_ok:
                 continue
@@ -350,20 +363,35 @@ class ScannerClient:
             except ProtocolError:
                 continue
             if message.is_profile_reply:
-                profiles += 1
+                try:
+                    sectors = ldoem.decode_profile_reply(frame.payload).sectors
+                except ProtocolError:
+                    sectors = []
+                counters.append(sectors[0].frame if sectors else -1)  # -1: no counter
                 if self._want_profile.is_set():  # the first profile answers GET_PROFILE
                     self._want_profile.clear()
                     self._replies.put(message)
             elif message.is_reply:
                 self._replies.put(message)
-        return profiles
+        return counters
 
-    def _profiles_arrived(self, count: int, now_ns: int) -> None:
+    def _profiles_arrived(self, count: int, now_ns: int,
+                          counters: list[int] | None = None) -> None:
+        unwrapped: list[int | None] = [None] * count
+        if counters is not None and len(counters) == count and min(counters, default=0) >= 0:
+            for i, c in enumerate(counters):  # u16 counters, unwrapped as they come
+                last = self._last_counter
+                step = 0 if last is None else (c - last) % COUNTER_PERIOD
+                step = step - COUNTER_PERIOD if step >= COUNTER_PERIOD // 2 else step
+                self._last_counter = c if last is None else last + step
+                unwrapped[i] = self._last_counter
         with self._profiles_changed:
             self.stats.profiles += count
             self.stats.last_profile_ns = now_ns
             self._profile_times.extend([now_ns] * count)
+            self._profile_counters.extend(unwrapped)
             del self._profile_times[:-256]  # more than profiles_per_position can ask for
+            del self._profile_counters[:-256]
             self._profiles_changed.notify_all()
 
     def wait_for_profiles(self, after_ns: int, count: int, timeout_s: float,
@@ -381,6 +409,58 @@ class ScannerClient:
                 if remaining <= 0 or not self._connected or (stop is not None and stop.is_set()):
                     return False
                 self._profiles_changed.wait(min(remaining, POLL_S))
+
+
+    def wait_for_fresh_profiles(self, after_ns: int, count: int, period_ns: int,
+                                sector_ns: int, timeout_s: float,
+                                stop: threading.Event | None = None) -> bool:
+        """Wait until ``count`` profiles that *began* after ``after_ns`` (host clock) have been
+        received, and a margin after that: at a stopped position, a scan sent late (a lagging
+        host or device) may have begun before the stop although it arrives after it, and the
+        times the chain later gives profiles and motor states are fitted, not exact.
+
+        With frame counters that advance once per head turn (ldoem, paper), the recent
+        profiles place the head's turns on the host clock: ``base = min_j(r_j − c_j·T)``
+        (receive time r, counter c, ``T = period_ns``: the least-delayed profile's placement,
+        as the chain's clock fit does), and a profile began at ``base + c·T − sector``
+        (``sector = sector_ns``). The margin is half a turn plus the 90th percentile of the
+        recent profiles' delays ``r_j − (base + c_j·T)`` (a loaded link waits longer).
+        Without counters, the first profile received after ``after_ns`` may have begun before
+        it and is not counted (no margin). False on time-out, on a dropped link or when
+        ``stop`` is set.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._profiles_changed:
+            while True:
+                fresh, hold_ns = self._fresh_count(after_ns, count, period_ns, sector_ns)
+                wait_s = max(0.0, (hold_ns - self.clock_ns()) / 1e9)
+                if fresh >= count and wait_s == 0.0:
+                    return True
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or not self._connected or (stop is not None and stop.is_set()):
+                    return False
+                self._profiles_changed.wait(min(remaining, POLL_S, wait_s or POLL_S))
+
+    def _fresh_count(self, after_ns: int, count: int, period_ns: int,
+                     sector_ns: int) -> tuple[int, int]:
+        """How many recent profiles began after ``after_ns``, and until when to hold still
+        once ``count`` of them are in (see :meth:`wait_for_fresh_profiles`; 0: no hold)."""
+        times = self._profile_times[-FRESH_WINDOW:]
+        counters = self._profile_counters[-FRESH_WINDOW:]
+        received = [(t, c) for t, c in zip(times, counters, strict=True) if t > after_ns]
+        if not received:
+            return 0, 0
+        known = [(t, c) for t, c in zip(times, counters, strict=True) if c is not None]
+        if len(known) < len(times) or period_ns <= 0:
+            return len(received) - 1, 0
+        base = min(t - c * period_ns for t, c in known)
+        fresh = [t for t, c in received
+                 if c is not None and base + c * period_ns - sector_ns >= after_ns]
+        if len(fresh) < count:
+            return len(fresh), 0
+        delays = sorted(t - (base + c * period_ns) for t, c in known)
+        margin = period_ns // 2 + delays[int(0.9 * (len(delays) - 1))]
+        return len(fresh), fresh[count - 1] + margin
 
 
 def _refusal(message: ldoem.Message) -> str:

@@ -35,7 +35,8 @@ class ColaReply:
 
 
 class SickColaDriver:
-    """SICK CoLa-B (LMS1xx, TiM5xx) on TCP.
+    """SICK CoLa-B (LMS1xx on TCP 2112, TiM5xx) or CoLa-A (LMS1xx on TCP 2111: the same
+    telegrams as ASCII tokens between STX and ETX), after the rig's dialect.
 
     Start: ``sMN SetAccessMode`` (authorised client), then — for a model with more than one
     mode — ``sMN mLMPsetscancfg`` with the rig's rate, step and sector (status 0 expected)
@@ -47,14 +48,18 @@ class SickColaDriver:
         from scanpipe.protocol import framing, sick_cola
 
         self.scanner = scanner
-        self.reader = framing.FrameReader(sick_cola.MARKER, 0, sick_cola.MAX_PAYLOAD_BYTES,
-                                          confirm=False)
+        self.ascii = scanner.dialect == "cola_a"
+        self.reader: framing.FrameReader | sick_cola.AsciiFrameReader = (
+            sick_cola.AsciiFrameReader(sick_cola.MAX_PAYLOAD_BYTES * 3, parse=False)
+            if self.ascii else framing.FrameReader(sick_cola.MARKER, 0,
+                                                   sick_cola.MAX_PAYLOAD_BYTES, confirm=False))
 
     def _ask(self, client: ScannerClient, kind: str, name: str, args: bytes,
              answer_kind: str) -> ColaReply:
         from scanpipe.protocol import sick_cola
 
-        reply = client.request(sick_cola.command(kind, name, args), f"{kind} {name}",
+        encode = sick_cola.command_ascii if self.ascii else sick_cola.command
+        reply = client.request(encode(kind, name, args), f"{kind} {name}",
                                lambda r: isinstance(r, ColaReply) and (
                                    r.name == name or r.kind == "sFA"))
         assert isinstance(reply, ColaReply)
@@ -106,14 +111,17 @@ class SickColaDriver:
         for frame in self.reader.feed(data):
             if not frame.checksum_ok:
                 continue
-            if frame.payload[:16] in sick_cola.COMMANDS:
+            if frame.payload[:16] in sick_cola.COMMANDS:  # the same in both flavours
                 profiles += 1
                 continue
-            if frame.payload[:4] == b"sFA ":
+            if frame.payload[:4] == b"sFA " and not self.ascii:
                 replies.append(ColaReply("sFA", "", frame.payload[4:]))
                 continue
             try:
-                kind, name, args = sick_cola.parse_command(frame.payload)
+                if self.ascii:
+                    kind, name, args = sick_cola.parse_command_ascii(frame.payload)
+                else:
+                    kind, name, args = sick_cola.parse_command(frame.payload)
             except ProtocolError:
                 continue
             replies.append(ColaReply(kind, name, args))
@@ -121,8 +129,8 @@ class SickColaDriver:
 
 
 #: The driver of each dialect that has one (``ldoem`` and ``paper`` live in the client).
-DRIVERS: dict[str, Callable[[ScannerConfig], ScannerDriver]] = {"cola_b": SickColaDriver,
-                                                            "scip": ScipDriver}
+DRIVERS: dict[str, Callable[[ScannerConfig], ScannerDriver]] = {
+    "cola_b": SickColaDriver, "cola_a": SickColaDriver, "scip": ScipDriver}
 
 
 def _register() -> None:

@@ -41,6 +41,14 @@ class FrameSource(Protocol):
     def finish(self) -> list[RawFrame]: ...
 
 
+def reader_warnings(reader: object) -> list[str]:
+    """What a frame reader found doubtful about the stream it read (one line each; e.g. SCIP
+    scans decoded before any PP reply gave the device's geometry). A reader reports them with
+    a ``stream_warnings()`` method; readers without one have nothing to say."""
+    report = getattr(reader, "stream_warnings", None)
+    return [str(w) for w in report()] if callable(report) else []
+
+
 #: ``reader_factory(dialect, max_payload_bytes, confirm)``: a fresh reader for a dialect with
 #: its own framing.
 ReaderFactory = Callable[["Dialect", int, bool], FrameSource]
@@ -214,6 +222,12 @@ class StreamDecoder:
     def reader(self) -> FrameSource:
         """The dialect's frame reader (what it learnt from the stream, e.g. SCIP geometry)."""
         return self._reader
+
+    @property
+    def warnings(self) -> list[str]:
+        """What the dialect's reader found doubtful about the stream so far (see
+        :func:`reader_warnings`)."""
+        return reader_warnings(self._reader)
 
     @property
     def counters(self) -> FrameCounters:

@@ -293,6 +293,7 @@ class ScipReader:
         self.counters = FrameCounters()
         self.geometry = geometry or Geometry()
         self.geometry_from_device = geometry is not None
+        self.scans_decoded = 0
         #: The last non-scan reply's (command, status), for drivers.
         self.last_status: tuple[str, str] | None = None
         self._buf = bytearray()
@@ -317,6 +318,14 @@ class ScipReader:
             self._offset += len(self._buf)
             self._buf.clear()
         return frames
+
+    def stream_warnings(self) -> list[str]:
+        """Scans decoded before any PP reply: their angles assume the default geometry."""
+        if self.geometry_from_device or not self.scans_decoded:
+            return []
+        return [f"no SCIP PP reply before the scans: their angles assume the UST/UTM geometry "
+                f"(ARES {DEFAULT_ARES}, AFRT {DEFAULT_AFRT}); another model (a URG-04LX: "
+                "1024, 384) decodes with wrong angles (scanpipe record asks for PP first)"]
 
     def _drain(self, final: bool) -> list[RawFrame]:
         frames: list[RawFrame] = []
@@ -479,6 +488,7 @@ class ScipReader:
             else:
                 self.counters.checksum_failures += 1
             frames.append(RawFrame(item.message, ok, 0, 0, item.offset, item.end, [profile]))
+            self.scans_decoded += 1
         return frames, None
 
 

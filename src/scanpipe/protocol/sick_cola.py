@@ -36,6 +36,7 @@ that omits the trailing flags).
 from __future__ import annotations
 
 import struct
+from bisect import bisect_left
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -44,6 +45,7 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import ProtocolError
 from scanpipe.protocol.framing import (
+    NOT_PARSED,
     FrameCounters,
     LengthMismatch,
     RawFrame,
@@ -337,49 +339,98 @@ def check_frame(profiles: list[Profile] | None) -> int | None:
 
 
 # -- CoLa-A --------------------------------------------------------------------------------
+#
+# A CoLa-A stream is parsed in bulk: every token of a batch of frames is found and converted
+# from hex at once (numpy over the bytes), then each frame's fields are read from those arrays.
 
-def _hex_tokens(tokens: list[bytes]) -> NDArray[np.int64]:
-    """Hex tokens (1–8 digits each) to integers; long runs (channel data) vectorised in one
-    pass over their bytes."""
-    if len(tokens) < 16:
-        values = []
-        for t in tokens:
-            if not 1 <= len(t) <= 8 or not t.isalnum():
-                raise ProtocolError("CoLa-A: a number token is empty, too long or not hex")
-            try:
-                values.append(int(t, 16))
-            except ValueError as err:
-                raise ProtocolError("CoLa-A: a number token is not hexadecimal") from err
-        return np.array(values, dtype=np.int64)
-    chars = np.frombuffer(b" ".join(tokens), np.uint8)
-    spaces = np.flatnonzero(chars == 0x20)
-    starts = np.concatenate([[0], spaces + 1])
-    ends = np.concatenate([spaces, [chars.size]])
+#: Byte classes (for ``bytes.translate``): 0 separates tokens (space, STX, ETX), 1 is a hex
+#: digit, 2 anything else.
+_CLASS = bytes(0 if c in (0x20, STX, ETX) else 1 if c in b"0123456789ABCDEFabcdef" else 2
+               for c in range(256))
+#: Tokens are read through an 8-byte window ending at their last byte: this much padding
+#: in front of the data keeps the first token's window inside it.
+_PAD = b" " * 8
+#: ``(1 << 4 L) − 1`` for a token of L ≤ 8 hex digits (the digits its window holds).
+_DIGIT_MASK = np.array([(1 << (4 * n)) - 1 for n in range(9)], np.uint64)
+#: Frames tokenised together (bounds the temporaries of a large stream).
+_BATCH_BYTES = 1 << 21
+
+
+@dataclass(frozen=True)
+class _Tokens:
+    """The tokens of a stretch of CoLa-A bytes: where each lies in ``data`` (padded in front
+    by :data:`_PAD`), its value as hex, and the (sorted) indices of the tokens that are no
+    number (not 1–8 hex digits) and of those with more than 4 digits."""
+
+    data: bytes | bytearray
+    starts: NDArray[np.int64]
+    ends: NDArray[np.int64]
+    values: NDArray[np.uint64]
+    bad: list[int]
+    wide: list[int]
+
+    def text(self, i: int) -> bytes:
+        """Token ``i``'s bytes."""
+        return bytes(self.data[int(self.starts[i]):int(self.ends[i])])
+
+    def numbers(self, first: int, stop: int) -> bool:
+        """Whether tokens ``first … stop-1`` are all numbers."""
+        return bisect_left(self.bad, first) == bisect_left(self.bad, stop)
+
+    def narrow(self, first: int, stop: int) -> bool:
+        """Whether tokens ``first … stop-1`` all have at most 4 digits (fit 16 bits)."""
+        return bisect_left(self.wide, first) == bisect_left(self.wide, stop)
+
+
+def _hex_words(word: NDArray[Any], width: int) -> NDArray[Any]:
+    """Words of ``width`` (4 or 8) ASCII hex digits to their values, in place (SWAR: a digit's
+    low 4 bits, plus 9 for a letter — bit 6 set —, then the nibbles packed pairwise).
+    Bytes that are no hex digit give garbage, confined to their own nibble."""
+    dtype = word.dtype.type
+    ones = dtype(int.from_bytes(b"\x01" * width, "big"))
+    letters = word >> dtype(6)
+    letters &= ones
+    letters *= dtype(9)
+    word &= dtype(ones * 0x0F)
+    word += letters
+    shift = 4
+    while shift < 4 * width:  # lanes of 4·shift bits keep their low 2·shift bits
+        lane = b"\x00" * (shift // 4) + b"\xff" * (shift // 4)
+        word |= word >> dtype(shift)
+        word &= dtype(int.from_bytes(lane * (2 * width // shift), "big"))
+        shift *= 2
+    return word
+
+
+def _tokenise(padded: bytes | bytearray, begin: int, end: int) -> _Tokens:
+    """The tokens of ``padded[begin:end]``: ``padded`` starts with :data:`_PAD`, the stretch
+    starts with an STX and ends with an ETX. Separators are space, STX and ETX."""
+    cls = np.frombuffer(padded[begin:end].translate(_CLASS), np.uint8)
+    seps = np.flatnonzero(cls == 0)
+    seps += begin
+    starts, ends = seps[:-1] + 1, seps[1:]
+    # Separators next to each other leave empty tokens. Those between one frame's ETX and the
+    # next one's STX lie outside every frame's tokens and may stay; others (two spaces) go.
+    empty = np.flatnonzero(ends == starts)
+    if empty.size and not (np.frombuffer(padded, np.uint8)[starts[empty] - 1] == ETX).all():
+        keep = ends > starts
+        starts, ends = starts[keep], ends[keep]
     lengths = ends - starts
-    if lengths.min() < 1 or lengths.max() > 8:
-        raise ProtocolError("CoLa-A: a number token is empty or longer than 8 hex digits")
-    digits = chars[chars != 0x20]
-    nibble = _NIBBLE[digits]
-    if (nibble < 0).any():
-        raise ProtocolError("CoLa-A: a number token is not hexadecimal")
-    token_ends = np.cumsum(lengths)
-    position = np.arange(digits.size) - np.repeat(token_ends - 1, lengths)  # ≤ 0 from the right
-    weights = np.left_shift(np.int64(1), (-4 * position).astype(np.int64))
-    result: NDArray[np.int64] = np.add.reduceat(nibble.astype(np.int64) * weights,
-                                                token_ends - lengths)
-    return result
-
-
-def _nibble_table() -> NDArray[np.int8]:
-    table = np.full(256, -1, np.int8)
-    for i, c in enumerate(b"0123456789ABCDEF"):
-        table[c] = i
-    for i, c in enumerate(b"abcdef"):
-        table[c] = 10 + i
-    return table
-
-
-_NIBBLE = _nibble_table()
+    # Each token's last 4 bytes as one big-endian word (the last 8 for the few longer ones),
+    # hex digits to nibbles in parallel, the nibbles packed, the token's own digits kept.
+    word4 = np.take(np.ndarray((len(padded) - 3,), ">u4", padded, 0, (1,)), ends - 4)
+    values = _hex_words(word4.astype(np.uint32), 4).astype(np.uint64)
+    values &= _DIGIT_MASK[np.minimum(lengths, 4)]
+    wide = np.flatnonzero(lengths > 4)
+    if wide.size:
+        word8 = np.take(np.ndarray((len(padded) - 7,), ">u8", padded, 0, (1,)), ends[wide] - 8)
+        values[wide] = _hex_words(word8.astype(np.uint64), 8) & _DIGIT_MASK[
+            np.minimum(lengths[wide], 8)]
+    # Bytes that are neither a hex digit nor a separator make their token no number.
+    odd = np.flatnonzero(cls == 2) + begin
+    bad = set((np.searchsorted(starts, odd, "right") - 1).tolist())
+    bad.update(wide[lengths[wide] > 8].tolist())
+    return _Tokens(padded, starts, ends, values, sorted(bad), wide.tolist())
 
 
 def _signed32(value: int) -> int:
@@ -391,50 +442,65 @@ def _float(value: int) -> float:
     return result
 
 
-def parse_ascii(body: bytes) -> ScanTelegram:
-    """All fields of a CoLa-A ``LMDscandata`` telegram (the bytes between STX and ETX)."""
-    tokens = body.split()
-    if len(tokens) < 2 or tokens[0] not in (b"sSN", b"sRA") or tokens[1] != b"LMDscandata":
+def _parse_tokens(tok: _Tokens, lo: int, hi: int) -> ScanTelegram:
+    """All fields of the CoLa-A ``LMDscandata`` telegram made of tokens ``lo … hi-1``."""
+    if hi - lo < 2 or tok.text(lo) not in (b"sSN", b"sRA") or tok.text(lo + 1) != (
+            b"LMDscandata"):
         raise ProtocolError("not a CoLa-A LMDscandata telegram")
-    pos = 2
+    pos = lo + 2
+    values = tok.values
 
-    def take(n: int) -> list[bytes]:
+    def span(n: int) -> int:
         nonlocal pos
-        if pos + n > len(tokens):
+        if n < 0 or pos + n > hi:
             raise LengthMismatch("CoLa-A LMDscandata ends early")
-        out = tokens[pos:pos + n]
+        if not tok.numbers(pos, pos + n):
+            raise ProtocolError("CoLa-A: a number token is empty, longer than 8 digits or "
+                                "not hexadecimal")
+        first = pos
         pos += n
-        return out
+        return first
 
     def num(n: int = 1) -> list[int]:
-        return [int(v) for v in _hex_tokens(take(n))]
+        first = span(n)
+        out: list[int] = values[first:first + n].tolist()
+        return out
+
+    def text() -> bytes:
+        nonlocal pos
+        if pos >= hi:
+            raise LengthMismatch("CoLa-A LMDscandata ends early")
+        pos += 1
+        return tok.text(pos - 1)
 
     version, device_number, serial, s1, s2, tcount, scount, t_start, t_tx, i1, i2, o1, o2, \
-        layer, freq, mfreq = num(16)
-    (n_enc,) = num(1)
+        layer, freq, mfreq, n_enc = num(17)
     enc_values = num(2 * n_enc)
     encoders = tuple((enc_values[2 * i], enc_values[2 * i + 1]) for i in range(n_enc))
     channel_sets: list[tuple[Channel, ...]] = []
-    for dtype in (np.uint16, np.uint8):
+    for limit in (0xFFFF, 0xFF):
         (n_ch,) = num(1)
         channels = []
         for _ in range(n_ch):
-            (name,) = take(1)
+            name = text()
             scale, offset, start, step, count = num(5)
             if count > MAX_SAMPLES:
                 raise ProtocolError(f"CoLa-A channel of {count} samples")
-            data = _hex_tokens(take(count))
-            if data.size and data.max() > np.iinfo(dtype).max:
+            first = span(count)
+            data = values[first:first + count]
+            # ≤ 4 digits always fit 16 bits: the maximum is needed only otherwise
+            fits = limit == 0xFFFF and tok.narrow(first, first + count)
+            if count and not fits and int(data.max()) > limit:
                 raise ProtocolError(f"CoLa-A channel {name!r}: value above its width")
             typed: NDArray[np.uint16] | NDArray[np.uint8] = (
-                data.astype(np.uint16) if dtype is np.uint16 else data.astype(np.uint8))
+                data.astype(np.uint16) if limit == 0xFFFF else data.astype(np.uint8))
             channels.append(Channel(name.decode("latin-1"), _float(scale), _float(offset),
                                     _signed32(start), step, typed))
         channel_sets.append(tuple(channels))
     optional: dict[str, Any] = {}
     flags = 0
     for block in ("position", "name", "comment", "time", "event"):
-        if pos == len(tokens):
+        if pos == hi:
             break
         (flag,) = num(1)
         flags += 1
@@ -447,16 +513,15 @@ def parse_ascii(body: bytes) -> ScanTelegram:
             optional[block] = (*[_float(x) for x in v[:6]], v[6], v[7])
         elif block in ("name", "comment"):
             (length,) = num(1)
-            text = b" ".join(take(1)) if length else b""
-            optional[block] = text.decode("latin-1")
+            optional[block] = (text() if length else b"").decode("latin-1")
         elif block == "time":
             optional[block] = tuple(num(7))
         else:
-            (kind,) = take(1)
+            kind = text()
             enc, us, angle = num(3)
             optional[block] = (kind, enc, us, _signed32(angle))
-    if pos != len(tokens):
-        raise LengthMismatch(f"CoLa-A LMDscandata: {len(tokens) - pos} tokens after the fields")
+    if pos != hi:
+        raise LengthMismatch(f"CoLa-A LMDscandata: {hi - pos} tokens after the fields")
     return ScanTelegram(
         version=version, device_number=device_number, serial_number=serial,
         device_status=bytes([s1 & 0xFF, s2 & 0xFF]), telegram_counter=tcount,
@@ -465,7 +530,14 @@ def parse_ascii(body: bytes) -> ScanTelegram:
         layer_angle=layer - 0x10000 if layer & 0x8000 else layer,
         scan_frequency_centihz=freq, measurement_frequency=mfreq, encoders=encoders,
         channels16=channel_sets[0], channels8=channel_sets[1],
-        command=tokens[0] + b" LMDscandata ", trailing_flags=flags, **optional)
+        command=tok.text(lo) + b" LMDscandata ", trailing_flags=flags, **optional)
+
+
+def parse_ascii(body: bytes) -> ScanTelegram:
+    """All fields of a CoLa-A ``LMDscandata`` telegram (the bytes between STX and ETX)."""
+    padded = _PAD + bytes([STX]) + body + bytes([ETX])
+    tok = _tokenise(padded, len(_PAD), len(padded))
+    return _parse_tokens(tok, 0, len(tok.starts))
 
 
 def _hex(values: NDArray[np.integer] | list[int]) -> list[bytes]:
@@ -516,12 +588,21 @@ def encode_profile_ascii(profile: Profile) -> bytes:
     return encode_ascii(profile_telegram(profile))
 
 
+def _other_telegram(body: bytes | bytearray) -> list[Profile] | None:
+    """None for a CoLa-A telegram other than scan data (``sEA``, ``sAN`` …);
+    :class:`ProtocolError` for bytes that are no CoLa-A telegram."""
+    if len(body) >= 4 and body[:1] == b"s" and body[3:4] == b" " and body[1:3].isalpha():
+        return None
+    raise ProtocolError("not a CoLa-A telegram")
+
+
+_SCAN_PREFIXES = (b"sSN LMDscandata", b"sRA LMDscandata")
+
+
 def decode_ascii(body: bytes, checksum_ok: bool = True) -> list[Profile] | None:
     """The profile of a CoLa-A telegram body; None for another CoLa-A telegram."""
-    if not body.startswith((b"sSN LMDscandata", b"sRA LMDscandata")):
-        if len(body) >= 4 and body[:1] == b"s" and body[3:4] == b" " and body[1:3].isalpha():
-            return None
-        raise ProtocolError("not a CoLa-A telegram")
+    if not body.startswith(_SCAN_PREFIXES):
+        return _other_telegram(body)
     return [telegram_profile(parse_ascii(body), checksum_ok)]
 
 
@@ -532,26 +613,32 @@ class AsciiFrameReader:
     first one was a false start: decoding resumes at the later STX (one byte past the false
     start, then the next STX). A frame that does not parse is counted (malformed, or a
     length mismatch) and skipped; so is a frame longer than the cap. There is no checksum.
+    Frames are found and tokenised in bulk (numpy over all bytes received so far), so the
+    stream is scanned only when an ETX has arrived (or the cap is passed).
     """
 
     def __init__(self, max_payload_bytes: int = MAX_PAYLOAD_BYTES * 3,
-                 check: Any = check_frame) -> None:
+                 check: Any = check_frame, parse: bool = True) -> None:
         self.max_payload_bytes = max_payload_bytes
         self.check = check
+        self.parse = parse
         self.counters = FrameCounters()
         self._buffer = bytearray()
         self._base = 0
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[RawFrame]:
         """Add bytes; return the frames they complete."""
+        chunk = bytes(chunk)
         self._buffer += chunk
+        if chunk.find(ETX) < 0 and len(self._buffer) <= self.max_payload_bytes:
+            return []  # nothing can end here, and no open frame can pass the cap
         return self._scan()
 
     def finish(self) -> list[RawFrame]:
         """End of stream: an open frame is a false start; the rest is skipped."""
         frames = self._scan()
         if self._buffer:
-            if self._buffer.find(bytes([STX])) >= 0:
+            if self._buffer.find(STX) >= 0:
                 self.counters.resyncs += 1
             self.counters.bytes_skipped += len(self._buffer)
             self._base += len(self._buffer)
@@ -559,53 +646,78 @@ class AsciiFrameReader:
         return frames
 
     def _scan(self) -> list[RawFrame]:
-        buf = self._buffer
-        frames: list[RawFrame] = []
-        pos = 0
+        padded = bytearray(_PAD)
+        padded += self._buffer
+        counters, size = self.counters, len(padded)
+        spans: list[tuple[int, int]] = []
+        pos = keep = len(_PAD)
         while True:
-            start = buf.find(b"\x02", pos)
+            start = padded.find(STX, pos)
             if start < 0:
-                self.counters.bytes_skipped += len(buf) - pos
-                pos = len(buf)
+                counters.bytes_skipped += size - pos
+                keep = size
                 break
-            self.counters.bytes_skipped += start - pos
-            pos = start
-            end = buf.find(b"\x03", start + 1)
-            limit = len(buf) if end < 0 else end
-            inner = buf.find(b"\x02", start + 1, limit)
-            if inner >= 0:  # a false start: resume at the later STX
-                self.counters.resyncs += 1
-                self.counters.bytes_skipped += inner - start
-                pos = inner
-                continue
+            counters.bytes_skipped += start - pos
+            end = padded.find(ETX, start + 1)
+            limit = size if end < 0 else end
+            inner = padded.rfind(STX, start + 1, limit)
+            if inner >= 0:  # false starts: resume at the last STX before the ETX
+                counters.resyncs += padded.count(STX, start, inner)
+                counters.bytes_skipped += inner - start
+                start = inner
             if end < 0:
-                if len(buf) - start > self.max_payload_bytes:
-                    self.counters.resyncs += 1
-                    self.counters.bytes_skipped += 1
-                    pos = start + 1
-                    continue
+                keep = size if size - start > self.max_payload_bytes else start
+                if keep == size:  # an open frame past the cap: a false start
+                    counters.resyncs += 1
+                    counters.bytes_skipped += size - start
                 break
-            body = bytes(buf[start + 1:end])
-            offset = self._base + start
+            spans.append((start, end))
             pos = end + 1
-            try:
-                parsed = decode_ascii(body)
-                if parsed is not None:
-                    self.check(parsed)
-            except LengthMismatch:
-                self.counters.length_mismatches += 1
-                self.counters.resyncs += 1
-                self.counters.bytes_skipped += end + 1 - start
-                continue
-            except ProtocolError:
-                self.counters.malformed_frames += 1
-                self.counters.resyncs += 1
-                self.counters.bytes_skipped += end + 1 - start
-                continue
-            frames.append(RawFrame(body, True, 0, 0, offset, self._base + end + 1, parsed))
-        del buf[:pos]
-        self._base += pos
+        frames: list[RawFrame] = []
+        done = 0
+        if not self.parse:  # frames only (a command link): ``parsed`` is NOT_PARSED
+            for start, end in spans:
+                offset = self._base + start - len(_PAD)
+                frames.append(RawFrame(bytes(padded[start + 1:end]), True, 0, 0, offset,
+                                       offset + end + 1 - start, NOT_PARSED))
+            done = len(spans)
+        while done < len(spans):  # batches of whole frames, tokenised together
+            first = spans[done][0]
+            stop = done + 1
+            while stop < len(spans) and spans[stop][1] - first < _BATCH_BYTES:
+                stop += 1
+            tok = _tokenise(padded, first, spans[stop - 1][1] + 1)
+            # a frame's tokens start after its STX and before its ETX
+            edges = np.array(spans[done:stop], np.int64)
+            edges[:, 0] += 1
+            bounds = np.searchsorted(tok.starts, edges).tolist()
+            for (start, end), (lo, hi) in zip(spans[done:stop], bounds, strict=True):
+                frames += self._frame(padded, tok, lo, hi, start, end)
+            done = stop
+        del self._buffer[:keep - len(_PAD)]
+        self._base += keep - len(_PAD)
         return frames
+
+    def _frame(self, padded: bytearray, tok: _Tokens, lo: int, hi: int, start: int,
+               end: int) -> list[RawFrame]:
+        """The frame between the STX at ``start`` and the ETX at ``end`` (padded offsets)."""
+        body = bytes(padded[start + 1:end])
+        offset = self._base + start - len(_PAD)
+        try:
+            if body.startswith(_SCAN_PREFIXES):
+                parsed: list[Profile] | None = [telegram_profile(_parse_tokens(tok, lo, hi))]
+                self.check(parsed)
+            else:
+                parsed = _other_telegram(body)
+        except (LengthMismatch, ProtocolError) as err:
+            if isinstance(err, LengthMismatch):
+                self.counters.length_mismatches += 1
+            else:
+                self.counters.malformed_frames += 1
+            self.counters.resyncs += 1
+            self.counters.bytes_skipped += end + 1 - start
+            return []
+        return [RawFrame(body, True, 0, 0, offset, offset + end + 1 - start, parsed)]
 
 
 def ascii_reader(dialect: Any, max_payload_bytes: int, confirm: bool) -> AsciiFrameReader:
@@ -653,3 +765,80 @@ def scan_config_args(scan_hz: float, step_deg: float, start_deg: float, end_deg:
 def failure(code: int) -> bytes:
     """An ``sFA`` frame with a u16 error code (2: unknown method, 10: access denied)."""
     return encode_frame(MARKER, b"sFA " + code.to_bytes(2, "big"))
+
+
+# -- CoLa-A commands: the same telegrams as ASCII tokens ------------------------------------
+
+#: The argument fields of the commands and answers scanpipe exchanges, as ``struct`` formats
+#: of their CoLa-B bytes. CoLa-A sends one token per field: unsigned hex, signed fields in
+#: two's complement hex (what the LMDscandata telegram does), or decimal with a sign (``+5000``,
+#: ``-450000``: the manuals' own examples), which the parser also reads.
+ARGUMENTS: dict[tuple[str, str], str] = {
+    ("sMN", "SetAccessMode"): ">BI", ("sAN", "SetAccessMode"): ">B",
+    ("sMN", "mLMPsetscancfg"): ">" + SCANCFG.format.lstrip(">"),
+    ("sAN", "mLMPsetscancfg"): ">B" + SCANCFG.format.lstrip(">"),
+    ("sMN", "Run"): "", ("sAN", "Run"): ">B",
+    ("sEN", "LMDscandata"): ">B", ("sEA", "LMDscandata"): ">B",
+    ("sRN", "DeviceIdent"): "",
+}
+
+
+def _ascii_field(value: int, code: str) -> bytes:
+    width = struct.calcsize(">" + code) * 8
+    return format(value & ((1 << width) - 1), "X").encode()
+
+
+def _field_value(token: bytes, code: str) -> int:
+    width = struct.calcsize(">" + code) * 8
+    try:
+        value = int(token, 10) if token[:1] in b"+-" else int(token, 16)
+    except ValueError as err:
+        raise ProtocolError(f"CoLa-A argument {token!r}: not a number") from err
+    if code.islower() and token[:1] not in b"+-" and value >= 1 << (width - 1):
+        value -= 1 << width  # two's complement hex
+    low, high = (-(1 << (width - 1)), (1 << (width - 1)) - 1) if code.islower() else (
+        0, (1 << width) - 1)
+    if not low <= value <= high:
+        raise ProtocolError(f"CoLa-A argument {token!r}: outside its {width}-bit field")
+    return value
+
+
+def command_ascii(kind: str, name: str, args: bytes = b"") -> bytes:
+    """The CoLa-A frame (STX … ETX) of the telegram whose CoLa-B arguments are ``args``
+    (fields as :data:`ARGUMENTS` lists them; ``sFA``: the error code)."""
+    if kind == "sFA":
+        return bytes([STX]) + b"sFA " + format(int.from_bytes(args[:2], "big"), "X").encode() \
+            + bytes([ETX])
+    fmt = ARGUMENTS.get((kind, name))
+    if fmt is None:
+        raise ProtocolError(f"CoLa-A: no argument layout for {kind} {name}")
+    tokens = [kind.encode("ascii"), name.encode("ascii")]
+    if fmt:
+        tokens += [_ascii_field(v, c) for v, c in zip(struct.unpack(fmt, args),
+                                                     fmt.lstrip(">"), strict=True)]
+    return bytes([STX]) + b" ".join(tokens) + bytes([ETX])
+
+
+def parse_command_ascii(body: bytes) -> tuple[str, str, bytes]:
+    """``(kind, name, args)`` of a CoLa-A telegram body, the arguments packed as their CoLa-B
+    bytes (so one handler serves both flavours); :class:`ProtocolError` if it is no telegram
+    scanpipe knows. An ``sFA`` answer is ``("sFA", "", u16 error code)``."""
+    tokens = body.split(b" ")
+    if len(tokens[0]) != 3 or not tokens[0].isalpha() or not tokens[0].startswith(b"s"):
+        raise ProtocolError("not a CoLa-A telegram")
+    kind = tokens[0].decode("ascii")
+    if kind == "sFA":
+        code = _field_value(tokens[1], "H") if len(tokens) == 2 else 0xFFFF
+        return kind, "", code.to_bytes(2, "big")
+    if len(tokens) < 2:
+        raise ProtocolError(f"CoLa-A {kind} telegram without a name")
+    name = tokens[1].decode("latin-1")
+    fmt = ARGUMENTS.get((kind, name))
+    if fmt is None:  # a telegram scanpipe does not speak: no arguments read
+        return kind, name, b""
+    codes = fmt.lstrip(">")
+    if len(tokens) - 2 != len(codes):
+        raise ProtocolError(f"CoLa-A {kind} {name}: {len(tokens) - 2} arguments, expected "
+                            f"{len(codes)}")
+    return kind, name, struct.pack(fmt, *[_field_value(t, c) for t, c in zip(
+        tokens[2:], codes, strict=True)])

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 from scanpipe.rig import ScannerConfig
 from scanpipe.sim.ldoem_device import LdoemDevice
 from scanpipe.sim.scip_device import ScipDevice
+from scanpipe.sim.streaming_device import StreamingDevice
 from scanpipe.sim.wire import device_clock_ms, profile_frame
 
 
@@ -41,28 +42,6 @@ class EmulatedDevice(Protocol):
         """The bytes carrying profile ``k`` (measured from ``start_s``), as the device sends
         them; ``sent_one`` bookkeeping (a counted stream) happens here too."""
         ...
-
-
-class StreamingDevice:
-    """A device that streams from the moment the link is up and ignores what it is sent
-    (the ``paper`` dialect; LDRobot units behave so too)."""
-
-    def __init__(self, scanner: ScannerConfig) -> None:
-        self.scanner = scanner
-        self.streaming = True
-
-    def receive(self, data: bytes, now_s: float) -> list[bytes]:
-        """Nothing to answer."""
-        return []
-
-    def config(self) -> ScannerConfig:
-        """The rig's settings."""
-        return self.scanner
-
-    def encode(self, k: int, ranges_m: NDArray[np.float32], echo: NDArray[np.uint16] | None,
-               config: ScannerConfig, start_s: float) -> bytes:
-        """The dialect's frame for the profile."""
-        return profile_frame(config.dialect, k, ranges_m, config, start_s, echo=echo)
 
 
 class LdoemEmulated:
@@ -115,18 +94,23 @@ def _ldrobot(scanner: ScannerConfig) -> EmulatedDevice:
 
 
 class SickColaDevice:
-    """A SICK scanner speaking CoLa-B (LMS1xx, TiM5xx): log-in (``sMN SetAccessMode``), scan
-    configuration within its model's modes (``sMN mLMPsetscancfg``, answered with status 0, or
-    1/2/4 for a bad frequency, resolution or sector as the manuals list), ``sMN Run``, and
-    streaming with ``sEN LMDscandata 1`` / ``0`` (answered ``sEA LMDscandata 1/0``). Anything
-    else is answered ``sFA`` with error 2 (unknown method)."""
+    """A SICK scanner speaking CoLa-B (LMS1xx on TCP 2112, TiM5xx) or CoLa-A (LMS1xx on TCP
+    2111: the same telegrams as ASCII tokens between STX and ETX), after the rig's dialect:
+    log-in (``sMN SetAccessMode``), scan configuration within its model's modes (``sMN
+    mLMPsetscancfg``, answered with status 0, or 1/2/4 for a bad frequency, resolution or
+    sector as the manuals list), ``sMN Run``, and streaming with ``sEN LMDscandata 1`` / ``0``
+    (answered ``sEA LMDscandata 1/0``). Anything else is answered ``sFA`` with error 2
+    (unknown method)."""
 
     def __init__(self, scanner: ScannerConfig) -> None:
         from scanpipe.protocol import framing, sick_cola
 
         self.scanner = scanner
         self.current = scanner
-        self.reader = framing.FrameReader(sick_cola.MARKER, 0, 1 << 16, confirm=False)
+        self.ascii = scanner.dialect == "cola_a"
+        self.reader: framing.FrameReader | sick_cola.AsciiFrameReader = (
+            sick_cola.AsciiFrameReader(1 << 16, parse=False) if self.ascii
+            else framing.FrameReader(sick_cola.MARKER, 0, 1 << 16, confirm=False))
         self.streaming = False
         self.logged_in = False
         self.requests: list[str] = []
@@ -136,18 +120,29 @@ class SickColaDevice:
         from scanpipe.errors import ProtocolError
         from scanpipe.protocol import sick_cola
 
+        parse = sick_cola.parse_command_ascii if self.ascii else sick_cola.parse_command
         replies = []
         for frame in self.reader.feed(data):
             if not frame.checksum_ok:
                 continue
             try:
-                kind, name, args = sick_cola.parse_command(frame.payload)
+                kind, name, args = parse(frame.payload)
             except ProtocolError:
-                replies.append(sick_cola.failure(2))
+                replies.append(self._reply("sFA", "", (2).to_bytes(2, "big")))
                 continue
             self.requests.append(f"{kind} {name}")
             replies.append(self._answer(kind, name, args))
         return replies
+
+    def _reply(self, kind: str, name: str, args: bytes) -> bytes:
+        """A telegram in the device's flavour (``args`` as CoLa-B bytes)."""
+        from scanpipe.protocol import sick_cola
+
+        if self.ascii:
+            return sick_cola.command_ascii(kind, name, args)
+        if kind == "sFA":
+            return sick_cola.failure(int.from_bytes(args, "big"))
+        return sick_cola.command(kind, name, args)
 
     def _answer(self, kind: str, name: str, args: bytes) -> bytes:
         from scanpipe.protocol import sick_cola
@@ -155,12 +150,12 @@ class SickColaDevice:
 
         if (kind, name) == ("sEN", "LMDscandata") and args[:1] in (b"\x00", b"\x01"):
             self.streaming = args[:1] == b"\x01"
-            return sick_cola.command("sEA", "LMDscandata", args[:1])
+            return self._reply("sEA", "LMDscandata", args[:1])
         if (kind, name) == ("sMN", "SetAccessMode") and len(args) == 5:
             level, password = args[0], int.from_bytes(args[1:5], "big")
             self.logged_in = (level, password) == (sick_cola.ACCESS_LEVEL_CLIENT,
                                                    sick_cola.CLIENT_PASSWORD)
-            return sick_cola.command("sAN", "SetAccessMode", bytes([int(self.logged_in)]))
+            return self._reply("sAN", "SetAccessMode", bytes([int(self.logged_in)]))
         if (kind, name) == ("sMN", "mLMPsetscancfg") and len(args) == sick_cola.SCANCFG.size:
             freq, _sectors, res, start, end = sick_cola.SCANCFG.unpack(args)
             hz, step = freq / 100.0, res / sick_cola.ANGLE_UNITS_PER_DEG
@@ -171,7 +166,7 @@ class SickColaDevice:
                                                self.scanner.end_angle_deg)
             status = 0
             if not self.logged_in:
-                return sick_cola.failure(10)  # access denied
+                return self._reply("sFA", "", (10).to_bytes(2, "big"))  # access denied
             if not any(abs(hz - h) < 1e-3 for h, _ in modes):
                 status = 1
             elif not any(abs(hz - h) < 1e-3 and abs(step - s) < 1e-3 for h, s in modes):
@@ -182,14 +177,18 @@ class SickColaDevice:
                 self.current = self.scanner.model_copy(update={
                     "scan_hz": hz, "beam_step_deg": step, "start_angle_deg": start / 1e4,
                     "end_angle_deg": end / 1e4 + step})
-            return sick_cola.command("sAN", "mLMPsetscancfg", bytes([status]) + args)
+            return self._reply("sAN", "mLMPsetscancfg", bytes([status]) + args)
         if (kind, name) == ("sMN", "Run"):
-            return sick_cola.command("sAN", "Run", b"\x01")
+            return self._reply("sAN", "Run", b"\x01")
         if (kind, name) == ("sRN", "DeviceIdent"):
             ident = f"{self.scanner.model or 'SICK'} scanpipe-sim".encode("ascii")
+            if self.ascii:  # strings as length + one token each
+                ident = ident.replace(b" ", b"_")
+                return (b"\x02sRA DeviceIdent " + format(len(ident), "X").encode() + b" "
+                        + ident + b" 2 V1\x03")
             return sick_cola.command("sRA", "DeviceIdent",
                                      len(ident).to_bytes(2, "big") + ident + b"\x00\x01V1")
-        return sick_cola.failure(2)
+        return self._reply("sFA", "", (2).to_bytes(2, "big"))
 
     def config(self) -> ScannerConfig:
         """The configuration set by ``mLMPsetscancfg`` (the rig's until then)."""
@@ -207,6 +206,7 @@ DEVICES: dict[str, Callable[[ScannerConfig], EmulatedDevice]] = {
     "paper": StreamingDevice,
     "ldrobot": _ldrobot,
     "cola_b": SickColaDevice,
+    "cola_a": SickColaDevice,
     "scip": ScipDevice,
 }
 

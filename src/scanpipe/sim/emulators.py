@@ -148,6 +148,8 @@ class ScannerEmulator:
         self._clients: list[socket.socket] = []
         self._lock = threading.Lock()
         self.sent: list[SentProfile] = []
+        #: Scans skipped because the emulator could not measure them in time (a loaded host).
+        self.skipped_scans = 0
         self.devices: list[EmulatedDevice] = []
 
     @property
@@ -269,7 +271,17 @@ class ScannerEmulator:
                         if device.streaming and not was_streaming:
                             next_k = self._next_head_index(now, 1.0 / device.config().scan_hz)
                     continue
-                if device.streaming and self.clock.now_s() >= due_s:
+                now_s = self.clock.now_s()
+                if device.streaming and now_s >= due_s:
+                    # A real head never falls behind: scans the emulator could not measure in
+                    # time are skipped (counted), not sent late with stale device stamps, which
+                    # would bend the host-device clock fit.
+                    newest = int(np.floor((now_s - self.phase_s - sector_duration_s(config))
+                                          / period + 1e-9))
+                    if newest > next_k:
+                        with self._lock:
+                            self.skipped_scans += newest - next_k
+                        next_k = newest
                     client.sendall(self._profile(next_k, config, device))
                     next_k += 1
         except OSError:
@@ -568,5 +580,6 @@ class VirtualRig:
         meta = {"seed": self.options.seed, "options": json.loads(self.options.model_dump_json()),
                 "versions": versions(), "speedup": self.clock.speedup,
                 "summary": summary or {}, "profiles_sent": len(self.scanner.sent),
+                "scans_skipped": self.scanner.skipped_scans,
                 "camera_captures": {k: len(c.captures) for k, c in self.cameras.items()}}
         write_truth(folder, self.scene, self.true, self.scanner.truth_table(), meta)

@@ -34,13 +34,13 @@ from numpy.typing import NDArray
 
 from scanpipe.device_limits import LDROBOT_LIMITS, LdrobotLimits
 from scanpipe.errors import SimulationError
-from scanpipe.geometry import rotation_matrix_deg, scan_plane_direction
 from scanpipe.protocol import ldrobot
 from scanpipe.rig import ScannerConfig
 from scanpipe.sim.clock import SimClock
 from scanpipe.sim.motion import PlatformState
-from scanpipe.sim.scanner import MeasurementModel
+from scanpipe.sim.scanner import MeasurementModel, true_ranges
 from scanpipe.sim.scene import Scene
+from scanpipe.sim.streaming_device import StreamingDevice
 
 F64 = NDArray[np.float64]
 
@@ -231,24 +231,12 @@ def _normal(u1: F64, u2: F64) -> F64:
 def cast_beams(scene: Scene, scanner_true: ScannerConfig, beam_deg: F64,
                beta_deg: F64) -> tuple[F64, F64]:
     """True ranges (NaN = no hit or outside the scanner's window) and |cos incidence| of beams
-    at device angles ``beam_deg`` (the scanner's α offset added here), each at its own platform
-    angle ``beta_deg`` (flat arrays of one length)."""
-    alpha = np.asarray(beam_deg, np.float64) + scanner_true.alpha_offset_deg
-    mount_r = rotation_matrix_deg(scanner_true.mount.rotation_deg)
-    d = scan_plane_direction(alpha) @ mount_r.T  # (N, 3) in the platform frame
-    t = np.asarray(scanner_true.mount.translation_m, np.float64)
-    beta = np.radians(np.asarray(beta_deg, np.float64))
-    c, s = np.cos(beta), np.sin(beta)
-    directions = np.stack([d[:, 0] * c - d[:, 2] * s, d[:, 1], d[:, 0] * s + d[:, 2] * c],
-                          axis=1)
-    origins = np.stack([t[0] * c - t[2] * s, np.full(c.shape, t[1]), t[0] * s + t[2] * c],
-                       axis=1)
-    hits = scene.cast(origins, directions)
-    ranges = np.asarray(hits.t_hit_m, np.float64)
-    window = (ranges >= scanner_true.min_range_m) & (ranges <= scanner_true.max_range_m)
-    ranges = np.where(np.isfinite(ranges) & window, ranges, np.nan)
-    cos_inc = np.abs(np.einsum("ij,ij->i", hits.normal.astype(np.float64), directions))
-    return ranges, cos_inc
+    at device angles ``beam_deg`` (the scanner's α offset added), each at its own platform
+    angle ``beta_deg`` (flat arrays of one length): :func:`~scanpipe.sim.scanner.true_ranges`
+    for one row of free beam angles."""
+    truth = true_ranges(scene, scanner_true, np.asarray(beta_deg, np.float64)[None, :],
+                        beam_deg=np.asarray(beam_deg, np.float64))
+    return truth.ranges_m[0], truth.cos_incidence[0].astype(np.float64)
 
 
 class LdrobotEmulator:
@@ -328,7 +316,7 @@ class LdrobotEmulator:
             view = view[written:]
 
 
-class LdrobotEmulated:
+class LdrobotEmulated(StreamingDevice):
     """The LDRobot device for :class:`~scanpipe.sim.emulators.ScannerEmulator` (the shared
     emulator over a pty, ``transport = serial``): it streams from the moment the port exists
     and ignores what it is sent (there is no command). Each measured profile (the rig's grid,
@@ -343,19 +331,10 @@ class LdrobotEmulated:
     scaled to 16…255; a no-return gets 0…15, a low-confidence sample)."""
 
     def __init__(self, scanner: ScannerConfig) -> None:
-        self.scanner = scanner
-        self.streaming = True
+        super().__init__(scanner)  # no command to answer; the head speed is set by PWM
         rng = np.random.default_rng(0x1D06)
         self._wobble_phase = float(rng.uniform(0, 2 * np.pi))
         self._packets = 0
-
-    def receive(self, data: bytes, now_s: float) -> list[bytes]:
-        """No command: nothing to answer."""
-        return []
-
-    def config(self) -> ScannerConfig:
-        """The rig's settings (the head speed is set by PWM, not over the link)."""
-        return self.scanner
 
     def encode(self, k: int, ranges_m: NDArray[np.float32], echo: NDArray[np.uint16] | None,
                config: ScannerConfig, start_s: float) -> bytes:

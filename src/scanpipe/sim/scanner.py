@@ -99,14 +99,19 @@ def echo_amplitude(measured_m: NDArray[np.floating], truth: TrueProfiles) -> NDA
     return np.asarray(echo, dtype=np.uint16)
 
 
-def true_ranges(scene: Scene, scanner_true: ScannerConfig, beta_deg: F64) -> TrueProfiles:
+def true_ranges(scene: Scene, scanner_true: ScannerConfig, beta_deg: F64,
+                beam_deg: F64 | None = None) -> TrueProfiles:
     """Cast every sample of many profiles in one call.
 
     ``beta_deg`` is (profiles, samples): the true platform angle at each sample's instant.
     ``scanner_true`` is the true scanner (mount pose and alpha offset as they really are).
+    ``beam_deg``: the samples' device angles (default: the scanner's grid,
+    :func:`beam_angles_deg`), for heads whose beams do not sit on a fixed grid (LDRobot).
     """
     beta = np.atleast_2d(np.asarray(beta_deg, dtype=np.float64))
-    alpha = beam_angles_deg(scanner_true) + scanner_true.alpha_offset_deg
+    beams = beam_angles_deg(scanner_true) if beam_deg is None else np.asarray(beam_deg,
+                                                                              np.float64)
+    alpha = beams + scanner_true.alpha_offset_deg
     mount_r = rotation_matrix_deg(scanner_true.mount.rotation_deg)
     d_platform = scan_plane_direction(alpha) @ mount_r.T  # (S, 3)
     t_mount = np.asarray(scanner_true.mount.translation_m, dtype=np.float64)

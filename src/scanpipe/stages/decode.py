@@ -40,7 +40,6 @@ from scanpipe.errors import ProtocolError, RecordingError, StageError
 from scanpipe.images import image_size
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
-from scanpipe.protocol import scip
 from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, unwrap_counter
 from scanpipe.protocol.registry import (
     DecodedFrame,
@@ -289,13 +288,7 @@ def decode_recording(recording: Recording, params: DecodeParams,
                          f"in the {len(data)} bytes received from the scanner "
                          f"({decoder.counters.checksum_failures} checksum failures; "
                          f"{describe_bytes(data)}); try decode.dialect = auto")
-    if (getattr(decoder.reader, "geometry_from_device", True) is False
-            and decoder.counters.frames_decoded):
-        warnings.append(
-            f"{recording.path}: no SCIP PP reply before the scans: their angles assume the "
-            f"UST/UTM geometry (ARES {scip.DEFAULT_ARES}, AFRT {scip.DEFAULT_AFRT}); another "
-            "model (a URG-04LX: 1024, 384) decodes with wrong angles (scanpipe record asks "
-            "for PP first)")
+    warnings += [f"{recording.path}: {w}" for w in decoder.warnings]
     profiles, clock = profiles_table(frames, stream, dialect.name)
     if recording.profiles:
         # Profiles another tool decoded (an imported ROS bag); a byte stream beside them is
