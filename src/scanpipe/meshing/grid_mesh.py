@@ -269,15 +269,18 @@ def grid_surface(points: F32, origins: F32, grid: ScanGrid,
     del step_ad, step_bc
     use_ad |= ~e_bc
     use_ad &= e_ad
-    first = np.where(use_ad, e_ad & e_bd, e_bc & e_ac)
+    # Choices between masks as bitwise logic: np.where on a noise-driven mask branches.
+    use_bc = ~use_ad
+    first = _choose(use_ad, e_ad & e_bd, use_bc, e_bc & e_ac)
     first &= e_ab
-    second = np.where(use_ad, e_ad & e_ac, e_bd & e_bc)
+    second = _choose(use_ad, e_ad & e_ac, use_bc, e_bd & e_bc)
     second &= e_cd
     del e_ab, e_cd, e_ac, e_bd, e_ad, e_bc
     valid = rows >= 0
     va, vb, vc, vd = valid[:-1, :-1], valid[1:, :-1], valid[:-1, 1:], valid[1:, 1:]
-    could_1 = va & vb & np.where(use_ad, vd, vc)
-    could_2 = vd & vc & np.where(use_ad, va, vb)
+    could_1 = va & vb & _choose(use_ad, vd, use_bc, vc)
+    could_2 = vd & vc & _choose(use_ad, va, use_bc, vb)
+    del use_bc
     report["faces_broken_at_jumps"] = int(np.count_nonzero(could_1 & ~first)
                                           + np.count_nonzero(could_2 & ~second))
     del valid, could_1, could_2
@@ -358,6 +361,13 @@ def _blend(x: NDArray[Any], y: NDArray[Any], flag: B) -> NDArray[Any]:
     out: NDArray[Any] = np.subtract(y, x)
     out *= flag
     out += x
+    return out
+
+
+def _choose(flag: B, if_set: B, flag_clear: B, if_clear: B) -> B:
+    """``if_set`` where ``flag`` else ``if_clear`` (``flag_clear`` = ~``flag``), bitwise."""
+    out = np.bitwise_and(flag, if_set)
+    out |= flag_clear & if_clear
     return out
 
 
