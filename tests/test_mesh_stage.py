@@ -11,6 +11,7 @@ import pytest
 
 from scanpipe.artifacts import read_artifact, write_artifact
 from scanpipe.errors import StageError
+from scanpipe.meshing.mesh import Mesh
 from scanpipe.meshing.synthetic import BoxRoom, scan_table
 from scanpipe.pipeline import get_stage, registry
 from scanpipe.schema import MESH_FACES, MESH_VERTICES
@@ -146,3 +147,27 @@ def test_cli_grid_on_a_cloud_without_grid_fails_cleanly(
     assert result.code == 1  # type: ignore[attr-defined]
     assert "needs the scan grid" in result.err  # type: ignore[attr-defined]
     assert result.err.count("\n") == 1  # type: ignore[attr-defined]
+
+
+def test_the_mesh_does_not_depend_on_the_row_order() -> None:
+    """Rows in any order (a gather into the grid) give the same triangles and normals (up to
+    the rounding of the pole centres, a mean summed in another order)."""
+    table = small_scan()
+    order = np.random.default_rng(4).permutation(table.num_rows)
+    mesh, report = mesh_points(table, MeshParams(method="grid"))
+    shuffled, shuffled_report = mesh_points(table.take(pa.array(order)), MeshParams(method="grid"))
+
+    def triangles(m: Mesh) -> set[tuple[float, ...]]:
+        corners = np.round(m.vertices[m.faces].reshape(len(m.faces), 9), 5) + 0.0
+        return {tuple(row) for row in corners.tolist()}
+
+    assert len(shuffled.faces) == len(mesh.faces) and triangles(shuffled) == triangles(mesh)
+    assert report["cleanup"] == shuffled_report["cleanup"]
+    assert mesh.normals is not None and shuffled.normals is not None
+    by_position = {tuple(v): n for v, n in zip((np.round(mesh.vertices, 5) + 0.0).tolist(),
+                                               mesh.normals, strict=True)}
+    # A merged pole keeps the normal of its first point in table order: skip the two poles.
+    for v, n in zip((np.round(shuffled.vertices, 5) + 0.0).tolist(), shuffled.normals,
+                    strict=True):
+        if abs(v[0]) + abs(v[2]) > 1e-4:
+            assert np.allclose(by_position[tuple(v)], n, atol=1e-5)
