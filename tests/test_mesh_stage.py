@@ -53,6 +53,7 @@ def test_grid_stage_in_memory_keeps_colours_and_reports() -> None:
     assert report["faces"] == faces.num_rows and report["vertices"] == vertices.num_rows
     assert report["triangulation"]["seam_closed"] is True
     assert {"normals", "surface", "cleanup"} <= set(report["seconds"])
+    assert set(report["cpu_seconds"]) == set(report["seconds"])
     assert report["cleanup"]["faces_out"] == faces.num_rows
     normals = np.stack([vertices.column(c).to_numpy() for c in ("nx", "ny", "nz")], axis=1)
     assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)

@@ -448,7 +448,8 @@ def _drop_small_components(first: B, second: B, use_ad: B, rows: I32, patches: I
     full = full_labels > 0
     groups[rows[:-1, :-1][full]] = full_labels[full]
     del full, full_labels
-    group_quad = _Quads(np.take(groups, rows))
+    group_plane = np.take(groups, rows)
+    group_quad = _Quads(group_plane)
     edges_from, edges_to = [], []
     for chosen, corners in zip((first, second), _triangle_corners(group_quad, use_ad),
                                strict=True):
@@ -465,17 +466,17 @@ def _drop_small_components(first: B, second: B, use_ad: B, rows: I32, patches: I
     graph = coo_matrix((np.ones(len(source), dtype=np.int8), (source, target)),
                        shape=(nodes, nodes))
     _, piece = connected_components(graph, directed=False)
-    piece = piece.astype(np.int32, copy=False)
+    piece_plane = np.take(piece.astype(np.int32, copy=False), group_plane)
+    piece_cells = _Quads(piece_plane)
+    del group_quad, group_plane
     # A triangle's piece is its b corner's (first) or its d corner's (second).
-    piece_first, piece_second = np.take(piece, group_quad.b), np.take(piece, group_quad.d)
     patch_piece = piece[patch_groups[:, 0]]
-    sizes = (np.bincount(piece_first[first], minlength=nodes)
-             + np.bincount(piece_second[second], minlength=nodes)
+    sizes = (np.bincount(piece_cells.b[first], minlength=nodes)
+             + np.bincount(piece_cells.d[second], minlength=nodes)
              + np.bincount(patch_piece, minlength=nodes))
-    small_first = np.take(sizes, piece_first) < min_faces
-    small_first &= first
-    small_second = np.take(sizes, piece_second) < min_faces
-    small_second &= second
+    small_cells = _Quads(np.take(sizes < min_faces, piece_plane))
+    small_first = small_cells.b & first
+    small_second = small_cells.d & second
     patch_small = sizes[patch_piece] < min_faces
     removed = (int(np.count_nonzero(small_first)) + int(np.count_nonzero(small_second))
                + int(np.count_nonzero(patch_small)))
