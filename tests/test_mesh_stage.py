@@ -172,3 +172,18 @@ def test_the_mesh_does_not_depend_on_the_row_order() -> None:
                     strict=True):
         if abs(v[0]) + abs(v[2]) > 1e-4:
             assert np.allclose(by_position[tuple(v)], n, atol=1e-5)
+
+
+def test_the_grid_clean_up_follows_the_clean_up_switches() -> None:
+    """Zero-area faces (coinciding pole points of a noise-free scan, poles not merged) go
+    only while ``cleanup.remove_degenerate`` says so; the report counts them as degenerate."""
+    table = scan_table(ROOM, 3.0, 6.0)
+    params = {"method": "grid", "grid": {"merge_poles": False}}
+    mesh, report = mesh_points(table, MeshParams.model_validate(params))
+    removed = report["cleanup"]["degenerate_faces_removed"]
+    assert removed > 0
+    kept, kept_report = mesh_points(table, MeshParams.model_validate(
+        {**params, "cleanup": {"remove_degenerate": False, "min_component_faces": 0}}))
+    assert "degenerate_faces_removed" not in kept_report["cleanup"]
+    assert "small_component_faces_removed" not in kept_report["cleanup"]
+    assert len(kept.faces) == len(mesh.faces) + removed

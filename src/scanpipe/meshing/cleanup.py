@@ -96,35 +96,23 @@ def non_manifold_faces(mesh: Mesh) -> B:
     return drop
 
 
-def small_component_faces(mesh: Mesh, min_faces: int,
-                          vertex_groups: NDArray[np.integer[Any]] | None = None) -> B:
+def small_component_faces(mesh: Mesh, min_faces: int) -> B:
     """Faces of connected pieces (sharing vertices) with fewer than ``min_faces`` faces.
 
-    ``vertex_groups`` (optional, one label per vertex) says which vertices are known to be
-    connected already (e.g. by the grid triangulation); the graph search then only joins the
-    groups, over the few face edges between two of them, instead of millions of vertices.
+    (A grid mesh is cleaned on its grid instead: ``grid_mesh.grid_surface``.)
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    n = len(mesh.vertices)
     f = mesh.faces
     if len(f) == 0 or min_faces <= 1:
         return np.zeros(len(f), dtype=bool)
-    if vertex_groups is None:
-        groups = f
-        nodes = len(mesh.vertices)
-    else:
-        groups = np.take(vertex_groups, f)
-        nodes = int(vertex_groups.max()) + 1
-    rows, cols = [], []
-    for i, j in ((0, 1), (1, 2)):
-        between = groups[:, i] != groups[:, j]
-        rows.append(groups[between, i])
-        cols.append(groups[between, j])
-    row, col = np.concatenate(rows), np.concatenate(cols)
-    graph = coo_matrix((np.ones(len(row), dtype=np.int8), (row, col)), shape=(nodes, nodes))
+    rows = np.concatenate([f[:, 0], f[:, 1]])
+    cols = np.concatenate([f[:, 1], f[:, 2]])
+    graph = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
-    face_label = np.take(labels, groups[:, 0])
+    face_label = np.take(labels, f[:, 0])
     sizes = np.bincount(face_label)
     return np.asarray(np.take(sizes, face_label) < min_faces)
 

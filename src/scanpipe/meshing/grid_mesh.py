@@ -233,11 +233,12 @@ def _ray_planes(vertices: F32, origins: F32, rows: I32) -> tuple[F32, tuple[F32,
 
 def grid_surface(points: F32, origins: F32, grid: ScanGrid,
                  params: GridMeshParams | None = None, min_component_faces: int = 0,
-                 compact: bool = False) -> GridSurface:
+                 compact: bool = False, remove_zero_area: bool = False) -> GridSurface:
     """:func:`triangulate_grid`, and optionally its clean-up done on the grid.
 
+    In the order of the generic clean-up: ``remove_zero_area`` drops faces without area;
     ``min_component_faces`` > 1 drops connected pieces with fewer faces; ``compact`` drops the
-    points no face uses (``kept`` says which stay) and zero-area faces. Every step works on
+    points no face uses (``kept`` says which stay). Every step works on
     whole (profile × sample) planes: a cell's neighbours are the next row and column, never a
     search; faces are written once, from the final masks, with their final vertex numbers, so
     the clean-up needs no per-face gathers.
@@ -307,7 +308,7 @@ def grid_surface(points: F32, origins: F32, grid: ScanGrid,
         patches = _face_sensor(vertices, origins, patches)
 
     kept: B | None = None
-    if compact:
+    if remove_zero_area:
         if _may_have_flat_faces(grid, rows, vertices, r_grid):
             removed, patch_kept = _drop_zero_area(first, second, use_ad, reverse, quad,
                                                   vertices, patches)

@@ -109,7 +109,7 @@ def mesh_points(table: pa.Table, params: MeshParams,
         # unused points); the generic clean-up then only decimates, if asked.
         surface = grid_surface(points, origins, grid, params.grid,
                                min_component_faces=params.cleanup.min_component_faces,
-                               compact=True)
+                               compact=True, remove_zero_area=params.cleanup.remove_degenerate)
         report["triangulation"] = surface.report
         if surface.kept is not None:
             normals = normals[surface.kept]
@@ -124,7 +124,7 @@ def mesh_points(table: pa.Table, params: MeshParams,
 
     if method == "grid":
         tri = surface.report
-        done = {"degenerate_faces_removed": tri["zero_area_faces_removed"],
+        done = {"degenerate_faces_removed": tri.get("zero_area_faces_removed", 0),
                 "small_component_faces_removed": tri.get("small_component_faces_removed", 0),
                 "unreferenced_vertices_removed": tri["unreferenced_vertices_removed"]}
         mesh, cleanup_report = clean_mesh(mesh, params.cleanup, manifold_by_construction=True,
