@@ -63,7 +63,9 @@ def test_baseline_and_paths_are_compared_on_accuracy_and_time(results: dict[str,
     assert base["counts"]["after_voxel"] <= base["counts"]["points_in"]
     assert positive(base["counts"]["faces"])
     paths = [name for name in comparison if name != "baseline"]
-    assert paths[0] == "default" and "poisson" in paths
+    assert paths[0] == "default" and "poisson" in paths and "grid_stride2" in paths
+    default_faces = comparison["default"]["mesh"]["faces"]
+    assert comparison["grid_stride2"]["mesh"]["faces"] < 0.5 * default_faces  # half resolution
     for path in paths:
         entry = comparison[path]
         assert entry["glb_exists"] and Path(entry["glb"]).stat().st_size > 0
@@ -72,6 +74,8 @@ def test_baseline_and_paths_are_compared_on_accuracy_and_time(results: dict[str,
         assert set(entry["stage_seconds"]) == {"decode", "calibrate", "assemble", "filter", "mesh",
                                                "texture", "export"}
         assert isinstance(entry["at_least_as_accurate_as_baseline"], bool)
+        assert isinstance(entry["better_than_baseline"], bool)
+        assert positive(entry["mesh"]["faces"]) and positive(entry["mesh"]["vertices"])
     for acc in (base["accuracy"], comparison["default"]["accuracy"],
                 comparison["poisson"]["accuracy"]):
         assert positive(acc["mesh_mean_m"]) and 0 < acc["completeness"] <= 1
@@ -91,7 +95,8 @@ def test_acquisition_targets_and_table(results: dict[str, Any]) -> None:
     assert simulation["frame_size"] == [cam.width, cam.height]
     assert max(cam.width, cam.height) == 240
     rows = {t["name"]: t for t in results["targets"]}
-    assert len(rows) == 11 and all(isinstance(t["met"], bool) for t in rows.values())
+    assert len(rows) == 12 and all(isinstance(t["met"], bool) for t in rows.values())
+    assert rows["peak memory of the default chain (RSS growth)"]["value"] >= 0
     assert rows["Poisson depth 9 time"]["value"] is None  # the tiny scan stops at depth 6
     assert not rows["Poisson depth 9 time"]["met"]
     for heading in ("stage (in memory)", "Open3D baseline", "scanpipe poisson", "MISSED"):

@@ -208,15 +208,80 @@ def test_lone_dropouts_are_closed_and_the_room_stays_one_closed_surface() -> Non
     assert 1 in edge_uses(open_faces)
 
 
+def test_the_defaults_mesh_every_point_whatever_max_vertices_says() -> None:
+    from scanpipe.stages.mesh import MeshParams, mesh_points
+
+    table = scan_table(EMPTY_ROOM, 2.0, 2.0)  # 180 samples × 91 profiles
+    params = MeshParams.model_validate({"grid": {"max_vertices": 1000}})
+    mesh, report = mesh_points(table, params)
+    assert report["grid_stride"] == 1 and "points_meshed" not in report
+    # Every point but the merged pole copies is a vertex.
+    merged = report["triangulation"]["pole_points_merged"]
+    assert len(mesh.vertices) == table.num_rows - merged
+
+
 def test_automatic_stride_keeps_the_mesh_within_max_vertices() -> None:
     from scanpipe.stages.mesh import MeshParams, mesh_points
 
     table = scan_table(EMPTY_ROOM, 2.0, 2.0)  # 180 samples × 91 profiles
     full, full_report = mesh_points(table, MeshParams())
     assert full_report["method"] == "grid" and full_report["grid_stride"] == 1
-    capped = MeshParams.model_validate({"grid": {"max_vertices": table.num_rows // 3}})
+    capped = MeshParams.model_validate(
+        {"grid": {"stride": 0, "max_vertices": table.num_rows // 3}})
     half, report = mesh_points(table, capped)
     assert report["grid_stride"] == 2  # ceil(sqrt(3))
     assert report["points_meshed"] <= table.num_rows // 3
     assert len(half.faces) < 0.3 * len(full.faces)
     assert edge_uses(half.faces).keys() == {2}  # still one closed room at half resolution
+
+
+def _with_floating_blocks(table: pa.Table, blocks: int, seed: int) -> pa.Table:
+    """Pull square blocks of samples towards the sensor: small pieces cut off by range jumps."""
+    rng = np.random.default_rng(seed)
+    profile, sample = (table.column(c).to_numpy() for c in ("profile", "sample"))
+    scale = np.ones(table.num_rows, np.float32)
+    for _ in range(blocks):
+        p0, s0 = rng.integers(0, profile.max() - 6), rng.integers(0, sample.max() - 6)
+        size = rng.integers(2, 7)
+        scale[(profile >= p0) & (profile < p0 + size) & (sample >= s0)
+              & (sample < s0 + size)] = rng.uniform(0.3, 0.8)
+    for axis, origin in zip("xyz", ("origin_x", "origin_y", "origin_z"), strict=True):
+        x, o = table.column(axis).to_numpy(), table.column(origin).to_numpy()
+        table = table.set_column(table.schema.get_field_index(axis), axis,
+                                 pa.array((o + (x - o) * scale).astype(np.float32)))
+    return table
+
+
+@pytest.mark.parametrize(("noise_m", "merge_poles", "dropouts"),
+                         [(0.0, False, 0.05), (0.0, True, 0.0), (0.003, True, 0.02)])
+def test_clean_up_on_the_grid_equals_the_per_face_clean_up(noise_m: float, merge_poles: bool,
+                                                           dropouts: float) -> None:
+    """grid_surface's own clean-up (zero-area faces, small pieces, unused points, all on the
+    grid) gives exactly the mesh of triangulate_grid followed by the generic per-face one."""
+    from scanpipe.meshing.cleanup import clean_mesh
+    from scanpipe.meshing.grid_mesh import grid_surface
+    from scanpipe.meshing.mesh import Mesh
+
+    table = _with_floating_blocks(scan_table(ROOM_WITH_BALL, 2.0, 2.0, noise_m=noise_m),
+                                  12, seed=3)
+    if dropouts:
+        keep = np.random.default_rng(1).random(table.num_rows) > dropouts
+        table = table.filter(pa.array(keep))
+    grid = scan_grid(table)
+    assert grid is not None
+    points, origins = points_xyz(table), points_origins(table)
+    params = GridMeshParams(merge_poles=merge_poles)
+    vertices, faces, _ = triangulate_grid(points, origins, grid, params)
+    expected, counts = clean_mesh(Mesh(vertices, faces), manifold_by_construction=True)
+    assert counts["small_component_faces_removed"] > 0
+    if not merge_poles:  # the coincident pole points of a noise-free scan: zero-area faces
+        assert counts["degenerate_faces_removed"] > 0
+    surface = grid_surface(points, origins, grid, params, min_component_faces=50, compact=True,
+                           remove_zero_area=True)
+    assert np.array_equal(surface.vertices, expected.vertices)
+    assert np.array_equal(surface.faces, expected.faces)
+    report = surface.report
+    assert report["zero_area_faces_removed"] == counts["degenerate_faces_removed"]
+    assert report["small_component_faces_removed"] == counts["small_component_faces_removed"]
+    assert report["unreferenced_vertices_removed"] == counts["unreferenced_vertices_removed"]
+    assert surface.kept is not None and np.count_nonzero(surface.kept) == len(surface.vertices)

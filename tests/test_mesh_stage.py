@@ -11,6 +11,7 @@ import pytest
 
 from scanpipe.artifacts import read_artifact, write_artifact
 from scanpipe.errors import StageError
+from scanpipe.meshing.mesh import Mesh
 from scanpipe.meshing.synthetic import BoxRoom, scan_table
 from scanpipe.pipeline import get_stage, registry
 from scanpipe.schema import MESH_FACES, MESH_VERTICES
@@ -52,6 +53,7 @@ def test_grid_stage_in_memory_keeps_colours_and_reports() -> None:
     assert report["faces"] == faces.num_rows and report["vertices"] == vertices.num_rows
     assert report["triangulation"]["seam_closed"] is True
     assert {"normals", "surface", "cleanup"} <= set(report["seconds"])
+    assert set(report["cpu_seconds"]) == set(report["seconds"])
     assert report["cleanup"]["faces_out"] == faces.num_rows
     normals = np.stack([vertices.column(c).to_numpy() for c in ("nx", "ny", "nz")], axis=1)
     assert np.allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-4)
@@ -146,3 +148,42 @@ def test_cli_grid_on_a_cloud_without_grid_fails_cleanly(
     assert result.code == 1  # type: ignore[attr-defined]
     assert "needs the scan grid" in result.err  # type: ignore[attr-defined]
     assert result.err.count("\n") == 1  # type: ignore[attr-defined]
+
+
+def test_the_mesh_does_not_depend_on_the_row_order() -> None:
+    """Rows in any order (a gather into the grid) give the same triangles and normals (up to
+    the rounding of the pole centres, a mean summed in another order)."""
+    table = small_scan()
+    order = np.random.default_rng(4).permutation(table.num_rows)
+    mesh, report = mesh_points(table, MeshParams(method="grid"))
+    shuffled, shuffled_report = mesh_points(table.take(pa.array(order)), MeshParams(method="grid"))
+
+    def triangles(m: Mesh) -> set[tuple[float, ...]]:
+        corners = np.round(m.vertices[m.faces].reshape(len(m.faces), 9), 5) + 0.0
+        return {tuple(row) for row in corners.tolist()}
+
+    assert len(shuffled.faces) == len(mesh.faces) and triangles(shuffled) == triangles(mesh)
+    assert report["cleanup"] == shuffled_report["cleanup"]
+    assert mesh.normals is not None and shuffled.normals is not None
+    by_position = {tuple(v): n for v, n in zip((np.round(mesh.vertices, 5) + 0.0).tolist(),
+                                               mesh.normals, strict=True)}
+    # A merged pole keeps the normal of its first point in table order: skip the two poles.
+    for v, n in zip((np.round(shuffled.vertices, 5) + 0.0).tolist(), shuffled.normals,
+                    strict=True):
+        if abs(v[0]) + abs(v[2]) > 1e-4:
+            assert np.allclose(by_position[tuple(v)], n, atol=1e-5)
+
+
+def test_the_grid_clean_up_follows_the_clean_up_switches() -> None:
+    """Zero-area faces (coinciding pole points of a noise-free scan, poles not merged) go
+    only while ``cleanup.remove_degenerate`` says so; the report counts them as degenerate."""
+    table = scan_table(ROOM, 3.0, 6.0)
+    params = {"method": "grid", "grid": {"merge_poles": False}}
+    mesh, report = mesh_points(table, MeshParams.model_validate(params))
+    removed = report["cleanup"]["degenerate_faces_removed"]
+    assert removed > 0
+    kept, kept_report = mesh_points(table, MeshParams.model_validate(
+        {**params, "cleanup": {"remove_degenerate": False, "min_component_faces": 0}}))
+    assert "degenerate_faces_removed" not in kept_report["cleanup"]
+    assert "small_component_faces_removed" not in kept_report["cleanup"]
+    assert len(kept.faces) == len(mesh.faces) + removed

@@ -100,3 +100,21 @@ def test_orient_toward_matches_a_per_point_loop() -> None:
         if float(np.dot(expected[i], origins[i] - points[i])) < 0:
             expected[i] = -expected[i]
     assert np.array_equal(orient_toward(normals.copy(), points, origins), expected)
+
+
+def test_grid_normals_do_not_depend_on_the_row_order_or_gaps() -> None:
+    """Dense grid (a reshape), rows in grid order with gaps (a scatter) and shuffled rows (a
+    gather) are three code paths; they must give each point the same normal."""
+    table = scan_table(BoxRoom(ball_centre_m=(1.5, 0.0, 1.0)), 2.0, 3.0, noise_m=0.002)
+    dense, _ = estimate_normals(table)
+    keep = np.random.default_rng(5).random(table.num_rows) > 0.03
+    gappy, counts = estimate_normals(table.filter(pa.array(keep)))
+    assert counts["grid"] > 0.9 * np.count_nonzero(keep)
+    order = np.random.default_rng(6).permutation(table.num_rows)
+    shuffled, _ = estimate_normals(table.take(pa.array(order)))
+    assert np.array_equal(shuffled, dense[order])
+    # Gaps change the neighbours of the cells around them only: most normals stay the same.
+    same = np.all(np.isclose(gappy, dense[keep], atol=1e-6), axis=1)
+    assert np.count_nonzero(same) > 0.6 * len(same)
+    assert np.all(np.einsum("ij,ij->i", gappy, points_origins(table)[keep]
+                            - points_xyz(table)[keep]) > 0)

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from scanpipe.errors import StageError
-from scanpipe.grid import ScanGrid, from_grid, neighbour_differences, scan_grid, to_grid
+from scanpipe.grid import ScanGrid, scan_grid
 from scanpipe.params import Params
 from scanpipe.schema import ORIGIN, XYZ
 
@@ -39,15 +39,23 @@ class NormalParams(Params):
     knn_neighbours: int = Field(24, ge=3, le=500, description="neighbours for the KNN fallback")
 
 
+def column_f32(table: pa.Table, name: str) -> F32:
+    """One float column as a float32 array, without a copy when it is one float32 chunk.
+
+    The array may share the table's (read-only) buffer: never write into it.
+    """
+    values: F32 = table.column(name).to_numpy()
+    return values if values.dtype == np.float32 else values.astype(np.float32)
+
+
 def points_xyz(table: pa.Table) -> F32:
     """The ``x, y, z`` columns as one ``(N, 3)`` float32 array."""
-    return np.stack([table.column(c).to_numpy().astype(np.float32) for c in XYZ], axis=1)
+    return np.stack([column_f32(table, c) for c in XYZ], axis=1)
 
 
 def points_origins(table: pa.Table) -> F32:
     """The sensor-origin columns (each point's sensor origin) as ``(N, 3)`` float32."""
-    return np.stack([table.column(c).to_numpy().astype(np.float32) for c in ORIGIN],
-                    axis=1)
+    return np.stack([column_f32(table, c) for c in ORIGIN], axis=1)
 
 
 def orient_toward(normals: F32, points: F32, origins: F32) -> F32:
@@ -66,19 +74,88 @@ def _normalised(vectors: F32, min_norm: float = 0.0) -> F32:
     return np.asarray(out, dtype=np.float32)
 
 
-def _shorter(forward: F32, backward: F32) -> F32:
-    """Per cell, the shorter of two difference vectors (NaN counts as infinitely long)."""
-    f_len = np.nan_to_num(np.einsum("...k,...k->...", forward, forward), nan=np.inf)
-    b_len = np.nan_to_num(np.einsum("...k,...k->...", backward, backward), nan=np.inf)
-    return np.where((f_len <= b_len)[..., None], forward, backward)
+#: Three (P, S) float32 planes: the x, y and z components of a vector per grid cell.
+Planes = tuple[F32, F32, F32]
 
 
-def grid_normals(xyz_grid: F32, grid: ScanGrid, baseline_deg: float = 1.0) -> F32:
-    """Normals ``(P, S, 3)`` from neighbour differences on the grid; NaN where undefined.
+def _shift_samples(plane: F32, k: int, wrap: bool) -> F32:
+    """``out[:, s] = plane[:, s + k]``, wrapping around the samples when ``wrap``, else NaN
+    where ``s + k`` falls outside."""
+    samples = plane.shape[1]
+    out = np.empty_like(plane)
+    if wrap:
+        k %= samples
+        out[:, : samples - k] = plane[:, k:]
+        out[:, samples - k:] = plane[:, :k]
+        return out
+    if abs(k) >= samples:
+        out.fill(np.nan)
+    elif k >= 0:
+        out[:, : samples - k] = plane[:, k:]
+        out[:, samples - k:] = np.nan
+    else:
+        out[:, -k:] = plane[:, : samples + k]
+        out[:, :-k] = np.nan
+    return out
 
-    Unoriented (the sign follows the grid's parameterisation); see :func:`orient_toward`.
+
+def _squared_length(a: F32, b: F32, c: F32) -> F32:
+    out = a * a
+    out += b * b
+    out += c * c
+    return out
+
+
+def _sample_differences(xyz: Planes, k: int, wrap: bool) -> tuple[Planes, F32]:
+    """Per cell the shorter of the forward and backward difference ``k`` samples away, and its
+    squared length (NaN where neither exists).
+
+    The backward difference at ``s`` is the forward one at ``s − k``, so it is a shift, not a
+    second subtraction. NaN lengths count as infinitely long.
     """
-    profiles, samples = grid.shape
+    forward = tuple(np.subtract(_shift_samples(c, k, wrap), c) for c in xyz)
+    length = _squared_length(*forward)
+    behind = _shift_samples(length, -k, wrap)
+    take_forward = length <= behind
+    take_forward |= np.isnan(behind)
+    chosen = tuple(np.where(take_forward, f, _shift_samples(f, -k, wrap)) for f in forward)
+    return (chosen[0], chosen[1], chosen[2]), np.where(take_forward, length, behind)
+
+
+def _profile_differences(xyz: Planes, k_profile: NDArray[np.int64]) -> tuple[Planes, F32]:
+    """As :func:`_sample_differences` along the profiles, ``k_profile[s]`` profiles away for
+    sample ``s``: the neighbour's index is arithmetic (``cell + k·S``), one gather per plane."""
+    profiles, samples = xyz[0].shape
+    cells = profiles * samples
+    index_type = np.int32 if cells < 2**31 - 1 else np.int64
+    here = np.arange(cells, dtype=index_type).reshape(profiles, samples)
+    offset = (k_profile * samples).astype(index_type)[None, :]
+    ahead = here + offset
+    ahead_ok = ahead < cells
+    np.copyto(ahead, here, where=~ahead_ok)
+    forward = tuple(np.take(c.reshape(-1), ahead) - c for c in xyz)
+    length = _squared_length(*forward)
+    length[~ahead_ok] = np.nan  # the vectors stay 0 there: a NaN length marks them missing
+    behind = here - offset
+    behind_ok = behind >= 0
+    np.copyto(behind, here, where=~behind_ok)
+    length_behind = np.take(length.reshape(-1), behind)
+    length_behind[~behind_ok] = np.nan
+    take_forward = length <= length_behind
+    take_forward |= np.isnan(length_behind)
+    # The chosen difference starts at this cell (forward) or k profiles before it (backward).
+    source = np.where(take_forward, here, behind)
+    chosen = tuple(np.take(f.reshape(-1), source) for f in forward)
+    return (chosen[0], chosen[1], chosen[2]), np.where(take_forward, length, length_behind)
+
+
+def grid_normal_planes(xyz: Planes, grid: ScanGrid, baseline_deg: float = 1.0) -> Planes:
+    """Normals as three ``(P, S)`` planes from neighbour differences; NaN where undefined.
+
+    Unoriented (the sign follows the grid's parameterisation). Works on one float32 plane per
+    component, so every step is a contiguous array operation or an arithmetic gather.
+    """
+    profiles, _ = grid.shape
     alpha_step = abs(grid.alpha_step_deg) if np.isfinite(grid.alpha_step_deg) else 1.0
     beta_step = abs(grid.beta_step_deg) if np.isfinite(grid.beta_step_deg) else 1.0
     k_sample = max(1, round(baseline_deg / alpha_step))
@@ -86,33 +163,101 @@ def grid_normals(xyz_grid: F32, grid: ScanGrid, baseline_deg: float = 1.0) -> F3
     sin_alpha = np.abs(np.sin(np.radians(np.nan_to_num(grid.alpha_deg, nan=0.0))))
     wanted = baseline_deg / beta_step / np.maximum(sin_alpha, 1e-9)
     k_profile = np.clip(np.rint(wanted), 1, None).astype(np.int64)
-    usable_rows = wanted <= max(1.0, profiles / 4)
+    usable = wanted <= max(1.0, profiles / 4)
 
-    forward_s = neighbour_differences(xyz_grid, 1, k_sample, wrap_samples=grid.wraps_alpha)
-    backward_s = -neighbour_differences(xyz_grid, 1, -k_sample, wrap_samples=grid.wraps_alpha)
-    d_sample = _shorter(forward_s, backward_s)
+    (sx, sy, sz), s_len = _sample_differences(xyz, k_sample, grid.wraps_alpha)
+    k_profile = np.minimum(k_profile, profiles)  # beyond the grid either way
+    (px, py, pz), p_len = _profile_differences(xyz, k_profile)
 
-    rows = np.arange(profiles)[:, None]
-    cols = np.arange(samples)[None, :]
-    ahead = rows + k_profile[None, :]
-    behind = rows - k_profile[None, :]
-    ahead_ok = ahead < profiles
-    behind_ok = behind >= 0
-    forward_p = xyz_grid[np.where(ahead_ok, ahead, 0), cols] - xyz_grid
-    backward_p = xyz_grid - xyz_grid[np.where(behind_ok, behind, 0), cols]
-    forward_p[~ahead_ok] = np.nan
-    backward_p[~behind_ok] = np.nan
-    d_profile = _shorter(forward_p, backward_p)
-
-    normals = np.cross(d_profile, d_sample).astype(np.float32)
-    # A nearly parallel pair of differences gives a direction dominated by noise.
-    area = np.linalg.norm(normals, axis=-1)
-    lengths = np.linalg.norm(d_profile, axis=-1) * np.linalg.norm(d_sample, axis=-1)
+    nx = py * sz
+    nx -= pz * sy
+    ny = pz * sx
+    ny -= px * sz
+    nz = px * sy
+    nz -= py * sx
+    area = _squared_length(nx, ny, nz)
+    # A nearly parallel pair of differences gives a direction dominated by noise: keep the
+    # normal where sin(angle) > 0.05, i.e. area² > 0.05² · |d_p|² · |d_s|².
+    with np.errstate(invalid="ignore", over="ignore"):
+        p_len *= s_len
+        p_len *= np.float32(0.05 ** 2)
+        ok = area > p_len
+    ok &= usable[None, :]
+    np.sqrt(area, out=area)
     with np.errstate(invalid="ignore", divide="ignore"):
-        sine = area / lengths
-    normals[~(sine > 0.05)] = np.nan
-    normals[:, ~usable_rows] = np.nan
-    return _normalised(normals)
+        scale = np.divide(np.float32(1.0), area, out=area)
+    scale[~ok] = np.nan
+    for component in (nx, ny, nz):
+        component *= scale
+    return nx, ny, nz
+
+
+def _orient_planes(normals: Planes, xyz: Planes, origins: Planes) -> None:
+    """Flip (in place) the normals that point away from their sensor origin."""
+    facing = np.subtract(origins[0], xyz[0])
+    facing *= normals[0]
+    for k in (1, 2):
+        term = np.subtract(origins[k], xyz[k])
+        term *= normals[k]
+        facing += term
+    sign = np.where(facing < 0, np.float32(-1.0), np.float32(1.0))
+    for component in normals:
+        component *= sign
+
+
+def grid_normals(xyz_grid: F32, grid: ScanGrid, baseline_deg: float = 1.0) -> F32:
+    """Normals ``(P, S, 3)`` from neighbour differences on the grid; NaN where undefined.
+
+    Unoriented (the sign follows the grid's parameterisation); see :func:`orient_toward`.
+    """
+    planes = tuple(np.ascontiguousarray(xyz_grid[..., k], dtype=np.float32) for k in range(3))
+    return np.stack(grid_normal_planes((planes[0], planes[1], planes[2]), grid, baseline_deg),
+                    axis=-1)
+
+
+class _Layout:
+    """Moves per-point values into grid planes and back: a reshape when the grid is dense,
+    else one scatter through the cells that hold a point."""
+
+    def __init__(self, grid: ScanGrid) -> None:
+        self.grid = grid
+        if grid.dense:
+            return
+        flat_index = grid.index.reshape(-1)
+        self.cells = np.flatnonzero(flat_index >= 0)
+        rows = flat_index[self.cells]
+        # A table in grid order (assemble's, filtered) needs no gather.
+        self.rows: NDArray[np.int64] | None = (
+            None if rows.size and rows[0] == 0 and rows[-1] == rows.size - 1
+            and bool(np.all(np.diff(rows) == 1)) else rows)
+
+    def plane(self, values: F32) -> F32:
+        """A ``(P, S)`` plane of per-point ``values`` (NaN where no point); may be a view."""
+        shape = self.grid.shape
+        if self.grid.dense:
+            return values.reshape(shape)
+        out = np.full(shape[0] * shape[1], np.nan, dtype=np.float32)
+        out[self.cells] = values if self.rows is None else values[self.rows]
+        return out.reshape(shape)
+
+    def count(self, mask: NDArray[np.bool_]) -> int:
+        """How many of the cells in the ``(P, S)`` ``mask`` hold a point."""
+        if self.grid.dense:
+            return int(np.count_nonzero(mask))
+        return int(np.count_nonzero(mask.reshape(-1)[self.cells]))
+
+    def points(self, planes: Planes) -> F32:
+        """Per-point ``(N, 3)`` values from three planes."""
+        if self.grid.dense:
+            return np.stack([p.reshape(-1) for p in planes], axis=1)
+        out = np.empty((len(self.cells), 3), dtype=np.float32)
+        for k, p in enumerate(planes):
+            values = p.reshape(-1)[self.cells]
+            if self.rows is None:
+                out[:, k] = values
+            else:
+                out[self.rows, k] = values
+        return out
 
 
 def knn_normals(points: F32, origins: F32, neighbours: int = 24) -> F32:
@@ -139,48 +284,59 @@ def estimate_normals(table: pa.Table, params: NormalParams | None = None,
     ``grid`` is the table's :class:`ScanGrid` when the caller has it already.
     """
     params = params or NormalParams()
-    points = points_xyz(table)
-    origins = points_origins(table)
     if grid is None and params.method != "knn":
         grid = scan_grid(table)
     if params.method == "grid" and grid is None:
         raise StageError("points: normals.method = 'grid' but the points have no grid "
                          "(profile/sample are −1); use 'auto' or 'knn'")
     if params.method == "knn" or grid is None:
-        return knn_normals(points, origins, params.knn_neighbours), {"knn": len(points)}
-    normal_grid = grid_normals(to_grid(points, grid), grid, params.baseline_deg)
-    normals = orient_toward(from_grid(normal_grid, grid).astype(np.float32), points, origins)
-    missing = np.asarray(~np.isfinite(normals).all(axis=1))
-    counts = {"grid": len(points) - int(np.count_nonzero(missing)), "grid_window": 0, "knn": 0}
-    if missing.any():
+        return (knn_normals(points_xyz(table), points_origins(table), params.knn_neighbours),
+                {"knn": table.num_rows})
+    layout = _Layout(grid)
+    xyz = tuple(layout.plane(column_f32(table, c)) for c in XYZ)
+    origins = tuple(layout.plane(column_f32(table, c)) for c in ORIGIN)
+    xyz_planes: Planes = (xyz[0], xyz[1], xyz[2])
+    normals = grid_normal_planes(xyz_planes, grid, params.baseline_deg)
+    _orient_planes(normals, xyz_planes, (origins[0], origins[1], origins[2]))
+    missing = np.isnan(normals[0])
+    missing_points = layout.count(missing)
+    counts = {"grid": table.num_rows - missing_points, "grid_window": 0, "knn": 0}
+    if missing_points:
         # Cells the grid cannot serve (the poles, gaps) take the mean oriented normal of the
         # grid window around them: an array filter, not a neighbour search.
-        window = from_grid(_window_mean(to_grid(normals, grid), grid, params.baseline_deg),
-                           grid)
-        filled = missing & np.isfinite(window).all(axis=1)
-        normals[filled] = window[filled]
-        counts["grid_window"] = int(np.count_nonzero(filled))
-        missing &= ~filled
-    if missing.any():
+        window = _window_mean(normals, grid, params.baseline_deg)
+        filled = missing & ~np.isnan(window[0])
+        for component, mean in zip(normals, window, strict=True):
+            np.copyto(component, mean, where=filled)
+        counts["grid_window"] = layout.count(filled)
+    out = layout.points(normals)
+    if counts["grid"] + counts["grid_window"] < table.num_rows:
+        still = np.isnan(out[:, 0])
+        points, origins_n = points_xyz(table), points_origins(table)
         if len(points) >= 3:
-            normals[missing] = _knn_subset(points, origins, missing, params.knn_neighbours)
+            out[still] = _knn_subset(points, origins_n, still, params.knn_neighbours)
         else:
-            normals[missing] = _normalised(origins[missing] - points[missing])
-        counts["knn"] = int(np.count_nonzero(missing))
-    return normals, counts
+            out[still] = _normalised(origins_n[still] - points[still])
+        counts["knn"] = int(np.count_nonzero(still))
+    return out, counts
 
 
-def _window_mean(normal_grid: F32, grid: ScanGrid, baseline_deg: float) -> F32:
+def _window_mean(normals: Planes, grid: ScanGrid, baseline_deg: float) -> Planes:
     """Per cell, the normalised sum of the valid normals within two baselines around it."""
     from scipy.ndimage import uniform_filter
 
     alpha_step = abs(grid.alpha_step_deg) if np.isfinite(grid.alpha_step_deg) else 1.0
     beta_step = abs(grid.beta_step_deg) if np.isfinite(grid.beta_step_deg) else 1.0
     size = (2 * max(1, round(2 * baseline_deg / beta_step)) + 1,
-            2 * max(1, round(2 * baseline_deg / alpha_step)) + 1, 1)
-    modes = ("nearest", "wrap" if grid.wraps_alpha else "nearest", "nearest")
-    summed = uniform_filter(np.nan_to_num(normal_grid, nan=0.0), size=size, mode=modes)
-    return _normalised(summed.astype(np.float32), min_norm=1e-6)
+            2 * max(1, round(2 * baseline_deg / alpha_step)) + 1)
+    modes = ("nearest", "wrap" if grid.wraps_alpha else "nearest")
+    summed = tuple(uniform_filter(np.nan_to_num(c, nan=0.0), size=size, mode=modes)
+                   for c in normals)
+    norm = np.sqrt(_squared_length(*summed))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.divide(np.float32(1.0), norm)
+    scale[~(norm > 1e-6)] = np.nan
+    return summed[0] * scale, summed[1] * scale, summed[2] * scale
 
 
 def _knn_subset(points: F32, origins: F32, wanted: NDArray[np.bool_], neighbours: int) -> F32:

@@ -8,6 +8,7 @@ quadric decimation is Open3D's.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -38,9 +39,15 @@ class CleanupParams(Params):
 def degenerate_faces(mesh: Mesh) -> B:
     """Faces with a repeated vertex index or zero area."""
     f = mesh.faces
-    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
-    area2 = np.linalg.norm(mesh.face_normals(), axis=1)
-    return np.asarray(repeated | ~(area2 > 0))
+    repeated = f[:, 0] == f[:, 1]
+    repeated |= f[:, 1] == f[:, 2]
+    repeated |= f[:, 0] == f[:, 2]
+    cross = mesh.face_normals()
+    area2 = cross[:, 0] * cross[:, 0]
+    area2 += cross[:, 1] * cross[:, 1]
+    area2 += cross[:, 2] * cross[:, 2]
+    repeated |= ~(area2 > 0)  # NaN corners count as degenerate too
+    return np.asarray(repeated, dtype=bool)
 
 
 def duplicate_faces(faces: NDArray[np.integer]) -> B:
@@ -90,21 +97,24 @@ def non_manifold_faces(mesh: Mesh) -> B:
 
 
 def small_component_faces(mesh: Mesh, min_faces: int) -> B:
-    """Faces of connected pieces (sharing vertices) with fewer than ``min_faces`` faces."""
+    """Faces of connected pieces (sharing vertices) with fewer than ``min_faces`` faces.
+
+    (A grid mesh is cleaned on its grid instead: ``grid_mesh.grid_surface``.)
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     n = len(mesh.vertices)
-    f = mesh.faces.astype(np.int64)
+    f = mesh.faces
     if len(f) == 0 or min_faces <= 1:
         return np.zeros(len(f), dtype=bool)
     rows = np.concatenate([f[:, 0], f[:, 1]])
     cols = np.concatenate([f[:, 1], f[:, 2]])
     graph = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
-    face_label = labels[f[:, 0]]
+    face_label = np.take(labels, f[:, 0])
     sizes = np.bincount(face_label)
-    return np.asarray(sizes[face_label] < min_faces)
+    return np.asarray(np.take(sizes, face_label) < min_faces)
 
 
 def decimate(mesh: Mesh, target_faces: int) -> Mesh:
@@ -121,13 +131,18 @@ def decimate(mesh: Mesh, target_faces: int) -> Mesh:
 
 
 def clean_mesh(mesh: Mesh, params: CleanupParams | None = None,
-               manifold_by_construction: bool = False) -> tuple[Mesh, dict[str, Any]]:
+               manifold_by_construction: bool = False,
+               done: Mapping[str, int] | None = None) -> tuple[Mesh, dict[str, Any]]:
     """Apply the clean-up steps in order; report how many faces each one removed.
 
     ``manifold_by_construction``: the caller guarantees no duplicate faces and no edge with
     more than two faces (the grid triangulation), so those two searches are skipped.
+    ``done``: steps the caller has applied already, by report name (``degenerate_faces_removed``,
+    ``small_component_faces_removed``, ``unreferenced_vertices_removed``) with their counts;
+    they are skipped and their counts reported.
     """
     params = params or CleanupParams()
+    done = done or {}
     report: dict[str, Any] = {"faces_in": len(mesh.faces)}
     search = not manifold_by_construction
     steps: list[tuple[str, bool, Any]] = [
@@ -142,13 +157,19 @@ def clean_mesh(mesh: Mesh, params: CleanupParams | None = None,
     for name, enabled, find in steps:
         if not enabled:
             continue
+        if name in done:
+            report[name] = int(done[name])
+            continue
         drop = find(mesh)
         report[name] = int(np.count_nonzero(drop))
         if report[name]:
             mesh = mesh.select_faces(~drop)
-    vertices_before = len(mesh.vertices)
-    mesh = mesh.compact()
-    report["unreferenced_vertices_removed"] = vertices_before - len(mesh.vertices)
+    if "unreferenced_vertices_removed" in done:
+        report["unreferenced_vertices_removed"] = int(done["unreferenced_vertices_removed"])
+    else:
+        vertices_before = len(mesh.vertices)
+        mesh = mesh.compact()
+        report["unreferenced_vertices_removed"] = vertices_before - len(mesh.vertices)
     if params.target_faces is not None and len(mesh.faces) > params.target_faces:
         before = len(mesh.faces)
         mesh = decimate(mesh, params.target_faces)

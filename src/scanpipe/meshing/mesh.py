@@ -17,6 +17,25 @@ U8 = NDArray[np.uint8]
 B = NDArray[np.bool_]
 
 
+def face_cross(vertices: F32, faces: I32) -> F32:
+    """``(v1 − v0) × (v2 − v0)`` per face, float32 ``(K, 3)`` (length = twice the area).
+
+    One gather per corner and the cross product written column by column: ``np.cross`` and
+    its temporaries cost ~3× more at millions of faces.
+    """
+    v = np.asarray(vertices, dtype=np.float32)
+    e1 = v[faces[:, 1]]
+    e2 = v[faces[:, 2]]
+    v0 = v[faces[:, 0]]
+    e1 -= v0
+    e2 -= v0
+    out = v0  # reused: v0 is no longer needed
+    for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):
+        column: F32 = out[:, k]
+        np.multiply(e1[:, i], e2[:, j], out=column)
+        np.subtract(column, e1[:, j] * e2[:, i], out=column)
+    return out
+
 
 @dataclass(frozen=True)
 class Mesh:
@@ -46,14 +65,22 @@ class Mesh:
     def compact(self) -> Mesh:
         """Drop vertices that no face uses."""
         used = np.zeros(len(self.vertices), dtype=bool)
-        used[self.faces.ravel()] = True
-        return self if used.all() else self.select_vertices(used)
+        used[self.faces.reshape(-1)] = True
+        if used.all():
+            return self
+        # Every face keeps its vertices here: renumber them, no per-face test.
+        remap = np.cumsum(used, dtype=np.int64)
+        remap -= 1
+        return Mesh(
+            vertices=self.vertices[used],
+            faces=np.take(remap, self.faces).astype(np.int32, copy=False),
+            normals=None if self.normals is None else self.normals[used],
+            colors=None if self.colors is None else self.colors[used],
+        )
 
     def face_normals(self) -> F32:
         """Unnormalised face normals (length = twice the area)."""
-        v = self.vertices
-        a, b, c = v[self.faces[:, 0]], v[self.faces[:, 1]], v[self.faces[:, 2]]
-        return np.cross(b - a, c - a).astype(np.float32)
+        return face_cross(self.vertices, self.faces)
 
     def with_vertex_normals(self) -> Mesh:
         """Area-weighted vertex normals from the faces (existing ones kept where no face is)."""
