@@ -69,11 +69,19 @@ def vertex_colors_from_texture(mesh: MeshModel) -> NDArray[np.uint8] | None:
     return colors
 
 
+#: Characters of the provenance record per PLY comment line.
+PLY_COMMENT_CHARS = 200
+
+
 def _header(comment: str, vertex_count: int, properties: list[str],
             face_count: int | None, provenance: Mapping[str, Any] | None) -> bytes:
     record = provenance_bytes(provenance or {}).decode()
+    # PLY readers keep header lines short (rply, Open3D's reader, aborts past 1024 bytes): the
+    # record goes over as many comment lines as it needs, to be joined back in order.
+    chunks = [record[i:i + PLY_COMMENT_CHARS] for i in range(0, len(record), PLY_COMMENT_CHARS)]
     lines = ["ply", "format binary_little_endian 1.0", f"comment {comment}",
-             f"comment {PROVENANCE_TAG} {record}", f"element vertex {vertex_count}", *properties]
+             *(f"comment {PROVENANCE_TAG} {chunk}" for chunk in chunks),
+             f"element vertex {vertex_count}", *properties]
     if face_count is not None:
         lines += [f"element face {face_count}", "property list uchar int vertex_indices"]
     lines.append("end_header")
