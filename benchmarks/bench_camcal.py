@@ -92,12 +92,18 @@ def simulate(folder: Path, options: SimOptions) -> dict[str, pa.Table]:
 
 def video_frames(options: SimOptions, camera: CameraConfig, count: int,
                  late_s: float) -> pa.Table:
-    """A ``frames`` table of ``count`` frames of a video of ``camera`` spread from
+    """A ``frames`` table of ``count`` frames of a video of ``camera`` from
     :data:`VIDEO_MARGIN_S` before the session to as long after it, stamped ``late_s`` late."""
     true_rig = options.true_rig()
     session = plan_session(options, true_rig)
     scene = resolve_scene(options.scene, options.scene_pose, options.scene_up)
-    times = np.linspace(-VIDEO_MARGIN_S, session.end_s + VIDEO_MARGIN_S, count)
+    # a real video has many frames before and after the scan: 30 fps; a quarter of ``count``
+    # each here, the rest spread over the scan
+    still = max(1, count // 4)
+    times = np.concatenate([np.linspace(-VIDEO_MARGIN_S, -0.1, still),
+                            np.linspace(0.0, session.end_s, count - 2 * still),
+                            np.linspace(session.end_s + 0.1, session.end_s + VIDEO_MARGIN_S,
+                                        still)])
     pulse = options.rig.motor.pulse_step_deg
     betas = session.timeline.steps_at(np.clip(times, 0.0, session.end_s)) * pulse \
         + true_rig.motor.beta_offset_deg

@@ -506,6 +506,8 @@ class CameraCalibration:
     frames: int
     edge_points: int
     warnings: list[str] = field(default_factory=list)
+    #: With a clock offset fitted: whether some frames show the platform standing still.
+    still_frames: bool = True
 
     def report(self) -> dict[str, Any]:
         """The calibration as JSON-ready values."""
@@ -562,11 +564,18 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
                          "points fall into its frames; nothing to calibrate against (is the "
                          "camera looking at the scanned scene?)")
     x = start
-    if fit_time_offset:
-        x = _scan_time_offset(fit, x, time_window_s, *levels[0])
     names = [p for p in PARAMETERS if p in free]
     rotation_and_time = np.array([n.startswith("rot_") or n == "time_offset_s" for n in names])
-    for level, (sigma, truncate) in enumerate(levels):
+    first_level = 0
+    if fit_time_offset:
+        # The mount first from the frames of the platform standing still (whatever the
+        # clock), then the clock from all frames with that mount, then both together.
+        x = _fit_mount_on_still_frames(fit, x, levels, time_window_s)
+        first_level = 1
+        x = _scan_time_offset(fit, x, time_window_s, *levels[first_level])
+        fit.select_visible(fit.full(x), gate_px=levels[first_level][1])
+    for level in range(first_level, len(levels)):
+        sigma, truncate = levels[level]
         # the coarsest pass turns the camera (and shifts its clock) only: the rest would
         # wander along the flat valleys of a blurred cost
         x, _ = fit.solve(x, sigma, truncate, only=rotation_and_time if level == 0 else None)
@@ -614,7 +623,8 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         warnings.append(f"camera {camera.id!r}: the edges align worse after the fit "
                         f"({before.median_px:.2f} → {after.median_px:.2f} px median); check the "
                         "frames and the scan")
-    if fit_time_offset and not _has_still_frames(fit, final):
+    still = not fit_time_offset or _has_still_frames(fit, final)
+    if not still:
         warnings.append(f"camera {camera.id!r}: no frames while the platform stands still "
                         "(before or after the scan); the clock offset and the camera's turn "
                         "about the axis are found only together")
@@ -622,13 +632,40 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         camera_id=camera.id, before=_rig_camera(camera, track.rig), after=after_camera,
         time_offset_s=float(final[7]) if fit_time_offset else None, parameters=results,
         alignment_before=before, alignment_after=after, frames=len(frames),
-        edge_points=int(after.distances_px.size), warnings=warnings)
+        edge_points=int(after.distances_px.size), warnings=warnings, still_frames=still)
 
 
 def _rig_camera(camera: CameraConfig, rig: Rig) -> CameraConfig:
     """The rig's own camera of ``camera`` (which may be sized to its frames); the fit's changes
     (rotation, translation, focal scale) hold at any resolution."""
     return next((c for c in rig.cameras if c.id == camera.id), camera)
+
+
+def _fit_mount_on_still_frames(fit: CameraFit, x: F64, levels: list[tuple[float, float]],
+                               window_s: float) -> F64:
+    """The mount fitted (two coarse passes) to the frames that show the platform standing
+    still even at the ends of the clock's search window; ``x`` unchanged without two such."""
+    first, last = fit.track.moving_span_ns()
+    times = fit.times_ns + np.int64(round(fit.base[7] * 1e9))
+    margin = np.int64(round(window_s * 1e9))
+    still = (times < first - margin) | (times > last + margin)
+    if np.count_nonzero(still) < 2:
+        return x
+    everything, all_times = fit.frames, fit.times_ns
+    fit.frames = [f for f, s in zip(everything, still, strict=True) if s]
+    fit.times_ns = all_times[still]
+    moving = np.ones(len(x), dtype=bool)
+    moving[-1] = False  # the clock does not move a still frame
+    rotation = moving.copy()
+    rotation[3:] = False
+    try:
+        fit.select_visible(fit.full(x))
+        for level in (0, 1):
+            x, _ = fit.solve(x, *levels[level], only=rotation if level == 0 else moving)
+            fit.select_visible(fit.full(x), gate_px=levels[level + 1][1])
+    finally:
+        fit.frames, fit.times_ns = everything, all_times
+    return x
 
 
 def _scan_time_offset(fit: CameraFit, x: F64, window_s: float, sigma_px: float,
@@ -688,17 +725,38 @@ def _has_still_frames(fit: CameraFit, x: F64) -> bool:
     return bool(np.any(times < first) or np.any(times > last))
 
 
-def frame_rows(frames: pa.Table, camera_id: str, max_frames: int) -> NDArray[np.int64]:
-    """Rows of ``camera_id``'s frames, at most ``max_frames`` spread evenly over its time."""
+def frame_rows(frames: pa.Table, camera_id: str, max_frames: int,
+               still_ns: tuple[int, int] | None = None) -> NDArray[np.int64]:
+    """Rows of ``camera_id``'s frames, at most ``max_frames`` spread evenly over its time.
+
+    With ``still_ns`` (the host times the platform starts and stops turning), up to a quarter
+    of the frames each come from before the start and after the stop: only those separate a
+    clock offset from a turn of the camera about the axis, and a video has few of them.
+    """
     ids = np.asarray(frames.column("camera_id").to_pylist(), dtype=object)
     rows = np.flatnonzero(ids == camera_id)
     if rows.size == 0:
         return rows.astype(np.int64)
     times = frames.column("log_time_ns").to_numpy()[rows]
-    rows = rows[np.argsort(times, kind="stable")]
-    if rows.size > max_frames:
-        rows = rows[np.round(np.linspace(0, rows.size - 1, max_frames)).astype(np.int64)]
-    return rows.astype(np.int64)
+    order = np.argsort(times, kind="stable")
+    rows, times = rows[order], times[order]
+    if rows.size <= max_frames:
+        return rows.astype(np.int64)
+    if still_ns is None:
+        return rows[np.round(np.linspace(0, rows.size - 1, max_frames)).astype(np.int64)
+                    ].astype(np.int64)
+    parts = [times < still_ns[0], times > still_ns[1]]
+    parts.insert(1, ~(parts[0] | parts[1]))
+    quota = [max_frames // 4, 0, max_frames // 4]
+    quota = [min(q, int(p.sum())) for q, p in zip(quota, parts, strict=True)]
+    quota[1] = max_frames - quota[0] - quota[2]
+    chosen = []
+    for mask, count in zip(parts, quota, strict=True):
+        part = rows[mask]
+        if count > 0 and part.size:
+            count = min(count, part.size)
+            chosen.append(part[np.round(np.linspace(0, part.size - 1, count)).astype(np.int64)])
+    return np.sort(np.concatenate(chosen)).astype(np.int64) if chosen else rows[:0]
 
 
 def observations(frames: pa.Table, rows: NDArray[np.int64], camera: CameraConfig
@@ -736,10 +794,15 @@ def calibrate_cameras(points: pa.Table, frames: pa.Table, motor: pa.Table, rig: 
     results = []
     for camera_id in ids:
         camera = rig.camera(camera_id)
-        rows = frame_rows(frames, camera_id, max_frames)
+        start = (start_offsets_s or {}).get(camera_id, 0.0)
+        still = None
+        if fit_time_offset:  # the still periods in the frames' own (rough) clock
+            first, last = track.moving_span_ns()
+            shift = round(start * 1e9)
+            still = (first - shift, last - shift)
+        rows = frame_rows(frames, camera_id, max_frames, still)
         if rows.size == 0:
             raise StageError(f"frames: camera {camera_id!r} has no frames")
-        start = (start_offsets_s or {}).get(camera_id, 0.0)
         results.append(calibrate_camera(edges, observations(frames, rows, camera), track,
                                         fit_time_offset, time_window_s, start,
                                         fit_focal=fit_focal))

@@ -114,8 +114,11 @@ def _frame_offset_ns(capture: Any, index: int, fps: float, video: Path) -> int:
     raise DeviceError(f"{video}: the video gives neither frame times nor a rate")
 
 
-def sample_video(video: Path, start_ns: int, count: int) -> list[tuple[int, Any]]:
-    """``(time_ns, BGR image)`` of up to ``count`` frames spread evenly over the video."""
+def sample_video(video: Path, start_ns: int, count: int,
+                 still_ns: tuple[int, int] | None = None) -> list[tuple[int, Any]]:
+    """``(time_ns, BGR image)`` of up to ``count`` frames spread over the video; with
+    ``still_ns``, as :func:`scanpipe.camera_selfcal.frame_rows` chooses them (a share from
+    before and after the platform turns)."""
     if not video.is_file():
         raise UsageError(f"{video}: video file not found")
     capture = cv2.VideoCapture(str(video))
@@ -124,8 +127,16 @@ def sample_video(video: Path, start_ns: int, count: int) -> list[tuple[int, Any]
     try:
         total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         fps = capture.get(cv2.CAP_PROP_FPS) or 0.0
-        wanted = set(range(total)) if total <= count else {
-            round(k * (total - 1) / (count - 1)) for k in range(count)}
+        wanted = set(range(total))
+        if total > count:
+            import pyarrow as pa
+
+            from scanpipe.camera_selfcal import frame_rows
+
+            rate = fps if fps > 0 else 30.0
+            guess = pa.table({"camera_id": ["video"] * total, "log_time_ns": [
+                start_ns + round(i / rate * 1e9) for i in range(total)]})
+            wanted = set(frame_rows(guess, "video", count, still_ns).tolist())
         chosen: list[tuple[int, Any]] = []
         index = 0
         while capture.grab():
@@ -162,14 +173,20 @@ def refine_offset(video: Path, recording: Path, start_ns: int, camera_id: str,
     rig = rig_from_table(decoded["rig"])
     camera = rig.camera(camera_id)
     points = ASSEMBLE.run({n: decoded[n] for n in ("profiles", "motor", "rig")}).tables["points"]
-    sampled = sample_video(video, start_ns, frames)
+    track = MotorTrack(decoded["motor"], rig)
+    sampled = sample_video(video, start_ns, frames, track.moving_span_ns())
     height, width = sampled[0][1].shape[:2]
     sized = camera_for_size(camera, width, height)
     observed = [observe(sized, t, image) for t, image in sampled
                 if image.shape[:2] == (height, width)]
-    result = calibrate_camera(depth_edges(points), observed, MotorTrack(decoded["motor"], rig),
-                              fit_time_offset=True, time_window_s=window_s)
+    result = calibrate_camera(depth_edges(points), observed, track, fit_time_offset=True,
+                              time_window_s=window_s)
     offset = next(p for p in result.parameters if p.name == "time_offset_s")
+    if not result.still_frames:
+        raise StageError(f"{video}: no frame shows the platform standing still (before or "
+                         "after the scan), so the clock offset cannot be told from a turn of "
+                         "the camera; film a few seconds before and after the scan, or give "
+                         "the exact --offset without --refine")
     if not offset.observable:
         raise StageError(f"{video}: the clock offset could not be found from the data "
                          f"(1σ {offset.sigma or float('nan'):.3g} s); give the exact --offset "
