@@ -117,6 +117,31 @@ def video_frames(options: SimOptions, camera: CameraConfig, count: int,
                      "data": pa.array(data, pa.binary())})
 
 
+def write_video(options: SimOptions, camera: CameraConfig, path: Path, fps: float) -> int:
+    """An MJPG video of ``camera`` at ``fps`` from :data:`VIDEO_MARGIN_S` before the session to
+    as long after it (what a phone filming the scan records); returns the host time (ns) of its
+    first frame."""
+    import cv2
+
+    true_rig = options.true_rig()
+    session = plan_session(options, true_rig)
+    scene = resolve_scene(options.scene, options.scene_pose, options.scene_up)
+    times = np.arange(-VIDEO_MARGIN_S, session.end_s + VIDEO_MARGIN_S, 1.0 / fps)
+    pulse = options.rig.motor.pulse_step_deg
+    betas = session.timeline.steps_at(np.clip(times, 0.0, session.end_s)) * pulse \
+        + true_rig.motor.beta_offset_deg
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps,
+                             (camera.width, camera.height))
+    rng = np.random.default_rng([options.seed, 29])
+    try:
+        for beta in betas:
+            rgb = render_rgb(scene, camera, float(beta), options.camera_model(), rng)
+            writer.write(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    finally:
+        writer.release()
+    return options.start_time_ns + round(float(times[0]) * 1e9)
+
+
 def one(seed: int, motor_step: float, beam_step: float, camera_scale: float, frames: int,
         folder: Path) -> list[dict[str, Any]]:
     options = SimOptions(motor_step_deg=motor_step, beam_step_deg=beam_step,

@@ -33,7 +33,13 @@ from scanpipe.sim.options import SimOptions
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
-from bench_camcal import perturbed, rotation_error_deg, video_frames, with_camera
+from bench_camcal import (
+    perturbed,
+    rotation_error_deg,
+    video_frames,
+    with_camera,
+    write_video,
+)
 
 OPTIONS = SimOptions(motor_step_deg=1.0, beam_step_deg=0.5, camera_scale=0.2, camera_fps=0.5)
 
@@ -214,3 +220,53 @@ def test_calibrate_cameras_names_an_unknown_camera(scan: dict[str, Any],
     result = cli("calibrate-cameras", scan["workdir"], "--camera", "nope")
     assert result.code == 2
     assert "no camera 'nope'" in result.err and "cam0, cam1" in result.err
+
+
+@pytest.mark.slow
+def test_import_video_refines_a_rough_offset(scan: dict[str, Any], tmp_path: Path,
+                                             cli: Callable[..., Any]) -> None:
+    rec = tmp_path / "scan.mcap"
+    rec.write_bytes((scan["folder"] / "scan.mcap").read_bytes())
+    video = tmp_path / "phone.avi"
+    first_ns = write_video(OPTIONS, scan["true"].camera("cam0"), video, fps=1.0)
+    # the phone's clock says its first frame came 0.5 s later than it did
+    result = cli("import-video", video, "--into", rec, "--start-time", str(first_ns),
+                 "--offset", "0.5", "--camera", "cam0", "--refine", "--json")
+    assert result.code == 0, result.err
+    report = json.loads(result.out)
+    assert report["offset_s"] == pytest.approx(0.0, abs=0.1)
+    assert report["first_time_ns"] == pytest.approx(first_ns, abs=0.1e9)
+    assert report["refined"]["alignment_after"]["edge_median_px"] < 2.0
+
+
+@pytest.mark.slow
+def test_import_video_refuses_to_refine_without_still_frames(
+        scan: dict[str, Any], tmp_path: Path, cli: Callable[..., Any]) -> None:
+    rec = tmp_path / "scan.mcap"
+    rec.write_bytes((scan["folder"] / "scan.mcap").read_bytes())
+    digest = _digest(rec)
+    video = tmp_path / "phone.avi"
+    # a video of a platform that never stands still in it: frames only while it turns
+    options = OPTIONS.model_copy()
+    first_ns = write_video(options, scan["true"].camera("cam0"), video, fps=1.0)
+    trimmed = tmp_path / "moving.avi"
+    capture = cv2.VideoCapture(str(video))
+    writer = cv2.VideoWriter(str(trimmed), cv2.VideoWriter_fourcc(*"MJPG"), 1.0,
+                             (int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                              int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))))
+    index = 0
+    total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+    while True:
+        ok, image = capture.read()
+        if not ok:
+            break
+        if 6 <= index < total - 6:
+            writer.write(image)
+        index += 1
+    writer.release()
+    capture.release()
+    result = cli("import-video", trimmed, "--into", rec, "--start-time",
+                 str(first_ns + 6_000_000_000), "--camera", "cam0", "--refine")
+    assert result.code == 1
+    assert "standing still" in result.err and result.err.count("\n") == 1
+    assert _digest(rec) == digest

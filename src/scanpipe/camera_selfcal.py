@@ -13,9 +13,11 @@ stop pulling). A handful of global parameters per camera is fitted, never a per-
 - optionally the clock offset of its frames (an imported video): a frame taken at host time t
   shows the platform at β(t + δ).
 
-The fit runs coarse to fine (the distance transform blurred and truncated at 8, 4, 2 and 1 × a
-base scale) with scipy's ``least_squares``; with a clock offset to find, a scan of δ over the
-search window comes first. The 1σ of each value is the larger of the curvature (the Jacobian's
+The fit runs coarse to fine (the distance transform blurred by 2 %, 0.7 % and 0.25 % of the
+focal length, then 1 px, and truncated at 5 σ) with scipy's ``least_squares``; after each pass
+only depth edges with an image edge within the next truncation keep pulling. With a clock offset
+to find, the mount is first fitted to the frames of the platform standing still, then δ is
+scanned over the search window, then everything is fitted together. The 1σ of each value is the larger of the curvature (the Jacobian's
 ``s² (JᵀJ)⁻¹``) and the spread over groups of frames (a jackknife: the fit repeated with each
 group left out), because neighbouring edge points share their errors and the curvature alone is
 optimistic. A value whose 1σ exceeds its limit is reported unobservable and keeps the rig's value.
@@ -23,7 +25,8 @@ optimistic. A value whose 1σ exceeds its limit is reported unobservable and kee
 Why frames outside the scan matter for δ: while the platform turns at a steady rate ω, a clock
 offset δ looks exactly like a turn of the camera about the axis by ω·δ. Frames while the platform
 stands still (before the scan starts, after it ends) separate the two; the video should run a few
-seconds before and after the scan. Without them δ is reported unobservable.
+seconds before and after the scan. Without them a warning says δ is found only together with
+the camera's turn (``still_frames`` False). See docs/calibration.md ("Cameras").
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from scanpipe.camera import project_points
 from scanpipe.errors import StageError
 from scanpipe.geometry import CAMERA_BASE, camera_to_platform
 from scanpipe.grid import bilateral_smooth, scan_grid, to_grid
-from scanpipe.motion import beta_deg_at
+from scanpipe.motion import beta_deg_at, motor_times_ns
 from scanpipe.rig import CameraConfig, Pose, Rig
 from scanpipe.schema import ORIGIN, XYZ
 
@@ -280,8 +283,6 @@ class MotorTrack:
     def moving_span_ns(self) -> tuple[int, int]:
         """Host times of the first and last change of the platform angle."""
         steps = self.motor.column("step_count").to_numpy()
-        from scanpipe.motion import motor_times_ns
-
         times = motor_times_ns(self.motor)
         order = np.argsort(times, kind="stable")
         changes = np.flatnonzero(np.diff(steps[order]) != 0)
@@ -400,36 +401,34 @@ class CameraFit:
                                                      replace=False))
             frame.edges = candidates
 
-    def distances(self, x: F64, sigma_px: float, truncate_px: float) -> F64:
-        """Every used edge point's (blurred, truncated) distance to an image edge."""
+    def _lookup(self, x: F64, sigma_px: float, truncate_px: float, fit_subset: bool,
+                weighted: bool) -> F64:
+        """The (blurred, truncated) distance map at every projected edge point of every
+        frame: the fit's subset or all the frame sees; ``weighted`` divides each frame's by
+        √n so that every frame counts alike."""
         betas = self.betas(x)
         out = []
         for frame, beta in zip(self.frames, betas, strict=True):
-            if frame.all_edges.size == 0:
+            chosen = frame.edges if fit_subset else frame.all_edges
+            if chosen.size == 0:
                 continue
             cam = camera_with(frame.camera, x)
-            uv, depth = project_points(self.edges.xyz[frame.all_edges], cam, float(beta))
+            uv, depth = project_points(self.edges.xyz[chosen], cam, float(beta))
             values = map_coordinates(frame.blurred(sigma_px), [uv[:, 1], uv[:, 0]], order=1,
                                      mode="constant", cval=truncate_px)
             values[depth <= 0] = truncate_px
-            out.append(np.minimum(values, truncate_px))
+            values = np.minimum(values, truncate_px)
+            out.append(values / math.sqrt(chosen.size) if weighted else values)
         return np.concatenate(out) if out else np.zeros(0)
+
+    def distances(self, x: F64, sigma_px: float, truncate_px: float) -> F64:
+        """Every edge point's (blurred, truncated) distance to an image edge, all frames."""
+        return self._lookup(x, sigma_px, truncate_px, fit_subset=False, weighted=False)
 
     def residuals(self, scaled: F64, sigma_px: float, truncate_px: float) -> F64:
         """The least-squares residuals: truncated distances, each frame weighted alike."""
-        x = self.full(scaled)
-        betas = self.betas(x)
-        out = []
-        for frame, beta in zip(self.frames, betas, strict=True):
-            if frame.edges.size == 0:
-                continue
-            cam = camera_with(frame.camera, x)
-            uv, depth = project_points(self.edges.xyz[frame.edges], cam, float(beta))
-            values = map_coordinates(frame.blurred(sigma_px), [uv[:, 1], uv[:, 0]], order=1,
-                                     mode="constant", cval=truncate_px)
-            values[depth <= 0] = truncate_px
-            out.append(np.minimum(values, truncate_px) / math.sqrt(frame.edges.size))
-        return np.concatenate(out) if out else np.zeros(0)
+        return self._lookup(self.full(scaled), sigma_px, truncate_px, fit_subset=True,
+                            weighted=True)
 
     def alignment(self, x: F64) -> Alignment:
         """The unblurred distances at ``x`` (the figures before and after), every edge point
@@ -705,14 +704,15 @@ def _jackknife_sigma(fit: CameraFit, x: F64, sigma_px: float, truncate_px: float
     if groups < 3:
         return np.zeros(len(x))
     estimates = []
-    everything = fit.frames
-    for g in range(groups):
-        fit.frames = [f for i, f in enumerate(everything) if i % groups != g]
-        fit.times_ns = np.array([f.time_ns for f in fit.frames], dtype=np.int64)
-        estimate, _ = fit.solve(x, sigma_px, truncate_px, max_nfev=10)
-        estimates.append(estimate)
-    fit.frames = everything
-    fit.times_ns = np.array([f.time_ns for f in fit.frames], dtype=np.int64)
+    everything, all_times = fit.frames, fit.times_ns
+    try:
+        for g in range(groups):
+            fit.frames = [f for i, f in enumerate(everything) if i % groups != g]
+            fit.times_ns = np.array([f.time_ns for f in fit.frames], dtype=np.int64)
+            estimate, _ = fit.solve(x, sigma_px, truncate_px, max_nfev=10)
+            estimates.append(estimate)
+    finally:
+        fit.frames, fit.times_ns = everything, all_times
     values = np.array(estimates)
     return np.asarray(np.sqrt((groups - 1) / groups * np.sum(
         (values - values.mean(axis=0)) ** 2, axis=0)), np.float64)
