@@ -17,10 +17,11 @@ The fit runs coarse to fine (the distance transform blurred by 2 %, 0.7 % and 0.
 focal length, then 1 px, and truncated at 5 σ) with scipy's ``least_squares``; after each pass
 only depth edges with an image edge within the next truncation keep pulling. With a clock offset
 to find, the mount is first fitted to the frames of the platform standing still, then δ is
-scanned over the search window, then everything is fitted together. The 1σ of each value is the larger of the curvature (the Jacobian's
-``s² (JᵀJ)⁻¹``) and the spread over groups of frames (a jackknife: the fit repeated with each
-group left out), because neighbouring edge points share their errors and the curvature alone is
-optimistic. A value whose 1σ exceeds its limit is reported unobservable and keeps the rig's value.
+scanned over the search window, then everything is fitted together. The 1σ of each value is
+the larger of the curvature (the Jacobian's ``s² (JᵀJ)⁻¹``) and the spread over groups of
+frames (a jackknife: the fit repeated with each group left out), because neighbouring edge
+points share their errors and the curvature alone is optimistic. A value whose 1σ exceeds its
+limit is reported unobservable and keeps the rig's value.
 
 Why frames outside the scan matter for δ: while the platform turns at a steady rate ω, a clock
 offset δ looks exactly like a turn of the camera about the axis by ω·δ. Frames while the platform
@@ -595,16 +596,16 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
             warnings.append(f"camera {camera.id!r}: {name} is not determined by these frames "
                             f"(1σ {sigma_value:.3g}, limit {SIGMA_LIMITS[name]:g}); kept")
     if not observable.all():
-        x = np.where(observable, x, 0.0)
+        start = np.where(observable, x, 0.0)
         kept = fit.free.copy()
         kept[fit.free] = observable
         refit = CameraFit(edges, frames, track, [p for p, k in zip(PARAMETERS, kept,
                                                                     strict=True) if k])
         refit.base = fit.base
         refit.frames = fit.frames
-        x_sub, _ = refit.solve(x[observable], sigma_fine, truncate_fine)
         x = np.zeros(len(names))
-        x[observable] = x_sub
+        if observable.any():
+            x[observable], _ = refit.solve(start[observable], sigma_fine, truncate_fine)
     final = fit.full(x)
     for i, name in enumerate(names):
         k = PARAMETERS.index(name)

@@ -158,6 +158,12 @@ def sample_video(video: Path, start_ns: int, count: int,
     return chosen
 
 
+_NO_STILL_FRAMES = (
+    "{video}: no frame shows the platform standing still (before or after the scan, allowing "
+    "for --window), so the clock offset cannot be told from a turn of the camera; film a few "
+    "seconds before and after the scan, or give the exact --offset without --refine")
+
+
 def refine_offset(video: Path, recording: Path, start_ns: int, camera_id: str,
                   window_s: float = 1.0, frames: int = 24) -> dict[str, Any]:
     """The video's clock offset found from the data: ``start_ns`` is the rough start (within
@@ -174,7 +180,11 @@ def refine_offset(video: Path, recording: Path, start_ns: int, camera_id: str,
     camera = rig.camera(camera_id)
     points = ASSEMBLE.run({n: decoded[n] for n in ("profiles", "motor", "rig")}).tables["points"]
     track = MotorTrack(decoded["motor"], rig)
-    sampled = sample_video(video, start_ns, frames, track.moving_span_ns())
+    first, last = track.moving_span_ns()
+    sampled = sample_video(video, start_ns, frames, (first, last))
+    margin = round(window_s * 1e9)
+    if not any(t < first - margin or t > last + margin for t, _ in sampled):
+        raise StageError(_NO_STILL_FRAMES.format(video=video))
     height, width = sampled[0][1].shape[:2]
     sized = camera_for_size(camera, width, height)
     observed = [observe(sized, t, image) for t, image in sampled
@@ -183,10 +193,7 @@ def refine_offset(video: Path, recording: Path, start_ns: int, camera_id: str,
                               time_window_s=window_s)
     offset = next(p for p in result.parameters if p.name == "time_offset_s")
     if not result.still_frames:
-        raise StageError(f"{video}: no frame shows the platform standing still (before or "
-                         "after the scan), so the clock offset cannot be told from a turn of "
-                         "the camera; film a few seconds before and after the scan, or give "
-                         "the exact --offset without --refine")
+        raise StageError(_NO_STILL_FRAMES.format(video=video))
     if not offset.observable:
         raise StageError(f"{video}: the clock offset could not be found from the data "
                          f"(1σ {offset.sigma or float('nan'):.3g} s); give the exact --offset "
