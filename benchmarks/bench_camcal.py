@@ -184,13 +184,14 @@ def one(seed: int, motor_step: float, beam_step: float, camera_scale: float, fra
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--motor-step", type=float, default=0.5)
     parser.add_argument("--beam-step", type=float, default=0.25)
     parser.add_argument("--camera-scale", type=float, default=0.25)
     parser.add_argument("--frames", type=int, default=48, help="frames per camera used")
     args = parser.parse_args()
     runs: list[dict[str, Any]] = []
-    for seed in range(args.seeds):
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
         with tempfile.TemporaryDirectory() as tmp:
             runs += one(seed, args.motor_step, args.beam_step, args.camera_scale, args.frames,
                         Path(tmp))
@@ -218,6 +219,8 @@ def main() -> None:
     print(table(rows, ("case", "within", "worst rot°", "worst t mm", "worst f %",
                        "worst clock ms", "worst median px", "least ≤2px %", "worst s")))
     stem = f"camcal-{dt.date.today().isoformat()}"
+    if args.first_seed:
+        stem += f"-from-seed-{args.first_seed}"
     print(f"saved {save({'args': vars(args), 'runs': runs}, stem)}")
 
 
