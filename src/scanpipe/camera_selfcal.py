@@ -247,6 +247,9 @@ class FrameObservation:
     distance: F32
     #: Indices into the edge points the frame sees (set by the fit at the starting values).
     edges: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    #: How much the frame counts in the fit (frames of the platform standing still count
+    #: as much together as all the others when a clock offset is fitted).
+    weight: float = 1.0
     #: Every edge point the frame sees (``edges`` is the fit's subset of them).
     all_edges: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     _blurred: dict[float, F32] = field(default_factory=dict, repr=False)
@@ -419,7 +422,7 @@ class CameraFit:
                                      mode="constant", cval=truncate_px)
             values[depth <= 0] = truncate_px
             values = np.minimum(values, truncate_px)
-            out.append(values / math.sqrt(chosen.size) if weighted else values)
+            out.append(values * math.sqrt(frame.weight / chosen.size) if weighted else values)
         return np.concatenate(out) if out else np.zeros(0)
 
     def distances(self, x: F64, sigma_px: float, truncate_px: float) -> F64:
@@ -571,6 +574,7 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         # The mount first from the frames of the platform standing still (whatever the
         # clock), then the clock from all frames with that mount, then both together.
         x = _fit_mount_on_still_frames(fit, x, levels, time_window_s)
+        _weigh_still_frames(fit, time_window_s)
         first_level = 1
         x = _scan_time_offset(fit, x, time_window_s, *levels[first_level])
         fit.select_visible(fit.full(x), gate_px=levels[first_level][1])
@@ -645,27 +649,40 @@ def _fit_mount_on_still_frames(fit: CameraFit, x: F64, levels: list[tuple[float,
                                window_s: float) -> F64:
     """The mount fitted (two coarse passes) to the frames that show the platform standing
     still even at the ends of the clock's search window; ``x`` unchanged without two such."""
-    first, last = fit.track.moving_span_ns()
-    times = fit.times_ns + np.int64(round(fit.base[7] * 1e9))
-    margin = np.int64(round(window_s * 1e9))
-    still = (times < first - margin) | (times > last + margin)
+    still = _still_mask(fit, window_s)
     if np.count_nonzero(still) < 2:
         return x
     everything, all_times = fit.frames, fit.times_ns
     fit.frames = [f for f, s in zip(everything, still, strict=True) if s]
     fit.times_ns = all_times[still]
-    moving = np.ones(len(x), dtype=bool)
-    moving[-1] = False  # the clock does not move a still frame
-    rotation = moving.copy()
-    rotation[3:] = False
+    rotation = np.zeros(len(x), dtype=bool)
+    rotation[:3] = True
     try:
         fit.select_visible(fit.full(x))
-        for level in (0, 1):
-            x, _ = fit.solve(x, *levels[level], only=rotation if level == 0 else moving)
+        for level in (0, 1):  # two views: the shift and the focal length wait for the rest
+            x, _ = fit.solve(x, *levels[level], only=rotation)
             fit.select_visible(fit.full(x), gate_px=levels[level + 1][1])
     finally:
         fit.frames, fit.times_ns = everything, all_times
     return x
+
+
+def _still_mask(fit: CameraFit, window_s: float) -> B:
+    """Frames that show the platform standing still even at the ends of the search window."""
+    first, last = fit.track.moving_span_ns()
+    times = fit.times_ns + np.int64(round(fit.base[7] * 1e9))
+    margin = np.int64(round(window_s * 1e9))
+    return np.asarray((times < first - margin) | (times > last + margin), dtype=bool)
+
+
+def _weigh_still_frames(fit: CameraFit, window_s: float) -> None:
+    """Give the still frames together the weight of all the others: only they hold the
+    camera's turn about the axis apart from the clock offset."""
+    still = _still_mask(fit, window_s)
+    count = int(np.count_nonzero(still))
+    if 0 < count < len(still):
+        for frame, is_still in zip(fit.frames, still, strict=True):
+            frame.weight = (len(still) - count) / count if is_still else 1.0
 
 
 def _scan_time_offset(fit: CameraFit, x: F64, window_s: float, sigma_px: float,
