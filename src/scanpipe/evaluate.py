@@ -212,9 +212,12 @@ def edge_metrics(result: Path, max_frames: int = 12) -> dict[str, Any]:
 
     empty: dict[str, Any] = {"edge_median_px": None, "edge_within_2px": None,
                              "edge_points": 0}
-    points_path = result / "assemble" / "points.parquet"
-    paths = {"points": points_path if points_path.is_file() else find_artifact(result, "points"),
-             **{n: find_artifact(result, n) for n in ("frames", "motor", "rig")}}
+    # the assembled grid (the filter's may have lost edge points) and the rig the chain
+    # textured with (the calibrate stage's when it ran)
+    preferred = {"points": result / "assemble" / "points.parquet",
+                 "rig": result / "calibrate" / "rig.parquet"}
+    paths = {n: preferred[n] if n in preferred and preferred[n].is_file()
+             else find_artifact(result, n) for n in ("points", "frames", "motor", "rig")}
     if any(p is None for p in paths.values()):
         return empty
     tables = {n: read_artifact(p)[0] for n, p in paths.items() if p is not None}
