@@ -125,8 +125,10 @@ def calibrate_cameras(
                                      "default: every camera with frames)."),
     time_offset: bool = typer.Option(False, "--time-offset", help="Also find each camera's "
                                      "clock offset (an imported video)."),
-    window: float = typer.Option(1.0, "--window", min=0.0, max=30.0,
+    window: float = typer.Option(1.0, "--window", min=0.05, max=30.0,
                                  help="With --time-offset: search ± this many seconds."),
+    focal: bool = typer.Option(True, "--focal/--no-focal", help="Also fit the focal length "
+                               "(--no-focal keeps the rig's, e.g. from calibrate-camera)."),
     frames: int = typer.Option(24, "--frames", min=3, max=500,
                                help="Frames per camera used (spread over its time)."),
     write: Path | None = typer.Option(None, "--write", help="Write the calibrated rig here "
@@ -150,7 +152,7 @@ def calibrate_cameras(
     for camera_id in camera:
         rig.camera(camera_id)  # an unknown id is an error naming the known ones
     results = run_calibration(tables["points"], tables["frames"], tables["motor"], rig,
-                              camera or None, time_offset, window, frames)
+                              camera or None, time_offset, window, frames, fit_focal=focal)
     new_rig = calibrated_rig(rig, results)
     report: dict[str, Any] = {"workdir": str(workdir),
                               "cameras": [r.report() for r in results]}
