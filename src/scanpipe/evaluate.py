@@ -11,6 +11,9 @@ Pure functions over arrays (and the shared :mod:`scanpipe.render` renderer), plu
 - Texture: PSNR between the textured result and the truth, rendered by the same renderer from
   the same viewpoints, over the pixels where both show a texture at the same depth.
 - Stage times: the ``seconds`` each stage recorded in its artifacts' provenance.
+- Edges: how well the cameras sit on the scan (no truth needed): the scan's depth edges
+  projected into the frames with the rig's camera values, the median distance (px) to the
+  nearest image edge and the share within 2 px (:mod:`scanpipe.camera_selfcal`).
 """
 
 from __future__ import annotations
@@ -179,6 +182,67 @@ def texture_psnr(result: RenderMesh, reference: Reference, views: int = 8,
     return {"texture_psnr_db": psnr, "texture_pixels": pixels, "texture_views": len(chosen)}
 
 
+def edge_alignment(distances_px: NDArray[np.floating]) -> dict[str, float | int | None]:
+    """Median image-edge to depth-edge distance (px) and the share within 2 px."""
+    from scanpipe.camera_selfcal import WITHIN_PX
+
+    d = np.asarray(distances_px, dtype=np.float64)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return {"edge_median_px": None, "edge_within_2px": None, "edge_points": 0}
+    return {"edge_median_px": float(np.median(d)),
+            "edge_within_2px": float(np.mean(d <= WITHIN_PX)), "edge_points": int(d.size)}
+
+
+def edge_metrics(result: Path, max_frames: int = 12) -> dict[str, Any]:
+    """The edge figures of a workdir (assembled points, frames, motor, rig), every camera
+    together: None when something is missing (a cloud without a grid, no frames)."""
+    from scanpipe.artifacts import read_artifact
+    from scanpipe.camera_selfcal import (
+        MATCH_PX,
+        CameraFit,
+        MotorTrack,
+        depth_edges,
+        frame_rows,
+        observations,
+    )
+    from scanpipe.errors import ScanpipeError
+    from scanpipe.grid import scan_grid
+    from scanpipe.rig import rig_from_table
+
+    empty: dict[str, Any] = {"edge_median_px": None, "edge_within_2px": None,
+                             "edge_points": 0}
+    # the assembled grid (the filter's may have lost edge points) and the rig the chain
+    # textured with (the calibrate stage's when it ran)
+    preferred = {"points": result / "assemble" / "points.parquet",
+                 "rig": result / "calibrate" / "rig.parquet"}
+    paths = {n: preferred[n] if n in preferred and preferred[n].is_file()
+             else find_artifact(result, n) for n in ("points", "frames", "motor", "rig")}
+    if any(p is None for p in paths.values()):
+        return empty
+    tables = {n: read_artifact(p)[0] for n, p in paths.items() if p is not None}
+    if tables["frames"].num_rows == 0 or scan_grid(tables["points"]) is None:
+        return empty
+    try:
+        rig = rig_from_table(tables["rig"])
+        edges = depth_edges(tables["points"])
+        track = MotorTrack(tables["motor"], rig)
+        distances = []
+        for camera in rig.cameras:
+            rows = frame_rows(tables["frames"], camera.id, max_frames)
+            if rows.size == 0:
+                continue
+            fit = CameraFit(edges, observations(tables["frames"], rows, camera), track, ())
+            x = fit.full(np.zeros(0))
+            fit.select_visible(x)
+            scale = max(camera.width, camera.height) / 1000.0
+            raw = fit.distances(x, 0.0, 1e6)
+            distances.append(raw[raw <= MATCH_PX * scale])
+    except ScanpipeError:
+        return empty
+    return edge_alignment(np.concatenate(distances) if distances else np.zeros(0))
+
+
 def stage_times(result: Path) -> dict[str, float]:
     """Seconds per stage, from the provenance of the artifacts under ``result`` (a stage that
     wrote several artifacts in one run is counted once)."""
@@ -234,7 +298,7 @@ def evaluate_result(result: Path, truth: Path, tau_m: float = 0.02, samples: int
         "points_mean_m": None, "points_rms_m": None, "points_p95_m": None, "points_count": 0,
         "mesh_mean_m": None, "mesh_rms_m": None, "mesh_p95_m": None, "completeness": None,
         "precision": None, "fscore": None, "texture_psnr_db": None, "texture_pixels": 0,
-        "texture_views": 0,
+        "texture_views": 0, "edge_median_px": None, "edge_within_2px": None, "edge_points": 0,
     }
     points_path = find_artifact(result, "points")
     if points_path is not None:
@@ -249,6 +313,7 @@ def evaluate_result(result: Path, truth: Path, tau_m: float = 0.02, samples: int
         report.update(texture_psnr(mesh, reference, views, view_width))
     if points_path is None and not has_mesh:
         raise ArtifactError(f"{result}: neither points nor a mesh to evaluate")
+    report.update(edge_metrics(result))
     report["stage_seconds"] = stage_times(result)
     return report
 
@@ -274,6 +339,10 @@ def format_evaluation(report: dict[str, Any]) -> str:
         f"texture  PSNR {show(report['texture_psnr_db'], ' dB')} over "
         f"{report['texture_pixels']} pixels in {report['texture_views']} views",
     ]
+    if report.get("edge_points"):
+        lines.append(f"edges    median {show(report['edge_median_px'], ' px')} from the image "
+                     f"edges, {show(report['edge_within_2px'], ' %', 100, 1)} within 2 px "
+                     f"({report['edge_points']} depth-edge points)")
     times = report.get("stage_seconds") or {}
     if times:
         lines.append("stages   " + "   ".join(f"{k} {v:.2f} s" for k, v in times.items()))

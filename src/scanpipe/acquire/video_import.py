@@ -8,6 +8,10 @@ it over the original only when everything succeeded: on any error the original i
 Frame times: ``start_time_ns + offset_s + the frame's position in the video`` (OpenCV's
 ``CAP_PROP_POS_MSEC``, which follows variable frame rates; ``index / fps`` when the container
 gives none).
+
+A rough offset (within about a second) is enough: :func:`refine_offset` finds the exact one
+before the frames are written, by aligning the scan's depth edges with the video's image edges
+(:mod:`scanpipe.camera_selfcal`) over a search window around the rough one.
 """
 
 from __future__ import annotations
@@ -24,8 +28,9 @@ from typing import Any
 import cv2
 
 from scanpipe.artifacts import atomic_path
-from scanpipe.errors import DeviceError, RecordingError, UsageError
+from scanpipe.errors import DeviceError, RecordingError, StageError, UsageError
 from scanpipe.images import MAX_FRAME_PX, check_pixels, encode_jpeg
+from scanpipe.rig import rig_from_table
 
 #: Everything mcap's stream reader raises on a damaged file (see shared notes).
 _MCAP_DAMAGE: tuple[type[BaseException], ...] = (ValueError, KeyError, IndexError,
@@ -88,13 +93,7 @@ def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90
             # a stream may change size mid-way: every frame is held to the limit
             check_pixels(image.shape[1], image.shape[0], f"{video}: frame {index}",
                          MAX_FRAME_PX, UsageError)
-            position_ms = capture.get(cv2.CAP_PROP_POS_MSEC)
-            if position_ms > 0 or (index == 0 and position_ms == 0):
-                offset_ns = round(position_ms * 1e6)
-            elif fps > 0:
-                offset_ns = round(index / fps * 1e9)
-            else:
-                raise DeviceError(f"{video}: the video gives neither frame times nor a rate")
+            offset_ns = _frame_offset_ns(capture, index, fps, video)
             stamp = start_ns + offset_ns
             if stamp <= last_ns:  # some containers repeat a time; keep frames in order
                 stamp = last_ns + 1
@@ -103,6 +102,107 @@ def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90
             index += 1
     finally:
         capture.release()
+
+
+def _frame_offset_ns(capture: Any, index: int, fps: float, video: Path) -> int:
+    """The frame's time in the video (the container's, else ``index / fps``)."""
+    position_ms = capture.get(cv2.CAP_PROP_POS_MSEC)
+    if position_ms > 0 or (index == 0 and position_ms == 0):
+        return round(float(position_ms) * 1e6)
+    if fps > 0:
+        return round(index / fps * 1e9)
+    raise DeviceError(f"{video}: the video gives neither frame times nor a rate")
+
+
+def sample_video(video: Path, start_ns: int, count: int,
+                 still_ns: tuple[int, int] | None = None) -> list[tuple[int, Any]]:
+    """``(time_ns, BGR image)`` of up to ``count`` frames spread over the video; with
+    ``still_ns``, as :func:`scanpipe.camera_selfcal.frame_rows` chooses them (a share from
+    before and after the platform turns)."""
+    if not video.is_file():
+        raise UsageError(f"{video}: video file not found")
+    capture = cv2.VideoCapture(str(video))
+    if not capture.isOpened():
+        raise DeviceError(f"{video}: OpenCV cannot open this video (unknown container or codec)")
+    try:
+        total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        fps = capture.get(cv2.CAP_PROP_FPS) or 0.0
+        wanted = set(range(total))
+        if total > count:
+            import pyarrow as pa
+
+            from scanpipe.camera_selfcal import frame_rows
+
+            rate = fps if fps > 0 else 30.0
+            guess = pa.table({"camera_id": ["video"] * total, "log_time_ns": [
+                start_ns + round(i / rate * 1e9) for i in range(total)]})
+            wanted = set(frame_rows(guess, "video", count, still_ns).tolist())
+        chosen: list[tuple[int, Any]] = []
+        index = 0
+        while capture.grab():
+            if total <= 0 or index in wanted:
+                ok, image = capture.retrieve()
+                if ok and image is not None:
+                    check_pixels(image.shape[1], image.shape[0], f"{video}: frame {index}",
+                                 MAX_FRAME_PX, UsageError)
+                    chosen.append((start_ns + _frame_offset_ns(capture, index, fps, video),
+                                   image))
+            index += 1
+    finally:
+        capture.release()
+    if total <= 0 and len(chosen) > count:  # a container that does not say its length
+        keep = {round(k * (len(chosen) - 1) / (count - 1)) for k in range(count)}
+        chosen = [c for i, c in enumerate(chosen) if i in keep]
+    if not chosen:
+        raise DeviceError(f"{video}: no frames could be read")
+    return chosen
+
+
+_NO_STILL_FRAMES = (
+    "{video}: no frame shows the platform standing still (before or after the scan, allowing "
+    "for --window), so the clock offset cannot be told from a turn of the camera; film a few "
+    "seconds before and after the scan, or give the exact --offset without --refine")
+
+
+def refine_offset(video: Path, recording: Path, start_ns: int, camera_id: str,
+                  window_s: float = 1.0, frames: int = 24) -> dict[str, Any]:
+    """The video's clock offset found from the data: ``start_ns`` is the rough start (within
+    ``window_s``); the scan in ``recording`` is decoded and assembled in memory, ``frames``
+    video frames are aligned with its depth edges. A report with ``offset_s`` (to add to
+    ``start_ns``), its 1σ, and the alignment before and after."""
+    from scanpipe.camera_selfcal import MotorTrack, calibrate_camera, depth_edges, observe
+    from scanpipe.stages.assemble import STAGE as ASSEMBLE
+    from scanpipe.stages.decode import STAGE as DECODE
+    from scanpipe.texturing.frames import camera_for_size
+
+    decoded = DECODE.run({"recording": recording}).tables
+    rig = rig_from_table(decoded["rig"])
+    camera = rig.camera(camera_id)
+    points = ASSEMBLE.run({n: decoded[n] for n in ("profiles", "motor", "rig")}).tables["points"]
+    track = MotorTrack(decoded["motor"], rig)
+    first, last = track.moving_span_ns()
+    sampled = sample_video(video, start_ns, frames, (first, last))
+    margin = round(window_s * 1e9)
+    if not any(t < first - margin or t > last + margin for t, _ in sampled):
+        raise StageError(_NO_STILL_FRAMES.format(video=video))
+    height, width = sampled[0][1].shape[:2]
+    sized = camera_for_size(camera, width, height)
+    observed = [observe(sized, t, image) for t, image in sampled
+                if image.shape[:2] == (height, width)]
+    result = calibrate_camera(depth_edges(points), observed, track, fit_time_offset=True,
+                              time_window_s=window_s)
+    offset = next(p for p in result.parameters if p.name == "time_offset_s")
+    if not result.still_frames:
+        raise StageError(_NO_STILL_FRAMES.format(video=video))
+    if not offset.observable:
+        raise StageError(f"{video}: the clock offset could not be found from the data "
+                         f"(1σ {offset.sigma or float('nan'):.3g} s); give the exact --offset "
+                         "(see docs/calibration.md: film a few seconds before and after the "
+                         "scan)")
+    report = result.report()
+    report["offset_s"] = offset.change
+    report["offset_sigma_s"] = offset.sigma
+    return report
 
 
 def recording_start_ns(path: Path) -> int | None:

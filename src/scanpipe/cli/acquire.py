@@ -183,7 +183,12 @@ def import_video(
     start_time: str = typer.Option(..., "--start-time",
                                    help="When the video's first frame was taken: ISO 8601, "
                                         "seconds or ns since the epoch, or 'recording'."),
-    offset: float = typer.Option(0.0, "--offset", help="Seconds added to every frame time."),
+    offset: float = typer.Option(0.0, "--offset", help="Seconds added to every frame time "
+                                 "(with --refine: a rough value, within --window)."),
+    refine: bool = typer.Option(False, "--refine", help="Find the exact offset from the data "
+                                "(the scan's depth edges against the video's image edges)."),
+    window: float = typer.Option(1.0, "--window", min=0.05, max=30.0,
+                                 help="With --refine: search ± this many seconds."),
     camera: str | None = typer.Option(None, "--camera",
                                       help="Camera id in the recording's rig "
                                            "(default: its first camera)."),
@@ -213,10 +218,28 @@ def import_video(
     rig.camera(camera)  # an unknown id is an error naming the known ones
     start = parse_start_time(start_time, recording_start_ns(into) if start_time.strip()
                              == "recording" else None)
+    refined = None
+    if refine:
+        from scanpipe.acquire.video_import import refine_offset
+
+        refined = refine_offset(video, into, start + round(offset * 1e9), camera, window)
+        offset += refined["offset_s"]
     report = run_import(video, into, start + round(offset * 1e9), camera, quality)
+    if refined is not None:
+        report["offset_s"] = offset
+        report["refined"] = refined
+        for warning in refined["warnings"]:
+            typer.echo(f"warning: {warning}", err=True)
     if as_json:
         print_json(report)
     else:
+        if refined is not None:
+            before = refined["alignment_before"]["edge_median_px"]
+            after = refined["alignment_after"]["edge_median_px"]
+            typer.echo(f"offset refined: {offset:+.3f} s ± "
+                       f"{(refined['offset_sigma_s'] or 0) * 1000:.1f} ms (edges: median "
+                       f"{before if before is None else round(before, 2)} → "
+                       f"{after if after is None else round(after, 2)} px)")
         typer.echo(f"{into}: added {report['frames']} frames of {video} as camera {camera} "
                    f"({report['first_time_ns']} … {report['last_time_ns']} ns)")
 

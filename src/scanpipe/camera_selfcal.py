@@ -1,0 +1,838 @@
+"""Camera self-calibration: each camera's mount, focal length and clock offset from the data.
+
+No targets. The scan's depth edges — occlusion boundaries (range jumps) and creases (where the
+surface turns sharply) of the range image, found on the profile × sample grid — are projected
+into the camera's frames with :func:`scanpipe.camera.project_points` at the platform angle of
+each frame's time (:func:`scanpipe.motion.beta_deg_at`). Where the parameters are right they land
+on image edges (Canny); the cost is the distance transform of the image edges at the projected
+points, truncated (points that land far from any edge, or on a surface hidden from the camera,
+stop pulling). A handful of global parameters per camera is fitted, never a per-frame pose:
+
+- the mount's rotation (a small rotation vector applied in the platform frame) and translation,
+- the focal length (fx and fy scaled together; the principal point is kept),
+- optionally the clock offset of its frames (an imported video): a frame taken at host time t
+  shows the platform at β(t + δ).
+
+The fit runs coarse to fine (the distance transform blurred by 2 %, 0.7 % and 0.25 % of the
+focal length, then 1 px, and truncated at 5 σ) with scipy's ``least_squares``; after each pass
+only depth edges with an image edge within the next truncation keep pulling. With a clock offset
+to find, the mount is first fitted to the frames of the platform standing still, then δ is
+scanned over the search window, then everything is fitted together. The 1σ of each value is
+the larger of the curvature (the Jacobian's ``s² (JᵀJ)⁻¹``) and the spread over groups of
+frames (a jackknife: the fit repeated with each group left out), because neighbouring edge
+points share their errors and the curvature alone is optimistic. A value whose 1σ exceeds its
+limit is reported unobservable and keeps the rig's value.
+
+Why frames outside the scan matter for δ: while the platform turns at a steady rate ω, a clock
+offset δ looks exactly like a turn of the camera about the axis by ω·δ. Frames while the platform
+stands still (before the scan starts, after it ends) separate the two; the video should run a few
+seconds before and after the scan. Without them a warning says δ is found only together with
+the camera's turn (``still_frames`` False). See docs/calibration.md ("Cameras").
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+import pyarrow as pa
+from numpy.typing import NDArray
+from scipy.ndimage import map_coordinates
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from scanpipe.camera import project_points
+from scanpipe.errors import StageError
+from scanpipe.geometry import CAMERA_BASE, camera_to_platform
+from scanpipe.grid import bilateral_smooth, scan_grid, to_grid
+from scanpipe.motion import beta_deg_at, motor_times_ns
+from scanpipe.rig import CameraConfig, Pose, Rig
+from scanpipe.schema import ORIGIN, XYZ
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+U8 = NDArray[np.uint8]
+B = NDArray[np.bool_]
+
+#: Parameter names in the fit's order, their units, and the step one "unit" of the scaled fit
+#: stands for (about a pixel's worth for a Full-HD phone 2–3 m from the walls).
+PARAMETERS = ("rot_x_deg", "rot_y_deg", "rot_z_deg", "tx_m", "ty_m", "tz_m", "focal_scale",
+              "time_offset_s")
+_UNITS = np.array([0.05, 0.05, 0.05, 0.005, 0.005, 0.005, 0.001, 0.01])
+#: Above these 1σ a value counts as unobservable (kept at the rig's value).
+SIGMA_LIMITS = {"rot_x_deg": 0.2, "rot_y_deg": 0.2, "rot_z_deg": 0.2, "tx_m": 0.02,
+                "ty_m": 0.02, "tz_m": 0.02, "focal_scale": 0.01, "time_offset_s": 0.1}
+#: The share of edge points within this many pixels is the alignment's second figure.
+WITHIN_PX = 2.0
+#: A depth edge counts in the alignment figures when an image edge lies within this many
+#: pixels (× the frame's size / 1000): a crease between two surfaces of one colour, or an edge
+#: hidden from the camera, has no image edge to be measured against.
+MATCH_PX = 10.0
+#: Edge points per frame used by the fit (a random subset; the figures use all).
+FIT_POINTS_PER_FRAME = 4000
+
+
+@dataclass(frozen=True)
+class DepthEdges:
+    """Depth-edge points of a scan in the rig frame, and what made each one an edge."""
+
+    xyz: F64
+    #: True for an occlusion boundary (range jump), False for a crease.
+    occluding: B
+    #: A subsample of all the scan's points (for the cameras' visibility test).
+    surface: F64
+
+
+def depth_edges(points: pa.Table, max_edges: int = 60_000, crease_deg: float = 35.0,
+                crease_span_deg: float = 4.0, min_jump_m: float = 0.08,
+                max_surface: int = 200_000, seed: int = 0) -> DepthEdges:
+    """The depth edges of a gridded ``points`` table (the assemble output), vectorised.
+
+    A **jump** between two neighbouring cells (along a profile or across profiles) is an
+    occlusion boundary when the range changes by more than ``min_jump_m`` and by 4× the
+    differences on either side (a wall seen at a grazing angle changes steadily; an edge at
+    once). The edge point is the nearer cell's range along the direction halfway between the
+    two beams: the true boundary lies somewhere between them, and the nearer cell alone would
+    pull every silhouette inwards by half a cell. A **crease** is a cell where the surface
+    turns by more than ``crease_deg`` over arms of ``crease_span_deg`` either side, kept where
+    the turn is largest along that axis.
+    """
+    grid = scan_grid(points)
+    if grid is None:
+        raise StageError("points: no scan grid (profile/sample −1); camera self-calibration "
+                         "needs the assembled scan, not an imported cloud")
+    xyz = np.stack([to_grid(points.column(c).to_numpy().astype(np.float64), grid)
+                    for c in XYZ], axis=-1)
+    origin = np.stack([to_grid(points.column(c).to_numpy().astype(np.float64), grid)
+                       for c in ORIGIN], axis=-1)
+    offset = xyz - origin
+    ranges = np.linalg.norm(offset, axis=-1)
+    valid = np.isfinite(ranges) & (ranges > 0)
+    ranges = np.where(valid, ranges, np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        directions = offset / ranges[..., None]
+    # creases need the range noise smoothed away (edges kept: a bilateral filter on the grid)
+    smooth = bilateral_smooth(ranges.astype(np.float32), radius=2, sigma_cells=1.5,
+                              sigma_range_m=0.03).astype(np.float64)
+    xyz = origin + smooth[..., None] * directions
+    found: list[F64] = []
+    occluding: list[B] = []
+    for axis in (0, 1):
+        jump_points, jump_mask = _jumps(smooth, directions, origin, axis, min_jump_m)
+        found.append(jump_points)
+        occluding.append(np.ones(len(jump_points), dtype=bool))
+        step_deg = abs(grid.beta_step_deg if axis == 0 else grid.alpha_step_deg)
+        span = max(2, math.ceil(crease_span_deg / step_deg)) if math.isfinite(step_deg) else 2
+        crease = _creases(xyz, jump_mask, axis, span, crease_deg)
+        found.append(crease)
+        occluding.append(np.zeros(len(crease), dtype=bool))
+    edges = np.concatenate(found) if found else np.zeros((0, 3))
+    kinds = np.concatenate(occluding) if occluding else np.zeros(0, dtype=bool)
+    rng = np.random.default_rng(seed)
+    if len(edges) > max_edges:
+        keep = np.sort(rng.choice(len(edges), max_edges, replace=False))
+        edges, kinds = edges[keep], kinds[keep]
+    surface = xyz[valid]
+    if len(surface) > max_surface:
+        surface = surface[rng.choice(len(surface), max_surface, replace=False)]
+    return DepthEdges(edges, kinds, surface)
+
+
+def _along(values: NDArray[Any], axis: int, k: int) -> NDArray[Any]:
+    """``values`` shifted so that cell i holds cell i + k along ``axis`` (NaN past the end)."""
+    out = np.full_like(values, np.nan)
+    n = values.shape[axis]
+    if abs(k) >= n:
+        return out
+    src = [slice(None)] * values.ndim
+    dst = [slice(None)] * values.ndim
+    if k >= 0:
+        src[axis], dst[axis] = slice(k, n), slice(0, n - k)
+    else:
+        src[axis], dst[axis] = slice(0, n + k), slice(-k, n)
+    out[tuple(dst)] = values[tuple(src)]
+    return out
+
+
+def _jumps(ranges: F64, directions: F64, origin: F64, axis: int,
+           min_jump_m: float) -> tuple[F64, B]:
+    """Occlusion-boundary points between cell i and i+1 along ``axis``, and a mask of the
+    cells on either side of a jump."""
+    ahead = _along(ranges, axis, 1)
+    diff = np.abs(ahead - ranges)
+    before, after = _along(diff, axis, -1), _along(diff, axis, 1)
+    neighbours = np.fmax(np.nan_to_num(before, nan=0.0), np.nan_to_num(after, nan=0.0))
+    with np.errstate(invalid="ignore"):
+        jump = (diff > min_jump_m) & (diff > 4.0 * neighbours)
+    jump &= np.isfinite(diff)
+    near_is_here = ranges <= ahead
+    dir_ahead = _along(directions, axis, 1)
+    origin_ahead = _along(origin, axis, 1)
+    mid = directions + dir_ahead
+    mid /= np.linalg.norm(mid, axis=-1, keepdims=True)
+    near_range = np.where(near_is_here, ranges, ahead)
+    near_origin = np.where(near_is_here[..., None], origin, origin_ahead)
+    points = near_origin + near_range[..., None] * mid
+    mask = jump | _along(jump.astype(np.float64), axis, -1).astype(bool)
+    return points[jump], mask
+
+
+def _creases(xyz: F64, jump_mask: B, axis: int, span: int, crease_deg: float) -> F64:
+    """Crease points along ``axis``: the surface turns by more than ``crease_deg`` between the
+    arms to the cells ``span`` back and ``span`` ahead; the largest turn within ±span/2 kept."""
+    back = xyz - _along(xyz, axis, -span)
+    ahead = _along(xyz, axis, span) - xyz
+    dot = np.sum(back * ahead, axis=-1)
+    norms = np.linalg.norm(back, axis=-1) * np.linalg.norm(ahead, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        turn = np.degrees(np.arccos(np.clip(dot / norms, -1.0, 1.0)))
+    turn = np.where(np.isfinite(turn), turn, 0.0)
+    # no arm may straddle an occlusion boundary: the turn there is the jump's, not a crease
+    near_jump = jump_mask.astype(np.float64)
+    for k in range(1, span + 1):
+        near_jump = np.fmax(near_jump, np.nan_to_num(_along(jump_mask.astype(np.float64),
+                                                            axis, k)))
+        near_jump = np.fmax(near_jump, np.nan_to_num(_along(jump_mask.astype(np.float64),
+                                                            axis, -k)))
+    turn[near_jump > 0] = 0.0
+    peak = turn > crease_deg
+    for k in range(1, max(1, span // 2) + 1):
+        peak &= turn >= np.nan_to_num(_along(turn, axis, k), nan=0.0)
+        peak &= turn > np.nan_to_num(_along(turn, axis, -k), nan=0.0)
+    # the crease between cells: the peak of a parabola through the turns at i−1, i, i+1
+    left, right = _along(turn, axis, -1)[peak], _along(turn, axis, 1)[peak]
+    curvature = left - 2 * turn[peak] + right
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = np.clip(np.where(curvature < 0, 0.5 * (left - right) / curvature, 0.0),
+                        -0.5, 0.5)
+    shift = np.nan_to_num(shift)
+    toward = np.where(shift[:, None] >= 0, _along(xyz, axis, 1)[peak],
+                      _along(xyz, axis, -1)[peak])
+    here = xyz[peak]
+    moved = here + np.abs(shift)[:, None] * (toward - here)
+    moved = np.where(np.isfinite(moved), moved, here)
+    return np.asarray(moved, dtype=np.float64)
+
+
+def edge_distance_map(image: U8, low: float = 40.0, high: float = 120.0) -> F32:
+    """Distance (px) from every pixel to the nearest image edge (``cv2.distanceTransform``).
+
+    Edges are Canny's on each colour channel of a lightly blurred image, combined: two
+    surfaces of different colour but the same brightness (a red ceiling over a purple wall)
+    meet at no edge of the grey image. ``image`` is BGR or grey.
+    """
+    blurred = cv2.GaussianBlur(image, (3, 3), 0.8)
+    channels = [blurred] if blurred.ndim == 2 else [blurred[:, :, c] for c in
+                                                    range(blurred.shape[2])]
+    edges = np.zeros(image.shape[:2], dtype=np.uint8)
+    for channel in channels:
+        edges |= np.asarray(cv2.Canny(np.ascontiguousarray(channel), low, high,
+                                      L2gradient=True), np.uint8)
+    if not edges.any():
+        return np.full(image.shape[:2], np.float32(max(image.shape[:2])), dtype=np.float32)
+    return np.asarray(cv2.distanceTransform(np.where(edges > 0, 0, 255).astype(np.uint8),
+                                            cv2.DIST_L2, cv2.DIST_MASK_PRECISE), np.float32)
+
+
+@dataclass
+class FrameObservation:
+    """One frame used by the fit: its camera (sized to the frame), time and edge distances."""
+
+    camera: CameraConfig
+    time_ns: int
+    distance: F32
+    #: Indices into the edge points the frame sees (set by the fit at the starting values).
+    edges: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    #: How much the frame counts in the fit (frames of the platform standing still count
+    #: as much together as all the others when a clock offset is fitted).
+    weight: float = 1.0
+    #: Every edge point the frame sees (``edges`` is the fit's subset of them).
+    all_edges: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    _blurred: dict[float, F32] = field(default_factory=dict, repr=False)
+
+    def blurred(self, sigma_px: float) -> F32:
+        """The distance map blurred by ``sigma_px`` (cached): a smooth, wide basin."""
+        if sigma_px <= 0:
+            return self.distance
+        if sigma_px not in self._blurred:
+            self._blurred[sigma_px] = np.asarray(
+                cv2.GaussianBlur(self.distance, (0, 0), sigma_px), np.float32)
+        return self._blurred[sigma_px]
+
+
+def observe(camera: CameraConfig, time_ns: int, image: U8) -> FrameObservation:
+    """A frame for the fit; :class:`StageError` when its size differs from the camera's."""
+    if image.shape[:2] != (camera.height, camera.width):
+        raise StageError(f"frames: a frame of camera {camera.id!r} is "
+                         f"{image.shape[1]}×{image.shape[0]}, the camera "
+                         f"{camera.width}×{camera.height}")
+    return FrameObservation(camera, int(time_ns), edge_distance_map(image))
+
+
+@dataclass(frozen=True)
+class MotorTrack:
+    """The platform angle over time: the ``motor`` artifact and the rig's motor."""
+
+    motor: pa.Table
+    rig: Rig
+
+    def beta_deg(self, times_ns: NDArray[np.int64]) -> F64:
+        """Platform angle at each host time."""
+        return beta_deg_at(times_ns, self.motor, self.rig.motor)
+
+    def moving_span_ns(self) -> tuple[int, int]:
+        """Host times of the first and last change of the platform angle."""
+        steps = self.motor.column("step_count").to_numpy()
+        times = motor_times_ns(self.motor)
+        order = np.argsort(times, kind="stable")
+        changes = np.flatnonzero(np.diff(steps[order]) != 0)
+        if changes.size == 0:
+            return int(times[order][0]), int(times[order][0])
+        return int(times[order][changes[0]]), int(times[order][changes[-1] + 1])
+
+
+def camera_with(camera: CameraConfig, x: F64) -> CameraConfig:
+    """``camera`` changed by the fit's parameters ``x`` (in :data:`PARAMETERS` units, the time
+    offset ignored): rotation vector applied in the platform frame, translation added, focal
+    length scaled."""
+    delta = Rotation.from_rotvec(np.radians(x[:3])).as_matrix()
+    to_platform = delta @ camera_to_platform(camera.pose.rotation_deg)
+    euler = Rotation.from_matrix(to_platform @ CAMERA_BASE).as_euler("xyz", degrees=True)
+    translation = np.asarray(camera.pose.translation_m, dtype=np.float64) + x[3:6]
+    pose = Pose.model_construct(
+        translation_m=(float(translation[0]), float(translation[1]), float(translation[2])),
+        rotation_deg=(float(euler[0]), float(euler[1]), float(euler[2])))
+    scale = float(x[6])
+    return camera.model_copy(update={"pose": pose, "fx": camera.fx * scale,
+                                     "fy": camera.fy * scale})
+
+
+@dataclass
+class Alignment:
+    """How well depth edges land on image edges: the distance (px) from each projected depth
+    edge to the nearest image edge, over the depth edges with an image edge within the match
+    radius (:data:`MATCH_PX`); ``unmatched`` counts the others."""
+
+    distances_px: F64
+    unmatched: int = 0
+
+    @classmethod
+    def of(cls, distances_px: F64, match_px: float) -> Alignment:
+        """Split raw distances into matched ones and the unmatched count."""
+        matched = distances_px <= match_px
+        return cls(np.asarray(distances_px[matched], np.float64),
+                   int(np.count_nonzero(~matched)))
+
+    @property
+    def median_px(self) -> float | None:
+        """Median distance, None without points."""
+        return float(np.median(self.distances_px)) if self.distances_px.size else None
+
+    @property
+    def within_share(self) -> float | None:
+        """Share of points within :data:`WITHIN_PX`."""
+        if not self.distances_px.size:
+            return None
+        return float(np.mean(self.distances_px <= WITHIN_PX))
+
+    def as_dict(self) -> dict[str, Any]:
+        """The figures for a report."""
+        total = int(self.distances_px.size) + self.unmatched
+        return {"edge_median_px": self.median_px, "edge_within_2px": self.within_share,
+                "edge_points": total,
+                "edge_matched_share": self.distances_px.size / total if total else None}
+
+
+class CameraFit:
+    """The fit of one camera's parameters to its frames."""
+
+    def __init__(self, edges: DepthEdges, frames: Sequence[FrameObservation], track: MotorTrack,
+                 free: Sequence[str], margin_px: float = 4.0) -> None:
+        if not frames:
+            raise StageError("frames: no frames of this camera to calibrate from")
+        self.edges = edges
+        self.frames = list(frames)
+        self.track = track
+        self.free = np.array([p in free for p in PARAMETERS])
+        self.margin_px = margin_px
+        self.base = np.array([0, 0, 0, 0, 0, 0, 1.0, 0.0])
+        self.times_ns = np.array([f.time_ns for f in self.frames], dtype=np.int64)
+        self.rng = np.random.default_rng(0)
+
+    def full(self, scaled: F64) -> F64:
+        """All parameters (natural units) from the free ones (scaled units)."""
+        x = self.base.copy()
+        x[self.free] += scaled * _UNITS[self.free]
+        return x
+
+    def betas(self, x: F64) -> F64:
+        """Platform angle of every frame at the clock offset of ``x``."""
+        return self.track.beta_deg(self.times_ns + np.int64(round(x[7] * 1e9)))
+
+    def select_visible(self, x: F64, gate_px: float | None = None) -> None:
+        """Each frame's edge points: inside the image and not hidden (a z-buffer of the scan's
+        points at 1/8 of the frame's resolution) at the parameters ``x``; with ``gate_px``,
+        the fit's subset only those with an image edge that near (as ICP keeps only close
+        pairs: a crease between two surfaces of one colour has no image edge and would only
+        pull the fit towards the clutter of the textures)."""
+        betas = self.betas(x)
+        for frame, beta in zip(self.frames, betas, strict=True):
+            cam = camera_with(frame.camera, x)
+            uv, depth = project_points(self.edges.xyz, cam, float(beta))
+            inside = ((depth > 0.1) & (uv[:, 0] >= self.margin_px)
+                      & (uv[:, 0] <= cam.width - 1 - self.margin_px)
+                      & (uv[:, 1] >= self.margin_px)
+                      & (uv[:, 1] <= cam.height - 1 - self.margin_px))
+            candidates = np.flatnonzero(inside)
+            if candidates.size:
+                nearest = _zbuffer(self.edges.surface, cam, float(beta), 8)
+                cell = (uv[candidates] / 8).astype(np.int64)
+                limit = nearest[cell[:, 1], cell[:, 0]]
+                seen = depth[candidates] <= limit * 1.03 + 0.03
+                candidates = candidates[seen]
+            frame.all_edges = candidates
+            if gate_px is not None and candidates.size:
+                near_uv = uv[candidates]
+                found = map_coordinates(frame.distance, [near_uv[:, 1], near_uv[:, 0]], order=1,
+                                        mode="nearest")
+                candidates = candidates[found <= gate_px]
+            if candidates.size > FIT_POINTS_PER_FRAME:
+                candidates = np.sort(self.rng.choice(candidates, FIT_POINTS_PER_FRAME,
+                                                     replace=False))
+            frame.edges = candidates
+
+    def _lookup(self, x: F64, sigma_px: float, truncate_px: float, fit_subset: bool,
+                weighted: bool) -> F64:
+        """The (blurred, truncated) distance map at every projected edge point of every
+        frame: the fit's subset or all the frame sees; ``weighted`` divides each frame's by
+        √n so that every frame counts alike."""
+        betas = self.betas(x)
+        out = []
+        for frame, beta in zip(self.frames, betas, strict=True):
+            chosen = frame.edges if fit_subset else frame.all_edges
+            if chosen.size == 0:
+                continue
+            cam = camera_with(frame.camera, x)
+            uv, depth = project_points(self.edges.xyz[chosen], cam, float(beta))
+            values = map_coordinates(frame.blurred(sigma_px), [uv[:, 1], uv[:, 0]], order=1,
+                                     mode="constant", cval=truncate_px)
+            values[depth <= 0] = truncate_px
+            values = np.minimum(values, truncate_px)
+            out.append(values * math.sqrt(frame.weight / chosen.size) if weighted else values)
+        return np.concatenate(out) if out else np.zeros(0)
+
+    def distances(self, x: F64, sigma_px: float, truncate_px: float) -> F64:
+        """Every edge point's (blurred, truncated) distance to an image edge, all frames."""
+        return self._lookup(x, sigma_px, truncate_px, fit_subset=False, weighted=False)
+
+    def residuals(self, scaled: F64, sigma_px: float, truncate_px: float) -> F64:
+        """The least-squares residuals: truncated distances, each frame weighted alike."""
+        return self._lookup(self.full(scaled), sigma_px, truncate_px, fit_subset=True,
+                            weighted=True)
+
+    def alignment(self, x: F64) -> Alignment:
+        """The unblurred distances at ``x`` (the figures before and after), every edge point
+        each frame sees."""
+        scale = max(self.frames[0].camera.width, self.frames[0].camera.height) / 1000.0
+        return Alignment.of(self.distances(x, 0.0, 1e6), MATCH_PX * scale)
+
+    def solve(self, scaled: F64, sigma_px: float, truncate_px: float,
+              max_nfev: int = 60, only: B | None = None) -> tuple[F64, Any]:
+        """One least-squares fit of the free parameters at one scale (``only``: a mask of the
+        free parameters to move; the others stay)."""
+        moving = np.ones(len(scaled), dtype=bool) if only is None else only
+        step = max(0.5, 0.25 * sigma_px)  # finite differences across the map's kinks
+
+        def residuals(sub: F64) -> F64:
+            full = scaled.copy()
+            full[moving] = sub
+            return self.residuals(full, sigma_px, truncate_px)
+
+        def jacobian(sub: F64) -> F64:
+            base = residuals(sub)
+            columns = []
+            for k in range(len(sub)):
+                trial = sub.copy()
+                trial[k] += step
+                columns.append((residuals(trial) - base) / step)
+            return np.stack(columns, axis=1)
+
+        result = least_squares(residuals, scaled[moving], jac=jacobian, method="trf",
+                               x_scale=1.0, max_nfev=max_nfev, loss="soft_l1",
+                               f_scale=max(1.0, sigma_px))
+        out = scaled.copy()
+        out[moving] = result.x
+        return out, result
+
+
+def _zbuffer(points: F64, cam: CameraConfig, beta_deg: float, cell_px: int) -> F64:
+    """The nearest depth per ``cell_px`` cell of the frame (inf where no point lands)."""
+    uv, depth = project_points(points, cam, beta_deg)
+    width, height = math.ceil(cam.width / cell_px), math.ceil(cam.height / cell_px)
+    col = np.floor(uv[:, 0] / cell_px)
+    row = np.floor(uv[:, 1] / cell_px)
+    ok = (depth > 0.05) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    nearest = np.full(width * height, np.inf)
+    np.minimum.at(nearest, (row[ok] * width + col[ok]).astype(np.int64), depth[ok])
+    grid = nearest.reshape(height, width)
+    # a cell a point missed (sparse scan, far surface) takes its neighbours' nearest depth
+    return np.asarray(np.minimum(grid, cv2.erode(np.where(np.isfinite(grid), grid, 1e9).astype(
+        np.float32), np.ones((3, 3), np.uint8)).astype(np.float64)), np.float64)
+
+
+@dataclass
+class ParameterResult:
+    """One calibrated value: the change found, its 1σ, and whether the data determine it."""
+
+    name: str
+    change: float
+    sigma: float | None
+    observable: bool
+    fitted: bool
+
+
+@dataclass
+class CameraCalibration:
+    """The result for one camera."""
+
+    camera_id: str
+    before: CameraConfig
+    after: CameraConfig
+    time_offset_s: float | None
+    parameters: list[ParameterResult]
+    alignment_before: Alignment
+    alignment_after: Alignment
+    frames: int
+    edge_points: int
+    warnings: list[str] = field(default_factory=list)
+    #: With a clock offset fitted: whether some frames show the platform standing still.
+    still_frames: bool = True
+
+    def report(self) -> dict[str, Any]:
+        """The calibration as JSON-ready values."""
+        return {
+            "camera_id": self.camera_id, "frames": self.frames, "edge_points": self.edge_points,
+            "rotation_deg_before": list(self.before.pose.rotation_deg),
+            "rotation_deg_after": list(self.after.pose.rotation_deg),
+            "translation_m_before": list(self.before.pose.translation_m),
+            "translation_m_after": list(self.after.pose.translation_m),
+            "fx_before": self.before.fx, "fx_after": self.after.fx,
+            "fy_before": self.before.fy, "fy_after": self.after.fy,
+            "time_offset_s": self.time_offset_s,
+            "parameters": [{"name": p.name, "change": p.change, "sigma": p.sigma,
+                            "observable": p.observable, "fitted": p.fitted}
+                           for p in self.parameters],
+            "alignment_before": self.alignment_before.as_dict(),
+            "alignment_after": self.alignment_after.as_dict(),
+            "warnings": list(self.warnings),
+        }
+
+
+#: Blur σ of the distance transform per pass, as a fraction of the focal length (px): the first
+#: pass's basin holds a mount a few degrees and centimetres off; the last is at 1 px. The
+#: distances are truncated at :data:`TRUNCATE` σ.
+LEVELS = (0.02, 0.007, 0.0025, 0.0)
+FINAL_SIGMA_PX = 1.0
+TRUNCATE = 5.0
+
+
+def _levels(camera: CameraConfig) -> list[tuple[float, float]]:
+    """``(σ, truncation)`` in pixels of each pass for ``camera``."""
+    focal = math.sqrt(camera.fx * camera.fy)
+    sigmas = [max(FINAL_SIGMA_PX, f * focal) for f in LEVELS]
+    return [(s, TRUNCATE * s) for s in sigmas]
+
+
+def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], track: MotorTrack,
+                     fit_time_offset: bool = False, time_window_s: float = 1.0,
+                     start_offset_s: float = 0.0, jackknife_groups: int = 4,
+                     fit_focal: bool = True) -> CameraCalibration:
+    """Fit one camera (all ``frames`` are of it) and report values, 1σ and alignment."""
+    camera = frames[0].camera
+    free = [p for p in PARAMETERS if (p != "time_offset_s" or fit_time_offset)
+            and (p != "focal_scale" or fit_focal)]
+    fit = CameraFit(edges, frames, track, free)
+    fit.base[7] = start_offset_s
+    levels = _levels(camera)
+    warnings: list[str] = []
+    start = np.zeros(int(fit.free.sum()))
+    fit.select_visible(fit.full(start))
+    before = fit.alignment(fit.full(start))
+    if before.distances_px.size < 50:
+        raise StageError(f"camera {camera.id!r}: only {before.distances_px.size} depth-edge "
+                         "points fall into its frames; nothing to calibrate against (is the "
+                         "camera looking at the scanned scene?)")
+    x = start
+    names = [p for p in PARAMETERS if p in free]
+    rotation_and_time = np.array([n.startswith("rot_") or n == "time_offset_s" for n in names])
+    first_level = 0
+    if fit_time_offset:
+        # The mount first from the frames of the platform standing still (whatever the
+        # clock), then the clock from all frames with that mount, then both together.
+        x = _fit_mount_on_still_frames(fit, x, levels, time_window_s)
+        _weigh_still_frames(fit, time_window_s)
+        first_level = 1
+        x = _scan_time_offset(fit, x, time_window_s, *levels[first_level])
+        fit.select_visible(fit.full(x), gate_px=levels[first_level][1])
+    for level in range(first_level, len(levels)):
+        sigma, truncate = levels[level]
+        # the coarsest pass turns the camera (and shifts its clock) only: the rest would
+        # wander along the flat valleys of a blurred cost
+        x, _ = fit.solve(x, sigma, truncate, only=rotation_and_time if level == 0 else None)
+        if level < len(levels) - 1:  # what each frame sees moves with a changed pose
+            fit.select_visible(fit.full(x), gate_px=levels[level + 1][1])
+    sigma_fine, truncate_fine = levels[-1]
+    x, result = fit.solve(x, sigma_fine, truncate_fine)
+    curvature = _curvature_sigma(result)
+    spread = _jackknife_sigma(fit, x, sigma_fine, truncate_fine, jackknife_groups)
+    sigma_scaled = np.fmax(curvature, spread)
+    results: list[ParameterResult] = []
+    observable = np.ones(len(names), dtype=bool)
+    for i, name in enumerate(names):
+        sigma_value = float(sigma_scaled[i] * _UNITS[PARAMETERS.index(name)])
+        ok = bool(np.isfinite(sigma_value)) and sigma_value <= SIGMA_LIMITS[name]
+        observable[i] = ok
+        if not ok:
+            warnings.append(f"camera {camera.id!r}: {name} is not determined by these frames "
+                            f"(1σ {sigma_value:.3g}, limit {SIGMA_LIMITS[name]:g}); kept")
+    if not observable.all():
+        start = np.where(observable, x, 0.0)
+        kept = fit.free.copy()
+        kept[fit.free] = observable
+        refit = CameraFit(edges, frames, track, [p for p, k in zip(PARAMETERS, kept,
+                                                                    strict=True) if k])
+        refit.base = fit.base
+        refit.frames = fit.frames
+        x = np.zeros(len(names))
+        if observable.any():
+            x[observable], _ = refit.solve(start[observable], sigma_fine, truncate_fine)
+    final = fit.full(x)
+    for i, name in enumerate(names):
+        k = PARAMETERS.index(name)
+        change = float(final[k] - (1.0 if name == "focal_scale" else 0.0))
+        if name == "time_offset_s":
+            change = float(final[k])
+        results.append(ParameterResult(name, change,
+                                       float(sigma_scaled[i] * _UNITS[k])
+                                       if np.isfinite(sigma_scaled[i]) else None,
+                                       bool(observable[i]), True))
+    after_camera = camera_with(_rig_camera(camera, track.rig), final)
+    after = fit.alignment(final)
+    if after.median_px is not None and before.median_px is not None \
+            and after.median_px > before.median_px:
+        warnings.append(f"camera {camera.id!r}: the edges align worse after the fit "
+                        f"({before.median_px:.2f} → {after.median_px:.2f} px median); check the "
+                        "frames and the scan")
+    still = not fit_time_offset or _has_still_frames(fit, final)
+    if not still:
+        warnings.append(f"camera {camera.id!r}: no frames while the platform stands still "
+                        "(before or after the scan); the clock offset and the camera's turn "
+                        "about the axis are found only together")
+    return CameraCalibration(
+        camera_id=camera.id, before=_rig_camera(camera, track.rig), after=after_camera,
+        time_offset_s=float(final[7]) if fit_time_offset else None, parameters=results,
+        alignment_before=before, alignment_after=after, frames=len(frames),
+        edge_points=int(after.distances_px.size), warnings=warnings, still_frames=still)
+
+
+def _rig_camera(camera: CameraConfig, rig: Rig) -> CameraConfig:
+    """The rig's own camera of ``camera`` (which may be sized to its frames); the fit's changes
+    (rotation, translation, focal scale) hold at any resolution."""
+    return next((c for c in rig.cameras if c.id == camera.id), camera)
+
+
+def _fit_mount_on_still_frames(fit: CameraFit, x: F64, levels: list[tuple[float, float]],
+                               window_s: float) -> F64:
+    """The mount fitted (two coarse passes) to the frames that show the platform standing
+    still even at the ends of the clock's search window; ``x`` unchanged without two such."""
+    still = _still_mask(fit, window_s)
+    if np.count_nonzero(still) < 2:
+        return x
+    everything, all_times = fit.frames, fit.times_ns
+    fit.frames = [f for f, s in zip(everything, still, strict=True) if s]
+    fit.times_ns = all_times[still]
+    rotation = np.zeros(len(x), dtype=bool)
+    rotation[:3] = True
+    try:
+        fit.select_visible(fit.full(x))
+        for level in (0, 1):  # two views: the shift and the focal length wait for the rest
+            x, _ = fit.solve(x, *levels[level], only=rotation)
+            fit.select_visible(fit.full(x), gate_px=levels[level + 1][1])
+    finally:
+        fit.frames, fit.times_ns = everything, all_times
+    return x
+
+
+def _still_mask(fit: CameraFit, window_s: float) -> B:
+    """Frames that show the platform standing still even at the ends of the search window."""
+    first, last = fit.track.moving_span_ns()
+    times = fit.times_ns + np.int64(round(fit.base[7] * 1e9))
+    margin = np.int64(round(window_s * 1e9))
+    return np.asarray((times < first - margin) | (times > last + margin), dtype=bool)
+
+
+def _weigh_still_frames(fit: CameraFit, window_s: float) -> None:
+    """Give the still frames together the weight of all the others: only they hold the
+    camera's turn about the axis apart from the clock offset."""
+    still = _still_mask(fit, window_s)
+    count = int(np.count_nonzero(still))
+    if 0 < count < len(still):
+        for frame, is_still in zip(fit.frames, still, strict=True):
+            frame.weight = (len(still) - count) / count if is_still else 1.0
+
+
+def _scan_time_offset(fit: CameraFit, x: F64, window_s: float, sigma_px: float,
+                      truncate_px: float) -> F64:
+    """The clock offset with the least cost over ``base ± window_s`` (other values kept),
+    scanned at steps of a tenth of the coarsest blur's worth of platform turn."""
+    steps = np.linspace(-window_s, window_s, max(21, round(2 * window_s / 0.02) + 1))
+    index = int(np.flatnonzero(fit.free[:7]).size)  # the time offset is the last free one
+    costs = np.empty(len(steps))
+    for i, dt in enumerate(steps):
+        trial = x.copy()
+        trial[index] = dt / _UNITS[7]
+        costs[i] = float(np.sum(fit.residuals(trial, sigma_px, truncate_px) ** 2))
+    best = x.copy()
+    best[index] = steps[int(np.argmin(costs))] / _UNITS[7]
+    return best
+
+
+def _curvature_sigma(result: Any) -> F64:
+    """1σ (scaled units) from ``s² (JᵀJ)⁻¹`` at the solution; inf where J is singular."""
+    jac = np.asarray(result.jac, dtype=np.float64)
+    residuals = np.asarray(result.fun, dtype=np.float64)
+    dof = max(1, len(residuals) - jac.shape[1])
+    s2 = float(residuals @ residuals) / dof
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * s2
+    except np.linalg.LinAlgError:
+        return np.full(jac.shape[1], np.inf)
+    return np.asarray(np.sqrt(np.clip(np.diag(cov), 0, None)), np.float64)
+
+
+def _jackknife_sigma(fit: CameraFit, x: F64, sigma_px: float, truncate_px: float,
+                     groups: int) -> F64:
+    """1σ (scaled units) from the spread of the fit over groups of frames, each left out."""
+    n = len(fit.frames)
+    groups = min(groups, n)
+    if groups < 3:
+        return np.zeros(len(x))
+    estimates = []
+    everything, all_times = fit.frames, fit.times_ns
+    try:
+        for g in range(groups):
+            fit.frames = [f for i, f in enumerate(everything) if i % groups != g]
+            fit.times_ns = np.array([f.time_ns for f in fit.frames], dtype=np.int64)
+            estimate, _ = fit.solve(x, sigma_px, truncate_px, max_nfev=10)
+            estimates.append(estimate)
+    finally:
+        fit.frames, fit.times_ns = everything, all_times
+    values = np.array(estimates)
+    return np.asarray(np.sqrt((groups - 1) / groups * np.sum(
+        (values - values.mean(axis=0)) ** 2, axis=0)), np.float64)
+
+
+def _has_still_frames(fit: CameraFit, x: F64) -> bool:
+    """Whether some frames fall before the platform starts or after it stops."""
+    first, last = fit.track.moving_span_ns()
+    times = fit.times_ns + np.int64(round(x[7] * 1e9))
+    return bool(np.any(times < first) or np.any(times > last))
+
+
+def frame_rows(frames: pa.Table, camera_id: str, max_frames: int,
+               still_ns: tuple[int, int] | None = None) -> NDArray[np.int64]:
+    """Rows of ``camera_id``'s frames, at most ``max_frames`` spread evenly over its time.
+
+    With ``still_ns`` (the host times the platform starts and stops turning), up to a quarter
+    of the frames each come from before the start and after the stop: only those separate a
+    clock offset from a turn of the camera about the axis, and a video has few of them.
+    """
+    ids = np.asarray(frames.column("camera_id").to_pylist(), dtype=object)
+    rows = np.flatnonzero(ids == camera_id)
+    if rows.size == 0:
+        return rows.astype(np.int64)
+    times = frames.column("log_time_ns").to_numpy()[rows]
+    order = np.argsort(times, kind="stable")
+    rows, times = rows[order], times[order]
+    if rows.size <= max_frames:
+        return rows.astype(np.int64)
+    if still_ns is None:
+        return rows[np.round(np.linspace(0, rows.size - 1, max_frames)).astype(np.int64)
+                    ].astype(np.int64)
+    parts = [times < still_ns[0], times > still_ns[1]]
+    parts.insert(1, ~(parts[0] | parts[1]))
+    quota = [max_frames // 4, 0, max_frames // 4]
+    quota = [min(q, int(p.sum())) for q, p in zip(quota, parts, strict=True)]
+    quota[1] = max_frames - quota[0] - quota[2]
+    chosen = []
+    for mask, count in zip(parts, quota, strict=True):
+        part = rows[mask]
+        if count > 0 and part.size:
+            count = min(count, part.size)
+            chosen.append(part[np.round(np.linspace(0, part.size - 1, count)).astype(np.int64)])
+    return np.sort(np.concatenate(chosen)).astype(np.int64) if chosen else rows[:0]
+
+
+def observations(frames: pa.Table, rows: NDArray[np.int64], camera: CameraConfig
+                 ) -> list[FrameObservation]:
+    """The chosen frames decoded, each with its camera sized to the frame."""
+    from scanpipe.texturing.frames import camera_for_size, decode_image
+
+    data = frames.column("data")
+    times = frames.column("log_time_ns").to_numpy()
+    sequences = frames.column("sequence").to_numpy()
+    out = []
+    for row in rows.tolist():
+        image = decode_image(data[row].as_py(), f"frame {sequences[row]} of {camera.id!r}")
+        sized = camera_for_size(camera, image.shape[1], image.shape[0])
+        out.append(observe(sized, int(times[row]), image))
+    return out
+
+
+def calibrate_cameras(points: pa.Table, frames: pa.Table, motor: pa.Table, rig: Rig,
+                      camera_ids: Sequence[str] | None = None, fit_time_offset: bool = False,
+                      time_window_s: float = 1.0, max_frames: int = 24,
+                      start_offsets_s: dict[str, float] | None = None,
+                      fit_focal: bool = True) -> list[CameraCalibration]:
+    """Calibrate each camera (default: every rig camera with frames) against the scan."""
+    ids = list(camera_ids) if camera_ids is not None else [
+        c.id for c in rig.cameras if frame_rows(frames, c.id, 1).size]
+    if not ids:
+        raise StageError("frames: no frames of any rig camera "
+                         f"(cameras: {', '.join(c.id for c in rig.cameras) or 'none'})")
+    edges = depth_edges(points)
+    if len(edges.xyz) < 100:
+        raise StageError(f"points: only {len(edges.xyz)} depth-edge points in the scan; camera "
+                         "self-calibration needs a scene with edges (corners, objects)")
+    track = MotorTrack(motor, rig)
+    results = []
+    for camera_id in ids:
+        camera = rig.camera(camera_id)
+        start = (start_offsets_s or {}).get(camera_id, 0.0)
+        still = None
+        if fit_time_offset:  # the still periods in the frames' own (rough) clock
+            first, last = track.moving_span_ns()
+            shift = round(start * 1e9)
+            still = (first - shift, last - shift)
+        rows = frame_rows(frames, camera_id, max_frames, still)
+        if rows.size == 0:
+            raise StageError(f"frames: camera {camera_id!r} has no frames")
+        results.append(calibrate_camera(edges, observations(frames, rows, camera), track,
+                                        fit_time_offset, time_window_s, start,
+                                        fit_focal=fit_focal))
+    return results
+
+
+def calibrated_rig(rig: Rig, results: Sequence[CameraCalibration]) -> Rig:
+    """``rig`` with each calibrated camera's pose and focal length replaced (validated)."""
+    from scanpipe.rig import rig_from_dict
+
+    by_id = {r.camera_id: r.after for r in results}
+    cameras = [by_id.get(c.id, c).model_dump(mode="json") for c in rig.cameras]
+    data = rig.model_dump(mode="json")
+    data["cameras"] = cameras
+    return rig_from_dict(data, "calibrated rig")

@@ -1,0 +1,272 @@
+"""Camera self-calibration: the scan's depth edges against the frames' image edges.
+
+The virtual rig is simulated with the TRUE rig (its cameras render the frames); the fit starts
+from a rig whose camera is turned by 2° and moved by 3 cm, as a user's rig would be. The scan is
+coarse (fast), so the bars here are looser than the benchmark's (benchmarks/bench_camcal.py).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from scanpipe.camera_selfcal import (
+    Alignment,
+    depth_edges,
+    edge_distance_map,
+    frame_rows,
+)
+from scanpipe.cli.main import main
+from scanpipe.evaluate import edge_alignment, edge_metrics
+from scanpipe.rig import load_rig, rig_to_toml
+from scanpipe.sim.direct import simulate_direct
+from scanpipe.sim.options import SimOptions
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+
+from bench_camcal import (
+    perturbed,
+    rotation_error_deg,
+    video_frames,
+    with_camera,
+    write_video,
+)
+
+OPTIONS = SimOptions(motor_step_deg=1.0, beam_step_deg=0.5, camera_scale=0.2, camera_fps=0.5)
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    folder = tmp_path_factory.mktemp("camcal")
+    simulate_direct(folder / "scan.mcap", folder / "truth", OPTIONS)
+    assert main(["run", str(folder / "scan.mcap"), "--workdir", str(folder / "w"), "--to",
+                 "assemble", "-q"]) == 0
+    true_rig = OPTIONS.true_rig()
+    wrong = with_camera(true_rig, perturbed(true_rig.camera("cam0"), 0))
+    (folder / "wrong.toml").write_text(rig_to_toml(wrong))
+    return {"folder": folder, "workdir": folder / "w", "true": true_rig, "wrong": wrong}
+
+
+# -- pieces, no simulation -------------------------------------------------------------------
+
+def _grid_points(ranges: np.ndarray, alpha_deg: np.ndarray, beta_deg: np.ndarray) -> pa.Table:
+    """A gridded points table of a scanner at the origin (α in the x-y plane, β about y)."""
+    b, a = np.meshgrid(np.radians(beta_deg), np.radians(alpha_deg), indexing="ij")
+    x = ranges * np.sin(a) * np.cos(b)
+    y = ranges * np.cos(a)
+    z = ranges * np.sin(a) * np.sin(b)
+    profiles, samples = ranges.shape
+    zero = np.zeros(ranges.size, np.float32)
+    return pa.table({
+        "x": x.ravel().astype(np.float32), "y": y.ravel().astype(np.float32),
+        "z": z.ravel().astype(np.float32), "range_m": ranges.ravel().astype(np.float32),
+        "alpha_deg": np.degrees(a).ravel(), "beta_deg": np.degrees(b).ravel(),
+        "time_ns": np.zeros(ranges.size, np.int64),
+        "profile": np.repeat(np.arange(profiles), samples).astype(np.int32),
+        "sample": np.tile(np.arange(samples), profiles).astype(np.int32),
+        "origin_x": zero, "origin_y": zero, "origin_z": zero})
+
+
+def test_depth_edges_find_a_jump_between_the_cells_and_no_edge_on_a_flat_wall() -> None:
+    alpha = np.arange(60.0, 120.0, 0.5)
+    beta = np.arange(0.0, 20.0, 0.5)
+    ranges = np.full((beta.size, alpha.size), 3.0)
+    ranges[:, alpha >= 90.0] = 2.0  # a step at α = 90°: a nearer surface beyond it
+    edges = depth_edges(_grid_points(ranges, alpha, beta))
+    assert edges.occluding.sum() == beta.size and not (~edges.occluding).any()
+    jump = edges.xyz[edges.occluding]
+    # the nearer range, halfway between the two beams (89.75°): not the nearer cell's 90°
+    angle = np.degrees(np.arctan2(np.hypot(jump[:, 0], jump[:, 2]), jump[:, 1]))
+    assert np.allclose(angle, 89.75, atol=1e-3)
+    assert np.allclose(np.linalg.norm(jump, axis=1), 2.0, atol=1e-6)
+
+
+def test_depth_edges_find_a_crease() -> None:
+    alpha = np.arange(30.0, 150.0, 0.5)
+    beta = np.arange(0.0, 10.0, 0.5)
+    # a corner: the plane y = 1 (ceiling) meets the plane x = 1 (wall) at α = 45°
+    a = np.radians(alpha)
+    wall = 1.0 / np.sin(a)
+    ceiling = 1.0 / np.abs(np.cos(a))
+    r = np.where(alpha < 45.0, ceiling, wall)
+    ranges = np.tile(np.minimum(r, 10.0), (beta.size, 1))
+    edges = depth_edges(_grid_points(ranges, alpha, beta))
+    creases = edges.xyz[~edges.occluding]
+    assert len(creases) >= beta.size
+    # every crease point lies on the corner line (x = y = 1 in the β = 0 plane, turned)
+    horizontal = np.hypot(creases[:, 0], creases[:, 2])
+    assert np.allclose(horizontal, 1.0, atol=0.01) and np.allclose(creases[:, 1], 1.0, atol=0.01)
+
+
+def test_edge_distance_map_sees_a_colour_edge_of_equal_brightness() -> None:
+    image = np.zeros((40, 60, 3), np.uint8)
+    image[:, :30] = (200, 40, 100)  # BGR, grey ≈ 76
+    image[:, 30:] = (30, 100, 70)  # grey ≈ 83
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    assert abs(int(grey[0, 0]) - int(grey[0, 59])) < 10
+    assert not cv2.Canny(grey, 40, 120, L2gradient=True).any()
+    distance = edge_distance_map(image)
+    assert distance[:, 29:31].min() == 0 and distance[20, 5] >= 20
+
+
+def test_alignment_figures() -> None:
+    figures = edge_alignment(np.array([0.5, 1.0, 1.5, 3.0, np.nan]))
+    assert figures == {"edge_median_px": 1.25, "edge_within_2px": 0.75, "edge_points": 4}
+    assert edge_alignment(np.zeros(0))["edge_median_px"] is None
+    matched = Alignment.of(np.array([0.5, 1.0, 50.0]), 10.0)
+    assert matched.as_dict()["edge_points"] == 3 and matched.unmatched == 1
+    assert matched.median_px == 0.75
+
+
+def test_frame_rows_take_still_frames_first_when_asked() -> None:
+    times = np.arange(100) * 1_000_000_000
+    table = pa.table({"camera_id": ["c"] * 100, "log_time_ns": times})
+    even = frame_rows(table, "c", 8)
+    assert even.tolist() == np.round(np.linspace(0, 99, 8)).astype(int).tolist()
+    rows = frame_rows(table, "c", 8, (times[10], times[90]))
+    assert sum(r < 10 for r in rows) == 2 and sum(r > 90 for r in rows) == 2 and len(rows) == 8
+
+
+# -- on the virtual rig ----------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_calibrate_cameras_recovers_a_wrong_mount(scan: dict[str, Any],
+                                                  cli: Callable[..., Any]) -> None:
+    folder = scan["folder"]
+    rig_before = _digest(folder / "wrong.toml")
+    result = cli("calibrate-cameras", scan["workdir"], "--rig", folder / "wrong.toml",
+                 "--camera", "cam0", "--write", folder / "fixed.toml", "--json")
+    assert result.code == 0, result.err
+    report = json.loads(result.out)
+    cam = report["cameras"][0]
+    assert cam["camera_id"] == "cam0" and report["written"] == str(folder / "fixed.toml")
+    fixed = load_rig(folder / "fixed.toml").camera("cam0")
+    true = scan["true"].camera("cam0")
+    assert rotation_error_deg(scan["wrong"].camera("cam0"), true) == pytest.approx(2.0)
+    assert rotation_error_deg(fixed, true) < 0.6
+    before, after = cam["alignment_before"], cam["alignment_after"]
+    assert after["edge_median_px"] < before["edge_median_px"]
+    assert after["edge_within_2px"] > before["edge_within_2px"]
+    assert {p["name"] for p in cam["parameters"]} == {
+        "rot_x_deg", "rot_y_deg", "rot_z_deg", "tx_m", "ty_m", "tz_m", "focal_scale"}
+    assert _digest(folder / "wrong.toml") == rig_before  # the input rig is never rewritten
+    # the other camera keeps its values
+    assert load_rig(folder / "fixed.toml").camera("cam1") == scan["wrong"].camera("cam1")
+    # the text output names the values, their 1σ and the alignment
+    text = cli("calibrate-cameras", scan["workdir"], "--rig", folder / "wrong.toml",
+               "--camera", "cam0", "--frames", "8")
+    assert text.code == 0, text.err
+    assert "rot_y_deg" in text.out and "±" in text.out and "edges: median" in text.out
+
+
+@pytest.mark.slow
+def test_calibrate_cameras_finds_a_video_clock_offset(scan: dict[str, Any]) -> None:
+    from scanpipe.artifacts import read_artifact
+    from scanpipe.camera_selfcal import calibrate_cameras
+
+    w = scan["workdir"]
+    points = read_artifact(w / "assemble" / "points.parquet")[0]
+    motor = read_artifact(w / "decode" / "motor.parquet")[0]
+    true_cam = scan["true"].camera("cam0")
+    frames = video_frames(OPTIONS, true_cam, 24, 0.5)  # stamped 0.5 s late
+    result = calibrate_cameras(points, frames, motor, scan["true"], ["cam0"],
+                               fit_time_offset=True, max_frames=24)[0]
+    assert result.time_offset_s is not None
+    assert result.time_offset_s == pytest.approx(-0.5, abs=0.1)
+    offset = next(p for p in result.parameters if p.name == "time_offset_s")
+    assert offset.observable and offset.sigma is not None and offset.sigma < 0.1
+
+
+@pytest.mark.slow
+def test_eval_reports_the_edge_figures(scan: dict[str, Any]) -> None:
+    figures = edge_metrics(scan["workdir"])
+    assert figures["edge_points"] > 100
+    assert figures["edge_median_px"] is not None and figures["edge_median_px"] < 2.0
+    assert figures["edge_within_2px"] is not None and figures["edge_within_2px"] > 0.5
+
+
+def test_calibrate_cameras_refuses_bad_input_and_keeps_files(
+        tmp_path: Path, cli: Callable[..., Any]) -> None:
+    empty = tmp_path / "w"
+    empty.mkdir()
+    result = cli("calibrate-cameras", empty)
+    assert result.code == 2
+    assert "no points artifact" in result.err and result.err.count("\n") == 1
+    missing = cli("calibrate-cameras", tmp_path / "nope")
+    assert missing.code == 2 and "not a folder" in missing.err
+    existing = tmp_path / "rig2.toml"
+    existing.write_text("keep me")
+    refused = cli("calibrate-cameras", empty, "--write", existing)
+    assert refused.code == 2 and "--force" in refused.err
+    assert existing.read_text() == "keep me"
+
+
+@pytest.mark.slow
+def test_calibrate_cameras_names_an_unknown_camera(scan: dict[str, Any],
+                                                   cli: Callable[..., Any]) -> None:
+    result = cli("calibrate-cameras", scan["workdir"], "--camera", "nope")
+    assert result.code == 2
+    assert "no camera 'nope'" in result.err and "cam0, cam1" in result.err
+
+
+@pytest.mark.slow
+def test_import_video_refines_a_rough_offset(scan: dict[str, Any], tmp_path: Path,
+                                             cli: Callable[..., Any]) -> None:
+    rec = tmp_path / "scan.mcap"
+    rec.write_bytes((scan["folder"] / "scan.mcap").read_bytes())
+    video = tmp_path / "phone.avi"
+    first_ns = write_video(OPTIONS, scan["true"].camera("cam0"), video, fps=1.0)
+    # the phone's clock says its first frame came 0.5 s later than it did
+    result = cli("import-video", video, "--into", rec, "--start-time", str(first_ns),
+                 "--offset", "0.5", "--camera", "cam0", "--refine", "--json")
+    assert result.code == 0, result.err
+    report = json.loads(result.out)
+    assert report["offset_s"] == pytest.approx(0.0, abs=0.1)
+    assert report["first_time_ns"] == pytest.approx(first_ns, abs=0.1e9)
+    assert report["refined"]["alignment_after"]["edge_median_px"] < 2.0
+
+
+@pytest.mark.slow
+def test_import_video_refuses_to_refine_without_still_frames(
+        scan: dict[str, Any], tmp_path: Path, cli: Callable[..., Any]) -> None:
+    rec = tmp_path / "scan.mcap"
+    rec.write_bytes((scan["folder"] / "scan.mcap").read_bytes())
+    digest = _digest(rec)
+    video = tmp_path / "phone.avi"
+    # a video of a platform that never stands still in it: frames only while it turns
+    options = OPTIONS.model_copy()
+    first_ns = write_video(options, scan["true"].camera("cam0"), video, fps=1.0)
+    trimmed = tmp_path / "moving.avi"
+    capture = cv2.VideoCapture(str(video))
+    writer = cv2.VideoWriter(str(trimmed), cv2.VideoWriter_fourcc(*"MJPG"), 1.0,
+                             (int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                              int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))))
+    index = 0
+    total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+    while True:
+        ok, image = capture.read()
+        if not ok:
+            break
+        if 6 <= index < total - 6:
+            writer.write(image)
+        index += 1
+    writer.release()
+    capture.release()
+    result = cli("import-video", trimmed, "--into", rec, "--start-time",
+                 str(first_ns + 6_000_000_000), "--camera", "cam0", "--refine")
+    assert result.code == 1
+    assert "standing still" in result.err and result.err.count("\n") == 1
+    assert _digest(rec) == digest
