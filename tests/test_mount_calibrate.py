@@ -54,6 +54,12 @@ def check_against_truth(report: dict[str, Any], fitted: Rig, truth: Path) -> Non
     assert "not observable from one scan" in params["offset_y_m"]["note"]
     for name in ("tilt_x_deg", "alpha_zero_deg", "offset_x_m", "offset_z_m"):
         assert params[name]["observable"] and 0 < params[name]["sigma"] < 0.05
+    # Honest: each error within 3σ of the parameter that carries it (never a confident
+    # wrong number).
+    sigma_of = {"tilt_deg": "tilt_x_deg", "axis_in_plane_deg": "alpha_zero_deg",
+                "offset_normal_m": "offset_z_m", "offset_in_plane_m": "offset_x_m"}
+    for key, name in sigma_of.items():
+        assert abs(got[key] - want[key]) <= 3 * params[name]["sigma"], (key, params[name])
 
 
 @pytest.mark.slow
@@ -108,6 +114,38 @@ def test_calibrate_stage_in_the_chain_is_cached(tmp_path: Path,
     report = cli("report", work, "--out", tmp_path / "report.html")
     assert report.code == 0, report.err
     assert "calibrate" in (tmp_path / "report.html").read_text()
+
+
+@pytest.mark.slow
+def test_calibrate_uses_the_runs_assemble_parameters(tmp_path: Path,
+                                                     cli: Callable[..., Any]) -> None:
+    """``--set assemble.…`` reaches the calibrate stage (its key and its fit), and the
+    calibrate command on the workdir fits with the same parameters."""
+    recording = simulate(tmp_path)
+    work = tmp_path / "work"
+    args = ("run", recording, "--workdir", work, "--to", "assemble", "--quiet",
+            "--set", "calibrate.enabled=true")
+    assert cli(*args).code == 0
+    first = read_provenance(work / "calibrate" / "calibration.parquet")
+    assert first["params"]["assemble"]["mode"] == "auto"
+    # Continuous: every profile, also those taken while the platform turned (3 per step).
+    result = cli(*args, "--set", "assemble.mode=continuous")
+    assert result.code == 0, result.err
+    changed = read_provenance(work / "calibrate" / "calibration.parquet")
+    assert changed["key"] != first["key"]
+    assert changed["params"]["assemble"]["mode"] == "continuous"
+    assert changed["report"]["points"] > 2 * first["report"]["points"]
+    result = cli("calibrate", work, "--json")
+    assert result.code == 0, result.err
+    assert json.loads(result.out)["points"] == changed["report"]["points"]
+    # Set under calibrate, they are refused (the run sets them), and nothing is rerun.
+    result = cli(*args, "--set", "assemble.mode=continuous",
+                 "--set", "calibrate.assemble.mode=step")
+    assert result.code == 2
+    assert "calibrate.assemble: set by the run from its assemble parameters; set " \
+           "assemble.KEY instead" in result.err
+    assert read_provenance(work / "calibrate" / "calibration.parquet")["key"] == \
+        changed["key"]
 
 
 def test_write_refuses_existing_file_and_the_input_rig(tmp_path: Path,

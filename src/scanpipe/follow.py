@@ -49,7 +49,13 @@ from scanpipe.artifacts import stream_key
 from scanpipe.errors import ProtocolError, RecordingError, ScanpipeError, StageError, UsageError
 from scanpipe.meshing.mesh import Mesh
 from scanpipe.params import Params
-from scanpipe.pipeline import RunRecord, chain_to, check_recording, run_locked_chain
+from scanpipe.pipeline import (
+    RunRecord,
+    chain_to,
+    check_recording,
+    run_locked_chain,
+    stage_params,
+)
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.protocol.registry import (
     DETECT_BYTES,
@@ -415,7 +421,7 @@ class ScanEndModel:
 
         tables: dict[str, Any] = {}
         for stage in self.chain:
-            params = self.params.get(stage.name) or stage.params()
+            params = stage_params(stage, self.params)
             if stage.name == "decode":
                 assert isinstance(params, DecodeParams)
                 result = decode_recording(tail.snapshot(), params, decoded=stream.snapshot())
@@ -453,7 +459,7 @@ class ScanEndModel:
                 self.reused.append(stage.name)
                 return self.results[stage.name]
             self.changed[stage.name] = {n: c for n, c in changed.items() if c}
-            return stage.call(loaded, self.params.get(stage.name) or stage.params())
+            return stage.call(loaded, stage_params(stage, self.params))
 
         return compute
 

@@ -237,13 +237,9 @@ def _voxel_planes(p: F64, size_m: float, angle_deg: float, tolerance_m: float) -
         planes_d.append(d)
     if not planes_n:
         return _Planes(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), 0, 0)
-    plane_of_point = label[voxel]
-    member = np.flatnonzero(plane_of_point >= 0)
     pn = np.asarray(planes_n)
     pd = np.asarray(planes_d)
-    k = plane_of_point[member]
-    near = np.abs(np.einsum("ik,ik->i", p[member], pn[k]) - pd[k]) <= tolerance_m
-    member, k = member[near], k[near]
+    member, k = _members(p, cell, np.unique(flat_cell), label, pn, pd, size_m, tolerance_m)
     count = len(planes_n)
     sizes = np.bincount(k, minlength=count).astype(np.float64)
     # Normal-aware: every direction of plane weighs alike, whatever its points' number.
@@ -252,6 +248,36 @@ def _voxel_planes(p: F64, size_m: float, angle_deg: float, tolerance_m: float) -
     weight = (1.0 / np.maximum(area_per_dir[direction], 1.0))[k]
     weight *= member.size / max(float(weight.sum()), 1e-12)
     return _Planes(member, k, weight, count, int(np.count_nonzero(area_per_dir > 0)))
+
+
+def _members(p: F64, cell: I64, keys: I64, label: I64, normal: F64, offset: F64,
+             size_m: float, tolerance_m: float) -> tuple[I64, I64]:
+    """Each point's plane: the nearest, within ``tolerance_m``, of the planes that hold its
+    voxel or a voxel ``tolerance_m`` away along an axis.
+
+    Not its own voxel's alone: a surface lying on a voxel face splits its points between two
+    voxels by the sign of their noise, and where one of the two is not kept (too few points,
+    a corner) the plane would keep only the points on one side of it: a bias of about a σ
+    that the fit would take for a mount error."""
+    choices = [cell]
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            shifted = p.copy()
+            shifted[:, axis] += sign * tolerance_m
+            choices.append(np.floor(shifted / size_m).astype(np.int64))
+    best = np.full(p.shape[0], -1, np.int64)
+    best_distance = np.full(p.shape[0], np.inf)
+    for c in choices:
+        flat_cell = (c[:, 0] * 1_000_003 + c[:, 1]) * 1_000_003 + c[:, 2]
+        at = np.minimum(np.searchsorted(keys, flat_cell), keys.size - 1)
+        plane = np.where(keys[at] == flat_cell, label[at], -1)
+        ok = plane >= 0
+        safe = np.where(ok, plane, 0)
+        distance = np.abs(np.einsum("ik,ik->i", p, normal[safe]) - offset[safe])
+        better = ok & (distance <= tolerance_m) & (distance < best_distance)
+        best[better], best_distance[better] = plane[better], distance[better]
+    member = np.flatnonzero(best >= 0)
+    return member, best[member]
 
 
 def _residuals(model: _Model, planes: _Planes, x: F64, jacobian: bool
@@ -332,11 +358,154 @@ def _rms(model: _Model, planes: _Planes, x: F64) -> float:
     return float(np.sqrt(np.sum(res**2) / max(np.sum(w), 1e-12)))
 
 
-def fit_mount(samples: ScanSamples, rig: Rig) -> MountFit:
+class _RayFit:
+    """The final fit: mount and planes together, each residual the distance along the beam
+    from the point to its plane (the range error, for range noise).
+
+    Why along the beam: with noise along the ray, the point-to-plane distance's variance is
+    σ² (n·u)², which depends on the mount (through u) and the plane; its minimum is then not
+    at the true mount (a bias of about a millimetre across the scan plane at σ = 10 mm, 180°
+    of travel). The range error has variance σ² whatever the mount, so the cost's expected
+    minimum is the truth."""
+
+    def __init__(self, model: _Model, planes: _Planes, x0: F64, free: NDArray[np.bool_]
+                 ) -> None:
+        self.model = model.subset(planes.member)
+        self.k = planes.voxel
+        self.count = planes.count
+        self.x0, self.free = x0.copy(), free.copy()
+        self.nx = int(free.sum())
+        p = self.model.points(x0)[0]
+        self.n0, self.d0, _ = _plane_fit(p, self.k, np.ones(self.k.size), self.count)
+        helper = np.where(np.abs(self.n0[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]),
+                          np.array([[0.0, 1.0, 0.0]]))
+        e1 = np.cross(self.n0, helper)
+        self.e1 = e1 / np.linalg.norm(e1, axis=1, keepdims=True)
+        self.e2 = np.cross(self.n0, self.e1)
+
+    def start(self) -> F64:
+        return np.concatenate([self.x0[self.free], np.zeros(3 * self.count)])
+
+    def mount(self, y: F64) -> F64:
+        x = self.x0.copy()
+        x[self.free] = y[:self.nx]
+        return x
+
+    def evaluate(self, y: F64, jacobian: bool) -> tuple[F64, F64 | None, F64 | None]:
+        """Residuals (m), and with ``jacobian`` the mount's columns and each row's three
+        columns of its own plane (tilt about e1, e2, offset)."""
+        x = self.mount(y)
+        theta = y[self.nx:].reshape(-1, 3)
+        m = self.n0 + theta[:, :1] * self.e1 + theta[:, 1:2] * self.e2
+        norm = np.linalg.norm(m, axis=1, keepdims=True)
+        n = m / norm
+        d = self.d0 + theta[:, 2]
+        k, model = self.k, self.model
+        p, dp = model.points(x, jacobian)
+        t = model.t0 + np.array([x[2], 0.0, x[3]])
+        origin = np.stack([t[0] * model.cb - t[2] * model.sb, np.full_like(model.cb, t[1]),
+                           t[0] * model.sb + t[2] * model.cb], 1)
+        u = (p - origin) / model.r[:, None]  # the beam's direction
+        nk = n[k]
+        e = np.einsum("ik,ik->i", nk, p) - d[k]
+        c = np.einsum("ik,ik->i", nk, u)
+        # Grazing beams (beyond ~78°) are kept but not amplified without bound.
+        graze = np.abs(c) < _MIN_COS
+        c = np.where(graze, np.copysign(_MIN_COS, c), c)
+        live = np.where(graze, 0.0, 1.0)
+        res = e / c
+        if dp is None:
+            return res, None, None
+        jx = np.empty((res.size, self.nx))
+        for column, j in enumerate(np.flatnonzero(self.free)):
+            de = np.einsum("ik,ik->i", nk, dp[:, :, j])
+            # d u / d(rotation) = d p / d(rotation) / r; the offsets do not turn the beam.
+            dc = de / model.r if j < 2 else 0.0
+            jx[:, column] = de / c - e * live * dc / c**2
+        jp = np.empty((res.size, 3))
+        for a, axis in enumerate((self.e1, self.e2)):
+            dn = ((axis - n * np.einsum("ik,ik->i", n, axis)[:, None]) / norm)[k]
+            jp[:, a] = (np.einsum("ik,ik->i", dn, p) / c
+                        - e * live * np.einsum("ik,ik->i", dn, u) / c**2)
+        jp[:, 2] = -1.0 / c
+        return res, jx, jp
+
+    def projected(self, jx: F64, jp: F64) -> F64:
+        """The mount's Jacobian with each plane's own freedom projected out."""
+        k, count = self.k, self.count
+        gram = np.empty((count, 3, 3))
+        cross = np.empty((count, 3, self.nx))
+        for i in range(3):
+            for j in range(3):
+                gram[:, i, j] = np.bincount(k, jp[:, i] * jp[:, j], count)
+            for j in range(self.nx):
+                cross[:, i, j] = np.bincount(k, jp[:, i] * jx[:, j], count)
+        coef = np.linalg.solve(gram + np.eye(3) * 1e-12, cross)
+        return np.asarray(jx - np.einsum("ib,ibj->ij", jp, coef[k]), dtype=np.float64)
+
+
+#: Beams meeting a plane more obliquely than this cosine (78°) count as at this cosine.
+_MIN_COS = 0.2
+
+
+def _solve_rays(model: _Model, planes: _Planes, x0: F64, free: NDArray[np.bool_],
+                iterations: int = 12) -> tuple[F64, _RayFit, F64]:
+    """The along-beam fit from ``x0`` (Levenberg–Marquardt on the normal equations, each
+    plane's three unknowns eliminated per plane: a 4 × 4 system whatever the number of
+    points and planes); the mount within :data:`BOUNDS`. Returns the mount, the fit and its
+    parameter vector (for the covariance)."""
+    fit = _RayFit(model, planes, x0, free)
+    y = fit.start()
+    nx, k, count = fit.nx, fit.k, fit.count
+    res, jx, jp = fit.evaluate(y, True)
+    cost = float(res @ res)
+    damping = 1e-3
+    for _ in range(iterations):
+        assert jx is not None and jp is not None
+        a = jx.T @ jx
+        gx = jx.T @ res
+        b = np.empty((count, nx, 3))
+        d = np.empty((count, 3, 3))
+        for i in range(3):
+            for j in range(nx):
+                b[:, j, i] = np.bincount(k, jx[:, j] * jp[:, i], count)
+            for j in range(3):
+                d[:, i, j] = np.bincount(k, jp[:, i] * jp[:, j], count)
+        gp = np.stack([np.bincount(k, jp[:, i] * res, count) for i in range(3)], 1)
+        while True:
+            da = a + damping * np.diag(np.diag(a))
+            dd = d + damping * d * np.eye(3) + np.eye(3) * 1e-15
+            dinv = np.linalg.inv(dd)
+            bd = np.einsum("kji,kil->kjl", b, dinv)  # B D⁻¹ (K, P, 3)
+            schur = da - np.einsum("kjl,kml->jm", bd, b)
+            rhs = gx - np.einsum("kjl,kl->j", bd, gp)
+            step_x = -np.linalg.solve(schur + np.eye(nx) * 1e-30, rhs) if nx else np.zeros(0)
+            step_p = -np.einsum("kil,kl->ki", dinv, gp + np.einsum("kjl,j->kl", b, step_x))
+            trial = y + np.concatenate([step_x, step_p.ravel()])
+            trial[:nx] = np.clip(trial[:nx], -BOUNDS[free], BOUNDS[free])
+            trial_res = fit.evaluate(trial, False)[0]
+            trial_cost = float(trial_res @ trial_res)
+            if trial_cost <= cost or damping > 1e6:
+                break
+            damping *= 10.0
+        if trial_cost > cost:
+            break
+        converged = cost - trial_cost <= 1e-10 * cost
+        y, cost = trial, trial_cost
+        damping = max(damping / 10.0, 1e-7)
+        res, jx, jp = fit.evaluate(y, True)
+        if converged:
+            break
+    return fit.mount(y), fit, y
+
+
+def fit_mount(samples: ScanSamples, rig: Rig, coarse_points: int = 60_000) -> MountFit:
     """Fit the mount (tilt, α zero, offsets perpendicular to the axis) to one scan.
 
-    Parameters the scan does not constrain (1σ above :data:`MAX_SIGMA`) keep their nominal
-    value and are reported unobservable with the reason; the rest are refitted without them.
+    The coarse levels (plane association) use at most ``coarse_points`` of the samples; the
+    final fit uses them all. Parameters the scan does not constrain (1σ above
+    :data:`MAX_SIGMA`) keep their nominal value and are reported unobservable with the
+    reason; the rest are refitted without them.
     """
     mount = rig.scanner.mount
     axis_in_scan = rotation_matrix_deg(mount.rotation_deg).T @ np.array([0.0, 1.0, 0.0])
@@ -350,6 +519,10 @@ def fit_mount(samples: ScanSamples, rig: Rig) -> MountFit:
         raise StageError(f"calibrate: only {samples.range_m.size} valid returns; at least "
                          "1000 are needed to find planes")
     model = _Model(samples, rig)
+    coarse = model
+    if samples.range_m.size > coarse_points:
+        coarse = model.subset(np.sort(np.random.default_rng(1).choice(
+            samples.range_m.size, coarse_points, replace=False)))
     x = np.zeros(4)
     free = np.ones(4, bool)
     planes = None
@@ -358,30 +531,47 @@ def fit_mount(samples: ScanSamples, rig: Rig) -> MountFit:
     # in a false minimum; chosen again under the first fit, they let it go (a 360° seed moved
     # from 14 mm to 0.4 mm off).
     for size_m, angle_deg, tolerance_m in (*LEVELS, *LEVELS[1:]):
-        planes = _voxel_planes(model.points(x)[0], size_m, angle_deg, tolerance_m)
+        planes = _voxel_planes(coarse.points(x)[0], size_m, angle_deg, tolerance_m)
         if planes.count < 1:
             continue
         if before is None:
-            before = _rms(model, planes, np.zeros(4))
-        x = _solve(model, planes, x, free, scale_m=tolerance_m / 3)
+            before = _rms(coarse, planes, np.zeros(4))
+        if planes.directions < 3:
+            # Too few ways of facing to hold the fit: solved, it runs off to the bounds
+            # (a 360° seed: 2 planes, 11° of tilt); the next, finer level may see more.
+            continue
+        x = _solve(coarse, planes, x, free, scale_m=tolerance_m / 3)
     if planes is None or planes.count < 1:
         raise StageError("calibrate: no plane found in the scan; "
                          "self-calibration needs flat surfaces (walls, floor, ceiling)")
-    # Final planes at the solution, then observability from the covariance.
-    planes = _voxel_planes(model.points(x)[0], *LEVELS[-1])
-    x = _solve(model, planes, x, free, scale_m=0.02)
-    sigma = _sigmas(model, planes, x, free)
-    warnings: list[str] = []
+    # Final: planes over all samples at the coarse solution, every point alike (the
+    # normal-aware weights steer the coarse levels; weighting a few points up inflates the
+    # estimate's variance and hides it from s²(JᵀJ)⁻¹), distances along the beam.
+    for _ in range(5):
+        planes = _uniform(_voxel_planes(model.points(x)[0], *LEVELS[-1]))
+        if planes.count < 1:
+            raise StageError("calibrate: no plane found in the scan; self-calibration "
+                             "needs flat surfaces (walls, floor, ceiling)")
+        previous = x
+        x, ray_fit, y = _solve_rays(model, planes, x, free)
+        # Chosen again at the new mount, the planes may take in points the old one left
+        # out: repeat until the mount stays (0.1 mm, 0.002°).
+        if np.all(np.abs(x - previous) <= np.array([3e-5, 3e-5, 1e-4, 1e-4])):
+            break
+    sigma = _ray_sigmas(ray_fit, y)
     at_bound = np.abs(x) >= BOUNDS * 0.999
     unobservable = np.array([s is None or s > MAX_SIGMA[n] for n, s in zip(PARAMETERS, sigma,
                                                                               strict=True)])
     unobservable |= at_bound
+    warnings: list[str] = []
     if unobservable.any():
         free = ~unobservable
         x[unobservable] = 0.0
-        x = _solve(model, planes, x, free, scale_m=0.02)
-        kept = _sigmas(model, planes, x, free)
-        sigma = [kept[i] if free[i] else sigma[i] for i in range(4)]
+        if free.any():
+            x, ray_fit, y = _solve_rays(model, planes, x, free)
+            kept = _ray_sigmas(ray_fit, y)
+            it = iter(kept)
+            sigma = [next(it) if free[i] else sigma[i] for i in range(4)]
         names = ", ".join(n for n, u in zip(PARAMETERS, unobservable, strict=True) if u)
         warnings.append(f"calibrate: {names} not constrained by this scan ({planes.count} "
                         f"planes facing {planes.directions} direction(s)); kept at the "
@@ -395,27 +585,63 @@ def fit_mount(samples: ScanSamples, rig: Rig) -> MountFit:
         normal_directions=planes.directions, warnings=warnings)
 
 
-def _sigmas(model: _Model, planes: _Planes, x: F64, free: NDArray[np.bool_]
-            ) -> list[float | None]:
-    """1σ of each parameter (in its reported unit) from ``s² (JᵀJ)⁻¹``; None when the
-    information matrix is singular in that parameter."""
-    res, jac = _residuals(model.subset(planes.member), planes, x, True)
-    assert jac is not None
-    dof = max(res.size - int(free.sum()) - planes.count * 3, 1)
-    s2 = float(np.sum(res**2) / dof)
+def _uniform(planes: _Planes) -> _Planes:
+    """The same planes, every point weighing alike."""
+    return _Planes(planes.member, planes.voxel, np.ones(planes.member.size), planes.count,
+                   planes.directions)
+
+
+_UNITS = np.array([math.degrees(1), math.degrees(1), 1.0, 1.0])
+
+
+def _ray_sigmas(fit: _RayFit, y: F64) -> list[float | None]:
+    """1σ of each free parameter (reported unit), the largest of three estimates:
+
+    - ``s² (JᵀJ)⁻¹``, with the planes' own freedom projected out;
+    - the sandwich ``A⁻¹ (Σ gᵢgᵢᵀ) A⁻¹`` over points, which holds when the residuals' spread
+      differs from place to place;
+    - the jackknife over planes (each plane left out in turn, to first order): when the
+      mount rests on a few planes, or one plane pulls it (a wall that is not quite flat, a
+      piece of another surface joined to it), the estimate moves with that plane and the
+      jackknife says so where the other two, which treat points as independent, do not.
+
+    None where the information matrix is (near) singular in that parameter."""
+    res, jx, jp = fit.evaluate(y, True)
+    assert jx is not None and jp is not None
+    jac = fit.projected(jx, jp)
+    nx, k, count = fit.nx, fit.k, fit.count
+    dof = max(res.size - nx - 3 * count, 1)
     info = jac.T @ jac
     scale = np.sqrt(np.maximum(np.diag(info), 1e-300))
-    normalised = info / np.outer(scale, scale)
-    values, vectors = np.linalg.eigh(normalised)
-    floor = 1e-9 * max(float(values.max()), 1e-300)
+    values, vectors = np.linalg.eigh(info / np.outer(scale, scale))
+    if values.max() <= 0:
+        return [None] * nx
+    floor = 1e-9 * float(values.max())
     inv = (vectors / np.maximum(values, floor)) @ vectors.T / np.outer(scale, scale)
-    units = np.array([math.degrees(1), math.degrees(1), 1.0, 1.0])
+    classical = np.diag(inv) * float(res @ res) / dof
+    g = jac * res[:, None]
+    sandwich = np.diag(inv @ (g.T @ g) @ inv) * res.size / dof
+    jackknife = np.zeros(nx)
+    if count >= 3:
+        grad = np.stack([np.bincount(k, g[:, j], count) for j in range(nx)], 1)  # (K, P)
+        deltas = []
+        for plane in range(count):
+            rows = jac[k == plane]
+            without = info - rows.T @ rows
+            try:
+                deltas.append(np.linalg.solve(without + np.eye(nx) * floor * scale**2,
+                                              grad[plane]))
+            except np.linalg.LinAlgError:
+                deltas.append(np.full(nx, np.inf))
+        spread = np.asarray(deltas) - np.mean(deltas, axis=0)
+        jackknife = (count - 1) / count * np.sum(spread**2, axis=0)
+    variance = np.maximum(np.maximum(classical, sandwich), jackknife)
+    units = _UNITS[fit.free]
     out: list[float | None] = []
-    for i in range(4):
-        # A direction of (near) zero information: unobservable, whatever the numbers say.
+    for i in range(nx):
         weak = bool(np.any((values < 1e-6 * values.max()) & (np.abs(vectors[i]) > 0.1)))
-        out.append(None if weak or np.diag(info)[i] <= 0 else
-                   float(math.sqrt(max(inv[i, i] * s2, 0.0)) * units[i]))
+        out.append(None if weak or not np.isfinite(variance[i]) or info[i, i] <= 0 else
+                   float(math.sqrt(max(variance[i], 0.0)) * units[i]))
     return out
 
 

@@ -198,6 +198,11 @@ def validate_pipeline_params(
         problems.append(f"unknown stage {unknown!r} ({hint}stages: {', '.join(names)})")
     result: dict[str, Params] = {}
     for stage in stages:
+        own = data.get(stage.name, {})
+        for name in stage.borrows:
+            if isinstance(own, Mapping) and name in own:
+                problems.append(f"{stage.name}.{name}: set by the run from its {name} "
+                                f"parameters; set {name}.KEY instead")
         try:
             result[stage.name] = validate(stage.params, data.get(stage.name, {}), source,
                                           prefix=f"{stage.name}.")
@@ -310,8 +315,18 @@ def chain_step(stage: Stage, available: Mapping[str, Path], workdir: Path,
         raise ArtifactError(f"stage {stage.name!r} needs {', '.join(missing)}, "
                             "which no earlier stage produces")
     return execute(stage, {n: available[n] for n in stage.inputs}, workdir / stage.name,
-                   params.get(stage.name) or stage.params(), progress, force,
+                   stage_params(stage, params), progress, force,
                    replace_folder=True, lock_wait_s=lock_wait_s, hold=hold)
+
+
+def stage_params(stage: Stage, params: Mapping[str, Params]) -> Params:
+    """A stage's parameters in a run: its own, with the parameters it borrows from other
+    stages (:attr:`Stage.borrows`) filled from the run's (their defaults when not given)."""
+    own = params.get(stage.name) or stage.params()
+    if not stage.borrows:
+        return own
+    return own.model_copy(update={name: params.get(name) or get_stage(name).params()
+                                  for name in stage.borrows})
 
 
 def rig_override_artifact(path: Path, workdir: Path) -> Path:

@@ -51,6 +51,10 @@ class Stage:
     #: Schemas of artifacts that only this stage's world knows (a plugin, a test's toy
     #: stages); the product's artifacts are in :data:`scanpipe.schema.ARTIFACTS`.
     schemas: tuple[ArtifactSchema, ...] = ()
+    #: Other stages whose parameters this one uses (its model holds each under a field of
+    #: that stage's name): the runner fills them with the run's own, so they enter this
+    #: stage's key, and refuses them set under this stage.
+    borrows: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not self.outputs:

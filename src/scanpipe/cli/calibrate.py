@@ -12,6 +12,20 @@ from scanpipe.cli.common import print_json
 from scanpipe.errors import UsageError
 
 
+def _assemble_params(source: Path) -> Any:
+    """The assemble parameters a workdir's run used (its ``assemble`` provenance), or None
+    (assemble's defaults) for a recording or a workdir not yet assembled."""
+    from scanpipe.artifacts import read_provenance
+    from scanpipe.params import validate
+    from scanpipe.stages.assemble import AssembleParams
+
+    points = source / "assemble" / "points.parquet"
+    if not (source.is_dir() and points.is_file()):
+        return None
+    return validate(AssembleParams, read_provenance(points).get("params", {}), str(points),
+                    prefix="assemble.")
+
+
 def _tables(source: Path) -> dict[str, Any]:
     """profiles, motor, rig from a recording (decoded in memory) or a workdir/folder."""
     if source.is_dir():
@@ -38,7 +52,7 @@ def calibrate(
     force: bool = typer.Option(False, "--force", help="Overwrite an existing --write file."),
     truth: Path | None = typer.Option(None, "--truth", help="A simulation's truth folder: "
                                       "also report the points' RMS to the true surface."),
-    max_points: int = typer.Option(60_000, "--max-points", min=2_000, max=2_000_000,
+    max_points: int = typer.Option(200_000, "--max-points", min=2_000, max=2_000_000,
                                    help="Returns drawn for the fit."),
     as_json: bool = typer.Option(False, "--json", help="Print the result as JSON."),
 ) -> None:
@@ -60,14 +74,16 @@ def calibrate(
     tables = _tables(source)
     if rig_path is not None:
         tables["rig"] = rig_table(load_rig(rig_path))
-    fit = run_fit(tables, max_points)
+    assemble_params = _assemble_params(source)
+    fit = run_fit(tables, max_points, assemble_params)
     report: dict[str, Any] = {"source": str(source), **fit.report()}
     if true_data is not None:
         from scanpipe.rig import rig_from_table
 
         report["rms_to_truth_before_m"] = rms_to_truth(tables, rig_from_table(tables["rig"]),
-                                                        true_data)
-        report["rms_to_truth_after_m"] = rms_to_truth(tables, fit.rig, true_data)
+                                                        true_data, params=assemble_params)
+        report["rms_to_truth_after_m"] = rms_to_truth(tables, fit.rig, true_data,
+                                                       params=assemble_params)
     if write is not None:
         try:
             atomic_write_bytes(write, rig_to_toml(fit.rig).encode())

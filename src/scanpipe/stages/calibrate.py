@@ -2,10 +2,11 @@
 
 Off by default: the stage then passes the rig through unchanged and writes an empty
 ``calibration``. On (``--set calibrate.enabled=true``) it assembles the scan with the rig it is
-given (default association parameters), fits the tilt, the α zero and the offsets
-perpendicular to the motor axis to the flatness of the scan's planes, and hands assemble the
-calibrated rig. Being a stage of its own, it is cached: a re-run with other filter or mesh
-parameters reuses the fit.
+given and the run's own assemble parameters (the runner fills ``assemble``, see
+:attr:`scanpipe.stage.Stage.borrows`, so they are part of this stage's key), fits the tilt,
+the α zero and the offsets perpendicular to the motor axis to the flatness of the scan's
+planes, and hands assemble the calibrated rig. Being a stage of its own, it is cached: a
+re-run with other filter or mesh parameters reuses the fit.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from scanpipe.progress import ProgressFn
 from scanpipe.rig import Rig, rig_from_table, rig_table
 from scanpipe.schema import CALIBRATION
 from scanpipe.stage import Stage, StageResult
+from scanpipe.stages.assemble import STAGE as ASSEMBLE
+from scanpipe.stages.assemble import AssembleParams
 
 
 class CalibrateParams(Params):
@@ -29,8 +32,11 @@ class CalibrateParams(Params):
 
     enabled: bool = Field(False, strict=True,
                           description="fit the mount to the scan and give assemble the result")
-    max_points: int = Field(60_000, ge=2_000, le=2_000_000,
+    max_points: int = Field(200_000, ge=2_000, le=2_000_000,
                             description="returns drawn (at random, fixed seed) for the fit")
+    assemble: AssembleParams | None = Field(
+        None, description="the run's assemble parameters, filled by the runner (set "
+                          "assemble.KEY); None = assemble's defaults")
 
 
 def calibration_table(fit: MountFit | None) -> pa.Table:
@@ -46,16 +52,20 @@ def calibration_table(fit: MountFit | None) -> pa.Table:
     }, schema=CALIBRATION.arrow_schema)
 
 
+def assembled(inputs: Mapping[str, Any], rig: Rig,
+              params: AssembleParams | None = None) -> pa.Table:
+    """The ``points`` that assemble makes of ``inputs`` (profiles, motor) with ``rig``."""
+    return ASSEMBLE.run({"profiles": inputs["profiles"], "motor": inputs["motor"],
+                         "rig": rig_table(rig)}, params).tables["points"]
+
+
 def rms_to_truth(inputs: Mapping[str, Any], rig: Rig, truth: Any,
-                 limit: int = 200_000) -> float:
+                 limit: int = 200_000, params: AssembleParams | None = None) -> float:
     """The RMS distance (m) to the true scene of the points ``rig`` assembles from ``inputs``
     (profiles, motor), over at most ``limit`` points drawn at random (seeded)."""
     import numpy as np
 
-    from scanpipe.stages.assemble import STAGE as ASSEMBLE
-
-    points = ASSEMBLE.run({"profiles": inputs["profiles"], "motor": inputs["motor"],
-                           "rig": rig_table(rig)}).tables["points"]
+    points = assembled(inputs, rig, params)
     xyz = np.stack([points.column(c).to_numpy(zero_copy_only=False) for c in "xyz"], 1)
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
     if len(xyz) > limit:
@@ -63,13 +73,12 @@ def rms_to_truth(inputs: Mapping[str, Any], rig: Rig, truth: Any,
     return float(np.sqrt(np.mean(truth.scene.distance_m(xyz) ** 2)))
 
 
-def run_fit(inputs: Mapping[str, Any], max_points: int) -> MountFit:
-    """Assemble with the given rig and fit the mount (the CLI's path too)."""
-    from scanpipe.stages.assemble import STAGE as ASSEMBLE
-
+def run_fit(inputs: Mapping[str, Any], max_points: int,
+            params: AssembleParams | None = None) -> MountFit:
+    """Assemble with the given rig and assemble ``params`` and fit the mount (the CLI's
+    path too)."""
     rig = rig_from_table(inputs["rig"])
-    points = ASSEMBLE.run({"profiles": inputs["profiles"], "motor": inputs["motor"],
-                           "rig": inputs["rig"]}).tables["points"]
+    points = assembled(inputs, rig, params)
     return fit_mount(samples_from_points(points, rig, max_points), rig)
 
 
@@ -81,7 +90,7 @@ def calibrate_stage(inputs: Mapping[str, Any], params: CalibrateParams,
                                    "rig": inputs["rig"]},
                            report={"enabled": False})
     progress("calibrate", 0, 1)
-    fit = run_fit(inputs, params.max_points)
+    fit = run_fit(inputs, params.max_points, params.assemble)
     progress("calibrate", 1, 1)
     report = {"enabled": True, **fit.report()}
     return StageResult(tables={"calibration": calibration_table(fit), "rig": rig_table(fit.rig)},
@@ -90,11 +99,12 @@ def calibrate_stage(inputs: Mapping[str, Any], params: CalibrateParams,
 
 STAGE = Stage(
     name="calibrate",
-    version=1,
+    version=2,
     params=CalibrateParams,
     inputs=("profiles", "motor", "rig"),
     outputs=("calibration", "rig"),
     func=calibrate_stage,
     description="mount self-calibration from the scan's planes (off unless calibrate.enabled)",
     libraries=("numpy", "pyarrow", "scipy"),
+    borrows=("assemble",),
 )
