@@ -24,6 +24,8 @@ def register_command(
     prior: Path | None = typer.Option(None, "--prior", help="Prior poses (a poses Parquet "
                                                             "file), e.g. from odometry."),
     force: bool = typer.Option(False, "--force", help="Overwrite an earlier site result."),
+    truth: Path | None = typer.Option(None, "--truth", help="True poses (the truth folder of "
+                                      "`simulate --site`): report each pose's error."),
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
@@ -34,7 +36,7 @@ def register_command(
     from scanpipe.site import register_site
 
     params = build_params(RegisterParams, params_file, assignments, None)
-    report = register_site(list(workdirs), out, params, prior, force)
+    report = register_site(list(workdirs), out, params, prior, force, truth_path=truth)
     print_warnings("register", report)
     if as_json:
         print_json(report)
@@ -44,6 +46,11 @@ def register_command(
             sys.stderr.write(f"register: {pair['target']}–{pair['source']}: overlap "
                              f"{pair['overlap']:.1%}, residual {pair['rmse_m'] * 1000:.1f} mm, "
                              f"{state}\n")
+        for row in report.get("pose_errors", []):
+            error = ("n/a" if row["translation_m"] is None else
+                     f"{row['translation_m'] * 1000:.2f} mm / {row['rotation_deg']:.4f}°")
+            sys.stderr.write(f"register: {row['scan']} pose error {error}"
+                             f"{' (' + row['note'] + ')' if row['note'] else ''}\n")
         sys.stderr.write(f"register: {len(report['scans']) - len(report['unregistered'])} of "
                          f"{len(report['scans'])} scans → {report['poses']}, merged "
                          f"{report['merge']['points_out']} points → {report['points']}\n")
