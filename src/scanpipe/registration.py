@@ -111,6 +111,8 @@ class ScanClouds:
     points: int
     fine_source: Any = None
     free_space: FreeSpace | None = None
+    spacing_m: float = 0.0
+    tree: Any = None
 
 
 @dataclass
@@ -257,8 +259,43 @@ def prepare_scan(name: str, xyz: NDArray[np.floating], origin: NDArray[np.floati
     features = o3d.pipelines.registration.compute_fpfh_feature(
         coarse, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * params.coarse_voxel_m,
                                                      max_nn=100))
+    from scipy.spatial import cKDTree
+
+    fine_points = np.asarray(cloud.points)
+    tree = cKDTree(fine_points)
+    probe = fine_points[::max(1, len(fine_points) // 5000)]
+    spacing = float(np.median(tree.query(probe, k=2)[0][:, 1]))
     return ScanClouds(name, coarse, features, cloud, len(points), fine_source,
-                      free_space_image(points, origins))
+                      free_space_image(points, origins), spacing, tree)
+
+
+def plane_fit(source: ScanClouds, target: ScanClouds, transform: F64, params: RegisterParams
+              ) -> tuple[float, float, NDArray[np.bool_]]:
+    """Overlap, RMS and inlier mask of ``source``'s fine points placed by ``transform`` against
+    ``target``'s surface: a point overlaps when the target has a point within
+    :func:`search_radius` whose plane (its normal) passes within ``overlap_distance_m``. The
+    distance is to the plane, not to the nearest point, so a coarse scan's sample spacing
+    does not count as misalignment."""
+    points = _transform(np.asarray(source.fine_source.points), transform)
+    distance, index = target.tree.query(points, distance_upper_bound=search_radius(target,
+                                                                                  params))
+    found = np.isfinite(distance)
+    normals = np.asarray(target.fine.normals)
+    anchors = np.asarray(target.fine.points)
+    plane = np.full(len(points), np.inf)
+    plane[found] = np.abs(np.einsum("ij,ij->i", points[found] - anchors[index[found]],
+                                    normals[index[found]]))
+    inlier = plane <= params.overlap_distance_m
+    if not inlier.any():
+        return 0.0, 0.0, inlier
+    return (float(np.count_nonzero(inlier)) / len(points),
+            float(np.sqrt(np.mean(plane[inlier] ** 2))), inlier)
+
+
+def search_radius(target: ScanClouds, params: RegisterParams) -> float:
+    """How far to look for a target point: the fine ICP's distance, or three of the target's
+    point spacings when it is sparser (a coarse scan)."""
+    return max(params.fine_distance_m, 3.0 * target.spacing_m)
 
 
 def _coarse_refine(source: ScanClouds, target: ScanClouds, init: F64, params: RegisterParams
@@ -282,6 +319,8 @@ def refine(source: ScanClouds, target: ScanClouds, init: F64, params: RegisterPa
     o3d = _o3d()
     reg = o3d.pipelines.registration
     transform = init
+    # a fixed last distance: a wider one (e.g. scaled to a sparse scan's spacing) pairs points
+    # across edges and corners and biased the rotation by several hundredths of a degree
     for distance in (params.coarse_voxel_m, max(params.overlap_distance_m,
                                                 params.fine_distance_m),
                      params.fine_distance_m):
@@ -294,9 +333,8 @@ def refine(source: ScanClouds, target: ScanClouds, init: F64, params: RegisterPa
             result = reg.registration_icp(source.fine_source, target.fine, distance, transform,
                                           reg.TransformationEstimationPointToPlane(), criteria)
         transform = np.asarray(result.transformation, np.float64)
-    check = reg.evaluate_registration(source.fine_source, target.fine,
-                                      params.overlap_distance_m, transform)
-    return transform, float(check.fitness), float(check.inlier_rmse)
+    fitness, rmse, _ = plane_fit(source, target, transform, params)
+    return transform, fitness, rmse
 
 
 def same_placement(a: F64, b: F64, params: RegisterParams) -> bool:
@@ -369,7 +407,6 @@ def finish_pair(clouds: list[ScanClouds], pair: PairResult, start: F64, init: st
                 params: RegisterParams) -> PairResult:
     """Refine a pair's chosen placement on the fine clouds; accept it when the residual and
     overlap pass (the information matrix is then set)."""
-    o3d = _o3d()
     source, target = clouds[pair.source], clouds[pair.target]
     transform, fitness, rmse = refine(source, target, start, params)
     pair.transform, pair.fitness, pair.rmse_m, pair.init = transform, fitness, rmse, init
@@ -379,10 +416,14 @@ def finish_pair(clouds: list[ScanClouds], pair: PairResult, start: F64, init: st
         pair.reason = f"residual {rmse * 1000:.1f} mm > max_rmse_m"
     else:
         pair.accepted, pair.reason = True, ""
-        info = o3d.pipelines.registration.get_information_matrix_from_point_clouds(
+        info = _o3d().pipelines.registration.get_information_matrix_from_point_clouds(
             source.fine_source, target.fine, params.overlap_distance_m, transform)
-        variance = max(rmse ** 2 / 3.0, 1e-10)
-        pair.information = np.asarray(info, np.float64) / variance
+        # × overlap²: a pair that sees little of the other (through a door) aligns less
+        # truly than its point count says — measured 0.06° off at 30 % overlap against
+        # ≤ 0.03° at 55–85 % — and must not pull the well-overlapping chain (an empirical
+        # weight: on the built-in site it took pos05 from 0.072° to 0.052°)
+        pair.information = (np.asarray(info, np.float64) * fitness ** 2
+                            / max(rmse ** 2, 1e-10))
     return pair
 
 
