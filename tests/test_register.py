@@ -16,10 +16,11 @@ from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
 
 #: Small scans (motor 2°, beam 1°: ~30 k points each) keep the test fast; the full-scale
-#: figures (motor 1°, beam 0.5°) are in docs/sites.md. Coarser scans register less finely:
-#: the tolerances here are the small scale's, several times the full scale's target.
+#: figures (motor 1°, beam 0.5°: ≤ 3.2 mm / 0.034°) are in docs/sites.md. These coarser
+#: scans registered to ≤ 4.2 mm / 0.055° without a prior; the tolerances allow about twice
+#: that (a look-alike placement is metres and degrees off).
 SMALL_SITE = ("--motor-step", "2", "--beam-step", "1", "--no-cameras")
-TOLERANCE_M, TOLERANCE_DEG = 0.02, 0.2
+TOLERANCE_M, TOLERANCE_DEG = 0.008, 0.1
 #: Fewer RANSAC rounds where a guess from the prior is there anyway.
 FAST = ("--set", "hypotheses=6", "--set", "ransac_iterations=3000")
 
