@@ -43,9 +43,11 @@ def register_command(
     elif not quiet:
         for pair in report["pairs"]:
             state = "kept" if pair["accepted"] else f"left out ({pair['reason']})"
+            # a pair refused before its fine ICP has no residual
+            residual = (f", residual {pair['rmse_m'] * 1000:.1f} mm" if pair["rmse_m"] > 0
+                        else "")
             sys.stderr.write(f"register: {pair['target']}–{pair['source']}: overlap "
-                             f"{pair['overlap']:.1%}, residual {pair['rmse_m'] * 1000:.1f} mm, "
-                             f"{state}\n")
+                             f"{pair['overlap']:.1%}{residual}, {state}\n")
         for row in report.get("pose_errors", []):
             error = ("n/a" if row["translation_m"] is None else
                      f"{row['translation_m'] * 1000:.2f} mm / {row['rotation_deg']:.4f}°")
