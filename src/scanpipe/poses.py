@@ -114,3 +114,28 @@ def pose_error(estimate: F64, truth: F64) -> tuple[float, float]:
     delta = invert(truth) @ estimate
     cosine = float(np.clip((np.trace(delta[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))
     return float(np.linalg.norm(delta[:3, 3])), math.degrees(math.acos(cosine))
+
+
+def pose_errors(estimated: dict[str, F64], truth: dict[str, F64],
+                reference: str | None = None) -> list[dict[str, object]]:
+    """Each scan's translation (m) and rotation (degrees) error against the truth, the two
+    frames tied together at ``reference`` (default: the first estimated scan that has a true
+    pose) — a registration fixes poses only up to the site frame, so errors are relative to
+    that scan, whose own error is 0 by definition. Scans without an estimate or a true pose
+    are listed with ``None`` errors."""
+    shared = [name for name in estimated if name in truth]
+    if reference is None:
+        reference = shared[0] if shared else None
+    rows: list[dict[str, object]] = []
+    gauge = (truth[reference] @ invert(estimated[reference])
+             if reference in estimated and reference in truth else None)
+    for name in sorted(set(estimated) | set(truth)):
+        row: dict[str, object] = {"scan": name, "translation_m": None, "rotation_deg": None}
+        if gauge is not None and name in estimated and name in truth:
+            dt, dr = pose_error(gauge @ estimated[name], truth[name])
+            row["translation_m"], row["rotation_deg"] = dt, dr
+        row["note"] = ("reference" if name == reference else
+                       "not registered" if name not in estimated else
+                       "no true pose" if name not in truth else "")
+        rows.append(row)
+    return rows

@@ -1,25 +1,41 @@
-"""Registration of the scans of a site: pairwise (coarse + fine), then a pose graph.
+"""Registration of the scans of a site: hypotheses per pair, checked against free space, then a
+pose graph.
 
 Kernel functions over numpy arrays (Open3D inside); :mod:`scanpipe.site` is the shell that reads
 workdirs and writes artifacts.
 
-1. Per scan: a coarse cloud (voxel ``coarse_voxel_m``, normals, FPFH features) and a fine one
-   (voxel ``fine_voxel_m``, normals oriented toward the scanner).
+1. Per scan: a coarse cloud (voxel ``coarse_voxel_m``, normals, FPFH features), the fine clouds
+   (the scan's own points with their normals — not voxel centroids, which bias the planes of a
+   noisy scan by a few hundredths of a degree — all of them as the ICP target, an even subsample
+   of ``fine_source_points`` as the source) and its *free-space image*: per direction from the
+   scanner, the nearest range it measured.
 2. Per candidate pair (all pairs; with a prior, those whose prior positions are within
-   ``pair_max_distance_m``): initial guesses from FPFH + RANSAC (global, needs no prior) and,
-   when given, from the prior; each refined by point-to-plane ICP (or generalized ICP) from
-   coarse to fine; the guess with the best fitness wins. A pair is kept when its overlap
-   (fitness: share of the source's points with a counterpart within ``overlap_distance_m``)
-   is at least ``min_overlap`` and its inlier RMS at most ``max_rmse_m``; else it is reported
-   and left out.
+   ``pair_max_distance_m``): up to ``hypotheses`` distinct starting guesses from FPFH
+   correspondences by sequential RANSAC (each round removes the correspondences the last
+   guess explained, so look-alike placements and the true one all come out), plus the prior's
+   relative pose when given; each refined by coarse point-to-plane ICP. A hypothesis is
+   *valid* when its overlap is at least ``min_overlap`` and its free-space conflict (the share
+   of either scan's points that lie in space the other scan's beams passed through, more than
+   ``free_space_margin_m`` in front of what they hit) is at most ``max_conflict`` — and, with a
+   prior, when it lies within ``prior_gate_m`` / ``prior_gate_deg`` of the prior's relative
+   pose. Room A laid onto a look-alike room B fits the walls but puts A's furniture into B's
+   empty space: rejected. One valid hypothesis: refined by point-to-plane ICP on the fine
+   clouds (last round weighted by Tukey's biweight: a hard cut-off near the noise biases the
+   rotation of pairs that see little of each other) and kept when its residual to the
+   target's planes is at most ``max_rmse_m``. None: the pair is left out.
+   Two or more distinct ones: the pair is *ambiguous* and left out, never forced.
 3. Pose graph over the kept pairs (Open3D, Levenberg–Marquardt), started from the pairs'
-   maximum-fitness spanning tree; edges that disagree with the optimum by more than
+   maximum-overlap spanning tree; edges that disagree with the optimum by more than
    ``max_edge_disagreement_m`` / ``_deg`` are dropped one at a time (worst first, never one
    the graph needs to stay connected) and the graph re-optimised: a loop that does not close
-   is reported, never averaged in.
-4. Gauge: scan 0 at the identity, or with a prior, the rigid transform that best fits the
+   is reported, never averaged in. An ambiguous pair whose scans the graph already joins is
+   resolved by that loop when exactly one of its hypotheses agrees with it (the pair is then
+   refined and added, and the graph re-run); a scan reached by no kept pair gets no pose.
+4. Check: every two registered scans (neighbours or not) are tested for free-space conflict at
+   their final poses; a conflict is a warning naming both scans (one of them is misplaced).
+5. Gauge: scan 0 at the identity, or with a prior, the rigid transform that best fits the
    optimised positions to the prior positions (so the site lands in the prior's frame).
-5. Covariance per scan from the graph's information (ICP correspondences, scaled by each pair's
+6. Covariance per scan from the graph's information (ICP correspondences, scaled by each pair's
    residual; scan 0 fixed): a lower bound, since it treats point residuals as independent.
 """
 
@@ -43,22 +59,47 @@ F64 = NDArray[np.float64]
 class RegisterParams(Params):
     """Parameters of site registration (see the module docstring)."""
 
-    coarse_voxel_m: float = Field(0.08, gt=0, le=1)
-    fine_voxel_m: float = Field(0.03, gt=0, le=0.5)
+    coarse_voxel_m: float = Field(0.15, gt=0, le=1)
+    hypotheses: int = Field(8, ge=1, le=64, description="RANSAC rounds per pair (each "
+                                                        "gives one starting guess)")
+    ransac_iterations: int = Field(5_000, ge=1000, le=10_000_000,
+                                   description="per RANSAC round")
+    fine_source_points: int = Field(30_000, ge=500, description="Points of the source scan "
+                                    "(an even subsample) in the fine ICP.")
+    fine_distance_m: float = Field(0.03, gt=0, le=0.5, description="The scale of Tukey's "
+                                   "biweight in the fine ICP's last round (~3 noise σ).")
     fine_method: Literal["point_to_plane", "generalized"] = "point_to_plane"
     overlap_distance_m: float = Field(0.05, gt=0, le=1)
     min_overlap: float = Field(0.15, gt=0, le=1)
     max_rmse_m: float = Field(0.03, gt=0, le=1)
-    ransac_iterations: int = Field(50_000, ge=1000, le=10_000_000)
+    free_space_margin_m: float = Field(0.1, gt=0, le=2, description="How far in front of "
+                                       "what a beam hit a point must lie to be in its free "
+                                       "space (plus 2 % of the range).")
+    max_conflict: float = Field(0.02, ge=0, le=1, description="Largest share of a scan's "
+                                "points allowed in the other scan's free space.")
+    same_hypothesis_m: float = Field(0.1, gt=0, description="Two hypotheses closer than "
+                                     "this (and same_hypothesis_deg) are the same placement.")
+    same_hypothesis_deg: float = Field(2.0, gt=0)
     pair_max_distance_m: float | None = Field(None, gt=0, description="With a prior: only "
                                               "pairs whose prior positions are this close.")
     max_edge_disagreement_m: float = Field(0.02, gt=0)
     max_edge_disagreement_deg: float = Field(0.5, gt=0)
-    prior_gate_m: float = Field(1.5, gt=0, description="With a prior: a pair whose result "
+    prior_gate_m: float = Field(1.5, gt=0, description="With a prior: a hypothesis that "
                                 "moves the scans this far from the prior's relative pose is "
-                                "left out (a match to a look-alike place).")
+                                "not valid (a match to a look-alike place).")
     prior_gate_deg: float = Field(30.0, gt=0, le=180)
     seed: int = Field(0, ge=0)
+
+
+@dataclass
+class FreeSpace:
+    """The nearest range a scan measured per direction from its centre: a spherical image
+    (elevation × azimuth, ``res_deg`` bins), each bin the minimum over its 3 × 3 neighbours
+    (so a depth edge never claims the far side as free); ``inf`` where nothing was seen."""
+
+    centre: F64
+    res_deg: float
+    range_m: F64
 
 
 @dataclass
@@ -70,6 +111,21 @@ class ScanClouds:
     features: Any
     fine: Any
     points: int
+    fine_source: Any = None
+    free_space: FreeSpace | None = None
+    spacing_m: float = 0.0
+    tree: Any = None
+
+
+@dataclass
+class Hypothesis:
+    """One placement of a pair's source scan in its target's frame, coarsely refined."""
+
+    transform: F64
+    overlap: float
+    conflict: float
+    init: str
+    valid: bool = False
 
 
 @dataclass
@@ -85,11 +141,21 @@ class PairResult:
     accepted: bool
     reason: str = ""
     information: F64 = field(default_factory=lambda: np.zeros((6, 6)))
+    conflict: float = 0.0
+    hypotheses: int = 0
+    alternatives: list[Hypothesis] = field(default_factory=list)
+
+    @property
+    def ambiguous(self) -> bool:
+        """Two or more distinct valid hypotheses."""
+        return len(self.alternatives) > 1
 
     def record(self, names: list[str]) -> dict[str, Any]:
         """The pair as the report shows it."""
         return {"target": names[self.target], "source": names[self.source],
                 "overlap": round(self.fitness, 4), "rmse_m": round(self.rmse_m, 5),
+                "conflict": round(self.conflict, 4), "hypotheses": self.hypotheses,
+                "valid_hypotheses": len(self.alternatives),
                 "init": self.init, "accepted": self.accepted, "reason": self.reason}
 
 
@@ -99,105 +165,289 @@ def _o3d() -> Any:
     return o3d
 
 
+def _angles_deg(vectors: F64) -> tuple[F64, F64, F64]:
+    """Range, azimuth (0…360°) and elevation (0…180°) of vectors from a scan's centre."""
+    distance = np.linalg.norm(vectors, axis=1)
+    azimuth = np.degrees(np.arctan2(vectors[:, 0], vectors[:, 2])) + 180.0
+    elevation = np.degrees(np.arcsin(np.clip(vectors[:, 1] / np.maximum(distance, 1e-9),
+                                             -1.0, 1.0))) + 90.0
+    return distance, azimuth, elevation
+
+
+def free_space_image(xyz: F64, origin: F64) -> FreeSpace:
+    """The :class:`FreeSpace` of one scan (points and their beam origins, rig frame); the bin
+    is twice the scan's mean angular spacing, at least 0.5°."""
+    centre = origin.mean(axis=0)
+    distance, azimuth, elevation = _angles_deg(xyz - centre)
+    spacing_deg = math.degrees(math.sqrt(4.0 * math.pi * 0.8 / max(len(xyz), 1)))
+    rows = max(1, int(180.0 / max(0.5, 2.0 * spacing_deg)))
+    res_deg, cols = 180.0 / rows, 2 * rows
+    row = np.minimum((elevation / res_deg).astype(np.int64), rows - 1)
+    col = np.minimum((azimuth / res_deg).astype(np.int64), cols - 1)
+    image = np.full((rows, cols), np.inf)
+    np.minimum.at(image, (row, col), distance)
+    padded = np.pad(image, ((1, 1), (0, 0)), constant_values=np.inf)
+    eroded = image.copy()
+    for d_row in (-1, 0, 1):
+        for d_col in (-1, 0, 1):  # azimuth wraps around
+            eroded = np.minimum(eroded, np.roll(padded, d_col, axis=1)[1 + d_row:1 + d_row + rows])
+    return FreeSpace(centre, res_deg, eroded)
+
+
+def conflict_share(space: FreeSpace, points: F64, margin_m: float) -> float:
+    """The share of ``points`` (in the free-space scan's frame) that its beams saw through:
+    nearer than the range it measured in their direction by ``margin_m`` + 2 %. Points in
+    directions it saw nothing in are not counted."""
+    distance, azimuth, elevation = _angles_deg(points - space.centre)
+    rows, cols = space.range_m.shape
+    row = np.minimum((elevation / space.res_deg).astype(np.int64), rows - 1)
+    col = np.minimum((azimuth / space.res_deg).astype(np.int64), cols - 1)
+    surface = space.range_m[row, col]
+    seen = np.isfinite(surface)
+    if not seen.any():
+        return 0.0
+    inside = distance[seen] < surface[seen] * 0.98 - margin_m
+    return float(np.count_nonzero(inside)) / float(np.count_nonzero(seen))
+
+
+def _transform(points: F64, pose: F64) -> F64:
+    return np.asarray(points @ pose[:3, :3].T + pose[:3, 3], np.float64)
+
+
+def pair_conflict(target: ScanClouds, source: ScanClouds, transform: F64,
+                  params: RegisterParams) -> float:
+    """Free-space conflict of ``source`` placed by ``transform`` in ``target``'s frame: the
+    larger of the two directions (coarse points of each in the other's free space)."""
+    assert target.free_space is not None and source.free_space is not None
+    into_target = conflict_share(target.free_space,
+                                 _transform(np.asarray(source.coarse.points), transform),
+                                 params.free_space_margin_m)
+    into_source = conflict_share(source.free_space,
+                                 _transform(np.asarray(target.coarse.points), invert(transform)),
+                                 params.free_space_margin_m)
+    return max(into_target, into_source)
+
+
 def prepare_scan(name: str, xyz: NDArray[np.floating], origin: NDArray[np.floating],
-                 params: RegisterParams) -> ScanClouds:
-    """Downsample, estimate normals (toward the scanner) and FPFH features of one scan."""
+                 params: RegisterParams, normals: NDArray[np.floating] | None = None
+                 ) -> ScanClouds:
+    """Downsample, estimate normals (toward the scanner) and FPFH features of one scan; the
+    fine clouds keep the scan's own points (with ``normals`` when given, e.g. the grid's)."""
     o3d = _o3d()
     finite = np.all(np.isfinite(xyz), axis=1)
     points = np.asarray(xyz, np.float64)[finite]
+    origins = np.asarray(origin, np.float64)[finite]
     if len(points) < 100:
         raise StageError(f"{name}: only {len(points)} points; too few to register")
-    centre = np.asarray(origin, np.float64)[finite].mean(axis=0)
+    centre = origins.mean(axis=0)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-
-    def down(voxel: float) -> Any:
-        small = cloud.voxel_down_sample(voxel)
-        small.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=3 * voxel, max_nn=30))
-        small.orient_normals_towards_camera_location(centre)
-        return small
-
-    coarse = down(params.coarse_voxel_m)
+    if normals is not None:
+        given = np.asarray(normals, np.float64)[finite]
+        usable = np.all(np.isfinite(given), axis=1)
+        given[~usable] = 0.0
+        cloud.normals = o3d.utility.Vector3dVector(given)
+        if not usable.all():
+            cloud = cloud.select_by_index(np.flatnonzero(usable).tolist())
+    else:
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(24))
+        cloud.orient_normals_towards_camera_location(centre)
+    step = max(1, math.ceil(len(cloud.points) / params.fine_source_points))
+    fine_source = cloud.uniform_down_sample(step) if step > 1 else cloud
+    coarse = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(
+        params.coarse_voxel_m)
+    coarse.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(
+        radius=3 * params.coarse_voxel_m, max_nn=30))
+    coarse.orient_normals_towards_camera_location(centre)
     features = o3d.pipelines.registration.compute_fpfh_feature(
         coarse, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * params.coarse_voxel_m,
                                                      max_nn=100))
-    return ScanClouds(name, coarse, features, down(params.fine_voxel_m), len(points))
+    from scipy.spatial import cKDTree
+
+    fine_points = np.asarray(cloud.points)
+    tree = cKDTree(fine_points)
+    probe = fine_points[::max(1, len(fine_points) // 5000)]
+    spacing = float(np.median(tree.query(probe, k=2)[0][:, 1]))
+    return ScanClouds(name, coarse, features, cloud, len(points), fine_source,
+                      free_space_image(points, origins), spacing, tree)
 
 
-def _ransac(source: ScanClouds, target: ScanClouds, params: RegisterParams) -> F64:
-    o3d = _o3d()
-    reg = o3d.pipelines.registration
-    distance = 1.5 * params.coarse_voxel_m
-    o3d.utility.random.seed(params.seed)
-    result = reg.registration_ransac_based_on_feature_matching(
-        source.coarse, target.coarse, source.features, target.features, True, distance,
-        reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
-         reg.CorrespondenceCheckerBasedOnDistance(distance)],
-        reg.RANSACConvergenceCriteria(params.ransac_iterations, 0.9999))
-    return np.asarray(result.transformation, np.float64)
+def plane_fit(source: ScanClouds, target: ScanClouds, transform: F64, params: RegisterParams
+              ) -> tuple[float, float, NDArray[np.bool_]]:
+    """Overlap, RMS and inlier mask of ``source``'s fine points placed by ``transform`` against
+    ``target``'s surface: a point overlaps when the target has a point within
+    :func:`search_radius` whose plane (its normal) passes within ``overlap_distance_m``. The
+    distance is to the plane, not to the nearest point, so a coarse scan's sample spacing
+    does not count as misalignment."""
+    points = _transform(np.asarray(source.fine_source.points), transform)
+    distance, index = target.tree.query(points, distance_upper_bound=search_radius(target,
+                                                                                  params))
+    found = np.isfinite(distance)
+    normals = np.asarray(target.fine.normals)
+    anchors = np.asarray(target.fine.points)
+    plane = np.full(len(points), np.inf)
+    plane[found] = np.abs(np.einsum("ij,ij->i", points[found] - anchors[index[found]],
+                                    normals[index[found]]))
+    inlier = plane <= params.overlap_distance_m
+    if not inlier.any():
+        return 0.0, 0.0, inlier
+    return (float(np.count_nonzero(inlier)) / len(points),
+            float(np.sqrt(np.mean(plane[inlier] ** 2))), inlier)
+
+
+def search_radius(target: ScanClouds, params: RegisterParams) -> float:
+    """How far to look for a target point: the fine ICP's distance, or three of the target's
+    point spacings when it is sparser (a coarse scan)."""
+    return max(params.fine_distance_m, 3.0 * target.spacing_m)
+
+
+def _coarse_refine(source: ScanClouds, target: ScanClouds, init: F64, params: RegisterParams
+                   ) -> tuple[F64, float]:
+    """Point-to-plane ICP on the coarse clouds; (transform, overlap at one coarse voxel)."""
+    reg = _o3d().pipelines.registration
+    transform = init
+    for distance in (3.0 * params.coarse_voxel_m, params.coarse_voxel_m):
+        result = reg.registration_icp(source.coarse, target.coarse, distance, transform,
+                                      reg.TransformationEstimationPointToPlane(),
+                                      reg.ICPConvergenceCriteria(1e-6, 1e-6, 20))
+        transform = np.asarray(result.transformation, np.float64)
+    return transform, float(result.fitness)
 
 
 def refine(source: ScanClouds, target: ScanClouds, init: F64, params: RegisterParams
            ) -> tuple[F64, float, float]:
-    """ICP from coarse to fine; returns (transform, fitness, inlier RMS) at the overlap
-    distance."""
+    """ICP on the fine clouds (the scans' own points, the target's normals), ending with a
+    round weighted by Tukey's biweight at ``fine_distance_m``; returns (transform, overlap,
+    RMS) from :func:`plane_fit`."""
     o3d = _o3d()
     reg = o3d.pipelines.registration
     transform = init
-    schedule = ((source.coarse, target.coarse, 2.0 * params.coarse_voxel_m, 30),
-                (source.fine, target.fine, 2.0 * params.fine_voxel_m, 30),
-                (source.fine, target.fine, params.overlap_distance_m, 60))
-    for src, tgt, distance, iterations in schedule:
-        criteria = reg.ICPConvergenceCriteria(1e-8, 1e-8, iterations)
+    wide = max(params.overlap_distance_m, params.fine_distance_m)
+    # The last round weighs residuals by Tukey's biweight (scale fine_distance_m) instead of
+    # cutting them off there: a hard cut-off near the noise keeps one tail of the residuals at
+    # edges and door frames, and turned a pair seeing 30 % of the other 0.06° (Tukey: 0.01°).
+    for distance, kernel in ((params.coarse_voxel_m, None), (wide, None),
+                             (wide, reg.TukeyLoss(params.fine_distance_m))):
+        criteria = reg.ICPConvergenceCriteria(1e-9, 1e-9, 40)
         if params.fine_method == "generalized":
+            estimation = (reg.TransformationEstimationForGeneralizedICP() if kernel is None
+                          else reg.TransformationEstimationForGeneralizedICP(kernel=kernel))
             result = reg.registration_generalized_icp(
-                src, tgt, distance, transform,
-                reg.TransformationEstimationForGeneralizedICP(), criteria)
+                source.fine_source, target.fine, distance, transform, estimation, criteria)
         else:
-            result = reg.registration_icp(src, tgt, distance, transform,
-                                          reg.TransformationEstimationPointToPlane(), criteria)
+            estimation = (reg.TransformationEstimationPointToPlane() if kernel is None
+                          else reg.TransformationEstimationPointToPlane(kernel))
+            result = reg.registration_icp(source.fine_source, target.fine, distance, transform,
+                                          estimation, criteria)
         transform = np.asarray(result.transformation, np.float64)
-    check = reg.evaluate_registration(source.fine, target.fine, params.overlap_distance_m,
-                                      transform)
-    return transform, float(check.fitness), float(check.inlier_rmse)
+    fitness, rmse, _ = plane_fit(source, target, transform, params)
+    return transform, fitness, rmse
+
+
+def same_placement(a: F64, b: F64, params: RegisterParams) -> bool:
+    """Whether two relative poses are the same placement (within ``same_hypothesis_*``)."""
+    dt, dr = pose_error(a, b)
+    return dt <= params.same_hypothesis_m and dr <= params.same_hypothesis_deg
+
+
+def pair_hypotheses(source: ScanClouds, target: ScanClouds, params: RegisterParams,
+                    prior_guess: F64 | None = None) -> list[Hypothesis]:
+    """Distinct placements of ``source`` in ``target``'s frame: sequential RANSAC over FPFH
+    correspondences (each round drops the correspondences the previous guesses explained) and
+    the prior's guess, each refined by coarse ICP and scored (overlap, free-space conflict,
+    validity); best first."""
+    o3d = _o3d()
+    reg = o3d.pipelines.registration
+    distance = 1.5 * params.coarse_voxel_m
+    matches = np.asarray(reg.correspondences_from_features(source.features, target.features,
+                                                           False), np.int64).reshape(-1, 2)
+    src = np.asarray(source.coarse.points)[matches[:, 0]]
+    tgt = np.asarray(target.coarse.points)[matches[:, 1]]
+    alive = np.ones(len(matches), bool)
+    guesses: list[tuple[str, F64]] = []
+    if prior_guess is not None:
+        guesses.append(("prior", prior_guess))
+    for round_ in range(params.hypotheses):
+        if np.count_nonzero(alive) < 3:
+            break
+        o3d.utility.random.seed(params.seed + round_)
+        result = reg.registration_ransac_based_on_correspondence(
+            source.coarse, target.coarse, o3d.utility.Vector2iVector(matches[alive]), distance,
+            reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9),
+             reg.CorrespondenceCheckerBasedOnDistance(distance)],
+            reg.RANSACConvergenceCriteria(params.ransac_iterations, 0.9999))
+        guess = np.asarray(result.transformation, np.float64)
+        explained = np.linalg.norm(_transform(src, guess) - tgt, axis=1) <= 2.0 * distance
+        if not explained[alive].any():
+            break
+        alive &= ~explained
+        guesses.append(("ransac", guess))
+    found: list[Hypothesis] = []
+    for label, guess in guesses:
+        transform, overlap = _coarse_refine(source, target, guess, params)
+        if any(same_placement(transform, h.transform, params) for h in found):
+            continue
+        conflict = pair_conflict(target, source, transform, params)
+        valid = overlap >= params.min_overlap and conflict <= params.max_conflict
+        if valid and prior_guess is not None:
+            gap = pose_error(transform, prior_guess)
+            valid = gap[0] <= params.prior_gate_m and gap[1] <= params.prior_gate_deg
+        found.append(Hypothesis(transform, overlap, conflict, label, valid))
+    found.sort(key=lambda h: (not h.valid, h.conflict > params.max_conflict, -h.overlap))
+    return found
+
+
+def _describe(h: Hypothesis, params: RegisterParams, prior_guess: F64 | None) -> str:
+    if h.overlap < params.min_overlap:
+        return f"overlap {h.overlap:.1%} < min_overlap {params.min_overlap:.0%}"
+    if h.conflict > params.max_conflict:
+        return (f"{h.conflict:.1%} of the points lie in the other scan's free space "
+                f"(max_conflict {params.max_conflict:.0%}): a look-alike place")
+    assert prior_guess is not None
+    gap = pose_error(h.transform, prior_guess)
+    return (f"{gap[0]:.2f} m / {gap[1]:.0f}° from the prior's relative pose (prior_gate_m / "
+            "_deg): a look-alike place")
+
+
+def finish_pair(clouds: list[ScanClouds], pair: PairResult, start: F64, init: str,
+                params: RegisterParams) -> PairResult:
+    """Refine a pair's chosen placement on the fine clouds; accept it when the residual and
+    overlap pass (the information matrix is then set)."""
+    source, target = clouds[pair.source], clouds[pair.target]
+    transform, fitness, rmse = refine(source, target, start, params)
+    pair.transform, pair.fitness, pair.rmse_m, pair.init = transform, fitness, rmse, init
+    if fitness < params.min_overlap:
+        pair.reason = f"overlap {fitness:.1%} < min_overlap {params.min_overlap:.0%}"
+    elif rmse > params.max_rmse_m:
+        pair.reason = f"residual {rmse * 1000:.1f} mm > max_rmse_m"
+    else:
+        pair.accepted, pair.reason = True, ""
+        info = _o3d().pipelines.registration.get_information_matrix_from_point_clouds(
+            source.fine_source, target.fine, params.overlap_distance_m, transform)
+        pair.information = np.asarray(info, np.float64) / max(rmse ** 2, 1e-10)
+    return pair
 
 
 def register_pair(clouds: list[ScanClouds], target: int, source: int, params: RegisterParams,
                   prior: list[F64] | None) -> PairResult:
-    """Align scan ``source`` to scan ``target``: every initial guess refined, the best kept."""
-    o3d = _o3d()
-    guesses = [("ransac", _ransac(clouds[source], clouds[target], params))]
-    if prior is not None:
-        guesses.append(("prior", invert(prior[target]) @ prior[source]))
-    best: PairResult | None = None
-    best_rank: tuple[bool, float] = (False, -1.0)
-    for label, guess in guesses:
-        transform, fitness, rmse = refine(clouds[source], clouds[target], guess, params)
-        gap = (pose_error(transform, invert(prior[target]) @ prior[source])
-               if prior is not None else (0.0, 0.0))
-        # a result near the prior beats a better-fitting one at a look-alike place
-        rank = (gap[0] <= params.prior_gate_m and gap[1] <= params.prior_gate_deg, fitness)
-        if best is None or rank[0] > best_rank[0] or (
-                rank[0] == best_rank[0] and fitness > best.fitness + 1e-3):
-            best, best_rank = PairResult(target, source, transform, fitness, rmse, label,
-                                         False), rank
-    assert best is not None
-    prior_gap = (pose_error(best.transform, invert(prior[target]) @ prior[source])
-                 if prior is not None else (0.0, 0.0))
-    if best.fitness < params.min_overlap:
-        best.reason = f"overlap {best.fitness:.1%} < min_overlap {params.min_overlap:.0%}"
-    elif best.rmse_m > params.max_rmse_m:
-        best.reason = f"residual {best.rmse_m * 1000:.1f} mm > max_rmse_m"
-    elif prior_gap[0] > params.prior_gate_m or prior_gap[1] > params.prior_gate_deg:
-        best.reason = (f"{prior_gap[0]:.2f} m / {prior_gap[1]:.0f}° from the prior's relative "
-                       "pose (prior_gate_m / _deg): a look-alike place")
-    else:
-        best.accepted = True
-        info = o3d.pipelines.registration.get_information_matrix_from_point_clouds(
-            clouds[source].fine, clouds[target].fine, params.overlap_distance_m, best.transform)
-        variance = max(best.rmse_m ** 2 / 3.0, 1e-10)
-        best.information = np.asarray(info, np.float64) / variance
-    return best
+    """Align scan ``source`` to scan ``target``: hypotheses, free-space check, then the one
+    valid hypothesis refined; none or several valid: left out with the reason."""
+    prior_guess = None if prior is None else invert(prior[target]) @ prior[source]
+    found = pair_hypotheses(clouds[source], clouds[target], params, prior_guess)
+    valid = [h for h in found if h.valid]
+    best = found[0] if found else Hypothesis(np.eye(4), 0.0, 1.0, "none")
+    pair = PairResult(target, source, best.transform, best.overlap, 0.0, best.init, False,
+                      conflict=best.conflict, hypotheses=len(found), alternatives=valid)
+    if not valid:
+        pair.reason = ("no hypothesis" if not found else _describe(best, params, prior_guess))
+        return pair
+    if len(valid) > 1:
+        gaps = pose_error(valid[0].transform, valid[1].transform)
+        pair.reason = (f"ambiguous: {len(valid)} placements fit (overlap "
+                       f"{', '.join(f'{h.overlap:.0%}' for h in valid)}, {gaps[0]:.2f} m / "
+                       f"{gaps[1]:.0f}° apart)")
+        return pair
+    return finish_pair(clouds, pair, best.transform, best.init, params)
 
 
 def _spanning_tree(count: int, pairs: list[PairResult]) -> tuple[list[F64 | None], set[int]]:
@@ -296,33 +546,19 @@ def _fit_to_prior(poses: list[F64], prior: list[F64]) -> F64:
     return transform
 
 
-def register_scans(clouds: list[ScanClouds], params: RegisterParams,
-                   prior: list[F64] | None = None, progress: Any = None
-                   ) -> tuple[list[F64 | None], list[F64 | None], dict[str, Any]]:
-    """Register every scan: poses (None for a scan no kept pair reaches), covariances and the
-    report (pairs, dropped edges, warnings)."""
-    n = len(clouds)
-    names = [c.name for c in clouds]
-    candidates = [(i, j) for i in range(n) for j in range(i + 1, n)]
-    if prior is not None and params.pair_max_distance_m is not None:
-        candidates = [(i, j) for i, j in candidates if np.linalg.norm(
-            prior[i][:3, 3] - prior[j][:3, 3]) <= params.pair_max_distance_m]
-    results = []
-    for k, (i, j) in enumerate(candidates):
-        if progress is not None:
-            progress("register", k, len(candidates))
-        results.append(register_pair(clouds, i, j, params, prior))
-    kept = [p for p in results if p.accepted]
-    warnings: list[str] = []
+def _solve_graph(n: int, kept: list[PairResult], names: list[str], params: RegisterParams
+                 ) -> tuple[list[F64 | None], list[PairResult], list[dict[str, Any]]]:
+    """Spanning tree from scan 0, pose graph, and the loop check: (poses of the reached scans,
+    the pairs left in the graph, the pairs dropped for not closing a loop)."""
     dropped: list[dict[str, Any]] = []
     while True:
         initial, tree = _spanning_tree(n, kept)
         reached = [k for k in range(n) if initial[k] is not None]
         sub = {old: new for new, old in enumerate(reached)}
+        inside = [p for p in kept if p.target in sub and p.source in sub]
         edges = [PairResult(sub[p.target], sub[p.source], p.transform, p.fitness, p.rmse_m,
-                            p.init, True, "", p.information)
-                 for p in kept if p.target in sub and p.source in sub]
-        tree_sub = {e for e, p in enumerate(kept) if e in tree}
+                            p.init, True, "", p.information) for p in inside]
+        tree_sub = {e for e, p in enumerate(inside) if kept.index(p) in tree}
         optimised = _optimise([initial[k] for k in reached], edges,  # type: ignore[misc]
                               tree_sub, params)
         worst, worst_score, worst_record = -1, 1.0, {}
@@ -337,43 +573,124 @@ def register_scans(clouds: list[ScanClouds], params: RegisterParams,
                                 "disagreement_m": round(dt, 5),
                                 "disagreement_deg": round(dr, 4)}
         if worst < 0:
-            break
+            poses: list[F64 | None] = [None] * n
+            for new, old in enumerate(reached):
+                poses[old] = optimised[new]
+            return poses, inside, dropped
         dropped.append(worst_record)
-        bad = edges[worst]
-        kept = [p for p in kept if not (sub.get(p.target) == bad.target
-                                        and sub.get(p.source) == bad.source)]
+        kept = [p for p in kept if p is not inside[worst]]
+
+
+def register_scans(clouds: list[ScanClouds], params: RegisterParams,
+                   prior: list[F64] | None = None, progress: Any = None
+                   ) -> tuple[list[F64 | None], list[F64 | None], dict[str, Any]]:
+    """Register every scan: poses (None for a scan no kept pair reaches), covariances and the
+    report (pairs, dropped edges, resolved and ambiguous pairs, conflicts, warnings)."""
+    n = len(clouds)
+    names = [c.name for c in clouds]
+    candidates = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    if prior is not None and params.pair_max_distance_m is not None:
+        candidates = [(i, j) for i, j in candidates if np.linalg.norm(
+            prior[i][:3, 3] - prior[j][:3, 3]) <= params.pair_max_distance_m]
+    results = []
+    for k, (i, j) in enumerate(candidates):
+        if progress is not None:
+            progress("register", k, len(candidates))
+        results.append(register_pair(clouds, i, j, params, prior))
+    kept = [p for p in results if p.accepted]
+    warnings: list[str] = []
+    poses, edges, dropped = _solve_graph(n, kept, names, params)
+    # an ambiguous pair between scans the graph already joins: its loop decides
+    resolved: list[dict[str, Any]] = []
+    for pair in (p for p in results if p.ambiguous):
+        t_pose, s_pose = poses[pair.target], poses[pair.source]
+        if t_pose is None or s_pose is None:
+            continue
+        implied = invert(t_pose) @ s_pose
+        agree = [h for h in pair.alternatives if same_placement(h.transform, implied, params)]
+        if len(agree) != 1:
+            continue
+        finish_pair(clouds, pair, agree[0].transform, agree[0].init, params)
+        if pair.accepted:
+            pair.reason = "ambiguous alone; resolved by the loop through the other pairs"
+            resolved.append({"target": names[pair.target], "source": names[pair.source]})
+    if resolved:
+        kept = [p for p in results if p.accepted]
+        poses, edges, dropped = _solve_graph(n, kept, names, params)
     for record in dropped:
         warnings.append(f"pair {record['target']}–{record['source']} disagrees with the other "
                         f"pairs by {record['disagreement_m'] * 1000:.1f} mm / "
                         f"{record['disagreement_deg']:.2f}°: left out of the pose graph")
-    rejected = [p for p in results if not p.accepted]
-    missing = [names[k] for k in range(n) if k not in sub]
-    if missing:
-        warnings.append(f"scans {', '.join(missing)} overlap no other scan well enough: not "
-                        "registered (no pose written); scan closer to their neighbours")
+    reached = [k for k in range(n) if poses[k] is not None]
+    missing = [names[k] for k in range(n) if poses[k] is None]
+    for k in range(n):
+        if poses[k] is not None:
+            continue
+        why = [p for p in results if k in (p.target, p.source) and p.ambiguous
+               and not p.accepted]
+        if why:
+            other = names[why[0].source if why[0].target == k else why[0].target]
+            warnings.append(f"{names[k]}: not registered (no pose written): its pair with "
+                            f"{other} is ambiguous ({why[0].reason}) and no other pair places "
+                            "it; add a position that links it, or give a --prior")
+        else:
+            warnings.append(f"{names[k]}: not registered (no pose written): it overlaps no "
+                            "registered scan well enough; scan closer to its neighbours")
+    conflicts = site_conflicts(clouds, poses, params)
+    for record in conflicts:
+        warnings.append(f"scans {record['a']} and {record['b']} conflict at their registered "
+                        f"poses ({record['conflict']:.1%} of the points of one lie in the "
+                        "other's free space): at least one of them is misplaced")
     gauge = np.eye(4)
     if prior is not None:
-        gauge = _fit_to_prior(optimised, [prior[k] for k in reached])
-    poses: list[F64 | None] = [None] * n
-    covs: list[F64 | None] = [None] * n
-    sub_cov = covariances(optimised, edges)
+        gauge = _fit_to_prior([poses[k] for k in reached],  # type: ignore[misc]
+                              [prior[k] for k in reached])
+    sub = {old: new for new, old in enumerate(reached)}
+    sub_edges = [PairResult(sub[p.target], sub[p.source], p.transform, p.fitness, p.rmse_m,
+                            p.init, True, "", p.information) for p in edges]
+    sub_cov = covariances([poses[k] for k in reached], sub_edges)  # type: ignore[misc]
     adjoint = _adjoint(gauge)
+    final: list[F64 | None] = [None] * n
+    covs: list[F64 | None] = [None] * n
     for new, old in enumerate(reached):
-        poses[old] = gauge @ optimised[new]
+        final[old] = gauge @ poses[old]  # type: ignore[operator]
         cov = sub_cov[new]
         covs[old] = None if cov is None else adjoint @ cov @ adjoint.T
-    for k, pose in enumerate(poses):
+    for k, pose in enumerate(final):
         if pose is not None and prior is not None:
             dt, dr = pose_error(pose, prior[k])
             if dt > 2.0 or dr > 45.0:
                 warnings.append(f"{names[k]}: registered {dt:.2f} m / {dr:.0f}° away from its "
                                 "prior pose; check the prior (or the scan)")
     report = {"scans": names, "pairs": [p.record(names) for p in results],
-              "pairs_kept": len(kept), "pairs_rejected": len(rejected),
-              "edges_dropped": dropped, "unregistered": missing, "warnings": warnings,
+              "pairs_kept": len(edges),
+              "pairs_rejected": sum(1 for p in results if not p.accepted),
+              "pairs_ambiguous": [{"target": names[p.target], "source": names[p.source],
+                                   "reason": p.reason} for p in results
+                                  if p.ambiguous and not p.accepted],
+              "pairs_resolved_by_loop": resolved,
+              "edges_dropped": dropped, "unregistered": missing, "conflicts": conflicts,
+              "warnings": warnings,
               "gauge": "prior (best fit of positions)" if prior is not None else
                        f"{names[0]} at the identity"}
-    return poses, covs, report
+    return final, covs, report
+
+
+def site_conflicts(clouds: list[ScanClouds], poses: list[F64 | None], params: RegisterParams
+                   ) -> list[dict[str, Any]]:
+    """Every two registered scans whose free-space conflict at their poses exceeds
+    ``max_conflict`` (neighbours or not: a scan placed onto another place shows here)."""
+    found = []
+    for i, pose_i in enumerate(poses):
+        for j in range(i + 1, len(poses)):
+            pose_j = poses[j]
+            if pose_i is None or pose_j is None:
+                continue
+            conflict = pair_conflict(clouds[i], clouds[j], invert(pose_i) @ pose_j, params)
+            if conflict > params.max_conflict:
+                found.append({"a": clouds[i].name, "b": clouds[j].name,
+                              "conflict": round(conflict, 4)})
+    return found
 
 
 def _connected_without(count: int, edges: list[PairResult], skip: int) -> bool:

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from scanpipe.artifacts import artifact_key, read_artifact, write_artifact
 from scanpipe.errors import ArtifactError, UsageError
-from scanpipe.poses import poses_from_table, poses_table
+from scanpipe.poses import pose_errors, poses_from_table, poses_table
 from scanpipe.registration import RegisterParams, prepare_scan, register_scans
 from scanpipe.schema import ORIGIN, POINTS, POSES, XYZ
 from scanpipe.workdir import find_artifact
@@ -152,10 +152,23 @@ def merge_scans(tables: list[pa.Table], poses: list[F64], voxel_m: float = MERGE
     return merged.filter(pa.array(keep)), report
 
 
+def read_true_poses(path: Path) -> dict[str, F64]:
+    """True poses (scan name → pose) from a truth folder of ``simulate --site`` or a poses
+    file."""
+    file = path / "poses.parquet" if path.is_dir() else path
+    if not file.is_file():
+        raise UsageError(f"--truth {path}: no poses.parquet (give the truth folder of "
+                         "`scanpipe simulate --site` or a poses Parquet file)")
+    table, _ = read_artifact(file)
+    return poses_from_table(table, where=f"--truth {file}")
+
+
 def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
                   prior_path: Path | None = None, force: bool = False,
-                  progress: Any = None) -> dict[str, Any]:
-    """``scanpipe register``: register the scans, write the poses and the merged points."""
+                  progress: Any = None, truth_path: Path | None = None) -> dict[str, Any]:
+    """``scanpipe register``: register the scans, write the poses and the merged points; with
+    ``truth_path``, each pose's error against the true one (relative to the first scan) in
+    ``report["pose_errors"]``."""
     from scanpipe.outpaths import check_output_files, check_output_folder
 
     if len(workdirs) < 2:
@@ -169,14 +182,21 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
     check_output_files([out / POSES_FILE, out / POINTS_FILE], "--out", force, workdirs)
     loaded = [scan_points(w) for w in workdirs]
     prior = read_prior(prior_path, names) if prior_path is not None else None
-    clouds = [prepare_scan(n, _columns(t, XYZ), _columns(t, ORIGIN), params)
+    truth = read_true_poses(truth_path) if truth_path is not None else None
+    from scanpipe.normals import estimate_normals
+
+    clouds = [prepare_scan(n, _columns(t, XYZ), _columns(t, ORIGIN), params,
+                           estimate_normals(t)[0])
               for n, (t, _) in zip(names, loaded, strict=True)]
     poses, covs, report = register_scans(clouds, params, prior, progress)
     done = [k for k, p in enumerate(poses) if p is not None]
     if len(done) < 2:
-        raise ArtifactError("register: no two scans could be aligned (see the pairs: "
-                            + "; ".join(f"{p['target']}–{p['source']}: {p['reason']}"
-                                        for p in report["pairs"]) + ")")
+        shown = "; ".join(f"{p['target']}–{p['source']}: {p['reason']}"
+                          for p in report["pairs"][:3])
+        more = len(report["pairs"]) - 3
+        raise ArtifactError("register: no two scans could be placed unambiguously ("
+                            + shown + (f"; {more} more pairs left out" if more > 0 else "")
+                            + ")")
     key = artifact_key("register", 1, params.model_dump(mode="json"),
                        {n: k for n, (_, k) in zip(names, loaded, strict=True)}, {})
     provenance = {"stage": "register", "key": key, "params": params.model_dump(mode="json"),
@@ -191,6 +211,9 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
     write_artifact(out / POINTS_FILE, merged, {**provenance, "stage": "merge",
                                                "report": merge_report})
     report["merge"] = merge_report
+    if truth is not None:
+        report["pose_errors"] = pose_errors({names[k]: poses[k] for k in done},  # type: ignore[misc]
+                                            {n: truth[n] for n in names if n in truth})
     report["poses"] = str(out / POSES_FILE)
     report["points"] = str(out / POINTS_FILE)
     return report

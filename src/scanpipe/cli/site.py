@@ -24,6 +24,8 @@ def register_command(
     prior: Path | None = typer.Option(None, "--prior", help="Prior poses (a poses Parquet "
                                                             "file), e.g. from odometry."),
     force: bool = typer.Option(False, "--force", help="Overwrite an earlier site result."),
+    truth: Path | None = typer.Option(None, "--truth", help="True poses (the truth folder of "
+                                      "`simulate --site`): report each pose's error."),
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
@@ -34,16 +36,23 @@ def register_command(
     from scanpipe.site import register_site
 
     params = build_params(RegisterParams, params_file, assignments, None)
-    report = register_site(list(workdirs), out, params, prior, force)
+    report = register_site(list(workdirs), out, params, prior, force, truth_path=truth)
     print_warnings("register", report)
     if as_json:
         print_json(report)
     elif not quiet:
         for pair in report["pairs"]:
             state = "kept" if pair["accepted"] else f"left out ({pair['reason']})"
+            # a pair refused before its fine ICP has no residual
+            residual = (f", residual {pair['rmse_m'] * 1000:.1f} mm" if pair["rmse_m"] > 0
+                        else "")
             sys.stderr.write(f"register: {pair['target']}–{pair['source']}: overlap "
-                             f"{pair['overlap']:.1%}, residual {pair['rmse_m'] * 1000:.1f} mm, "
-                             f"{state}\n")
+                             f"{pair['overlap']:.1%}{residual}, {state}\n")
+        for row in report.get("pose_errors", []):
+            error = ("n/a" if row["translation_m"] is None else
+                     f"{row['translation_m'] * 1000:.2f} mm / {row['rotation_deg']:.4f}°")
+            sys.stderr.write(f"register: {row['scan']} pose error {error}"
+                             f"{' (' + row['note'] + ')' if row['note'] else ''}\n")
         sys.stderr.write(f"register: {len(report['scans']) - len(report['unregistered'])} of "
                          f"{len(report['scans'])} scans → {report['poses']}, merged "
                          f"{report['merge']['points_out']} points → {report['points']}\n")
