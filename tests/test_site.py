@@ -96,3 +96,25 @@ def test_register_refusals(cli: Callable[..., Any], tmp_path: Path) -> None:
                 str(tmp_path / "site"))
     assert empty.code == 2 and "no points artifact" in empty.err
     assert not (tmp_path / "site" / "poses.parquet").exists()
+
+
+def test_scan_workdirs_pass_over_the_batch_summary(tmp_path: Path) -> None:
+    """`register work/*` after `batch` also names work/batch.json: it is passed over; any
+    other file is refused in one line, as are two workdirs of one name."""
+    import pytest
+
+    from scanpipe.errors import UsageError
+    from scanpipe.site import scan_workdirs
+
+    for name in ("pos00-1a2b", "pos01-3c4d"):
+        (tmp_path / "work" / name).mkdir(parents=True)
+    (tmp_path / "work" / "batch.json").write_text("{}")
+    paths = sorted((tmp_path / "work").iterdir())
+    workdirs, names = scan_workdirs(paths, "register")
+    assert names == ["pos00-1a2b", "pos01-3c4d"] and all(w.is_dir() for w in workdirs)
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(UsageError, match=r"notes\.txt: not a folder"):
+        scan_workdirs([*paths, tmp_path / "notes.txt"], "register")
+    (tmp_path / "other" / "pos00-1a2b").mkdir(parents=True)
+    with pytest.raises(UsageError, match="register: two workdirs share a folder name"):
+        scan_workdirs([*paths, tmp_path / "other" / "pos00-1a2b"], "register")

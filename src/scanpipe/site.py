@@ -163,6 +163,25 @@ def read_true_poses(path: Path) -> dict[str, F64]:
     return poses_from_table(table, where=f"--truth {file}")
 
 
+def scan_workdirs(paths: list[Path], command: str) -> tuple[list[Path], list[str]]:
+    """The scans' workdirs among ``paths`` and their names (the folder names), for
+    ``register`` and ``site-model``. The batch summary (``batch.json``, which ``work/*`` picks
+    up beside a batch's workdirs) is passed over; any other non-folder, or two workdirs of one
+    name, is a one-line usage error."""
+    from scanpipe.batch import MANIFEST
+
+    workdirs = [p for p in paths if not (p.name == MANIFEST and p.is_file())]
+    for workdir in workdirs:
+        if not workdir.is_dir():
+            raise UsageError(f"{workdir}: not a folder (give the workdir of each scan)")
+    names = [w.resolve().name for w in workdirs]
+    if len(set(names)) != len(names):
+        raise UsageError(f"{command}: two workdirs share a folder name ("
+                         f"{', '.join(sorted({n for n in names if names.count(n) > 1}))}); "
+                         "scans are named after their workdir folders")
+    return workdirs, names
+
+
 def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
                   prior_path: Path | None = None, force: bool = False,
                   progress: Any = None, truth_path: Path | None = None) -> dict[str, Any]:
@@ -171,13 +190,9 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
     ``report["pose_errors"]``."""
     from scanpipe.outpaths import check_output_files, check_output_folder
 
+    workdirs, names = scan_workdirs(workdirs, "register")
     if len(workdirs) < 2:
         raise UsageError(f"register: {len(workdirs)} workdir given; a site needs at least 2")
-    names = [w.resolve().name for w in workdirs]
-    if len(set(names)) != len(names):
-        raise UsageError("register: two workdirs share a folder name ("
-                         f"{', '.join(sorted({n for n in names if names.count(n) > 1}))}); "
-                         "scans are named after their workdir folders")
     check_output_folder(out, "--out", workdirs)
     check_output_files([out / POSES_FILE, out / POINTS_FILE], "--out", force, workdirs)
     loaded = [scan_points(w) for w in workdirs]

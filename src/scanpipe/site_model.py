@@ -61,6 +61,7 @@ from scanpipe.site import (
     POSES_FILE,
     match_scan_names,
     merge_scans,
+    scan_workdirs,
     view_quality,
     voxel_winners,
 )
@@ -325,13 +326,9 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
     from scanpipe.stages.export import export_files, prepare_tables
     from scanpipe.stages.mesh import usable_points
 
+    workdirs, names = scan_workdirs(workdirs, "site-model")
     if not workdirs:
         raise UsageError("site-model: no workdir given")
-    names = [w.resolve().name for w in workdirs]
-    if len(set(names)) != len(names):
-        raise UsageError("site-model: two workdirs share a folder name ("
-                         f"{', '.join(sorted({n for n in names if names.count(n) > 1}))}); "
-                         "scans are named after their workdir folders")
     option = "--poses" if poses_path is not None else "--out"
     poses_path = poses_path if poses_path is not None else out / POSES_FILE
     poses_in = read_site_poses(poses_path, option)
