@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from scanpipe.camera import project_points
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.texturing.frames import FrameSet
+from scanpipe.texturing.seams import SeamCorrections, correction_field
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -107,8 +108,13 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
                 frames: FrameSet, gains: F64, *, page_px: int = 4096, texel_scale: float = 1.0,
                 pad_px: int = 3, cell_px: int = 32,
                 neutral_bgr: tuple[int, int, int] = (128, 128, 128),
+                seams: SeamCorrections | None = None, strip_px: float = 20.0,
                 progress: ProgressFn = no_progress) -> Atlas:
-    """Cut, scale, expose and pack the regions of every used frame; UVs for every face."""
+    """Cut, scale, expose and pack the regions of every used frame; UVs for every face.
+
+    With ``seams``, each region also gets its frame's seam corrections faded over
+    ``strip_px`` (:func:`scanpipe.texturing.seams.correction_field`), after the gain.
+    """
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     n_faces = len(faces)
@@ -146,6 +152,12 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         x0, y0, x1, y1 = (int(b) for b in boxes[r])
         crop = frames.image(int(frame_of[r]))[y0:y1, x0:x1].astype(np.float32)
         crop *= gains[frame_of[r]].astype(np.float32)
+        frame = int(frame_of[r])
+        if seams is not None and strip_px > 0 and frame in seams.uv:
+            field = correction_field(seams.uv[frame], seams.delta[frame], (x0, y0, x1, y1),
+                                     strip_px)
+            if field is not None:
+                crop += field
         patch = np.clip(crop + 0.5, 0, 255).astype(np.uint8)
         w, h = int(dst[r, 0]), int(dst[r, 1])
         if (w, h) != (x1 - x0, y1 - y0):
