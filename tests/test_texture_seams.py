@@ -291,3 +291,48 @@ def test_psnr_over_the_visible_surface_counts_unseen_faces() -> None:
     grey_mse = np.mean((np.array([200, 60, 30]) - 128.0) ** 2)
     expected = 10 * np.log10(255**2 / (grey_mse * figures["texture_unseen_share"]))
     assert figures["texture_psnr_visible_db"] == pytest.approx(expected, abs=0.3)
+
+
+# -- the report shows what no camera saw ---------------------------------------------------------
+
+def test_report_shows_the_unseen_surface_in_magenta(tmp_path: Path) -> None:
+    import base64
+    import io
+    import re
+
+    from PIL import Image
+    from result_tables import (
+        box_mesh,
+        faces_table,
+        pages_table,
+        textured_faces_table,
+        vertices_table,
+    )
+
+    from scanpipe.artifacts import write_artifact
+    from scanpipe.report import _glance, _previews
+
+    xyz, tri = box_mesh()
+    page = np.where(np.arange(len(tri)) < 10, 0, -1)  # the last wall: no camera saw it
+    uvs = np.tile(np.array([[0.1, 0.1], [0.9, 0.1], [0.5, 0.9]], np.float32), (len(tri), 1, 1))
+    buffer = io.BytesIO()
+    Image.fromarray(np.full((8, 8, 3), 90, np.uint8)).save(buffer, format="PNG")
+    tables = {"mesh_vertices": vertices_table(xyz), "mesh_faces": faces_table(tri),
+              "textured_faces": textured_faces_table(np.arange(len(tri)), page, uvs),
+              "texture_pages": pages_table({0: buffer.getvalue()})}
+    for name, table in tables.items():
+        stage = "mesh" if name.startswith("mesh") else "texture"
+        write_artifact(tmp_path / stage / f"{name}.parquet", table,
+                       {"stage": stage, "key": stage, "seconds": 1.0, "rows": table.num_rows,
+                        "report": {}})
+    figures = _previews(tmp_path, 96)
+    assert "unseen by every camera (magenta)" in figures[-1]
+    data = re.search(r'base64,([A-Za-z0-9+/=]+)', figures[-1])
+    assert data is not None
+    image = np.asarray(Image.open(io.BytesIO(base64.b64decode(data.group(1)))).convert("RGB"))
+    magenta = (image[:, :, 0] > 100) & (image[:, :, 1] < 40) & (image[:, :, 2] > 100)
+    assert 0.03 < magenta.mean() < 0.5  # one wall of six, shaded
+    rows = dict(_glance({"texture": {"coverage": 0.9, "unseen_share": 0.1, "frames_used": 3}},
+                        {}, None))
+    assert rows["textured"] == "90 % of the surface, 3 frames used; 10.0 % unseen (magenta " \
+                               "in the previews)"
