@@ -336,3 +336,33 @@ def test_report_shows_the_unseen_surface_in_magenta(tmp_path: Path) -> None:
                         {}, None))
     assert rows["textured"] == "90 % of the surface, 3 frames used; 10.0 % unseen (magenta " \
                                "in the previews)"
+
+
+# -- faces no frame holds whole ----------------------------------------------------------------
+
+def test_faces_larger_than_a_frame_are_textured_from_several(caster: Caster) -> None:
+    """A room of 3-m triangles: no frame of the small cameras holds one whole. Texel by texel
+    from several frames, they are textured, and in the right colours."""
+    vertices, faces, normals = room_mesh(3.0)
+    rec = record(small_rig(width=180, height=320), beta_step_deg=10.0, caster=caster)
+    vt, ft = mesh_tables(vertices, faces, normals)
+    whole_only = STAGE.run(rec.inputs(vt, ft), patch_texels=0)
+    multiview = STAGE.run(rec.inputs(vt, ft), patch_texels=32)
+    assert whole_only.report["coverage"] < 0.3  # only the pillar's sides fit a frame
+    assert multiview.report["faces_multiview"] >= 6  # most walls (floor, ceiling: too near)
+    assert multiview.report["coverage"] > whole_only.report["coverage"] + 0.1
+    tables = multiview.tables
+    pages = decode_pages(tables["texture_pages"])
+    uvs = face_uvs(tables["textured_faces"])
+    page = tables["textured_faces"].column("page").to_numpy()
+    rng = np.random.default_rng(5)
+    errors = []
+    for face in np.flatnonzero(page >= 0):
+        bary = rng.dirichlet((2, 2, 2), size=20)
+        uv = bary @ uvs[face]
+        h, w = pages[page[face]].shape[:2]
+        got = cv2.remap(pages[page[face]], (uv[:, 0] * w - 0.5).astype(np.float32)[:, None],
+                        (uv[:, 1] * h - 0.5).astype(np.float32)[:, None],
+                        cv2.INTER_LINEAR).reshape(-1, 3)[:, ::-1]
+        errors.append(np.abs(got - solid_colour(bary @ vertices[faces[face]])).max(axis=1))
+    assert np.median(np.concatenate(errors)) < 15

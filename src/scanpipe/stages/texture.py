@@ -43,6 +43,7 @@ from scanpipe.texturing.exposure import solve_gains
 from scanpipe.texturing.frames import choose_frames, known_camera_frames, pinhole_frames
 from scanpipe.texturing.labels import face_neighbours, smooth_labels
 from scanpipe.texturing.panorama import texture_panorama
+from scanpipe.texturing.patches import bake_patches, partial_candidates
 from scanpipe.texturing.photometric import (
     Views,
     candidate_views,
@@ -50,7 +51,12 @@ from scanpipe.texturing.photometric import (
     photometric_outliers,
     sample_views,
 )
-from scanpipe.texturing.projective import colorize_points, face_scores, select_frames_per_face
+from scanpipe.texturing.projective import (
+    colorize_points,
+    face_scores,
+    resolution_weights,
+    select_frames_per_face,
+)
 from scanpipe.texturing.seams import seam_corrections
 from scanpipe.texturing.visibility import MeshOcclusion, face_normals
 
@@ -95,6 +101,9 @@ class TextureParams(Params):
                                  "frame pixels (0 = off)")
     max_views: int = Field(6, ge=1, le=32, description="frames sampled per face for levelling "
                            "and outlier rejection")
+    patch_texels: int = Field(8, ge=0, le=64, description="faces no frame holds whole are "
+                              "textured texel by texel from several frames in a square of "
+                              "this many texels a side (0 = they stay untextured)")
     outlier_levels: float = Field(40.0, ge=0, le=255, description="a frame whose colour of a face "
                                   "differs this much from the others' median is not used for it "
                                   "(0 = off; needs ≥ 3 frames)")
@@ -252,6 +261,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     timing["score_s"] = time.perf_counter() - started - sum(timing.values())
     centroids = vertices[faces].mean(axis=1)
     candidates = candidate_views(scores, params.max_views + params.max_candidates)
+    whole = candidates[:, 0] >= 0  # some frame holds the face whole
     views = Views(candidates[:, :params.max_views],
                   sample_views(centroids, candidates[:, :params.max_views], frames))
     gains = np.ones((len(frames), 3))
@@ -276,6 +286,17 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     labels = smoothing.labels
     del scores
     timing["seams_s"] = time.perf_counter() - started - sum(timing.values())
+    patches = None
+    if params.patch_texels > 0:
+        straddling = np.flatnonzero((labels < 0) & ~whole)
+        partial = partial_candidates(
+            vertices, faces, normals, straddling, frames,
+            frames.relative_sharpness() ** params.sharpness_weight
+            * resolution_weights(frames.cameras), params.min_cos)
+        straddling, partial = straddling[partial[:, 0] >= 0], partial[partial[:, 0] >= 0]
+        patches = bake_patches(vertices, faces, straddling, partial, frames, gains, occlusion,
+                               params.patch_texels)
+    timing["patches_s"] = time.perf_counter() - started - sum(timing.values())
     seams = None
     if params.seam_strip_px > 0:
         seams = seam_corrections(vertices, faces, labels, frames, gains)
@@ -284,7 +305,10 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     atlas = build_atlas(vertices, faces, labels, frames, gains,
                         page_px=params.page_size_px, texel_scale=params.texel_scale,
                         pad_px=params.pad_px, neutral_bgr=(blue, green, red), seams=seams,
-                        strip_px=params.seam_strip_px, progress=progress)
+                        strip_px=params.seam_strip_px, patches=patches, progress=progress)
+    if patches is not None:
+        labels = labels.copy()
+        labels[patches.face] = patches.frame
     faces_table = textured_faces_table(atlas.face_page, atlas.face_uv, labels,
                                        frames.camera_ids, frames.sequences)
     pages = pages_table(atlas.pages, params.png_compression)
@@ -305,6 +329,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         "page_sizes": [[int(p.shape[1]), int(p.shape[0])] for p in atlas.pages],
         "exposure_pairs": len(fa),
         "photometric_outliers": outliers,
+        "faces_multiview": 0 if patches is None else len(patches.face),
         "seam_edges_best_frame": smoothing.seam_edges_before,
         "seam_edges": smoothing.seam_edges_after,
         "seam_faces_moved": smoothing.moved,

@@ -102,7 +102,7 @@ def overlap_pairs(views: Views, max_pairs: int = 200_000, seed: int = 0
     return (frame[face, 0], frame[face, slot + 1], colour[face, 0], colour[face, slot + 1])
 
 
-def _nan_median(values: F64, axis: int) -> F64:
+def nan_median(values: F64, axis: int) -> F64:
     """Median along ``axis`` ignoring NaN (NaN where all are NaN): sort, NaNs last, take the
     middle of the finite ones (numpy's nanmedian goes through masked arrays: many times
     slower on millions of short rows)."""
@@ -129,11 +129,11 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
     if not judged.any():
         return outlier
     sub = levelled[judged]
-    median = _nan_median(sub, axis=1)
+    median = nan_median(sub, axis=1)
     # a candidate is sampled in all channels or none: the largest channel's deviation, NaN
     # where not sampled
     deviation = np.abs(sub - median).max(axis=2)
-    mad = _nan_median(deviation, axis=1) * 1.4826
+    mad = nan_median(deviation, axis=1) * 1.4826
     limit = np.maximum(outlier_levels, 3 * mad)
     with np.errstate(invalid="ignore"):
         outlier[judged] = deviation > limit
