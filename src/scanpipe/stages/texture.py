@@ -39,7 +39,7 @@ from scanpipe.schema import (
 )
 from scanpipe.stage import Stage, StageResult
 from scanpipe.texturing.atlas import build_atlas
-from scanpipe.texturing.exposure import solve_gains
+from scanpipe.texturing.exposure import shared_edges, solve_gains
 from scanpipe.texturing.frames import choose_frames, known_camera_frames, pinhole_frames
 from scanpipe.texturing.labels import face_neighbours, smooth_labels
 from scanpipe.texturing.panorama import texture_panorama
@@ -52,6 +52,7 @@ from scanpipe.texturing.photometric import (
     sample_views,
 )
 from scanpipe.texturing.projective import (
+    EQUIRECT_SPACING_DEG,
     colorize_points,
     face_scores,
     resolution_weights,
@@ -77,8 +78,8 @@ class TextureParams(Params):
         4.0, ge=0, le=90, description="projective: keep the sharpest frame per camera in every "
         "bin of this many degrees of platform angle (0 = every frame)")
     equirect_spacing_deg: float = Field(
-        20.0, ge=0, le=180, description="projective: the same for 360° (equirect) cameras, whose "
-        "every frame sees the whole room (0 = every frame)")
+        EQUIRECT_SPACING_DEG, ge=0, le=180, description="projective: the same for 360° "
+        "(equirect) cameras, whose every frame sees the whole room (0 = every frame)")
     min_cos: float = Field(0.2, ge=0, lt=1,
                            description="faces seen more obliquely than acos(min_cos) are skipped")
     sharpness_weight: float = Field(1.0, ge=0, description="exponent of relative sharpness")
@@ -281,8 +282,10 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     selection = select_frames_per_face(candidates, frames, occlusion, scores, progress)
     del candidates
     timing["visibility_s"] = time.perf_counter() - started - sum(timing.values())
-    smoothing = smooth_labels(scores, selection.frame, face_neighbours(faces), frames, occlusion,
-                              params.seam_weight, params.seam_rounds, progress=progress)
+    edges = shared_edges(faces)
+    smoothing = smooth_labels(scores, selection.frame, face_neighbours(faces, edges[0]), frames,
+                              occlusion, params.seam_weight, params.seam_rounds,
+                              progress=progress)
     labels = smoothing.labels
     del scores
     timing["seams_s"] = time.perf_counter() - started - sum(timing.values())
@@ -299,7 +302,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     timing["patches_s"] = time.perf_counter() - started - sum(timing.values())
     seams = None
     if params.seam_strip_px > 0:
-        seams = seam_corrections(vertices, faces, labels, frames, gains)
+        seams = seam_corrections(vertices, faces, labels, frames, gains, edges=edges)
     timing["exposure_s"] = time.perf_counter() - started - sum(timing.values())
     red, green, blue = params.neutral_rgb
     atlas = build_atlas(vertices, faces, labels, frames, gains,

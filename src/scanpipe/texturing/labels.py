@@ -32,9 +32,11 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 
-def face_neighbours(faces: NDArray[np.integer]) -> I64:
-    """``(faces, 3)`` the faces sharing an edge with each face, −1 padded (manifold edges)."""
-    pairs, _ = shared_edges(faces)
+def face_neighbours(faces: NDArray[np.integer], pairs: I64 | None = None) -> I64:
+    """``(faces, 3)`` the faces sharing an edge with each face, −1 padded (manifold edges);
+    ``pairs`` from :func:`~scanpipe.texturing.exposure.shared_edges` when already known."""
+    if pairs is None:
+        pairs, _ = shared_edges(faces)
     n = len(faces)
     result = np.full((n, 3), -1, dtype=np.int64)
     both = np.concatenate([pairs, pairs[:, ::-1]])

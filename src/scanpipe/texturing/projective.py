@@ -37,6 +37,9 @@ from scanpipe.texturing.visibility import MeshOcclusion
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 NO_DISTORTION = (0.0, 0.0, 0.0, 0.0, 0.0)
+#: A 360° camera turning on the axis sees the whole room in every frame: one frame per this many
+#: degrees of platform angle serves (the texture stage's ``equirect_spacing_deg`` default).
+EQUIRECT_SPACING_DEG = 20.0
 
 
 @lru_cache(maxsize=64)
@@ -183,33 +186,32 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     for i, cam in enumerate(frames.cameras):
         beta = float(frames.beta_deg[i])
         window = view_window(cam, beta)
-        if window is None:  # every direction in view: no index look-ups
+        sel: slice | NDArray[np.int64]
+        if window is None:  # every direction in view: views of the arrays, no gathers
             uv, _, valid = project_valid(vertices, cam, beta, margin_px)
+            sel = slice(None)
             fidx = everything
         else:
             window = (window[0], window[1] + parallax_deg)
             near = vertex_index.window(*window)
             valid[:] = False
             uv[near], _, valid[near] = project_valid(vertices[near], cam, beta, margin_px)
-            fidx = face_index.window(*window)
-        corners = faces[fidx]
-        inside = valid[corners[:, 0]] & valid[corners[:, 1]] & valid[corners[:, 2]]
-        fidx, corners = fidx[inside], corners[inside]
-        if cam.model == "equirect":
-            ok = ~wraps(uv[corners], cam)
-            fidx, corners = fidx[ok], corners[ok]
+            sel = fidx = face_index.window(*window)
+        corners = faces[sel]
         centre = frames.centre(i)
         distance = np.sqrt(np.maximum(
-            p_squared[fidx] - 2 * (centroids[fidx] @ centre) + centre @ centre, 1e-24))
-        cos = (normals[fidx] @ centre - n_dot_p[fidx]) / distance
+            p_squared[sel] - 2 * (centroids[sel] @ centre) + centre @ centre, 1e-24))
+        cos = (normals[sel] @ centre - n_dot_p[sel]) / distance
         if two_sided:
             cos = np.abs(cos)
-        keep = cos >= min_cos
-        fidx, corners, cos = fidx[keep], corners[keep], cos[keep]
-        score = cos * sharp[i]
+        ok = (cos >= min_cos) & valid[corners[:, 0]] & valid[corners[:, 1]] & valid[corners[:, 2]]
+        idx = np.flatnonzero(ok)
+        if cam.model == "equirect":
+            idx = idx[~wraps(uv[corners[idx]], cam)]
+        score = cos[idx] * sharp[i]
         if cam.model == "pinhole":
-            score *= centrality(uv[corners].mean(axis=1), cam)
-        scores[i, fidx] = score
+            score *= centrality(uv[corners[idx]].mean(axis=1), cam)
+        scores[i, fidx[idx]] = score
         progress("score frames", i + 1, len(frames))
     return scores
 
@@ -270,7 +272,9 @@ def colorize_points(
     """``points`` with ``red``, ``green``, ``blue`` (uint8) from the camera frames.
 
     Each point takes the pixel of the frame (one per ``spacing_deg`` of platform angle and
-    camera, the sharpest) where it lies nearest the image centre among the frames that see it.
+    camera, the sharpest; for a 360° camera one per :data:`EQUIRECT_SPACING_DEG`) where it
+    lies nearest the image centre (weighed by the camera's angular resolution) among the
+    frames that see it.
     Occlusion is a z-buffer of the points themselves in ``cell_px`` cells: a point more than
     3 cm + 1 % behind the nearest point of its cell is hidden. Points no frame sees get
     ``neutral_rgb``. Called by the export stage for coloured point clouds (PLY, LAS, E57).
@@ -280,7 +284,8 @@ def colorize_points(
             raise StageError(f"points: missing column {name!r}")
     xyz = np.stack([points.column(n).to_numpy(zero_copy_only=False) for n in "xyz"], axis=1)
     xyz = xyz.astype(np.float64)
-    chosen = choose_frames(frames, motor, rig, spacing_deg, progress=progress)
+    chosen = choose_frames(frames, motor, rig, spacing_deg, progress=progress,
+                           equirect_spacing_deg=max(spacing_deg, EQUIRECT_SPACING_DEG))
     resolution = resolution_weights(chosen.cameras)
     best = np.zeros(len(xyz), dtype=np.float64)
     rgb = np.tile(np.asarray(neutral_rgb, dtype=np.uint8), (len(xyz), 1))

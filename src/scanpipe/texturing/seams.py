@@ -44,12 +44,13 @@ class SeamCorrections:
 
 
 def seam_corrections(vertices: NDArray[np.floating], faces: NDArray[np.integer],
-                     labels: I64, frames: FrameSet, gains: F64, max_levels: float = 60.0
-                     ) -> SeamCorrections:
-    """The corrections at the seam points of every frame (see the module docstring)."""
+                     labels: I64, frames: FrameSet, gains: F64, max_levels: float = 60.0,
+                     edges: tuple[I64, I64] | None = None) -> SeamCorrections:
+    """The corrections at the seam points of every frame (see the module docstring);
+    ``edges`` from :func:`~scanpipe.texturing.exposure.shared_edges` when already known."""
     from scanpipe.texturing.projective import project_valid
 
-    pairs, edge_vertices = shared_edges(faces)
+    pairs, edge_vertices = edges if edges is not None else shared_edges(faces)
     la, lb = labels[pairs[:, 0]], labels[pairs[:, 1]]
     seam = (la >= 0) & (lb >= 0) & (la != lb)
     la, lb, edge_vertices = la[seam], lb[seam], edge_vertices[seam]
