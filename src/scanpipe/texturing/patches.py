@@ -28,6 +28,8 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
 
+#: Frames looked at for the faces no frame holds whole.
+MAX_PARTIAL_FRAMES = 32
 #: Share of a patch's texels that must find a frame for the face to count as textured.
 MIN_FILLED = 0.9
 
@@ -45,14 +47,24 @@ def partial_candidates(vertices: F64, faces: I64, normals: F64, face_ids: I64,
                        frames: FrameSet, weights: F64, min_cos: float, count: int = 5) -> I64:
     """``(len(face_ids), count)`` frames (best first, −1 = none) that see at least one corner
     of each face, in front, at a usable angle; scored ``cos θ · corners inside / 3 ·
-    weights[frame]``."""
+    weights[frame]``. At most about :data:`MAX_PARTIAL_FRAMES` frames are looked at, evenly
+    spread over each camera's (neighbouring frames see nearly the same part of a face)."""
     from scanpipe.texturing.projective import project_valid
 
     n = len(face_ids)
     score = np.zeros((len(frames), n))
+    if n == 0:
+        return np.full((0, min(count, len(frames))), -1, dtype=np.int64)
     corners = vertices[faces[face_ids]].reshape(-1, 3)
     centroid = vertices[faces[face_ids]].mean(axis=1)
-    for i, cam in enumerate(frames.cameras):
+    ids = np.asarray(frames.camera_ids)
+    per_camera = max(1, MAX_PARTIAL_FRAMES // max(1, len(set(frames.camera_ids))))
+    looked = []
+    for cam_id in sorted(set(frames.camera_ids)):
+        own = np.flatnonzero(ids == cam_id)
+        looked += own[::max(1, -(-len(own) // per_camera))].tolist()
+    for i in looked:
+        cam = frames.cameras[i]
         _, _, valid = project_valid(corners, cam, float(frames.beta_deg[i]), 0.0)
         inside = valid.reshape(n, 3).sum(axis=1)
         to_cam = frames.centre(i) - centroid

@@ -186,32 +186,33 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     for i, cam in enumerate(frames.cameras):
         beta = float(frames.beta_deg[i])
         window = view_window(cam, beta)
-        sel: slice | NDArray[np.int64]
-        if window is None:  # every direction in view: views of the arrays, no gathers
+        if window is None:  # every direction in view: no index look-ups
             uv, _, valid = project_valid(vertices, cam, beta, margin_px)
-            sel = slice(None)
             fidx = everything
         else:
             window = (window[0], window[1] + parallax_deg)
             near = vertex_index.window(*window)
             valid[:] = False
             uv[near], _, valid[near] = project_valid(vertices[near], cam, beta, margin_px)
-            sel = fidx = face_index.window(*window)
-        corners = faces[sel]
+            fidx = face_index.window(*window)
+        corners = faces[fidx]
+        inside = valid[corners[:, 0]] & valid[corners[:, 1]] & valid[corners[:, 2]]
+        fidx, corners = fidx[inside], corners[inside]
+        if cam.model == "equirect":
+            ok = ~wraps(uv[corners], cam)
+            fidx, corners = fidx[ok], corners[ok]
         centre = frames.centre(i)
         distance = np.sqrt(np.maximum(
-            p_squared[sel] - 2 * (centroids[sel] @ centre) + centre @ centre, 1e-24))
-        cos = (normals[sel] @ centre - n_dot_p[sel]) / distance
+            p_squared[fidx] - 2 * (centroids[fidx] @ centre) + centre @ centre, 1e-24))
+        cos = (normals[fidx] @ centre - n_dot_p[fidx]) / distance
         if two_sided:
             cos = np.abs(cos)
-        ok = (cos >= min_cos) & valid[corners[:, 0]] & valid[corners[:, 1]] & valid[corners[:, 2]]
-        idx = np.flatnonzero(ok)
-        if cam.model == "equirect":
-            idx = idx[~wraps(uv[corners[idx]], cam)]
-        score = cos[idx] * sharp[i]
+        keep = cos >= min_cos
+        fidx, corners, cos = fidx[keep], corners[keep], cos[keep]
+        score = cos * sharp[i]
         if cam.model == "pinhole":
-            score *= centrality(uv[corners[idx]].mean(axis=1), cam)
-        scores[i, fidx[idx]] = score
+            score *= centrality(uv[corners].mean(axis=1), cam)
+        scores[i, fidx] = score
         progress("score frames", i + 1, len(frames))
     return scores
 
