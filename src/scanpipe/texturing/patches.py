@@ -78,6 +78,18 @@ def partial_candidates(vertices: F64, faces: I64, normals: F64, face_ids: I64,
     return np.where(best > 0, order, -1).astype(np.int64)
 
 
+def remap_points(image: U8, uv: F64, width: int = 1024) -> F64:
+    """Bilinear colours of ``image`` at pixel positions ``uv`` (N, 2): OpenCV's remap, the
+    points laid out as rows of ``width`` (its maps may not exceed 32 767 a side)."""
+    n = len(uv)
+    rows = -(-n // width)
+    flat = np.zeros((rows * width, 2), np.float32)
+    flat[:n] = uv
+    maps = flat.reshape(rows, width, 2)
+    out = cv2.remap(image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR)
+    return np.asarray(out.reshape(-1, image.shape[2])[:n], dtype=np.float64)
+
+
 def bake_patches(vertices: F64, faces: I64, face_ids: I64, candidates: I64, frames: FrameSet,
                  gains: F64, occlusion: MeshOcclusion, texels: int = 16) -> Patches:
     """The texels of every face in ``face_ids`` from its ``candidates`` (see the module
@@ -112,9 +124,8 @@ def bake_patches(vertices: F64, faces: I64, face_ids: I64, candidates: I64, fram
             face_of, texel, uv = face_of[seen], texel[seen], uv[seen]
             if len(face_of) == 0:
                 continue
-            sampled = cv2.remap(frames.image(int(i)), uv[:, 0].astype(np.float32)[:, None],
-                                uv[:, 1].astype(np.float32)[:, None], cv2.INTER_LINEAR)
-            samples[face_of, texel, slot] = sampled.reshape(-1, 3) * gains[i]
+            sampled = remap_points(frames.image(int(i)), uv)
+            samples[face_of, texel, slot] = sampled * gains[i]
             np.add.at(votes[:, int(i)], face_of, 1)
     filled = np.isfinite(samples[:, :, :, 0]).any(axis=2)
     # a texel seen in three or more frames takes their median: one frame with a passer-by
