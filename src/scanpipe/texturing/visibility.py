@@ -113,7 +113,9 @@ def face_normals(vertices: NDArray[np.floating], faces: NDArray[np.integer],
 
     The winding decides a normal's sign unless ``vertex_normals`` are given: then each face
     normal is turned to agree with the mean of its vertices' normals (the mesh stage's normals
-    point towards the scanner).
+    point towards the scanner), and where the two differ by more than 60° the mean is taken: a
+    sliver (a scan grid's faces where the profiles meet on the motor axis, straight above and
+    below the rig) has a cross product that range noise turns any way.
     """
     corners = np.asarray(vertices, np.float64)[faces]
     cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
@@ -121,6 +123,9 @@ def face_normals(vertices: NDArray[np.floating], faces: NDArray[np.integer],
     normals = cross / np.maximum(length, 1e-20)[:, None]
     if vertex_normals is not None:
         mean = np.asarray(vertex_normals, np.float64)[faces].sum(axis=1)
-        flip = np.einsum("ij,ij->i", normals, mean) < 0
-        normals[flip] *= -1
+        mean_length = np.linalg.norm(mean, axis=1)
+        agreement = np.einsum("ij,ij->i", normals, mean)
+        normals[agreement < 0] *= -1
+        unreliable = (np.abs(agreement) < 0.5 * mean_length) & (mean_length > 1e-12)
+        normals[unreliable] = mean[unreliable] / mean_length[unreliable, None]
     return normals, 0.5 * length
