@@ -30,7 +30,7 @@ from scanpipe.rig import rig_from_table
 from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
 from scanpipe.stages.export import export_files
-from scanpipe.texturing.frames import choose_frames
+from scanpipe.texturing.frames import choose_frames, pinhole_frames
 
 # -- LAS: an independent header and VLR reader (ASPRS LAS 1.2 / 1.4 specifications) ----------
 
@@ -220,9 +220,9 @@ def _check_e57_images(path: Path, work: Path) -> None:
     the pose + pinhole read as CloudCompare's E57 reader does (ccCameraSensor: depth = −z,
     u = cx + f·x/depth, v = cy − f·y/depth) put the file's points where scanpipe projects
     them."""
-    rig = rig_from_table(pq.read_table(work / "decode" / "rig.parquet"))
-    chosen = choose_frames(pq.read_table(work / "decode" / "frames.parquet"),
-                           pq.read_table(work / "decode" / "motor.parquet"), rig, 5.0)
+    frames, rig, _ = pinhole_frames(pq.read_table(work / "decode" / "frames.parquet"),
+                                    rig_from_table(pq.read_table(work / "decode" / "rig.parquet")))
+    chosen = choose_frames(frames, pq.read_table(work / "decode" / "motor.parquet"), rig, 5.0)
     reader = pye57.E57(str(path))
     scan = reader.read_scan_raw(0)
     file_xyz = np.stack([scan[f"cartesian{a}"] for a in "XYZ"], axis=1)
@@ -297,9 +297,9 @@ def _check_colmap(folder: Path, work: Path) -> None:
     cameras, images, points = _read_colmap(folder)
     assert cameras and images and len(points) > 100
     assert np.all(points[:, 4:7] <= 255) and np.all(np.diff(points[:, 0]) == 1)
-    rig = rig_from_table(pq.read_table(work / "decode" / "rig.parquet"))
-    chosen = choose_frames(pq.read_table(work / "decode" / "frames.parquet"),
-                           pq.read_table(work / "decode" / "motor.parquet"), rig, 5.0)
+    frames, rig, _ = pinhole_frames(pq.read_table(work / "decode" / "frames.parquet"),
+                                    rig_from_table(pq.read_table(work / "decode" / "rig.parquet")))
+    chosen = choose_frames(frames, pq.read_table(work / "decode" / "motor.parquet"), rig, 5.0)
     assert len(images) == len(chosen)
     cams = {c.id: c for c in rig.cameras}
     for k, (_, q, t, cid, name) in enumerate(images):

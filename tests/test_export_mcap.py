@@ -147,7 +147,9 @@ def test_camera_images_calibration_and_transforms(tmp_path: Path) -> None:
     assert list(files) == ["scan.mcap", "scan.layout.json"]
     write_files(files, tmp_path)
     messages = _read(tmp_path / "scan.mcap")
-    for cam in rig.cameras:
+    assert len(messages["/camera/cam360/image"]) == 3  # the 360° camera: images, no calibration
+    assert "/camera/cam360/calibration" not in messages
+    for cam in rig.cameras[:2]:
         images = messages[f"/camera/{cam.id}/image"]
         calibrations = messages[f"/camera/{cam.id}/calibration"]
         assert len(images) == len(calibrations) == 3

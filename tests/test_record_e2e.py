@@ -86,7 +86,7 @@ def test_record_end_to_end(tmp_path: Path, scene: Scene, dialect: str, mode: str
                  if abs(s.beta_first_deg - s.beta_last_deg) < 1e-9}
         assert set(targets) <= still
     if cameras:
-        assert set(summary["frames"]) == {"cam0", "cam1"}
+        assert set(summary["frames"]) == {"cam0", "cam1", "cam360"}
         assert all(n >= 2 for n in summary["frames"].values())
         assert len(recording.images) == sum(summary["frames"].values())
     kinds = [e.kind for e in recording.events]

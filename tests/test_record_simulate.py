@@ -43,5 +43,5 @@ def test_simulate_through_the_emulators(tmp_path: Path, cli: Callable[..., objec
     true = truth.ranges_true_m()
     both = np.isfinite(measured) & np.isfinite(true)
     assert np.abs(measured[both] - true[both]).max() < 0.05 + 1 / 256
-    assert set(summary["frames"]) == {"cam0", "cam1"}
+    assert set(summary["frames"]) == {"cam0", "cam1", "cam360"}
     assert truth.meta["speedup"] == 20.0

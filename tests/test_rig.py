@@ -16,7 +16,8 @@ def test_default_rig_is_the_papers() -> None:
     assert rig.motor.pulse_limit == 5000
     assert rig.scanner.beam_step_deg == 0.25
     assert rig.scanner.samples_per_profile == 1440
-    assert [c.id for c in rig.cameras] == ["cam0", "cam1"]
+    assert [c.id for c in rig.cameras] == ["cam0", "cam1", "cam360"]
+    assert [c.model for c in rig.cameras] == ["pinhole", "pinhole", "equirect"]
 
 
 def test_toml_round_trip(tmp_path: Path) -> None:

@@ -83,7 +83,7 @@ def test_cameras_and_truth_folder(noise_free: tuple[dict[str, Any], Path, Path])
     decoded = DECODE.run({"recording": rec})
     frames = decoded.tables["frames"]
     assert frames.num_rows == summary["frames"] > 0
-    assert set(frames.column("camera_id").to_pylist()) == {"cam0", "cam1"}
+    assert set(frames.column("camera_id").to_pylist()) == {"cam0", "cam1", "cam360"}
     # The default cameras stand upright: 1080 × 1920 at the test's 1/20 scale.
     assert frames.column("width").to_pylist()[0] == 54
     assert frames.column("height").to_pylist()[0] == 96

@@ -97,10 +97,10 @@ class Caster:
 
 def small_rig(width: int = 320, height: int = 180, distortion: tuple[float, ...] = (0,) * 5
               ) -> Rig:
-    """The default rig with two small cameras (same 65° field of view)."""
+    """The default rig's two phones as small cameras (same 65° field of view)."""
     scale = width / 1920
     cams = []
-    for cam in default_rig().cameras:
+    for cam in default_rig().cameras[:2]:
         cams.append(cam.model_copy(update={
             "width": width, "height": height, "fx": 1507 * scale, "fy": 1507 * scale,
             "cx": (width - 1) / 2, "cy": (height - 1) / 2, "distortion": distortion}))

@@ -1,7 +1,15 @@
-"""The camera model: OpenCV pinhole with distortion, posed on the turning platform.
+"""The camera models, posed on the turning platform: OpenCV pinhole with distortion, and the
+equirectangular image of a 360° camera.
 
 Used both to render (the virtual camera casts a ray per pixel) and to texture (project model
 points into a frame). Frames and rotation order: :mod:`scanpipe.geometry`.
+
+Equirect (``CameraConfig.model == "equirect"``): a direction ``(x, y, z)`` in the camera frame
+(x right, y down, z forward) has longitude ``λ = atan2(x, z)`` and latitude
+``φ = atan2(y, hypot(x, z))`` (positive downwards); its pixel is
+``u = (λ / 2π + ½) · width − ½``, ``v = (φ / π + ½) · height − ½``. The image centre looks
+along the camera's z axis, its left and right edges meet straight behind it (the *wrap*), the
+top row is straight up. Its "depth" is the distance from the camera centre.
 """
 
 from __future__ import annotations
@@ -35,7 +43,8 @@ def project_points(
 ) -> tuple[F64, F64]:
     """Project rig-frame points into the image: ``(uv (N, 2) pixels, depth (N,) metres)``.
 
-    Points behind the camera get depth ≤ 0; their uv is meaningless and must be masked.
+    Pinhole: points behind the camera get depth ≤ 0; their uv is meaningless and must be
+    masked. Equirect: every point has a pixel; depth is its distance from the camera centre.
     """
     rotation, translation = camera_pose_in_rig(cam, beta_deg)
     points = np.asarray(points_rig)
@@ -43,6 +52,14 @@ def project_points(
     # several times more (this runs for every frame over every point when colouring clouds).
     dx, dy, dz = (points[:, k].astype(np.float64) - translation[k] for k in range(3))
     depth = dx * rotation[0, 2] + dy * rotation[1, 2] + dz * rotation[2, 2]
+    if cam.model == "equirect":
+        x = dx * rotation[0, 0] + dy * rotation[1, 0] + dz * rotation[2, 0]
+        y = dx * rotation[0, 1] + dy * rotation[1, 1] + dz * rotation[2, 1]
+        across = np.hypot(x, depth)
+        uv = np.empty((len(depth), 2), dtype=np.float64)
+        uv[:, 0] = (np.arctan2(x, depth) / (2 * np.pi) + 0.5) * cam.width - 0.5
+        uv[:, 1] = (np.arctan2(y, across) / np.pi + 0.5) * cam.height - 0.5
+        return uv, np.hypot(across, y)
     inverse = 1.0 / np.where(np.abs(depth) < 1e-9, 1e-9, depth)
     x = (dx * rotation[0, 0] + dy * rotation[1, 0] + dz * rotation[2, 0]) * inverse
     y = (dx * rotation[0, 1] + dy * rotation[1, 1] + dz * rotation[2, 1]) * inverse
@@ -63,6 +80,15 @@ def pixel_rays(cam: CameraConfig, beta_deg: float, stride: int = 1) -> tuple[F64
     centres, with the lens distortion undone (so rendering matches :func:`project_points`)."""
     us = np.arange(0, cam.width, stride, dtype=np.float64)
     vs = np.arange(0, cam.height, stride, dtype=np.float64)
+    if cam.model == "equirect":
+        rotation, origin = camera_pose_in_rig(cam, beta_deg)
+        lon = (us + 0.5) / cam.width * 2 * np.pi - np.pi
+        lat = (vs + 0.5) / cam.height * np.pi - np.pi / 2
+        lon_grid, lat_grid = np.meshgrid(lon, lat)
+        directions_cam = np.stack([np.cos(lat_grid) * np.sin(lon_grid), np.sin(lat_grid),
+                                   np.cos(lat_grid) * np.cos(lon_grid)], -1).reshape(-1, 3)
+        directions = rows_matmul(directions_cam, rotation.T).reshape(len(vs), len(us), 3)
+        return origin, directions
     grid = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 1, 2)
     if any(cam.distortion):
         normalized = cv2.undistortPoints(

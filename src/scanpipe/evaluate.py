@@ -9,7 +9,8 @@ Pure functions over arrays (and the shared :mod:`scanpipe.render` renderer), plu
   sampled on the true surface *that the scanner could see* (a ray from the scanner reaches them
   unobstructed, within its range limits) that lie within τ of the result; F = 2PR / (P + R).
 - Texture: PSNR between the textured result and the truth, rendered by the same renderer from
-  the same viewpoints, over the pixels where both show a texture at the same depth.
+  the same viewpoints, over the pixels where both show a texture at the same depth; and over
+  all of the visible surface, where an unseen (untextured) face counts as error.
 - Stage times: the ``seconds`` each stage recorded in its artifacts' provenance.
 - Edges: how well the cameras sit on the scan (no truth needed): the scan's depth edges
   projected into the frames with the rig's camera values, the median distance (px) to the
@@ -42,6 +43,8 @@ F64 = NDArray[np.float64]
 
 #: Depth agreement (m) for a pixel to count in the texture comparison.
 PSNR_DEPTH_TOLERANCE_M = 0.05
+#: The colour an untextured face is exported in (the texture stage's default ``neutral_rgb``).
+UNSEEN_GREY = 128
 
 
 @dataclass(frozen=True)
@@ -160,26 +163,50 @@ def texture_psnr(result: RenderMesh, reference: Reference, views: int = 8,
                  width: int = 160) -> dict[str, Any]:
     """PSNR (dB) of the result's texture against the truth over matched viewpoints.
 
-    Pixels count where both renderings show a texture and their depths agree within
-    :data:`PSNR_DEPTH_TOLERANCE_M`, so geometry errors do not pass for texture errors.
+    ``texture_psnr_db``: pixels count where both renderings show a texture and their depths
+    agree within :data:`PSNR_DEPTH_TOLERANCE_M`, so geometry errors do not pass for texture
+    errors. ``texture_psnr_visible_db``: over *all* pixels where the result's surface meets
+    the true (textured) surface, textured or not: an unseen (untextured) face counts with the
+    neutral grey it is exported in (:data:`UNSEEN_GREY`), so coverage gaps are error;
+    ``texture_unseen_share`` is the share of those pixels no frame textured.
     """
-    if not result.textured or not reference.mesh.textured:
-        return {"texture_psnr_db": None, "texture_pixels": 0, "texture_views": 0}
+    empty: dict[str, Any] = {"texture_psnr_db": None, "texture_pixels": 0, "texture_views": 0,
+             "texture_psnr_visible_db": None, "texture_visible_pixels": 0,
+             "texture_unseen_share": None}
+    if not reference.mesh.textured:
+        return empty
     result_renderer, truth_renderer = Renderer(result), Renderer(reference.mesh)
     squared_error, pixels = 0.0, 0
+    visible_error, visible_pixels, unseen_pixels = 0.0, 0, 0
     chosen = matched_viewpoints(reference.mesh.bounds, reference.origin, views, width)
     for view in chosen:
         a, b = result_renderer.render(view), truth_renderer.render(view)
-        mask = a.textured & b.textured
-        mask[mask] = np.abs(a.depth_m[mask] - b.depth_m[mask]) < PSNR_DEPTH_TOLERANCE_M
+        surface = b.textured & np.isfinite(a.depth_m)
+        surface[surface] = np.abs(a.depth_m[surface] - b.depth_m[surface]
+                                  ) < PSNR_DEPTH_TOLERANCE_M
+        mask = surface & a.textured
         diff = a.rgb[mask].astype(np.float64) - b.rgb[mask].astype(np.float64)
         squared_error += float(np.sum(diff * diff))
         pixels += int(mask.sum())
-    if pixels == 0:
-        return {"texture_psnr_db": None, "texture_pixels": 0, "texture_views": len(chosen)}
+        unseen = surface & ~a.textured
+        grey = float(UNSEEN_GREY) - b.rgb[unseen].astype(np.float64)
+        visible_error += float(np.sum(diff * diff)) + float(np.sum(grey * grey))
+        visible_pixels += int(surface.sum())
+        unseen_pixels += int(unseen.sum())
+    report = {**empty, "texture_views": len(chosen), "texture_pixels": pixels,
+              "texture_visible_pixels": visible_pixels}
+    if pixels and result.textured:
+        report["texture_psnr_db"] = _psnr(squared_error, pixels)
+    if visible_pixels:
+        report["texture_psnr_visible_db"] = _psnr(visible_error, visible_pixels)
+        report["texture_unseen_share"] = unseen_pixels / visible_pixels
+    return report
+
+
+def _psnr(squared_error: float, pixels: int) -> float:
+    """PSNR (dB, 8-bit) of a sum of squared errors over ``pixels`` RGB pixels."""
     mse = squared_error / (pixels * 3)
-    psnr = math.inf if mse == 0 else 10 * math.log10(255.0**2 / mse)
-    return {"texture_psnr_db": psnr, "texture_pixels": pixels, "texture_views": len(chosen)}
+    return math.inf if mse == 0 else 10 * math.log10(255.0**2 / mse)
 
 
 def edge_alignment(distances_px: NDArray[np.floating]) -> dict[str, float | int | None]:
@@ -299,6 +326,8 @@ def evaluate_result(result: Path, truth: Path, tau_m: float = 0.02, samples: int
         "mesh_mean_m": None, "mesh_rms_m": None, "mesh_p95_m": None, "completeness": None,
         "precision": None, "fscore": None, "texture_psnr_db": None, "texture_pixels": 0,
         "texture_views": 0, "edge_median_px": None, "edge_within_2px": None, "edge_points": 0,
+        "texture_psnr_visible_db": None, "texture_visible_pixels": 0,
+        "texture_unseen_share": None,
     }
     points_path = find_artifact(result, "points")
     if points_path is not None:
@@ -337,7 +366,9 @@ def format_evaluation(report: dict[str, Any]) -> str:
         f"completeness {show(report['completeness'], ' %', 100, 1)}   "
         f"F {show(report['fscore'], '', 1, 3)} at τ = {report['tau_m'] * 1000:g} mm",
         f"texture  PSNR {show(report['texture_psnr_db'], ' dB')} over "
-        f"{report['texture_pixels']} pixels in {report['texture_views']} views",
+        f"{report['texture_pixels']} textured pixels in {report['texture_views']} views; "
+        f"over all visible surface {show(report.get('texture_psnr_visible_db'), ' dB')} "
+        f"({show(report.get('texture_unseen_share'), ' %', 100, 1)} unseen)",
     ]
     if report.get("edge_points"):
         lines.append(f"edges    median {show(report['edge_median_px'], ' px')} from the image "

@@ -12,6 +12,7 @@ rendered previews of the mesh, and the evaluation table when a truth is given or
 from __future__ import annotations
 
 import base64
+import dataclasses
 import html
 import io
 import json
@@ -191,6 +192,10 @@ def _points_section(workdir: Path, parts: list[str]) -> None:
                  f"{table.num_rows:,} points.</p>" + "".join(figures))
 
 
+#: The colour of faces no camera saw, in the report's unseen-surface picture.
+UNSEEN_RGB = (255, 0, 255)
+
+
 def _previews(workdir: Path, width: int) -> list[str]:
     from scanpipe.render import (
         PanoramaView,
@@ -205,8 +210,17 @@ def _previews(workdir: Path, width: int) -> list[str]:
     renderer = Renderer(mesh)
     views: list[View] = [*default_perspectives(mesh.bounds, width=width, mesh=mesh),
                          PlanView(width), PanoramaView((0.0, 0.0, 0.0), width)]
-    return [_figure(renderer.render(view).png(), view.name.replace("_", " "))
-            for view in views]
+    figures = [_figure(renderer.render(view).png(), view.name.replace("_", " "))
+               for view in views]
+    pages = mesh.face_pages
+    if mesh.textured and pages is not None and bool(np.any(pages < 0)):
+        # the surface no camera saw, in magenta over the textured model (untextured faces
+        # take the vertex colour)
+        marked = dataclasses.replace(mesh, vertex_colors=np.tile(
+            np.array(UNSEEN_RGB, np.uint8), (len(mesh.vertices), 1)))
+        figures.append(_figure(Renderer(marked).render(PanoramaView((0.0, 0.0, 0.0), width))
+                               .png(), "panorama: unseen by every camera (magenta)"))
+    return figures
 
 
 def build_report(workdir: Path, truth: Path | None = None, preview_width: int = 480,
@@ -341,8 +355,12 @@ def _glance(reports: dict[Any, dict[str, Any]], times: dict[str, float],
         rows.append(("mesh", f"{mesh['faces']:,} faces, {mesh.get('vertices', 0):,} vertices "
                              f"({mesh.get('method', '?')})"))
     if "coverage" in texture:
+        unseen = texture.get("unseen_share")
         rows.append(("textured", f"{100 * texture['coverage']:.0f} % of the surface, "
-                                 f"{texture.get('frames_used', '?')} frames used"))
+                                 f"{texture.get('frames_used', '?')} frames used"
+                                 + ("" if unseen is None else
+                                    f"; {100 * unseen:.1f} % unseen (magenta in the "
+                                    "previews)")))
     if times:
         rows.append(("processing", f"{sum(times.values()):.1f} s over {len(times)} stages"))
     if evaluation is not None:
@@ -360,7 +378,11 @@ def _glance(reports: dict[Any, dict[str, Any]], times: dict[str, float],
                                  f"{100 * evaluation.get('tau_m', 0.02):.0f} cm"))
         psnr = evaluation.get("texture_psnr_db")
         if psnr is not None:
-            rows.append(("texture", f"PSNR {psnr:.1f} dB against the true scene"))
+            visible = evaluation.get("texture_psnr_visible_db")
+            rows.append(("texture", f"PSNR {psnr:.1f} dB against the true scene"
+                                    + ("" if visible is None else
+                                       f", {visible:.1f} dB over all of the visible surface "
+                                       "(unseen counted as error)")))
     return rows
 
 

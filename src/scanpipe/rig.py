@@ -216,11 +216,21 @@ class MotorConfig(Params):
         return None if self.unlimited_travel else self.pulse_limit
 
 
+#: The camera models a rig may give: an OpenCV pinhole with distortion, or a 360° camera's
+#: equirectangular image (longitude across, latitude down; see :mod:`scanpipe.camera`).
+CAMERA_MODELS = ("pinhole", "equirect")
+
+
 class CameraConfig(Params):
-    """One camera on the platform: source, image size, rate, intrinsics and pose."""
+    """One camera on the platform: source, model, image size, rate, intrinsics and pose.
+
+    ``model = "equirect"`` is a 360° camera's stitched equirectangular image: the whole sphere,
+    width = 2 × height; ``fx``, ``fy``, ``cx``, ``cy`` are not used and ``distortion`` must be 0.
+    """
 
     id: str = Field("cam0", pattern=r"^[A-Za-z0-9_-]+$")
     source: str = Field("0", min_length=1)
+    model: Literal["pinhole", "equirect"] = "pinhole"
     width: int = Field(1920, ge=16, le=16384)
     height: int = Field(1080, ge=16, le=16384)
     fps: float = Field(30.0, gt=0, le=1000)
@@ -235,6 +245,16 @@ class CameraConfig(Params):
     @model_validator(mode="after")
     def _pinhole_possible(self) -> CameraConfig:
         problems = []
+        if self.model == "equirect":
+            if abs(self.width - 2 * self.height) > 1:
+                problems.append(f"an equirect image spans 360° × 180°: width must be twice the "
+                                f"height; found {self.width} × {self.height}")
+            if any(self.distortion):
+                problems.append("distortion must be [0, 0, 0, 0, 0] for an equirect camera "
+                                "(its image is already stitched and undistorted)")
+            if problems:
+                raise ValueError("; ".join(problems))
+            return self
         for axis, size, focal in (("x", self.width, self.fx), ("y", self.height, self.fy)):
             fov_deg = math.degrees(2 * math.atan(size / (2 * focal)))
             if not MIN_FOV_DEG <= fov_deg <= MAX_FOV_DEG:
@@ -251,8 +271,17 @@ class CameraConfig(Params):
 
     @property
     def hfov_deg(self) -> float:
-        """Horizontal field of view of the pinhole model."""
+        """Horizontal field of view (360 for an equirect camera)."""
+        if self.model == "equirect":
+            return 360.0
         return math.degrees(2 * math.atan(self.width / (2 * self.fx)))
+
+    @property
+    def px_per_rad(self) -> float:
+        """Angular resolution at the image centre, pixels per radian."""
+        if self.model == "equirect":
+            return self.width / (2 * math.pi)
+        return math.sqrt(self.fx * self.fy)
 
 
 class Rig(Params):
@@ -289,11 +318,14 @@ class Rig(Params):
 
 
 def default_cameras() -> tuple[CameraConfig, ...]:
-    """Two Full-HD phones above the scanner, upright (portrait), facing opposite ways.
+    """Two Full-HD phones above the scanner, upright (portrait), facing opposite ways, and a
+    360° camera (4K equirect video) on a short pole above them.
 
     Upright, the 65° side of the field of view is vertical, so the sweep of the platform sees
     from well down the walls to well up them; the 39° side only sets how much each frame shows
-    of the sweep. Facing opposite ways, 180° of travel shows the whole horizon.
+    of the sweep. Facing opposite ways, 180° of travel shows the whole horizon. The phones
+    (26 px/°) texture that band; the 360° camera (10.7 px/°) the floor around the rig and the
+    ceiling, which no level pinhole sees (docs/texture.md, "Cameras").
     """
     upright = {"width": 1080, "height": 1920, "cx": 539.5, "cy": 959.5}
     return (
@@ -302,6 +334,10 @@ def default_cameras() -> tuple[CameraConfig, ...]:
             id="cam1", source="1", **upright,
             pose=Pose(translation_m=(0.0, 0.25, 0.0), rotation_deg=(0.0, 180.0, 0.0)),
         ),
+        # fx … cy are unused by an equirect camera; these are its natural values, for readers
+        CameraConfig(id="cam360", source="2", model="equirect", width=3840, height=1920,
+                     fx=611.2, fy=611.2, cx=1919.5, cy=959.5,
+                     pose=Pose(translation_m=(0.0, 0.40, 0.0))),
     )
 
 
@@ -399,7 +435,8 @@ _COMMENTS = {
     "motor.pulse_limit": "travel from home in pulses, never passed (5000 × 0.036° = 180°)",
     "motor.serial_url": "pyserial URL of the controller (a device, a pty, or loop://)",
     "motor.beta_offset_deg": "calibration: zero offset added to every platform angle",
-    "cameras": "A camera on the platform: OpenCV intrinsics, distortion (k1 k2 p1 p2 k3), pose",
+    "cameras": "A camera on the platform: model pinhole (OpenCV intrinsics, distortion k1 k2 p1 "
+               "p2 k3) or equirect (a 360° camera: width = 2 × height, intrinsics unused), pose",
 }
 
 

@@ -15,7 +15,8 @@ package); each schema is registered once. The MCAP profile is :data:`EXPORT_PROF
   end of the scan. Clouds carry x, y, z and, where the points have them, intensity and
   red/green/blue/alpha.
 - ``/camera/<id>/image`` (``foxglove.CompressedImage``) and ``/camera/<id>/calibration``
-  (``foxglove.CameraCalibration``, plumb-bob model): every camera frame with its calibration.
+  (``foxglove.CameraCalibration``, plumb-bob model): every camera frame with its calibration
+  (none for a 360° equirect camera, which Foxglove has no model for).
 - ``/model`` (``foxglove.SceneUpdate``): the mesh as an entity with one embedded GLB model. glTF
   is y-up and Foxglove turns glTF models y-up → z-up itself, so the entity is placed in
   ``world`` with an identity pose and lands exactly on the rig-frame cloud.
@@ -331,7 +332,7 @@ def _write_cameras(topics: _Topics, cameras: CameraViews, start_ns: int) -> None
         time_ns, camera_id = int(times[row]), str(ids[row])
         if betas is not None:
             topics.write("/tf", platform_transform(time_ns, float(betas[row])), time_ns)
-        if camera_id in known:
+        if camera_id in known and known[camera_id].model == "pinhole":  # none for a 360° image
             topics.write(f"/camera/{camera_id}/calibration",
                          camera_calibration(time_ns, known[camera_id]), time_ns)
         topics.write(f"/camera/{camera_id}/image",

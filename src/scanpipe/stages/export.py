@@ -181,13 +181,16 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
 def _chosen_frames(tables: Mapping[str, pa.Table]) -> tuple[
         list[CameraConfig], list[tuple[F64, F64]], list[bytes], list[str], list[str]]:
     """The frames COLMAP and E57 carry (the sharpest per camera every FRAME_SPACING_DEG):
-    their cameras, poses camera → rig, encoded bytes, formats (jpeg/png) and file names."""
+    their cameras, poses camera → rig, encoded bytes, formats (jpeg/png) and file names.
+    Only pinhole cameras: neither format has the 360° (equirect) model."""
     from scanpipe.camera import camera_pose_in_rig
     from scanpipe.rig import rig_from_table
-    from scanpipe.texturing.frames import choose_frames
+    from scanpipe.texturing.frames import choose_frames, pinhole_frames
 
-    chosen = choose_frames(tables["frames"], tables["motor"], rig_from_table(tables["rig"]),
-                           FRAME_SPACING_DEG)
+    frames, rig, _ = pinhole_frames(tables["frames"], rig_from_table(tables["rig"]))
+    if frames.num_rows == 0:
+        return [], [], [], [], []
+    chosen = choose_frames(frames, tables["motor"], rig, FRAME_SPACING_DEG)
     formats = tables["frames"].column("format").to_pylist() if (
         "format" in tables["frames"].column_names) else []
     by_sequence = dict(zip(tables["frames"].column("sequence").to_pylist(),
@@ -210,6 +213,9 @@ def _colmap(tables: Mapping[str, pa.Table], cloud: CloudModel | None, stem: str,
     from scanpipe.exporters.colmap import colmap_files
 
     cameras, poses, encoded, _, names = _chosen_frames(tables)
+    if not cameras:
+        raise ArtifactError("colmap export needs frames of a pinhole camera; the rig's are "
+                            "360° (equirect), which COLMAP has no model for")
     return colmap_files(stem, cameras, poses, encoded, names, cloud,
                         provenance_bytes(provenance).decode())
 

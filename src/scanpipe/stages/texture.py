@@ -2,9 +2,11 @@
 
 Two methods (docs/texture.md):
 
-- ``projective`` (default): every face takes the best frame that really sees it (occlusion
-  tested against the mesh), the used image regions are packed into atlas pages, and per-frame
-  gains even out exposure across seams.
+- ``projective`` (default): every face's frame is chosen by quality against seams (a Potts
+  MRF by ICM over the best frames that really see it, occlusion tested against the mesh, with
+  photometric outliers struck out); per-frame gains level exposure and white balance over all
+  overlaps, a strip along every seam blends the rest, and the used image regions are packed
+  into atlas pages.
 - ``panorama``: the paper's method (eq. 17–21): frames chosen by f_si, central strips joined
   into a cylindrical panorama about the motor axis, mapped onto the model by a cylindrical
   projection from the axis. The panorama is also written as ``panorama.png``.
@@ -37,10 +39,26 @@ from scanpipe.schema import (
 )
 from scanpipe.stage import Stage, StageResult
 from scanpipe.texturing.atlas import build_atlas
-from scanpipe.texturing.exposure import seam_colour_pairs, solve_gains
-from scanpipe.texturing.frames import choose_frames, known_camera_frames
+from scanpipe.texturing.exposure import shared_edges, solve_gains
+from scanpipe.texturing.frames import choose_frames, known_camera_frames, pinhole_frames
+from scanpipe.texturing.labels import face_neighbours, smooth_labels
 from scanpipe.texturing.panorama import texture_panorama
-from scanpipe.texturing.projective import colorize_points, face_scores, select_frames_per_face
+from scanpipe.texturing.patches import bake_patches, partial_candidates
+from scanpipe.texturing.photometric import (
+    Views,
+    candidate_views,
+    overlap_pairs,
+    photometric_outliers,
+    sample_views,
+)
+from scanpipe.texturing.projective import (
+    EQUIRECT_SPACING_DEG,
+    colorize_points,
+    face_scores,
+    resolution_weights,
+    select_frames_per_face,
+)
+from scanpipe.texturing.seams import seam_corrections
 from scanpipe.texturing.visibility import MeshOcclusion, face_normals
 
 __all__ = ["STAGE", "TextureParams", "colorize_points", "texture_stage"]
@@ -59,19 +77,37 @@ class TextureParams(Params):
     frame_spacing_deg: float = Field(
         4.0, ge=0, le=90, description="projective: keep the sharpest frame per camera in every "
         "bin of this many degrees of platform angle (0 = every frame)")
+    equirect_spacing_deg: float = Field(
+        EQUIRECT_SPACING_DEG, ge=0, le=180, description="projective: the same for 360° "
+        "(equirect) cameras, whose every frame sees the whole room (0 = every frame)")
     min_cos: float = Field(0.2, ge=0, lt=1,
                            description="faces seen more obliquely than acos(min_cos) are skipped")
     sharpness_weight: float = Field(1.0, ge=0, description="exponent of relative sharpness")
     margin_px: float = Field(2.0, ge=0, description="keep face corners this far inside the image")
     max_candidates: int = Field(8, ge=1, le=64,
-                                description="frames tested for occlusion per face at most")
+                                description="frames tested for occlusion per face at most "
+                                "(its best by score; the seam step may test others)")
     two_sided: bool = Field(False, description="texture faces seen from behind (no normals)")
     page_size_px: int = Field(4096, ge=256, le=8192, description="atlas page size (square max)")
     texel_scale: float = Field(1.0, gt=0, le=1, description="scale of image regions in the atlas")
     pad_px: int = Field(3, ge=1, le=32, description="real image kept around each region")
     neutral_rgb: tuple[Channel, Channel, Channel] = Field(
         (128, 128, 128), description="colour of faces no camera saw")
-    exposure: bool = Field(True, description="even out exposure with per-frame gains")
+    exposure: bool = Field(True, description="level exposure and white balance with per-frame, "
+                           "per-channel gains from the overlaps")
+    seam_weight: float = Field(0.3, ge=0, le=10, description="Potts weight of a seam edge "
+                               "against the loss of quality (0 = each face its best frame)")
+    seam_rounds: int = Field(10, ge=1, le=100, description="ICM rounds of the frame choice")
+    seam_strip_px: float = Field(20.0, ge=0, le=200, description="seam blending strip width in "
+                                 "frame pixels (0 = off)")
+    max_views: int = Field(6, ge=1, le=32, description="frames sampled per face for levelling "
+                           "and outlier rejection")
+    patch_texels: int = Field(8, ge=0, le=64, description="faces no frame holds whole are "
+                              "textured texel by texel from several frames in a square of "
+                              "this many texels a side (0 = they stay untextured)")
+    outlier_levels: float = Field(40.0, ge=0, le=255, description="a frame whose colour of a face "
+                                  "differs this much from the others' median is not used for it "
+                                  "(0 = off; needs ≥ 3 frames)")
     png_compression: int = Field(1, ge=0, le=9, description="PNG compression level")
     panorama_distance_m: float = Field(
         0.0, ge=0, description="panorama: the distance r of eq. 17–21 (0 = median of the mesh)")
@@ -131,14 +167,18 @@ def pages_table(pages: list[NDArray[np.uint8]], level: int) -> pa.Table:
 
 
 def coverage_report(areas: NDArray[np.float64], face_frame: NDArray[np.int64]) -> dict[str, Any]:
-    """Share of surface area textured, and the face counts."""
+    """Share of surface area textured (``coverage``) and unseen (``unseen_share``, m² in
+    ``unseen_area_m2``), and the face counts."""
     total = float(areas.sum())
     textured = face_frame >= 0
+    coverage = round(float(areas[textured].sum()) / total, 6) if total > 0 else 0.0
     return {
         "faces": len(face_frame),
         "faces_textured": int(textured.sum()),
         "faces_untextured": int((~textured).sum()),
-        "coverage": round(float(areas[textured].sum()) / total, 6) if total > 0 else 0.0,
+        "coverage": coverage,
+        "unseen_share": round(1.0 - coverage, 6) if total > 0 else 0.0,
+        "unseen_area_m2": round(float(areas[~textured].sum()), 4),
     }
 
 
@@ -157,6 +197,19 @@ def orient_towards_rig(vertices: NDArray[np.float64], faces: NDArray[np.int64],
         return False
     normals *= -1
     return True
+
+
+def pinhole_frames_only(inputs: Mapping[str, Any], rig: Rig
+                        ) -> tuple[dict[str, Any], Rig, list[str]]:
+    """The inputs and the rig with only the pinhole cameras, for the paper's panorama
+    (eq. 17–21 assume a pinhole's field of view), and one warning per 360° camera left out."""
+    frames, pinholes, equirect = pinhole_frames(inputs["frames"], rig)
+    if equirect and frames.num_rows == 0:
+        raise StageError(f"texture: method panorama needs a pinhole camera; the rig's cameras "
+                         f"({', '.join(equirect)}) are 360° (equirect): use method=projective")
+    return {**inputs, "frames": frames}, pinholes, [
+        f"panorama: camera {cam_id!r} skipped: the paper's panorama method takes pinhole "
+        "cameras (method=projective uses it)" for cam_id in equirect]
 
 
 def untextured_result(n_faces: int, reason: str, png_compression: int) -> StageResult:
@@ -188,6 +241,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     normals, areas = face_normals(vertices, faces, vertex_normals)
     flipped = orient_towards_rig(vertices, faces, normals, areas, rig)
     if params.method == "panorama":
+        inputs, rig, skipped = pinhole_frames_only(inputs, rig)
+        warnings += skipped
         pano = texture_panorama(vertices, faces, normals, inputs, rig, params, progress)
         return StageResult(
             tables={"textured_faces": textured_faces_table(
@@ -199,45 +254,90 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
             files={"panorama.png": encode_png(pano.panorama, params.png_compression)},
         )
     frames = choose_frames(inputs["frames"], inputs["motor"], rig, params.frame_spacing_deg,
-                           params.frame_stride, progress)
+                           params.frame_stride, progress, params.equirect_spacing_deg)
     timing = {"frames_s": time.perf_counter() - started}
     scores = face_scores(vertices, faces, normals, frames, min_cos=params.min_cos,
                          margin_px=params.margin_px, sharpness_weight=params.sharpness_weight,
                          two_sided=params.two_sided or vertex_normals is None, progress=progress)
     timing["score_s"] = time.perf_counter() - started - sum(timing.values())
-    occlusion = MeshOcclusion(vertices, faces)
-    selection = select_frames_per_face(scores, frames, occlusion, params.max_candidates, progress)
-    del scores
-    timing["visibility_s"] = time.perf_counter() - started - sum(timing.values())
+    centroids = vertices[faces].mean(axis=1)
+    candidates = candidate_views(scores, params.max_views + params.max_candidates)
+    whole = candidates[:, 0] >= 0  # some frame holds the face whole
+    views = Views(candidates[:, :params.max_views],
+                  sample_views(centroids, candidates[:, :params.max_views], frames))
     gains = np.ones((len(frames), 3))
-    pairs = 0
+    fa = np.zeros(0, np.int64)
     if params.exposure:
-        fa, fb, ca, cb = seam_colour_pairs(vertices, faces, selection.frame, frames)
+        fa, fb, ca, cb = overlap_pairs(views)
         gains = solve_gains(fa, fb, ca, cb, len(frames))
-        pairs = len(fa)
+    outliers = 0
+    if params.outlier_levels > 0:
+        face_of, slot = np.nonzero(photometric_outliers(views, gains, params.outlier_levels))
+        scores[candidates[face_of, slot], face_of] = 0.0
+        candidates[face_of, slot] = -1
+        outliers = len(face_of)
+    del views
+    timing["photometric_s"] = time.perf_counter() - started - sum(timing.values())
+    occlusion = MeshOcclusion(vertices, faces)
+    selection = select_frames_per_face(candidates, frames, occlusion, scores, progress)
+    del candidates
+    timing["visibility_s"] = time.perf_counter() - started - sum(timing.values())
+    edges = shared_edges(faces)
+    smoothing = smooth_labels(scores, selection.frame, face_neighbours(faces, edges[0]), frames,
+                              occlusion, params.seam_weight, params.seam_rounds,
+                              progress=progress)
+    labels = smoothing.labels
+    del scores
+    timing["seams_s"] = time.perf_counter() - started - sum(timing.values())
+    patches = None
+    if params.patch_texels > 0:
+        straddling = np.flatnonzero((labels < 0) & ~whole)
+        partial = partial_candidates(
+            vertices, faces, normals, straddling, frames,
+            frames.relative_sharpness() ** params.sharpness_weight
+            * resolution_weights(frames.cameras), params.min_cos)
+        straddling, partial = straddling[partial[:, 0] >= 0], partial[partial[:, 0] >= 0]
+        patches = bake_patches(vertices, faces, straddling, partial, frames, gains, occlusion,
+                               params.patch_texels)
+    timing["patches_s"] = time.perf_counter() - started - sum(timing.values())
+    seams = None
+    if params.seam_strip_px > 0:
+        seams = seam_corrections(vertices, faces, labels, frames, gains, edges=edges)
     timing["exposure_s"] = time.perf_counter() - started - sum(timing.values())
     red, green, blue = params.neutral_rgb
-    atlas = build_atlas(vertices, faces, selection.frame, frames, gains,
+    atlas = build_atlas(vertices, faces, labels, frames, gains,
                         page_px=params.page_size_px, texel_scale=params.texel_scale,
-                        pad_px=params.pad_px, neutral_bgr=(blue, green, red), progress=progress)
-    faces_table = textured_faces_table(atlas.face_page, atlas.face_uv, selection.frame,
+                        pad_px=params.pad_px, neutral_bgr=(blue, green, red), seams=seams,
+                        strip_px=params.seam_strip_px, patches=patches, progress=progress)
+    if patches is not None:
+        labels = labels.copy()
+        labels[patches.face] = patches.frame
+    faces_table = textured_faces_table(atlas.face_page, atlas.face_uv, labels,
                                        frames.camera_ids, frames.sequences)
     pages = pages_table(atlas.pages, params.png_compression)
     timing["atlas_s"] = time.perf_counter() - started - sum(timing.values())
-    used = np.unique(selection.frame[selection.frame >= 0])
+    used = np.unique(labels[labels >= 0])
     used_gains = gains[used] if len(used) else np.ones((1, 3))
     report = {
         "method": "projective",
-        **coverage_report(areas, selection.frame),
+        **coverage_report(areas, labels),
+        "cameras": {c.id: c.model for c in rig.cameras},
         "frames_in_recording": frames.considered,
         "frames_considered": len(frames),
         "frames_used": len(used),
         "occluded_candidates": selection.occluded_candidates,
-        "rays_cast": selection.rays_cast,
+        "rays_cast": occlusion.rays_cast,
         "regions": atlas.regions,
         "pages": len(atlas.pages),
         "page_sizes": [[int(p.shape[1]), int(p.shape[0])] for p in atlas.pages],
-        "exposure_pairs": pairs,
+        "exposure_pairs": len(fa),
+        "photometric_outliers": outliers,
+        "faces_multiview": 0 if patches is None else len(patches.face),
+        "seam_edges_best_frame": smoothing.seam_edges_before,
+        "seam_edges": smoothing.seam_edges_after,
+        "seam_faces_moved": smoothing.moved,
+        "seam_rounds": smoothing.rounds,
+        "seam_points": seams.points if seams is not None else 0,
         "gain_min": round(float(used_gains.min()), 4),
         "gain_max": round(float(used_gains.max()), 4),
         "neutral_rgb": list(params.neutral_rgb),
@@ -252,7 +352,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
 
 STAGE = Stage(
     name="texture",
-    version=1,
+    version=2,
     params=TextureParams,
     inputs=("mesh_vertices", "mesh_faces", "frames", "motor", "rig"),
     outputs=("textured_faces", "texture_pages"),

@@ -21,6 +21,8 @@ from numpy.typing import NDArray
 from scanpipe.camera import project_points
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.texturing.frames import FrameSet
+from scanpipe.texturing.patches import Patches
+from scanpipe.texturing.seams import SeamCorrections, correction_field
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -107,8 +109,16 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
                 frames: FrameSet, gains: F64, *, page_px: int = 4096, texel_scale: float = 1.0,
                 pad_px: int = 3, cell_px: int = 32,
                 neutral_bgr: tuple[int, int, int] = (128, 128, 128),
+                seams: SeamCorrections | None = None, strip_px: float = 20.0,
+                patches: Patches | None = None,
                 progress: ProgressFn = no_progress) -> Atlas:
-    """Cut, scale, expose and pack the regions of every used frame; UVs for every face."""
+    """Cut, scale, expose and pack the regions of every used frame; UVs for every face.
+
+    With ``seams``, each region also gets its frame's seam corrections faded over
+    ``strip_px`` (:func:`scanpipe.texturing.seams.correction_field`), after the gain.
+    ``patches`` (faces textured texel by texel, :mod:`scanpipe.texturing.patches`; their
+    ``chosen`` is −1) are packed as squares with a one-texel border.
+    """
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     n_faces = len(faces)
@@ -136,16 +146,26 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     scale = np.minimum(texel_scale, np.minimum(limit / src_w.clip(1), limit / src_h.clip(1)))
     dst = np.stack([np.maximum(1, np.ceil(src_w * scale)),
                     np.maximum(1, np.ceil(src_h * scale))], axis=1).astype(np.int64)
+    n_regions = len(dst)
+    if patches is not None and len(patches.face):
+        side = patches.texels.shape[1] + 2
+        dst = np.concatenate([dst, np.full((len(patches.face), 2), side, np.int64)])
     first_h = int(max(NEUTRAL_PX, dst[:, 1].max() if len(dst) else NEUTRAL_PX))
     page, ox, oy, used = pack_shelves(dst, page_px, first=(NEUTRAL_PX, first_h))
     sizes = [(_round_up(w, 4), _round_up(h, 4)) for w, h in used]
     pages = [np.empty((h, w, 3), dtype=np.uint8) for w, h in sizes]
     for p in pages:
         p[:] = neutral_bgr
-    for r in range(len(boxes)):
+    for r in range(n_regions):
         x0, y0, x1, y1 = (int(b) for b in boxes[r])
         crop = frames.image(int(frame_of[r]))[y0:y1, x0:x1].astype(np.float32)
         crop *= gains[frame_of[r]].astype(np.float32)
+        frame = int(frame_of[r])
+        if seams is not None and strip_px > 0 and frame in seams.uv:
+            field = correction_field(seams.uv[frame], seams.delta[frame], (x0, y0, x1, y1),
+                                     strip_px)
+            if field is not None:
+                crop += field
         patch = np.clip(crop + 0.5, 0, 255).astype(np.uint8)
         w, h = int(dst[r, 0]), int(dst[r, 1])
         if (w, h) != (x1 - x0, y1 - y0):
@@ -154,6 +174,12 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         if r % 64 == 0:
             progress("atlas", r + 1, len(boxes))
     progress("atlas", len(boxes), len(boxes))
+    if patches is not None and len(patches.face):
+        at = np.arange(n_regions, len(dst))
+        for r, square in zip(at.tolist(), patches.texels, strict=True):
+            side = square.shape[0] + 2
+            pages[page[r]][oy[r]:oy[r] + side, ox[r]:ox[r] + side] = cv2.copyMakeBorder(
+                square, 1, 1, 1, 1, cv2.BORDER_REPLICATE)
     face_page = np.full(n_faces, -1, dtype=np.int16)
     face_uv = np.empty((n_faces, 3, 2), dtype=np.float32)
     face_uv[:, :, 0] = (NEUTRAL_PX / 2) / sizes[0][0]
@@ -170,7 +196,16 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         face_uv[done, :, 1] = (oy[reg, None] + (uv[:, :, 1] - boxes[reg, 1, None] + 0.5)
                                * sy[:, None]) / page_h[:, None]
         face_page[done] = page[reg]
-    return Atlas(pages, face_page, face_uv, len(boxes))
+    if patches is not None and len(patches.face):
+        texels = float(patches.texels.shape[1])
+        at = np.arange(n_regions, len(dst))
+        local = np.array([[0.0, 0.0], [texels, 0.0], [0.0, texels]])  # corners 0, 1, 2
+        page_w = np.array([s[0] for s in sizes], dtype=np.float64)[page[at]]
+        page_h = np.array([s[1] for s in sizes], dtype=np.float64)[page[at]]
+        face_uv[patches.face, :, 0] = (ox[at, None] + 1 + local[None, :, 0]) / page_w[:, None]
+        face_uv[patches.face, :, 1] = (oy[at, None] + 1 + local[None, :, 1]) / page_h[:, None]
+        face_page[patches.face] = page[at]
+    return Atlas(pages, face_page, face_uv, n_regions)
 
 
 def _round_up(value: int, multiple: int) -> int:

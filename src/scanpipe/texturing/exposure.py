@@ -1,10 +1,11 @@
-"""Even out exposure across seams: one gain per frame and colour channel, from overlaps.
+"""Even out exposure and white balance: one gain per frame and colour channel, from overlaps.
 
-Where two neighbouring faces were textured from different frames a and b, the midpoint of
-their shared edge is seen in both. Its colour (a 4 × 4 pixel mean) in each frame gives one
-equation ``log g_a + log I_a = log g_b + log I_b``. The gains solve all equations in least
-squares with a weak pull towards 1 (which fixes the free overall level), once more after
-dropping outliers (misregistration, specular spots), and are limited to [0.5, 2].
+A surface point seen in frames a and b (a face's centroid in two of its candidate frames,
+:mod:`scanpipe.texturing.photometric`) gives, per channel, one equation
+``log g_a + log I_a = log g_b + log I_b``. The gains solve all equations in least squares with
+a weak pull towards 1 (which fixes the free overall level), once more after dropping outliers
+(misregistration, specular spots), and are limited to [0.5, 2]. Per channel, so a camera's
+white balance is levelled with its exposure.
 """
 
 from __future__ import annotations
@@ -12,8 +13,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-
-from scanpipe.texturing.frames import FrameSet
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -51,36 +50,6 @@ def sample_mean_colour(small: NDArray[np.uint8], uv: F64, factor: int) -> F64:
     col = np.clip(np.floor((uv[:, 0] + 0.5) / factor), 0, w - 1).astype(np.int64)
     row = np.clip(np.floor((uv[:, 1] + 0.5) / factor), 0, h - 1).astype(np.int64)
     return np.asarray(small[row, col], dtype=np.float64)
-
-
-def seam_colour_pairs(vertices: NDArray[np.floating], faces: NDArray[np.integer],
-                      chosen: I64, frames: FrameSet, max_pairs: int = 200_000,
-                      factor: int = 4) -> tuple[I64, I64, F64, F64]:
-    """``(frame_a, frame_b, colour_a, colour_b)`` at the midpoints of seam edges."""
-    from scanpipe.texturing.projective import project_valid
-
-    pairs, edge_vertices = shared_edges(faces)
-    fa, fb = chosen[pairs[:, 0]], chosen[pairs[:, 1]]
-    seam = (fa >= 0) & (fb >= 0) & (fa != fb)
-    fa, fb, edge_vertices = fa[seam], fb[seam], edge_vertices[seam]
-    if len(fa) > max_pairs:
-        keep = np.random.default_rng(0).choice(len(fa), max_pairs, replace=False)
-        fa, fb, edge_vertices = fa[keep], fb[keep], edge_vertices[keep]
-    midpoints = np.asarray(vertices, np.float64)[edge_vertices].mean(axis=1)
-    colour_a = np.zeros((len(fa), 3))
-    colour_b = np.zeros((len(fa), 3))
-    ok = np.ones(len(fa), dtype=bool)
-    for i in np.unique(np.concatenate([fa, fb])):
-        cam = frames.cameras[i]
-        small = shrink(frames.image(int(i)), factor)
-        for side, target in ((fa, colour_a), (fb, colour_b)):
-            idx = np.flatnonzero(side == i)
-            uv, _, valid = project_valid(midpoints[idx], cam, float(frames.beta_deg[i]), 0.0)
-            target[idx] = sample_mean_colour(small, uv, factor)
-            ok[idx[~valid]] = False
-    usable = ok & np.all((colour_a > 4) & (colour_a < 251) & (colour_b > 4) & (colour_b < 251),
-                         axis=1)
-    return fa[usable], fb[usable], colour_a[usable], colour_b[usable]
 
 
 def solve_gains(frame_a: I64, frame_b: I64, colour_a: F64, colour_b: F64, n_frames: int,

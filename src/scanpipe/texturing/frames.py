@@ -28,6 +28,9 @@ from scanpipe.schema import FRAMES
 U8 = NDArray[np.uint8]
 F64 = NDArray[np.float64]
 
+#: How much :meth:`FrameSet.reduced` shrinks a frame (OpenCV's reduced JPEG decode).
+REDUCED_FACTOR = 4
+
 #: The frame columns texturing reads (see :data:`scanpipe.schema.FRAMES`).
 FRAME_COLUMNS = ("camera_id", "log_time_ns", "sequence", "data")
 
@@ -51,6 +54,7 @@ class FrameSet:
     considered: int = 0
     cache_size: int = 8
     _cache: OrderedDict[int, U8] = field(default_factory=OrderedDict, repr=False)
+    _reduced: dict[int, U8] = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return len(self.encoded)
@@ -71,6 +75,21 @@ class FrameSet:
         if len(self._cache) > self.cache_size:
             self._cache.popitem(last=False)
         return image
+
+    def reduced(self, index: int) -> U8:
+        """Frame ``index`` decoded at a quarter of its size (BGR; :data:`REDUCED_FACTOR`), for
+        colour samples (JPEG decodes this 5–10× faster than in full). Kept: they are small."""
+        if index not in self._reduced:
+            cam = self.cameras[index]
+            image = decode_image_bytes(self.encoded[index], f"frames: frame "
+                                       f"{self.sequences[index]} of {cam.id!r}", MAX_FRAME_PX,
+                                       cv2.IMREAD_REDUCED_COLOR_4, StageError)
+            expected = (-(-cam.height // REDUCED_FACTOR), -(-cam.width // REDUCED_FACTOR))
+            if image.shape[:2] != expected:  # a PNG or an odd size: reduce the full decode
+                image = np.asarray(cv2.resize(self.image(index), expected[::-1],
+                                              interpolation=cv2.INTER_AREA), dtype=np.uint8)
+            self._reduced[index] = image
+        return self._reduced[index]
 
     def centre(self, index: int) -> F64:
         """The camera centre of frame ``index`` in the rig frame."""
@@ -149,6 +168,18 @@ def known_camera_frames(frames: pa.Table, rig: Rig) -> tuple[pa.Table, list[str]
     return frames.filter(pc.fill_null(keep, False)), warnings
 
 
+def pinhole_frames(frames: pa.Table, rig: Rig) -> tuple[pa.Table, Rig, list[str]]:
+    """The frames and the rig without the 360° (equirect) cameras, and those cameras' ids: for
+    what only a pinhole describes (the paper's panorama, COLMAP, E57 pinhole images)."""
+    equirect = [c.id for c in rig.cameras if c.model == "equirect"]
+    if not equirect:
+        return frames, rig, []
+    keep = pc.invert(pc.is_in(frames.column("camera_id"), value_set=pa.array(equirect)))
+    pinholes = tuple(c for c in rig.cameras if c.model == "pinhole")
+    return (frames.filter(pc.fill_null(keep, False)), rig.model_copy(update={"cameras": pinholes}),
+            equirect)
+
+
 def choose_frames(
     frames: pa.Table,
     motor: pa.Table,
@@ -156,11 +187,14 @@ def choose_frames(
     spacing_deg: float,
     stride: int = 1,
     progress: ProgressFn = no_progress,
+    equirect_spacing_deg: float | None = None,
 ) -> FrameSet:
     """The sharpest frame per camera in every ``spacing_deg`` bin of platform angle.
 
     ``stride`` first keeps every n-th frame of each camera (in time order); ``spacing_deg`` 0
-    keeps every remaining frame. Frames of cameras the rig does not know are an error.
+    keeps every remaining frame. A 360° camera's frames all see the whole room, so fewer
+    serve: ``equirect_spacing_deg`` (when given) is their bin instead. Frames of cameras the
+    rig does not know are an error.
     """
     FRAMES.check(frames, FRAME_COLUMNS)
     if frames.num_rows == 0:
@@ -191,8 +225,13 @@ def choose_frames(
         if i % 16 == 0:
             progress("rate frames", i, len(kept))
     progress("rate frames", len(kept), len(kept))
-    if spacing_deg > 0:
-        bins = np.round(beta / spacing_deg).astype(np.int64)
+    spacing = np.full(len(kept), spacing_deg)
+    if equirect_spacing_deg is not None:
+        equirect = {c.id for c in rig.cameras if c.model == "equirect"}
+        spacing[np.isin(camera_ids[kept].astype(str), sorted(equirect))] = equirect_spacing_deg
+    if spacing_deg > 0 or equirect_spacing_deg:
+        bins = np.where(spacing > 0, np.round(beta / np.where(spacing > 0, spacing, 1.0)),
+                        np.arange(len(kept))).astype(np.int64)
         group = np.lexsort((-sharp, bins, camera_ids[kept].astype(str)))
         key_cam, key_bin = camera_ids[kept][group], bins[group]
         first = np.r_[True, (key_cam[1:] != key_cam[:-1]) | (key_bin[1:] != key_bin[:-1])]

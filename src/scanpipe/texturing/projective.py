@@ -11,8 +11,9 @@ with θ the angle between the face normal and the direction to the camera centre
 floored at 0.05) and sharpness relative to the sharpest frame of that camera. A face scores 0
 where a corner falls outside the image (less a margin), behind the camera, or where it is seen
 at more than ``acos(min_cos)``. Faces then take their best frame in which they are really
-visible: in rounds, the best remaining candidate of every unresolved face is tested against
-the mesh (one batch of rays per round); an occluded candidate is struck out.
+visible: in rounds, the best remaining candidate of every unresolved face (of its
+``max_candidates`` best) is tested against the mesh (one batch of rays per round); an occluded
+candidate is struck out.
 """
 
 from __future__ import annotations
@@ -36,6 +37,9 @@ from scanpipe.texturing.visibility import MeshOcclusion
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 NO_DISTORTION = (0.0, 0.0, 0.0, 0.0, 0.0)
+#: A 360° camera turning on the axis sees the whole room in every frame: one frame per this many
+#: degrees of platform angle serves (the texture stage's ``equirect_spacing_deg`` default).
+EQUIRECT_SPACING_DEG = 20.0
 
 
 @lru_cache(maxsize=64)
@@ -65,7 +69,7 @@ def project_valid(points: NDArray[np.floating], cam: CameraConfig, beta_deg: flo
     uv, depth = project_points(points, cam, beta_deg)
     valid = ((depth > near_m) & (uv[:, 0] >= margin_px) & (uv[:, 0] <= cam.width - 1 - margin_px)
              & (uv[:, 1] >= margin_px) & (uv[:, 1] <= cam.height - 1 - margin_px))
-    if any(cam.distortion):
+    if cam.model == "pinhole" and any(cam.distortion):
         plain = cam.model_copy(update={"distortion": NO_DISTORTION})
         uv0, _ = project_points(points, plain, beta_deg)
         limit_x, limit_y = _normalized_limits(cam)
@@ -75,7 +79,11 @@ def project_valid(points: NDArray[np.floating], cam: CameraConfig, beta_deg: flo
 
 
 def centrality(uv: F64, cam: CameraConfig) -> F64:
-    """``1 − ½ r²`` floored at 0.05, r = distance from the principal point in half image sizes."""
+    """``1 − ½ r²`` floored at 0.05, r = distance from the principal point in half image sizes;
+    1 everywhere for an equirect camera (it has no centre: its resolution is the same in every
+    direction, and more across near the poles)."""
+    if cam.model == "equirect":
+        return np.ones(len(uv))
     rr = (((uv[:, 0] - cam.cx) / (cam.width / 2)) ** 2
           + ((uv[:, 1] - cam.cy) / (cam.height / 2)) ** 2)
     return np.asarray(np.clip(1.0 - 0.5 * rr, 0.05, 1.0))
@@ -88,6 +96,8 @@ def view_window(cam: CameraConfig, beta_deg: float) -> tuple[float, float] | Non
     The corners of the undistorted image rectangle bound the azimuths: each image edge is an arc
     of a great circle, along which the azimuth is monotonic unless it passes a pole.
     """
+    if cam.model == "equirect":
+        return None
     rotation, _ = camera_pose_in_rig(cam, beta_deg)
     limit_x, limit_y = _normalized_limits(cam)
     for pole in (rotation[1], -rotation[1]):  # the rig's ±y in camera coordinates
@@ -128,6 +138,24 @@ class AzimuthIndex:
         return np.concatenate(parts)
 
 
+def resolution_weights(cameras: list[CameraConfig]) -> F64:
+    """Each camera's angular resolution relative to the finest (1 = finest): a 360° camera
+    beside phones is used where they do not reach."""
+    res = np.array([c.px_per_rad for c in cameras], dtype=np.float64)
+    return res / res.max() if len(res) else res
+
+
+def wraps(uv: F64, cam: CameraConfig) -> NDArray[np.bool_]:
+    """Faces (corner pixels ``(k, 3, 2)``) that cross an equirect image's left/right wrap (or
+    sit so near a pole that they spread across a quarter of it): they cannot be cut from it."""
+    if cam.model != "equirect":
+        return np.zeros(len(uv), dtype=bool)
+    u = uv[:, :, 0]
+    spread = np.maximum(np.maximum(u[:, 0], u[:, 1]), u[:, 2]) - np.minimum(
+        np.minimum(u[:, 0], u[:, 1]), u[:, 2])
+    return np.asarray(spread > cam.width / 4)
+
+
 def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], normals: F64,
                 frames: FrameSet, *, min_cos: float = 0.2, margin_px: float = 2.0,
                 sharpness_weight: float = 1.0, two_sided: bool = False,
@@ -139,7 +167,7 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     """
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
-    sharp = frames.relative_sharpness() ** sharpness_weight
+    sharp = frames.relative_sharpness() ** sharpness_weight * resolution_weights(frames.cameras)
     scores = np.zeros((len(frames), len(faces)), dtype=np.float32)
     offset = max((math.hypot(c.pose.translation_m[0], c.pose.translation_m[2])
                   for c in frames.cameras), default=0.0)
@@ -148,26 +176,43 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     centroids = np.asarray(vertices[faces].mean(axis=1), dtype=np.float64)
     vertex_index = AzimuthIndex(vertices, near_m)
     face_index = AzimuthIndex(centroids, near_m)
+    # cos θ = (n·c − n·p) / |c − p| from per-face constants and two mat-vec products per frame
+    # (no (faces, 3) temporaries: this loop is a large share of the stage)
+    n_dot_p = np.einsum("ij,ij->i", normals, centroids)
+    p_squared = np.einsum("ij,ij->i", centroids, centroids)
     uv = np.zeros((len(vertices), 2))
     valid = np.zeros(len(vertices), dtype=bool)
+    everything = np.arange(len(faces))
     for i, cam in enumerate(frames.cameras):
         beta = float(frames.beta_deg[i])
-        centre_deg, half_deg = view_window(cam, beta) or (0.0, 180.0)
-        window = (centre_deg, half_deg + parallax_deg)
-        near = vertex_index.window(*window)
-        valid[:] = False
-        uv[near], _, valid[near] = project_valid(vertices[near], cam, beta, margin_px)
-        fidx = face_index.window(*window)
-        fidx = fidx[valid[faces[fidx]].all(axis=1)]
+        window = view_window(cam, beta)
+        if window is None:  # every direction in view: no index look-ups
+            uv, _, valid = project_valid(vertices, cam, beta, margin_px)
+            fidx = everything
+        else:
+            window = (window[0], window[1] + parallax_deg)
+            near = vertex_index.window(*window)
+            valid[:] = False
+            uv[near], _, valid[near] = project_valid(vertices[near], cam, beta, margin_px)
+            fidx = face_index.window(*window)
         corners = faces[fidx]
-        to_cam = frames.centre(i) - centroids[fidx]
-        cos = np.einsum("ij,ij->i", normals[fidx], to_cam) / np.maximum(
-            np.linalg.norm(to_cam, axis=1), 1e-12)
+        inside = valid[corners[:, 0]] & valid[corners[:, 1]] & valid[corners[:, 2]]
+        fidx, corners = fidx[inside], corners[inside]
+        if cam.model == "equirect":
+            ok = ~wraps(uv[corners], cam)
+            fidx, corners = fidx[ok], corners[ok]
+        centre = frames.centre(i)
+        distance = np.sqrt(np.maximum(
+            p_squared[fidx] - 2 * (centroids[fidx] @ centre) + centre @ centre, 1e-24))
+        cos = (normals[fidx] @ centre - n_dot_p[fidx]) / distance
         if two_sided:
             cos = np.abs(cos)
-        score = cos * centrality(uv[corners].mean(axis=1), cam) * sharp[i]
         keep = cos >= min_cos
-        scores[i, fidx[keep]] = score[keep]
+        fidx, corners, cos = fidx[keep], corners[keep], cos[keep]
+        score = cos * sharp[i]
+        if cam.model == "pinhole":
+            score *= centrality(uv[corners].mean(axis=1), cam)
+        scores[i, fidx] = score
         progress("score frames", i + 1, len(frames))
     return scores
 
@@ -181,38 +226,37 @@ class Selection:
     rays_cast: int
 
 
-def select_frames_per_face(scores: F32, frames: FrameSet, occlusion: MeshOcclusion,
-                           max_candidates: int = 8, progress: ProgressFn = no_progress
-                           ) -> Selection:
-    """Each face's best-scoring frame in which it is wholly visible (see module docstring).
+def select_frames_per_face(candidates: NDArray[np.int64], frames: FrameSet,
+                           occlusion: MeshOcclusion, scores: F32,
+                           progress: ProgressFn = no_progress) -> Selection:
+    """Each face's best frame in which it is wholly visible (see module docstring), from its
+    ``candidates`` (``(faces, K)`` frames best first, −1 = none: :func:`~scanpipe.texturing.
+    photometric.candidate_views`).
 
     ``scores`` is modified: occluded candidates are set to 0.
     """
-    n_faces = scores.shape[1]
+    n_faces, k = candidates.shape
     chosen = np.full(n_faces, -1, dtype=np.int64)
     if len(frames) == 0 or n_faces == 0:
         return Selection(chosen, 0, 0)
     centres = np.stack([frames.centre(i) for i in range(len(frames))])
-    pending = np.flatnonzero(scores.max(axis=0) > 0)
-    occluded = rays = 0
-    for round_index in range(max_candidates):
+    pending = np.flatnonzero((candidates >= 0).any(axis=1))
+    occluded = 0
+    rays_before = occlusion.rays_cast
+    for slot in range(k):
         if len(pending) == 0:
             break
-        sub = scores[:, pending]
-        best = np.argmax(sub, axis=0)
-        alive = sub[best, np.arange(len(pending))] > 0
-        pending, best = pending[alive], best[alive]
-        if len(pending) == 0:
-            break
+        struck = candidates[pending, slot] < 0  # none left, or an outlier: try the next
+        waiting, pending = pending[struck], pending[~struck]
+        best = candidates[pending, slot]
         visible = occlusion.faces_visible(centres[best], pending)
-        rays += 7 * len(pending)
         chosen[pending[visible]] = best[visible]
         blocked = ~visible
         scores[best[blocked], pending[blocked]] = 0.0
         occluded += int(blocked.sum())
-        pending = pending[blocked]
-        progress("visibility", round_index + 1, max_candidates)
-    return Selection(chosen, occluded, rays)
+        pending = np.sort(np.concatenate([pending[blocked], waiting]))
+        progress("visibility", slot + 1, k)
+    return Selection(chosen, occluded, occlusion.rays_cast - rays_before)
 
 
 def colorize_points(
@@ -229,7 +273,9 @@ def colorize_points(
     """``points`` with ``red``, ``green``, ``blue`` (uint8) from the camera frames.
 
     Each point takes the pixel of the frame (one per ``spacing_deg`` of platform angle and
-    camera, the sharpest) where it lies nearest the image centre among the frames that see it.
+    camera, the sharpest; for a 360° camera one per :data:`EQUIRECT_SPACING_DEG`) where it
+    lies nearest the image centre (weighed by the camera's angular resolution) among the
+    frames that see it.
     Occlusion is a z-buffer of the points themselves in ``cell_px`` cells: a point more than
     3 cm + 1 % behind the nearest point of its cell is hidden. Points no frame sees get
     ``neutral_rgb``. Called by the export stage for coloured point clouds (PLY, LAS, E57).
@@ -239,7 +285,9 @@ def colorize_points(
             raise StageError(f"points: missing column {name!r}")
     xyz = np.stack([points.column(n).to_numpy(zero_copy_only=False) for n in "xyz"], axis=1)
     xyz = xyz.astype(np.float64)
-    chosen = choose_frames(frames, motor, rig, spacing_deg, progress=progress)
+    chosen = choose_frames(frames, motor, rig, spacing_deg, progress=progress,
+                           equirect_spacing_deg=max(spacing_deg, EQUIRECT_SPACING_DEG))
+    resolution = resolution_weights(chosen.cameras)
     best = np.zeros(len(xyz), dtype=np.float64)
     rgb = np.tile(np.asarray(neutral_rgb, dtype=np.uint8), (len(xyz), 1))
     for i, cam in enumerate(chosen.cameras):
@@ -253,7 +301,7 @@ def colorize_points(
         np.minimum.at(nearest, cell, depth[idx])
         seen = depth[idx] <= nearest[cell] + 0.03 + 0.01 * depth[idx]
         idx, col, row = idx[seen], col[seen], row[seen]
-        score = centrality(uv[idx], cam)
+        score = centrality(uv[idx], cam) * resolution[i]
         better = score > best[idx]
         idx, col, row = idx[better], col[better], row[better]
         best[idx] = score[better]

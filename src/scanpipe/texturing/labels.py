@@ -1,0 +1,127 @@
+"""Frame choice that weighs quality against seams: a Potts MRF over the face adjacency,
+minimised by iterated conditional modes (ICM).
+
+Energy (Waechter et al. 2014, eq. 1, with our score as the data term)::
+
+    E(l) = Σ_f D(f, l_f) + λ · Σ_(f,g adjacent) [l_f ≠ l_g]
+    D(f, l) = 1 − score(l, f) / score(best visible frame of f)       (∞ where score is 0)
+
+Start: every face in its best visible frame
+(:func:`scanpipe.texturing.projective.select_frames_per_face`).
+Each round, every face on a seam may take the label of one of its neighbours when that lowers
+the energy; a random half of the faces that would gain move (neighbours moving at once could
+swap forever), after their new frame is tested against the mesh (the same ray test; a
+hidden candidate is struck out). Faces without a label (untextured) do not count in the Potts
+term. All arrays, no per-face Python.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.texturing.exposure import shared_edges
+from scanpipe.texturing.frames import FrameSet
+from scanpipe.texturing.visibility import MeshOcclusion
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+
+def face_neighbours(faces: NDArray[np.integer], pairs: I64 | None = None) -> I64:
+    """``(faces, 3)`` the faces sharing an edge with each face, −1 padded (manifold edges);
+    ``pairs`` from :func:`~scanpipe.texturing.exposure.shared_edges` when already known."""
+    if pairs is None:
+        pairs, _ = shared_edges(faces)
+    n = len(faces)
+    result = np.full((n, 3), -1, dtype=np.int64)
+    both = np.concatenate([pairs, pairs[:, ::-1]])
+    order = np.argsort(both[:, 0], kind="stable")
+    owner, other = both[order, 0], both[order, 1]
+    start = np.searchsorted(owner, np.arange(n))
+    slot = np.arange(len(owner)) - start[owner]
+    keep = slot < 3
+    result[owner[keep], slot[keep]] = other[keep]
+    return result
+
+
+@dataclass
+class Smoothing:
+    """What ICM changed."""
+
+    labels: I64
+    rounds: int
+    moved: int
+    struck: int
+    seam_edges_before: int
+    seam_edges_after: int
+
+
+def seam_edge_count(labels: I64, neighbours: I64) -> int:
+    """Edges between two textured faces with different frames."""
+    lab_n = np.where(neighbours >= 0, labels[np.maximum(neighbours, 0)], -1)
+    mine = labels[:, None]
+    return int(((lab_n >= 0) & (mine >= 0) & (lab_n != mine)).sum() // 2)
+
+
+def _cost(candidate: I64, active: I64, scores: F32, reference: F64, nb: I64,
+          counted: NDArray[np.bool_], seam_weight: float) -> F64:
+    """The energy terms of faces ``active`` labelled ``candidate`` (∞ where not allowed)."""
+    score = scores[np.maximum(candidate, 0), active].astype(np.float64)
+    data = 1.0 - score / np.maximum(reference[active], 1e-12)
+    data[(candidate < 0) | (score <= 0)] = np.inf
+    potts = (counted & (nb != candidate[:, None])).sum(axis=1)
+    return np.asarray(data + seam_weight * potts)
+
+
+def smooth_labels(scores: F32, labels: I64, neighbours: I64, frames: FrameSet,
+                  occlusion: MeshOcclusion, seam_weight: float = 0.3, rounds: int = 10,
+                  seed: int = 0, progress: ProgressFn = no_progress) -> Smoothing:
+    """ICM on the Potts energy above, from ``labels``; ``scores`` is modified (hidden
+    candidates set to 0)."""
+    labels = labels.copy()
+    before = seam_edge_count(labels, neighbours)
+    if seam_weight <= 0 or len(labels) == 0 or len(frames) == 0:
+        return Smoothing(labels, 0, 0, 0, before, before)
+    rng = np.random.default_rng(seed)
+    textured = labels >= 0
+    reference = np.zeros(len(labels), dtype=np.float64)
+    reference[textured] = scores[labels[textured], np.flatnonzero(textured)]
+    centres = np.stack([frames.centre(i) for i in range(len(frames))])
+    moved = struck = 0
+    done = 0
+    for done in range(1, rounds + 1):
+        lab_n = np.where(neighbours >= 0, labels[np.maximum(neighbours, 0)], -1)
+        lab_n[labels < 0] = -1
+        counted = lab_n >= 0
+        active = np.flatnonzero((labels >= 0) & np.any(counted & (lab_n != labels[:, None]),
+                                                       axis=1))
+        if len(active) == 0:
+            break
+        own = labels[active]
+        nb = lab_n[active]  # (A, 3) candidate labels
+        cnt = counted[active]
+
+        current = _cost(own, active, scores, reference, nb, cnt, seam_weight)
+        options = np.stack([_cost(nb[:, k], active, scores, reference, nb, cnt, seam_weight)
+                            for k in range(nb.shape[1])], axis=1)
+        options[nb == own[:, None]] = np.inf
+        best = np.argmin(options, axis=1)
+        gain = options[np.arange(len(active)), best] - current
+        move = (gain < -1e-9) & (rng.random(len(active)) < 0.5)
+        if not move.any():
+            if not (gain < -1e-9).any():
+                break
+            continue
+        face, target = active[move], nb[move, best[move]]
+        visible = occlusion.faces_visible(centres[target], face)
+        labels[face[visible]] = target[visible]
+        scores[target[~visible], face[~visible]] = 0.0
+        moved += int(visible.sum())
+        struck += int((~visible).sum())
+        progress("seams", done, rounds)
+    return Smoothing(labels, done, moved, struck, before, seam_edge_count(labels, neighbours))

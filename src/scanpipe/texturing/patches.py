@@ -1,0 +1,143 @@
+"""Faces that no frame holds whole: textured texel by texel from several frames (multi-view).
+
+A face that crosses the border of every frame that sees it (a large face, a pinhole's top or
+bottom edge) gets its own small square of ``P × P`` texels in the atlas, the triangle in its
+lower-left half: texel ``(x, y)`` is the surface point at barycentric
+``((x + ½) / P, (y + ½) / P)`` from corner 0 towards corners 1 and 2 (clamped onto the
+triangle outside it, so that filtering at the long edge samples the surface). Each texel takes
+its colour (bilinear, levelled by the frame's gains) from the best of the face's partial
+frames — those that see at least one corner, in front, at a usable angle — in which it lies
+inside the image and is unobstructed (a ray per texel against the mesh); seen in three or more,
+the median of their colours (a passer-by in one frame does not decide). A face counts as
+textured when at least :data:`MIN_FILLED` of its texels found a frame; the rest take the mean.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from scanpipe.texturing.frames import FrameSet
+from scanpipe.texturing.photometric import nan_median
+from scanpipe.texturing.visibility import MeshOcclusion
+
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+U8 = NDArray[np.uint8]
+
+#: Frames looked at for the faces no frame holds whole.
+MAX_PARTIAL_FRAMES = 32
+#: Share of a patch's texels that must find a frame for the face to count as textured.
+MIN_FILLED = 0.9
+
+
+@dataclass
+class Patches:
+    """Per face in ``face``: its texels (``(n, P, P, 3)`` BGR) and the frame of most texels."""
+
+    face: I64
+    texels: U8
+    frame: I64
+
+
+def partial_candidates(vertices: F64, faces: I64, normals: F64, face_ids: I64,
+                       frames: FrameSet, weights: F64, min_cos: float, count: int = 5) -> I64:
+    """``(len(face_ids), count)`` frames (best first, −1 = none) that see at least one corner
+    of each face, in front, at a usable angle; scored ``cos θ · corners inside / 3 ·
+    weights[frame]``. At most about :data:`MAX_PARTIAL_FRAMES` frames are looked at, evenly
+    spread over each camera's (neighbouring frames see nearly the same part of a face)."""
+    from scanpipe.texturing.projective import project_valid
+
+    n = len(face_ids)
+    score = np.zeros((len(frames), n))
+    if n == 0:
+        return np.full((0, min(count, len(frames))), -1, dtype=np.int64)
+    corners = vertices[faces[face_ids]].reshape(-1, 3)
+    centroid = vertices[faces[face_ids]].mean(axis=1)
+    ids = np.asarray(frames.camera_ids)
+    per_camera = max(1, MAX_PARTIAL_FRAMES // max(1, len(set(frames.camera_ids))))
+    looked = []
+    for cam_id in sorted(set(frames.camera_ids)):
+        own = np.flatnonzero(ids == cam_id)
+        looked += own[::max(1, -(-len(own) // per_camera))].tolist()
+    for i in looked:
+        cam = frames.cameras[i]
+        _, _, valid = project_valid(corners, cam, float(frames.beta_deg[i]), 0.0)
+        inside = valid.reshape(n, 3).sum(axis=1)
+        to_cam = frames.centre(i) - centroid
+        cos = np.einsum("ij,ij->i", normals[face_ids], to_cam) / np.maximum(
+            np.linalg.norm(to_cam, axis=1), 1e-12)
+        ok = (inside > 0) & (cos >= min_cos)
+        score[i, ok] = cos[ok] * inside[ok] / 3 * weights[i]
+    k = min(count, len(frames))
+    order = np.argsort(-score, axis=0, kind="stable")[:k].T
+    best = np.take_along_axis(score.T, order, axis=1)
+    return np.where(best > 0, order, -1).astype(np.int64)
+
+
+def remap_points(image: U8, uv: F64, width: int = 1024) -> F64:
+    """Bilinear colours of ``image`` at pixel positions ``uv`` (N, 2): OpenCV's remap, the
+    points laid out as rows of ``width`` (its maps may not exceed 32 767 a side)."""
+    n = len(uv)
+    rows = -(-n // width)
+    flat = np.zeros((rows * width, 2), np.float32)
+    flat[:n] = uv
+    maps = flat.reshape(rows, width, 2)
+    out = cv2.remap(image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR)
+    return np.asarray(out.reshape(-1, image.shape[2])[:n], dtype=np.float64)
+
+
+def bake_patches(vertices: F64, faces: I64, face_ids: I64, candidates: I64, frames: FrameSet,
+                 gains: F64, occlusion: MeshOcclusion, texels: int = 16) -> Patches:
+    """The texels of every face in ``face_ids`` from its ``candidates`` (see the module
+    docstring); only the faces that reach :data:`MIN_FILLED` are returned."""
+    from scanpipe.texturing.projective import project_valid
+
+    p = texels
+    grid = (np.arange(p) + 0.5) / p
+    b1, b2 = np.meshgrid(grid, grid)  # (P, P): x → corner 1, y → corner 2
+    over = np.maximum(b1 + b2 - 1.0, 0.0)  # clamp onto the triangle
+    b1c, b2c = b1 - over * b1 / np.maximum(b1 + b2, 1e-12), b2 - over * b2 / np.maximum(
+        b1 + b2, 1e-12)
+    bary = np.stack([1 - b1c - b2c, b1c, b2c], -1).reshape(-1, 3)  # (P², 3)
+    inside = (b1 + b2 <= 1.0).reshape(-1)
+    tri = vertices[faces[face_ids]]  # (n, 3, 3)
+    points = np.einsum("tk,nkc->ntc", bary, tri)  # (n, P², 3)
+    n, slots = len(face_ids), candidates.shape[1]
+    samples = np.full((n, p * p, slots, 3), np.nan)
+    votes = np.zeros((n, len(frames)), dtype=np.int64)
+    for slot in range(slots):
+        frame_of = candidates[:, slot]
+        for i in np.unique(frame_of[frame_of >= 0]):
+            rows = np.flatnonzero(frame_of == i)
+            face_of = np.repeat(rows, p * p)
+            texel = np.tile(np.arange(p * p), len(rows))
+            where = points[face_of, texel]
+            cam = frames.cameras[int(i)]
+            uv, _, valid = project_valid(where, cam, float(frames.beta_deg[i]), 0.5)
+            centre = np.broadcast_to(frames.centre(int(i)), where[valid].shape)
+            seen = valid.copy()
+            seen[valid] = occlusion.unobstructed(centre, where[valid], face_ids[face_of[valid]])
+            face_of, texel, uv = face_of[seen], texel[seen], uv[seen]
+            if len(face_of) == 0:
+                continue
+            sampled = remap_points(frames.image(int(i)), uv)
+            samples[face_of, texel, slot] = sampled * gains[i]
+            np.add.at(votes[:, int(i)], face_of, 1)
+    filled = np.isfinite(samples[:, :, :, 0]).any(axis=2)
+    # a texel seen in three or more frames takes their median: one frame with a passer-by
+    # in it does not decide; with fewer, the best frame's colour
+    count = np.isfinite(samples[:, :, :, 0]).sum(axis=2)
+    first = np.argmax(np.isfinite(samples[:, :, :, 0]), axis=2)
+    best = np.take_along_axis(samples, first[:, :, None, None], axis=2)[:, :, 0]
+    colour = np.where((count >= 3)[:, :, None], nan_median(samples, axis=2)[:, :, 0], best)
+    share = (filled & inside).sum(axis=1) / max(1, int(inside.sum()))
+    keep = share >= MIN_FILLED
+    colour = np.where(filled[:, :, None], colour, 0.0)
+    mean = colour.sum(axis=1) / np.maximum(filled.sum(axis=1), 1)[:, None]
+    colour = np.where(filled[:, :, None], colour, mean[:, None, :])
+    texels_bgr = np.clip(colour + 0.5, 0, 255).astype(np.uint8).reshape(n, p, p, 3)
+    return Patches(face_ids[keep], texels_bgr[keep], np.argmax(votes[keep], axis=1))

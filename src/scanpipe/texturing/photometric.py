@@ -1,0 +1,140 @@
+"""What several frames say about one face: colour samples, global levelling, outlier rejection.
+
+For every face its best ``max_views`` frames by score (:func:`candidate_views`) are sampled at
+the face's centroid (:func:`sample_views`: a 4 × 4 pixel mean from a shrunk image). These
+overlaps serve twice (Waechter et al. 2014, sections 4.1 and 5):
+
+- **global levelling**: each face seen by frames a and b gives
+  ``log g_a + log I_a = log g_b + log I_b`` per channel; the per-frame, per-channel gains (an
+  exposure gain times a white balance) solve all of them in least squares
+  (:func:`scanpipe.texturing.exposure.solve_gains`);
+- **photometric outliers**: where at least three frames see a face, a frame whose levelled
+  colour lies more than ``max(outlier_levels, 3 × MAD)`` from the median of the others (a
+  person walking through that frame, a reflection) is struck out for that face.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from scanpipe.texturing.exposure import sample_mean_colour
+from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+I64 = NDArray[np.int64]
+
+#: Colours this dark or bright are clipped in some channel: no use for gains.
+USABLE_LEVELS = (4.0, 251.0)
+
+
+@dataclass
+class Views:
+    """Per face its candidate frames (best first, −1 = none) and their sampled colours."""
+
+    frame: I64  # (faces, K)
+    colour: F64  # (faces, K, 3) in 8-bit levels (as recorded, before gains); NaN = not sampled
+
+    @property
+    def count(self) -> I64:
+        """How many candidates each face has."""
+        return np.asarray((self.frame >= 0).sum(axis=1), dtype=np.int64)
+
+
+def candidate_views(scores: F32, max_views: int, chunk: int = 131_072) -> I64:
+    """``(faces, K)`` the best ``K = min(max_views, frames)`` frames of each face by score
+    (−1 where a face has fewer with a positive score), best first: K passes of argmax over a
+    chunk of faces at a time (a full sort or argpartition of the score matrix costs seconds)."""
+    n_frames, n_faces = scores.shape
+    k = min(max_views, n_frames)
+    result = np.full((n_faces, k), -1, dtype=np.int64)
+    for start in range(0, n_faces, chunk):
+        block = np.ascontiguousarray(scores[:, start:start + chunk].T)  # rows: argmax is fast
+        rows = np.arange(block.shape[0])
+        for slot in range(k):
+            best = np.argmax(block, axis=1)
+            positive = block[rows, best] > 0
+            result[start + rows[positive], slot] = best[positive]
+            block[rows, best] = 0.0
+    return result
+
+
+def sample_views(points: F64, frame: I64, frames: FrameSet) -> F64:
+    """``(faces, K, 3)`` RGB (8-bit levels, BGR order as decoded) of ``points[f]`` in frame
+    ``frame[f, k]``; NaN where there is no candidate or the point leaves the image."""
+    from scanpipe.texturing.projective import project_valid
+
+    colour = np.full((frame.size, 3), np.nan)
+    flat = frame.ravel()
+    order = np.argsort(flat, kind="stable")
+    bounds = np.searchsorted(flat[order], np.arange(len(frames) + 1))
+    for i in range(len(frames)):
+        cell = order[bounds[i]:bounds[i + 1]]
+        if len(cell) == 0:
+            continue
+        cam = frames.cameras[i]
+        uv, _, valid = project_valid(points[cell // frame.shape[1]], cam,
+                                     float(frames.beta_deg[i]), 0.0)
+        colour[cell[valid]] = sample_mean_colour(frames.reduced(i), uv[valid], REDUCED_FACTOR)
+    return colour.reshape(*frame.shape, 3)
+
+
+def overlap_pairs(views: Views, max_pairs: int = 200_000, seed: int = 0
+                  ) -> tuple[I64, I64, F64, F64]:
+    """``(frame_a, frame_b, colour_a, colour_b)``: each face's best frame against each other
+    frame that sees it, where both colours are unclipped; from a random subset of faces, so
+    that there are at most about ``max_pairs``."""
+    n_faces, k = views.frame.shape
+    rows = np.arange(n_faces)
+    per_face = max(1, k - 1)
+    if n_faces * per_face > max_pairs:
+        rows = np.sort(np.random.default_rng(seed).choice(n_faces, max_pairs // per_face,
+                                                         replace=False))
+    frame, colour = views.frame[rows], views.colour[rows]
+    lo, hi = USABLE_LEVELS
+    with np.errstate(invalid="ignore"):
+        usable = (frame >= 0) & np.all((colour > lo) & (colour < hi), axis=2)
+    ok = usable[:, :1] & usable[:, 1:] & (frame[:, 1:] != frame[:, :1])  # (rows, k − 1)
+    face, slot = np.nonzero(ok)
+    return (frame[face, 0], frame[face, slot + 1], colour[face, 0], colour[face, slot + 1])
+
+
+def nan_median(values: F64, axis: int) -> F64:
+    """Median along ``axis`` ignoring NaN (NaN where all are NaN): sort, NaNs last, take the
+    middle of the finite ones (numpy's nanmedian goes through masked arrays: many times
+    slower on millions of short rows)."""
+    ordered = np.sort(values, axis=axis)
+    count = np.isfinite(ordered).sum(axis=axis, keepdims=True)
+    lower = np.take_along_axis(ordered, np.maximum((count - 1) // 2, 0), axis=axis)
+    upper = np.take_along_axis(ordered, np.maximum(count // 2, 0), axis=axis)
+    return np.asarray(np.where(count > 0, 0.5 * (lower + upper), np.nan))
+
+
+def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
+                         ) -> NDArray[np.bool_]:
+    """``(faces, K)`` True where a candidate's levelled colour disagrees with the others.
+
+    Only faces with at least three sampled candidates are judged: the median of the levelled
+    colours per channel is the consensus; a candidate further than
+    ``max(outlier_levels, 3 × 1.4826 × MAD)`` (largest channel) from it is an outlier.
+    """
+    frame = views.frame
+    levelled = views.colour * gains[np.where(frame >= 0, frame, 0)]
+    sampled = np.all(np.isfinite(levelled), axis=2)
+    judged = sampled.sum(axis=1) >= 3
+    outlier = np.zeros(frame.shape, dtype=bool)
+    if not judged.any():
+        return outlier
+    sub = levelled[judged]
+    median = nan_median(sub, axis=1)
+    # a candidate is sampled in all channels or none: the largest channel's deviation, NaN
+    # where not sampled
+    deviation = np.abs(sub - median).max(axis=2)
+    mad = nan_median(deviation, axis=1) * 1.4826
+    limit = np.maximum(outlier_levels, 3 * mad)
+    with np.errstate(invalid="ignore"):
+        outlier[judged] = deviation > limit
+    return outlier
