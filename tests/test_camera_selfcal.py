@@ -270,3 +270,20 @@ def test_import_video_refuses_to_refine_without_still_frames(
     assert result.code == 1
     assert "standing still" in result.err and result.err.count("\n") == 1
     assert _digest(rec) == digest
+
+
+def test_a_360_camera_is_refused_by_name() -> None:
+    """The edge fit models pinhole cameras: the default rig's 360° camera is refused when named
+    (and left out when no camera is named)."""
+    import pyarrow as pa
+    import pytest
+
+    from scanpipe.camera_selfcal import calibrate_cameras
+    from scanpipe.errors import StageError
+    from scanpipe.rig import default_rig
+
+    rig = default_rig()
+    (equirect,) = [c.id for c in rig.cameras if c.model == "equirect"]
+    empty = pa.table({"x": pa.array([], pa.float32())})
+    with pytest.raises(StageError, match=f"camera '{equirect}': model 'equirect'"):
+        calibrate_cameras(empty, empty, empty, rig, camera_ids=[equirect])

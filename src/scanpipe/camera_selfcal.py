@@ -799,8 +799,14 @@ def calibrate_cameras(points: pa.Table, frames: pa.Table, motor: pa.Table, rig: 
                       start_offsets_s: dict[str, float] | None = None,
                       fit_focal: bool = True) -> list[CameraCalibration]:
     """Calibrate each camera (default: every rig camera with frames) against the scan."""
+    # The fit models a pinhole (its focal length, its edges' projection): a 360° camera
+    # (model "equirect") is left out unless named, and refused when named.
     ids = list(camera_ids) if camera_ids is not None else [
-        c.id for c in rig.cameras if frame_rows(frames, c.id, 1).size]
+        c.id for c in rig.cameras if c.model == "pinhole" and frame_rows(frames, c.id, 1).size]
+    for camera_id in ids:
+        if rig.camera(camera_id).model != "pinhole":
+            raise StageError(f"camera {camera_id!r}: model {rig.camera(camera_id).model!r} (a "
+                             "360° camera); self-calibration handles pinhole cameras only")
     if not ids:
         raise StageError("frames: no frames of any rig camera "
                          f"(cameras: {', '.join(c.id for c in rig.cameras) or 'none'})")

@@ -256,6 +256,8 @@ def edge_metrics(result: Path, max_frames: int = 12) -> dict[str, Any]:
         track = MotorTrack(tables["motor"], rig)
         distances = []
         for camera in rig.cameras:
+            if camera.model != "pinhole":  # the edge fit models pinhole cameras only
+                continue
             rows = frame_rows(tables["frames"], camera.id, max_frames)
             if rows.size == 0:
                 continue
