@@ -161,7 +161,7 @@ def test_a_live_simulation_followed_from_another_process_equals_the_batch_run(
     simulate = subprocess.Popen(
         [*SCANPIPE, "simulate", "--out", str(rec), "--truth", str(tmp_path / "truth"), "--rig",
          str(rig_file), "--scene", "box", "--beam-step", "2", "--motor-step", "2",
-         "--camera-scale", "0.04", "--camera-fps", "2", "--speedup", "20", "--quiet"],
+         "--camera-scale", "0.04", "--camera-fps", "2", "--speedup", "10", "--quiet"],
         env=env, stderr=subprocess.PIPE, text=True)
     follow = subprocess.run(
         [*SCANPIPE, "run", str(rec), "--workdir", str(tmp_path / "follow"), "--to", "mesh",
