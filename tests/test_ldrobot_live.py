@@ -16,8 +16,10 @@ from scanpipe.evaluate import SurfaceDistance, load_reference
 from scanpipe.scanner_models import SCANNER_MODELS
 
 #: A speed-up the emulator keeps on a loaded machine: at 10× its turns (100 per second, 4 KiB
-#: of pty) arrive in bursts whose lateness drifts, and the fitted clock rate with them.
-SPEEDUP = 5.0
+#: of pty) arrive in bursts whose lateness drifts, and the fitted clock rate with them. 3×, not
+#: 5×: since the emulator skips the turns it cannot send in time, 5× gave 10.9–12.5 mm against
+#: the 11 mm limit (one fresh-clone CI failure); 3× leaves margin.
+SPEEDUP = 3.0
 
 
 @pytest.mark.slow
