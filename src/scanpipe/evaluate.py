@@ -112,6 +112,22 @@ def visible_from(surface: SurfaceDistance, points: F64, origin: Sequence[float],
     return np.asarray(unobstructed & (distance >= min_range_m) & (distance <= max_range_m))
 
 
+
+def surface_scores(to_truth: NDArray[np.floating], to_result: NDArray[np.floating],
+                   seen: NDArray[np.bool_], tau_m: float) -> dict[str, Any]:
+    """Mesh distance statistics, precision, completeness and F-score at ``tau_m`` from the
+    result's samples' distances to the truth and the seen true samples' distances to the
+    result (``seen``: which true samples a scanner could see)."""
+    precision = float(np.mean(to_truth < tau_m)) if to_truth.size else 0.0
+    completeness = float(np.mean(to_result < tau_m)) if to_result.size else 0.0
+    fscore = (2 * precision * completeness / (precision + completeness)
+              if precision + completeness > 0 else 0.0)
+    stats = distance_stats(to_truth)
+    return {"mesh_mean_m": stats["mean_m"], "mesh_rms_m": stats["rms_m"],
+            "mesh_p95_m": stats["p95_m"], "precision": precision,
+            "completeness": completeness, "fscore": fscore, "tau_m": tau_m,
+            "visible_truth_share": float(np.mean(seen)) if seen.size else 0.0}
+
 def mesh_metrics(result: RenderMesh, reference: Reference, tau_m: float = 0.02,
                  samples: int = 100_000, seed: int = 0,
                  truth_surface: SurfaceDistance | None = None) -> dict[str, Any]:
@@ -124,15 +140,7 @@ def mesh_metrics(result: RenderMesh, reference: Reference, tau_m: float = 0.02,
     seen = visible_from(truth, on_truth, reference.origin, reference.min_range_m,
                         reference.max_range_m)
     to_result = result_surface.distance_m(on_truth[seen])
-    precision = float(np.mean(to_truth < tau_m)) if to_truth.size else 0.0
-    completeness = float(np.mean(to_result < tau_m)) if to_result.size else 0.0
-    fscore = (2 * precision * completeness / (precision + completeness)
-              if precision + completeness > 0 else 0.0)
-    stats = distance_stats(to_truth)
-    return {"mesh_mean_m": stats["mean_m"], "mesh_rms_m": stats["rms_m"],
-            "mesh_p95_m": stats["p95_m"], "precision": precision,
-            "completeness": completeness, "fscore": fscore, "tau_m": tau_m,
-            "visible_truth_share": float(np.mean(seen)) if seen.size else 0.0}
+    return surface_scores(to_truth, to_result, seen, tau_m)
 
 
 def matched_viewpoints(bounds: F64, origin: Sequence[float], count: int = 8, width: int = 160,
@@ -469,15 +477,7 @@ def site_mesh_metrics(result: RenderMesh, truth: SiteTruth, origins: Sequence[F6
     on_truth = sample_surface(truth.mesh.vertices, truth.mesh.faces, samples, seed + 1)
     seen = seen_from_any(truth_surface, on_truth, origins, truth.min_range_m, truth.max_range_m)
     to_result = SurfaceDistance(result).distance_m(on_truth[seen])
-    precision = float(np.mean(to_truth < tau_m)) if to_truth.size else 0.0
-    completeness = float(np.mean(to_result < tau_m)) if to_result.size else 0.0
-    fscore = (2 * precision * completeness / (precision + completeness)
-              if precision + completeness > 0 else 0.0)
-    stats = distance_stats(to_truth)
-    return {"mesh_mean_m": stats["mean_m"], "mesh_rms_m": stats["rms_m"],
-            "mesh_p95_m": stats["p95_m"], "precision": precision,
-            "completeness": completeness, "fscore": fscore, "tau_m": tau_m,
-            "visible_truth_share": float(np.mean(seen)) if seen.size else 0.0}
+    return surface_scores(to_truth, to_result, seen, tau_m)
 
 
 def _site_poses(path: Path) -> dict[str, F64]:

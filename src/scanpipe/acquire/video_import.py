@@ -69,14 +69,20 @@ def parse_start_time(text: str, recording_start_ns: int | None = None) -> int:
     return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1000
 
 
-def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90
-                 ) -> Generator[tuple[int, bytes, int], None, None]:
-    """``(time_ns, jpeg, index)`` for every frame of a video file, in order."""
+def open_video(video: Path) -> cv2.VideoCapture:
+    """An OpenCV capture of ``video``, or a one-line error naming the file."""
     if not video.is_file():
         raise UsageError(f"{video}: video file not found")
     capture = cv2.VideoCapture(str(video))
     if not capture.isOpened():
         raise DeviceError(f"{video}: OpenCV cannot open this video (unknown container or codec)")
+    return capture
+
+
+def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90
+                 ) -> Generator[tuple[int, bytes, int], None, None]:
+    """``(time_ns, jpeg, index)`` for every frame of a video file, in order."""
+    capture = open_video(video)
     try:
         # The container's size, before any frame is decoded (0 when it does not say).
         width = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH) or 0)
@@ -119,11 +125,7 @@ def sample_video(video: Path, start_ns: int, count: int,
     """``(time_ns, BGR image)`` of up to ``count`` frames spread over the video; with
     ``still_ns``, as :func:`scanpipe.camera_selfcal.frame_rows` chooses them (a share from
     before and after the platform turns)."""
-    if not video.is_file():
-        raise UsageError(f"{video}: video file not found")
-    capture = cv2.VideoCapture(str(video))
-    if not capture.isOpened():
-        raise DeviceError(f"{video}: OpenCV cannot open this video (unknown container or codec)")
+    capture = open_video(video)
     try:
         total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         fps = capture.get(cv2.CAP_PROP_FPS) or 0.0
