@@ -12,7 +12,10 @@ be shared: CPU seconds are the figure to compare with the target). Targets: offs
 ``--motor-step 0.108 --beam-step 0.25``).
 
 ``python benchmarks/bench_calibrate.py --seeds 20 [--travel 180 360] [--motor-step 1
---beam-step 0.5] [--first-seed 0]`` prints a table and saves JSON into ``benchmarks/results/``.
+--beam-step 0.5] [--first-seed 0] [--lab-timing]`` prints a table and saves JSON into
+``benchmarks/results/``. ``--lab-timing`` adds one lab-scale scan (1667 × 1440, 0.108° ×
+0.25°, seed ``--first-seed``) per travel mode and records the fit's CPU and wall seconds under
+``lab_scale`` (``--seeds 0 --lab-timing`` times only that).
 """
 
 from __future__ import annotations
@@ -32,15 +35,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from harness import save, table
 
 from scanpipe.mount_calibration import observable_invariants
-from scanpipe.rig import Pose, Rig, default_rig
+from scanpipe.rig import Pose, Rig, default_rig, rig_from_table
 from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
 from scanpipe.sim.truth import load_truth
-from scanpipe.stages.calibrate import rms_to_truth, run_fit
+from scanpipe.stages.calibrate import assembled, rms_to_truth, run_fit
 from scanpipe.stages.decode import STAGE as DECODE
 
 SIGMA_M = 0.010
 OFFSET_TOL_M, ANGLE_TOL_DEG = 0.0015, 0.04
+#: The lab's scan: 1667 profiles over 180° × 1440 samples per profile.
+LAB_MOTOR_STEP_DEG, LAB_BEAM_STEP_DEG = 0.108, 0.25
 #: Each observable quantity and the fitted parameter whose 1σ it carries (the nominal rig's
 #: mount is upright, so the scan frame's x and z are across and along the scan plane's normal).
 SIGMA_OF = {"tilt_deg": "tilt_x_deg", "axis_in_plane_deg": "alpha_zero_deg",
@@ -73,6 +78,9 @@ def one(seed: int, travel: int, motor_step: float, beam_step: float, max_points:
     simulate_direct(folder / "scan.mcap", folder / "truth", options)
     tables = dict(DECODE.run({"recording": folder / "scan.mcap"}).tables)
     truth = load_truth(folder / "truth")
+    points = assembled(tables, rig_from_table(tables["rig"]))
+    returns = int(np.isfinite(points.column("range_m").to_numpy(zero_copy_only=False)).sum())
+    del points
     started, cpu = time.perf_counter(), time.process_time()
     fit = run_fit(tables, max_points)
     seconds, cpu_seconds = time.perf_counter() - started, time.process_time() - cpu
@@ -83,9 +91,9 @@ def one(seed: int, travel: int, motor_step: float, beam_step: float, max_points:
     sigma = {p.name: p.sigma for p in fit.parameters if p.observable}
     z = {k: (abs(v) / sigma[SIGMA_OF[k]] if sigma.get(SIGMA_OF[k]) else None)
          for k, v in errors.items()}
-    from scanpipe.rig import rig_from_table
-
-    return {"seed": seed, "travel_deg": travel, "seconds_fit_and_assemble": seconds,
+    return {"seed": seed, "travel_deg": travel, "motor_step_deg": motor_step,
+            "beam_step_deg": beam_step, "returns": returns,
+            "seconds_fit_and_assemble": seconds,
             "cpu_seconds_fit_and_assemble": cpu_seconds, "points": fit.points,
             "planes": fit.planes, "errors": errors, "within_targets": ok, "sigma": sigma,
             "error_in_sigmas": z,
@@ -96,12 +104,15 @@ def one(seed: int, travel: int, motor_step: float, beam_step: float, max_points:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--seeds", type=int, default=20, help="0: only --lab-timing")
     parser.add_argument("--travel", type=int, nargs="+", default=[180, 360], choices=[180, 360])
     parser.add_argument("--motor-step", type=float, default=1.0)
     parser.add_argument("--beam-step", type=float, default=0.5)
     parser.add_argument("--max-points", type=int, default=200_000)
     parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--lab-timing", action="store_true",
+                        help="also fit one lab-scale scan (0.108° × 0.25°) per travel mode and "
+                             "record its CPU and wall seconds")
     args = parser.parse_args()
     runs = []
     for travel in args.travel:
@@ -117,19 +128,38 @@ def main() -> None:
                   + f" rms {r['rms_before_m'] * 1e3:.1f}→{r['rms_after_m'] * 1e3:.2f} mm"
                   f" ({r['cpu_seconds_fit_and_assemble']:.1f} s CPU, "
                   f"{r['seconds_fit_and_assemble']:.1f} s wall)", flush=True)
+    lab = []
+    if args.lab_timing:
+        for travel in args.travel:
+            with tempfile.TemporaryDirectory() as tmp:
+                lab.append(one(args.first_seed, travel, LAB_MOTOR_STEP_DEG, LAB_BEAM_STEP_DEG,
+                               args.max_points, Path(tmp)))
+            r = lab[-1]
+            print(f"lab scale, travel {travel}: {r['returns']} returns, fit + assemble "
+                  f"{r['cpu_seconds_fit_and_assemble']:.2f} s CPU, "
+                  f"{r['seconds_fit_and_assemble']:.2f} s wall; within targets "
+                  f"{r['within_targets']}", flush=True)
     rows = []
     for travel in args.travel:
         mine = [r for r in runs if r["travel_deg"] == travel]
+        if not mine:
+            continue
         worst = {k: max(abs(r["errors"][k]) for r in mine) for k in mine[0]["errors"]}
         rows.append((str(travel), f"{sum(r['within_targets'] for r in mine)}/{len(mine)}",
                      f"{sum(r['honest'] for r in mine)}/{len(mine)}",
                      *(f"{v:.4g}" for v in worst.values()),
                      f"{max(r['rms_after_m'] for r in mine) / SIGMA_M:.3f}",
                      f"{max(r['cpu_seconds_fit_and_assemble'] for r in mine):.1f}"))
-    print(table(rows, ("travel°", "within", "within 3σ", "tilt°", "axis in plane°",
-                       "offset ⊥ m", "offset ∥ m", "worst RMS/σ", "worst CPU s")))
-    stem = f"calibrate-{'-'.join(f't{t}' for t in args.travel)}-{dt.date.today().isoformat()}"
-    print(f"saved {save({'args': vars(args), 'runs': runs}, stem)}")
+    if rows:
+        print(table(rows, ("travel°", "within", "within 3σ", "tilt°", "axis in plane°",
+                           "offset ⊥ m", "offset ∥ m", "worst RMS/σ", "worst CPU s")))
+    parts = [f"t{t}" for t in args.travel] + (["lab"] if lab else [])
+    stem = f"calibrate-{'-'.join(parts)}-{dt.date.today().isoformat()}"
+    lab_scale = [{k: r[k] for k in ("travel_deg", "seed", "returns", "points",
+                                    "cpu_seconds_fit_and_assemble",
+                                    "seconds_fit_and_assemble", "within_targets", "errors")}
+                 for r in lab]
+    print(f"saved {save({'args': vars(args), 'runs': runs, 'lab_scale': lab_scale}, stem)}")
 
 
 if __name__ == "__main__":

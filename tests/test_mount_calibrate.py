@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from scanpipe.artifacts import read_artifact, read_provenance
-from scanpipe.mount_calibration import observable_invariants
+from scanpipe.mount_calibration import LEVELS, _voxel_planes, observable_invariants
 from scanpipe.rig import Pose, Rig, default_rig, load_rig, rig_to_toml
 from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
@@ -21,9 +21,9 @@ from scanpipe.sim.truth import load_truth
 SIGMA_M = 0.010
 TRUE_MOUNT = Pose(translation_m=(0.06, 0.0, -0.05), rotation_deg=(1.5, 0.0, -2.0))
 TRUE_ALPHA_DEG = 0.7
-#: Near the issue's targets (1.5 mm, 0.04°, met at lab scale: benchmarks/bench_calibrate.py) on
-#: a 1° × 0.5° scan, which holds far fewer points (docs/calibration.md).
-OFFSET_TOL_M, ANGLE_TOL_DEG = 0.002, 0.04
+#: The issue's targets (benchmarks/bench_calibrate.py: 40 seeds per travel mode on this 1° × 0.5°
+#: scan, docs/calibration.md).
+OFFSET_TOL_M, ANGLE_TOL_DEG = 0.0015, 0.04
 
 
 def full_turn_rig() -> Rig:
@@ -60,6 +60,26 @@ def check_against_truth(report: dict[str, Any], fitted: Rig, truth: Path) -> Non
                 "offset_normal_m": "offset_z_m", "offset_in_plane_m": "offset_x_m"}
     for key, name in sigma_of.items():
         assert abs(got[key] - want[key]) <= 3 * params[name]["sigma"], (key, params[name])
+
+
+def noisy_room_points(seed: int) -> np.ndarray:
+    """Returns of a 6 × 3 × 4 m box room seen from near its middle, 10 mm of range noise."""
+    rng = np.random.default_rng(seed)
+    d = rng.standard_normal((120_000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    low, high = np.array([-3.2, -1.2, -1.8]), np.array([2.8, 1.8, 2.2])
+    with np.errstate(divide="ignore"):
+        r = np.where(d > 0, high / d, low / d).min(axis=1)
+    return np.asarray(d * (r + rng.normal(0.0, SIGMA_M, r.size))[:, None])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_each_wall_is_one_plane(seed: int) -> None:
+    # A wall split into near-coincident pieces sends the points near the split to the nearer
+    # piece by the sign of their noise: a bias the fit took for a mount error (2 mm at 180°).
+    planes = _voxel_planes(noisy_room_points(seed), *LEVELS[-1])
+    assert planes.count == 6, np.bincount(planes.voxel)
+    assert planes.member.size > 0.9 * 120_000
 
 
 @pytest.mark.slow
