@@ -209,9 +209,10 @@ def _plane_fit(p: F64, voxel: I64, weight: F64, count: int) -> tuple[F64, F64, F
 
 
 def _voxel_planes(p: F64, size_m: float, angle_deg: float, tolerance_m: float) -> _Planes:
-    """Whole planes: flat voxels of ``size_m`` merged when their normals agree within
-    ``angle_deg`` and their offsets within ``tolerance_m``, then the points within
-    ``tolerance_m`` of the merged plane; normal-aware weights."""
+    """Whole planes: flat voxels of ``size_m`` grown into planes (a voxel joins when its
+    normal agrees within ``angle_deg`` and its centre lies within ``tolerance_m`` of the plane
+    refitted from the voxels taken so far), then the points within ``tolerance_m`` of the
+    plane; normal-aware weights."""
     cell = np.floor(p / size_m).astype(np.int64)
     flat_cell = (cell[:, 0] * 1_000_003 + cell[:, 1]) * 1_000_003 + cell[:, 2]
     _, voxel, counts = np.unique(flat_cell, return_inverse=True, return_counts=True)
