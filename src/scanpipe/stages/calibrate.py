@@ -99,7 +99,7 @@ def calibrate_stage(inputs: Mapping[str, Any], params: CalibrateParams,
 
 STAGE = Stage(
     name="calibrate",
-    version=2,
+    version=3,  # 3: planes grown whole (a changed fit: no cached fit of 2 is reused)
     params=CalibrateParams,
     inputs=("profiles", "motor", "rig"),
     outputs=("calibration", "rig"),
