@@ -131,8 +131,10 @@ def scan_grid(table: pa.Table) -> ScanGrid | None:
 
 def _mean_by(group: I64, values: F64, size: int) -> F64:
     finite = np.isfinite(values)
-    counts = np.bincount(group[finite], minlength=size).astype(np.float64)
-    sums = np.bincount(group[finite], weights=values[finite], minlength=size)
+    if not finite.all():  # else no copies: the gathers were most of the time
+        group, values = group[finite], values[finite]
+    counts = np.bincount(group, minlength=size).astype(np.float64)
+    sums = np.bincount(group, weights=values, minlength=size)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(counts > 0, sums / counts, np.nan)
 
