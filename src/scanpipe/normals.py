@@ -12,6 +12,7 @@ fit. Clouds without a grid use Open3D's KNN estimate.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, Literal
 
 import numpy as np
@@ -272,10 +273,12 @@ def knn_normals(points: F32, origins: F32, neighbours: int = 24) -> F32:
 
 
 def estimate_normals(table: pa.Table, params: NormalParams | None = None,
-                     grid: ScanGrid | None = None) -> tuple[F32, dict[str, int]]:
+                     grid: ScanGrid | None = None,
+                     columns: Mapping[str, F32] | None = None) -> tuple[F32, dict[str, int]]:
     """Oriented unit normals ``(N, 3)`` for a points table, and how many came from each method.
 
-    ``grid`` is the table's :class:`ScanGrid` when the caller has it already.
+    ``grid`` is the table's :class:`ScanGrid` and ``columns`` its float32 ``x, y, z`` and
+    origin columns (:func:`column_f32`) when the caller has them already.
     """
     params = params or NormalParams()
     if grid is None and params.method != "knn":
@@ -287,8 +290,12 @@ def estimate_normals(table: pa.Table, params: NormalParams | None = None,
         return (knn_normals(points_xyz(table), points_origins(table), params.knn_neighbours),
                 {"knn": table.num_rows})
     layout = _Layout(grid)
-    xyz = tuple(layout.plane(column_f32(table, c)) for c in XYZ)
-    origins = tuple(layout.plane(column_f32(table, c)) for c in ORIGIN)
+
+    def column(name: str) -> F32:
+        return columns[name] if columns is not None else column_f32(table, name)
+
+    xyz = tuple(layout.plane(column(c)) for c in XYZ)
+    origins = tuple(layout.plane(column(c)) for c in ORIGIN)
     xyz_planes: Planes = (xyz[0], xyz[1], xyz[2])
     normals = grid_normal_planes(xyz_planes, grid, params.baseline_deg)
     _orient_planes(normals, xyz_planes, (origins[0], origins[1], origins[2]))
