@@ -306,3 +306,19 @@ def test_clean_up_on_the_grid_without_small_pieces_keeps_every_face() -> None:
     assert surface.report["small_component_faces_removed"] == 0
     assert np.array_equal(surface.vertices, expected.vertices)
     assert np.array_equal(surface.faces, expected.faces)
+
+
+def test_a_sensor_on_the_axis_does_not_move_whatever_the_sign_of_its_zero_origins() -> None:
+    """Rotating a zero mount offset gives origins of +0.0 and −0.0: that sensor does not move,
+    and the winding check for a moving sensor is not run (a real offset still counts)."""
+    from scanpipe.meshing.grid_mesh import _varies
+
+    zeros = np.zeros(1000, np.float32)
+    zeros[::3] = -0.0
+    assert np.signbit(zeros).any() and not _varies(zeros)
+    assert not _varies(np.zeros((10, 3), np.float32)[:, 1])  # a strided column
+    moved = zeros.copy()
+    moved[500] = 1e-4
+    assert _varies(moved)
+    assert _varies(np.array([0.0, np.nan], np.float32))
+    assert not _varies(np.empty(0, np.float32))

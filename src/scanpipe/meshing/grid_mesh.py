@@ -623,12 +623,17 @@ def _single_sample_holes(rows: I32, r_grid: F32, u_grid: Sequence[F32],
 
 
 def _varies(values: F32) -> bool:
-    """True when not every value is bit-for-bit the first (an integer view: a float
-    reduction over a strided column is ~100× slower)."""
+    """True when not every value equals the first (−0.0 equals 0.0: a sensor on the axis has
+    origins of either sign, from rotating a zero offset; NaN counts as varying).
+
+    On a contiguous copy: comparisons over a strided column of an ``(N, 3)`` array are
+    several times slower.
+    """
     if len(values) == 0:
         return False
-    bits = values.view(np.int32)
-    return bool(np.any(bits != bits[0]))
+    column = np.ascontiguousarray(values)
+    with np.errstate(invalid="ignore"):
+        return bool(np.any(column != column[0]))
 
 
 def _facing_away(vertices: F32, origins: F32, faces: I32) -> B:
