@@ -15,7 +15,7 @@ import resource
 import statistics
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,14 @@ class Measurement:
     peak_rss_mb: float
     items: float
     unit: str
+    #: Process CPU seconds of each run (all threads of the process doing the work): on a
+    #: shared machine wall time counts other processes' turns, CPU time does not.
+    cpu_runs_s: list[float] = field(default_factory=list)
+
+    @property
+    def cpu_median_s(self) -> float:
+        """Median CPU seconds of the runs (NaN when not measured)."""
+        return statistics.median(self.cpu_runs_s) if self.cpu_runs_s else float("nan")
 
     @property
     def throughput(self) -> float:
@@ -47,22 +55,23 @@ def _rss_mb() -> float:
     return 0.0
 
 
-def _timed_runs(fn: Callable[[], Any], repeats: int) -> list[float]:
-    """Wall seconds of ``repeats`` calls of ``fn``."""
-    runs = []
+def _timed_runs(fn: Callable[[], Any], repeats: int) -> tuple[list[float], list[float]]:
+    """Wall and CPU seconds of ``repeats`` calls of ``fn``."""
+    runs, cpu_runs = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         runs.append(time.perf_counter() - t0)
-    return runs
+        cpu_runs.append(time.process_time() - c0)
+    return runs, cpu_runs
 
 
 def _child(fn: Callable[[], Any], repeats: int, queue: Any) -> None:
     try:
         start_rss = _rss_mb()
-        runs = _timed_runs(fn, repeats)
+        runs, cpu_runs = _timed_runs(fn, repeats)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-        queue.put(("ok", runs, max(0.0, peak - start_rss)))
+        queue.put(("ok", (runs, cpu_runs), max(0.0, peak - start_rss)))
     except BaseException as err:  # report any failure to the parent, which re-raises
         queue.put(("error", repr(err), 0.0))
 
@@ -79,10 +88,11 @@ def measure(name: str, fn: Callable[[], Any], items: float, unit: str,
         proc.join()
         if status != "ok":
             raise RuntimeError(f"benchmark {name!r} failed: {runs}")
+        runs, cpu_runs = runs
     else:
-        runs = _timed_runs(fn, repeats)
+        runs, cpu_runs = _timed_runs(fn, repeats)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    return Measurement(name, statistics.median(runs), runs, peak, items, unit)
+    return Measurement(name, statistics.median(runs), runs, peak, items, unit, cpu_runs)
 
 
 def cpu_seconds(work: Callable[[], object], repeats: int = 3, warm_up: bool = True) -> float:
@@ -125,7 +135,8 @@ def save(results: dict[str, Any], stem: str | None = None,
 
 def _jsonable(value: Any) -> Any:
     if isinstance(value, Measurement):
-        return {**asdict(value), "throughput": value.throughput}
+        return {**asdict(value), "throughput": value.throughput,
+                "cpu_median_s": value.cpu_median_s}
     return str(value)
 
 

@@ -49,6 +49,7 @@ def test_every_stage_is_measured_with_positive_figures(results: dict[str, Any]) 
     for m in results["stages"]:
         assert positive(m["median_s"]) and positive(m["throughput"]) and positive(m["items"])
         assert len(m["runs_s"]) == 1 and m["peak_rss_mb"] >= 0
+        assert len(m["cpu_runs_s"]) == 1 and positive(m["cpu_median_s"])
     assert results["machine"]["cpus"] >= 1 and len(results["load_average_start"]) == 3
 
 
@@ -73,6 +74,10 @@ def test_baseline_and_paths_are_compared_on_accuracy_and_time(results: dict[str,
         assert positive(entry["speedup_over_baseline"])
         assert set(entry["stage_seconds"]) == {"decode", "calibrate", "assemble", "filter", "mesh",
                                                "texture", "export"}
+        assert set(entry["stage_cpu_seconds"]) == set(entry["stage_seconds"])
+        assert all(v >= 0 for v in entry["stage_cpu_seconds"].values())
+        assert positive(entry["end_to_end_cpu_s"]) and positive(entry["speedup_over_baseline_cpu"])
+        assert entry["points_to_textured_mesh_cpu_s"] <= entry["end_to_end_cpu_s"]
         assert isinstance(entry["at_least_as_accurate_as_baseline"], bool)
         assert isinstance(entry["better_than_baseline"], bool)
         assert positive(entry["mesh"]["faces"]) and positive(entry["mesh"]["vertices"])
@@ -81,6 +86,21 @@ def test_baseline_and_paths_are_compared_on_accuracy_and_time(results: dict[str,
         assert positive(acc["mesh_mean_m"]) and 0 < acc["completeness"] <= 1
         assert 0 < acc["precision"] <= 1
     assert positive(comparison["default"]["accuracy"]["texture_psnr_db"])
+    # The default path meshes every usable point (no hidden stride); stride 2 does not.
+    assert comparison["default"]["mesh_resolution"]["full_resolution"] is True
+    assert comparison["default"]["mesh_resolution"]["grid_stride"] == 1
+    assert comparison["grid_stride2"]["mesh_resolution"]["full_resolution"] is False
+    assert positive(base["cpu_s"])
+    memory = results["chain_memory"]
+    assert list(memory["to_mesh"]["stages"]) == ["decode", "calibrate", "assemble", "filter",
+                                                 "mesh"]
+    assert list(memory["whole"]["stages"])[-2:] == ["texture", "export"]
+    for chain in memory.values():  # a fresh process: its peak is above what the imports took
+        assert chain["peak_rss_mb"] >= chain["rss_after_imports_mb"] > 50
+        assert chain["growth_mb"] == pytest.approx(
+            chain["peak_rss_mb"] - chain["rss_after_imports_mb"])
+        assert positive(chain["cpu_s"]) and positive(chain["seconds"])
+    assert memory["whole"]["peak_rss_mb"] >= memory["to_mesh"]["peak_rss_mb"] * 0.9
 
 
 @pytest.mark.slow
@@ -96,12 +116,18 @@ def test_acquisition_targets_and_table(results: dict[str, Any]) -> None:
     cam = cameras[0]  # the rig's camera at 1/8 scale
     assert simulation["frame_size"] == [cam.width, cam.height]
     assert max(cam.width, cam.height) == 240
+    assert simulation["frame_sizes"][cam.id] == [cam.width, cam.height]
+    assert simulation["frames_at_rig_resolution"] is False  # 1/8 scale
     rows = {t["name"]: t for t in results["targets"]}
-    assert len(rows) == 12 and all(isinstance(t["met"], bool) for t in rows.values())
-    assert rows["peak memory of the default chain (RSS growth)"]["value"] >= 0
+    assert len(rows) == 16 and all(isinstance(t["met"], bool) for t in rows.values())
+    assert positive(rows["grid mesh at full resolution (CPU)"]["value"])
+    assert positive(rows["end to end / acquisition (CPU)"]["value"])
+    assert positive(rows["peak memory of the default chain (peak RSS, fresh process)"]["value"])
     assert rows["Poisson depth 9 time"]["value"] is None  # the tiny scan stops at depth 6
     assert not rows["Poisson depth 9 time"]["met"]
-    for heading in ("stage (in memory)", "Open3D baseline", "scanpipe poisson", "MISSED"):
+    for heading in ("stage (in memory)", "Open3D baseline", "scanpipe poisson", "MISSED",
+                    "default path, by stage", "default mesh: grid, stride 1",
+                    "peak memory of decode → mesh"):
         assert heading in results["_report"]
 
 

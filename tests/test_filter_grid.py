@@ -253,3 +253,51 @@ def test_parameters_are_validated_together() -> None:
     message = str(err.value)
     assert "mode" in message and "voxel.size_m" in message
     assert "max_range_m (1.0) must be greater" in message and "depth_edges" in message
+
+
+def _bilateral_reference(grid: np.ndarray, radius: int, sigma_cells: float,
+                         sigma_range_m: float, relative: float, wrap: bool) -> np.ndarray:
+    """bilateral_smooth straight from its formula, one cell and one neighbour at a time."""
+    profiles, samples = grid.shape
+    out = np.full_like(grid, np.nan, dtype=np.float64)
+    for p in range(profiles):
+        for s in range(samples):
+            centre = float(grid[p, s])
+            if np.isnan(centre):
+                continue
+            sigma_r = sigma_range_m + relative * centre
+            total = weights = 0.0
+            for dp in range(-radius, radius + 1):
+                for ds in range(-radius, radius + 1):
+                    q, t = p + dp, s + ds
+                    if wrap:
+                        t %= samples
+                    if not (0 <= q < profiles and 0 <= t < samples) or np.isnan(grid[q, t]):
+                        continue
+                    value = float(grid[q, t])
+                    weight = (np.exp(-(dp * dp + ds * ds) / (2 * sigma_cells ** 2))
+                              * np.exp(-((value - centre) ** 2) / (2 * sigma_r ** 2)))
+                    total += weight * value
+                    weights += weight
+            out[p, s] = total / weights
+    return out
+
+
+@pytest.mark.parametrize(("shape", "radius", "relative", "wrap"), [
+    ((9, 12), 1, 0.0, False), ((9, 12), 1, 0.0, True), ((7, 5), 2, 0.0, True),
+    ((6, 3), 3, 0.0, True), ((8, 10), 2, 0.01, True), ((5, 6), 1, 0.02, False)])
+def test_bilateral_smoothing_matches_a_per_cell_loop(shape: tuple[int, int], radius: int,
+                                                     relative: float, wrap: bool) -> None:
+    """The padded views and the shared pair weights give the per-cell formula: NaN cells,
+    the grid's ends, the wrap of a 360° profile (even one narrower than the window) and a
+    range-dependent σ_r."""
+    from scanpipe.grid import bilateral_smooth
+
+    rng = np.random.default_rng(sum(shape) + radius)
+    grid = (2.0 + rng.normal(0, 0.01, shape) + 0.05 * (rng.random(shape) < 0.2)).astype(
+        np.float32)
+    grid[rng.random(shape) < 0.15] = np.nan
+    got = bilateral_smooth(grid, radius, 1.3, 0.02, relative, wrap_samples=wrap)
+    expected = _bilateral_reference(grid, radius, 1.3, 0.02, relative, wrap)
+    assert np.array_equal(np.isnan(got), np.isnan(grid))
+    assert np.allclose(got, expected, atol=2e-6, equal_nan=True)

@@ -285,3 +285,40 @@ def test_clean_up_on_the_grid_equals_the_per_face_clean_up(noise_m: float, merge
     assert report["small_component_faces_removed"] == counts["small_component_faces_removed"]
     assert report["unreferenced_vertices_removed"] == counts["unreferenced_vertices_removed"]
     assert surface.kept is not None and np.count_nonzero(surface.kept) == len(surface.vertices)
+
+
+def test_clean_up_on_the_grid_without_small_pieces_keeps_every_face() -> None:
+    """A scan without floating pieces: the grid clean-up finds no small piece (its early way
+    out) and gives the per-face clean-up's mesh, face for face."""
+    from scanpipe.meshing.cleanup import clean_mesh
+    from scanpipe.meshing.grid_mesh import grid_surface
+    from scanpipe.meshing.mesh import Mesh
+
+    table = scan_table(ROOM_WITH_BALL, 2.0, 2.0, noise_m=0.002)
+    grid = scan_grid(table)
+    assert grid is not None
+    points, origins = points_xyz(table), points_origins(table)
+    vertices, faces, _ = triangulate_grid(points, origins, grid)
+    expected, counts = clean_mesh(Mesh(vertices, faces), manifold_by_construction=True)
+    assert counts["small_component_faces_removed"] == 0
+    surface = grid_surface(points, origins, grid, min_component_faces=50, compact=True,
+                           remove_zero_area=True)
+    assert surface.report["small_component_faces_removed"] == 0
+    assert np.array_equal(surface.vertices, expected.vertices)
+    assert np.array_equal(surface.faces, expected.faces)
+
+
+def test_a_sensor_on_the_axis_does_not_move_whatever_the_sign_of_its_zero_origins() -> None:
+    """Rotating a zero mount offset gives origins of +0.0 and −0.0: that sensor does not move,
+    and the winding check for a moving sensor is not run (a real offset still counts)."""
+    from scanpipe.meshing.grid_mesh import _varies
+
+    zeros = np.zeros(1000, np.float32)
+    zeros[::3] = -0.0
+    assert np.signbit(zeros).any() and not _varies(zeros)
+    assert not _varies(np.zeros((10, 3), np.float32)[:, 1])  # a strided column
+    moved = zeros.copy()
+    moved[500] = 1e-4
+    assert _varies(moved)
+    assert _varies(np.array([0.0, np.nan], np.float32))
+    assert not _varies(np.empty(0, np.float32))

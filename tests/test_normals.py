@@ -118,3 +118,48 @@ def test_grid_normals_do_not_depend_on_the_row_order_or_gaps() -> None:
     assert np.count_nonzero(same) > 0.6 * len(same)
     assert np.all(np.einsum("ij,ij->i", gappy, points_origins(table)[keep]
                             - points_xyz(table)[keep]) > 0)
+
+
+def _window_reference(normals: tuple[np.ndarray, ...], wanted: np.ndarray,
+                      size: tuple[int, int], wrap: bool) -> tuple[np.ndarray, ...]:
+    """The window fill over the whole grid, as it was written first: a uniform_filter of every
+    component, normalised, copied into the wanted cells."""
+    from scipy.ndimage import uniform_filter
+
+    modes = ("nearest", "wrap" if wrap else "nearest")
+    summed = [uniform_filter(np.nan_to_num(c, nan=0.0), size=size, mode=modes) for c in normals]
+    norm = np.sqrt(sum(s * s for s in summed))
+    fill = wanted & (norm > 1e-6)
+    out = tuple(c.copy() for c in normals)
+    for component, mean in zip(out, summed, strict=True):
+        np.copyto(component, mean / np.where(norm > 0, norm, 1), where=fill)
+    return out
+
+
+@pytest.mark.parametrize(("alpha_step_deg", "lone_cells"), [(0.5, 40), (1.0, 0), (0.5, 20000)])
+def test_window_fill_reads_only_what_it_needs_and_equals_the_whole_grid_filter(
+        alpha_step_deg: float, lone_cells: int) -> None:
+    """The pole bands (column means), lone cells (their own windows) and many lone cells (the
+    whole-grid filter) give what a uniform_filter over the whole grid gives."""
+    from scanpipe.grid import scan_grid
+    from scanpipe.normals import _fill_from_window, _window_size, grid_normal_planes
+
+    table = scan_table(ROOM, alpha_step_deg, 0.5, profiles=200, noise_m=0.002)
+    grid = scan_grid(table)
+    assert grid is not None
+    planes = tuple(table.column(c).to_numpy().reshape(grid.shape) for c in "xyz")
+    normals = grid_normal_planes(planes, grid)
+    wanted = np.isnan(normals[0])
+    band_columns = np.count_nonzero(wanted.any(axis=0))
+    rng = np.random.default_rng(5)
+    cells = rng.integers(0, wanted.size, lone_cells)
+    for component in normals:  # gaps: a lone cell without a normal
+        component.reshape(-1)[cells] = np.nan
+    wanted.reshape(-1)[cells] = True
+    size = _window_size(grid, 1.0)
+    expected = _window_reference(normals, wanted, size, grid.wraps_alpha)
+    filled = _fill_from_window(normals, wanted, grid, 1.0)
+    assert 0 < band_columns < grid.shape[1] // 4
+    assert filled == np.count_nonzero(~np.isnan(expected[0]) & wanted)
+    for got, want in zip(normals, expected, strict=True):
+        assert np.allclose(got, want, atol=2e-6, equal_nan=True)

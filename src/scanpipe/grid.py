@@ -131,8 +131,10 @@ def scan_grid(table: pa.Table) -> ScanGrid | None:
 
 def _mean_by(group: I64, values: F64, size: int) -> F64:
     finite = np.isfinite(values)
-    counts = np.bincount(group[finite], minlength=size).astype(np.float64)
-    sums = np.bincount(group[finite], weights=values[finite], minlength=size)
+    if not finite.all():  # else no copies: the gathers were most of the time
+        group, values = group[finite], values[finite]
+    counts = np.bincount(group, minlength=size).astype(np.float64)
+    sums = np.bincount(group, weights=values, minlength=size)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(counts > 0, sums / counts, np.nan)
 
@@ -254,22 +256,72 @@ def bilateral_smooth(range_grid: F32, radius: int = 1, sigma_cells: float = 1.0,
     with weights ``exp(−d²/2σ_c²) · exp(−Δr²/2σ_r²)`` for a grid distance ``d`` (cells) and a
     range difference ``Δr``; ``σ_r = sigma_range_m + relative · r``. Neighbours across a depth
     edge (Δr ≫ σ_r) get almost no weight, so edges stay sharp. NaN cells stay NaN.
+
+    The neighbours are views into one padded copy of the grid (NaN beyond the profiles, the
+    wrapped samples of a 360° profile at the sides), not shifted copies. With a constant σ_r
+    (``relative`` 0) the weight between two cells is the same seen from either, so each
+    pair's exponential is computed once, for an offset and its opposite: half the ``exp``.
     """
-    sigma_r = (np.float32(sigma_range_m) + np.float32(relative) * range_grid).astype(np.float32)
-    inv_two_var_r = (np.float32(0.5) / (sigma_r * sigma_r)).astype(np.float32)
-    total = np.zeros_like(range_grid)
-    weights = np.zeros_like(range_grid)
-    for dp, ds in window_offsets(radius):
-        neighbour = shifted(range_grid, dp, ds, wrap_samples=wrap_samples)
-        spatial = np.float32(np.exp(-(dp * dp + ds * ds) / (2.0 * sigma_cells ** 2)))
-        diff = neighbour - range_grid
-        weight = spatial * np.exp(-(diff * diff) * inv_two_var_r)
-        weight = np.where(np.isnan(weight), np.float32(0), weight)
-        total += weight * np.where(np.isnan(neighbour), np.float32(0), neighbour)
-        weights += weight
+    grid = np.asarray(range_grid, dtype=np.float32)
+    profiles, samples = grid.shape
+    r = int(radius)
+    padded = np.full((profiles + 2 * r, samples + 2 * r), np.nan, dtype=np.float32)
+    if wrap_samples:
+        padded[r: r + profiles] = grid[:, np.mod(np.arange(-r, samples + r), samples)]
+    else:
+        padded[r: r + profiles, r: r + samples] = grid
+    values = np.nan_to_num(padded, nan=0.0)  # a NaN neighbour adds nothing (its weight is 0)
+    centre = padded[r: r + profiles, r: r + samples]
+    total = values[r: r + profiles, r: r + samples].copy()  # the centre, weight 1
+    weights = np.ones_like(total)
+    weight = np.empty_like(total)
+
+    def spatial(dp: int, ds: int) -> np.float32:
+        return np.float32(np.exp(-(dp * dp + ds * ds) / (2.0 * sigma_cells ** 2)))
+
+    def add(w: F32, dp: int, ds: int) -> None:
+        """Add the neighbour at (+dp, +ds) of every cell with the weights ``w``."""
+        np.add(weights, w, out=weights)
+        np.multiply(w, values[r + dp: r + dp + profiles, r + ds: r + ds + samples], out=w)
+        np.add(total, w, out=total)
+
+    offsets = [(dp, ds) for dp, ds in window_offsets(r) if (dp, ds) != (0, 0)]
+    if relative == 0.0:
+        minus_inv_two_var = np.float32(-0.5 / (np.float32(sigma_range_m) ** 2))
+        for dp, ds in offsets:
+            if (dp, ds) < (0, 0):
+                continue  # done with its opposite
+            # Pair weights for the cells q and q + d, over every q that is a centre or a
+            # centre − d: rows r − dp … r + P − 1, columns shifted alike.
+            low_s = r - max(ds, 0)
+            rows, cols = slice(r - dp, r + profiles), slice(low_s, r + samples - min(ds, 0))
+            ahead = padded[r: r + profiles + dp, low_s + ds: r + samples - min(ds, 0) + ds]
+            pair = np.subtract(ahead, padded[rows, cols])
+            np.multiply(pair, pair, out=pair)
+            np.multiply(pair, minus_inv_two_var, out=pair)
+            np.exp(pair, out=pair)
+            np.multiply(pair, spatial(dp, ds), out=pair)
+            np.fmax(pair, np.float32(0.0), out=pair)  # NaN (a missing cell) → weight 0
+            forward = max(ds, 0)
+            np.copyto(weight, pair[dp: dp + profiles, forward: forward + samples])
+            add(weight, dp, ds)
+            np.copyto(weight, pair[:profiles, forward - ds: forward - ds + samples])
+            add(weight, -dp, -ds)
+    else:
+        sigma_r = np.float32(sigma_range_m) + np.float32(relative) * centre
+        minus_inv_var = np.float32(-0.5) / (sigma_r * sigma_r)
+        for dp, ds in offsets:
+            np.subtract(padded[r + dp: r + dp + profiles, r + ds: r + ds + samples], centre,
+                        out=weight)
+            np.multiply(weight, weight, out=weight)
+            np.multiply(weight, minus_inv_var, out=weight)
+            np.exp(weight, out=weight)
+            np.multiply(weight, spatial(dp, ds), out=weight)
+            np.fmax(weight, np.float32(0.0), out=weight)
+            add(weight, dp, ds)
     with np.errstate(invalid="ignore", divide="ignore"):
-        smoothed = (total / weights).astype(np.float32)
-    smoothed[np.isnan(range_grid)] = np.nan
+        smoothed: F32 = np.divide(total, weights, out=total)
+    smoothed[np.isnan(grid)] = np.nan
     return smoothed
 
 

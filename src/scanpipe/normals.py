@@ -12,7 +12,8 @@ fit. Clouds without a grid use Open3D's KNN estimate.
 
 from __future__ import annotations
 
-from typing import Literal
+from collections.abc import Mapping
+from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
@@ -240,12 +241,6 @@ class _Layout:
         out[self.cells] = values if self.rows is None else values[self.rows]
         return out.reshape(shape)
 
-    def count(self, mask: NDArray[np.bool_]) -> int:
-        """How many of the cells in the ``(P, S)`` ``mask`` hold a point."""
-        if self.grid.dense:
-            return int(np.count_nonzero(mask))
-        return int(np.count_nonzero(mask.reshape(-1)[self.cells]))
-
     def points(self, planes: Planes) -> F32:
         """Per-point ``(N, 3)`` values from three planes."""
         if self.grid.dense:
@@ -278,10 +273,12 @@ def knn_normals(points: F32, origins: F32, neighbours: int = 24) -> F32:
 
 
 def estimate_normals(table: pa.Table, params: NormalParams | None = None,
-                     grid: ScanGrid | None = None) -> tuple[F32, dict[str, int]]:
+                     grid: ScanGrid | None = None,
+                     columns: Mapping[str, F32] | None = None) -> tuple[F32, dict[str, int]]:
     """Oriented unit normals ``(N, 3)`` for a points table, and how many came from each method.
 
-    ``grid`` is the table's :class:`ScanGrid` when the caller has it already.
+    ``grid`` is the table's :class:`ScanGrid` and ``columns`` its float32 ``x, y, z`` and
+    origin columns (:func:`column_f32`) when the caller has them already.
     """
     params = params or NormalParams()
     if grid is None and params.method != "knn":
@@ -293,22 +290,24 @@ def estimate_normals(table: pa.Table, params: NormalParams | None = None,
         return (knn_normals(points_xyz(table), points_origins(table), params.knn_neighbours),
                 {"knn": table.num_rows})
     layout = _Layout(grid)
-    xyz = tuple(layout.plane(column_f32(table, c)) for c in XYZ)
-    origins = tuple(layout.plane(column_f32(table, c)) for c in ORIGIN)
+
+    def column(name: str) -> F32:
+        return columns[name] if columns is not None else column_f32(table, name)
+
+    xyz = tuple(layout.plane(column(c)) for c in XYZ)
+    origins = tuple(layout.plane(column(c)) for c in ORIGIN)
     xyz_planes: Planes = (xyz[0], xyz[1], xyz[2])
     normals = grid_normal_planes(xyz_planes, grid, params.baseline_deg)
     _orient_planes(normals, xyz_planes, (origins[0], origins[1], origins[2]))
     missing = np.isnan(normals[0])
-    missing_points = layout.count(missing)
+    if not grid.dense:
+        missing &= grid.index >= 0  # empty cells need no normal
+    missing_points = int(np.count_nonzero(missing))
     counts = {"grid": table.num_rows - missing_points, "grid_window": 0, "knn": 0}
     if missing_points:
         # Cells the grid cannot serve (the poles, gaps) take the mean oriented normal of the
         # grid window around them: an array filter, not a neighbour search.
-        window = _window_mean(normals, grid, params.baseline_deg)
-        filled = missing & ~np.isnan(window[0])
-        for component, mean in zip(normals, window, strict=True):
-            np.copyto(component, mean, where=filled)
-        counts["grid_window"] = layout.count(filled)
+        counts["grid_window"] = _fill_from_window(normals, missing, grid, params.baseline_deg)
     out = layout.points(normals)
     if counts["grid"] + counts["grid_window"] < table.num_rows:
         still = np.isnan(out[:, 0])
@@ -321,22 +320,112 @@ def estimate_normals(table: pa.Table, params: NormalParams | None = None,
     return out, counts
 
 
-def _window_mean(normals: Planes, grid: ScanGrid, baseline_deg: float) -> Planes:
-    """Per cell, the normalised sum of the valid normals within two baselines around it."""
-    from scipy.ndimage import uniform_filter
-
+def _window_size(grid: ScanGrid, baseline_deg: float) -> tuple[int, int]:
+    """The (profiles, samples) size of the window of :func:`_fill_from_window`."""
     alpha_step = abs(grid.alpha_step_deg) if np.isfinite(grid.alpha_step_deg) else 1.0
     beta_step = abs(grid.beta_step_deg) if np.isfinite(grid.beta_step_deg) else 1.0
-    size = (2 * max(1, round(2 * baseline_deg / beta_step)) + 1,
+    return (2 * max(1, round(2 * baseline_deg / beta_step)) + 1,
             2 * max(1, round(2 * baseline_deg / alpha_step)) + 1)
-    modes = ("nearest", "wrap" if grid.wraps_alpha else "nearest")
-    summed = tuple(uniform_filter(np.nan_to_num(c, nan=0.0), size=size, mode=modes)
-                   for c in normals)
-    norm = np.sqrt(_squared_length(*summed))
+
+
+def _fill_from_window(normals: Planes, wanted: NDArray[np.bool_], grid: ScanGrid,
+                      baseline_deg: float) -> int:
+    """Give the ``wanted`` cells (in place) the normalised mean of the valid normals within
+    two baselines around them (a ``uniform_filter`` window, ``nearest`` at the grid's ends,
+    wrapping around the samples of a 360° profile); returns how many got one.
+
+    Only what the wanted cells read is computed: they are mostly the bands around the poles
+    (a few per cent of the grid), plus lone cells at gaps. Columns with more wanted cells
+    than a window is tall take the separable mean over the columns their windows reach;
+    the other cells sum their own windows (an arithmetic gather).
+    """
+    size = _window_size(grid, baseline_deg)
+    per_column = np.count_nonzero(wanted, axis=0)
+    band = np.flatnonzero(per_column > size[0])
+    lone = np.flatnonzero((per_column > 0) & (per_column <= size[0]))
+    # Both means from the normals as they are, before either writes.
+    band_means = _column_window_means(normals, band, grid, size) if len(band) else None
+    rows, at = np.nonzero(wanted[:, lone])
+    lone_means = _cell_window_means(normals, rows, lone[at], grid, size)
+    filled = _put_normalised(normals, lone_means, (rows, lone[at]), None)
+    if band_means is not None:
+        filled += _put_normalised(normals, band_means, (slice(None), band), wanted[:, band])
+    return filled
+
+
+def _window_columns(columns: NDArray[np.int64], width: int, grid: ScanGrid) -> NDArray[np.int64]:
+    """``(len(columns), width)``: the sample columns of each column's window (wrapped around a
+    360° profile, else clamped to the grid as ``mode="nearest"``)."""
+    samples = grid.shape[1]
+    reach = columns[:, None] + np.arange(-(width // 2), width // 2 + 1)[None, :]
+    out: NDArray[np.int64] = (np.mod(reach, samples) if grid.wraps_alpha
+                              else np.clip(reach, 0, samples - 1))
+    return out
+
+
+def _column_window_means(normals: Planes, columns: NDArray[np.int64], grid: ScanGrid,
+                         size: tuple[int, int]) -> Planes:
+    """The window mean of each component over whole ``columns``: ``(P, len(columns))``."""
+    from scipy.ndimage import uniform_filter1d
+
+    samples = grid.shape[1]
+    reach = _window_columns(columns, size[1], grid)
+    needed = np.unique(reach)
+    whole = 2 * len(needed) > samples  # most columns: filter the whole grid, no gathers
+    if not whole:
+        position = np.zeros(samples, dtype=np.int64)
+        position[needed] = np.arange(len(needed))
+        reach = position[reach]  # the window's columns in the gathered block
+    means = []
+    for component in normals:
+        block = np.nan_to_num(component if whole else component[:, needed], nan=0.0)
+        block = uniform_filter1d(block, size[0], axis=0, mode="nearest")
+        if whole:
+            block = uniform_filter1d(block, size[1], axis=1,
+                                     mode="wrap" if grid.wraps_alpha else "nearest")
+            means.append(block[:, columns])
+            continue
+        total = block[:, reach[:, 0]]
+        for k in range(1, reach.shape[1]):
+            total += block[:, reach[:, k]]
+        total *= np.float32(1.0 / size[1])
+        means.append(total)
+    return means[0], means[1], means[2]
+
+
+def _cell_window_means(normals: Planes, rows: NDArray[np.intp], columns: NDArray[np.int64],
+                       grid: ScanGrid, size: tuple[int, int]) -> Planes:
+    """The window mean of each component at the cells ``(rows, columns)``: ``(M,)`` each."""
+    profiles, samples = grid.shape
+    window_rows = np.clip(rows[:, None] + np.arange(-(size[0] // 2), size[0] // 2 + 1)[None, :],
+                          0, profiles - 1)
+    cells = (window_rows[:, :, None] * samples
+             + _window_columns(columns, size[1], grid)[:, None, :]).reshape(
+                 len(rows), size[0] * size[1])
+    means = []
+    for component in normals:
+        values = np.nan_to_num(np.take(component.reshape(-1), cells), nan=0.0)
+        means.append((values.sum(axis=1) / np.float32(size[0] * size[1])).astype(np.float32))
+    return means[0], means[1], means[2]
+
+
+def _put_normalised(normals: Planes, means: Planes, where: tuple[Any, Any],
+                    wanted: NDArray[np.bool_] | None) -> int:
+    """Write the unit vectors of ``means`` into ``normals[where]`` (only where ``wanted``, when
+    given, and where the mean is not ~0); returns how many cells were written."""
+    norm = np.sqrt(_squared_length(means[0], means[1], means[2]))
+    ok = norm > 1e-6
+    if wanted is not None:
+        ok &= wanted
     with np.errstate(invalid="ignore", divide="ignore"):
         scale = np.divide(np.float32(1.0), norm)
-    scale[~(norm > 1e-6)] = np.nan
-    return summed[0] * scale, summed[1] * scale, summed[2] * scale
+    for component, mean in zip(normals, means, strict=True):
+        with np.errstate(invalid="ignore"):  # 0 · inf where the mean is 0: not written
+            mean *= scale
+        part = component[where]
+        np.copyto(part, mean, where=ok)
+        component[where] = part
+    return int(np.count_nonzero(ok))
 
 
 def _knn_subset(points: F32, origins: F32, wanted: NDArray[np.bool_], neighbours: int) -> F32:

@@ -321,18 +321,22 @@ def grid_surface(points: F32, origins: F32, grid: ScanGrid,
             first, second, use_ad, rows, patches, len(vertices), min_component_faces)
         report["small_component_faces_removed"] = removed
         patches = patches[patch_kept]
+    sensor_moves = any(_varies(origins[:, k]) for k in range(3))
     if compact:
         kept, rows, patches = _compact(first, second, use_ad, rows, patches, len(vertices))
         report["unreferenced_vertices_removed"] = len(vertices) - int(np.count_nonzero(kept))
         if report["unreferenced_vertices_removed"]:
-            vertices, origins = vertices[kept], origins[kept]
+            # np.compress along axis 0: a boolean index of an (N, 3) array is ~4× slower.
+            vertices = np.compress(kept, vertices, axis=0)
+            if sensor_moves:  # only the winding check below needs them
+                origins = np.compress(kept, origins, axis=0)
             quad = _Quads(rows)
         else:
             kept = None
 
-    faces = _faces_from_quads(first, second, use_ad, reverse, quad)
+    # The patches go into the same array: appending them would copy every face again.
+    faces = _faces_from_quads(first, second, use_ad, reverse, quad, patches)
 
-    sensor_moves = any(_varies(origins[:, k]) for k in range(3))
     if sensor_moves:
         # A mounted offset moves the sensor with β; near the axis that offset is no longer
         # small against the point spacing and the (β, α) winding rule can be wrong: there
@@ -340,9 +344,9 @@ def grid_surface(points: F32, origins: F32, grid: ScanGrid,
         near_axis = np.broadcast_to(
             (np.abs(np.sin(np.radians(alpha_mid))) < 0.3)[None, : shape[1]], shape)
         check = np.flatnonzero(np.concatenate([near_axis[first], near_axis[second]]))
-        faces[check] = _face_sensor(vertices, origins, faces[check])
-    if len(patches):
-        faces = np.concatenate([faces, patches])
+        # Only the (few) faces found facing away are rewritten, not every checked one.
+        flip = check[_facing_away(vertices, origins, faces[check])]
+        faces[flip] = faces[flip][:, ::-1]
     report["grid_faces"] = len(faces)
     return GridSurface(vertices, faces, report, kept)
 
@@ -436,19 +440,20 @@ def _drop_small_components(first: B, second: B, use_ad: B, rows: I32, patches: I
 
     Quads that keep both triangles connect their four corners, and 4-connected runs of them
     are one piece already (``scipy.ndimage.label``): only the face edges between two such
-    groups go into the graph search. Labels are looked up per cell, never per face.
+    groups go into the graph search, over the groups those edges touch (a few per cent of
+    the vertices). Faces are counted per region and per lone triangle, never gathered per
+    face; the per-cell piece planes are built only when some piece is small.
     """
     from scipy.ndimage import label
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
 
-    full_labels, count = label(first & second)
+    full_quads = first & second
+    full_labels, count = label(full_quads)
     # Group per vertex: its full region's label if it is the a corner of a full quad, else
     # its own; the last entry is the pad read by index −1 (cells without a point).
     groups = np.arange(count + 1, count + 2 + n_vertices, dtype=np.int32)
     full = full_labels > 0
     groups[rows[:-1, :-1][full]] = full_labels[full]
-    del full, full_labels
+    del full
     group_plane = np.take(groups, rows)
     group_quad = _Quads(group_plane)
     edges_from, edges_to = [], []
@@ -462,28 +467,58 @@ def _drop_small_components(first: B, second: B, use_ad: B, rows: I32, patches: I
     patch_groups = groups[patches]
     edges_from += [patch_groups[:, 0], patch_groups[:, 1]]
     edges_to += [patch_groups[:, 1], patch_groups[:, 2]]
-    source, target = np.concatenate(edges_from), np.concatenate(edges_to)
     nodes = count + 2 + n_vertices  # region labels 1..count, then one per vertex and the pad
-    graph = coo_matrix((np.ones(len(source), dtype=np.int8), (source, target)),
-                       shape=(nodes, nodes))
-    _, piece = connected_components(graph, directed=False)
-    piece_plane = np.take(piece.astype(np.int32, copy=False), group_plane)
-    piece_cells = _Quads(piece_plane)
-    del group_quad, group_plane
-    # A triangle's piece is its b corner's (first) or its d corner's (second).
+    piece = _group_pieces(np.concatenate(edges_from), np.concatenate(edges_to), nodes)
+    # Faces per piece: two per full quad (its region's piece; the b and d corners of a full
+    # quad join its region by an edge or by the region itself), one per lone triangle (its
+    # b corner's piece for a first triangle, its d corner's for a second) and per patch.
+    region_quads = np.bincount(full_labels.reshape(-1), minlength=count + 1)
+    del full_labels
+    lone_first = first & ~full_quads
+    lone_second = second & ~full_quads
     patch_piece = piece[patch_groups[:, 0]]
-    sizes = (np.bincount(piece_cells.b[first], minlength=nodes)
-             + np.bincount(piece_cells.d[second], minlength=nodes)
-             + np.bincount(patch_piece, minlength=nodes))
-    small_cells = _Quads(np.take(sizes < min_faces, piece_plane))
+    sizes = np.bincount(piece[1: count + 1], weights=2 * region_quads[1:], minlength=nodes)
+    sizes += np.bincount(piece[group_quad.b[lone_first]], minlength=nodes)
+    sizes += np.bincount(piece[group_quad.d[lone_second]], minlength=nodes)
+    sizes += np.bincount(patch_piece, minlength=nodes)
+    small_piece = sizes < min_faces
+    patch_small = small_piece[patch_piece]
+    faced = np.concatenate([piece[1: count + 1], piece[group_quad.b[lone_first]],
+                            piece[group_quad.d[lone_second]], patch_piece])
+    if not np.any(small_piece[faced]):
+        return 0, ~patch_small
+    piece_plane = np.take(piece, group_plane)
+    del group_quad, group_plane
+    small_cells = _Quads(np.take(small_piece, piece_plane))
     small_first = small_cells.b & first
     small_second = small_cells.d & second
-    patch_small = sizes[patch_piece] < min_faces
     removed = (int(np.count_nonzero(small_first)) + int(np.count_nonzero(small_second))
                + int(np.count_nonzero(patch_small)))
     first &= ~small_first
     second &= ~small_second
     return removed, ~patch_small
+
+
+def _group_pieces(source: I32, target: I32, nodes: int) -> I32:
+    """The connected piece of each of ``nodes`` nodes joined by the edges ``source``–
+    ``target``: a node's piece is one of its members' numbers (a node without an edge is its
+    own piece). The graph search runs over the nodes that have an edge only."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    piece = np.arange(nodes, dtype=np.int32)
+    if len(source) == 0:
+        return piece
+    members, ends = np.unique(np.concatenate([source, target]), return_inverse=True)
+    ends = ends.reshape(-1).astype(np.int32, copy=False)
+    size = len(members)
+    graph = coo_matrix((np.ones(len(source), dtype=np.int8),
+                        (ends[: len(source)], ends[len(source):])), shape=(size, size))
+    _, label = connected_components(graph, directed=False)
+    representative = np.empty(int(label.max()) + 1, dtype=np.int32)
+    representative[label] = members
+    piece[members] = representative[label]
+    return piece
 
 
 def _compact(first: B, second: B, use_ad: B, rows: I32, patches: I32,
@@ -531,11 +566,16 @@ def _drop_repeated_corners(first: B, second: B, use_ad: B, quad: _Quads, grid: S
         clear((slice(-1, None), slice(None)))
 
 
-def _faces_from_quads(first: B, second: B, use_ad: B, reverse: B, quad: _Quads) -> I32:
+def _faces_from_quads(first: B, second: B, use_ad: B, reverse: B, quad: _Quads,
+                      extra: I32 | None = None) -> I32:
     """The ``(K, 3)`` faces: every quad's first triangle (a, b, a/d corner), then every quad's
-    second (c, d, a/b corner), in row-major quad order, reversed where ``reverse``."""
+    second (c, d, a/b corner), in row-major quad order, reversed where ``reverse``; then the
+    ``extra`` faces, if any."""
     n_first, n_second = int(np.count_nonzero(first)), int(np.count_nonzero(second))
-    faces = np.empty((n_first + n_second, 3), dtype=np.int32)
+    n_extra = 0 if extra is None else len(extra)
+    faces = np.empty((n_first + n_second + n_extra, 3), dtype=np.int32)
+    if extra is not None:
+        faces[n_first + n_second:] = extra
     for chosen, start, end, one, two, other_if_bc, other_if_ad in (
             (first, 0, n_first, quad.a, quad.b, quad.c, quad.d),  # (a, b, d) | (a, b, c)
             (second, n_first, n_first + n_second, quad.c, quad.d, quad.b, quad.a)):
@@ -583,19 +623,41 @@ def _single_sample_holes(rows: I32, r_grid: F32, u_grid: Sequence[F32],
 
 
 def _varies(values: F32) -> bool:
-    """True when not every value is bit-for-bit the first (an integer view: a float
-    reduction over a strided column is ~100× slower)."""
+    """True when not every value equals the first (−0.0 equals 0.0: a sensor on the axis has
+    origins of either sign, from rotating a zero offset; NaN counts as varying).
+
+    On a contiguous copy: comparisons over a strided column of an ``(N, 3)`` array are
+    several times slower.
+    """
     if len(values) == 0:
         return False
-    bits = values.view(np.int32)
-    return bool(np.any(bits != bits[0]))
+    column = np.ascontiguousarray(values)
+    with np.errstate(invalid="ignore"):
+        return bool(np.any(column != column[0]))
+
+
+def _facing_away(vertices: F32, origins: F32, faces: I32) -> B:
+    """Which ``faces`` have their normal pointing away from their first corner's sensor.
+
+    Column by column (:func:`scanpipe.meshing.mesh.face_cross`): ``np.cross`` and the
+    ``(K, 3)`` temporaries cost ~3× more on the million faces near the axis of a lab scan.
+    """
+    from scanpipe.meshing.mesh import face_cross
+
+    normal = face_cross(vertices, faces)
+    first = faces[:, 0]
+    dot = np.zeros(len(faces), dtype=np.float32)
+    for k in range(3):
+        towards = np.take(origins[:, k], first)
+        towards -= np.take(vertices[:, k], first)
+        towards *= normal[:, k]
+        dot += towards
+    return np.asarray(dot < 0)
 
 
 def _face_sensor(vertices: F32, origins: F32, faces: I32) -> I32:
     """``faces`` with the winding reversed where the normal points away from the sensor."""
-    v0 = vertices[faces[:, 0]]
-    normal = np.cross(vertices[faces[:, 1]] - v0, vertices[faces[:, 2]] - v0)
-    away = np.einsum("ij,ij->i", normal, origins[faces[:, 0]] - v0) < 0
     out = faces.copy()
+    away = _facing_away(vertices, origins, faces)
     out[away] = out[away][:, ::-1]
     return out

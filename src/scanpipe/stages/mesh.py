@@ -26,10 +26,10 @@ from scanpipe.meshing.cleanup import CleanupParams, clean_mesh
 from scanpipe.meshing.grid_mesh import GridMeshParams, grid_surface
 from scanpipe.meshing.mesh import Mesh
 from scanpipe.meshing.poisson import PoissonParams, poisson_mesh
-from scanpipe.normals import NormalParams, estimate_normals, points_origins, points_xyz
+from scanpipe.normals import NormalParams, column_f32, estimate_normals
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn
-from scanpipe.schema import POINTS, RGB
+from scanpipe.schema import ORIGIN, POINTS, RGB, XYZ
 from scanpipe.stage import Stage, StageResult
 
 
@@ -97,8 +97,12 @@ def mesh_points(table: pa.Table, params: MeshParams,
             table = subsample(table, stride)
             grid = scan_grid(table)
             report["points_meshed"] = table.num_rows
-    points, origins = points_xyz(table), points_origins(table)
-    normals, normal_counts = estimate_normals(table, params.normals, grid)
+    # Each column read once (a chunked column is concatenated on every read).
+    columns = {name: column_f32(table, name) for name in (*XYZ, *ORIGIN)}
+    points = np.stack([columns[name] for name in XYZ], axis=1)
+    origins = np.stack([columns[name] for name in ORIGIN], axis=1)
+    normals, normal_counts = estimate_normals(table, params.normals, grid, columns)
+    del columns
     report["normals"] = normal_counts
     step("normals", 1)
 
@@ -112,8 +116,9 @@ def mesh_points(table: pa.Table, params: MeshParams,
                                compact=True, remove_zero_area=params.cleanup.remove_degenerate)
         report["triangulation"] = surface.report
         if surface.kept is not None:
-            normals = normals[surface.kept]
-            colors = None if colors is None else colors[surface.kept]
+            # np.compress: a boolean index of an (N, 3) array is ~4× slower.
+            normals = np.compress(surface.kept, normals, axis=0)
+            colors = None if colors is None else np.compress(surface.kept, colors, axis=0)
         mesh = Mesh(surface.vertices, surface.faces, normals, colors)
     else:
         steps = (grid.alpha_step_deg, grid.beta_step_deg) if grid is not None else None
