@@ -28,6 +28,7 @@ from scanpipe.registration import (
     pair_information,
     prepare_scan,
     refine,
+    variance_factor,
 )
 from scanpipe.sim.site import prior_poses, scene_pose_for, site_positions
 
@@ -191,3 +192,18 @@ def test_pose_covariance_covers_the_errors_of_correlated_points() -> None:
     # measured at covariance_scale 1: 16.5, 17.0, 10.2, 8.9 (naive 62, 54, 31, 33)
     assert np.mean(chi2) <= 20.1, chi2  # χ²₆ at 3 σ
     assert np.mean(chi2_naive) > 2.5 * np.mean(chi2), (chi2_naive, chi2)
+
+
+def test_variance_factor_measures_the_loops_misclosure() -> None:
+    poses = [np.eye(4), pose_matrix((0, 30, 0), (2, 0, 0)), pose_matrix((0, -20, 0), (1, 0, 3))]
+    error = pose_matrix((0, 0, 0), (0.003, 0, 0))  # one pair 3 mm off along x
+
+    def pair(target: int, source: int, off: Any = None) -> PairResult:
+        measured = invert(poses[target]) @ poses[source]
+        return PairResult(target, source, measured if off is None else off @ measured, 0.5,
+                          0.01, "ransac", True, "", np.eye(6),
+                          pose_information=np.eye(6) / 1e-6)  # σ 1 mm
+    # no loop: nothing to measure
+    assert variance_factor(poses, [pair(0, 1), pair(0, 2)]) == (1.0, 0)
+    factor, dof = variance_factor(poses, [pair(0, 1), pair(0, 2), pair(1, 2, error)])
+    assert dof == 6 and factor == __import__("pytest").approx(9.0 / 6.0, rel=1e-6)

@@ -43,7 +43,9 @@ workdirs and writes artifacts.
    uncertainty, instead of the residual variance divided by the number of points (which was
    far too small). ``covariance_scale`` (1.3) multiplies every covariance: over 3 seeds of
    the virtual site the sandwich alone gave a mean χ² of 7.7 against the 6 of an honest
-   covariance (docs/sites.md).
+   covariance. Where the graph has loops, the variance factor (:func:`variance_factor`: the
+   pairs' misclosures against their information) scales them up further when above 1 — pairs
+   sharing a scan share its errors (docs/sites.md).
 """
 
 from __future__ import annotations
@@ -592,6 +594,27 @@ def covariances(poses: list[F64], pairs: list[PairResult]) -> list[F64 | None]:
     return result
 
 
+def variance_factor(poses: list[F64], pairs: list[PairResult]) -> tuple[float, int]:
+    """The graph's a-posteriori variance factor: the pairs' misclosures at the optimised poses
+    (each pair's measured relative pose against the one the poses imply) weighed by their
+    pose information, over the redundancy ``6 × (pairs − (scans − 1))``; (1, 0) without a
+    loop. Above 1, the pairs disagree more than their covariances allow — their errors are
+    correlated (pairs sharing a scan share its errors) — and the covariances are scaled up by
+    it."""
+    from scipy.spatial.transform import Rotation
+
+    dof = 6 * (len(pairs) - (len(poses) - 1))
+    if dof <= 0:
+        return 1.0, 0
+    total = 0.0
+    for p in pairs:
+        implied = invert(poses[p.target]) @ poses[p.source]
+        delta = p.transform @ invert(implied)  # measured = exp(e) · implied, target frame
+        e = np.concatenate([Rotation.from_matrix(delta[:3, :3]).as_rotvec(), delta[:3, 3]])
+        total += float(e @ p.pose_information @ e)
+    return total / dof, dof
+
+
 def _fit_to_prior(poses: list[F64], prior: list[F64]) -> F64:
     """The rigid transform that best maps the optimised positions onto the prior's (Kabsch);
     with fewer than 3 positions, scan 0's prior pose."""
@@ -712,7 +735,10 @@ def register_scans(clouds: list[ScanClouds], params: RegisterParams,
     sub_edges = [PairResult(sub[p.target], sub[p.source], p.transform, p.fitness, p.rmse_m,
                             p.init, True, "", p.information, p.pose_information)
                  for p in edges]
-    sub_cov = covariances([poses[k] for k in reached], sub_edges)  # type: ignore[misc]
+    sub_poses: list[F64] = [poses[k] for k in reached]  # type: ignore[misc]
+    sub_cov = covariances(sub_poses, sub_edges)
+    factor, dof = variance_factor(sub_poses, sub_edges)
+    sub_cov = [None if c is None else c * max(1.0, factor) for c in sub_cov]
     adjoint = _adjoint(gauge)
     final: list[F64 | None] = [None] * n
     covs: list[F64 | None] = [None] * n
@@ -735,6 +761,8 @@ def register_scans(clouds: list[ScanClouds], params: RegisterParams,
               "pairs_resolved_by_loop": resolved,
               "edges_dropped": dropped, "unregistered": missing, "conflicts": conflicts,
               "warnings": warnings,
+              "covariance_variance_factor": {"value": round(factor, 3), "dof": dof,
+                                             "applied": round(max(1.0, factor), 3)},
               "gauge": "prior (best fit of positions)" if prior is not None else
                        f"{names[0]} at the identity"}
     return final, covs, report
