@@ -1,18 +1,26 @@
-"""``python -m benchmarks.bench_batch [--quick] [--recordings N] [--repeats N]``: ``scanpipe
-batch`` over N (20) small recordings with 1 and 2 workers, in the local process pool and on a
-local Ray, and the cost of Ray's scheduling per task; prints a table and writes
+"""``python -m benchmarks.bench_batch [--quick] [--recordings N] [--repeats N] [--threads N]``:
+``scanpipe batch`` over N (20) small recordings with 1 and 2 workers, in the local process pool
+and on a local Ray, with the CPU time of every worker, of the parent and (Ray) of Ray's own
+processes, and the cost of scheduling per task on both engines; prints a table and writes
 ``benchmarks/results/batch-<date>[-quick].json``.
 
 Target (issue 21): a batch of 20 small recordings, 2 workers at least 1.8× faster than 1 on a
-2-core machine, on both engines. Each configuration runs ``--repeats`` times into fresh workdirs
-(nothing cached) and its fastest wall time counts. Ray's cost per task is measured three ways:
-the round trip of one empty task (submit, run, get; median of sequential ones), the wall time per
-empty task when many are in flight, and the batch's own excess over the local pool per stage
-task (Ray wall − local wall after the pool's start, 1 worker, divided by the number of stage
-tasks). The fixed cost of starting a local pool (spawned workers importing the chain) is
-measured apart (and the local speed-up without it shown beside the target's), and the load
-average before each run is recorded: a speed-up measured while other work ran (load above
-0.5 per CPU) is marked ``busy`` and is not the figure.
+2-core machine, on both engines. Every run pins each worker to ``--threads`` (1) threads —
+OpenMP, BLAS, OpenCV, and on Ray the task's CPUs — so that the 1-worker run does not get both
+cores' threads while each of 2 workers gets one (that compared 2 processes with 1 process of 2
+threads). Each configuration runs ``--repeats`` times into fresh workdirs (nothing cached) and
+its fastest wall time counts; the load average before each run is recorded, and a speed-up
+measured while other work ran (load above 0.5 per CPU) is marked ``busy`` and is not the figure.
+
+Because wall times mean nothing on a loaded machine, every run also gives CPU figures, which do
+not depend on the load: each worker's CPU (its start — interpreter, imports — and its stage
+steps), the parent's, and every process's (local: the reaped pool workers; Ray: the driver's
+descendants — raylet, GCS, workers). From them a *CPU bound* on the speed-up: each run's wall
+cannot be shorter than its busiest worker's CPU, nor than all its CPU spread over the cores it
+may use, so ``cpu_speedup = bound(1 worker) / bound(2 workers)`` is what a quiet machine gives
+at best. Scheduling per task: the round trip of an empty task (local pool and Ray, median of
+sequential ones), Ray's wall per empty task with many in flight, the parent's CPU per task, and
+(Ray) the CPU of Ray's own processes per stage task.
 """
 
 from __future__ import annotations
@@ -22,6 +30,8 @@ import concurrent.futures as cf
 import datetime as dt
 import multiprocessing as mp
 import os
+import pickle
+import resource
 import statistics
 import sys
 import tempfile
@@ -78,38 +88,90 @@ def ray_task_costs(ray: Any) -> dict[str, float]:
             "per_task_in_flight_ms": round(in_flight_s / EMPTY_TASKS * 1e3, 3)}
 
 
-def _import_chain(_: int = 0) -> int:
-    """What a spawned batch worker does before its first recording: import the chain."""
-    from scanpipe.stages import chain_stages as stages
-
-    return len(stages("recording"))
+def _nothing(x: int = 0) -> int:
+    """An empty task."""
+    return x
 
 
-def pool_start_s(workers: int) -> float:
-    """Wall time to spawn a local pool of ``workers`` and have each import the chain."""
+def pool_costs(workers: int, threads: int) -> dict[str, float]:
+    """A local pool as ``run_batch`` starts it (spawned workers importing the chain): wall time
+    until every worker answered, and the round trip of one empty task on a warm pool (ms,
+    median of sequential ones)."""
+    from scanpipe.batch import _start_worker  # the batch's own initializer
+
     started = time.perf_counter()
-    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn")) as pool:
-        list(pool.map(_import_chain, range(workers)))
-    return round(time.perf_counter() - started, 3)
+    with cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
+                                initializer=_start_worker, initargs=(threads,)) as pool:
+        list(pool.map(_nothing, range(workers)))
+        start_s = time.perf_counter() - started
+        trips = []
+        for i in range(50):
+            begun = time.perf_counter()
+            pool.submit(_nothing, i).result()
+            trips.append(time.perf_counter() - begun)
+    return {"start_s": round(start_s, 3),
+            "round_trip_ms": round(statistics.median(trips) * 1e3, 3)}
 
 
 def _load() -> float:
     return round(os.getloadavg()[0], 2)
 
 
-def run(count: int, settings: list[str], say: Any, repeats: int = 1) -> dict[str, Any]:
+def _children_cpu_s() -> float:
+    """CPU seconds of this process's reaped children (the local pool's workers)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _descendants_cpu() -> dict[int, float]:
+    """CPU seconds of every live descendant process (Ray's), by pid."""
+    import psutil
+
+    spent: dict[int, float] = {}
+    for child in psutil.Process().children(recursive=True):
+        try:
+            times = child.cpu_times()
+        except psutil.Error:  # gone meanwhile
+            continue
+        spent[child.pid] = times.user + times.system
+    return spent
+
+
+def cpu_figures(summary: dict[str, Any], processes_cpu_s: float, cores: int) -> dict[str, Any]:
+    """A run's CPU figures and its CPU bound on wall time (see the module docstring)."""
+    stage_cpu = sum(s["cpu_s"] for i in summary["items"] for s in i["stages"])
+    starts = {pid: cpu for i in summary["items"]
+              for pid, cpu in i["worker_start_cpu_s"].items()}
+    per_worker = summary["workers_cpu_s"]
+    busiest = max(per_worker.values(), default=0.0)
+    total = processes_cpu_s + summary["parent_cpu_s"]
+    return {"workers_cpu_s": per_worker, "busiest_worker_cpu_s": round(busiest, 3),
+            "worker_start_cpu_s": round(sum(starts.values()), 3),
+            "stage_cpu_s": round(stage_cpu, 3), "parent_cpu_s": summary["parent_cpu_s"],
+            "processes_cpu_s": round(processes_cpu_s, 3),
+            # what neither the stages nor the workers' start account for: the engine's own
+            # work (Ray: raylet, GCS, object store, task (de)serialisation; local: spawning)
+            "engine_cpu_s": round(total - stage_cpu - sum(starts.values()), 3),
+            "cpu_bound_s": round(max(busiest, total / cores), 3)}
+
+
+def run(count: int, settings: list[str], say: Any, repeats: int = 1,
+        threads: int = 1) -> dict[str, Any]:
     """Every measurement; returns the results (JSON-ready)."""
     import ray
 
     params = pipeline_params_from_cli(None, [])
     n_stages = len(chain_stages("recording"))
+    cpus = os.cpu_count() or 1
     results: dict[str, Any] = {"machine": machine(), "recordings": count,
-                               "simulate_settings": settings, "stages": n_stages, "runs": {}}
+                               "simulate_settings": settings, "stages": n_stages,
+                               "threads_per_worker": threads, "runs": {}}
     with tempfile.TemporaryDirectory(prefix="bench-batch-") as scratch:
         root = Path(scratch)
         say(f"simulating {count} recordings")
         recordings = make_recordings(root / "recs", count, settings)
-        results["local_pool_start_s"] = {str(n): pool_start_s(n) for n in (1, 2)}
+        results["params_pickle_bytes"] = len(pickle.dumps(params))
+        results["local_pool"] = {str(n): pool_costs(n, threads) for n in (1, 2)}
         started = time.perf_counter()
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
         results["ray_init_s"] = round(time.perf_counter() - started, 2)
@@ -121,16 +183,27 @@ def run(count: int, settings: list[str], say: Any, repeats: int = 1) -> dict[str
                         name = f"{engine}-{workers}"
                         say(f"{engine}, {workers} worker(s), run {attempt + 1} of {repeats}")
                         load = _load()
+                        before_local = _children_cpu_s()
+                        before_ray = _descendants_cpu() if engine == "ray" else {}
                         started = time.perf_counter()
                         summary = run_batch(recordings, root / f"{name}-{attempt}", params,
-                                            engine=engine, workers=workers)
+                                            engine=engine, workers=workers, threads=threads)
                         wall = time.perf_counter() - started
+                        if engine == "local":
+                            processes = _children_cpu_s() - before_local
+                        else:
+                            after = _descendants_cpu()
+                            processes = sum(cpu - before_ray.get(pid, 0.0)
+                                            for pid, cpu in after.items())
                         if summary["failed"]:
                             raise RuntimeError(f"{name}: {summary['failed']} failed")
                         entry = results["runs"].setdefault(name, {"walls_s": [],
-                                                                  "load_before": []})
+                                                                  "load_before": [],
+                                                                  "cpu": []})
                         entry["walls_s"].append(round(wall, 3))
                         entry["load_before"].append(load)
+                        entry["cpu"].append(cpu_figures(summary, processes,
+                                                        min(workers, cpus)))
                         entry["stage_s"] = round(sum(s["seconds"] for i in summary["items"]
                                                      for s in i["stages"]), 3)
         finally:
@@ -138,18 +211,35 @@ def run(count: int, settings: list[str], say: Any, repeats: int = 1) -> dict[str
     runs = results["runs"]
     for entry in runs.values():
         entry["wall_s"] = min(entry["walls_s"])
-    tasks = count * n_stages
+        entry["cpu_bound_s"] = min(c["cpu_bound_s"] for c in entry["cpu"])
+    tasks = {"local": count, "ray": count * n_stages}
+    for engine in ("local", "ray"):
+        cost = results.setdefault(f"{engine}_scheduling", {})
+        if engine == "local":
+            cost["round_trip_ms"] = results["local_pool"]["1"]["round_trip_ms"]
+        else:
+            cost.update(results["ray_task"])
+        for workers in (1, 2):
+            cpu = runs[f"{engine}-{workers}"]["cpu"][-1]
+            cost[f"parent_cpu_per_task_ms_{workers}w"] = round(
+                cpu["parent_cpu_s"] / tasks[engine] * 1e3, 3)
+            cost[f"engine_cpu_per_task_ms_{workers}w"] = round(
+                cpu["engine_cpu_s"] / tasks[engine] * 1e3, 3)
+        cost["tasks"] = tasks[engine]
     # the local pool's start (spawning and importing) is paid once per batch, Ray's workers
     # were started by ray.init: compare the work after the start
-    start = results["local_pool_start_s"]
-    results["ray_task"]["batch_excess_per_task_ms"] = round(
-        (runs["ray-1"]["wall_s"] - (runs["local-1"]["wall_s"] - start["1"])) / tasks * 1e3, 3)
+    start = results["local_pool"]
+    results["ray_scheduling"]["batch_excess_per_task_ms"] = round(
+        (runs["ray-1"]["wall_s"] - (runs["local-1"]["wall_s"] - start["1"]["start_s"]))
+        / tasks["ray"] * 1e3, 3)
     results["speedup_local_after_pool_start"] = round(
-        (runs["local-1"]["wall_s"] - start["1"]) / max(runs["local-2"]["wall_s"] - start["2"],
-                                                       1e-9), 3)
-    cpus = os.cpu_count() or 1
+        (runs["local-1"]["wall_s"] - start["1"]["start_s"])
+        / max(runs["local-2"]["wall_s"] - start["2"]["start_s"], 1e-9), 3)
     results["busy"] = any(load > BUSY_LOAD_PER_CPU * cpus for entry in runs.values()
                           for load in entry["load_before"])
+    results["cpu_speedup"] = {engine: round(runs[f"{engine}-1"]["cpu_bound_s"]
+                                            / max(runs[f"{engine}-2"]["cpu_bound_s"], 1e-9), 3)
+                              for engine in ("local", "ray")}
     results["targets"] = [
         {"figure": f"speedup_{engine}", "value": round(
             runs[f"{engine}-1"]["wall_s"] / runs[f"{engine}-2"]["wall_s"], 3),
@@ -160,26 +250,47 @@ def run(count: int, settings: list[str], say: Any, repeats: int = 1) -> dict[str
 
 
 def report(results: dict[str, Any]) -> str:
-    """The results as a text table."""
+    """The results as text tables."""
     rows = [(name, f"{r['wall_s']:.2f}", " ".join(f"{w:.1f}" for w in r["walls_s"]),
              f"{r['stage_s']:.2f}", " ".join(f"{v:.1f}" for v in r["load_before"]))
             for name, r in results["runs"].items()]
-    lines = [table(rows, ("run", "wall s (min)", "every run", "stage s (sum)", "load before")),
+    lines = [f"threads per worker: {results['threads_per_worker']} (every run)",
+             table(rows, ("run", "wall s (min)", "every run", "stage s (sum)", "load before")),
              ""]
+    cpu_rows = []
+    for name, r in results["runs"].items():
+        c = r["cpu"][-1]
+        cpu_rows.append((name, " ".join(f"{v:.2f}" for v in c["workers_cpu_s"].values()),
+                         f"{c['worker_start_cpu_s']:.2f}", f"{c['stage_cpu_s']:.2f}",
+                         f"{c['parent_cpu_s']:.2f}", f"{c['processes_cpu_s']:.2f}",
+                         f"{c['engine_cpu_s']:.2f}", f"{c['cpu_bound_s']:.2f}"))
+    lines += [table(cpu_rows, ("run", "CPU s per worker", "worker starts", "stages",
+                               "parent", "all processes", "engine", "CPU bound s")), ""]
     if results["busy"]:
         lines.append("the machine was busy (load above "
                      f"{BUSY_LOAD_PER_CPU} per CPU before a run): these speed-ups are not the "
                      "figure; run again on a quiet machine")
     lines += [f"{t['figure']}: {t['value']:.2f} (target {t['target']}: "
               f"{'ok' if t['ok'] else 'MISSED'})" for t in results["targets"]]
-    cost = results["ray_task"]
-    lines.append(f"Ray per task: round trip {cost['round_trip_ms']:.2f} ms, in flight "
-                 f"{cost['per_task_in_flight_ms']:.2f} ms, batch excess over local "
-                 f"{cost['batch_excess_per_task_ms']:.2f} ms; Ray start {results['ray_init_s']} s")
-    pool = results["local_pool_start_s"]
-    lines.append(f"local pool start (spawn + import the chain): 1 worker {pool['1']:.2f} s, "
-                 f"2 workers {pool['2']:.2f} s; local speed-up after it "
-                 f"{results['speedup_local_after_pool_start']:.2f}")
+    lines.append("CPU bound on the speed-up (what a quiet machine gives at best): "
+                 + ", ".join(f"{k} {v:.2f}" for k, v in results["cpu_speedup"].items()))
+    for engine in ("local", "ray"):
+        cost = results[f"{engine}_scheduling"]
+        lines.append(f"{engine} per task ({cost['tasks']} tasks): round trip "
+                     f"{cost['round_trip_ms']:.2f} ms, parent CPU "
+                     f"{cost['parent_cpu_per_task_ms_1w']:.2f} / "
+                     f"{cost['parent_cpu_per_task_ms_2w']:.2f} ms, engine CPU "
+                     f"{cost['engine_cpu_per_task_ms_1w']:.2f} / "
+                     f"{cost['engine_cpu_per_task_ms_2w']:.2f} ms (1 / 2 workers)")
+    ray_cost = results["ray_scheduling"]
+    lines.append(f"Ray: {ray_cost['per_task_in_flight_ms']:.2f} ms per empty task in flight, "
+                 f"batch excess over local {ray_cost['batch_excess_per_task_ms']:.2f} ms per "
+                 f"stage task; Ray start {results['ray_init_s']} s")
+    pool = results["local_pool"]
+    lines.append(f"local pool start (spawn + import the chain): 1 worker "
+                 f"{pool['1']['start_s']:.2f} s, 2 workers {pool['2']['start_s']:.2f} s; "
+                 f"local speed-up after it {results['speedup_local_after_pool_start']:.2f}; "
+                 f"parameters pickled per task: {results['params_pickle_bytes']} bytes")
     return "\n".join(lines)
 
 
@@ -193,17 +304,22 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"how many recordings (default {RECORDINGS}, the target's)")
     parser.add_argument("--repeats", type=int, default=1,
                         help="runs per configuration, the fastest counts (default 1)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="threads per worker in every run (default 1: equal pinning)")
     args = parser.parse_args(argv)
     if args.recordings < 1:
         parser.error(f"--recordings {args.recordings}: must be at least 1")
     if args.repeats < 1:
         parser.error(f"--repeats {args.repeats}: must be at least 1")
+    if args.threads < 1:
+        parser.error(f"--threads {args.threads}: must be at least 1")
     started = time.perf_counter()
 
     def say(text: str) -> None:
         print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
 
-    results = run(args.recordings, QUICK if args.quick else SMALL, say, args.repeats)
+    results = run(args.recordings, QUICK if args.quick else SMALL, say, args.repeats,
+                  args.threads)
     results["quick"] = args.quick
     results["benchmark_s"] = round(time.perf_counter() - started, 1)
     stem = f"batch-{dt.date.today().isoformat()}" + ("-quick" if args.quick else "")

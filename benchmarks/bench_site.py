@@ -42,7 +42,7 @@ MEAN_TARGET_SIGMA = 0.5
 COMPLETENESS_TARGET = 0.95
 
 
-def _scanpipe(*args: str, json_out: Path | None = None) -> dict[str, Any]:
+def run_scanpipe(*args: str, json_out: Path | None = None) -> dict[str, Any]:
     """Run one scanpipe command (``--json`` output captured into ``json_out``); raise on
     failure."""
     import contextlib
@@ -59,25 +59,35 @@ def _scanpipe(*args: str, json_out: Path | None = None) -> dict[str, Any]:
     return json.loads(text) if text.strip().startswith("{") else {}
 
 
+def cpu_seconds_all() -> float:
+    """CPU seconds of this process (every thread) and of its reaped children (batch
+    workers)."""
+    import resource
+
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
 def run(scale: str, positions: int, workers: int, say: Any) -> dict[str, Any]:
     """Every step, timed; returns the results (JSON-ready)."""
     settings = SCALES[scale]["settings"]
     results: dict[str, Any] = {"machine": machine(), "scale": scale, "positions": positions,
                                "simulate_settings": settings,
                                "register_settings": SCALES[scale]["register"], "noise_mm": NOISE_MM,
-                               "workers": workers, "seconds": {}}
-    seconds = results["seconds"]
+                               "workers": workers, "seconds": {}, "cpu_s": {}}
+    seconds, cpu = results["seconds"], results["cpu_s"]
     with tempfile.TemporaryDirectory(prefix="bench-site-") as scratch:
         root = Path(scratch)
         recs, truth, work, site = root / "recs", root / "truth", root / "work", root / "site"
 
         def step(name: str, *args: str) -> dict[str, Any]:
             say(name)
-            started = time.perf_counter()
+            started, cpu_started = time.perf_counter(), cpu_seconds_all()
             try:
-                return _scanpipe(*args)
+                return run_scanpipe(*args)
             finally:
                 seconds[name] = round(time.perf_counter() - started, 2)
+                cpu[name] = round(cpu_seconds_all() - cpu_started, 2)
 
         step("simulate", "simulate", "--site", str(positions), "--direct", "--out", str(recs),
              "--truth", str(truth), "--noise-mm", str(NOISE_MM), "--prior-error-m", "0.5",
@@ -119,8 +129,9 @@ def run(scale: str, positions: int, workers: int, say: Any) -> dict[str, Any]:
 
 def report(results: dict[str, Any]) -> str:
     """The results as a text table."""
-    rows = [(name, f"{s:.1f}") for name, s in results["seconds"].items()]
-    lines = [table(rows, ("step", "wall s")), ""]
+    rows = [(name, f"{s:.1f}", f"{results['cpu_s'].get(name, 0.0):.1f}")
+            for name, s in results["seconds"].items()]
+    lines = [table(rows, ("step", "wall s", "CPU s")), ""]
     for label, key in (("registered poses", "eval_registered"),
                        ("true poses", "eval_true_poses")):
         e = results[key]

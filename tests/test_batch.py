@@ -13,7 +13,7 @@ import pyarrow as pa
 import pytest
 
 from scanpipe.artifacts import read_artifact
-from scanpipe.batch import plan_batch, run_batch, workdir_name
+from scanpipe.batch import largest_first, plan_batch, run_batch, workdir_name, worker_threads
 from scanpipe.cli.pipeline import pipeline_params_from_cli
 from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
@@ -125,6 +125,39 @@ def test_local_and_ray_give_the_same_artifacts(recordings: list[Path], ray_local
             assert _same(table, tables_ray[name]), name
     again = run_batch(recordings[:1], tmp_path / "ray", params, engine="ray")
     assert all(s["reused"] for s in again["items"][0]["stages"])
+    _check_cpu_accounting(local, "local")
+    _check_cpu_accounting(on_ray, "ray")
+
+
+def _check_cpu_accounting(summary: dict[str, Any], engine: str) -> None:
+    """Every stage's CPU and process, each worker's CPU, the parent's: where the time went."""
+    assert summary["parent_cpu_s"] >= 0
+    assert summary["threads"] == (worker_threads(2, None) if engine == "local" else 1)
+    stage_cpu = 0.0
+    pids = set()
+    for item in summary["items"][:2]:
+        assert item["cpu_s"] > 0
+        for stage in item["stages"]:
+            assert stage["cpu_s"] >= 0 and isinstance(stage["pid"], int)
+            stage_cpu += stage["cpu_s"]
+            pids.add(str(stage["pid"]))
+        starts = item["worker_start_cpu_s"]
+        # a local worker's start (interpreter, imports) is its own figure; Ray's workers were
+        # started by Ray before the batch
+        assert (len(starts) == 1 and next(iter(starts.values())) > 0) if engine == "local" \
+            else starts == {}
+    assert pids <= set(summary["workers_cpu_s"])
+    assert sum(summary["workers_cpu_s"].values()) >= stage_cpu - 1e-3
+
+
+def test_largest_recording_starts_first(tmp_path: Path) -> None:
+    sizes = {"small.mcap": 10, "big.mcap": 300, "mid.mcap": 100}
+    for name, size in sizes.items():
+        (tmp_path / name).write_bytes(b"x" * size)
+    items = plan_batch([tmp_path / n for n in ("small.mcap", "missing.mcap", "big.mcap",
+                                               "mid.mcap")], tmp_path / "w")
+    assert [i.recording.name for i in largest_first(items)] == [
+        "big.mcap", "mid.mcap", "small.mcap", "missing.mcap"]
 
 
 def test_ray_missing_says_how_to_install(cli, recordings: list[Path], tmp_path: Path,  # type: ignore[no-untyped-def]

@@ -73,8 +73,23 @@ def _check_all_placed(report: dict[str, Any], root: Path, out: str) -> None:
     for row in errors:
         assert row["translation_m"] <= TOLERANCE_M, row
         assert row["rotation_deg"] <= TOLERANCE_DEG, row
-    written = poses_from_table(pq.read_table(root / out / "poses.parquet"))
+    table = pq.read_table(root / out / "poses.parquet")
+    written = poses_from_table(table)
     assert sorted(written) == [f"pos{k:02d}" for k in range(6)]
+    # the covariance is honest: each scan's error within ~3 σ (χ², 6 dof: 20.1 at 3 σ; 25 has
+    # probability 3e-4), and not absurdly large either (a covariance of metres would pass)
+    from scanpipe.registration import error_twists, normalised_errors
+    from scanpipe.site import read_true_poses
+
+    truth = read_true_poses(root / "truth")
+    names = sorted(written)
+    twists = error_twists([written[n] for n in names], [truth[n] for n in names])
+    covs = dict(zip(table.column("scan").to_pylist(), table.column("covariance").to_pylist(),
+                    strict=True))
+    for name, twist in zip(names[1:], twists[1:], strict=True):
+        cov = np.asarray(covs[name]).reshape(6, 6)
+        assert normalised_errors(twist, cov)[1] <= 25.0, (name, twist, np.diag(cov))
+        assert np.sqrt(np.diag(cov)[3:]).max() <= 0.02, (name, np.diag(cov))
 
 
 def test_register_site_without_prior(cli: Callable[..., Any], small_site: Path) -> None:

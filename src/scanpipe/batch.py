@@ -6,13 +6,20 @@ folders never share a workdir, and a name that does not depend on the rest of th
 re-run with more or fewer recordings finds its cache. Each workdir has its own lock
 (:func:`scanpipe.workdir.workdir_lock`), so workers never wait on each other.
 
-``local`` runs :func:`scanpipe.pipeline.run_chain` per recording in a process pool (spawned
-workers, each limited to its share of the CPU's threads). ``ray`` runs one Ray task per recording
+``local`` runs :func:`scanpipe.pipeline.run_chain` per recording in a process pool of
+long-lived spawned workers: each imports the chain and its heavy libraries once when it starts
+(not per recording) and is limited to ``threads`` threads (OpenMP, BLAS, OpenCV), so that
+workers do not fight over the cores. ``ray`` runs one Ray task per recording
 per stage (:func:`scanpipe.pipeline.chain_step`): the tasks of one recording are chained by
 object refs carrying only paths, keys and reports, while the tables go through the cached
 artifacts in the workdir, exactly as a local run writes them — so both engines give the same
 artifacts and keys, a re-run reuses them, and the workdir must be on a file system every Ray
 node sees. A failing recording is reported with its one-line error and the others finish.
+
+Both engines start the largest recordings first (file size: a proxy for their work), so that a
+long recording does not start last and leave the other workers idle at the end. Every stage
+record carries its CPU seconds and the pid of the process that ran it, and the summary the
+parent's CPU seconds, so that where the time goes can be read on a loaded machine too.
 """
 
 from __future__ import annotations
@@ -73,6 +80,10 @@ class ItemResult:
     detail: str = ""
     stages: list[dict[str, Any]] = field(default_factory=list)
     seconds: float = 0.0
+    #: CPU seconds of the recording's work in its worker(s), every thread included.
+    cpu_s: float = 0.0
+    #: Worker pid → CPU seconds that worker spent starting (imports; local engine only).
+    worker_start_cpu_s: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
 
 
@@ -119,9 +130,13 @@ def _fail(result: ItemResult, err: BaseException) -> ItemResult:
     return result
 
 
-def _record_dict(record: RunRecord) -> dict[str, Any]:
+def _record_dict(record: RunRecord, cpu_s: float) -> dict[str, Any]:
+    """A stage as the summary shows it: ``seconds`` is the stage's own computation (wall),
+    ``cpu_s`` the CPU of the whole step in its worker (cache look-up, reading and writing
+    included)."""
     return {"stage": record.stage, "key": record.key, "reused": record.reused,
-            "seconds": round(record.seconds, 4)}
+            "seconds": round(record.seconds, 4), "cpu_s": round(cpu_s, 4),
+            "pid": os.getpid()}
 
 
 def _warnings(record: RunRecord) -> list[str]:
@@ -135,15 +150,26 @@ def run_item(item: BatchItem, params: Mapping[str, Params], to: str | None = Non
     """The chain on one recording into its workdir; every failure is caught into the result."""
     result = ItemResult(item.name, str(item.recording), str(item.workdir))
     started = time.perf_counter()
+    cpu_started = last_cpu = time.process_time()
     records: list[RunRecord] = []  # filled stage by stage: kept up to a failure
+
+    def on_stage(record: RunRecord) -> None:
+        nonlocal last_cpu
+        now = time.process_time()
+        records.append(record)
+        result.stages.append(_record_dict(record, now - last_cpu))
+        last_cpu = now
+
     try:
         run_chain(item.recording, item.workdir, params, stages=_chain(to), force=force,
-                  lock_wait_s=lock_wait_s, on_stage=records.append)
+                  lock_wait_s=lock_wait_s, on_stage=on_stage)
     except Exception as err:  # isolate it: the batch reports it and goes on
         _fail(result, err)
-    result.stages = [_record_dict(r) for r in records]
     result.warnings = [w for r in records for w in _warnings(r)]
     result.seconds = round(time.perf_counter() - started, 4)
+    result.cpu_s = round(time.process_time() - cpu_started, 4)
+    if _WORKER_START_CPU_S is not None:
+        result.worker_start_cpu_s = {str(os.getpid()): _WORKER_START_CPU_S}
     return result
 
 
@@ -159,19 +185,38 @@ def _chain(to: str | None) -> list[Any]:
 
 # -- local: a process pool -----------------------------------------------------------------------
 
-def _limit_threads(threads: int) -> None:
-    """Pool initializer: OpenCV's threads too (the environment sized the others)."""
+#: In a local worker: the CPU seconds it spent starting (:func:`_start_worker`).
+_WORKER_START_CPU_S: float | None = None
+
+
+def limit_opencv_threads(threads: int) -> None:
+    """OpenCV's own thread pool (it reads none of :data:`THREAD_VARS`)."""
     import cv2
 
     cv2.setNumThreads(threads)
 
 
+def _start_worker(threads: int) -> None:
+    """Pool initializer: limit OpenCV's threads (the environment sized the others), then import
+    what the stages import lazily (Open3D ~0.8 s, OpenCV, SciPy's parts), once per worker, so
+    that no recording pays it and the stage times measure the stages."""
+    global _WORKER_START_CPU_S
+    limit_opencv_threads(threads)
+    import open3d  # noqa: F401
+    import scipy.ndimage
+    import scipy.sparse.csgraph
+    import scipy.spatial  # noqa: F401
+
+    import scanpipe.stages  # noqa: F401
+    _WORKER_START_CPU_S = round(time.process_time(), 4)
+
+
 @contextmanager
 def _thread_env(threads: int) -> Iterator[None]:
-    """The thread variables (unless the user set them) for the workers spawned meanwhile."""
+    """The thread variables, all ``threads``, for the workers spawned meanwhile."""
     saved = {name: os.environ.get(name) for name in THREAD_VARS}
     for name in THREAD_VARS:
-        os.environ.setdefault(name, str(threads))
+        os.environ[name] = str(threads)
     try:
         yield
     finally:
@@ -182,17 +227,38 @@ def _thread_env(threads: int) -> Iterator[None]:
                 os.environ[name] = value
 
 
+def worker_threads(workers: int, threads: int | None) -> int:
+    """Threads per worker: ``threads``, else ``OMP_NUM_THREADS`` when the user set it, else the
+    CPUs shared out among the workers (so 1 worker gets every core's threads)."""
+    if threads is not None:
+        return threads
+    given = os.environ.get("OMP_NUM_THREADS", "")
+    if given.isdigit() and int(given) > 0:
+        return int(given)
+    return max(1, (os.cpu_count() or 1) // workers)
+
+
+def largest_first(items: Sequence[BatchItem]) -> list[BatchItem]:
+    """The items in the order to start them: largest recording first (a missing one last)."""
+    def size(item: BatchItem) -> int:
+        try:
+            return item.recording.stat().st_size
+        except OSError:
+            return -1
+    return sorted(items, key=size, reverse=True)
+
+
 def _run_local(items: Sequence[BatchItem], params: Mapping[str, Params], workers: int,
-               to: str | None, force: bool, lock_wait_s: float,
+               threads: int | None, to: str | None, force: bool, lock_wait_s: float,
                done: Callable[[ItemResult], None]) -> None:
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    queue = list(reversed(items))
-    with _thread_env(threads):
+    per_worker = worker_threads(workers, threads)
+    queue = list(reversed(largest_first(items)))
+    with _thread_env(per_worker):
         while queue:
             # A worker killed by a signal breaks the pool: the items it held fail, the rest go
             # on in a new pool.
             pool = cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
-                                          initializer=_limit_threads, initargs=(threads,))
+                                          initializer=_start_worker, initargs=(per_worker,))
             running: dict[cf.Future[ItemResult], BatchItem] = {}
             try:
                 while queue or running:
@@ -235,14 +301,17 @@ def import_ray() -> Any:
 
 
 def stage_task(stage_name: str, item: BatchItem, carry: dict[str, Any],
-               params: Mapping[str, Params], force: bool, lock_wait_s: float
-               ) -> dict[str, Any]:
+               params: Mapping[str, Params], force: bool, lock_wait_s: float,
+               threads: int = 1) -> dict[str, Any]:
     """One stage of one recording (a Ray task): ``carry`` is what the previous stage's task
-    returned (available artifact paths, records, the first error), passed on updated."""
+    returned (available artifact paths, records, the first error), passed on updated.
+    ``threads``: OpenCV's threads (Ray sets ``OMP_NUM_THREADS`` to the task's CPUs itself)."""
     if carry.get("error"):
         return carry  # an earlier stage failed: nothing to do, the error travels on
+    limit_opencv_threads(threads)
     result = ItemResult(item.name, str(item.recording), str(item.workdir))
     started = time.perf_counter()
+    cpu_started = time.process_time()
     carry = {**carry, "available": dict(carry["available"]), "records": list(carry["records"]),
              "warnings": list(carry["warnings"])}
     try:
@@ -255,9 +324,10 @@ def stage_task(stage_name: str, item: BatchItem, carry: dict[str, Any],
         carry.update(error=result.error, detail=result.detail)
     else:
         carry["available"].update(record.outputs)
-        carry["records"].append(_record_dict(record))
+        carry["records"].append(_record_dict(record, time.process_time() - cpu_started))
         carry["warnings"].extend(_warnings(record))
     carry["seconds"] = carry.get("seconds", 0.0) + time.perf_counter() - started
+    carry["cpu_s"] = carry.get("cpu_s", 0.0) + time.process_time() - cpu_started
     return carry
 
 
@@ -288,13 +358,15 @@ def ray_session(workers: int | None, address: str | None) -> Iterator[Any]:
 
 
 def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: int | None,
-             address: str | None, to: str | None, force: bool, lock_wait_s: float,
-             done: Callable[[ItemResult], None], stage_done: Callable[[], None]) -> None:
+             threads: int | None, address: str | None, to: str | None, force: bool,
+             lock_wait_s: float, done: Callable[[ItemResult], None],
+             stage_done: Callable[[], None]) -> None:
     stages = [s.name for s in _chain(to)]
     with ray_session(workers, address) as ray:
         limit = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
-        task = ray.remote(num_cpus=1)(stage_task)
-        queue = list(reversed(items))
+        # each task asks for its threads as CPUs: Ray then sets OMP_NUM_THREADS to them
+        task = ray.remote(num_cpus=threads or 1)(stage_task)
+        queue = list(reversed(largest_first(items)))
         last: dict[Any, BatchItem] = {}  # the last stage's ref of each recording in flight
         pending: list[Any] = []  # every ref not yet finished, for progress
         while queue or last:
@@ -303,7 +375,8 @@ def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: 
                 carry: Any = {"available": {"recording": item.recording}, "records": [],
                               "warnings": [], "first": stages[0]}
                 for name in stages:
-                    carry = task.remote(name, item, carry, params, force, lock_wait_s)
+                    carry = task.remote(name, item, carry, params, force, lock_wait_s,
+                                        threads or 1)
                     pending.append(carry)
                 last[carry] = item
             ready, pending = ray.wait(pending, num_returns=1)
@@ -324,7 +397,24 @@ def _carry_result(item: BatchItem, carry: Mapping[str, Any]) -> ItemResult:
     return ItemResult(item.name, str(item.recording), str(item.workdir),
                       ok=not carry.get("error"), error=carry.get("error", ""),
                       detail=carry.get("detail", ""), stages=carry["records"],
-                      seconds=round(carry.get("seconds", 0.0), 4), warnings=carry["warnings"])
+                      seconds=round(carry.get("seconds", 0.0), 4),
+                      cpu_s=round(carry.get("cpu_s", 0.0), 4), warnings=carry["warnings"])
+
+
+def workers_cpu(results: Sequence[ItemResult]) -> dict[str, float]:
+    """Worker pid → CPU seconds it spent on this batch: its start (local) and its stages."""
+    spent: dict[str, float] = {}
+    for result in results:
+        spent.update(result.worker_start_cpu_s)  # each worker's start, once
+    for result in results:
+        for stage in result.stages:
+            pid = str(stage["pid"])
+            spent[pid] = spent.get(pid, 0.0) + stage["cpu_s"]
+        rest = result.cpu_s - sum(stage["cpu_s"] for stage in result.stages)
+        if result.stages and rest > 0:  # the item's work outside its stages (local)
+            pid = str(result.stages[-1]["pid"])
+            spent[pid] += rest
+    return {pid: round(value, 3) for pid, value in sorted(spent.items())}
 
 
 def _check_manifest(path: Path) -> None:
@@ -349,6 +439,7 @@ def run_batch(
     params: Mapping[str, Params],
     engine: str = "local",
     workers: int | None = None,
+    threads: int | None = None,
     address: str | None = None,
     to: str | None = None,
     force: bool = False,
@@ -359,8 +450,11 @@ def run_batch(
     """Run the chain over ``recordings`` into ``root/<workdir_name>/`` on ``engine``.
 
     ``workers``: processes (local; default the CPU count) or recordings in flight (Ray; default
-    the cluster's CPUs). Returns the summary also written to ``root/batch.json``: one entry per
-    recording in the given order (``ok``, ``error``, per-stage keys), counts and wall time.
+    the cluster's CPUs). ``threads``: threads per worker (local: OpenMP, BLAS and OpenCV; Ray:
+    the CPUs each task asks for); default: local, ``OMP_NUM_THREADS`` when set, else the CPUs
+    shared out among the workers; Ray, 1. Returns the summary also written to
+    ``root/batch.json``: one entry per recording in the given order (``ok``, ``error``,
+    per-stage keys, wall and CPU seconds), counts, wall time and the parent's CPU time.
     """
     if engine not in ENGINES:
         raise UsageError(f"--engine {engine!r}: use one of {', '.join(ENGINES)}")
@@ -368,6 +462,8 @@ def run_batch(
         raise UsageError("--address is for --engine ray")
     if workers is not None and workers < 1:
         raise UsageError(f"--workers {workers}: must be at least 1")
+    if threads is not None and threads < 1:
+        raise UsageError(f"--threads {threads}: must be at least 1")
     _chain(to)  # a bad --to is refused before any work
     items = plan_batch(recordings, root)
     _check_manifest(root / MANIFEST)
@@ -389,20 +485,26 @@ def run_batch(
         progress("stages", counts["stages"], len(items) * n_stages)
 
     started = time.perf_counter()
+    cpu_started = time.process_time()
     progress("recordings", 0, len(items))
+    pool_size = workers or os.cpu_count() or 1
     if engine == "local":
-        _run_local(items, params, workers or os.cpu_count() or 1, to, force, lock_wait_s, done)
+        _run_local(items, params, pool_size, threads, to, force, lock_wait_s, done)
     else:
-        _run_ray(items, params, workers, address, to, force, lock_wait_s, done, stage_done)
+        _run_ray(items, params, workers, threads, address, to, force, lock_wait_s, done,
+                 stage_done)
     ordered = [results[item.name] for item in items]
     summary = {
         "engine": engine,
         "workers": workers,
+        "threads": worker_threads(pool_size, threads) if engine == "local" else threads or 1,
         "address": address,
         "workdir": str(root),
         "recordings": len(items),
         "failed": sum(not r.ok for r in ordered),
         "seconds": round(time.perf_counter() - started, 3),
+        "parent_cpu_s": round(time.process_time() - cpu_started, 3),
+        "workers_cpu_s": workers_cpu(ordered),
         "items": [asdict(r) for r in ordered],
     }
     atomic_write_bytes(root / MANIFEST, json.dumps(summary, indent=2).encode())

@@ -9,10 +9,9 @@ import typer
 
 from scanpipe.batch import ENGINES, ItemResult, run_batch
 from scanpipe.cli.common import JSON, PARAMS_FILE, QUIET, SET, print_json, print_warnings
-from scanpipe.cli.pipeline import pipeline_params_from_cli
+from scanpipe.cli.pipeline import RECOMPUTE, TO, WAIT, pipeline_params_from_cli
 from scanpipe.errors import StageError
 from scanpipe.progress import rich_progress
-from scanpipe.workdir import DEFAULT_LOCK_WAIT_S
 
 
 def _print_item(result: ItemResult, quiet: bool) -> None:
@@ -20,7 +19,8 @@ def _print_item(result: ItemResult, quiet: bool) -> None:
         if not quiet:
             ran = sum(not s["reused"] for s in result.stages)
             sys.stderr.write(f"  {result.name:<28} ok      {ran} ran, "
-                             f"{len(result.stages) - ran} reused, {result.seconds:.2f} s\n")
+                             f"{len(result.stages) - ran} reused, {result.seconds:.2f} s, "
+                             f"{result.cpu_s:.2f} s CPU\n")
         for warning in result.warnings:
             stage, _, text = warning.partition(": ")
             print_warnings(f"{result.name}: {stage}", {"warnings": [text]})
@@ -42,11 +42,14 @@ def batch(
     workers: int | None = typer.Option(None, "--workers", min=1,
                                        help="Recordings at once (default: the CPUs of this "
                                             "machine, or of the Ray cluster)."),
-    to: str | None = typer.Option(None, "--to", help="Stop after this stage."),
-    force: bool = typer.Option(False, "--force", help="Recompute every stage."),
-    wait_s: float = typer.Option(DEFAULT_LOCK_WAIT_S, "--wait", min=0.0,
-                                 help="Seconds to wait while another scanpipe writes into a "
-                                      "recording's workdir (0: fail that recording at once)."),
+    threads: int | None = typer.Option(
+        None, "--threads", min=1,
+        help="Threads per worker (OpenMP, BLAS, OpenCV; on Ray the CPUs each task asks for). "
+             "Default: OMP_NUM_THREADS when set, else the CPUs shared out among the workers "
+             "(on Ray: 1)."),
+    to: str | None = TO,
+    force: bool = RECOMPUTE,
+    wait_s: float = WAIT,
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
@@ -57,6 +60,7 @@ def batch(
     params = pipeline_params_from_cli(params_file, assignments)
     with rich_progress(quiet) as progress:
         summary = run_batch(recordings, workdir, params, engine=engine, workers=workers,
+                            threads=threads,
                             address=address, to=to, force=force, lock_wait_s=wait_s,
                             progress=progress, on_item=lambda r: _print_item(r, quiet))
     if as_json:

@@ -29,6 +29,13 @@ from scanpipe.progress import rich_progress
 from scanpipe.stages import chain_stages
 from scanpipe.workdir import DEFAULT_LOCK_WAIT_S
 
+#: The options of the cached chain that ``run`` and ``batch`` share (one definition each).
+TO = typer.Option(None, "--to", help="Stop after this stage.")
+RECOMPUTE = typer.Option(False, "--force", help="Recompute every stage.")
+WAIT = typer.Option(DEFAULT_LOCK_WAIT_S, "--wait", min=0.0,
+                    help="Seconds to wait while another scanpipe writes into a workdir (0: give "
+                         "up at once; in a batch, that recording fails and the others go on).")
+
 
 def pipeline_params_from_cli(params_file: Path | None, assignments: list[str] | None
                              ) -> dict[str, Any]:
@@ -50,12 +57,10 @@ def _print_record(record: RunRecord, quiet: bool) -> None:
 def run(
     recording: Path = typer.Argument(..., help="The recording (MCAP)."),
     workdir: Path = typer.Option(..., "--workdir", "-w", help="Folder for every stage's output."),
-    to: str | None = typer.Option(None, "--to", help="Stop after this stage."),
-    force: bool = typer.Option(False, "--force", help="Recompute every stage."),
+    to: str | None = TO,
+    force: bool = RECOMPUTE,
     rig: Path | None = typer.Option(None, "--rig", help="Rig TOML overriding the recording's."),
-    wait_s: float = typer.Option(DEFAULT_LOCK_WAIT_S, "--wait", min=0.0,
-                                 help="Seconds to wait while another scanpipe writes into the "
-                                      "workdir (0: refuse at once)."),
+    wait_s: float = WAIT,
     assignments: list[str] | None = SET,
     params_file: Path | None = PARAMS_FILE,
     quiet: bool = QUIET,
