@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import ProtocolError
 from scanpipe.protocol.framing import (
+    BULK_MIN_FRAMES,
     NOT_PARSED,
     FrameCounters,
     LengthMismatch,
@@ -247,19 +248,31 @@ def _range_table(scale: float, offset: float) -> NDArray[np.float32]:
 _TABLES: dict[tuple[float, float], NDArray[np.float32]] = {(1.0, 0.0): _range_table(1.0, 0.0)}
 
 
-def ranges_from_channel(ch: Channel) -> NDArray[np.float32]:
-    """Metres of a DIST channel (raw × scale / 1000 + offset; raw 0 → NaN)."""
-    key = (ch.scale, ch.offset)
+def _table_for(name: str, scale: float, offset: float) -> NDArray[np.float32]:
+    """Metres of every raw value of a DIST channel with this scale and offset (cached)."""
+    key = (scale, offset)
     table = _TABLES.get(key)
     if table is None:
-        if not (np.isfinite(ch.scale) and np.isfinite(ch.offset)) or ch.scale <= 0:
-            raise ProtocolError(f"channel {ch.name}: scale {ch.scale} / offset {ch.offset} "
-                                "not usable")
+        if not (np.isfinite(scale) and np.isfinite(offset)) or scale <= 0:
+            raise ProtocolError(f"channel {name}: scale {scale} / offset {offset} not usable")
         if len(_TABLES) < 64:
-            table = _TABLES[key] = _range_table(ch.scale, ch.offset)
+            table = _TABLES[key] = _range_table(scale, offset)
         else:
-            table = _range_table(ch.scale, ch.offset)
-    return table[np.asarray(ch.data, dtype=np.uint16)]
+            table = _range_table(scale, offset)
+    return table
+
+
+def ranges_from_channel(ch: Channel) -> NDArray[np.float32]:
+    """Metres of a DIST channel (raw × scale / 1000 + offset; raw 0 → NaN)."""
+    return _table_for(ch.name, ch.scale, ch.offset)[np.asarray(ch.data, dtype=np.uint16)]
+
+
+def _end_time_us(start_us: int, samples: int, step_deg: float, freq_centihz: int) -> int | None:
+    """The device time of a scan's last sample (None without a scan frequency)."""
+    if freq_centihz <= 0:
+        return None
+    span_s = max(samples - 1, 0) * step_deg / 360.0 / (freq_centihz / 100.0)
+    return (start_us + round(span_s * 1e6)) % WRAP_TICKS
 
 
 def telegram_profile(t: ScanTelegram, checksum_ok: bool = True) -> Profile:
@@ -272,16 +285,218 @@ def telegram_profile(t: ScanTelegram, checksum_ok: bool = True) -> Profile:
     if rssi is not None and len(rssi.data) == len(dist.data):
         echo = np.asarray(rssi.data, dtype=np.uint16)
     step_deg = dist.step / ANGLE_UNITS_PER_DEG
-    end = None
-    if t.scan_frequency_centihz > 0:
-        span_s = max(len(dist.data) - 1, 0) * step_deg / 360.0 / (
-            t.scan_frequency_centihz / 100.0)
-        end = (t.time_since_startup_us + round(span_s * 1e6)) % WRAP_TICKS
     return Profile(
         frame=t.scan_counter, sector=0, start_angle_deg=dist.start_angle / ANGLE_UNITS_PER_DEG,
         step_deg=step_deg, ranges_m=ranges_from_channel(dist), echo=echo,
-        device_time_ms=t.time_since_startup_us, device_end_time_ms=end,
+        device_time_ms=t.time_since_startup_us,
+        device_end_time_ms=_end_time_us(t.time_since_startup_us, len(dist.data), step_deg,
+                                        t.scan_frequency_centihz),
         checksum_ok=checksum_ok, device_tick_ns=TICK_NS, device_wrap_ticks=WRAP_TICKS)
+
+
+# -- many telegrams of one layout at once ----------------------------------------------------
+#
+# A scanner streams telegrams of one layout (the same channels, counts and blocks). The first
+# telegram of a layout is parsed field by field (``parse_telegram`` / ``_parse_tokens``); the
+# positions of its fields then hold for every telegram whose layout-fixing fields (counts,
+# flags, channel names, string lengths) equal its own, and those are read for all such
+# telegrams with one numpy operation per field. A telegram the bulk path cannot vouch for is
+# left to the field-by-field path (NOT_PARSED), so both paths give the same profiles and the
+# same errors.
+
+#: The optional blocks in their order, and how many fields (CoLa-B: bytes, CoLa-A: tokens)
+#: each holds after its flag; None: a string (a length, then its characters / one token).
+_BLOCKS: tuple[tuple[str, int | None, int | None], ...] = (
+    ("position", 26, 8), ("name", None, None), ("comment", None, None), ("time", 11, 7),
+    ("event", 16, 4))
+#: Layouts tried per bulk batch (more distinct ones go field by field).
+_MAX_LAYOUTS = 4
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where one telegram layout's fields lie: bytes (CoLa-B) or tokens (CoLa-A) from the
+    telegram's start. ``fixed`` must hold the template's values for a telegram to share the
+    layout; ``texts`` (CoLa-A) are tokens that are no number; ``names`` must equal the
+    template's text. ``dist`` is the DIST1 channel's scale field (offset, start angle and step
+    follow, then the count and the data at ``dist_data``); ``rssi_data`` the RSSI1 data when
+    the profile keeps it."""
+
+    size: int
+    fixed: NDArray[np.intp]
+    texts: tuple[int, ...]
+    names: tuple[tuple[int, bytes], ...]
+    dist: int
+    dist_data: int
+    count: int
+    dist_width: int
+    rssi_data: int | None
+    rssi_width: int
+
+
+def _layout(t: ScanTelegram, binary: bool) -> _Layout | None:
+    """The layout of a parsed telegram (None without DIST1: the field-by-field path says so)."""
+    fixed: list[int] = []
+    texts: list[int] = [0, 1]
+    names: list[tuple[int, bytes]] = [(1, b"LMDscandata")]
+    first: dict[str, tuple[int, int, int]] = {}  # name → (header position, width, count)
+    if binary:
+        fixed += range(16)  # the command
+        pos = 16 + _HEAD.size
+        fixed += (pos, pos + 1)
+        pos += 2 + 6 * len(t.encoders)
+    else:
+        pos = 18
+        fixed.append(pos)
+        pos += 1 + 2 * len(t.encoders)
+    for channels, width in ((t.channels16, 2), (t.channels8, 1)):
+        fixed += (pos, pos + 1) if binary else (pos,)
+        pos += 2 if binary else 1
+        for ch in channels:
+            first.setdefault(ch.name, (pos, width, len(ch.data)))
+            if binary:
+                fixed += (*range(pos, pos + 5), pos + 19, pos + 20)
+                pos += 21 + width * len(ch.data)
+            else:
+                texts.append(pos)
+                names.append((pos, ch.name.encode("latin-1")))
+                fixed.append(pos + 5)
+                pos += 6 + len(ch.data)
+    for block, n_bytes, n_tokens in _BLOCKS[:t.trailing_flags]:
+        fixed += (pos, pos + 1) if binary else (pos,)
+        pos += 2 if binary else 1
+        value = getattr(t, block)
+        if value is None:
+            continue
+        if n_bytes is None:  # a string: its length fixes the layout
+            fixed.append(pos)
+            text = value.encode("latin-1")
+            if binary:
+                pos += 1 + len(text)
+            elif text:
+                texts.append(pos + 1)
+                pos += 2
+            else:
+                pos += 1
+        elif binary:
+            pos += n_bytes
+        else:
+            if block == "event":
+                texts.append(pos)
+            pos += n_tokens or 0
+    if "DIST1" not in first:
+        return None
+    dist, dist_width, count = first["DIST1"]
+    rssi = first.get("RSSI1")
+    rssi_data, rssi_width = None, 0
+    header = 21 if binary else 6  # from a channel's name to its data
+    if rssi is not None and rssi[2] == count:
+        rssi_data, rssi_width = rssi[0] + header, rssi[1]
+    return _Layout(pos, np.array(fixed, np.intp), tuple(texts), tuple(names),
+                   dist + (5 if binary else 1), dist + (21 if binary else 6), count, dist_width,
+                   rssi_data, rssi_width)
+
+
+def _bulk_profiles(counters: list[int], starts_us: list[int], freqs: list[int],
+                   channel: NDArray[np.uint32], dist: NDArray[Any], echo: NDArray[Any] | None
+                   ) -> list[Any]:
+    """The profiles of telegrams of one layout (as ``telegram_profile`` makes them), or
+    NOT_PARSED for those whose scale and offset are not usable. ``channel`` holds each
+    telegram's DIST1 scale and offset (IEEE-754 bits), start angle (two's complement) and
+    step; ``dist`` its raw ranges, ``echo`` its RSSI1 values (one row per telegram)."""
+    k = len(counters)
+    keys = (channel[:, 0].astype(np.uint64) << np.uint64(32)) | channel[:, 1]
+    floats = channel[:, :2].view(np.float32).astype(np.float64)
+    ranges = np.empty(dist.shape, np.float32)
+    usable = np.ones(k, bool)
+    unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    for u in range(len(unique)):
+        rows = first[u]
+        try:
+            table = _table_for("DIST1", float(floats[rows, 0]), float(floats[rows, 1]))
+        except ProtocolError:
+            usable[inverse == u] = False
+            continue
+        if len(unique) == 1:
+            np.take(table, dist, out=ranges)
+        else:
+            ranges[inverse == u] = table[dist[inverse == u]]
+    echoes = None if echo is None else echo.astype(np.uint16)
+    angles = channel[:, 2].view(np.int32).tolist()
+    steps = channel[:, 3].tolist()
+    n = dist.shape[1]
+    out: list[Any] = []
+    for i in range(k):
+        if not usable[i]:
+            out.append(NOT_PARSED)
+            continue
+        step_deg = steps[i] / ANGLE_UNITS_PER_DEG
+        out.append([Profile(
+            frame=counters[i], sector=0, start_angle_deg=angles[i] / ANGLE_UNITS_PER_DEG,
+            step_deg=step_deg, ranges_m=ranges[i], echo=None if echoes is None else echoes[i],
+            device_time_ms=starts_us[i],
+            device_end_time_ms=_end_time_us(starts_us[i], n, step_deg, freqs[i]),
+            checksum_ok=True, device_tick_ns=TICK_NS, device_wrap_ticks=WRAP_TICKS)])
+    return out
+
+
+def _big_endian(rows: NDArray[np.uint8], at: int, width: int) -> NDArray[np.uint32]:
+    """The unsigned big-endian field of ``width`` bytes at ``at`` of every row."""
+    out = rows[:, at].astype(np.uint32)
+    for i in range(1, width):
+        out <<= np.uint32(8)
+        out |= rows[:, at + i]
+    return out
+
+
+def decode_payloads(payloads: list[bytes]) -> list[Any]:
+    """``decode_payload(p, True)`` for each CoLa-B payload, those of a layout at once; NOT_PARSED
+    for payloads left to :func:`decode_payload` (another telegram, another layout, an error)."""
+    out: list[Any] = [NOT_PARSED] * len(payloads)
+    by_size: dict[int, list[int]] = {}
+    for i, payload in enumerate(payloads):
+        by_size.setdefault(len(payload), []).append(i)
+    layouts = 0
+    for size, members in by_size.items():
+        rows = np.frombuffer(b"".join([payloads[i] for i in members]), np.uint8).reshape(
+            len(members), size)
+        left = np.arange(len(members))
+        while left.size and layouts < _MAX_LAYOUTS:
+            layouts += 1
+            template = payloads[members[left[0]]]
+            try:
+                layout = _layout(parse_telegram(template), binary=True)
+            except ProtocolError:
+                layout = None
+            if layout is None or layout.size != size:
+                left = left[1:]
+                continue
+            cols = layout.fixed
+            same = (rows[left][:, cols] == rows[left[0], cols]).all(axis=1)
+            take, left = left[same], left[~same]
+            group = rows[take]
+            n, d = layout.count, layout.dist
+            channel = np.stack([_big_endian(group, d, 4), _big_endian(group, d + 4, 4),
+                                _big_endian(group, d + 8, 4), _big_endian(group, d + 12, 2)],
+                               axis=1)
+            dist = _channel_data(group, layout.dist_data, n, layout.dist_width)
+            echo = None
+            if layout.rssi_data is not None:
+                echo = _channel_data(group, layout.rssi_data, n, layout.rssi_width)
+            profiles = _bulk_profiles(_big_endian(group, 28, 2).tolist(),
+                                      _big_endian(group, 30, 4).tolist(),
+                                      _big_endian(group, 44, 4).tolist(), channel, dist, echo)
+            for row, parsed in zip(take.tolist(), profiles, strict=True):
+                out[members[row]] = parsed
+    return out
+
+
+def _channel_data(rows: NDArray[np.uint8], at: int, count: int, width: int) -> NDArray[Any]:
+    """A channel's raw values in every row (u16 big-endian or u8)."""
+    block = rows[:, at:at + width * count]
+    if width == 1:
+        return block
+    return np.ascontiguousarray(block).view(">u2")
 
 
 def profile_telegram(profile: Profile, serial_number: int = 0x01234567) -> ScanTelegram:
@@ -692,9 +907,21 @@ class AsciiFrameReader:
             # a frame's tokens start after its STX and before its ETX
             edges = np.array(spans[done:stop], np.int64)
             edges[:, 0] += 1
-            bounds = np.searchsorted(tok.starts, edges).tolist()
-            for (start, end), (lo, hi) in zip(spans[done:stop], bounds, strict=True):
-                frames += self._frame(padded, tok, lo, hi, start, end)
+            bounds = np.searchsorted(tok.starts, edges)
+            batch = spans[done:stop]
+            bulk = _parse_token_frames(padded, tok, batch, bounds)
+            for (start, end), (lo, hi), parsed in zip(batch, bounds.tolist(), bulk, strict=True):
+                if parsed is not NOT_PARSED:
+                    try:
+                        self.check(parsed)
+                    except ProtocolError:
+                        parsed = NOT_PARSED  # the field-by-field path counts it
+                if parsed is NOT_PARSED:
+                    frames += self._frame(padded, tok, lo, hi, start, end)
+                    continue
+                offset = self._base + start - len(_PAD)
+                frames.append(RawFrame(bytes(padded[start + 1:end]), True, 0, 0, offset,
+                                       offset + end + 1 - start, parsed))
             done = stop
         del self._buffer[:keep - len(_PAD)]
         self._base += keep - len(_PAD)
@@ -720,6 +947,67 @@ class AsciiFrameReader:
             self.counters.bytes_skipped += end + 1 - start
             return []
         return [RawFrame(body, True, 0, 0, offset, offset + end + 1 - start, parsed)]
+
+
+def _parse_token_frames(padded: bytes | bytearray, tok: _Tokens, spans: list[tuple[int, int]],
+                        bounds: NDArray[np.int64]) -> list[Any]:
+    """What ``_frame`` would parse for each frame (STX at ``start``, ETX at ``end``, tokens
+    ``lo … hi-1``), scan telegrams of a layout at once; NOT_PARSED for frames left to it."""
+    out: list[Any] = [NOT_PARSED] * len(spans)
+    if len(spans) < BULK_MIN_FRAMES:
+        return out
+    los = bounds[:, 0]
+    sizes = bounds[:, 1] - los
+    by_size: dict[int, list[int]] = {}
+    for i, (start, _) in enumerate(spans):
+        if padded.startswith(_SCAN_PREFIXES, start + 1):
+            by_size.setdefault(int(sizes[i]), []).append(i)
+    values = tok.values
+    bad = np.array(tok.bad, np.int64)
+    layouts = 0
+    for size, members in by_size.items():
+        left = np.array(members, np.intp)
+        while left.size and layouts < _MAX_LAYOUTS:
+            layouts += 1
+            lo = int(los[left[0]])
+            try:
+                layout = _layout(_parse_tokens(tok, lo, lo + size), binary=False)
+            except ProtocolError:
+                layout = None
+            if layout is None or layout.size != size:
+                left = left[1:]
+                continue
+            first = los[left]
+            fixed = values[first[:, None] + layout.fixed]
+            same = (fixed == fixed[0]).all(axis=1)
+            take, left = left[same], left[~same]
+            first = first[same]
+            ok = np.ones(take.size, bool)
+            # every token but the texts must be a number
+            frame = np.searchsorted(first, bad, "right") - 1
+            inside = (frame >= 0) & (bad < first[np.maximum(frame, 0)] + size)
+            rel = bad[inside] - first[frame[inside]]
+            ok[frame[inside][~np.isin(rel, layout.texts)]] = False
+            for at, name in layout.names:
+                for row, lo_row in enumerate(first.tolist()):
+                    if ok[row] and tok.text(lo_row + at) != name:
+                        ok[row] = False
+            n = layout.count
+            span = np.arange(n)
+            dist = values[first[:, None] + (layout.dist_data + span)]
+            ok &= dist.max(axis=1, initial=0) <= (0xFFFF if layout.dist_width == 2 else 0xFF)
+            echo = None
+            if layout.rssi_data is not None:
+                echo = values[first[:, None] + (layout.rssi_data + span)]
+                ok &= echo.max(axis=1, initial=0) <= (0xFFFF if layout.rssi_width == 2 else 0xFF)
+            take, first, dist = take[ok], first[ok], dist[ok]
+            echo = None if echo is None else echo[ok]
+            channel = values[first[:, None] + (layout.dist + np.arange(4))].astype(np.uint32)
+            head = values[first[:, None] + np.array([8, 9, 16])].T.tolist()
+            profiles = _bulk_profiles(head[0], head[1], head[2], channel, dist, echo)
+            for row, parsed in zip(take.tolist(), profiles, strict=True):
+                out[row] = parsed
+    return out
 
 
 def ascii_reader(dialect: Any, max_payload_bytes: int, confirm: bool) -> AsciiFrameReader:
