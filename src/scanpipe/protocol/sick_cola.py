@@ -978,7 +978,8 @@ def _token_rows(values: NDArray[np.uint32], first: NDArray[np.int64], at: int, c
                 base, (first.size, count), (int(step[0]) * values.itemsize, values.itemsize),
                 writeable=False)
             return rows
-    return values[first[:, None] + (at + np.arange(count))]
+    gathered: NDArray[np.uint32] = values[first[:, None] + (at + np.arange(count))]
+    return gathered
 
 
 def _parse_token_frames(padded: bytes | bytearray, tok: _Tokens, spans: list[tuple[int, int]],
