@@ -848,14 +848,17 @@ class AsciiFrameReader:
     start, then the next STX). A frame that does not parse is counted (malformed, or a
     length mismatch) and skipped; so is a frame longer than the cap. There is no checksum.
     Frames are found and tokenised in bulk (numpy over all bytes received so far), so the
-    stream is scanned only when an ETX has arrived (or the cap is passed).
+    stream is scanned only when an ETX has arrived (or the cap is passed); scan telegrams of
+    one layout are then read together (``_parse_token_frames``; ``bulk=False`` reads each
+    field by field, which gives the same frames and counters).
     """
 
     def __init__(self, max_payload_bytes: int = MAX_PAYLOAD_BYTES * 3,
-                 check: Any = check_frame, parse: bool = True) -> None:
+                 check: Any = check_frame, parse: bool = True, bulk: bool = True) -> None:
         self.max_payload_bytes = max_payload_bytes
         self.check = check
         self.parse = parse
+        self.bulk = bulk  # False: every frame field by field (the reference the tests hold)
         self.counters = FrameCounters()
         self._buffer = bytearray()
         self._base = 0
@@ -926,7 +929,8 @@ class AsciiFrameReader:
             edges[:, 0] += 1
             bounds = np.searchsorted(tok.starts, edges)
             batch = spans[done:stop]
-            bulk = _parse_token_frames(padded, tok, batch, bounds)
+            bulk = _parse_token_frames(padded, tok, batch, bounds) if self.bulk else [
+                NOT_PARSED] * len(batch)
             for (start, end), (lo, hi), parsed in zip(batch, bounds.tolist(), bulk, strict=True):
                 if parsed is not NOT_PARSED:
                     try:
