@@ -67,7 +67,7 @@ DEFAULT_MAX_PAYLOAD_BYTES = 1 << 18
 BULK_MIN_FRAMES = 4
 #: The longest run vetted at once. A run that stops early (a damaged frame) halves the next
 #: one's limit, a clean one doubles it, so damage costs little wasted work.
-BULK_MAX_FRAMES = 1024
+BULK_MAX_FRAMES = 128
 
 
 def xor_checksum(data: bytes | bytearray | memoryview) -> int:

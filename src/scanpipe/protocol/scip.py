@@ -469,7 +469,8 @@ class ScipReader:
         for scan in scans:
             layouts.setdefault((scan.n_chars, scan.chars, scan.per_step), []).append(scan)
         for (n_chars, chars, per_step), group in layouts.items():
-            _decode_group(group, n_chars, chars, per_step)
+            for first in range(0, len(group), _GROUP_SCANS):
+                _decode_group(group[first:first + _GROUP_SCANS], n_chars, chars, per_step)
         frames: list[RawFrame] = []
         for item in pending:
             if isinstance(item, RawFrame):
@@ -534,6 +535,11 @@ class _Scan:
                        device_time_ms=self.time_ms, device_end_time_ms=end_ms,
                        checksum_ok=ok, device_tick_ns=1_000_000,
                        device_wrap_ticks=TIMESTAMP_WRAP_MS)
+
+
+#: Scans decoded together: their temporaries stay in the cache (a whole 1 MiB feed at once
+#: decoded at half the speed).
+_GROUP_SCANS = 32
 
 
 def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -> None:
