@@ -422,21 +422,25 @@ def _bulk_profiles(counters: list[int], starts_us: list[int], freqs: list[int],
         else:
             ranges[inverse == u] = table[dist[inverse == u]]
     echoes = None if echo is None else echo.astype(np.uint16)
-    angles = channel[:, 2].view(np.int32).tolist()
-    steps = channel[:, 3].tolist()
-    n = dist.shape[1]
+    angles = (channel[:, 2].view(np.int32) / ANGLE_UNITS_PER_DEG).tolist()
+    step_deg = channel[:, 3] / ANGLE_UNITS_PER_DEG
+    # _end_time_us for all at once (the same float64 operations in the same order; np.rint
+    # rounds half to even as round() does)
+    freq = np.array(freqs, np.int64)
+    span_s = max(dist.shape[1] - 1, 0) * step_deg / 360.0 / (np.maximum(freq, 1) / 100.0)
+    ends = (np.array(starts_us, np.int64) + np.rint(span_s * 1e6).astype(np.int64)) % WRAP_TICKS
+    end_times = [None if f <= 0 else e for f, e in zip(freqs, ends.tolist(), strict=True)]
+    steps = step_deg.tolist()
     out: list[Any] = []
     for i in range(k):
         if not usable[i]:
             out.append(NOT_PARSED)
             continue
-        step_deg = steps[i] / ANGLE_UNITS_PER_DEG
         out.append([Profile(
-            frame=counters[i], sector=0, start_angle_deg=angles[i] / ANGLE_UNITS_PER_DEG,
-            step_deg=step_deg, ranges_m=ranges[i], echo=None if echoes is None else echoes[i],
-            device_time_ms=starts_us[i],
-            device_end_time_ms=_end_time_us(starts_us[i], n, step_deg, freqs[i]),
-            checksum_ok=True, device_tick_ns=TICK_NS, device_wrap_ticks=WRAP_TICKS)])
+            frame=counters[i], sector=0, start_angle_deg=angles[i], step_deg=steps[i],
+            ranges_m=ranges[i], echo=None if echoes is None else echoes[i],
+            device_time_ms=starts_us[i], device_end_time_ms=end_times[i], checksum_ok=True,
+            device_tick_ns=TICK_NS, device_wrap_ticks=WRAP_TICKS)])
     return out
 
 
