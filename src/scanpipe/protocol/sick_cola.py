@@ -475,10 +475,10 @@ def decode_payloads(payloads: list[bytes]) -> list[Any]:
             if layout is None or layout.size != size:
                 left = left[1:]
                 continue
-            cols = layout.fixed
-            same = (rows[left][:, cols] == rows[left[0], cols]).all(axis=1)
+            fixed = rows[np.ix_(left, layout.fixed)]
+            same = (fixed == fixed[0]).all(axis=1)
             take, left = left[same], left[~same]
-            group = rows[take]
+            group = rows if take.size == len(members) else rows[take]
             n, d = layout.count, layout.dist
             channel = np.stack([_big_endian(group, d, 4), _big_endian(group, d + 4, 4),
                                 _big_endian(group, d + 8, 4), _big_endian(group, d + 12, 2)],
