@@ -469,8 +469,7 @@ class ScipReader:
         for scan in scans:
             layouts.setdefault((scan.n_chars, scan.chars, scan.per_step), []).append(scan)
         for (n_chars, chars, per_step), group in layouts.items():
-            for first in range(0, len(group), _GROUP_SCANS):
-                _decode_group(group[first:first + _GROUP_SCANS], n_chars, chars, per_step)
+            _decode_group(group, n_chars, chars, per_step)
         frames: list[RawFrame] = []
         for item in pending:
             if isinstance(item, RawFrame):
@@ -537,11 +536,6 @@ class _Scan:
                        device_wrap_ticks=TIMESTAMP_WRAP_MS)
 
 
-#: Scans decoded together: their temporaries stay in the cache (a whole 1 MiB feed at once
-#: decoded at half the speed).
-_GROUP_SCANS = 32
-
-
 def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -> None:
     """Check characters and values of scans of one layout, all at once."""
     k = len(group)
@@ -557,12 +551,13 @@ def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -
     body = blob[:, 6:]
     head = body[:, :full * line].reshape(k, full, line)
     ok &= (head[:, :, DATA_LINE_CHARS + 1] == LF).all(axis=1)
-    sums = (head[:, :, :DATA_LINE_CHARS].sum(axis=2, dtype=np.uint16) & 0x3F) + CHAR_OFFSET
+    # sums in uint8 wrap modulo 256, a multiple of the check's 64 (and need no widening copy)
+    sums = (head[:, :, :DATA_LINE_CHARS].sum(axis=2, dtype=np.uint8) & 0x3F) + CHAR_OFFSET
     ok &= (sums == head[:, :, DATA_LINE_CHARS]).all(axis=1)
     data = head[:, :, :DATA_LINE_CHARS].reshape(k, full * DATA_LINE_CHARS)
     if tail:
         rest = body[:, full * line:]
-        tail_sum = (rest[:, :tail].sum(axis=1, dtype=np.int32) & 0x3F) + CHAR_OFFSET
+        tail_sum = (rest[:, :tail].sum(axis=1, dtype=np.uint8) & 0x3F) + CHAR_OFFSET
         ok &= (tail_sum == rest[:, tail]) & (rest[:, tail + 1] == LF)
         data = np.concatenate([data, rest[:, :tail]], axis=1)
     digits = (data.reshape(k, -1, chars) - np.uint8(CHAR_OFFSET)) & np.uint8(0x3F)
@@ -585,8 +580,7 @@ def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -
 
 def _terminators(buf: bytearray) -> list[int]:
     """Every position where LF LF begins in ``buf``, in order (``buf.find(TERMINATOR, pos)`` for
-    every ``pos`` at once: finding each message's end with ``find`` stopped at every line's LF
-    and cost a sixth of the decode)."""
+    every ``pos`` at once: ``find`` stops at every line's LF, ~8 µs per UST scan against ~3)"""
     data = np.frombuffer(buf, np.uint8)
     lf = data == LF
     del data  # the bytearray may be resized again
