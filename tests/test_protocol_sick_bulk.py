@@ -275,3 +275,19 @@ def test_a_frame_that_swallowed_a_whole_frame_is_a_false_start_in_bulk_too() -> 
     assert got_counters == want_counters
     counters_seen = [f[4][0].frame for f in got]
     assert 50 in counters_seen and 3 not in counters_seen
+
+
+def test_a_long_channel_name_against_a_short_token_at_the_end_of_the_data() -> None:
+    """The template's channel names are compared only with tokens of their length (a longer
+    name must not be read past the end of the data)."""
+    base = sick_cola.profile_telegram(_profile(0, 8, echo=False))
+    extra = sick_cola.Channel("X" * 40, 1.0, 0.0, 0, 2500, np.zeros(0, np.uint16))
+    run = [replace(base, scan_counter=k, channels16=(*base.channels16, extra), trailing_flags=0)
+           for k in range(6)]
+    run[-1] = replace(run[-1], channels16=(*base.channels16, replace(extra, name="Y")))
+    data = b"".join(sick_cola.encode_ascii(t) for t in run)
+    fast, slow = _readers(False)
+    got, got_counters = _run(fast, data, [])
+    want, want_counters = _run(slow, data, [])
+    _same(got, want)
+    assert got_counters == want_counters and len(got) == 6

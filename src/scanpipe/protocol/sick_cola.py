@@ -1032,10 +1032,12 @@ def _parse_token_frames(padded: bytes | bytearray, tok: _Tokens, spans: list[tup
             for at, name in layout.names:
                 where = first + at
                 ok &= tok.ends[where] - tok.starts[where] == len(name)
-                at_text = tok.starts[where]
-                texts = np.ndarray((int(at_text.max()) - int(at_text.min()) + 1,),
-                                   f"S{len(name)}", padded, int(at_text.min()), (1,))
-                ok &= texts[at_text - at_text.min()] == name
+                at_text = tok.starts[where[ok]]  # tokens of the name's length: inside the data
+                if at_text.size:
+                    low = int(at_text.min())
+                    texts = np.ndarray((int(at_text.max()) - low + 1,), f"S{len(name)}",
+                                       padded, low, (1,))
+                    ok[ok] = texts[at_text - low] == name
             n = layout.count
             dist = _token_rows(values, first, layout.dist_data, n)
             ok &= dist.max(axis=1, initial=0) <= (0xFFFF if layout.dist_width == 2 else 0xFF)
