@@ -291,3 +291,23 @@ def test_a_long_channel_name_against_a_short_token_at_the_end_of_the_data() -> N
     want, want_counters = _run(slow, data, [])
     _same(got, want)
     assert got_counters == want_counters and len(got) == 6
+
+
+@settings(max_examples=80, deadline=None)
+@given(binary=st.booleans(), edits=st.lists(st.tuples(st.integers(0, 1 << 20),
+                                                      st.integers(0, 255)), max_size=30))
+def test_fuzzing_runs_of_one_layout(binary: bool, edits: list[tuple[int, int]]) -> None:
+    """Random bytes written into a run the bulk path reads: the same frames and counters as
+    field by field, and nothing escapes but scanpipe's own errors (the fuzz tests elsewhere
+    use streams too short for the bulk path)."""
+    base = sick_cola.profile_telegram(_profile(1, 30, echo=True))
+    telegrams = [replace(base, scan_counter=k) for k in range(8)]
+    data = bytearray(b"".join(_binary(t) if binary else sick_cola.encode_ascii(t)
+                              for t in telegrams))
+    for at, value in edits:
+        data[at % len(data)] = value
+    fast, slow = _readers(binary)
+    got, got_counters = _run(fast, bytes(data), [])
+    want, want_counters = _run(slow, bytes(data), [])
+    _same(got, want)
+    assert got_counters == want_counters
