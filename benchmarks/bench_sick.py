@@ -108,7 +108,8 @@ def run(quick: bool = False) -> dict[str, Any]:
         recovery[dialect] = {"intact_frames": len(intact), "recovered": score.recovered,
                              "share": score.recovered / max(len(intact), 1),
                              "false_good": score.false_good}
-        fuzzing[dialect] = fuzz(b"".join(frames[:3]), dialect, 200 if quick else 2000)
+        # six frames: runs long enough for the bulk paths (framing.BULK_MIN_FRAMES)
+        fuzzing[dialect] = fuzz(b"".join(frames[:6]), dialect, 200 if quick else 2000)
     colab, colaa = measurements[0].throughput, measurements[1].throughput
     return {
         "scans": scans, "samples_per_scan": len(profiles[0].ranges_m),
