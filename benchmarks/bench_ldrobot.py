@@ -14,7 +14,6 @@ Targets (issue 17): ≥ 10 M samples/s, 100 % of intact packets, no false packet
 from __future__ import annotations
 
 import os
-import statistics
 import sys
 import tempfile
 import time
@@ -25,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import cli, measure, table
+from harness import cli, cpu_seconds, measure, measurement_table, throughput_line
 
 from scanpipe.protocol import ldrobot as ld
 from scanpipe.rig import default_rig
@@ -154,11 +153,7 @@ def run(quick: bool = False) -> dict[str, Any]:
     repeats = 3 if quick else 5
     decoder = measure("stream decoder (1 MiB chunks)", lambda: decode_chunks(stream),
                       float(samples), "samples", repeats=repeats)
-    cpu = []
-    for _ in range(repeats):
-        t0 = time.process_time()
-        decode_chunks(stream)
-        cpu.append(time.process_time() - t0)
+    cpu_s = cpu_seconds(lambda: decode_chunks(stream), repeats=repeats)
     measurements = [decoder]
     with tempfile.TemporaryDirectory() as tmp:
         stage = stage_end_to_end(stream, Path(tmp), repeats)
@@ -168,7 +163,7 @@ def run(quick: bool = False) -> dict[str, Any]:
     return {
         "model": "stl27l", "seconds": seconds, "stream_bytes": len(stream), "samples": samples,
         "revolutions": decode_chunks(stream), "stream_made_s": made_s,
-        "samples_per_s": decoder.throughput, "cpu_samples_per_s": samples / statistics.median(cpu),
+        "samples_per_s": decoder.throughput, "cpu_samples_per_s": samples / cpu_s,
         "stage_samples_per_s": None if stage is None else stage.throughput,
         "target_samples_per_s": 10e6, "meets_target": decoder.throughput >= 10e6,
         "recovery": rec, "load_average": os.getloadavg(), "measurements": measurements,
@@ -177,16 +172,13 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 def show(results: dict[str, Any]) -> None:
     """Print the figures."""
-    rows = [(m.name, f"{m.median_s * 1000:.0f} ms", f"{m.throughput / 1e6:.1f} M {m.unit}/s",
-             f"{m.peak_rss_mb:.0f} MB") for m in results["measurements"]]
-    print(table(rows, ("measurement", "median", "throughput", "peak RSS")))
+    print(measurement_table(results["measurements"]))
     rec = results["recovery"]
-    print(f"STL-27L {results['seconds']:.0f} s: {results['samples'] / 1e6:.2f} M samples, "
-          f"{results['stream_bytes'] / 1e6:.1f} MB, {results['revolutions']} revolutions; "
-          f"decoder {results['samples_per_s'] / 1e6:.1f} M samples/s wall, "
-          f"{results['cpu_samples_per_s'] / 1e6:.1f} M per CPU second (target 10 M: "
-          f"{'met' if results['meets_target'] else 'NOT met'}; load average "
-          f"{results['load_average'][0]:.1f})")
+    print(throughput_line(f"STL-27L {results['seconds']:.0f} s: {results['samples'] / 1e6:.2f} M "
+                          f"samples, {results['stream_bytes'] / 1e6:.1f} MB, "
+                          f"{results['revolutions']} revolutions; decoder",
+                          results["samples_per_s"], results["cpu_samples_per_s"],
+                          results["target_samples_per_s"], results["load_average"][0]))
     print(f"damaged stream: {rec['recovered']} of {rec['intact']} intact packets recovered "
           f"({100 * rec['recovered_share']:.2f} %), {rec['false_packets']} false")
 

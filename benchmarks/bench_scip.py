@@ -19,7 +19,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import cli, cpu_seconds, measure, table
+from harness import cli, cpu_seconds, measure, measurement_table, throughput_line
 
 from scanpipe.protocol import scip
 from scanpipe.protocol.registry import StreamDecoder, decode_bytes, score_recovery
@@ -101,16 +101,14 @@ def run(quick: bool = False) -> dict[str, Any]:
 
 def show(results: dict[str, Any]) -> None:
     """Print the figures."""
-    rows = [(m.name, f"{m.median_s * 1000:.1f} ms", f"{m.throughput / 1e6:.1f} M {m.unit}/s",
-             f"{m.peak_rss_mb:.0f} MB") for m in results["measurements"]]
-    print(table(rows, ("measurement", "median", "throughput", "peak RSS")))
+    print(measurement_table(results["measurements"]))
     d = results["damage"]
-    print(f"{results['scans']} × {results['samples_per_scan']} samples, "
-          f"{results['stream_bytes'] / 1e6:.1f} MB: {results['samples_per_s'] / 1e6:.1f} M "
-          f"samples/s wall, {results['cpu_samples_per_s'] / 1e6:.1f} M per CPU second (target "
-          f"10 M: {'met' if results['meets_target'] else 'NOT met'}; load average "
-          f"{results['load_average'][0]:.1f}); damaged stream: {d['recovered']}/{d['intact']} "
-          f"intact messages recovered, {d['unsent_decoded']} unsent decoded")
+    print(throughput_line(f"{results['scans']} × {results['samples_per_scan']} samples, "
+                          f"{results['stream_bytes'] / 1e6:.1f} MB",
+                          results["samples_per_s"], results["cpu_samples_per_s"],
+                          results["target_samples_per_s"], results["load_average"][0]))
+    print(f"damaged stream: {d['recovered']}/{d['intact']} intact messages recovered, "
+          f"{d['unsent_decoded']} unsent decoded")
 
 
 if __name__ == "__main__":

@@ -149,6 +149,23 @@ def table(rows: list[tuple[str, ...]], header: tuple[str, ...]) -> str:
     return "\n".join(out)
 
 
+def measurement_table(measurements: list[Measurement]) -> str:
+    """The measurements as a table: median time, throughput and peak memory of each."""
+    rows = [(m.name, f"{m.median_s * 1000:.1f} ms", f"{m.throughput / 1e6:.1f} M {m.unit}/s",
+             f"{m.peak_rss_mb:.0f} MB") for m in measurements]
+    return table(rows, ("measurement", "median", "throughput", "peak RSS"))
+
+
+def throughput_line(label: str, wall_per_s: float, cpu_per_s: float, target_per_s: float,
+                    load_average: float, unit: str = "samples") -> str:
+    """One line: wall and CPU throughput against the target, and the load it was measured
+    under (wall time means little on a busy machine; CPU time counts this process only)."""
+    met = "met" if wall_per_s >= target_per_s else "NOT met"
+    return (f"{label}: {wall_per_s / 1e6:.1f} M {unit}/s wall, {cpu_per_s / 1e6:.1f} M per CPU "
+            f"second (target {target_per_s / 1e6:.0f} M wall: {met}; load average "
+            f"{load_average:.1f})")
+
+
 def cli(name: str, run: Callable[[bool], Any], description: str, quick_help: str,
         show: Callable[[Any], None] | None = None) -> None:
     """The command line of a ``bench_<name>.py``: ``[--quick]``, run, show, save as

@@ -138,3 +138,34 @@ def test_the_scan_is_simulated_once_and_then_reused(results: dict[str, Any]) -> 
     assert again.reused and again.recording.is_file()
     assert len([p for p in cache.iterdir() if p.name.startswith("tiny-")]) == 1
     assert not results["simulation"]["reused"]
+
+
+def test_decode_benchmarks_report_through_the_shared_helpers(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """bench_sick / bench_scip / bench_ldrobot print their figures with the harness's table and
+    throughput line (wall and CPU against the target, and the load)."""
+    sys.path.insert(0, str(Path(harness.__file__).parent))
+    from benchmarks import bench_ldrobot, bench_scip, bench_sick
+
+    m = harness.Measurement("stream decoder", 0.5, [0.5], 12.0, 10e6, "samples")
+    assert "20.0 M samples/s" in harness.measurement_table([m])
+    line = harness.throughput_line("x", 20e6, 25e6, 10e6, 3.0)
+    assert line == ("x: 20.0 M samples/s wall, 25.0 M per CPU second (target 10 M wall: met; "
+                    "load average 3.0)")
+    assert "NOT met" in harness.throughput_line("x", 9e6, 25e6, 10e6, 3.0)
+    common = {"measurements": [m], "target_samples_per_s": 10e6, "load_average": (3.0, 2, 1)}
+    bench_sick.show({**common, "cola_b_samples_per_s": 30e6, "cola_b_cpu_samples_per_s": 31e6,
+                     "cola_a_samples_per_s": 9e6, "cola_a_cpu_samples_per_s": 15e6,
+                     "recovery": {}, "fuzz": {}})
+    bench_scip.show({**common, "scans": 5, "samples_per_scan": 1081, "stream_bytes": 1e6,
+                     "samples_per_s": 20e6, "cpu_samples_per_s": 22e6,
+                     "damage": {"recovered": 4, "intact": 4, "unsent_decoded": 0}})
+    bench_ldrobot.show({**common, "seconds": 30.0, "samples": 1e6, "stream_bytes": 1e6,
+                        "revolutions": 3, "samples_per_s": 20e6, "cpu_samples_per_s": 22e6,
+                        "recovery": {"recovered": 9, "intact": 9, "recovered_share": 1.0,
+                                     "false_packets": 0}})
+    out = capsys.readouterr().out
+    assert out.count("peak RSS") == 3
+    assert "cola_b: 30.0 M samples/s wall, 31.0 M per CPU second (target 10 M wall: met" in out
+    assert "cola_a: 9.0 M samples/s wall, 15.0 M per CPU second (target 10 M wall: NOT met" in out
+    assert "22.0 M per CPU second" in out

@@ -18,6 +18,7 @@ from scanpipe.protocol.framing import (
     FrameCounters,
     FrameReader,
     LengthMismatch,
+    ParseMany,
     RawFrame,
 )
 from scanpipe.protocol.profile import Profile, check_plausible
@@ -80,6 +81,9 @@ class Dialect:
     #: None: count frames with a lenient decoder; else the dialect's own count of its frames
     #: in ``data`` for ``auto`` (a weak marker needs more than one good frame).
     detect_score: Callable[[bytes], int] | None = None
+    #: Optional: ``decode_payload(p, True)`` of many payloads at once (see
+    #: ``framing.FrameReader``'s ``parse_many``), for the shared framing.
+    decode_payloads: ParseMany | None = None
 
     def frame_reader(self, max_payload_bytes: int | None = None,
                      confirm: bool = True) -> FrameSource:
@@ -88,7 +92,7 @@ class Dialect:
         if self.reader_factory is not None:
             return self.reader_factory(self, cap, confirm)
         return FrameReader(self.marker, self.min_payload_bytes, cap, self.decode_payload,
-                           self.check_frame, confirm)
+                           self.check_frame, confirm, parse_many=self.decode_payloads)
 
     def stream_decoder(self, checksum: ChecksumMode = "strict",
                        max_payload_bytes: int | None = None,
@@ -138,6 +142,7 @@ DIALECTS: Mapping[str, Dialect] = {
                     "framing)",
         device_tick_ns=sick_cola.TICK_NS,
         device_wrap_ticks=sick_cola.WRAP_TICKS,
+        decode_payloads=sick_cola.decode_payloads,
     ),
     "cola_a": Dialect(
         name="cola_a",

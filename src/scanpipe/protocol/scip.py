@@ -24,6 +24,7 @@ below 20 mm are the URG error codes and decode as "no return".
 from __future__ import annotations
 
 import re
+from bisect import bisect_left
 from dataclasses import dataclass
 
 import numpy as np
@@ -331,9 +332,10 @@ class ScipReader:
         frames: list[RawFrame] = []
         buf = self._buf
         pos = 0
+        terminators = _terminators(buf)
         while True:
             pending: list[RawFrame | _Scan] = []
-            pos = self._collect(buf, pos, pending)
+            pos = self._collect(buf, pos, pending, terminators)
             done, restart = self._finish_scans(pending)
             frames += done
             if restart is None:
@@ -343,15 +345,18 @@ class ScipReader:
         self._offset += pos
         return frames
 
-    def _collect(self, buf: bytearray, pos: int, pending: list[RawFrame | _Scan]) -> int:
+    def _collect(self, buf: bytearray, pos: int, pending: list[RawFrame | _Scan],
+                 terminators: list[int]) -> int:
         """Cut complete messages from ``buf`` at ``pos``: replies parsed, scans checked for
-        structure only (their data is checked and decoded together, :meth:`_finish_scans`)."""
+        structure only (their data is checked and decoded together, :meth:`_finish_scans`).
+        ``terminators``: where LF LF begins in ``buf`` (:func:`_terminators`)."""
         while True:
             # A message starts at the buffer start or after a LF; skip stray LFs.
             while pos < len(buf) and buf[pos] == LF:
                 pos += 1
                 self.counters.bytes_skipped += 1
-            end = buf.find(TERMINATOR, pos)
+            at = bisect_left(terminators, pos)
+            end = terminators[at] if at < len(terminators) else -1
             if end < 0:
                 if len(buf) - pos > MAX_MESSAGE_BYTES:
                     pos = self._resync(buf, pos, len(buf))
@@ -546,12 +551,13 @@ def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -
     body = blob[:, 6:]
     head = body[:, :full * line].reshape(k, full, line)
     ok &= (head[:, :, DATA_LINE_CHARS + 1] == LF).all(axis=1)
-    sums = (head[:, :, :DATA_LINE_CHARS].sum(axis=2, dtype=np.uint16) & 0x3F) + CHAR_OFFSET
+    # sums in uint8 wrap modulo 256, a multiple of the check's 64 (and need no widening copy)
+    sums = (head[:, :, :DATA_LINE_CHARS].sum(axis=2, dtype=np.uint8) & 0x3F) + CHAR_OFFSET
     ok &= (sums == head[:, :, DATA_LINE_CHARS]).all(axis=1)
     data = head[:, :, :DATA_LINE_CHARS].reshape(k, full * DATA_LINE_CHARS)
     if tail:
         rest = body[:, full * line:]
-        tail_sum = (rest[:, :tail].sum(axis=1, dtype=np.int32) & 0x3F) + CHAR_OFFSET
+        tail_sum = (rest[:, :tail].sum(axis=1, dtype=np.uint8) & 0x3F) + CHAR_OFFSET
         ok &= (tail_sum == rest[:, tail]) & (rest[:, tail + 1] == LF)
         data = np.concatenate([data, rest[:, :tail]], axis=1)
     digits = (data.reshape(k, -1, chars) - np.uint8(CHAR_OFFSET)) & np.uint8(0x3F)
@@ -570,6 +576,18 @@ def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -
         scan.time_ms = int(times[row])
         scan.ranges = ranges[row]
         scan.echo = None if echo is None else echo[row]
+
+
+def _terminators(buf: bytearray) -> list[int]:
+    """Every position where LF LF begins in ``buf``, in order (``buf.find(TERMINATOR, pos)`` for
+    every ``pos`` at once: ``find`` stops at every line's LF, ~8 µs per UST scan against ~3)"""
+    data = np.frombuffer(buf, np.uint8)
+    lf = data == LF
+    del data  # the bytearray may be resized again
+    both = lf[:-1]
+    both &= lf[1:]
+    found: list[int] = np.flatnonzero(both).tolist()
+    return found
 
 
 def _parameter_ok(line: bytes) -> bool:

@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import ProtocolError
 from scanpipe.protocol.framing import (
+    BULK_MIN_FRAMES,
     NOT_PARSED,
     FrameCounters,
     LengthMismatch,
@@ -247,19 +248,31 @@ def _range_table(scale: float, offset: float) -> NDArray[np.float32]:
 _TABLES: dict[tuple[float, float], NDArray[np.float32]] = {(1.0, 0.0): _range_table(1.0, 0.0)}
 
 
-def ranges_from_channel(ch: Channel) -> NDArray[np.float32]:
-    """Metres of a DIST channel (raw × scale / 1000 + offset; raw 0 → NaN)."""
-    key = (ch.scale, ch.offset)
+def _table_for(name: str, scale: float, offset: float) -> NDArray[np.float32]:
+    """Metres of every raw value of a DIST channel with this scale and offset (cached)."""
+    key = (scale, offset)
     table = _TABLES.get(key)
     if table is None:
-        if not (np.isfinite(ch.scale) and np.isfinite(ch.offset)) or ch.scale <= 0:
-            raise ProtocolError(f"channel {ch.name}: scale {ch.scale} / offset {ch.offset} "
-                                "not usable")
+        if not (np.isfinite(scale) and np.isfinite(offset)) or scale <= 0:
+            raise ProtocolError(f"channel {name}: scale {scale} / offset {offset} not usable")
         if len(_TABLES) < 64:
-            table = _TABLES[key] = _range_table(ch.scale, ch.offset)
+            table = _TABLES[key] = _range_table(scale, offset)
         else:
-            table = _range_table(ch.scale, ch.offset)
-    return table[np.asarray(ch.data, dtype=np.uint16)]
+            table = _range_table(scale, offset)
+    return table
+
+
+def ranges_from_channel(ch: Channel) -> NDArray[np.float32]:
+    """Metres of a DIST channel (raw × scale / 1000 + offset; raw 0 → NaN)."""
+    return _table_for(ch.name, ch.scale, ch.offset)[np.asarray(ch.data, dtype=np.uint16)]
+
+
+def _end_time_us(start_us: int, samples: int, step_deg: float, freq_centihz: int) -> int | None:
+    """The device time of a scan's last sample (None without a scan frequency)."""
+    if freq_centihz <= 0:
+        return None
+    span_s = max(samples - 1, 0) * step_deg / 360.0 / (freq_centihz / 100.0)
+    return (start_us + round(span_s * 1e6)) % WRAP_TICKS
 
 
 def telegram_profile(t: ScanTelegram, checksum_ok: bool = True) -> Profile:
@@ -272,16 +285,222 @@ def telegram_profile(t: ScanTelegram, checksum_ok: bool = True) -> Profile:
     if rssi is not None and len(rssi.data) == len(dist.data):
         echo = np.asarray(rssi.data, dtype=np.uint16)
     step_deg = dist.step / ANGLE_UNITS_PER_DEG
-    end = None
-    if t.scan_frequency_centihz > 0:
-        span_s = max(len(dist.data) - 1, 0) * step_deg / 360.0 / (
-            t.scan_frequency_centihz / 100.0)
-        end = (t.time_since_startup_us + round(span_s * 1e6)) % WRAP_TICKS
     return Profile(
         frame=t.scan_counter, sector=0, start_angle_deg=dist.start_angle / ANGLE_UNITS_PER_DEG,
         step_deg=step_deg, ranges_m=ranges_from_channel(dist), echo=echo,
-        device_time_ms=t.time_since_startup_us, device_end_time_ms=end,
+        device_time_ms=t.time_since_startup_us,
+        device_end_time_ms=_end_time_us(t.time_since_startup_us, len(dist.data), step_deg,
+                                        t.scan_frequency_centihz),
         checksum_ok=checksum_ok, device_tick_ns=TICK_NS, device_wrap_ticks=WRAP_TICKS)
+
+
+# -- many telegrams of one layout at once ----------------------------------------------------
+#
+# A scanner streams telegrams of one layout (the same channels, counts and blocks). The first
+# telegram of a layout is parsed field by field (``parse_telegram`` / ``_parse_tokens``); the
+# positions of its fields then hold for every telegram whose layout-fixing fields (counts,
+# flags, channel names, string lengths) equal its own, and those are read for all such
+# telegrams with one numpy operation per field. A telegram the bulk path cannot vouch for is
+# left to the field-by-field path (NOT_PARSED), so both paths give the same profiles and the
+# same errors.
+
+#: The optional blocks in their order, and how many fields (CoLa-B: bytes, CoLa-A: tokens)
+#: each holds after its flag; None: a string (a length, then its characters / one token).
+_BLOCKS: tuple[tuple[str, int | None, int | None], ...] = (
+    ("position", 26, 8), ("name", None, None), ("comment", None, None), ("time", 11, 7),
+    ("event", 16, 4))
+#: Layouts tried per bulk batch (more distinct ones go field by field).
+_MAX_LAYOUTS = 4
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where one telegram layout's fields lie: bytes (CoLa-B) or tokens (CoLa-A) from the
+    telegram's start. ``fixed`` must hold the template's values for a telegram to share the
+    layout; ``texts`` (CoLa-A) are tokens that are no number; ``names`` must equal the
+    template's text. ``dist`` is the DIST1 channel's scale field (offset, start angle and step
+    follow, then the count and the data at ``dist_data``); ``rssi_data`` the RSSI1 data when
+    the profile keeps it."""
+
+    size: int
+    fixed: NDArray[np.intp]
+    texts: tuple[int, ...]
+    names: tuple[tuple[int, bytes], ...]
+    dist: int
+    dist_data: int
+    count: int
+    dist_width: int
+    rssi_data: int | None
+    rssi_width: int
+
+
+def _layout(t: ScanTelegram, binary: bool) -> _Layout | None:
+    """The layout of a parsed telegram (None without DIST1: the field-by-field path says so)."""
+    fixed: list[int] = []
+    texts: list[int] = [0, 1]
+    names: list[tuple[int, bytes]] = [(1, b"LMDscandata")]
+    first: dict[str, tuple[int, int, int]] = {}  # name → (header position, width, count)
+    if binary:
+        fixed += range(16)  # the command
+        pos = 16 + _HEAD.size
+        fixed += (pos, pos + 1)
+        pos += 2 + 6 * len(t.encoders)
+    else:
+        pos = 18
+        fixed.append(pos)
+        pos += 1 + 2 * len(t.encoders)
+    for channels, width in ((t.channels16, 2), (t.channels8, 1)):
+        fixed += (pos, pos + 1) if binary else (pos,)
+        pos += 2 if binary else 1
+        for ch in channels:
+            first.setdefault(ch.name, (pos, width, len(ch.data)))
+            if binary:
+                fixed += (*range(pos, pos + 5), pos + 19, pos + 20)
+                pos += 21 + width * len(ch.data)
+            else:
+                texts.append(pos)
+                names.append((pos, ch.name.encode("latin-1")))
+                fixed.append(pos + 5)
+                pos += 6 + len(ch.data)
+    for block, n_bytes, n_tokens in _BLOCKS[:t.trailing_flags]:
+        fixed += (pos, pos + 1) if binary else (pos,)
+        pos += 2 if binary else 1
+        value = getattr(t, block)
+        if value is None:
+            continue
+        if n_bytes is None:  # a string: its length fixes the layout
+            fixed.append(pos)
+            text = value.encode("latin-1")
+            if binary:
+                pos += 1 + len(text)
+            elif text:
+                texts.append(pos + 1)
+                pos += 2
+            else:
+                pos += 1
+        elif binary:
+            pos += n_bytes
+        else:
+            if block == "event":
+                texts.append(pos)
+            pos += n_tokens or 0
+    if "DIST1" not in first:
+        return None
+    dist, dist_width, count = first["DIST1"]
+    rssi = first.get("RSSI1")
+    rssi_data, rssi_width = None, 0
+    header = 21 if binary else 6  # from a channel's name to its data
+    if rssi is not None and rssi[2] == count:
+        rssi_data, rssi_width = rssi[0] + header, rssi[1]
+    return _Layout(pos, np.array(fixed, np.intp), tuple(texts), tuple(names),
+                   dist + (5 if binary else 1), dist + (21 if binary else 6), count, dist_width,
+                   rssi_data, rssi_width)
+
+
+def _bulk_profiles(counters: list[int], starts_us: list[int], freqs: list[int],
+                   channel: NDArray[np.uint32], dist: NDArray[Any], echo: NDArray[Any] | None
+                   ) -> list[Any]:
+    """The profiles of telegrams of one layout (as ``telegram_profile`` makes them), or
+    NOT_PARSED for those whose scale and offset are not usable. ``channel`` holds each
+    telegram's DIST1 scale and offset (IEEE-754 bits), start angle (two's complement) and
+    step; ``dist`` its raw ranges, ``echo`` its RSSI1 values (one row per telegram)."""
+    k = len(counters)
+    keys = (channel[:, 0].astype(np.uint64) << np.uint64(32)) | channel[:, 1]
+    floats = channel[:, :2].view(np.float32).astype(np.float64)
+    ranges = np.empty(dist.shape, np.float32)
+    usable = np.ones(k, bool)
+    unique, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    for u in range(len(unique)):
+        rows = first[u]
+        try:
+            table = _table_for("DIST1", float(floats[rows, 0]), float(floats[rows, 1]))
+        except ProtocolError:
+            usable[inverse == u] = False
+            continue
+        if len(unique) == 1:
+            np.take(table, dist, out=ranges)
+        else:
+            ranges[inverse == u] = table[dist[inverse == u]]
+    echoes = None if echo is None else echo.astype(np.uint16)
+    angles = (channel[:, 2].view(np.int32) / ANGLE_UNITS_PER_DEG).tolist()
+    step_deg = channel[:, 3] / ANGLE_UNITS_PER_DEG
+    # _end_time_us for all at once (the same float64 operations in the same order; np.rint
+    # rounds half to even as round() does)
+    freq = np.array(freqs, np.int64)
+    span_s = max(dist.shape[1] - 1, 0) * step_deg / 360.0 / (np.maximum(freq, 1) / 100.0)
+    ends = (np.array(starts_us, np.int64) + np.rint(span_s * 1e6).astype(np.int64)) % WRAP_TICKS
+    end_times = [None if f <= 0 else e for f, e in zip(freqs, ends.tolist(), strict=True)]
+    steps = step_deg.tolist()
+    out: list[Any] = []
+    for i in range(k):
+        if not usable[i]:
+            out.append(NOT_PARSED)
+            continue
+        out.append([Profile(
+            frame=counters[i], sector=0, start_angle_deg=angles[i], step_deg=steps[i],
+            ranges_m=ranges[i], echo=None if echoes is None else echoes[i],
+            device_time_ms=starts_us[i], device_end_time_ms=end_times[i], checksum_ok=True,
+            device_tick_ns=TICK_NS, device_wrap_ticks=WRAP_TICKS)])
+    return out
+
+
+def _big_endian(rows: NDArray[np.uint8], at: int, width: int) -> NDArray[np.uint32]:
+    """The unsigned big-endian field of ``width`` bytes at ``at`` of every row."""
+    out = rows[:, at].astype(np.uint32)
+    for i in range(1, width):
+        out <<= np.uint32(8)
+        out |= rows[:, at + i]
+    return out
+
+
+def decode_payloads(payloads: list[bytes]) -> list[Any]:
+    """``decode_payload(p, True)`` for each CoLa-B payload, those of a layout at once; NOT_PARSED
+    for payloads left to :func:`decode_payload` (another telegram, another layout, an error)."""
+    out: list[Any] = [NOT_PARSED] * len(payloads)
+    by_size: dict[int, list[int]] = {}
+    for i, payload in enumerate(payloads):
+        by_size.setdefault(len(payload), []).append(i)
+    layouts = 0
+    for size, members in by_size.items():
+        rows = np.frombuffer(b"".join([payloads[i] for i in members]), np.uint8).reshape(
+            len(members), size)
+        left = np.arange(len(members))
+        while left.size and layouts < _MAX_LAYOUTS:
+            layouts += 1
+            template = payloads[members[left[0]]]
+            try:
+                layout = _layout(parse_telegram(template), binary=True)
+            except ProtocolError:
+                layout = None
+            if layout is None or layout.size != size:
+                left = left[1:]
+                continue
+            fixed = rows[np.ix_(left, layout.fixed)]
+            same = (fixed == fixed[0]).all(axis=1)
+            take, left = left[same], left[~same]
+            group = rows if take.size == len(members) else rows[take]
+            n, d = layout.count, layout.dist
+            channel = np.stack([_big_endian(group, d, 4), _big_endian(group, d + 4, 4),
+                                _big_endian(group, d + 8, 4), _big_endian(group, d + 12, 2)],
+                               axis=1)
+            dist = _channel_data(group, layout.dist_data, n, layout.dist_width)
+            echo = None
+            if layout.rssi_data is not None:
+                echo = _channel_data(group, layout.rssi_data, n, layout.rssi_width)
+            profiles = _bulk_profiles(_big_endian(group, 28, 2).tolist(),
+                                      _big_endian(group, 30, 4).tolist(),
+                                      _big_endian(group, 44, 4).tolist(), channel, dist, echo)
+            for row, parsed in zip(take.tolist(), profiles, strict=True):
+                out[members[row]] = parsed
+    return out
+
+
+def _channel_data(rows: NDArray[np.uint8], at: int, count: int, width: int) -> NDArray[Any]:
+    """A channel's raw values in every row (u16 big-endian or u8)."""
+    block = rows[:, at:at + width * count]
+    if width == 1:
+        return block
+    return np.ascontiguousarray(block).view(">u2")
 
 
 def profile_telegram(profile: Profile, serial_number: int = 0x01234567) -> ScanTelegram:
@@ -343,17 +562,16 @@ def check_frame(profiles: list[Profile] | None) -> int | None:
 # A CoLa-A stream is parsed in bulk: every token of a batch of frames is found and converted
 # from hex at once (numpy over the bytes), then each frame's fields are read from those arrays.
 
-#: Byte classes (for ``bytes.translate``): 0 separates tokens (space, STX, ETX), 1 is a hex
-#: digit, 2 anything else.
-_CLASS = bytes(0 if c in (0x20, STX, ETX) else 1 if c in b"0123456789ABCDEFabcdef" else 2
-               for c in range(256))
 #: Tokens are read through an 8-byte window ending at their last byte: this much padding
 #: in front of the data keeps the first token's window inside it.
 _PAD = b" " * 8
-#: ``(1 << 4 L) − 1`` for a token of L ≤ 8 hex digits (the digits its window holds).
-_DIGIT_MASK = np.array([(1 << (4 * n)) - 1 for n in range(9)], np.uint64)
-#: Frames tokenised together (bounds the temporaries of a large stream).
-_BATCH_BYTES = 1 << 21
+#: The digits a token of L hex digits keeps of its 4-digit window (index: L, clipped at 4).
+_MASK4 = np.array([(1 << (4 * n)) - 1 for n in range(5)], np.uint32)
+#: The same for the 8-digit window of a longer token.
+_MASK8 = np.array([(1 << (4 * n)) - 1 for n in range(9)], np.uint64)
+#: Frames tokenised together (bounds the temporaries of a large stream; half a MiB keeps more
+#: of them in the cache than the 2 MiB before: ~10 % faster).
+_BATCH_BYTES = 1 << 19
 
 
 @dataclass(frozen=True)
@@ -365,7 +583,7 @@ class _Tokens:
     data: bytes | bytearray
     starts: NDArray[np.int64]
     ends: NDArray[np.int64]
-    values: NDArray[np.uint64]
+    values: NDArray[np.uint32]
     bad: list[int]
     wide: list[int]
 
@@ -405,32 +623,50 @@ def _hex_words(word: NDArray[Any], width: int) -> NDArray[Any]:
 def _tokenise(padded: bytes | bytearray, begin: int, end: int) -> _Tokens:
     """The tokens of ``padded[begin:end]``: ``padded`` starts with :data:`_PAD`, the stretch
     starts with an STX and ends with an ETX. Separators are space, STX and ETX."""
-    cls = np.frombuffer(padded[begin:end].translate(_CLASS), np.uint8)
-    seps = np.flatnonzero(cls == 0)
+    assert begin >= len(_PAD)
+    data = np.frombuffer(padded, np.uint8)
+    stretch = data[begin:end]
+    sep = stretch == 0x20
+    sep |= stretch == STX
+    sep |= stretch == ETX
+    seps = np.flatnonzero(sep)
     seps += begin
+    # bytes that are neither a hex digit nor a separator make their token no number
+    work = stretch - np.uint8(0x30)
+    odd = np.less(work, 10)
+    np.bitwise_or(stretch, np.uint8(0x20), out=work)
+    work -= np.uint8(0x61)
+    odd |= work < 6
+    odd |= sep
+    np.logical_not(odd, out=odd)
+    odd_at = np.flatnonzero(odd)
+    odd_at += begin
+    del sep, work, odd
     starts, ends = seps[:-1] + 1, seps[1:]
     # Separators next to each other leave empty tokens. Those between one frame's ETX and the
     # next one's STX lie outside every frame's tokens and may stay; others (two spaces) go.
     empty = np.flatnonzero(ends == starts)
-    if empty.size and not (np.frombuffer(padded, np.uint8)[starts[empty] - 1] == ETX).all():
+    if empty.size and not (data[starts[empty] - 1] == ETX).all():
         keep = ends > starts
         starts, ends = starts[keep], ends[keep]
     lengths = ends - starts
     # Each token's last 4 bytes as one big-endian word (the last 8 for the few longer ones),
     # hex digits to nibbles in parallel, the nibbles packed, the token's own digits kept.
-    # (gathered through a native-endian view, then byte-swapped: 7x faster than gathering
-    # from a big-endian one)
-    word4 = np.ndarray((len(padded) - 3,), "<u4", padded, 0, (1,))[ends - 4].byteswap()
-    values = _hex_words(word4, 4).astype(np.uint64)
-    values &= _DIGIT_MASK[np.minimum(lengths, 4)]
+    # (gathered as 4-byte items through a stride-1 view, then byte-swapped: np.take on the
+    # big-endian view was 60 % of the decode)
+    # (np.take copies a strided source whole first: the views span this stretch only)
+    first = begin - len(_PAD)
+    windows = np.ndarray((end - first - 3,), "V4", padded, first, (1,))
+    values = np.take(windows, ends - (first + 4)).view("<u4").byteswap()
+    _hex_words(values, 4)
+    values &= np.take(_MASK4, lengths, mode="clip")
     wide = np.flatnonzero(lengths > 4)
     if wide.size:
-        word8 = np.ndarray((len(padded) - 7,), "<u8", padded, 0, (1,))[ends[wide] - 8].byteswap()
-        values[wide] = _hex_words(word8, 8) & _DIGIT_MASK[
-            np.minimum(lengths[wide], 8)]
-    # Bytes that are neither a hex digit nor a separator make their token no number.
-    odd = np.flatnonzero(cls == 2) + begin
-    bad = set((np.searchsorted(starts, odd, "right") - 1).tolist())
+        windows = np.ndarray((end - first - 7,), "<u8", padded, first, (1,))
+        word8 = windows[ends[wide] - (first + 8)].byteswap()
+        values[wide] = _hex_words(word8, 8) & np.take(_MASK8, lengths[wide], mode="clip")
+    del data, stretch, windows
+    bad = set((np.searchsorted(starts, odd_at, "right") - 1).tolist())
     bad.update(wide[lengths[wide] > 8].tolist())
     return _Tokens(padded, starts, ends, values, sorted(bad), wide.tolist())
 
@@ -616,14 +852,17 @@ class AsciiFrameReader:
     start, then the next STX). A frame that does not parse is counted (malformed, or a
     length mismatch) and skipped; so is a frame longer than the cap. There is no checksum.
     Frames are found and tokenised in bulk (numpy over all bytes received so far), so the
-    stream is scanned only when an ETX has arrived (or the cap is passed).
+    stream is scanned only when an ETX has arrived (or the cap is passed); scan telegrams of
+    one layout are then read together (``_parse_token_frames``; ``bulk=False`` reads each
+    field by field, which gives the same frames and counters).
     """
 
     def __init__(self, max_payload_bytes: int = MAX_PAYLOAD_BYTES * 3,
-                 check: Any = check_frame, parse: bool = True) -> None:
+                 check: Any = check_frame, parse: bool = True, bulk: bool = True) -> None:
         self.max_payload_bytes = max_payload_bytes
         self.check = check
         self.parse = parse
+        self.bulk = bulk  # False: every frame field by field (the reference the tests hold)
         self.counters = FrameCounters()
         self._buffer = bytearray()
         self._base = 0
@@ -692,9 +931,22 @@ class AsciiFrameReader:
             # a frame's tokens start after its STX and before its ETX
             edges = np.array(spans[done:stop], np.int64)
             edges[:, 0] += 1
-            bounds = np.searchsorted(tok.starts, edges).tolist()
-            for (start, end), (lo, hi) in zip(spans[done:stop], bounds, strict=True):
-                frames += self._frame(padded, tok, lo, hi, start, end)
+            bounds = np.searchsorted(tok.starts, edges)
+            batch = spans[done:stop]
+            bulk = _parse_token_frames(padded, tok, batch, bounds) if self.bulk else [
+                NOT_PARSED] * len(batch)
+            for (start, end), (lo, hi), parsed in zip(batch, bounds.tolist(), bulk, strict=True):
+                if parsed is not NOT_PARSED:
+                    try:
+                        self.check(parsed)
+                    except ProtocolError:
+                        parsed = NOT_PARSED  # the field-by-field path counts it
+                if parsed is NOT_PARSED:
+                    frames += self._frame(padded, tok, lo, hi, start, end)
+                    continue
+                offset = self._base + start - len(_PAD)
+                frames.append(RawFrame(bytes(padded[start + 1:end]), True, 0, 0, offset,
+                                       offset + end + 1 - start, parsed))
             done = stop
         del self._buffer[:keep - len(_PAD)]
         self._base += keep - len(_PAD)
@@ -720,6 +972,88 @@ class AsciiFrameReader:
             self.counters.bytes_skipped += end + 1 - start
             return []
         return [RawFrame(body, True, 0, 0, offset, offset + end + 1 - start, parsed)]
+
+
+def _token_rows(values: NDArray[np.uint32], first: NDArray[np.int64], at: int, count: int
+                ) -> NDArray[np.uint32]:
+    """Tokens ``at … at+count-1`` of each frame whose tokens begin at ``first`` (one row per
+    frame; a strided view when the frames lie evenly, as a stream's frames of one layout do)."""
+    if first.size > 1:
+        step = np.unique(np.diff(first))
+        if step.size == 1 and step[0] >= count:
+            base = values[int(first[0]) + at:]
+            rows: NDArray[np.uint32] = np.lib.stride_tricks.as_strided(
+                base, (first.size, count), (int(step[0]) * values.itemsize, values.itemsize),
+                writeable=False)
+            return rows
+    gathered: NDArray[np.uint32] = values[first[:, None] + (at + np.arange(count))]
+    return gathered
+
+
+def _parse_token_frames(padded: bytes | bytearray, tok: _Tokens, spans: list[tuple[int, int]],
+                        bounds: NDArray[np.int64]) -> list[Any]:
+    """What ``_frame`` would parse for each frame (STX at ``start``, ETX at ``end``, tokens
+    ``lo … hi-1``), scan telegrams of a layout at once; NOT_PARSED for frames left to it."""
+    out: list[Any] = [NOT_PARSED] * len(spans)
+    if len(spans) < BULK_MIN_FRAMES:
+        return out
+    los = bounds[:, 0]
+    sizes = bounds[:, 1] - los
+    by_size: dict[int, list[int]] = {}
+    for i, (start, _) in enumerate(spans):
+        if padded.startswith(_SCAN_PREFIXES, start + 1):
+            by_size.setdefault(int(sizes[i]), []).append(i)
+    values = tok.values
+    bad = np.array(tok.bad, np.int64)
+    layouts = 0
+    for size, members in by_size.items():
+        left = np.array(members, np.intp)
+        while left.size and layouts < _MAX_LAYOUTS:
+            layouts += 1
+            lo = int(los[left[0]])
+            try:
+                layout = _layout(_parse_tokens(tok, lo, lo + size), binary=False)
+            except ProtocolError:
+                layout = None
+            if layout is None or layout.size != size:
+                left = left[1:]
+                continue
+            first = los[left]
+            fixed = values[first[:, None] + layout.fixed]
+            same = (fixed == fixed[0]).all(axis=1)
+            take, left = left[same], left[~same]
+            first = first[same]
+            ok = np.ones(take.size, bool)
+            # every token but the texts must be a number
+            frame = np.searchsorted(first, bad, "right") - 1
+            inside = (frame >= 0) & (bad < first[np.maximum(frame, 0)] + size)
+            rel = bad[inside] - first[frame[inside]]
+            ok[frame[inside][~np.isin(rel, layout.texts)]] = False
+            for at, name in layout.names:
+                where = first + at
+                ok &= tok.ends[where] - tok.starts[where] == len(name)
+                at_text = tok.starts[where[ok]]  # tokens of the name's length: inside the data
+                if at_text.size:
+                    low = int(at_text.min())
+                    texts = np.ndarray((int(at_text.max()) - low + 1,), f"S{len(name)}",
+                                       padded, low, (1,))
+                    ok[ok] = texts[at_text - low] == name
+            n = layout.count
+            dist = _token_rows(values, first, layout.dist_data, n)
+            ok &= dist.max(axis=1, initial=0) <= (0xFFFF if layout.dist_width == 2 else 0xFF)
+            echo = None
+            if layout.rssi_data is not None:
+                echo = _token_rows(values, first, layout.rssi_data, n)
+                ok &= echo.max(axis=1, initial=0) <= (0xFFFF if layout.rssi_width == 2 else 0xFF)
+            if not ok.all():
+                take, first, dist = take[ok], first[ok], dist[ok]
+                echo = None if echo is None else echo[ok]
+            channel = values[first[:, None] + (layout.dist + np.arange(4))]
+            head = values[first[:, None] + np.array([8, 9, 16])].T.tolist()
+            profiles = _bulk_profiles(head[0], head[1], head[2], channel, dist, echo)
+            for row, parsed in zip(take.tolist(), profiles, strict=True):
+                out[row] = parsed
+    return out
 
 
 def ascii_reader(dialect: Any, max_payload_bytes: int, confirm: bool) -> AsciiFrameReader:
