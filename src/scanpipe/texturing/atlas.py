@@ -186,7 +186,7 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         if field is None:
             patch = cv2.LUT(source, np.clip(gained + 0.5, 0, 255).astype(np.uint8))
         else:
-            crop = cv2.LUT(source, gained)
+            crop = np.asarray(cv2.LUT(source, gained), dtype=np.float32)
             crop += field
             crop += 0.5
             patch = np.clip(crop, 0, 255, out=crop).astype(np.uint8)

@@ -16,6 +16,7 @@ overlaps serve twice (Waechter et al. 2014, sections 4.1 and 5):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +25,7 @@ from scanpipe.texturing.exposure import sample_mean_colour
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet
 
 F32 = NDArray[np.float32]
+FloatT = TypeVar("FloatT", np.float32, np.float64)
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
@@ -103,7 +105,7 @@ def overlap_pairs(views: Views, max_pairs: int = 200_000, seed: int = 0
     return (frame[face, 0], frame[face, slot + 1], colour[face, 0], colour[face, slot + 1])
 
 
-def nan_median(values: F64, axis: int) -> F64:
+def nan_median(values: NDArray[FloatT], axis: int) -> NDArray[FloatT]:
     """Median along ``axis`` ignoring NaN (NaN where all are NaN): sort, NaNs last, take the
     middle of the finite ones (numpy's nanmedian goes through masked arrays: many times
     slower on millions of short rows)."""
@@ -111,7 +113,7 @@ def nan_median(values: F64, axis: int) -> F64:
     count = np.isfinite(ordered).sum(axis=axis, keepdims=True)
     lower = np.take_along_axis(ordered, np.maximum((count - 1) // 2, 0), axis=axis)
     upper = np.take_along_axis(ordered, np.maximum(count // 2, 0), axis=axis)
-    return np.asarray(np.where(count > 0, 0.5 * (lower + upper), np.nan))
+    return np.asarray(np.where(count > 0, 0.5 * (lower + upper), np.nan), dtype=values.dtype)
 
 
 def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
