@@ -302,6 +302,15 @@ def test_bad_inputs_are_stage_errors(recording: Recording, mesh) -> None:
         pa.array([b"not a jpeg"] * recording.frames.num_rows, pa.binary()))
     with pytest.raises(StageError, match="not a decodable image"):
         STAGE.run({**inputs, "frames": broken})
+    # one broken frame among good ones (rated on several threads): its error, naming it
+    data = recording.frames.column("data").to_pylist()
+    data[len(data) // 2] = b"not a jpeg either"
+    one_broken = recording.frames.set_column(
+        recording.frames.column_names.index("data"), "data", pa.array(data, pa.binary()))
+    seq = recording.frames.column("sequence")[len(data) // 2].as_py()
+    cam = recording.frames.column("camera_id")[len(data) // 2].as_py()
+    with pytest.raises(StageError, match=f"frame {seq} of '{cam}'.*not a decodable image"):
+        STAGE.run({**inputs, "frames": one_broken})
     no_cams = recording.rig.model_copy(update={"cameras": ()})
     untextured = STAGE.run({**inputs, "rig": rig_table(no_cams)})
     assert untextured.tables["texture_pages"].num_rows == 0
