@@ -46,10 +46,11 @@ class Views:
         return np.asarray((self.frame >= 0).sum(axis=1), dtype=np.int64)
 
 
-def candidate_views(scores: F32, max_views: int, chunk: int = 131_072) -> I64:
+def candidate_views(scores: F32, max_views: int, chunk: int = 8192) -> I64:
     """``(faces, K)`` the best ``K = min(max_views, frames)`` frames of each face by score
     (−1 where a face has fewer with a positive score), best first: K passes of argmax over a
-    chunk of faces at a time (a full sort or argpartition of the score matrix costs seconds)."""
+    chunk of faces at a time (a full sort or argpartition of the score matrix costs seconds;
+    a chunk of a few thousand faces stays in the cache over the K passes)."""
     n_frames, n_faces = scores.shape
     k = min(max_views, n_frames)
     result = np.full((n_faces, k), -1, dtype=np.int64)
@@ -59,6 +60,8 @@ def candidate_views(scores: F32, max_views: int, chunk: int = 131_072) -> I64:
         for slot in range(k):
             best = np.argmax(block, axis=1)
             positive = block[rows, best] > 0
+            if not positive.any():
+                break
             result[start + rows[positive], slot] = best[positive]
             block[rows, best] = 0.0
     return result
