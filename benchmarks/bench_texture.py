@@ -10,8 +10,10 @@ platform turns 180° in 10 s. Frames are rendered at ``--render-scale`` of their
 takes far longer than the benchmark; ``--render-scale 1`` does it); the stage always decodes
 and textures frames of the rig's full resolution. Also reported: texture PSNR over 8 matched
 views inside the room (over the textured pixels, and over all of the visible surface with
-unseen faces as error), both methods, and the CPU seconds beside the wall time (the machine is
-shared; CPU time does not depend on the load).
+unseen faces as error), both methods, and the CPU seconds (all threads) beside the wall time
+(the machine is shared; CPU time depends far less on the load), in all and per phase of the
+projective method (``phase_s``, ``phase_cpu_s``: frames, score, photometric, ray_scene,
+visibility, icm, patches, seam_strip, atlas, png).
 ``python benchmarks/bench_texture.py [--quick] [--render-scale S]`` prints the figures and
 saves JSON into ``benchmarks/results/``.
 """
@@ -158,6 +160,8 @@ def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any
         quality = psnr_db(result, vertices, faces, reference)
         psnr, visible = quality["texture_psnr_db"], quality["texture_psnr_visible_db"]
         figures["methods"][method] = {"seconds": round(wall_s, 2), "cpu_seconds": round(cpu_s, 2),
+                                      "phase_s": report.get("phase_s", {}),
+                                      "phase_cpu_s": report.get("phase_cpu_s", {}),
                                       "process_peak_rss_mb": round(peak_mb), **quality,
                                       "report": report}
         rows.append((method, f"{wall_s:.1f} s", f"{cpu_s:.1f} s", f"{peak_mb:.0f} MB",
@@ -170,6 +174,10 @@ def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any
           f"that) (prepared in {prepared_s:.0f} s)")
     print(table(rows, ("method", "wall", "CPU", "process peak RSS", "coverage", "untextured",
                        "frames used", "PSNR textured", "PSNR visible")))
+    phases = figures["methods"]["projective"]
+    print(table([(name, f"{phases['phase_s'][name]:.2f} s", f"{cpu:.2f} s")
+                 for name, cpu in phases["phase_cpu_s"].items()],
+                ("projective phase", "wall", "CPU")))
     return figures
 
 

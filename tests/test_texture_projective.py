@@ -248,6 +248,23 @@ def test_frame_regions_contain_their_faces() -> None:
     assert len(boxes) < 200  # nearby faces share regions
 
 
+def test_frame_regions_cut_a_sparse_band_into_tighter_boxes() -> None:
+    # small faces along the diagonal of a 1920 × 1080 frame: one 8-connected band whose box
+    # is the whole frame; cut into tiles, the boxes hold far less unused image
+    t = np.linspace(0, 1, 400)
+    centre = np.stack([40 + t * 1840, 40 + t * 1000], 1)
+    corners = centre[:, None, :] + np.array([[0.0, 0.0], [12.0, 0.0], [0.0, 12.0]])
+    region, boxes = frame_regions(corners, 1920, 1080, cell_px=32, pad_px=3)
+    lo, hi = corners.min(1), corners.max(1)
+    assert (boxes[region, :2] <= lo).all() and (boxes[region, 2:] >= hi).all()
+    area = ((boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])).sum()
+    assert len(boxes) > 1 and area < 0.25 * 1920 * 1080
+    # a compact blob stays one region
+    grid = np.stack(np.meshgrid(np.arange(200, 600, 10.0), np.arange(200, 500, 10.0)), -1)
+    blob = grid.reshape(-1, 1, 2) + np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0]])
+    assert len(frame_regions(blob, 1920, 1080)[1]) == 1
+
+
 def test_colorize_points(recording: Recording, caster: Caster) -> None:
     rng = np.random.default_rng(7)
     # points on the far wall z = 2 (visible), behind the pillar and on the floor below the rig
@@ -285,6 +302,15 @@ def test_bad_inputs_are_stage_errors(recording: Recording, mesh) -> None:
         pa.array([b"not a jpeg"] * recording.frames.num_rows, pa.binary()))
     with pytest.raises(StageError, match="not a decodable image"):
         STAGE.run({**inputs, "frames": broken})
+    # one broken frame among good ones (rated on several threads): its error, naming it
+    data = recording.frames.column("data").to_pylist()
+    data[len(data) // 2] = b"not a jpeg either"
+    one_broken = recording.frames.set_column(
+        recording.frames.column_names.index("data"), "data", pa.array(data, pa.binary()))
+    seq = recording.frames.column("sequence")[len(data) // 2].as_py()
+    cam = recording.frames.column("camera_id")[len(data) // 2].as_py()
+    with pytest.raises(StageError, match=f"frame {seq} of '{cam}'.*not a decodable image"):
+        STAGE.run({**inputs, "frames": one_broken})
     no_cams = recording.rig.model_copy(update={"cameras": ()})
     untextured = STAGE.run({**inputs, "rig": rig_table(no_cams)})
     assert untextured.tables["texture_pages"].num_rows == 0

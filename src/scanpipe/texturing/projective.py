@@ -113,29 +113,38 @@ def view_window(cam: CameraConfig, beta_deg: float) -> tuple[float, float] | Non
 
 
 class AzimuthIndex:
-    """Items (vertices, faces) sorted by azimuth about the motor axis, so that the ones inside
-    a camera's azimuth window are one or two slices; items near the axis are always taken."""
+    """Items (vertices, faces) ordered by azimuth about the motor axis, those near the axis
+    first, so that the ones inside a camera's azimuth window are a few contiguous ranges of
+    :attr:`order` (items near the axis are always taken)."""
 
     def __init__(self, points: NDArray[np.floating], near_m: float) -> None:
         azimuth = np.degrees(np.arctan2(points[:, 0], points[:, 2]))
         near = np.hypot(points[:, 0], points[:, 2]) < near_m
         far = np.flatnonzero(~near)
-        order = np.argsort(azimuth[far], kind="stable")
-        self.order = far[order]
-        self.sorted_deg = azimuth[self.order]
-        self.near = np.flatnonzero(near)
+        by_azimuth = far[np.argsort(azimuth[far], kind="stable")]
+        self.n_near = len(points) - len(far)
+        #: Item indices: those near the axis, then the others by azimuth.
+        self.order = np.concatenate([np.flatnonzero(near), by_azimuth])
+        self.sorted_deg = azimuth[by_azimuth]
         self.count = len(points)
+
+    def ranges(self, centre_deg: float, half_deg: float) -> list[tuple[int, int]]:
+        """Ranges ``[start, stop)`` of :attr:`order` with the items whose azimuth is within
+        ``half_deg`` of ``centre_deg``, and those near the axis."""
+        if half_deg >= 180.0:
+            return [(0, self.count)]
+        lo, hi = centre_deg - half_deg, centre_deg + half_deg
+        parts = [(0, self.n_near)] if self.n_near else []
+        for a, b in ((lo, hi), (lo + 360.0, hi + 360.0), (lo - 360.0, hi - 360.0)):
+            i, j = np.searchsorted(self.sorted_deg, (a, b))
+            if j > i:
+                parts.append((self.n_near + int(i), self.n_near + int(j)))
+        return parts
 
     def window(self, centre_deg: float, half_deg: float) -> NDArray[np.int64]:
         """Indices with azimuth within ``half_deg`` of ``centre_deg`` (plus those near the axis)."""
-        if half_deg >= 180.0:
-            return np.arange(self.count)
-        lo, hi = centre_deg - half_deg, centre_deg + half_deg
-        parts = [self.near]
-        for a, b in ((lo, hi), (lo + 360.0, hi + 360.0), (lo - 360.0, hi - 360.0)):
-            i, j = np.searchsorted(self.sorted_deg, (a, b))
-            parts.append(self.order[i:j])
-        return np.concatenate(parts)
+        parts = [self.order[a:b] for a, b in self.ranges(centre_deg, half_deg)]
+        return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
 
 def resolution_weights(cameras: list[CameraConfig]) -> F64:
@@ -146,8 +155,9 @@ def resolution_weights(cameras: list[CameraConfig]) -> F64:
 
 
 def wraps(uv: F64, cam: CameraConfig) -> NDArray[np.bool_]:
-    """Faces (corner pixels ``(k, 3, 2)``) that cross an equirect image's left/right wrap (or
-    sit so near a pole that they spread across a quarter of it): they cannot be cut from it."""
+    """Faces (corner pixels ``(k, 3, 2)``, or only their u ``(k, 3, 1)``) that cross an
+    equirect image's left/right wrap (or sit so near a pole that they spread across a quarter
+    of it): they cannot be cut from it."""
     if cam.model != "equirect":
         return np.zeros(len(uv), dtype=bool)
     u = uv[:, :, 0]
@@ -163,7 +173,10 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     """``(frames, faces)`` scores (0 = unusable); see the module docstring.
 
     Per frame only the vertices and faces within the camera's azimuth window (plus those near
-    the axis, where the camera's offset from the axis matters) are looked at.
+    the axis, where the camera's offset from the axis matters) are looked at. Vertices and
+    faces are renumbered by azimuth once, so that a window is a few contiguous slices of
+    every per-face array (no gathers of the face data per frame; this loop is a large share
+    of the stage).
     """
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
@@ -176,43 +189,55 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     centroids = np.asarray(vertices[faces].mean(axis=1), dtype=np.float64)
     vertex_index = AzimuthIndex(vertices, near_m)
     face_index = AzimuthIndex(centroids, near_m)
+    # everything below in azimuth order: vertex k is vertices[vertex_index.order[k]]
+    position = np.empty(len(vertices), dtype=np.int64)
+    position[vertex_index.order] = np.arange(len(vertices))
+    face_ids = face_index.order
+    corners = [np.ascontiguousarray(position[faces[face_ids, k]]) for k in range(3)]
+    points = vertices[vertex_index.order]
+    centre_of = np.ascontiguousarray(centroids[face_ids])
+    normal_of = np.ascontiguousarray(normals[face_ids])
     # cos θ = (n·c − n·p) / |c − p| from per-face constants and two mat-vec products per frame
-    # (no (faces, 3) temporaries: this loop is a large share of the stage)
-    n_dot_p = np.einsum("ij,ij->i", normals, centroids)
-    p_squared = np.einsum("ij,ij->i", centroids, centroids)
-    uv = np.zeros((len(vertices), 2))
+    n_dot_p = np.einsum("ij,ij->i", normal_of, centre_of)
+    p_squared = np.einsum("ij,ij->i", centre_of, centre_of)
+    u = np.zeros(len(vertices))
+    v = np.zeros(len(vertices))
     valid = np.zeros(len(vertices), dtype=bool)
-    everything = np.arange(len(faces))
     for i, cam in enumerate(frames.cameras):
         beta = float(frames.beta_deg[i])
         window = view_window(cam, beta)
-        if window is None:  # every direction in view: no index look-ups
-            uv, _, valid = project_valid(vertices, cam, beta, margin_px)
-            fidx = everything
+        if window is None:  # every direction in view
+            vertex_ranges = [(0, len(vertices))]
+            face_ranges = [(0, len(faces))]
         else:
             window = (window[0], window[1] + parallax_deg)
-            near = vertex_index.window(*window)
+            vertex_ranges = vertex_index.ranges(*window)
+            face_ranges = face_index.ranges(*window)
             valid[:] = False
-            uv[near], _, valid[near] = project_valid(vertices[near], cam, beta, margin_px)
-            fidx = face_index.window(*window)
-        corners = faces[fidx]
-        inside = valid[corners[:, 0]] & valid[corners[:, 1]] & valid[corners[:, 2]]
-        fidx, corners = fidx[inside], corners[inside]
-        if cam.model == "equirect":
-            ok = ~wraps(uv[corners], cam)
-            fidx, corners = fidx[ok], corners[ok]
+        for a, b in vertex_ranges:
+            uv, _, valid[a:b] = project_valid(points[a:b], cam, beta, margin_px)
+            u[a:b], v[a:b] = uv[:, 0], uv[:, 1]
         centre = frames.centre(i)
-        distance = np.sqrt(np.maximum(
-            p_squared[fidx] - 2 * (centroids[fidx] @ centre) + centre @ centre, 1e-24))
-        cos = (normals[fidx] @ centre - n_dot_p[fidx]) / distance
-        if two_sided:
-            cos = np.abs(cos)
-        keep = cos >= min_cos
-        fidx, corners, cos = fidx[keep], corners[keep], cos[keep]
-        score = cos * sharp[i]
-        if cam.model == "pinhole":
-            score *= centrality(uv[corners].mean(axis=1), cam)
-        scores[i, fidx] = score
+        for a, b in face_ranges:
+            c0, c1, c2 = corners[0][a:b], corners[1][a:b], corners[2][a:b]
+            inside = np.flatnonzero(valid[c0] & valid[c1] & valid[c2])
+            c0, c1, c2 = c0[inside], c1[inside], c2[inside]
+            if cam.model == "equirect":
+                ok = ~wraps(np.stack([u[c0], u[c1], u[c2]], 1)[:, :, None], cam)
+                inside, c0, c1, c2 = inside[ok], c0[ok], c1[ok], c2[ok]
+            at = inside + a
+            distance = np.sqrt(np.maximum(
+                p_squared[at] - 2 * (centre_of[at] @ centre) + centre @ centre, 1e-24))
+            cos = (normal_of[at] @ centre - n_dot_p[at]) / distance
+            if two_sided:
+                cos = np.abs(cos)
+            keep = cos >= min_cos
+            score = cos[keep] * sharp[i]
+            if cam.model == "pinhole":
+                c0, c1, c2 = c0[keep], c1[keep], c2[keep]
+                mean_uv = np.stack([(u[c0] + u[c1] + u[c2]) / 3, (v[c0] + v[c1] + v[c2]) / 3], 1)
+                score *= centrality(mean_uv, cam)
+            scores[i, face_ids[at[keep]]] = score
         progress("score frames", i + 1, len(frames))
     return scores
 

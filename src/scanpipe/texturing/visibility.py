@@ -22,6 +22,23 @@ CORNER_INSET = 0.95
 DENSE_EDGE_M = 0.05
 #: Of :meth:`MeshOcclusion.face_samples`, the seven tested on every face.
 BASE_SAMPLES = np.array([0, 1, 2, 3, 7, 8, 9])
+#: Of :meth:`MeshOcclusion.face_samples`, the six more tested on faces with long edges.
+DENSE_SAMPLES = np.array([4, 5, 6, 10, 11, 12])
+
+
+def _sample_weights() -> NDArray[np.float32]:
+    """``(13, 3)``: each of :meth:`MeshOcclusion.face_samples` as weights of the corners."""
+    corners = np.eye(3)
+    centroid = corners.mean(axis=0)
+    following = np.roll(corners, -1, axis=0)
+    edge_points = [(1 - t) * corners + t * following for t in (0.25, 0.5, 0.75)]
+    inset = centroid + CORNER_INSET * (np.concatenate([corners, *edge_points]) - centroid)
+    return np.concatenate([centroid[None], inset]).astype(np.float32)
+
+
+SAMPLE_WEIGHTS = _sample_weights()
+BASE_WEIGHTS = SAMPLE_WEIGHTS[BASE_SAMPLES]
+DENSE_WEIGHTS = SAMPLE_WEIGHTS[DENSE_SAMPLES]
 
 
 class MeshOcclusion:
@@ -47,13 +64,8 @@ class MeshOcclusion:
     def face_samples(self, face_ids: NDArray[np.integer]) -> NDArray[np.float32]:
         """``(len(face_ids), 13, 3)``: centroid, inset corners, inset points at ¼, ½ and ¾ of
         each edge, per face (:data:`BASE_SAMPLES` picks centroid, corners and middles)."""
-        corners = self.vertices[self.faces[face_ids]]
-        centroid = corners.mean(axis=1, keepdims=True)
-        following = np.roll(corners, -1, axis=1)
-        edge_points = [(1 - t) * corners + t * following for t in (0.25, 0.5, 0.75)]
-        inset = centroid + CORNER_INSET * (np.concatenate([corners, *edge_points], axis=1)
-                                           - centroid)
-        return np.concatenate([centroid, inset], axis=1)
+        return np.asarray(np.matmul(SAMPLE_WEIGHTS, self.vertices[self.faces[face_ids]]),
+                          dtype=np.float32)
 
     def unobstructed(self, origins: NDArray[np.floating], points: NDArray[np.floating],
                      face_ids: NDArray[np.integer], abs_tol_m: float = 0.01,
@@ -85,25 +97,25 @@ class MeshOcclusion:
         face_ids = np.asarray(face_ids, dtype=np.int64)
         n = len(face_ids)
         corners = self.vertices[self.faces[face_ids]]  # (n, 3, 3) float32
-        centroid = corners.mean(axis=1, keepdims=True)
-        following = np.roll(corners, -1, axis=1)
-        base = np.concatenate([centroid, centroid + CORNER_INSET * (corners - centroid),
-                               centroid + CORNER_INSET * (0.5 * (corners + following)
-                                                          - centroid)], axis=1)  # (n, 7, 3)
-        edge = corners - following
+        # the seven points as fixed mixtures of the corners: one product, no temporaries
+        base = np.matmul(BASE_WEIGHTS, corners)  # (n, 7, 3)
+        edge = corners - np.roll(corners, -1, axis=1)
         longest = np.sqrt(np.einsum("fkc,fkc->fk", edge, edge).max(axis=1))
         dense = np.flatnonzero(longest > DENSE_EDGE_M)
         origins = np.asarray(origins, np.float32)
-        points, owner = [base.reshape(-1, 3)], [np.repeat(np.arange(n), 7)]
+        points = [base.reshape(-1, 3)]
+        ray_origins = [np.repeat(origins, 7, axis=0)]
+        face_of = [np.repeat(np.arange(n), 7)]
         if len(dense):
-            extra = self.face_samples(face_ids[dense])[:, [4, 5, 6, 10, 11, 12]]
+            extra = np.matmul(DENSE_WEIGHTS, corners[dense])  # (d, 6, 3)
             points.append(extra.reshape(-1, 3))
-            owner.append(np.repeat(dense, 6))
-        face_of = np.concatenate(owner)
-        ok = self.unobstructed(origins[face_of], np.concatenate(points), face_ids[face_of],
-                               abs_tol_m, rel_tol)
+            ray_origins.append(np.repeat(origins[dense], 6, axis=0))
+            face_of.append(np.repeat(dense, 6))
+        owner = np.concatenate(face_of)
+        ok = self.unobstructed(np.concatenate(ray_origins), np.concatenate(points),
+                               face_ids[owner], abs_tol_m, rel_tol)
         hidden = np.zeros(n, dtype=bool)
-        hidden[face_of[~ok]] = True
+        hidden[owner[~ok]] = True
         return ~hidden
 
 
