@@ -303,10 +303,13 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
         inputs, params.cloud_colors and bool(params.cloud_formats or "mcap" in
                                              params.mesh_formats), progress)
     mesh_tables = {k: v for k, v in tables.items() if k not in ("points", *CAMERA_ARTIFACTS)}
+    # a cloud format gets no mesh: ``ply`` of tables with a mesh is the mesh's PLY
+    cloud_tables = {k: v for k, v in tables.items()
+                    if k not in (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)}
     jobs: list[tuple[str, Mapping[str, pa.Table], str]] = [
         (fmt, tables if fmt == "mcap" else mesh_tables, params.name)
         for fmt in params.mesh_formats]
-    jobs += [(fmt, tables, params.cloud_name) for fmt in params.cloud_formats]
+    jobs += [(fmt, cloud_tables, params.cloud_name) for fmt in params.cloud_formats]
     for done, (fmt, job_tables, stem) in enumerate(jobs):
         progress("export", done, len(jobs))
         files.update(export_files(job_tables, fmt, stem, params.las_version, params.glb_draco))
@@ -324,8 +327,9 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
 
 STAGE = Stage(
     name="export",
-    version=4,  # 2: coloured points in every format, LAS 1.2, COPC, COLMAP; 3: the Foxglove
-    # file has the cloud, camera images and a layout beside it; 4: E57 carries the frames
+    version=5,  # 2: coloured points in every format, LAS 1.2, COPC, COLMAP; 3: the Foxglove
+    # file has the cloud, camera images and a layout beside it; 4: E57 carries the frames;
+    # 5: the cloud PLY is the points (it was the mesh's PLY when the chain had a mesh)
     params=ExportStageParams,
     inputs=(*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points", "frames", "motor", "rig"),
     outputs=("export_manifest",),
