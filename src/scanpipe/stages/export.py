@@ -136,12 +136,15 @@ def prepare_tables(tables: Mapping[str, pa.Table], colors: bool = True,
 
 
 def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
-                 las_version: str = "1.2", draco: bool = False) -> dict[str, bytes]:
+                 las_version: str = "1.2", draco: bool = False,
+                 models: tuple[MeshModel | None, CloudModel | None] | None = None
+                 ) -> dict[str, bytes]:
     """The files of one export, by name; the first is the main file. ``tables`` as
-    :func:`prepare_tables` gives them; ``draco`` compresses a GLB's geometry."""
+    :func:`prepare_tables` gives them; ``draco`` compresses a GLB's geometry. ``models`` is
+    :func:`models_from_tables` of ``tables`` when the caller has it (built once per stage)."""
     fmt = check_format(fmt)
     check_las_version(las_version)
-    mesh, cloud = models_from_tables(tables)
+    mesh, cloud = models_from_tables(tables) if models is None else models
     if fmt in ("obj", "glb") or (fmt == "ply" and mesh is not None):
         if mesh is None:
             raise ArtifactError(f"{fmt} export needs a mesh (mesh_vertices and mesh_faces "
@@ -310,9 +313,15 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
         (fmt, tables if fmt == "mcap" else mesh_tables, params.name)
         for fmt in params.mesh_formats]
     jobs += [(fmt, cloud_tables, params.cloud_name) for fmt in params.cloud_formats]
+    # each model is checked and built once, not once per format
+    mesh = models_from_tables(mesh_tables)[0]
+    cloud = models_from_tables(cloud_tables)[1]
     for done, (fmt, job_tables, stem) in enumerate(jobs):
         progress("export", done, len(jobs))
-        files.update(export_files(job_tables, fmt, stem, params.las_version, params.glb_draco))
+        models = (mesh, cloud) if fmt == "mcap" else (
+            (mesh, None) if job_tables is mesh_tables else (None, cloud))
+        files.update(export_files(job_tables, fmt, stem, params.las_version, params.glb_draco,
+                                  models))
     progress("export", len(jobs), len(jobs))
     manifest = pa.table({
         "file": pa.array(list(files), pa.string()),
