@@ -154,3 +154,19 @@ def test_cloud_formats_need_points() -> None:
     for fmt in ("las", "laz", "e57"):
         with pytest.raises(ArtifactError, match="needs a points artifact"):
             export_files(textured_quad(), fmt, "x")
+
+
+def test_chain_cloud_ply_is_the_points_beside_a_mesh(tmp_path: Path) -> None:
+    """The chain's ``cloud.ply`` holds the points, not the mesh (which is model.*)."""
+    from scanpipe.progress import no_progress
+    from scanpipe.stages.export import ExportStageParams, export_stage
+
+    tables = {**textured_quad(), "points": points_table()}
+    result = export_stage(tables, ExportStageParams(), no_progress)
+    assert set(result.files) >= {"model.obj", "model.glb", "cloud.ply"}
+    write_files(result.files, tmp_path)
+    cloud = o3d.io.read_point_cloud(str(tmp_path / "cloud.ply"))
+    expected, colours, _ = _cloud(points_table())
+    np.testing.assert_allclose(np.asarray(cloud.points), expected, atol=1e-6)
+    assert b"element face" not in result.files["cloud.ply"][:2000]
+    np.testing.assert_array_equal(np.rint(np.asarray(cloud.colors) * 255), colours)

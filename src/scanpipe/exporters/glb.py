@@ -45,12 +45,12 @@ class _Builder:
     """Accumulates buffer views and accessors into one binary buffer."""
 
     def __init__(self) -> None:
-        self.blobs: list[bytes] = []
+        self.blobs: list[bytes | memoryview] = []
         self.offset = 0
         self.views: list[dict[str, Any]] = []
         self.accessors: list[dict[str, Any]] = []
 
-    def view(self, data: bytes, target: int | None = None) -> int:
+    def view(self, data: bytes | memoryview, target: int | None = None) -> int:
         view: dict[str, Any] = {"buffer": 0, "byteOffset": self.offset, "byteLength": len(data)}
         if target is not None:
             view["target"] = target
@@ -64,7 +64,7 @@ class _Builder:
                  normalized: bool = False, bounds: bool = False) -> int:
         data = np.ascontiguousarray(array)
         accessor: dict[str, Any] = {
-            "bufferView": self.view(data.tobytes(), target),
+            "bufferView": self.view(data.data.cast("B"), target),  # a view: no copy
             "componentType": component,
             "count": int(data.shape[0]),
             "type": kind,
@@ -194,7 +194,6 @@ def glb_bytes(mesh: MeshModel, name: str = "scan", provenance: Mapping[str, Any]
         })
         add_primitive(source.astype(np.int64), inverse.ravel(), None, len(materials) - 1)
 
-    binary = b"".join(builder.blobs)
     document: dict[str, Any] = {
         "asset": {"version": "2.0", "generator": f"scanpipe {__version__}",
                   "extras": {"scanpipe": dict(provenance or {})}},
@@ -205,7 +204,7 @@ def glb_bytes(mesh: MeshModel, name: str = "scan", provenance: Mapping[str, Any]
         "materials": materials,
         "accessors": builder.accessors,
         "bufferViews": builder.views,
-        "buffers": [{"byteLength": len(binary)}],
+        "buffers": [{"byteLength": builder.offset}],
     }
     if draco:
         document["extensionsUsed"] = document["extensionsRequired"] = [DRACO]
@@ -216,9 +215,10 @@ def glb_bytes(mesh: MeshModel, name: str = "scan", provenance: Mapping[str, Any]
                                  "wrapS": CLAMP_TO_EDGE, "wrapT": CLAMP_TO_EDGE}]
     text = json.dumps(document, separators=(",", ":")).encode()
     text += b" " * ((-len(text)) % 4)
-    total = 12 + 8 + len(text) + 8 + len(binary)
+    total = 12 + 8 + len(text) + 8 + builder.offset
+    # one join of every piece: the binary chunk is never assembled on its own
     return b"".join([
         struct.pack("<4sII", b"glTF", 2, total),
         struct.pack("<I4s", len(text), b"JSON"), text,
-        struct.pack("<I4s", len(binary), b"BIN\0"), binary,
+        struct.pack("<I4s", builder.offset, b"BIN\0"), *builder.blobs,
     ])

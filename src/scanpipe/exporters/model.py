@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -56,6 +57,14 @@ class MeshModel:
     def textured(self) -> bool:
         """Whether any face has a texture page."""
         return self.face_pages is not None and bool(np.any(self.face_pages >= 0))
+
+    @cached_property
+    def unit_normals(self) -> F32:
+        """:func:`unit_normals`, computed once per model (OBJ, GLB and PLY all write them);
+        read-only."""
+        normals = _unit_normals(self)
+        normals.flags.writeable = False
+        return normals
 
 
 @dataclass(frozen=True)
@@ -197,7 +206,12 @@ def split_by_uv(corner_vertex: NDArray[np.integer], corner_uv: NDArray[np.floati
 
 
 def unit_normals(mesh: MeshModel) -> F32:
-    """Per-vertex unit normals: the mesh's own where usable, else area-weighted face normals."""
+    """Per-vertex unit normals: the mesh's own where usable, else area-weighted face normals
+    (read-only; computed once per model)."""
+    return mesh.unit_normals
+
+
+def _unit_normals(mesh: MeshModel) -> F32:
     v = mesh.vertices.astype(np.float64)
     given = (np.zeros_like(v) if mesh.normals is None
              else np.nan_to_num(mesh.normals.astype(np.float64)))

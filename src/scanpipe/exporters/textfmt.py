@@ -54,7 +54,8 @@ def _blank_leading_zeros(chars: NDArray[np.uint8], values: NDArray[np.int64]) ->
     width = chars.shape[0]
     for k in range(width - 1):
         # place k (from the left) is a leading zero when the value has fewer than width−k digits
-        chars[k][values < 10 ** (width - 1 - k)] = 0
+        # (a multiply by the mask is ~3x faster than a boolean-indexed assignment)
+        np.multiply(chars[k], values >= 10 ** (width - 1 - k), out=chars[k])
 
 
 def _width(top: int) -> int:
@@ -120,8 +121,8 @@ def render_lines(rows: int, parts: Sequence[Part]) -> bytes:
                 block[2 + whole_width:] = _digits(frac, part.decimals) + np.uint8(48)
         col += width
     chars[col] = ord("\n")
-    flat = np.ascontiguousarray(chars.T).reshape(-1)
-    return bytes(flat[flat != 0].tobytes())
+    # bytes.translate drops the NULs in one C pass, faster than a numpy boolean mask
+    return np.ascontiguousarray(chars.T).tobytes().translate(None, b"\0")
 
 
 def float_rows(prefix: bytes, values: NDArray[np.floating], decimals: int = 6) -> bytes:

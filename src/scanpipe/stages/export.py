@@ -136,12 +136,15 @@ def prepare_tables(tables: Mapping[str, pa.Table], colors: bool = True,
 
 
 def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
-                 las_version: str = "1.2", draco: bool = False) -> dict[str, bytes]:
+                 las_version: str = "1.2", draco: bool = False,
+                 models: tuple[MeshModel | None, CloudModel | None] | None = None
+                 ) -> dict[str, bytes]:
     """The files of one export, by name; the first is the main file. ``tables`` as
-    :func:`prepare_tables` gives them; ``draco`` compresses a GLB's geometry."""
+    :func:`prepare_tables` gives them; ``draco`` compresses a GLB's geometry. ``models`` is
+    :func:`models_from_tables` of ``tables`` when the caller has it (built once per stage)."""
     fmt = check_format(fmt)
     check_las_version(las_version)
-    mesh, cloud = models_from_tables(tables)
+    mesh, cloud = models_from_tables(tables) if models is None else models
     if fmt in ("obj", "glb") or (fmt == "ply" and mesh is not None):
         if mesh is None:
             raise ArtifactError(f"{fmt} export needs a mesh (mesh_vertices and mesh_faces "
@@ -303,13 +306,22 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
         inputs, params.cloud_colors and bool(params.cloud_formats or "mcap" in
                                              params.mesh_formats), progress)
     mesh_tables = {k: v for k, v in tables.items() if k not in ("points", *CAMERA_ARTIFACTS)}
+    # a cloud format gets no mesh: ``ply`` of tables with a mesh is the mesh's PLY
+    cloud_tables = {k: v for k, v in tables.items()
+                    if k not in (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)}
     jobs: list[tuple[str, Mapping[str, pa.Table], str]] = [
         (fmt, tables if fmt == "mcap" else mesh_tables, params.name)
         for fmt in params.mesh_formats]
-    jobs += [(fmt, tables, params.cloud_name) for fmt in params.cloud_formats]
+    jobs += [(fmt, cloud_tables, params.cloud_name) for fmt in params.cloud_formats]
+    # each model is checked and built once, not once per format
+    mesh = models_from_tables(mesh_tables)[0]
+    cloud = models_from_tables(cloud_tables)[1]
     for done, (fmt, job_tables, stem) in enumerate(jobs):
         progress("export", done, len(jobs))
-        files.update(export_files(job_tables, fmt, stem, params.las_version, params.glb_draco))
+        models = (mesh, cloud) if fmt == "mcap" else (
+            (mesh, None) if job_tables is mesh_tables else (None, cloud))
+        files.update(export_files(job_tables, fmt, stem, params.las_version, params.glb_draco,
+                                  models))
     progress("export", len(jobs), len(jobs))
     manifest = pa.table({
         "file": pa.array(list(files), pa.string()),
@@ -324,8 +336,9 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
 
 STAGE = Stage(
     name="export",
-    version=4,  # 2: coloured points in every format, LAS 1.2, COPC, COLMAP; 3: the Foxglove
-    # file has the cloud, camera images and a layout beside it; 4: E57 carries the frames
+    version=5,  # 2: coloured points in every format, LAS 1.2, COPC, COLMAP; 3: the Foxglove
+    # file has the cloud, camera images and a layout beside it; 4: E57 carries the frames;
+    # 5: the cloud PLY is the points (it was the mesh's PLY when the chain had a mesh)
     params=ExportStageParams,
     inputs=(*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points", "frames", "motor", "rig"),
     outputs=("export_manifest",),
