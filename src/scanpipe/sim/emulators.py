@@ -15,6 +15,7 @@ import os
 import select
 import socket
 import threading
+import time
 import tty
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,7 +33,7 @@ from scanpipe.sim.camera import CameraModel, render_rgb
 from scanpipe.sim.clock import SimClock
 from scanpipe.sim.controller import MotorController
 from scanpipe.sim.devices import EmulatedDevice, emulated_device
-from scanpipe.sim.motion import PlatformState
+from scanpipe.sim.motion import Move, PlatformState
 from scanpipe.sim.options import SimOptions
 from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import (
@@ -59,6 +60,17 @@ class SentProfile:
     beta_first_deg: float
     beta_last_deg: float
     ranges_true_m: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """A scan measured ahead of being sent, and the platform moves it was measured with."""
+
+    k: int
+    moves: tuple[Move, ...]
+    measured: NDArray[np.float32]
+    echo: NDArray[np.uint16] | None
+    sent: SentProfile
 
 
 class _PtyEndpoint:
@@ -251,12 +263,22 @@ class ScannerEmulator:
             self.devices.append(device)
         serial = isinstance(client, _PtyEndpoint)
         next_k = self._next_head_index(self.clock.now_s())
+        # A scan is measured (ray cast) ahead of its end by ``lead_s`` of simulation time, the
+        # time measuring took last (×2), and sent at its end: a real head sends a scan the
+        # moment it is taken, and measuring it only at its end put every receipt that much
+        # late (≈ 4 ms of host time for an STL-27L turn), a floor under the latency that the
+        # chain's clock fit, which takes the smallest latency as zero, turns into a time
+        # error. It is re-measured at its end if the platform's moves changed meanwhile, so
+        # the truth stays the truth.
+        prepared: _Prepared | None = None
+        lead_s = 0.0
         try:
             while not self._stop.is_set():
                 config = device.config()
                 period = 1.0 / config.scan_hz
                 due_s = self.phase_s + next_k * period + sector_duration_s(config)
-                wait_real = (due_s - self.clock.now_s()) / self.clock.speedup
+                wake_s = due_s if prepared is not None else due_s - lead_s
+                wait_real = (wake_s - self.clock.now_s()) / self.clock.speedup
                 timeout = min(max(wait_real, 0.0), POLL_S) if device.streaming else POLL_S
                 readable, _, _ = select.select([client], [], [], timeout)
                 if readable:
@@ -270,9 +292,13 @@ class ScannerEmulator:
                             client.sendall(reply)
                         if device.streaming and not was_streaming:
                             next_k = self._next_head_index(now, 1.0 / device.config().scan_hz)
+                            prepared = None
+                    continue
+                if not device.streaming:
+                    prepared = None
                     continue
                 now_s = self.clock.now_s()
-                if device.streaming and now_s >= due_s:
+                if now_s >= due_s:
                     # A real head never falls behind: scans the emulator could not measure in
                     # time are skipped (counted), not sent late with stale device stamps, which
                     # would bend the host-device clock fit.
@@ -281,9 +307,17 @@ class ScannerEmulator:
                     if newest > next_k:
                         with self._lock:
                             self.skipped_scans += newest - next_k
-                        next_k = newest
-                    client.sendall(self._profile(next_k, config, device))
-                    next_k += 1
+                        next_k, prepared = newest, None
+                if prepared is None and now_s >= due_s - lead_s:
+                    began = time.monotonic()
+                    prepared = self._prepare(next_k, config)
+                    lead_s = min(0.5 * period, 2.0 * (time.monotonic() - began)
+                                 * self.clock.speedup)
+                if prepared is not None and self.clock.now_s() >= due_s:
+                    if prepared.moves != self.platform.timeline().moves:
+                        prepared = self._prepare(next_k, config)
+                    client.sendall(self._send(prepared, config, device))
+                    next_k, prepared = next_k + 1, None
         except OSError:
             return
         finally:
@@ -294,7 +328,9 @@ class ScannerEmulator:
         period = period if period is not None else 1.0 / self.scanner.scan_hz
         return max(0, int(np.ceil((now_s - self.phase_s) / period - 1e-9)))
 
-    def _profile(self, k: int, config: ScannerConfig, device: EmulatedDevice) -> bytes:
+    def _prepare(self, k: int, config: ScannerConfig) -> _Prepared:
+        """Measure scan ``k`` (at the platform angles of its samples' instants)."""
+        moves = self.platform.timeline().moves
         start_s = self.phase_s + k / config.scan_hz
         times = start_s + sample_time_offsets_s(config)
         beta = self.platform.beta_deg_at(times)[None, :]
@@ -302,10 +338,16 @@ class ScannerEmulator:
         measured = measure(truth, self.measurement, k, config)[0]
         echo = (echo_amplitude(measured[None, :], truth)[0] if self._sends_echo(config)
                 else None)
+        return _Prepared(k, moves, measured, echo,
+                         SentProfile(k, start_s, float(beta[0, 0]), float(beta[0, -1]),
+                                     truth.ranges_m[0]))
+
+    def _send(self, prepared: _Prepared, config: ScannerConfig, device: EmulatedDevice) -> bytes:
+        """The device's bytes for a measured scan, recorded as sent."""
         with self._lock:
-            self.sent.append(SentProfile(k, start_s, float(beta[0, 0]), float(beta[0, -1]),
-                                         truth.ranges_m[0]))
-        return device.encode(k, measured, echo, config, start_s)
+            self.sent.append(prepared.sent)
+        return device.encode(prepared.k, prepared.measured, prepared.echo, config,
+                             prepared.sent.start_s)
 
     @staticmethod
     def _sends_echo(config: ScannerConfig) -> bool:
