@@ -55,6 +55,15 @@ def test_fit_follows_the_least_late_pairs_when_the_backlog_drifts() -> None:
     assert model.rate == pytest.approx(rate, rel=2e-4)
     true = T0 + 1_000_000 + np.rint(device * rate).astype(np.int64)
     assert np.abs(model.to_host_ns(device) - true).max() < 1e6
+    assert model.problems() == [] or all("prompt" not in p for p in model.problems())
+    # A host that fell behind for a stretch (no prompt receipt in it): the times there are
+    # a guess, and the fit says so instead of passing them off as measured.
+    behind = latency.copy()
+    behind[n // 4: n // 2] += 60e6
+    lagging = fit_clock(device, T0 + np.rint(device * rate + behind).astype(np.int64))
+    assert lagging.floor_drift_s > 0.05
+    assert any("no receipt was prompt" in p for p in lagging.problems())
+    assert lagging.report()["floor_drift_ms"] > 50
 
 
 def test_fit_with_given_offset_keeps_rate_one() -> None:

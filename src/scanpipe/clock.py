@@ -33,6 +33,11 @@ F64 = NDArray[np.float64]
 DRIFT_WARN = 1e-3
 #: A latency spread beyond this says the device times and the receive times disagree.
 LATENCY_SPREAD_WARN_S = 1.0
+#: The least latency of a stretch of the recording above the envelope beyond which the fit is
+#: flagged: the host fell behind the device for that stretch (no prompt receipt in it), so the
+#: times there may be off by up to that much. Each eighth of the pairs is a stretch.
+FLOOR_DRIFT_WARN_S = 0.025
+_STRETCHES = 8
 #: Pairs used for the second, lower-side fit: the best-fitting share of them.
 _LOWER_SHARE = 0.75
 
@@ -48,6 +53,9 @@ class ClockModel:
     #: Receive latency over the pairs: median and 99th percentile above the envelope, in s.
     median_latency_s: float = 0.0
     p99_latency_s: float = 0.0
+    #: The largest least latency of an eighth of the pairs (0 when fewer than 16 pairs): where
+    #: no receipt was prompt, the envelope is a guess.
+    floor_drift_s: float = 0.0
     #: What the device times are, for messages.
     name: str = "the device clock"
 
@@ -63,6 +71,10 @@ class ClockModel:
             found.append(f"{self.name} runs {1.0 / self.rate:.4g}× as fast as the host "
                          f"clock (a simulated speed-up, or a wrong clock or scan rate); its "
                          f"times are scaled by the fitted rate {self.rate:.6g}")
+        if self.floor_drift_s > FLOOR_DRIFT_WARN_S:
+            found.append(f"no receipt was prompt for a stretch of the recording (its least "
+                         f"latency {self.floor_drift_s * 1e3:.0f} ms: the host fell behind "
+                         f"{self.name}); times there may be off by up to that much")
         if self.p99_latency_s > LATENCY_SPREAD_WARN_S:
             found.append(f"receive latency varies by {self.p99_latency_s:.2f} s (99th "
                          f"percentile): device and receive times disagree")
@@ -72,7 +84,8 @@ class ClockModel:
         """The model as JSON-ready values for a stage report."""
         return {"offset_ns": self.offset_ns, "rate": self.rate, "pairs": self.pairs,
                 "median_latency_ms": self.median_latency_s * 1e3,
-                "p99_latency_ms": self.p99_latency_s * 1e3, "problems": self.problems()}
+                "p99_latency_ms": self.p99_latency_s * 1e3,
+                "floor_drift_ms": self.floor_drift_s * 1e3, "problems": self.problems()}
 
 
 def _least_squares(x: F64, y: F64) -> tuple[float, float]:
@@ -121,6 +134,15 @@ def _envelope_slope(x: F64, y: F64, guess: float, bins: int = 512) -> float:
     return slope if np.isfinite(slope) and slope > 0 else guess
 
 
+def _floor_drift_s(x: F64, above: F64) -> float:
+    """The largest least latency (``above`` the envelope) of each eighth of the pairs in
+    device-time order; 0 for fewer than 16 pairs."""
+    if above.size < 2 * _STRETCHES:
+        return 0.0
+    order = np.argsort(x, kind="stable")
+    return float(max(float(part.min()) for part in np.array_split(above[order], _STRETCHES)))
+
+
 def fit_clock(device_ns: I64, host_ns: I64, rate: float | None = None,
               offset_ns: int | None = None) -> ClockModel:
     """Fit ``host = offset + rate · device`` to pairs; ``rate``/``offset_ns`` fix either part.
@@ -157,7 +179,8 @@ def fit_clock(device_ns: I64, host_ns: I64, rate: float | None = None,
             np.float64) / 1e9
     return ClockModel(offset_ns=int(offset_ns), rate=float(rate), pairs=int(device.size),
                       median_latency_s=float(np.median(above)),
-                      p99_latency_s=float(np.quantile(above, 0.99)))
+                      p99_latency_s=float(np.quantile(above, 0.99)),
+                      floor_drift_s=_floor_drift_s(x, above))
 
 
 def unwrap_device_ticks(device_ticks: NDArray[np.integer], host_ns: I64,
