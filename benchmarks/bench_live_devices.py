@@ -121,7 +121,8 @@ def run_device(name: str, folder: Path, quick: bool, seed: int = 4) -> dict[str,
             "scans_skipped": meta.get("scans_skipped"),
             "time_source": assemble.get("time_source"), "mode": assemble.get("mode"),
             "clock_rate": clock.get("rate"), "motor_clock_rate": motor.get("rate"),
-            "true_rate": 1.0 / spec["speedup"]}
+            "clock_floor_drift_ms": clock.get("floor_drift_ms"),
+            "true_rate": 1.0 / spec["speedup"], "warnings": assemble.get("warnings", [])}
 
 
 def _busy() -> None:  # pragma: no cover - a load generator
