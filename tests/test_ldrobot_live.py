@@ -71,9 +71,11 @@ def test_simulate_ldrobot_live_then_run_is_within_the_noise(
     residual = residual[np.isfinite(residual)]
     assert np.sqrt(np.mean(np.square(residual))) <= 1.1 * sigma
     turn_ns = 1e9 / 10.0 / SPEEDUP
+    # No profile made of a skipped turn's holes (the first one may begin mid-turn: the recorder
+    # opened the port while the head turned).
     measured = [np.isfinite(np.asarray(r, np.float64)).mean() for r in
-                profiles.column("ranges_m").to_pylist()]
-    assert min(measured) > 0.5  # no profile made of a skipped turn's holes
+                profiles.column("ranges_m").to_pylist()[1:]]
+    assert min(measured) > 0.5
     head_turns = (start_ns[-1] - start_ns[0]) / turn_ns + 1
     coverage = profiles.num_rows / head_turns
     skipped = json.loads((truth / "meta.json").read_text())["scans_skipped"]
