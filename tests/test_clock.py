@@ -39,6 +39,33 @@ def test_fit_recovers_rate_and_envelope(rate: float) -> None:
     assert (abs(rate - 1) > 1e-3) == bool(model.problems())
 
 
+def test_fit_follows_the_least_late_pairs_when_the_backlog_drifts() -> None:
+    # A loaded host: the backlog grows over the first two thirds of the recording and drains,
+    # and only now and then is a receipt as prompt as it can be. A least-squares line through
+    # most pairs tilts with the drift; the line under the least-late pairs does not.
+    rng = np.random.default_rng(3)
+    n, rate = 1500, 0.1
+    device = np.arange(n, dtype=np.int64) * 20_000_000
+    ramp = np.interp(np.arange(n), [0, n * 2 // 3, n], [0.0, 40e6, 5e6])
+    latency = 1e6 + rng.exponential(3e6, n) + ramp * rng.uniform(0.5, 1.0, n)
+    prompt = rng.random(n) < 0.05
+    latency[prompt] = 1e6 + rng.exponential(0.2e6, np.count_nonzero(prompt))
+    host = T0 + np.rint(device * rate + latency).astype(np.int64)
+    model = fit_clock(device, host)
+    assert model.rate == pytest.approx(rate, rel=2e-4)
+    true = T0 + 1_000_000 + np.rint(device * rate).astype(np.int64)
+    assert np.abs(model.to_host_ns(device) - true).max() < 1e6
+    assert model.problems() == [] or all("prompt" not in p for p in model.problems())
+    # A host that fell behind for a stretch (no prompt receipt in it): the times there are
+    # a guess, and the fit says so instead of passing them off as measured.
+    behind = latency.copy()
+    behind[n // 4: n // 2] += 60e6
+    lagging = fit_clock(device, T0 + np.rint(device * rate + behind).astype(np.int64))
+    assert lagging.floor_drift_s > 0.05
+    assert any("no receipt was prompt" in p for p in lagging.problems())
+    assert lagging.report()["floor_drift_ms"] > 50
+
+
 def test_fit_with_given_offset_keeps_rate_one() -> None:
     device, host = _pairs(1.0)
     model = fit_clock(device, host, offset_ns=T0)

@@ -158,18 +158,30 @@ def test_a_live_simulation_followed_from_another_process_equals_the_batch_run(
     rig_file.write_text(rig_to_toml(rig))
     rec = tmp_path / "live.mcap"
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")}
-    simulate = subprocess.Popen(
-        [*SCANPIPE, "simulate", "--out", str(rec), "--truth", str(tmp_path / "truth"), "--rig",
-         str(rig_file), "--scene", "box", "--beam-step", "2", "--motor-step", "2",
-         "--camera-scale", "0.04", "--camera-fps", "2", "--speedup", "10", "--quiet"],
-        env=env, stderr=subprocess.PIPE, text=True)
-    follow = subprocess.run(
+    # The follower first, and the scan only once it says it follows: started together, the
+    # two processes' start-up raced, and on a loaded host the scan could end before the
+    # follower looked (no live preview to check). What the follower then sees of the scan
+    # no longer depends on which process the host started first.
+    follow = subprocess.Popen(
         [*SCANPIPE, "run", str(rec), "--workdir", str(tmp_path / "follow"), "--to", "mesh",
-         "--follow", "--follow-timeout", "30", "--json"],
-        env=env, capture_output=True, text=True, timeout=120)
-    assert simulate.wait(timeout=60) == 0, simulate.stderr.read()  # type: ignore[union-attr]
-    assert follow.returncode == 0, follow.stderr
-    report = json.loads(follow.stdout)["follow"]
+         "--follow", "--follow-timeout", "60", "--json"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert follow.stderr is not None
+        first_line = follow.stderr.readline()
+        assert "(following the recording)" in first_line, first_line
+        simulate = subprocess.Popen(
+            [*SCANPIPE, "simulate", "--out", str(rec), "--truth", str(tmp_path / "truth"),
+             "--rig", str(rig_file), "--scene", "box", "--beam-step", "2", "--motor-step", "2",
+             "--camera-scale", "0.04", "--camera-fps", "2", "--speedup", "10", "--quiet"],
+            env=env, stderr=subprocess.PIPE, text=True)
+        assert simulate.wait(timeout=60) == 0, simulate.stderr.read()  # type: ignore[union-attr]
+        stdout, stderr = follow.communicate(timeout=120)
+    finally:
+        if follow.poll() is None:
+            follow.kill()
+    assert follow.returncode == 0, stderr
+    report = json.loads(stdout)["follow"]
     assert report["complete"] and report["decode"] == "incremental", report
     assert report["scan_end_seen_ns"] is not None  # the recorder's scan_end event was read
     # The mesh at the scan's end is the final one, or the JSON says which input changed after it

@@ -1,8 +1,15 @@
-"""The user's path with an LDRobot LD06: the live virtual device on a pty, the recorder, then
-``scanpipe run``; the assembled points lie on the room within the device's noise."""
+"""The user's path with an LDRobot LD06 and STL-27L: the live virtual device on a pty, the
+recorder, then ``scanpipe run``; the assembled points lie on the room within the device's noise.
+
+On a loaded host the emulator skips the turns it cannot measure in time (a real head never
+falls behind; ``scans_skipped`` in the truth). A skipped turn must cost coverage, never
+accuracy: so the test checks that every turn the emulator sent while the recorder listened was
+decoded, reports the coverage, and holds the accuracy bound whatever the coverage is.
+"""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -15,35 +22,70 @@ from scanpipe.artifacts import read_provenance
 from scanpipe.evaluate import SurfaceDistance, load_reference
 from scanpipe.scanner_models import SCANNER_MODELS
 
-#: A speed-up the emulator keeps on a loaded machine: at 10× its turns (100 per second, 4 KiB
-#: of pty) arrive in bursts whose lateness drifts, and the fitted clock rate with them. 3×, not
-#: 5×: since the emulator skips the turns it cannot send in time, 5× gave 10.9–12.5 mm against
-#: the 11 mm limit (one fresh-clone CI failure); 3× leaves margin.
+#: The emulator's clock speed-up. The accuracy bound holds at any speed-up a machine keeps up
+#: with (skipped turns cost coverage only); at 3× a loaded machine still keeps most turns.
 SPEEDUP = 3.0
+#: Below this share of the head's turns the scan is too sparse to say anything; above it, the
+#: accuracy bound must hold however many turns the host made the emulator skip.
+MIN_COVERAGE = 0.5
 
 
 @pytest.mark.slow
-def test_simulate_ld06_live_then_run_is_within_the_noise(tmp_path: Path,
-                                                         cli: Callable[..., Any]) -> None:
-    recording, truth, work = tmp_path / "ld06.mcap", tmp_path / "truth", tmp_path / "work"
-    result = cli("simulate", "--scanner", "ld06", "--out", recording, "--truth", truth,
-                 "--mode", "continuous", "--motor-step", "1", "--camera-scale", "0.05",
+@pytest.mark.parametrize(("model", "motor_step"), [("ld06", "1"), ("stl27l", "2")])
+def test_simulate_ldrobot_live_then_run_is_within_the_noise(
+        tmp_path: Path, cli: Callable[..., Any], model: str, motor_step: str) -> None:
+    recording, truth, work = tmp_path / "rec.mcap", tmp_path / "truth", tmp_path / "work"
+    result = cli("simulate", "--scanner", model, "--out", recording, "--truth", truth,
+                 "--mode", "continuous", "--motor-step", motor_step, "--camera-scale", "0.05",
                  "--seed", "3", "--speedup", str(SPEEDUP), "--quiet")
     assert result.code == 0, result.err
     result = cli("run", recording, "--workdir", work, "--quiet")
     assert result.code == 0, result.err
     assert "Traceback" not in result.err
     decode = read_provenance(work / "decode" / "profiles.parquet")["report"]
-    assert decode["dialect"] == "ldrobot" and decode["counts"]["profiles"] > 100
+    assert decode["dialect"] == "ldrobot"
     assert decode["counters"]["checksum_failures"] == 0
     assemble = read_provenance(work / "assemble" / "points.parquet")["report"]
     assert assemble["mode"] == "continuous" and assemble["time_source"] == "device"
-    # The device clock is fitted, not assumed (a heavily loaded host bends it: see SPEEDUP).
-    assert assemble["clock"]["rate"] == pytest.approx(1 / SPEEDUP, rel=0.05), assemble["clock"]
+    # The device clock is fitted, not assumed.
+    assert assemble["clock"]["rate"] == pytest.approx(1 / SPEEDUP, rel=0.01), assemble["clock"]
+
+    # Coverage: every turn the emulator sent while the recorder received was decoded, as one
+    # profile, at its own time and with its own ranges (not a neighbour's: a turn off in time
+    # is a degree of platform off), whatever the host made the emulator skip.
+    profiles = pq.read_table(work / "decode" / "profiles.parquet",
+                             columns=["frame", "device_time_ns", "ranges_m"])
+    assert np.all(np.diff(profiles.column("frame").to_numpy()) > 0)
+    clock = assemble["clock"]
+    start_ns = clock["offset_ns"] + clock["rate"] * profiles.column(
+        "device_time_ns").to_numpy().astype(np.float64)
+    sent = pq.read_table(truth / "truth.parquet", columns=["time_ns", "ranges_true_m"])
+    sent_ns = sent.column("time_ns").to_numpy()
+    nearest = np.abs(start_ns[:, None] - sent_ns[None, :]).argmin(axis=1)
+    assert nearest.tolist() == list(range(nearest[0], nearest[-1] + 1))
+    true_rows = sent.column("ranges_true_m").to_pylist()
+    residual = np.concatenate([  # the last profile may be a turn cut short by the stop
+        np.asarray(row, np.float64) - np.asarray(true_rows[k][:len(row)], np.float64)
+        for row, k in zip(profiles.column("ranges_m").to_pylist(), nearest, strict=True)])
+    sigma = SCANNER_MODELS[model].noise_sigma_m
+    residual = residual[np.isfinite(residual)]
+    assert np.sqrt(np.mean(np.square(residual))) <= 1.1 * sigma
+    turn_ns = 1e9 / 10.0 / SPEEDUP
+    # No profile made of a skipped turn's holes (the first one may begin mid-turn: the recorder
+    # opened the port while the head turned).
+    measured = [np.isfinite(np.asarray(r, np.float64)).mean() for r in
+                profiles.column("ranges_m").to_pylist()[1:]]
+    assert min(measured) > 0.5
+    head_turns = (start_ns[-1] - start_ns[0]) / turn_ns + 1
+    coverage = profiles.num_rows / head_turns
+    skipped = json.loads((truth / "meta.json").read_text())["scans_skipped"]
+    report = f"coverage {coverage:.0%} of the head's turns ({skipped} skipped by the emulator)"
+    assert coverage >= MIN_COVERAGE, report
+
     table = pq.read_table(work / "assemble" / "points.parquet", columns=["x", "y", "z"])
     xyz = np.stack([table.column(c).to_numpy() for c in "xyz"], axis=1).astype(np.float64)
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
     distances = SurfaceDistance(load_reference(truth).mesh).distance_m(xyz)
     rms = float(np.sqrt(np.mean(np.square(distances))))
-    assert rms <= 1.1 * SCANNER_MODELS["ld06"].noise_sigma_m, rms
+    assert rms <= 1.1 * sigma, f"RMS {rms * 1e3:.2f} mm = {rms / sigma:.3f} σ; {report}"
     assert (work / "mesh" / "mesh_faces.parquet").is_file()

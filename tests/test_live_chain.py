@@ -21,7 +21,14 @@ from scanpipe.evaluate import SurfaceDistance, load_reference
 from scanpipe.rig import default_rig, rig_to_toml
 
 NOISE_M = 0.01
-SPEEDUP = 10.0
+#: The emulators' clock speed-up per dialect. The LD-OEM stamps its sectors, so its times do
+#: not depend on when the host reads them. The paper dialect has no device time: the receive
+#: times are its clock (the frame counter fitted to them), so the host's latency lands in the
+#: scan scaled by the speed-up; at 10× a turn is 20 ms of host time, and a loaded host's median
+#: latency passes the half turn beyond which the frame clock is refused (receipts that do not
+#: follow one clock): a fresh-clone run under load failed so. 5× keeps the same check with a
+#: 20 ms margin.
+SPEEDUP = {"ldoem": 10.0, "paper": 5.0}
 
 
 def _simulate_and_run(tmp_path: Path, cli: Callable[..., Any], dialect: str, mode: str,
@@ -34,7 +41,7 @@ def _simulate_and_run(tmp_path: Path, cli: Callable[..., Any], dialect: str, mod
     args = ["simulate", "--out", recording, "--truth", truth, "--rig", rig_file,
             "--motor-step", "3", "--beam-step", "1", "--camera-scale", "0.05",
             "--mode", mode, "--seed", "3", "--quiet"]
-    args += ["--direct"] if direct else ["--speedup", str(SPEEDUP)]
+    args += ["--direct"] if direct else ["--speedup", str(SPEEDUP[dialect])]
     result = cli(*args)
     assert result.code == 0, result.err
     result = cli("run", recording, "--workdir", work, "--quiet")
@@ -65,8 +72,9 @@ def test_live_recording_runs_the_whole_chain(tmp_path: Path, cli: Callable[..., 
     # The fitted clock shows the speed-up: from the device's sector timestamps (ldoem), or
     # from the frame counter against the receive times (paper: no device time).
     assert report["time_source"] == ("device" if dialect == "ldoem" else "receive")
-    assert report["clock"]["rate"] == pytest.approx(1 / SPEEDUP, rel=0.01), report
-    assert report["head_turn_s"] == pytest.approx(0.2 / SPEEDUP, rel=0.01)
+    assert report["clock"] is not None, report
+    assert report["clock"]["rate"] == pytest.approx(1 / SPEEDUP[dialect], rel=0.01), report
+    assert report["head_turn_s"] == pytest.approx(0.2 / SPEEDUP[dialect], rel=0.01)
     assert any("simulated speed-up" in w for w in report["warnings"])
     # Every point where it belongs: the raw (unsmoothed) cloud within the noise.
     assert _assembled_rms_m(work, truth) <= 1.1 * NOISE_M

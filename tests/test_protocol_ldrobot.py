@@ -293,7 +293,8 @@ def test_jittered_head_resamples_to_the_grid_within_a_millimetre() -> None:
     data, _ = stream(2000, jitter=0.01, seed=5)
     profiles, _ = ld.decode_revolutions(data)
     beams = len(profiles[0].ranges_m)
-    assert beams == 450 and all(len(p.ranges_m) == beams for p in profiles)
+    assert beams == 450 and all(len(p.ranges_m) == beams for p in profiles[:-1])
+    assert len(profiles[-1].ranges_m) < beams  # the stream ends in the middle of a turn
     grid = np.arange(beams) * profiles[0].step_deg
     truth = 1.0 + 0.5 * np.sin(np.radians(grid))
     for p in profiles[1:-1]:
@@ -324,10 +325,74 @@ def test_revolutions_follow_the_angle_wrap_and_gaps() -> None:
     assert len(frames) < len(profiles)
 
 
+def emulated_turns(turns: list[int]) -> tuple[bytes, list[int]]:
+    """The live emulator's packets for head turns ``turns`` (each ends on its last sample; the
+    first packets of turns 2 and 3 begin at 359.98° by encoder jitter), and the stream offset
+    one past each turn's last packet."""
+    from scanpipe.rig import default_rig
+    from scanpipe.sim.ldrobot_device import LdrobotEmulated
+
+    config = default_rig("ld06").scanner
+    device = LdrobotEmulated(config)
+    ranges = (2.0 + 0.3 * np.sin(np.radians(np.arange(450) * 0.8))).astype(np.float32)
+    parts = [device.encode(k, ranges, None, config, k / config.scan_hz) for k in turns]
+    return b"".join(parts), np.cumsum([len(part) for part in parts]).tolist()
+
+
+def revolutions(data: bytes) -> list[ld.Revolution]:
+    decoder = ld.RevolutionDecoder()
+    return decoder.feed(data) + decoder.finish()
+
+
+def test_a_revolutions_receive_time_is_the_packet_that_reaches_its_end() -> None:
+    # The emulator sends a turn at once: the packet after a turn's last one comes a turn
+    # later, so a revolution received with it would put the fitted device clock a turn late.
+    data, turn_ends = emulated_turns([0, 1, 2, 3, 4])
+    out = revolutions(data)
+    assert [r.profile.frame for r in out] == [0, 1, 2, 3, 4]
+    assert [r.end_offset for r in out] == turn_ends
+    # A device streaming without pause (no turn boundary in its packets): the first packet
+    # whose last sample is within half a grid step of the revolution's last beam.
+    data, angles = stream(1200)
+    out = revolutions(data)
+    beams = len(out[0].profile.ranges_m)
+    for r in out[:-1]:
+        end = (r.profile.frame + 1) * 360.0 - 1.5 * 360.0 / beams
+        assert r.end_offset == (int(np.argmax(angles[:, -1] >= end)) + 1) * ld.PACKET_BYTES
+
+
+def test_a_skipped_turn_costs_coverage_not_a_revolution_of_holes() -> None:
+    # Turn 2 never sent (a host too slow for the emulator); turn 3's first sample lies at
+    # 359.98°, below turn 3's 0°: it is turn 3's, not a revolution 2 of one sample.
+    data, turn_ends = emulated_turns([0, 1, 3, 4])
+    out = revolutions(data)
+    assert [r.profile.frame for r in out] == [0, 1, 3, 4]
+    assert [r.end_offset for r in out] == turn_ends  # none a turn early or late
+    times = [r.profile.device_time_ms for r in out]
+    assert np.diff(times).tolist() == [100, 200, 100]
+    for r in out:
+        assert np.isfinite(r.profile.ranges_m).all()
+
+
+def test_a_turn_cut_short_by_the_end_of_the_stream_ends_at_its_last_sample() -> None:
+    data, _ = emulated_turns([0, 1, 2])
+    cut = data[:-20 * ld.PACKET_BYTES]  # turn 2 ends after 18 of its 38 packets
+    out = revolutions(cut)
+    last = out[-1].profile
+    assert [len(r.profile.ranges_m) for r in out] == [450, 450, 18 * 12]
+    assert np.isfinite(last.ranges_m).all()
+    # Its end time is its last beam's (18 packets of 12 samples at 4 500/s), not a guess a
+    # turn ahead of when it was received.
+    assert last.device_end_time_ms is not None and last.device_time_ms is not None
+    assert abs(last.device_end_time_ms - last.device_time_ms - (18 * 12 - 1) / 4.5) <= 1.5
+    assert out[-1].end_offset == len(cut)
+
+
 def test_grid_is_fixed_once_per_stream() -> None:
     fast, _ = stream(900, speed_dps=4000)
     profiles, _ = ld.decode_revolutions(fast)
-    assert {len(p.ranges_m) for p in profiles} == {405}
+    assert {len(p.ranges_m) for p in profiles[:-1]} == {405}
+    assert len(profiles[-1].ranges_m) < 405  # cut short by the end of the stream
     with pytest.raises(ProtocolError, match="beams"):
         ld.RevolutionAssembler(grid_beams=5)
 

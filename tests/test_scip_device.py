@@ -102,27 +102,33 @@ def test_ust10lx_streams_intensities_over_tcp() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("mode", ["step", "continuous"])
-def test_ust10lx_live_through_the_emulator_and_run(tmp_path: Path, cli: Callable[..., Any],
-                                                   mode: str) -> None:
-    """The user's path: simulate live (SCIP on TCP, ME stream, QT) → run; points within
-    1.1 σ of the UST-10LX's noise. (Speed-up 1: a 40 Hz scanner at a higher speed-up outruns
-    the emulator on a loaded machine.)"""
+@pytest.mark.parametrize(("model", "mode", "options"), [
+    ("ust10lx", "step", ("--motor-step", "3", "--beam-step", "1", "--speedup", "1")),
+    ("ust10lx", "continuous", ("--motor-step", "3", "--beam-step", "1", "--speedup", "1")),
+    ("urg04lx", "continuous", ("--motor-step", "2", "--speedup", "2"))])
+def test_scip_live_through_the_emulator_and_run(tmp_path: Path, cli: Callable[..., Any],
+                                                model: str, mode: str,
+                                                options: tuple[str, ...]) -> None:
+    """The user's path: simulate live (SCIP: UST-10LX on TCP, ME stream with intensities;
+    URG-04LX on a pty, MD stream) → run; points within 1.1 σ of the device's noise.
+    (UST-10LX at speed-up 1: a 40 Hz scanner at a higher speed-up outruns the emulator on a
+    loaded machine.)"""
     rec, truth, work = tmp_path / "s.mcap", tmp_path / "t", tmp_path / "w"
-    result = cli("simulate", "--scanner", "ust10lx", "--out", rec, "--truth", truth,
-                 "--mode", mode, "--motor-step", "3", "--beam-step", "1", "--no-cameras",
-                 "--speedup", "1", "--seed", "4", "--quiet")
+    result = cli("simulate", "--scanner", model, "--out", rec, "--truth", truth,
+                 "--mode", mode, *options, "--no-cameras", "--seed", "4", "--quiet")
     assert result.code == 0, result.err
     result = cli("run", rec, "--workdir", work, "--quiet")
     assert result.code == 0 and "Traceback" not in result.err
     profiles = pq.read_table(work / "decode" / "profiles.parquet")
     assert set(profiles.column("dialect").to_pylist()) == {"scip"}
-    assert profiles.column("echo").null_count == 0
+    # The UST-10LX sends intensities (ME), the URG-04LX none (MD).
+    assert (profiles.column("echo").null_count == 0) == SCANNER_MODELS[model].intensity
     report = read_provenance(work / "assemble" / "points.parquet")["report"]
-    assert report["time_source"] == "device"
+    assert report["time_source"] == "device" and report["mode"] == mode
     table = pq.read_table(work / "assemble" / "points.parquet", columns=["x", "y", "z"])
     xyz = np.stack([table.column(c).to_numpy() for c in "xyz"], axis=1).astype(np.float64)
     xyz = xyz[np.isfinite(xyz).all(axis=1)]
     rms = float(np.sqrt(np.mean(np.square(
         SurfaceDistance(load_reference(truth).mesh).distance_m(xyz)))))
-    assert rms <= 1.1 * SCANNER_MODELS["ust10lx"].noise_sigma_m
+    sigma = SCANNER_MODELS[model].noise_sigma_m
+    assert rms <= 1.1 * sigma, f"RMS {rms * 1e3:.2f} mm = {rms / sigma:.3f} σ"

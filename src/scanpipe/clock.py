@@ -8,9 +8,12 @@ ppm) for real hardware; a simulated device whose clock runs at a speed-up shows 
 there puts every profile at the wrong host time, which is why the rate is fitted, not assumed.
 
 The fit: least squares over all pairs, then again over the pairs closest to the line's lower
-side (latency spikes from batching only ever delay), and the offset is the lower envelope:
-the smallest latency is zero. :func:`unwrap_device_ms` uses the same idea to count the wraps of
-16-bit millisecond clocks across pauses when the device clock does not run at host speed.
+side (latency spikes from batching only ever delay); the rate is then the slope of the lower
+envelope itself (the convex hull's edge under the middle of the recording: the least-late
+pairs, which a backlog that drifts over the recording does not tilt), and the offset is the
+lower envelope: the smallest latency is zero. :func:`unwrap_device_ms` uses the same idea to
+count the wraps of 16-bit millisecond clocks across pauses when the device clock does not run
+at host speed.
 """
 
 from __future__ import annotations
@@ -30,6 +33,11 @@ F64 = NDArray[np.float64]
 DRIFT_WARN = 1e-3
 #: A latency spread beyond this says the device times and the receive times disagree.
 LATENCY_SPREAD_WARN_S = 1.0
+#: The least latency of a stretch of the recording above the envelope beyond which the fit is
+#: flagged: the host fell behind the device for that stretch (no prompt receipt in it), so the
+#: times there may be off by up to that much. Each eighth of the pairs is a stretch.
+FLOOR_DRIFT_WARN_S = 0.025
+_STRETCHES = 8
 #: Pairs used for the second, lower-side fit: the best-fitting share of them.
 _LOWER_SHARE = 0.75
 
@@ -45,6 +53,9 @@ class ClockModel:
     #: Receive latency over the pairs: median and 99th percentile above the envelope, in s.
     median_latency_s: float = 0.0
     p99_latency_s: float = 0.0
+    #: The largest least latency of an eighth of the pairs (0 when fewer than 16 pairs): where
+    #: no receipt was prompt, the envelope is a guess.
+    floor_drift_s: float = 0.0
     #: What the device times are, for messages.
     name: str = "the device clock"
 
@@ -60,6 +71,10 @@ class ClockModel:
             found.append(f"{self.name} runs {1.0 / self.rate:.4g}× as fast as the host "
                          f"clock (a simulated speed-up, or a wrong clock or scan rate); its "
                          f"times are scaled by the fitted rate {self.rate:.6g}")
+        if self.floor_drift_s > FLOOR_DRIFT_WARN_S:
+            found.append(f"no receipt was prompt for a stretch of the recording (its least "
+                         f"latency {self.floor_drift_s * 1e3:.0f} ms: the host fell behind "
+                         f"{self.name}); times there may be off by up to that much")
         if self.p99_latency_s > LATENCY_SPREAD_WARN_S:
             found.append(f"receive latency varies by {self.p99_latency_s:.2f} s (99th "
                          f"percentile): device and receive times disagree")
@@ -69,7 +84,8 @@ class ClockModel:
         """The model as JSON-ready values for a stage report."""
         return {"offset_ns": self.offset_ns, "rate": self.rate, "pairs": self.pairs,
                 "median_latency_ms": self.median_latency_s * 1e3,
-                "p99_latency_ms": self.p99_latency_s * 1e3, "problems": self.problems()}
+                "p99_latency_ms": self.p99_latency_s * 1e3,
+                "floor_drift_ms": self.floor_drift_s * 1e3, "problems": self.problems()}
 
 
 def _least_squares(x: F64, y: F64) -> tuple[float, float]:
@@ -81,6 +97,50 @@ def _least_squares(x: F64, y: F64) -> tuple[float, float]:
     if not np.isfinite(slope) or slope <= 0:
         slope = 1.0
     return slope, y_mean - slope * x_mean
+
+
+def _envelope_slope(x: F64, y: F64, guess: float, bins: int = 512) -> float:
+    """The slope of the lower envelope of ``y`` over ``x`` (its convex hull's edge under the
+    mean ``x``), ``guess`` when it has none.
+
+    Receipts are only ever late, by a latency that a loaded host makes vary over the
+    recording (a backlog grows, then drains); a least-squares line through the lower share of
+    the pairs tilts with that drift (0.5–0.8 % at a 10× speed-up on a loaded machine: a time
+    error of tens of ms at the ends of a scan), while the line under the least-late pairs does
+    not. The hull runs over the least-late pair of each of ``bins`` stretches of ``x`` (relative
+    to ``guess``), so its cost does not grow with the pairs."""
+    low, high = float(x.min()), float(x.max())
+    if not high > low:
+        return guess
+    cell = np.minimum(((x - low) / (high - low) * bins).astype(np.int64), bins - 1)
+    order = np.lexsort((y - guess * x, cell))
+    first = np.concatenate([[True], cell[order][1:] != cell[order][:-1]])
+    pick = order[first]  # by cell, so by x
+    hx, hy = x[pick], y[pick]
+    hull: list[int] = []
+    for i in range(hx.size):  # Andrew's monotone chain, lower part (≤ ``bins`` points)
+        while len(hull) >= 2:
+            a, b = hull[-2], hull[-1]
+            if (hx[b] - hx[a]) * (hy[i] - hy[a]) - (hy[b] - hy[a]) * (hx[i] - hx[a]) > 0:
+                break
+            hull.pop()
+        hull.append(i)
+    if len(hull) < 2:
+        return guess
+    vertices = np.asarray(hull)
+    k = int(np.clip(np.searchsorted(hx[vertices], float(x.mean())), 1, vertices.size - 1))
+    a, b = vertices[k - 1], vertices[k]
+    slope = float((hy[b] - hy[a]) / (hx[b] - hx[a]))
+    return slope if np.isfinite(slope) and slope > 0 else guess
+
+
+def _floor_drift_s(x: F64, above: F64) -> float:
+    """The largest least latency (``above`` the envelope) of each eighth of the pairs in
+    device-time order; 0 for fewer than 16 pairs."""
+    if above.size < 2 * _STRETCHES:
+        return 0.0
+    order = np.argsort(x, kind="stable")
+    return float(max(float(part.min()) for part in np.array_split(above[order], _STRETCHES)))
 
 
 def fit_clock(device_ns: I64, host_ns: I64, rate: float | None = None,
@@ -107,6 +167,7 @@ def fit_clock(device_ns: I64, host_ns: I64, rate: float | None = None,
         if device.size >= 8:
             lower = residual <= np.quantile(residual, _LOWER_SHARE)
             rate, _ = _least_squares(x[lower], y[lower])
+            rate = _envelope_slope(x, y, rate)
     latency = y - rate * x  # up to a constant
     floor = float(latency.min())
     if offset_ns is None:
@@ -118,7 +179,8 @@ def fit_clock(device_ns: I64, host_ns: I64, rate: float | None = None,
             np.float64) / 1e9
     return ClockModel(offset_ns=int(offset_ns), rate=float(rate), pairs=int(device.size),
                       median_latency_s=float(np.median(above)),
-                      p99_latency_s=float(np.quantile(above, 0.99)))
+                      p99_latency_s=float(np.quantile(above, 0.99)),
+                      floor_drift_s=_floor_drift_s(x, above))
 
 
 def unwrap_device_ticks(device_ticks: NDArray[np.integer], host_ns: I64,

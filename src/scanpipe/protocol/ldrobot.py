@@ -679,13 +679,22 @@ class RevolutionAssembler:
         if last_complete < self._next_rev:
             return []
         beams = self._grid()
+        half_deg = 180.0 / beams
+        # At the end of the stream, a turn cut short ends at its last beam measured.
+        cut_short = final and last_angle + 3 * half_deg < (last_complete + 1) * 360.0
         first_rev = np.floor(pending.start_deg / 360.0).astype(np.int64)
-        last_rev = np.floor((pending.start_deg + _SPAN_STEPS * pending.step_deg) / 360.0
-                            ).astype(np.int64)
-        present = np.concatenate([first_rev, last_rev])
+        span_deg = _SPAN_STEPS * pending.step_deg
+        last_rev = np.floor((pending.start_deg + span_deg) / 360.0).astype(np.int64)
+        # A revolution is its grid's beams: it is present when a sample lies within half a
+        # grid step of one of them (a turn skipped whole leaves at most a sample just below
+        # the next turn's 0°, which is that turn's: no revolution of holes is handed out).
+        present = np.concatenate([np.floor((pending.start_deg + half_deg) / 360.0),
+                                  np.floor((pending.start_deg + span_deg + half_deg) / 360.0)
+                                  ]).astype(np.int64)
         present = present[(present >= self._next_rev) & (present <= last_complete)]
         revs = np.unique(present)
-        out = _resample(pending, revs, beams, first_rev, last_rev)
+        out = _resample(pending, revs, beams, first_rev, last_rev,
+                        cut_short and revs.size > 0 and int(revs[-1]) == last_complete)
         # Keep the packets of later revolutions and the one before them (interpolation).
         first_kept = max(int(np.searchsorted(last_rev, last_complete + 1)) - 1, 0)
         self._pending = pending.tail(first_kept) if not final else _Pending.empty()
@@ -694,9 +703,12 @@ class RevolutionAssembler:
 
 
 def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
-              first_rev: NDArray[np.int64], last_rev: NDArray[np.int64]) -> list[Revolution]:
+              first_rev: NDArray[np.int64], last_rev: NDArray[np.int64],
+              cut_last: bool = False) -> list[Revolution]:
     """The revolutions ``revs`` on a grid of ``beams`` from 0° (module docstring), from the
-    pending packets."""
+    pending packets. ``cut_last``: the last one was cut short by the end of the stream and
+    ends at its last beam within half a grid step of a sample (its end time is then that
+    beam's, measured, not a guess past its last sample ahead of when it was received)."""
     if revs.size == 0:
         return []
     step = 360.0 / beams
@@ -749,7 +761,11 @@ def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
     # Device times of each revolution's first and last beam: interpolated between the samples,
     # extrapolated at the head's speed beyond them.
     first_beam = np.arange(revs.size) * beams
-    ends = np.stack([first_beam, first_beam + beams - 1])
+    length = np.full(revs.size, beams, np.int64)
+    if cut_last:
+        last_sample = float(local[-1]) - float(revs[-1] - revs[0]) * 360.0
+        length[-1] = int(np.clip(np.floor((last_sample + half) / step) + 1, 1, beams))
+    ends = np.stack([first_beam, first_beam + length - 1])
     stream_index = (lambda i: i) if order is None else (lambda i: order[i])
     times = _beam_times(p, local, grid[ends].astype(np.float64), left[ends], right[ends],
                         nearer[ends], stream_index)
@@ -759,16 +775,23 @@ def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
     for which in (first_rev, last_rev):
         sel = (which >= revs[0]) & (which <= revs[-1]) & ~p.ok
         bad += np.bincount(which[sel] - revs[0], minlength=span)
-    # Stream offsets: a revolution's first packet, and the packet after its last sample.
+    # Stream offsets: a revolution's first packet, and the end of the first packet that
+    # reaches its last beam (within half a grid step). The revolution's receive time is that
+    # packet's, and the device clock is fitted to it against the last beam's time, taking the
+    # smallest latency as zero: the packet after it would make every latency a packet late (a
+    # turn late from a device that sends a turn at once), an earlier one (a turn whose tail
+    # was lost) would make one negative and shift every time.
     first_packet = np.searchsorted(last_rev, revs, side="left")
-    after_packet = np.searchsorted(first_rev, revs + 1, side="left")
+    reached = np.floor((p.start_deg + _SPAN_STEPS * p.step_deg + 1.5 * step) / 360.0
+                       ).astype(np.int64)
+    end_packet = np.searchsorted(np.maximum.accumulate(reached), revs + 1, side="left")
     start_offsets = p.end_offset[np.minimum(first_packet, len(p) - 1)] - PACKET_BYTES
-    end_offsets = p.end_offset[np.minimum(after_packet, len(p) - 1)]
+    end_offsets = p.end_offset[np.minimum(end_packet, len(p) - 1)]
     out = []
     for row, rev in enumerate(revs.tolist()):
         profile = Profile(
             frame=rev & 0xFFFF, sector=0, start_angle_deg=0.0, step_deg=step,
-            ranges_m=ranges[row], echo=echo[row],
+            ranges_m=ranges[row, :length[row]], echo=echo[row, :length[row]],
             device_time_ms=int(np.rint(times[0, row])) % TIME_WRAP_MS,
             device_end_time_ms=int(np.rint(times[1, row])) % TIME_WRAP_MS,
             checksum_ok=bool(bad[rev - revs[0]] == 0), device_wrap_ticks=TIME_WRAP_MS)

@@ -15,8 +15,10 @@ import os
 import select
 import socket
 import threading
+import time
 import tty
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -32,7 +34,7 @@ from scanpipe.sim.camera import CameraModel, render_rgb
 from scanpipe.sim.clock import SimClock
 from scanpipe.sim.controller import MotorController
 from scanpipe.sim.devices import EmulatedDevice, emulated_device
-from scanpipe.sim.motion import PlatformState
+from scanpipe.sim.motion import Move, PlatformState
 from scanpipe.sim.options import SimOptions
 from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import (
@@ -48,6 +50,12 @@ from scanpipe.sim.truth import truth_table, write_truth
 
 #: How often idle emulator threads look at their stop flag (real seconds).
 POLL_S = 0.02
+#: A device that sends packets as their samples are taken gets them sent in at most this many
+#: groups a turn: an STL-27L's 180 packets one by one, or in 32 groups, cost the recorder (a
+#: decoder feed per read) more CPU than a loaded host had, and its reads fell behind by 100 ms;
+#: in 8 groups a turn's last packet still goes out the moment it is taken, with only its group
+#: (~1 KB, not the whole turn's 8.5 KB) to pass through the pty before it.
+PACKET_GROUPS = 8
 
 
 @dataclass(frozen=True)
@@ -59,6 +67,37 @@ class SentProfile:
     beta_first_deg: float
     beta_last_deg: float
     ranges_true_m: NDArray[np.float64]
+
+
+#: A device's packets of a scan of n samples: each packet's last sample and the byte offset one
+#: past the packet (``LdrobotEmulated.packet_ends``).
+PacketEnds = Callable[[int], tuple[NDArray[np.int64], NDArray[np.int64]]]
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """A scan measured ahead of being sent, and the platform moves it was measured with; for
+    a device that sends packets as their samples are taken, its bytes and per packet the
+    simulation time of its last sample and the byte offset one past it."""
+
+    k: int
+    moves: tuple[Move, ...]
+    measured: NDArray[np.float32]
+    echo: NDArray[np.uint16] | None
+    sent: SentProfile
+    data: bytes = b""
+    packet_due_s: NDArray[np.float64] = field(default_factory=lambda: np.zeros(0))
+    packet_end: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def bytes_ready(self, now_s: float) -> int:
+        """The bytes of the packets whose last sample was taken by ``now_s``."""
+        ready = int(np.searchsorted(self.packet_due_s, now_s, side="right"))
+        return int(self.packet_end[ready - 1]) if ready else 0
+
+    def next_packet_s(self, sent_bytes: int) -> float:
+        """When the first packet not yet sent is complete."""
+        waiting = int(np.searchsorted(self.packet_end, sent_bytes, side="right"))
+        return float(self.packet_due_s[min(waiting, self.packet_due_s.size - 1)])
 
 
 class _PtyEndpoint:
@@ -251,12 +290,37 @@ class ScannerEmulator:
             self.devices.append(device)
         serial = isinstance(client, _PtyEndpoint)
         next_k = self._next_head_index(self.clock.now_s())
+        # A scan is measured (ray cast) ahead of its end by ``lead_s`` of simulation time, the
+        # time measuring took last (×2), and sent at its end: a real head sends a scan the
+        # moment it is taken, and measuring it only at its end put every receipt that much
+        # late (≈ 4 ms of host time for an STL-27L turn), a floor under the latency that the
+        # chain's clock fit, which takes the smallest latency as zero, turns into a time
+        # error. It is re-measured at its end if the platform's moves changed meanwhile, so
+        # the truth stays the truth.
+        #
+        # A device that sends a scan in packets as its samples are taken (``packet_ends``:
+        # LDRobot) gets each packet once its last sample's instant has passed: the scan is
+        # measured ahead of its start with the platform's moves so far, which fix every past
+        # instant (a move begins now or later), so re-measuring after a change leaves the
+        # packets already sent as they were.
+        prepared: _Prepared | None = None
+        packets = getattr(device, "packet_ends", None)
+        sent_bytes = 0
+        sent_at_s = -np.inf
+        lead_s = 0.0
         try:
             while not self._stop.is_set():
                 config = device.config()
                 period = 1.0 / config.scan_hz
                 due_s = self.phase_s + next_k * period + sector_duration_s(config)
-                wait_real = (due_s - self.clock.now_s()) / self.clock.speedup
+                if packets is None:
+                    wake_s = due_s if prepared is not None else due_s - lead_s
+                elif prepared is None:
+                    wake_s = self.phase_s + next_k * period - lead_s
+                else:  # packets in groups, at most PACKET_GROUPS a turn (each wake costs CPU)
+                    wake_s = max(prepared.next_packet_s(sent_bytes),
+                                 sent_at_s + period / PACKET_GROUPS)
+                wait_real = (wake_s - self.clock.now_s()) / self.clock.speedup
                 timeout = min(max(wait_real, 0.0), POLL_S) if device.streaming else POLL_S
                 readable, _, _ = select.select([client], [], [], timeout)
                 if readable:
@@ -270,9 +334,13 @@ class ScannerEmulator:
                             client.sendall(reply)
                         if device.streaming and not was_streaming:
                             next_k = self._next_head_index(now, 1.0 / device.config().scan_hz)
+                            prepared = None
+                    continue
+                if not device.streaming:
+                    prepared = None
                     continue
                 now_s = self.clock.now_s()
-                if device.streaming and now_s >= due_s:
+                if now_s >= due_s and sent_bytes == 0:
                     # A real head never falls behind: scans the emulator could not measure in
                     # time are skipped (counted), not sent late with stale device stamps, which
                     # would bend the host-device clock fit.
@@ -281,9 +349,38 @@ class ScannerEmulator:
                     if newest > next_k:
                         with self._lock:
                             self.skipped_scans += newest - next_k
-                        next_k = newest
-                    client.sendall(self._profile(next_k, config, device))
-                    next_k += 1
+                        next_k, prepared = newest, None
+                        continue
+                if packets is not None:
+                    if prepared is None and now_s >= self.phase_s + next_k * period - lead_s:
+                        began = time.monotonic()
+                        prepared = self._prepare(next_k, config, device, packets)
+                        lead_s = min(0.5 * period, 2.0 * (time.monotonic() - began)
+                                     * self.clock.speedup)
+                    if prepared is None:
+                        continue
+                    if prepared.moves != self.platform.timeline().moves:
+                        prepared = self._prepare(next_k, config, device, packets)
+                    sent_now_s = self.clock.now_s()
+                    ready = prepared.bytes_ready(sent_now_s)
+                    if ready > sent_bytes:
+                        client.sendall(prepared.data[sent_bytes:ready])
+                        sent_bytes, sent_at_s = ready, sent_now_s
+                    if sent_bytes == len(prepared.data):
+                        with self._lock:
+                            self.sent.append(prepared.sent)
+                        next_k, prepared, sent_bytes = next_k + 1, None, 0
+                    continue
+                if prepared is None and now_s >= due_s - lead_s:
+                    began = time.monotonic()
+                    prepared = self._prepare(next_k, config)
+                    lead_s = min(0.5 * period, 2.0 * (time.monotonic() - began)
+                                 * self.clock.speedup)
+                if prepared is not None and self.clock.now_s() >= due_s:
+                    if prepared.moves != self.platform.timeline().moves:
+                        prepared = self._prepare(next_k, config)
+                    client.sendall(self._send(prepared, config, device))
+                    next_k, prepared = next_k + 1, None
         except OSError:
             return
         finally:
@@ -294,18 +391,33 @@ class ScannerEmulator:
         period = period if period is not None else 1.0 / self.scanner.scan_hz
         return max(0, int(np.ceil((now_s - self.phase_s) / period - 1e-9)))
 
-    def _profile(self, k: int, config: ScannerConfig, device: EmulatedDevice) -> bytes:
+    def _prepare(self, k: int, config: ScannerConfig, device: EmulatedDevice | None = None,
+                 packets: PacketEnds | None = None) -> _Prepared:
+        """Measure scan ``k`` (at the platform angles of its samples' instants); with
+        ``packets``, also its bytes and when each packet's last sample is taken."""
+        moves = self.platform.timeline().moves
         start_s = self.phase_s + k / config.scan_hz
-        times = start_s + sample_time_offsets_s(config)
+        offsets = sample_time_offsets_s(config)
+        times = start_s + offsets
         beta = self.platform.beta_deg_at(times)[None, :]
         truth = true_ranges(self.scene, config, beta)
         measured = measure(truth, self.measurement, k, config)[0]
         echo = (echo_amplitude(measured[None, :], truth)[0] if self._sends_echo(config)
                 else None)
+        sent = SentProfile(k, start_s, float(beta[0, 0]), float(beta[0, -1]), truth.ranges_m[0])
+        if device is None or packets is None:
+            return _Prepared(k, moves, measured, echo, sent)
+        last_sample, byte_end = packets(len(measured))
+        return _Prepared(k, moves, measured, echo, sent,
+                         device.encode(k, measured, echo, config, start_s),
+                         start_s + offsets[last_sample], byte_end)
+
+    def _send(self, prepared: _Prepared, config: ScannerConfig, device: EmulatedDevice) -> bytes:
+        """The device's bytes for a measured scan, recorded as sent."""
         with self._lock:
-            self.sent.append(SentProfile(k, start_s, float(beta[0, 0]), float(beta[0, -1]),
-                                         truth.ranges_m[0]))
-        return device.encode(k, measured, echo, config, start_s)
+            self.sent.append(prepared.sent)
+        return device.encode(prepared.k, prepared.measured, prepared.echo, config,
+                             prepared.sent.start_s)
 
     @staticmethod
     def _sends_echo(config: ScannerConfig) -> bool:

@@ -336,6 +336,16 @@ class LdrobotEmulated(StreamingDevice):
         self._wobble_phase = float(rng.uniform(0, 2 * np.pi))
         self._packets = 0
 
+    @staticmethod
+    def packet_ends(samples: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Per packet of a turn of ``samples`` (as :meth:`encode` lays them out): the index of
+        its last sample and the byte offset one past it. The emulator sends each packet once
+        its last sample is taken, as the device does."""
+        per = ldrobot.POINTS_PER_PACKET
+        count = -(-samples // per) if samples >= per else 0
+        rows = np.minimum(np.arange(count, dtype=np.int64) * per, samples - per)
+        return rows + per - 1, (np.arange(count, dtype=np.int64) + 1) * ldrobot.PACKET_BYTES
+
     def encode(self, k: int, ranges_m: NDArray[np.float32], echo: NDArray[np.uint16] | None,
                config: ScannerConfig, start_s: float) -> bytes:
         """The packets completed by profile ``k`` (its samples after the carried ones)."""

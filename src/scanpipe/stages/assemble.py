@@ -550,7 +550,7 @@ def assemble_stage(inputs: Mapping[str, Any], params: AssembleParams,
 
 STAGE = Stage(
     name="assemble",
-    version=3,
+    version=4,
     params=AssembleParams,
     inputs=("profiles", "motor", "rig"),
     outputs=("points",),

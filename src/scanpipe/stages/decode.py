@@ -370,7 +370,7 @@ def decode_stage(inputs: Mapping[str, Any], params: DecodeParams,
 
 STAGE = Stage(
     name="decode",
-    version=3,
+    version=4,
     params=DecodeParams,
     inputs=("recording",),
     outputs=("profiles", "motor", "frames", "rig"),
