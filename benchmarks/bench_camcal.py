@@ -19,7 +19,7 @@ Targets: rotation within 0.1°, clock within 20 ms, median ≤ 1.5 px, ≥ 70 % 
 changes with their 1σ, the alignment before and after, wall and CPU seconds) into
 ``benchmarks/results/``. The scan's spacing limits the rotation: an occlusion boundary is placed
 to half a cell, the same error in every frame (seed 0: 0.15° rotation error at 0.5° motor
-steps, 0.08° at 0.25°; seeds 1 and 2 at 0.25°: 0.13–0.16°; docs/calibration.md "Cameras").
+steps, 0.08° at 0.25°; seeds 1 and 2 at 0.25°: 0.12–0.20°; docs/calibration.md "Cameras").
 The time offset is seen through the platform's turn: its precision is about the angle precision
 divided by the platform's rate.
 """
