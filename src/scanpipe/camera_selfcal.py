@@ -1,27 +1,32 @@
 """Camera self-calibration: each camera's mount, focal length and clock offset from the data.
 
 No targets. The scan's depth edges — occlusion boundaries (range jumps) and creases (where the
-surface turns sharply) of the range image, found on the profile × sample grid — are projected
-into the camera's frames with :func:`scanpipe.camera.project_points` at the platform angle of
-each frame's time (:func:`scanpipe.motion.beta_deg_at`). Where the parameters are right they land
-on image edges (Canny); the cost is the distance transform of the image edges at the projected
-points, truncated (points that land far from any edge, or on a surface hidden from the camera,
-stop pulling). A handful of global parameters per camera is fitted, never a per-frame pose:
+surface turns sharply) of the range image, found on the profile × sample grid, each on a line of
+them (an isolated one is noise) with that line's direction — are projected into the camera's
+frames with :func:`scanpipe.camera.project_points` at the platform angle of each frame's time
+(:func:`scanpipe.motion.beta_deg_at`). Where the parameters are right they land on image edges:
+Canny's pixels on each colour channel, each moved across the edge to the peak of the gradient
+(a fraction of a pixel). A handful of global parameters per camera is fitted, never a per-frame
+pose:
 
 - the mount's rotation (a small rotation vector applied in the platform frame) and translation,
 - the focal length (fx and fy scaled together; the principal point is kept),
 - optionally the clock offset of its frames (an imported video): a frame taken at host time t
   shows the platform at β(t + δ).
 
-The fit runs coarse to fine (the distance transform blurred by 2 %, 0.7 % and 0.25 % of the
-focal length, then 1 px, and truncated at 5 σ) with scipy's ``least_squares``; after each pass
-only depth edges with an image edge within the next truncation keep pulling. With a clock offset
-to find, the mount is first fitted to the frames of the platform standing still, then δ is
-scanned over the search window, then everything is fitted together. The 1σ of each value is
-the larger of the curvature (the Jacobian's ``s² (JᵀJ)⁻¹``) and the spread over groups of
-frames (a jackknife: the fit repeated with each group left out), because neighbouring edge
-points share their errors and the curvature alone is optimistic. A value whose 1σ exceeds its
-limit is reported unobservable and keeps the rig's value.
+The fit runs coarse to fine: first on the distance transform of the image edges, blurred by 2 %,
+0.7 % and 0.25 % of the focal length, then 1 px, and truncated at 5 σ (a wide basin: the start
+may be degrees off); then point to line, as ICP: each projected depth edge is matched with the
+nearest image edge within a few pixels that runs its way (within 30°), and the signed distance
+along that edge's normal is minimised (soft-L1), matches renewed until the values settle. The
+distance map's whole pixels and its blur leave a bias of a fraction of a pixel that the point-to-
+line pass does not; the alignment figures are its distances. With a clock offset to find, the
+mount is first fitted to the frames of the platform standing still, then δ is scanned over the
+search window, then everything is fitted together. The 1σ of each value is the larger of the
+curvature (the Jacobian's ``s² (JᵀJ)⁻¹``) and the spread over groups of frames (a jackknife: the
+fit repeated with each group left out), because neighbouring edge points share their errors and
+the curvature alone is optimistic. A value whose 1σ exceeds its limit is reported unobservable
+and keeps the rig's value.
 
 Why frames outside the scan matter for δ: while the platform turns at a steady rate ω, a clock
 offset δ looks exactly like a turn of the camera about the axis by ω·δ. Frames while the platform
@@ -85,6 +90,9 @@ class DepthEdges:
     occluding: B
     #: A subsample of all the scan's points (for the cameras' visibility test).
     surface: F64
+    #: Unit direction of the edge line through each point (rig frame): the image edge it is
+    #: matched with must run the same way.
+    tangent: F64 = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def depth_edges(points: pa.Table, max_edges: int = 60_000, crease_deg: float = 35.0,
@@ -119,27 +127,57 @@ def depth_edges(points: pa.Table, max_edges: int = 60_000, crease_deg: float = 3
     smooth = bilateral_smooth(ranges.astype(np.float32), radius=2, sigma_cells=1.5,
                               sigma_range_m=0.03).astype(np.float64)
     xyz = origin + smooth[..., None] * directions
+    steps = [abs(grid.beta_step_deg), abs(grid.alpha_step_deg)]
+    cell_rad = math.radians(max((s for s in steps if math.isfinite(s)), default=1.0))
     found: list[F64] = []
     occluding: list[B] = []
+    tangents: list[F64] = []
     for axis in (0, 1):
         jump_points, jump_mask = _jumps(smooth, directions, origin, axis, min_jump_m)
-        found.append(jump_points)
-        occluding.append(np.ones(len(jump_points), dtype=bool))
-        step_deg = abs(grid.beta_step_deg if axis == 0 else grid.alpha_step_deg)
+        step_deg = steps[axis]
         span = max(2, math.ceil(crease_span_deg / step_deg)) if math.isfinite(step_deg) else 2
         crease = _creases(xyz, jump_mask, axis, span, crease_deg)
-        found.append(crease)
-        occluding.append(np.zeros(len(crease), dtype=bool))
-    edges = np.concatenate(found) if found else np.zeros((0, 3))
-    kinds = np.concatenate(occluding) if occluding else np.zeros(0, dtype=bool)
+        for points, occludes in ((jump_points, True), (crease, False)):
+            # each edge point lies on a chain of them (an edge line); an isolated one is noise
+            tangent, chained = _edge_lines(points, cell_rad)
+            found.append(points[chained])
+            tangents.append(tangent[chained])
+            occluding.append(np.full(int(chained.sum()), occludes))
+    edges = np.concatenate(found)
+    kinds = np.concatenate(occluding)
+    lines = np.concatenate(tangents)
     rng = np.random.default_rng(seed)
     if len(edges) > max_edges:
         keep = np.sort(rng.choice(len(edges), max_edges, replace=False))
-        edges, kinds = edges[keep], kinds[keep]
+        edges, kinds, lines = edges[keep], kinds[keep], lines[keep]
     surface = xyz[valid]
     if len(surface) > max_surface:
         surface = surface[rng.choice(len(surface), max_surface, replace=False)]
-    return DepthEdges(edges, kinds, surface)
+    return DepthEdges(edges, kinds, surface, lines)
+
+
+#: Neighbours that define an edge point's line, and how straight they must lie.
+_LINE_NEIGHBOURS = 6
+_MIN_LINEARITY = 0.8
+
+
+def _edge_lines(points: F64, cell_rad: float) -> tuple[F64, B]:
+    """Each edge point's line direction (principal axis of its nearest edge points) and
+    whether it lies on a line: its neighbours within a few cells and nearly collinear."""
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    k = _LINE_NEIGHBOURS + 1
+    if n < k:
+        return np.zeros((n, 3)), np.zeros(n, dtype=bool)
+    distance, index = cKDTree(points).query(points, k=k)
+    neighbours = points[index]
+    centred = neighbours - neighbours.mean(axis=1, keepdims=True)
+    values, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
+    linearity = (values[:, 2] - values[:, 1]) / np.maximum(values[:, 2], 1e-18)
+    ranges = np.linalg.norm(points, axis=1)
+    near = distance[:, -1] <= 2.0 * k * np.maximum(ranges, 0.5) * cell_rad
+    return np.asarray(vectors[:, :, 2], np.float64), near & (linearity >= _MIN_LINEARITY)
 
 
 def _along(values: NDArray[Any], axis: int, k: int) -> NDArray[Any]:
@@ -218,24 +256,84 @@ def _creases(xyz: F64, jump_mask: B, axis: int, span: int, crease_deg: float) ->
     return np.asarray(moved, dtype=np.float64)
 
 
-def edge_distance_map(image: U8, low: float = 40.0, high: float = 120.0) -> F32:
-    """Distance (px) from every pixel to the nearest image edge (``cv2.distanceTransform``).
+@dataclass(frozen=True)
+class ImageEdges:
+    """A frame's image edges: the distance map to the nearest edge pixel and every edge pixel
+    placed to a fraction of a pixel across the edge, with its unit normal (the gradient's
+    direction)."""
 
-    Edges are Canny's on each colour channel of a lightly blurred image, combined: two
+    distance: F32
+    uv: F64
+    normal: F64
+
+
+def image_edges(image: U8, low: float = 40.0, high: float = 120.0) -> ImageEdges:
+    """Image edges of a BGR or grey frame, to a fraction of a pixel.
+
+    Edge pixels are Canny's on each colour channel of a lightly blurred image, combined: two
     surfaces of different colour but the same brightness (a red ceiling over a purple wall)
-    meet at no edge of the grey image. ``image`` is BGR or grey.
+    meet at no edge of the grey image. Each edge pixel then moves along the gradient of its
+    strongest channel to the peak of the gradient magnitude (a parabola through the magnitude
+    one pixel either side): Canny's pixels lie up to half a pixel off the edge, and a depth
+    edge measured against them inherits that error.
     """
     blurred = cv2.GaussianBlur(image, (3, 3), 0.8)
     channels = [blurred] if blurred.ndim == 2 else [blurred[:, :, c] for c in
                                                     range(blurred.shape[2])]
     edges = np.zeros(image.shape[:2], dtype=np.uint8)
+    best = np.full(image.shape[:2], -1.0, np.float32)
+    gx = np.zeros(image.shape[:2], np.float32)
+    gy = np.zeros(image.shape[:2], np.float32)
     for channel in channels:
-        edges |= np.asarray(cv2.Canny(np.ascontiguousarray(channel), low, high,
-                                      L2gradient=True), np.uint8)
+        plane = np.ascontiguousarray(channel)
+        edges |= np.asarray(cv2.Canny(plane, low, high, L2gradient=True), np.uint8)
+        cx = cv2.Sobel(plane, cv2.CV_32F, 1, 0, ksize=3)
+        cy = cv2.Sobel(plane, cv2.CV_32F, 0, 1, ksize=3)
+        magnitude = cx * cx + cy * cy
+        stronger = magnitude > best
+        best = np.where(stronger, magnitude, best)
+        gx = np.where(stronger, cx, gx)
+        gy = np.where(stronger, cy, gy)
     if not edges.any():
-        return np.full(image.shape[:2], np.float32(max(image.shape[:2])), dtype=np.float32)
-    return np.asarray(cv2.distanceTransform(np.where(edges > 0, 0, 255).astype(np.uint8),
-                                            cv2.DIST_L2, cv2.DIST_MASK_PRECISE), np.float32)
+        return ImageEdges(np.full(image.shape[:2], np.float32(max(image.shape[:2])),
+                                  dtype=np.float32), np.zeros((0, 2)), np.zeros((0, 2)))
+    distance = np.asarray(cv2.distanceTransform(np.where(edges > 0, 0, 255).astype(np.uint8),
+                                                cv2.DIST_L2, cv2.DIST_MASK_PRECISE), np.float32)
+    rows, cols = np.nonzero(edges)
+    gxs, gys = gx[rows, cols].astype(np.float64), gy[rows, cols].astype(np.float64)
+    norm = np.hypot(gxs, gys)
+    ok = norm > 0
+    rows, cols, gxs, gys, norm = rows[ok], cols[ok], gxs[ok], gys[ok], norm[ok]
+    normal = np.stack([gxs / norm, gys / norm], axis=1)
+    strength = np.sqrt(best, dtype=np.float32)
+    here = strength[rows, cols].astype(np.float64)
+    around = [map_coordinates(strength, [rows + k * normal[:, 1], cols + k * normal[:, 0]],
+                              order=1, mode="nearest") for k in (-1.0, 1.0)]
+    curvature = around[0] - 2.0 * here + around[1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = np.where(curvature < 0, 0.5 * (around[0] - around[1]) / curvature, 0.0)
+    shift = np.clip(np.nan_to_num(shift), -0.5, 0.5)
+    uv = np.stack([cols + shift * normal[:, 0], rows + shift * normal[:, 1]], axis=1)
+    return ImageEdges(distance, uv, normal)
+
+
+def edge_distance_map(image: U8, low: float = 40.0, high: float = 120.0) -> F32:
+    """Distance (px) from every pixel to the nearest image edge pixel (of
+    :func:`image_edges`)."""
+    return image_edges(image, low, high).distance
+
+
+#: Pixels one radian of doubled orientation counts as in the matching's k-d tree, and the
+#: largest angle between a depth edge and the image edge it is matched with.
+ORIENTATION_PX = 4.0
+MAX_ANGLE_DEG = 30.0
+
+
+def _oriented(uv: F64, normal: F64) -> F64:
+    """Points in (u, v, orientation) space: the normal's angle doubled (an edge's normal has
+    no sign) on a circle of :data:`ORIENTATION_PX`."""
+    angle = 2.0 * np.arctan2(normal[:, 1], normal[:, 0])
+    return np.column_stack([uv, ORIENTATION_PX * np.cos(angle), ORIENTATION_PX * np.sin(angle)])
 
 
 @dataclass
@@ -245,6 +343,10 @@ class FrameObservation:
     camera: CameraConfig
     time_ns: int
     distance: F32
+    #: The frame's edge pixels to a fraction of a pixel and their normals (the final fit's
+    #: point-to-line matches and the alignment figures).
+    edge_uv: F64 = field(default_factory=lambda: np.zeros((0, 2)))
+    edge_normal: F64 = field(default_factory=lambda: np.zeros((0, 2)))
     #: Indices into the edge points the frame sees (set by the fit at the starting values).
     edges: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     #: How much the frame counts in the fit (frames of the platform standing still count
@@ -253,6 +355,16 @@ class FrameObservation:
     #: Every edge point the frame sees (``edges`` is the fit's subset of them).
     all_edges: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
     _blurred: dict[float, F32] = field(default_factory=dict, repr=False)
+    _tree: Any = field(default=None, repr=False)
+
+    def tree(self) -> Any:
+        """A k-d tree over the edge pixels in (u, v, orientation) space (cached): the nearest
+        image edge that also runs the way the depth edge does."""
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(_oriented(self.edge_uv, self.edge_normal))
+        return self._tree
 
     def blurred(self, sigma_px: float) -> F32:
         """The distance map blurred by ``sigma_px`` (cached): a smooth, wide basin."""
@@ -270,7 +382,8 @@ def observe(camera: CameraConfig, time_ns: int, image: U8) -> FrameObservation:
         raise StageError(f"frames: a frame of camera {camera.id!r} is "
                          f"{image.shape[1]}×{image.shape[0]}, the camera "
                          f"{camera.width}×{camera.height}")
-    return FrameObservation(camera, int(time_ns), edge_distance_map(image))
+    found = image_edges(image)
+    return FrameObservation(camera, int(time_ns), found.distance, found.uv, found.normal)
 
 
 @dataclass(frozen=True)
@@ -425,20 +538,117 @@ class CameraFit:
             out.append(values * math.sqrt(frame.weight / chosen.size) if weighted else values)
         return np.concatenate(out) if out else np.zeros(0)
 
-    def distances(self, x: F64, sigma_px: float, truncate_px: float) -> F64:
-        """Every edge point's (blurred, truncated) distance to an image edge, all frames."""
-        return self._lookup(x, sigma_px, truncate_px, fit_subset=False, weighted=False)
-
     def residuals(self, scaled: F64, sigma_px: float, truncate_px: float) -> F64:
         """The least-squares residuals: truncated distances, each frame weighted alike."""
         return self._lookup(self.full(scaled), sigma_px, truncate_px, fit_subset=True,
                             weighted=True)
 
+    def match_radius_px(self) -> float:
+        """The match radius (px) for this camera's frames: :data:`MATCH_PX` per 1000 px."""
+        return MATCH_PX * max(self.frames[0].camera.width, self.frames[0].camera.height) / 1000.0
+
     def alignment(self, x: F64) -> Alignment:
-        """The unblurred distances at ``x`` (the figures before and after), every edge point
-        each frame sees."""
-        scale = max(self.frames[0].camera.width, self.frames[0].camera.height) / 1000.0
-        return Alignment.of(self.distances(x, 0.0, 1e6), MATCH_PX * scale)
+        """The distances at ``x`` (the figures before and after): every edge point each
+        frame sees, to the sub-pixel line of the nearest image edge that runs its way."""
+        radius = self.match_radius_px()
+        distances, unmatched = [], 0
+        for _, _, _, residual, total in self.matches(x, radius, fit_subset=False):
+            distances.append(np.abs(residual))
+            unmatched += total - residual.size
+        values = np.concatenate(distances) if distances else np.zeros(0)
+        return Alignment(np.asarray(values, np.float64), unmatched)
+
+    def _edge_projection(self, chosen: NDArray[np.int64], cam: CameraConfig,
+                         beta: float) -> tuple[F64, F64, B]:
+        """Projected edge points, their unit image normals and which are usable (in front
+        of the camera, not running along the view ray)."""
+        uv, depth = project_points(self.edges.xyz[chosen], cam, beta)
+        ahead, _ = project_points(self.edges.xyz[chosen] + 0.02 * self.edges.tangent[chosen],
+                                  cam, beta)
+        along = ahead - uv
+        length = np.hypot(along[:, 0], along[:, 1])
+        usable = (depth > 0) & (length > 0.05)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            normal = np.column_stack([-along[:, 1], along[:, 0]]) / length[:, None]
+        return uv, np.nan_to_num(normal), usable
+
+    def matches(self, x: F64, gate_px: float, fit_subset: bool = True
+                ) -> list[tuple[int, NDArray[np.int64], NDArray[np.int64], F64, int]]:
+        """Per frame: (frame index, matched edge points, their image edge pixels, signed
+        point-to-line distances at ``x``, points tried). An edge point is matched with the
+        nearest image edge pixel (placed to a fraction of a pixel) within ``gate_px`` that
+        runs within :data:`MAX_ANGLE_DEG` of its projected direction; the distance is along
+        that pixel's normal (ICP's point-to-line)."""
+        betas = self.betas(x)
+        cos_limit = math.cos(math.radians(2 * MAX_ANGLE_DEG))
+        out = []
+        for i, (frame, beta) in enumerate(zip(self.frames, betas, strict=True)):
+            chosen = frame.edges if fit_subset else frame.all_edges
+            if chosen.size == 0 or frame.edge_uv.shape[0] == 0:
+                continue
+            cam = camera_with(frame.camera, x)
+            uv, normal, usable = self._edge_projection(chosen, cam, float(beta))
+            reach = math.hypot(gate_px, 2 * ORIENTATION_PX)
+            _, nearest = frame.tree().query(_oriented(uv, normal), k=1,
+                                            distance_upper_bound=reach)
+            found = usable & (nearest < frame.edge_uv.shape[0])
+            pixel = np.where(found, nearest, 0)
+            q, n = frame.edge_uv[pixel], frame.edge_normal[pixel]
+            residual = np.sum((uv - q) * n, axis=1)
+            gap = np.hypot(*(uv - q).T)
+            agree = np.abs(np.sum(normal * n, axis=1))
+            cos_double = 2.0 * agree**2 - 1.0
+            found &= (gap <= gate_px) & (cos_double >= cos_limit)
+            out.append((i, chosen[found], pixel[found], residual[found], int(chosen.size)))
+        return out
+
+    def line_residuals(self, scaled: F64,
+                       pairs: list[tuple[int, NDArray[np.int64], NDArray[np.int64], F64, int]]
+                       ) -> F64:
+        """Signed point-to-line distances of fixed matches at ``scaled``, each frame
+        weighted alike."""
+        x = self.full(scaled)
+        betas = self.betas(x)
+        out = []
+        for i, points, pixels, _, _ in pairs:
+            if points.size == 0:
+                continue
+            frame = self.frames[i]
+            uv, _ = project_points(self.edges.xyz[points], camera_with(frame.camera, x),
+                                   float(betas[i]))
+            residual = np.sum((uv - frame.edge_uv[pixels]) * frame.edge_normal[pixels], axis=1)
+            out.append(residual * math.sqrt(frame.weight))
+        return np.concatenate(out) if out else np.zeros(0)
+
+    def solve_lines(self, scaled: F64, gate_px: float = 3.0, rounds: int = 8,
+                    max_nfev: int = 30, only: B | None = None) -> tuple[F64, Any]:
+        """The final fit: rounds of matching (:meth:`matches`) and a robust least-squares
+        fit of the point-to-line distances, until the parameters settle (``only``: a mask of
+        the free parameters to move; the others stay)."""
+        moving = np.ones(len(scaled), dtype=bool) if only is None else only
+        result: Any = None
+        for _ in range(rounds):
+            pairs = self.matches(self.full(scaled), gate_px)
+            if sum(p[1].size for p in pairs) < 10:
+                break
+
+            def residuals(sub: F64, pairs: Any = pairs, base: F64 = scaled) -> F64:
+                full = base.copy()
+                full[moving] = sub
+                return self.line_residuals(full, pairs)
+
+            result = least_squares(residuals, scaled[moving], method="trf", x_scale=1.0,
+                                   max_nfev=max_nfev, loss="soft_l1", f_scale=1.0,
+                                   diff_step=1e-3)
+            moved = float(np.max(np.abs(result.x - scaled[moving]))) if moving.any() else 0.0
+            scaled = scaled.copy()
+            scaled[moving] = result.x
+            if moved < 0.05:
+                break
+        if result is None:
+            raise StageError("frames: no depth edge matches an image edge; nothing to "
+                             "calibrate against")
+        return scaled, result
 
     def solve(self, scaled: F64, sigma_px: float, truncate_px: float,
               max_nfev: int = 60, only: B | None = None) -> tuple[F64, Any]:
@@ -538,6 +748,10 @@ class CameraCalibration:
 LEVELS = (0.02, 0.007, 0.0025, 0.0)
 FINAL_SIGMA_PX = 1.0
 TRUNCATE = 5.0
+#: The final point-to-line fit matches depth edges with image edges within this many pixels
+#: (per 1000 px of focal length, at least this); a first round takes twice as far.
+LINE_GATE_PX = 2.0
+LINE_GATE_STEPS = (2.0, 1.0)
 
 
 def _levels(camera: CameraConfig) -> list[tuple[float, float]]:
@@ -585,10 +799,16 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         x, _ = fit.solve(x, sigma, truncate, only=rotation_and_time if level == 0 else None)
         if level < len(levels) - 1:  # what each frame sees moves with a changed pose
             fit.select_visible(fit.full(x), gate_px=levels[level + 1][1])
-    sigma_fine, truncate_fine = levels[-1]
-    x, result = fit.solve(x, sigma_fine, truncate_fine)
+    # the last pass: point-to-line distances to the sub-pixel image edges that run the depth
+    # edges' way (the distance map's pixels and blur leave a bias of a fraction of a pixel)
+    # the last pass point to line — for the mount alone: with a clock offset to find, a frame
+    # of the turning platform a little off in time matches nothing within a few pixels' gate,
+    # and the clock stays with the finest distance map (see docs/calibration.md, "Cameras")
+    gate = LINE_GATE_PX * max(1.0, math.sqrt(camera.fx * camera.fy) / 1000.0)
+    lines = not fit_time_offset
+    x, result = _final_fit(fit, x, gate, levels[-1], lines)
     curvature = _curvature_sigma(result)
-    spread = _jackknife_sigma(fit, x, sigma_fine, truncate_fine, jackknife_groups)
+    spread = _jackknife_sigma(fit, x, gate, levels[-1], lines, jackknife_groups)
     sigma_scaled = np.fmax(curvature, spread)
     results: list[ParameterResult] = []
     observable = np.ones(len(names), dtype=bool)
@@ -609,7 +829,7 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         refit.frames = fit.frames
         x = np.zeros(len(names))
         if observable.any():
-            x[observable], _ = refit.solve(start[observable], sigma_fine, truncate_fine)
+            x[observable], _ = _final_fit(refit, start[observable], gate, levels[-1], lines)
     final = fit.full(x)
     for i, name in enumerate(names):
         k = PARAMETERS.index(name)
@@ -714,8 +934,21 @@ def _curvature_sigma(result: Any) -> F64:
     return np.asarray(np.sqrt(np.clip(np.diag(cov), 0, None)), np.float64)
 
 
-def _jackknife_sigma(fit: CameraFit, x: F64, sigma_px: float, truncate_px: float,
-                     groups: int) -> F64:
+def _final_fit(fit: CameraFit, x: F64, gate_px: float, level: tuple[float, float],
+               lines: bool, rounds: int = 8, max_nfev: int | None = None) -> tuple[F64, Any]:
+    """The last pass: point to line (the gate widened first) with ``lines``, else on the
+    finest distance map; the least-squares result."""
+    result: Any = None
+    if not lines:
+        return fit.solve(x, *level, max_nfev=max_nfev or 60)
+    for widen in LINE_GATE_STEPS:
+        x, result = fit.solve_lines(x, widen * gate_px, rounds=rounds,
+                                    max_nfev=max_nfev or 30)
+    return x, result
+
+
+def _jackknife_sigma(fit: CameraFit, x: F64, gate_px: float, level: tuple[float, float],
+                     lines: bool, groups: int) -> F64:
     """1σ (scaled units) from the spread of the fit over groups of frames, each left out."""
     n = len(fit.frames)
     groups = min(groups, n)
@@ -727,7 +960,7 @@ def _jackknife_sigma(fit: CameraFit, x: F64, sigma_px: float, truncate_px: float
         for g in range(groups):
             fit.frames = [f for i, f in enumerate(everything) if i % groups != g]
             fit.times_ns = np.array([f.time_ns for f in fit.frames], dtype=np.int64)
-            estimate, _ = fit.solve(x, sigma_px, truncate_px, max_nfev=10)
+            estimate, _ = _final_fit(fit, x, gate_px, level, lines, rounds=3, max_nfev=10)
             estimates.append(estimate)
     finally:
         fit.frames, fit.times_ns = everything, all_times

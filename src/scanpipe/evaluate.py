@@ -234,7 +234,6 @@ def edge_metrics(result: Path, max_frames: int = 12) -> dict[str, Any]:
     together: None when something is missing (a cloud without a grid, no frames)."""
     from scanpipe.artifacts import read_artifact
     from scanpipe.camera_selfcal import (
-        MATCH_PX,
         CameraFit,
         MotorTrack,
         depth_edges,
@@ -272,9 +271,7 @@ def edge_metrics(result: Path, max_frames: int = 12) -> dict[str, Any]:
             fit = CameraFit(edges, observations(tables["frames"], rows, camera), track, ())
             x = fit.full(np.zeros(0))
             fit.select_visible(x)
-            scale = max(camera.width, camera.height) / 1000.0
-            raw = fit.distances(x, 0.0, 1e6)
-            distances.append(raw[raw <= MATCH_PX * scale])
+            distances.append(fit.alignment(x).distances_px)
     except ScanpipeError:
         return empty
     return edge_alignment(np.concatenate(distances) if distances else np.zeros(0))
