@@ -372,3 +372,37 @@ def test_real_lms111_capture_decodes_like_the_driver() -> None:
         at = stream.find(b"sSN LMDscandata ", at + size)
     again, _ = decode_bytes(b"".join(sick_cola.encode_ascii(t) for t in telegrams), "cola_a")
     assert len(again) == 9 and all(a.same_as(b) for a, b in zip(again, profiles, strict=True))
+
+
+LMS111_DRIVER_OUTPUT = FIXTURE.parent / "lms111_sick_scan_xd_ranges.json"
+# sick_scan_xd's ScanAngleShift for sick_lms_1xx: its LaserScan has 0 rad straight ahead, where
+# the device's own angle (the telegram's, ours) is 90°.
+LMS1XX_ROS_ANGLE_SHIFT_RAD = -np.pi / 2
+# float32 rounding of the driver's angle_min (half an ulp at 2.36 rad: 1.2e-7) plus 540 times
+# that of angle_increment (half an ulp at 0.0087 rad: 4.7e-10) when a reader sums them.
+F32_ANGLE_TOL_RAD = 1.2e-7 + 540 * 4.7e-10
+
+
+def test_real_lms111_capture_decodes_to_sick_scan_xd_own_output() -> None:
+    """The LMS111 telegrams decode to exactly what SICK's own parser (sick_scan_xd, built and
+    run by tools/sick_driver_reference/regenerate.sh) put in its LaserScan: every range within
+    one float32 ulp, every angle within float32 rounding of angle_min + i · angle_increment."""
+    import json
+
+    driver = json.loads(LMS111_DRIVER_OUTPUT.read_text())
+    profiles, _ = decode_bytes(_json_capture_stream(LMS111_FIXTURE), "cola_b")
+    assert len(driver["scans"]) == len(profiles) == 9
+    for p, scan in zip(profiles, driver["scans"], strict=True):
+        assert p.frame == scan["scan_counter"] and scan["num_echos"] == 1
+        assert scan["scan_time_s"] == pytest.approx(0.02)  # 50 Hz, as the telegram says
+        expected = np.array(scan["ranges_m"], np.float32)
+        assert len(p.ranges_m) == len(expected) == 541
+        # the driver publishes raw 0 as 0.0 m; we mark it NaN ("no echo"); this capture has none
+        assert np.all(expected > 0) and not np.any(np.isnan(p.ranges_m))
+        assert np.all(np.abs(p.ranges_m - expected) <= np.spacing(expected))
+        i = np.arange(len(expected))
+        driver_rad = (np.float64(np.float32(scan["angle_min_rad"]))
+                      + i * np.float64(np.float32(scan["angle_increment_rad"])))
+        ours_rad = np.deg2rad(p.start_angle_deg + i * p.step_deg) + LMS1XX_ROS_ANGLE_SHIFT_RAD
+        assert np.max(np.abs(ours_rad - driver_rad)) <= F32_ANGLE_TOL_RAD
+        assert driver_rad[-1] == pytest.approx(scan["angle_max_rad"], abs=F32_ANGLE_TOL_RAD)
