@@ -249,7 +249,7 @@ def test_calibrate_cameras_finds_a_video_clock_offset(scan: dict[str, Any]) -> N
     offset = next(p for p in result.parameters if p.name == "time_offset_s")
     assert offset.observable and offset.sigma is not None and offset.sigma < 0.1
     assert result.time_offset_determined is True
-    assert not any("not determined" in w for w in result.warnings)
+    assert not any("clock offset is not determined" in w for w in result.warnings)
 
 
 def test_coarse_basins_keep_a_rival_valley_and_merge_wiggles() -> None:
@@ -305,6 +305,7 @@ def test_a_wrong_clock_basin_is_refined_and_loses(scan: dict[str, Any],
                                        fit_time_offset=True, max_frames=24)[0]
     assert result.time_offset_s == pytest.approx(-0.5, abs=0.1)
     assert result.time_offset_determined is True
+    assert not any("clock offset is not determined" in w for w in result.warnings)
 
 
 @pytest.mark.slow
@@ -327,9 +328,9 @@ def test_two_clock_basins_that_fit_alike_leave_the_offset_undetermined(
     offset = next(p for p in result.parameters if p.name == "time_offset_s")
     assert result.time_offset_determined is False
     assert any("clock offset is not determined" in w for w in result.warnings)
-    # the 1σ covers both basins (over the limit: the start offset kept, never a confident
-    # wrong number)
-    assert offset.sigma is not None and offset.sigma >= 0.3
+    # the 1σ covers both basins (the second, refined, ends some 0.3 s away; over the limit:
+    # the start offset kept, never a confident wrong number)
+    assert offset.sigma is not None and offset.sigma >= 0.2
     assert not offset.observable and result.time_offset_s == 0.0
     assert result.report()["time_offset_determined"] is False
 
