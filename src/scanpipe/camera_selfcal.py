@@ -22,7 +22,10 @@ along that edge's normal is minimised (soft-L1), matches renewed until the value
 distance map's whole pixels and its blur leave a bias of a fraction of a pixel that the point-to-
 line pass does not; the alignment figures are its distances. With a clock offset to find, the
 mount is first fitted to the frames of the platform standing still, then δ is scanned over the
-search window, then everything is fitted together. The 1σ of each value is the larger of the
+search window, then everything is fitted together; every basin of the cost that competes, over
+δ and along the valley where δ and the camera's orbit about the axis trade, is refined and the
+least final cost wins — two that end alike leave δ undetermined (a warning, the 1σ widened to
+cover both). The 1σ of each value is the larger of the
 curvature (the Jacobian's ``s² (JᵀJ)⁻¹``) and the spread over groups of frames (a jackknife: the
 fit repeated with each group left out), because neighbouring edge points share their errors and
 the curvature alone is optimistic. A value whose 1σ exceeds its limit is reported unobservable
@@ -52,7 +55,7 @@ from scipy.spatial.transform import Rotation
 
 from scanpipe.camera import project_points
 from scanpipe.errors import StageError
-from scanpipe.geometry import CAMERA_BASE, camera_to_platform
+from scanpipe.geometry import CAMERA_BASE, camera_to_platform, platform_rotation
 from scanpipe.grid import bilateral_smooth, scan_grid, to_grid
 from scanpipe.motion import beta_deg_at, motor_times_ns
 from scanpipe.rig import CameraConfig, Pose, Rig
@@ -799,6 +802,10 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         starts = _scan_time_offset(fit, x, time_window_s, *levels[first_level])
         # every coarse basin that competes with the best is refined; the final cost picks
         ends = [_descend(fit, s, levels, first_level, rotation_and_time, True) for s in starts]
+        # the other basins along the valley where a clock shift and a turn about the axis trade
+        # (a mount fitted to the still frames of one view can be off by such a turn)
+        valley = _valley_starts(fit, ends[0], time_window_s, levels[first_level])
+        ends += [_descend(fit, s, levels, first_level, rotation_and_time, True) for s in valley]
         x = ends[0]
         if len(ends) > 1:
             scores = [_basin_score(fit, e, levels[-1]) for e in ends]
@@ -812,10 +819,11 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
             listed = ", ".join(f"{offsets_s[i]:+.3f} s (cost {scores[i]:.3g})"
                                for i in [pick, *rivals.tolist()])
             warnings.append(f"camera {camera.id!r}: the clock offset is not determined: "
-                            f"the edges fit alike at {listed}; a clock offset looks like a "
-                            "turn of the camera about the axis — record frames while the "
-                            "platform stands still, or give --offset within "
-                            f"{spread_s / 2:.2f} s")
+                            f"the edges fit alike at {listed}: a clock offset looks like a "
+                            "turn of the camera about the axis, and the frames of the platform "
+                            "standing still do not pin that turn (film it still from more than "
+                            "one side, or start from an offset known within "
+                            f"±{spread_s / 2:.2f} s)")
     else:
         x = _descend(fit, x, levels, first_level, rotation_and_time, False)
     # the last pass: point-to-line distances to the sub-pixel image edges that run the depth
@@ -950,8 +958,11 @@ def _scan_time_offset(fit: CameraFit, x: F64, window_s: float, sigma_px: float,
 
 
 #: A coarse basin competes when its least cost lies within this share of the cost curve's
-#: depth (its highest minus its least value) above the best one; at most this many are refined.
+#: depth (its highest minus its least value) above the best one, parted from every other by a
+#: ridge higher than this share (ripples along one valley are not basins: a flat valley with
+#: two dips is, as in benchmark seed 2); at most this many are refined.
 BASIN_MARGIN = 0.35
+RIDGE_SHARE = 0.015
 MAX_BASINS = 3
 #: Refined basins whose offsets differ by more than this (s) and whose final costs lie within
 #: this share of each other leave the offset undetermined.
@@ -961,13 +972,13 @@ FINAL_MARGIN = 0.05
 
 def _coarse_basins(costs: F64) -> list[int]:
     """Indices of the separate local minima of a scanned cost that compete with the least:
-    the least first. A neighbour minimum counts as separate only when a ridge at least the
-    margin high parts them (wiggles of one valley are one basin)."""
+    the least first. A neighbour minimum counts as separate only when a ridge parts them
+    (:data:`RIDGE_SHARE`; wiggles of one valley are one basin)."""
     best = int(np.argmin(costs))
     depth = float(np.max(costs) - costs[best])
     if depth <= 0:
         return [best]
-    margin = BASIN_MARGIN * depth
+    margin, ridge = BASIN_MARGIN * depth, RIDGE_SHARE * depth
     inner = np.flatnonzero((costs[1:-1] <= costs[:-2]) & (costs[1:-1] <= costs[2:])) + 1
     ends = [i for i in (0, len(costs) - 1) if costs[i] <= costs[i - 1 if i else 1]]
     minima = sorted(set(inner.tolist()) | set(ends), key=lambda i: float(costs[i]))
@@ -975,11 +986,45 @@ def _coarse_basins(costs: F64) -> list[int]:
     for i in minima:
         if len(chosen) >= MAX_BASINS or costs[i] - costs[best] > margin:
             break
-        # parted from every chosen one by a ridge above both by the margin
-        if all(np.max(costs[min(i, j):max(i, j) + 1]) - max(costs[i], costs[j]) > margin
+        # parted from every chosen one by a ridge above both
+        if all(np.max(costs[min(i, j):max(i, j) + 1]) - max(costs[i], costs[j]) > ridge
                for j in chosen):
             chosen.append(i)
     return chosen
+
+
+def _orbit(fit: CameraFit, x: F64, shift_s: float) -> F64:
+    """``x`` (scaled) with the clock moved by ``shift_s`` and the camera turned about the
+    platform's axis by the platform's mean rate times ``-shift_s``: a point of the valley along
+    which a clock offset and the camera's turn trade."""
+    first, last = fit.track.moving_span_ns()
+    if last <= first:
+        return x
+    betas = fit.track.beta_deg(np.array([first, last], dtype=np.int64))
+    rate_deg_s = float(betas[1] - betas[0]) / ((last - first) * 1e-9)
+    turn = platform_rotation(-rate_deg_s * shift_s)
+    full = fit.full(x)
+    rotation = Rotation.from_matrix(turn) * Rotation.from_rotvec(np.radians(full[:3]))
+    full[:3] = np.degrees(rotation.as_rotvec())
+    origin = np.asarray(fit.frames[0].camera.pose.translation_m, dtype=np.float64)
+    full[3:6] = turn @ (origin + full[3:6]) - origin
+    full[7] += shift_s
+    out = (full - fit.base)[fit.free] / _UNITS[fit.free]
+    return np.asarray(out, np.float64)
+
+
+def _valley_starts(fit: CameraFit, x: F64, window_s: float, level: tuple[float, float]
+                   ) -> list[F64]:
+    """Starts in the other competing basins of the cost along the clock-for-turn valley
+    through ``x`` (over ± ``window_s``); none without translation free to orbit."""
+    if not fit.free[3:6].all():
+        return []
+    steps = np.linspace(-window_s, window_s, max(21, round(2 * window_s / 0.02) + 1))
+    fit.select_visible(fit.full(x))  # ungated: a gate at ``x`` would favour ``x``
+    trials = [_orbit(fit, x, float(dt)) for dt in steps]
+    costs = np.array([float(np.sum(fit.residuals(t, *level) ** 2)) for t in trials])
+    here = int(np.argmin(np.abs(steps)))
+    return [trials[k] for k in _coarse_basins(costs) if abs(k - here) > 2]
 
 
 def _pick_basin(offsets_s: F64, scores: F64) -> tuple[int, NDArray[np.int64]]:
