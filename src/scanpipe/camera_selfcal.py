@@ -22,7 +22,10 @@ along that edge's normal is minimised (soft-L1), matches renewed until the value
 distance map's whole pixels and its blur leave a bias of a fraction of a pixel that the point-to-
 line pass does not; the alignment figures are its distances. With a clock offset to find, the
 mount is first fitted to the frames of the platform standing still, then δ is scanned over the
-search window, then everything is fitted together. The 1σ of each value is the larger of the
+search window, then everything is fitted together; every basin of the cost that competes, over
+δ and along the valley where δ and the camera's orbit about the axis trade, is refined and the
+least final cost wins — two that end alike leave δ undetermined (a warning, the 1σ widened to
+cover both). The 1σ of each value is the larger of the
 curvature (the Jacobian's ``s² (JᵀJ)⁻¹``) and the spread over groups of frames (a jackknife: the
 fit repeated with each group left out), because neighbouring edge points share their errors and
 the curvature alone is optimistic. A value whose 1σ exceeds its limit is reported unobservable
@@ -52,7 +55,7 @@ from scipy.spatial.transform import Rotation
 
 from scanpipe.camera import project_points
 from scanpipe.errors import StageError
-from scanpipe.geometry import CAMERA_BASE, camera_to_platform
+from scanpipe.geometry import CAMERA_BASE, camera_to_platform, platform_rotation
 from scanpipe.grid import bilateral_smooth, scan_grid, to_grid
 from scanpipe.motion import beta_deg_at, motor_times_ns
 from scanpipe.rig import CameraConfig, Pose, Rig
@@ -721,6 +724,9 @@ class CameraCalibration:
     warnings: list[str] = field(default_factory=list)
     #: With a clock offset fitted: whether some frames show the platform standing still.
     still_frames: bool = True
+    #: With a clock offset fitted: False when it is not determined (competing basins of the
+    #: cost, or its 1σ over the limit: the rig's/start value is kept); None without one.
+    time_offset_determined: bool | None = None
 
     def report(self) -> dict[str, Any]:
         """The calibration as JSON-ready values."""
@@ -733,6 +739,7 @@ class CameraCalibration:
             "fx_before": self.before.fx, "fx_after": self.after.fx,
             "fy_before": self.before.fy, "fy_after": self.after.fy,
             "time_offset_s": self.time_offset_s,
+            "time_offset_determined": self.time_offset_determined,
             "parameters": [{"name": p.name, "change": p.change, "sigma": p.sigma,
                             "observable": p.observable, "fitted": p.fitted}
                            for p in self.parameters],
@@ -784,21 +791,41 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
     names = [p for p in PARAMETERS if p in free]
     rotation_and_time = np.array([n.startswith("rot_") or n == "time_offset_s" for n in names])
     first_level = 0
+    determined = True
+    spread_s = 0.0
     if fit_time_offset:
         # The mount first from the frames of the platform standing still (whatever the
         # clock), then the clock from all frames with that mount, then both together.
         x = _fit_mount_on_still_frames(fit, x, levels, time_window_s)
         _weigh_still_frames(fit, time_window_s)
         first_level = 1
-        x = _scan_time_offset(fit, x, time_window_s, *levels[first_level])
-        fit.select_visible(fit.full(x), gate_px=levels[first_level][1])
-    for level in range(first_level, len(levels)):
-        sigma, truncate = levels[level]
-        # the coarsest pass turns the camera (and shifts its clock) only: the rest would
-        # wander along the flat valleys of a blurred cost
-        x, _ = fit.solve(x, sigma, truncate, only=rotation_and_time if level == 0 else None)
-        if level < len(levels) - 1:  # what each frame sees moves with a changed pose
-            fit.select_visible(fit.full(x), gate_px=levels[level + 1][1])
+        starts = _scan_time_offset(fit, x, time_window_s, *levels[first_level])
+        # every coarse basin that competes with the best is refined; the final cost picks
+        ends = [_descend(fit, s, levels, first_level, rotation_and_time, True) for s in starts]
+        # the other basins along the valley where a clock shift and a turn about the axis trade
+        # (a mount fitted to the still frames of one view can be off by such a turn)
+        valley = _valley_starts(fit, ends[0], time_window_s, levels[first_level])
+        ends += [_descend(fit, s, levels, first_level, rotation_and_time, True) for s in valley]
+        x = ends[0]
+        if len(ends) > 1:
+            scores = [_basin_score(fit, e, levels[-1]) for e in ends]
+            offsets_s = np.array([fit.full(e)[7] for e in ends])
+            pick, rivals = _pick_basin(offsets_s, np.array(scores))
+            x = ends[pick]
+            fit.select_visible(fit.full(x), gate_px=levels[-1][1])
+        if len(ends) > 1 and rivals.size:
+            determined = False
+            spread_s = float(np.max(np.abs(offsets_s[rivals] - offsets_s[pick])))
+            listed = ", ".join(f"{offsets_s[i]:+.3f} s (cost {scores[i]:.3g})"
+                               for i in [pick, *rivals.tolist()])
+            warnings.append(f"camera {camera.id!r}: the clock offset is not determined: "
+                            f"the edges fit alike at {listed}: a clock offset looks like a "
+                            "turn of the camera about the axis, and the frames of the platform "
+                            "standing still do not pin that turn (film it still from more than "
+                            "one side, or start from an offset known within "
+                            f"±{spread_s / 2:.2f} s)")
+    else:
+        x = _descend(fit, x, levels, first_level, rotation_and_time, False)
     # the last pass: point-to-line distances to the sub-pixel image edges that run the depth
     # edges' way (the distance map's pixels and blur leave a bias of a fraction of a pixel)
     # the last pass point to line — for the mount alone: with a clock offset to find, a frame
@@ -810,6 +837,9 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
     curvature = _curvature_sigma(result)
     spread = _jackknife_sigma(fit, x, gate, levels[-1], lines, jackknife_groups)
     sigma_scaled = np.fmax(curvature, spread)
+    if spread_s > 0:  # the 1σ covers the competing basins: never a confident wrong offset
+        k = names.index("time_offset_s")
+        sigma_scaled[k] = max(float(sigma_scaled[k]), spread_s / _UNITS[7])
     results: list[ParameterResult] = []
     observable = np.ones(len(names), dtype=bool)
     for i, name in enumerate(names):
@@ -856,7 +886,9 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         camera_id=camera.id, before=_rig_camera(camera, track.rig), after=after_camera,
         time_offset_s=float(final[7]) if fit_time_offset else None, parameters=results,
         alignment_before=before, alignment_after=after, frames=len(frames),
-        edge_points=int(after.distances_px.size), warnings=warnings, still_frames=still)
+        edge_points=int(after.distances_px.size), warnings=warnings, still_frames=still,
+        time_offset_determined=bool(determined and observable[names.index("time_offset_s")])
+        if fit_time_offset else None)
 
 
 def _rig_camera(camera: CameraConfig, rig: Rig) -> CameraConfig:
@@ -906,9 +938,10 @@ def _weigh_still_frames(fit: CameraFit, window_s: float) -> None:
 
 
 def _scan_time_offset(fit: CameraFit, x: F64, window_s: float, sigma_px: float,
-                      truncate_px: float) -> F64:
-    """The clock offset with the least cost over ``base ± window_s`` (other values kept),
-    scanned at steps of a tenth of the coarsest blur's worth of platform turn."""
+                      truncate_px: float) -> list[F64]:
+    """Starts for the clock offset from the cost over ``base ± window_s`` (other values kept),
+    scanned at 20 ms steps: the least cost first, then the other basins that compete with it
+    (:func:`_coarse_basins`)."""
     steps = np.linspace(-window_s, window_s, max(21, round(2 * window_s / 0.02) + 1))
     index = int(np.flatnonzero(fit.free[:7]).size)  # the time offset is the last free one
     costs = np.empty(len(steps))
@@ -916,9 +949,116 @@ def _scan_time_offset(fit: CameraFit, x: F64, window_s: float, sigma_px: float,
         trial = x.copy()
         trial[index] = dt / _UNITS[7]
         costs[i] = float(np.sum(fit.residuals(trial, sigma_px, truncate_px) ** 2))
-    best = x.copy()
-    best[index] = steps[int(np.argmin(costs))] / _UNITS[7]
-    return best
+    starts = []
+    for k in _coarse_basins(costs):
+        start = x.copy()
+        start[index] = steps[k] / _UNITS[7]
+        starts.append(start)
+    return starts
+
+
+#: A coarse basin competes when its least cost lies within this share of the cost curve's
+#: depth (its highest minus its least value) above the best one, parted from every other by a
+#: ridge higher than this share (ripples along one valley are not basins: a flat valley with
+#: two dips is, as in benchmark seed 2); at most this many are refined.
+BASIN_MARGIN = 0.35
+RIDGE_SHARE = 0.015
+MAX_BASINS = 3
+#: Refined basins whose offsets differ by more than this (s) and whose final costs lie within
+#: this share of each other leave the offset undetermined.
+BASIN_APART_S = 0.05
+FINAL_MARGIN = 0.05
+
+
+def _coarse_basins(costs: F64) -> list[int]:
+    """Indices of the separate local minima of a scanned cost that compete with the least:
+    the least first. A neighbour minimum counts as separate only when a ridge parts them
+    (:data:`RIDGE_SHARE`; wiggles of one valley are one basin)."""
+    best = int(np.argmin(costs))
+    depth = float(np.max(costs) - costs[best])
+    if depth <= 0:
+        return [best]
+    margin, ridge = BASIN_MARGIN * depth, RIDGE_SHARE * depth
+    inner = np.flatnonzero((costs[1:-1] <= costs[:-2]) & (costs[1:-1] <= costs[2:])) + 1
+    ends = [i for i in (0, len(costs) - 1) if costs[i] <= costs[i - 1 if i else 1]]
+    minima = sorted(set(inner.tolist()) | set(ends), key=lambda i: float(costs[i]))
+    chosen = [best]
+    for i in minima:
+        if len(chosen) >= MAX_BASINS or costs[i] - costs[best] > margin:
+            break
+        # parted from every chosen one by a ridge above both
+        if all(np.max(costs[min(i, j):max(i, j) + 1]) - max(costs[i], costs[j]) > ridge
+               for j in chosen):
+            chosen.append(i)
+    return chosen
+
+
+def _orbit(fit: CameraFit, x: F64, shift_s: float) -> F64:
+    """``x`` (scaled) with the clock moved by ``shift_s`` and the camera turned about the
+    platform's axis by the platform's mean rate times ``-shift_s``: a point of the valley along
+    which a clock offset and the camera's turn trade."""
+    first, last = fit.track.moving_span_ns()
+    if last <= first:
+        return x
+    betas = fit.track.beta_deg(np.array([first, last], dtype=np.int64))
+    rate_deg_s = float(betas[1] - betas[0]) / ((last - first) * 1e-9)
+    turn = platform_rotation(-rate_deg_s * shift_s)
+    full = fit.full(x)
+    rotation = Rotation.from_matrix(turn) * Rotation.from_rotvec(np.radians(full[:3]))
+    full[:3] = np.degrees(rotation.as_rotvec())
+    origin = np.asarray(fit.frames[0].camera.pose.translation_m, dtype=np.float64)
+    full[3:6] = turn @ (origin + full[3:6]) - origin
+    full[7] += shift_s
+    out = (full - fit.base)[fit.free] / _UNITS[fit.free]
+    return np.asarray(out, np.float64)
+
+
+def _valley_starts(fit: CameraFit, x: F64, window_s: float, level: tuple[float, float]
+                   ) -> list[F64]:
+    """Starts in the other competing basins of the cost along the clock-for-turn valley
+    through ``x`` (over ± ``window_s``); none without translation free to orbit."""
+    if not fit.free[3:6].all():
+        return []
+    steps = np.linspace(-window_s, window_s, max(21, round(2 * window_s / 0.02) + 1))
+    fit.select_visible(fit.full(x))  # ungated: a gate at ``x`` would favour ``x``
+    trials = [_orbit(fit, x, float(dt)) for dt in steps]
+    costs = np.array([float(np.sum(fit.residuals(t, *level) ** 2)) for t in trials])
+    here = int(np.argmin(np.abs(steps)))
+    return [trials[k] for k in _coarse_basins(costs) if abs(k - here) > 2]
+
+
+def _pick_basin(offsets_s: F64, scores: F64) -> tuple[int, NDArray[np.int64]]:
+    """The refined basin with the least final cost, and the others that fit alike (within
+    :data:`FINAL_MARGIN`) at an offset :data:`BASIN_APART_S` or more away: its rivals."""
+    pick = int(np.argmin(scores))
+    alike = scores <= scores[pick] * (1.0 + FINAL_MARGIN)
+    apart = np.abs(offsets_s - offsets_s[pick]) >= BASIN_APART_S
+    return pick, np.flatnonzero(alike & apart)
+
+
+def _descend(fit: CameraFit, x: F64, levels: list[tuple[float, float]], first_level: int,
+             rotation_and_time: B, select_first: bool) -> F64:
+    """The coarse-to-fine passes on the distance maps from ``first_level`` on (``select_first``:
+    what the frames see chosen at ``x`` first)."""
+    if select_first:
+        fit.select_visible(fit.full(x), gate_px=levels[first_level][1])
+    for level in range(first_level, len(levels)):
+        sigma, truncate = levels[level]
+        # the coarsest pass turns the camera (and shifts its clock) only: the rest would
+        # wander along the flat valleys of a blurred cost
+        x, _ = fit.solve(x, sigma, truncate, only=rotation_and_time if level == 0 else None)
+        if level < len(levels) - 1:  # what each frame sees moves with a changed pose
+            fit.select_visible(fit.full(x), gate_px=levels[level + 1][1])
+    return x
+
+
+def _basin_score(fit: CameraFit, x: F64, level: tuple[float, float]) -> float:
+    """A basin's final cost, comparable between basins: the mean squared truncated distance
+    (finest map) of every edge point the frames see, not the gated subset each fit kept."""
+    fit.select_visible(fit.full(x))
+    values = fit._lookup(fit.full(x), *level, fit_subset=False, weighted=True)
+    weight = sum(f.weight for f in fit.frames if f.all_edges.size)
+    return float(np.sum(values ** 2) / max(weight, 1e-12))
 
 
 def _curvature_sigma(result: Any) -> F64:
