@@ -13,6 +13,7 @@ from scanpipe.artifacts import read_provenance
 from scanpipe.demo import DemoOptions, run_demo
 from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
+from scanpipe.stages.decode import STAGE as DECODE_STAGE
 
 pytestmark = pytest.mark.slow
 
@@ -69,7 +70,7 @@ def test_show_and_stages(cli, recording: Path, tmp_path: Path) -> None:  # type:
     assert info["stage"] == "assemble" and info["rows"] > 0
     assert set(info["inputs"]) == {"profiles", "motor", "rig"}
     text = cli("show", work / "decode" / "profiles.parquet")
-    assert "stage      decode v3" in text.out
+    assert f"stage      decode v{DECODE_STAGE.version}" in text.out
     listed = cli("stages")
     for name in ("decode", "assemble", "filter", "mesh", "texture", "export"):
         assert f"{name} (v" in listed.out
