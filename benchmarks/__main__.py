@@ -9,7 +9,7 @@ import datetime as dt
 import sys
 import time
 
-from benchmarks.harness import save
+from benchmarks.harness import save, timed_say
 from benchmarks.pipeline_bench import report, run
 from benchmarks.scans import LAB, QUICK
 
@@ -25,9 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.repeats < 1:
         parser.error(f"--repeats {args.repeats}: must be at least 1")
     started = time.perf_counter()
-
-    def say(text: str) -> None:
-        print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
+    say = timed_say(started)
 
     results = run(QUICK if args.quick else LAB, args.repeats, say=say)
     results["quick"] = args.quick

@@ -39,7 +39,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from benchmarks.harness import machine, save, table
+from benchmarks.harness import machine, save, table, timed_say
 from scanpipe.batch import run_batch
 from scanpipe.cli.main import main as scanpipe_main
 from scanpipe.cli.pipeline import pipeline_params_from_cli
@@ -314,9 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads < 1:
         parser.error(f"--threads {args.threads}: must be at least 1")
     started = time.perf_counter()
-
-    def say(text: str) -> None:
-        print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
+    say = timed_say(started)
 
     results = run(args.recordings, QUICK if args.quick else SMALL, say, args.repeats,
                   args.threads)

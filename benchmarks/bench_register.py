@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.bench_site import cpu_seconds_all, run_scanpipe
-from benchmarks.harness import machine, save, table
+from benchmarks.harness import machine, save, table, timed_say
 
 SCALES: dict[str, list[str]] = {
     "small": ["--motor-step", "2", "--beam-step", "1", "--no-cameras"],
@@ -193,9 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.seeds < 1:
         parser.error(f"--seeds {args.seeds}: must be at least 1")
     started = time.perf_counter()
-
-    def say(text: str) -> None:
-        print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
+    say = timed_say(started)
 
     results = run(args.scale, args.positions, args.seeds, say)
     results["benchmark_s"] = round(time.perf_counter() - started, 1)

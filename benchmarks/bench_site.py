@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from benchmarks.harness import machine, save, table
+from benchmarks.harness import machine, save, table, timed_say
 from scanpipe.cli.main import main as scanpipe_main
 
 #: `simulate --site` settings per scale (σ = 10 mm, the unnamed scanner's noise).
@@ -162,9 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     if positions < 2:
         parser.error(f"--positions {positions}: a site needs at least 2")
     started = time.perf_counter()
-
-    def say(text: str) -> None:
-        print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
+    say = timed_say(started)
 
     results = run(args.scale, positions, args.workers, say)
     results["benchmark_s"] = round(time.perf_counter() - started, 1)

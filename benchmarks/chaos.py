@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.harness import save, table
+from benchmarks.harness import save, table, timed_say
 from benchmarks.hostile import black_png, jpeg_header
 
 REPO = Path(__file__).resolve().parents[1]
@@ -1371,9 +1371,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-save", action="store_true", help="print only, write no JSON")
     args = parser.parse_args(argv)
     started = time.perf_counter()
-
-    def say(text: str) -> None:
-        print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
+    say = timed_say(started)
 
     results = run_suite(args.quick, args.only, args.seed, say)
     print(report(results))

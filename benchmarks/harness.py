@@ -13,6 +13,7 @@ import os
 import platform
 import resource
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -108,6 +109,17 @@ def cpu_seconds(work: Callable[[], object], repeats: int = 3, warm_up: bool = Tr
         work()
         runs.append(time.process_time() - start)
     return statistics.median(runs)
+
+
+
+def timed_say(started: float) -> Callable[[str], None]:
+    """A progress printer for a benchmark: each line on stderr with the seconds since ``started``
+    (a ``time.perf_counter()`` reading)."""
+
+    def say(text: str) -> None:
+        print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
+
+    return say
 
 
 def machine() -> dict[str, Any]:
