@@ -191,3 +191,57 @@ def test_event_levels(kind: str, level: int) -> None:
     from scanpipe.live import event_level
 
     assert event_level(kind) == level
+
+
+def test_a_subscribed_viewer_gets_the_final_cloud_when_the_recording_ends() -> None:
+    """The last profiles arrive and the recording stops at once (no periodic cloud in
+    between): the viewer still receives the final cloud with every point (stopping the server
+    straight after publishing it dropped it on its way)."""
+    from scanpipe.live import LiveView
+    from scanpipe.protocol.profile import Profile
+    from scanpipe.protocol.registry import get_dialect
+
+    rig = default_rig()
+    dialect = get_dialect(rig.scanner.dialect)
+    view = LiveView(rig, _free_port(), cloud_interval_s=3600.0)
+
+    async def watch() -> list[int]:
+        connection = await websockets.connect(view.url, subprotocols=SUBPROTOCOLS, max_size=None)
+        topics: dict[int, str] = {}
+        sizes: list[int] = []
+        async with connection:
+            while True:
+                try:
+                    frame = await asyncio.wait_for(connection.recv(), timeout=10.0)
+                except websockets.ConnectionClosed:
+                    return sizes
+                if isinstance(frame, str):
+                    message = json.loads(frame)
+                    if message["op"] == "advertise":
+                        wanted = [c for c in message["channels"] if c["topic"] == "/scan/cloud"]
+                        for channel in wanted:
+                            topics[len(topics) + 1] = channel["topic"]
+                        await connection.send(json.dumps({"op": "subscribe", "subscriptions": [
+                            {"id": i + 1, "channelId": c["id"]} for i, c in enumerate(wanted)]}))
+                        for _ in range(100):  # the subscription registered: now end the scan
+                            if view.subscriptions:
+                                break
+                            await asyncio.sleep(0.05)
+                        await asyncio.get_running_loop().run_in_executor(None, end_scan)
+                    continue
+                cloud = PointCloud.FromString(bytes(frame[13:]))
+                sizes.append(len(cloud.data) // cloud.point_stride)
+
+    ranges = np.full(100, 2.0, np.float32)
+
+    def end_scan() -> None:
+        view.on_motor_state(0, 0)
+        for frame in range(5):
+            profile = Profile(frame=frame, sector=0, start_angle_deg=0.0, step_deg=0.9,
+                              ranges_m=ranges, device_time_ms=frame * 50,
+                              device_end_time_ms=frame * 50 + 40)
+            view.on_stream("scanner", dialect.encode_profile(profile), 0, frame * 50_000_000)
+        view.close()
+
+    sizes = asyncio.run(watch())
+    assert sizes and sizes[-1] == 5 * len(ranges)

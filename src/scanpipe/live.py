@@ -61,10 +61,11 @@ class _Subscriptions:
         self.view = view
 
     def on_subscribe(self, client: Any, channel: Any) -> None:
+        self.view.subscriptions += 1
         self.view._put(("subscribed", str(channel.topic)))
 
     def on_unsubscribe(self, client: Any, channel: Any) -> None:
-        return None
+        self.view.subscriptions -= 1
 
 
 class LiveView:
@@ -120,10 +121,13 @@ class LiveView:
         self._clouds: list[NDArray[np.float32]] = []
         self._points = 0
         self._last_cloud_s = 0.0
+        self._last_stream_ns = 0
         self._last_static_s = 0.0
         self.published: dict[str, int] = dict.fromkeys(self._channels, 0)
         self.dropped = 0
         self.errors = 0
+        #: Subscriptions of connected viewers (per client and channel).
+        self.subscriptions = 0
         self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(queue_size)
         self._worker = threading.Thread(target=self._run, name="live-view", daemon=True)
         self._worker.start()
@@ -213,12 +217,19 @@ class LiveView:
             self._log("/tf", fx.camera_transform(now_ns, cam), now_ns)
 
     def _profiles(self, data: bytes, time_ns: int) -> None:
-        from scanpipe.stages.assemble import points_from_grid
-
         try:
             profiles = self._decoder.feed(data)
         except Exception:  # a damaged stream: the decoder resyncs; a preview never stops
             return
+        self._last_stream_ns = time_ns
+        self._place(profiles, time_ns)
+        if time.monotonic() - self._last_cloud_s >= self.cloud_interval_s:
+            self.publish_cloud(time_ns)
+
+    def _place(self, profiles: list[Any], time_ns: int) -> None:
+        """Publish each profile at the latest platform angle and keep it for the cloud."""
+        from scanpipe.stages.assemble import points_from_grid
+
         if self._beta_deg is None:
             return  # no platform angle yet: the profile cannot be placed
         for profile in profiles:
@@ -234,8 +245,6 @@ class LiveView:
                       time_ns)
             self._clouds.append(xyz)
             self._points += len(xyz)
-        if time.monotonic() - self._last_cloud_s >= self.cloud_interval_s:
-            self.publish_cloud(time_ns)
 
     def publish_cloud(self, time_ns: int | None = None) -> None:
         """Publish the cloud so far now (thinned evenly to ``max_points``)."""
@@ -258,13 +267,20 @@ class LiveView:
 
     # -- life cycle ------------------------------------------------------------------------
 
-    def close(self, linger_s: float = 0.0) -> None:
-        """Publish what is queued and the final cloud, keep serving ``linger_s`` seconds (so a
-        viewer sees the end), then stop the server."""
+    def close(self, linger_s: float = 1.0) -> None:
+        """Publish what is queued and the final cloud, keep serving ``linger_s`` seconds while a
+        viewer is subscribed, then stop the server.
+
+        Stopping the server at once drops the messages still on their way: a viewer would miss
+        the final cloud and the end of the recording."""
         self._queue.put(None)
         self._worker.join(timeout=10.0)
+        try:  # the last frame, held by the decoder until a next marker would confirm it
+            self._place(self._decoder.finish(), self._last_stream_ns)
+        except Exception:
+            self.errors += 1
         self.publish_cloud()
-        if linger_s > 0:
+        if linger_s > 0 and self.subscriptions > 0:
             time.sleep(linger_s)
         self._server.stop()
 
