@@ -205,31 +205,47 @@ def run_end_to_end(recording: Path, out: Path, name: str, overrides: Mapping[str
 
 
 #: Runs one chain in a fresh interpreter and prints its figures as JSON (see chain_memory).
+#: Peaks come from the kernel's high-water mark of this process's memory (VmHWM), not from
+#: ``getrusage``: a child started by fork/vfork + exec inherits its parent's ``ru_maxrss``
+#: (Linux keeps the larger of the old and the new address space's), so a benchmark process
+#: that had used 9 GB made every chain it started report 9 GB. Each stage's own peak: the mark
+#: is reset after each stage (writing 5 to /proc/self/clear_refs); without that permission the
+#: stage's peak is the peak so far.
 _CHAIN_CHILD = """
-import json, resource, sys, time
+import json, sys, time
 from pathlib import Path
 import benchmarks.pipeline_bench as bench
 import scipy.ndimage, scipy.sparse.csgraph, open3d, cv2  # the stages' imports: before the base
 recording, workdir, to, overrides = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4]
-def rss_mb():
+def status_mb(field):
     with open("/proc/self/status") as status:
-        return next(int(l.split()[1]) / 1024 for l in status if l.startswith("VmRSS:"))
-base = rss_mb()
-stages, clock = {}, time.process_time()
+        return next(int(l.split()[1]) / 1024 for l in status if l.startswith(field + ":"))
+def reset_peak():
+    try:
+        with open("/proc/self/clear_refs", "w") as refs:
+            refs.write("5")
+        return True
+    except OSError:
+        return False
+base = status_mb("VmRSS")
+resets = reset_peak()
+stages, clock, so_far = {}, time.process_time(), base
 def on_stage(record):
-    global clock
+    global clock, so_far
     now = time.process_time()
+    peak = status_mb("VmHWM")
+    so_far = max(so_far, peak)
     stages[record.stage] = {
         "cpu_s": round(now - clock, 3), "seconds": round(record.seconds, 3),
-        "peak_rss_mb_so_far": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+        "peak_rss_mb": peak, "rss_after_mb": status_mb("VmRSS"), "peak_rss_mb_so_far": so_far}
     clock = now
+    reset_peak()
 wall, cpu = time.perf_counter(), time.process_time()
 bench.run_chain(recording, workdir, bench.chain_params(json.loads(overrides)), force=True,
                 to=to or None, on_stage=on_stage)
 print(json.dumps({"seconds": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu,
-                  "rss_after_imports_mb": base,
-                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-                  "stages": stages}))
+                  "rss_after_imports_mb": base, "per_stage_peaks": resets,
+                  "peak_rss_mb": max(so_far, status_mb("VmHWM")), "stages": stages}))
 """
 
 
@@ -552,7 +568,9 @@ def report(results: Mapping[str, Any]) -> str:
             f"peak memory of {label} (fresh process): {run['peak_rss_mb']:.0f} MB "
             f"({run['rss_after_imports_mb']:.0f} MB after the imports); peak so far after "
             + ", ".join(f"{k} {v['peak_rss_mb_so_far']:.0f}" for k, v in run["stages"].items())
-            + " MB")
+            + " MB; each stage's own peak: "
+            + ", ".join(f"{k} {v.get('peak_rss_mb', v['peak_rss_mb_so_far']):.0f}"
+                        for k, v in run["stages"].items()) + " MB")
     acq = results["acquisition"]
     parts.append(
         f"acquisition: {acq['positions']:.0f} positions / {acq['scan_hz']:g} Hz = "
