@@ -67,17 +67,17 @@ def recording(tmp_path: Path) -> Path:
 
 
 def _fail_on_call(monkeypatch: pytest.MonkeyPatch, number: int, code: int) -> None:
-    """Make the ``number``-th Parquet write raise OSError(``code``)."""
+    """Make the ``number``-th Parquet write raise OSError(``code``) (its file begun)."""
     calls = [0]
-    real = artifacts.pq.write_table
 
-    def write_table(*args: Any, **kwargs: Any) -> None:
-        calls[0] += 1
-        if calls[0] == number:
-            raise OSError(code, os.strerror(code))
-        real(*args, **kwargs)
+    class Writer(artifacts.pq.ParquetWriter):  # type: ignore[misc]
+        def write_table(self, *args: Any, **kwargs: Any) -> None:
+            calls[0] += 1
+            if calls[0] == number:
+                raise OSError(code, os.strerror(code))
+            super().write_table(*args, **kwargs)
 
-    monkeypatch.setattr(artifacts.pq, "write_table", write_table)
+    monkeypatch.setattr(artifacts.pq, "ParquetWriter", Writer)
 
 
 @pytest.mark.parametrize("replace_folder", [True, False])

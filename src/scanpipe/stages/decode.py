@@ -194,8 +194,22 @@ def motor_states_table(m: MotorStates) -> pa.Table:
                      pa.array(m.device_time_us, pa.int64())], schema=MOTOR_SCHEMA)
 
 
+def blobs_array(blobs: Sequence[bytes]) -> pa.ChunkedArray:
+    """A binary column over ``blobs`` without copying them: one chunk per blob, each chunk's
+    values buffer the ``bytes`` object itself (the frames of a recording are hundreds of MB;
+    one contiguous array would hold them twice)."""
+    if not blobs:
+        return pa.chunked_array([], pa.binary())
+    return pa.chunked_array([
+        pa.Array.from_buffers(pa.binary(), 1, [None, pa.py_buffer(
+            np.array([0, len(blob)], np.int32)), pa.py_buffer(blob)]) for blob in blobs],
+        pa.binary())
+
+
 def frames_table(images: Sequence[Image]) -> tuple[pa.Table, int]:
-    """The ``frames`` artifact (the images with their sizes) and how many had no readable size."""
+    """The ``frames`` artifact (the images with their sizes) and how many had no readable size.
+
+    The encoded bytes are shared with ``images``, not copied (:func:`blobs_array`)."""
     sizes = [image_size(i.data) for i in images]
     unknown = sum(1 for s in sizes if s is None)
     table = pa.table([
@@ -205,7 +219,7 @@ def frames_table(images: Sequence[Image]) -> tuple[pa.Table, int]:
         pa.array([i.format or "jpeg" for i in images], pa.string()),
         pa.array([-1 if s is None else s[0] for s in sizes], pa.int32()),
         pa.array([-1 if s is None else s[1] for s in sizes], pa.int32()),
-        pa.array([i.data for i in images], pa.binary()),
+        blobs_array([i.data for i in images]),
     ], schema=FRAMES_SCHEMA)
     return table, unknown
 
