@@ -735,22 +735,39 @@ def _read_chunk(body: bytes, offset: int, c: _Collector) -> None:
     _read_chunk_records(records, offset, start_ns, end_ns, c)
 
 
+#: A record's opcode and length; a message record's fields before its payload.
+_RECORD_HEAD = struct.Struct("<BQ")
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel, sequence, log time, publish time
+
+
 def _read_chunk_records(records: bytes, offset: int, start_ns: int, end_ns: int,
                         c: _Collector) -> None:
     c.chunks_read += 1
     first_ns, last_ns = None, None  # the messages' own times: the CRC covers them, not the header
-    pos = 0
-    while pos + 9 <= len(records):
-        opcode = records[pos]
-        (length,) = struct.unpack_from("<Q", records, pos + 1)
-        if length > len(records) - pos - 9:
+    pos, size = 0, len(records)
+    view = memoryview(records)
+    head, message_head = _RECORD_HEAD.unpack_from, _MESSAGE_HEAD.unpack_from
+    # Messages are parsed here, inline: the per-record calls cost more than the bytes.
+    while pos + 9 <= size:
+        opcode, length = head(records, pos)
+        end = pos + 9 + length
+        if end > size:
             break
-        if opcode == OP_MESSAGE and length >= 14:
-            (log_ns,) = struct.unpack_from("<Q", records, pos + 9 + 6)
-            first_ns = log_ns if first_ns is None else min(first_ns, log_ns)
-            last_ns = log_ns if last_ns is None else max(last_ns, log_ns)
-        _read_record(opcode, memoryview(records)[pos + 9:pos + 9 + length], c)
-        pos += 9 + length
+        if opcode == OP_MESSAGE and length >= _MESSAGE_HEAD.size:
+            channel, sequence, log_ns, publish_ns = message_head(records, pos + 9)
+            if first_ns is None or log_ns < first_ns:
+                first_ns = log_ns
+            if last_ns is None or log_ns > last_ns:
+                last_ns = log_ns
+            _message(channel, sequence, log_ns, publish_ns,
+                     view[pos + 9 + _MESSAGE_HEAD.size:end], c)
+        else:
+            if opcode == OP_MESSAGE and length >= 14:
+                (log_ns,) = struct.unpack_from("<Q", records, pos + 9 + 6)
+                first_ns = log_ns if first_ns is None else min(first_ns, log_ns)
+                last_ns = log_ns if last_ns is None else max(last_ns, log_ns)
+            _read_record(opcode, view[pos + 9:end], c)
+        pos = end
     c.good_chunks[offset] = ((start_ns, end_ns) if first_ns is None or last_ns is None
                              else (int(first_ns), int(last_ns)))
     if pos != len(records):
@@ -758,22 +775,30 @@ def _read_chunk_records(records: bytes, offset: int, start_ns: int, end_ns: int,
                           "early; the rest was skipped")
 
 
+def _message(channel: int, sequence: int, log_time: int, publish_time: int,
+             payload: bytes | memoryview, c: _Collector) -> None:
+    """One message record (its fields parsed): counted, then decoded or handed on."""
+    info = c.channel_info.get(channel)
+    if info is not None:
+        info.messages += 1
+        if info.first_ns is None or log_time < info.first_ns:
+            info.first_ns = log_time
+        if info.last_ns is None or log_time > info.last_ns:
+            info.last_ns = log_time
+    if c.generic:
+        if info is None:
+            c.unknown_channels[channel] += 1
+        elif c.on_message is not None:
+            c.on_message(channel, sequence, log_time, publish_time, bytes(payload))
+        return
+    _read_message(channel, sequence, log_time, payload, c)
+
+
 def _read_record(opcode: int, body: bytes | memoryview, c: _Collector) -> None:
     buf = _Buffer(body)
     if opcode == OP_MESSAGE:
         channel, sequence, log_time, publish_time = buf.u16(), buf.u32(), buf.u64(), buf.u64()
-        info = c.channel_info.get(channel)
-        if info is not None:
-            info.messages += 1
-            info.first_ns = log_time if info.first_ns is None else min(info.first_ns, log_time)
-            info.last_ns = log_time if info.last_ns is None else max(info.last_ns, log_time)
-        if c.generic:
-            if info is None:
-                c.unknown_channels[channel] += 1
-            elif c.on_message is not None:
-                c.on_message(channel, sequence, log_time, publish_time, bytes(body[buf.pos:]))
-            return
-        _read_message(channel, sequence, log_time, memoryview(body)[buf.pos:], c)
+        _message(channel, sequence, log_time, publish_time, memoryview(body)[buf.pos:], c)
     elif opcode == OP_CHANNEL:
         channel, schema_id = buf.u16(), buf.u16()
         topic = buf.string()
