@@ -131,8 +131,10 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 ROW_GROUP_BYTES = 16 << 20
 
 
-def row_group_rows(table: pa.Table, target_bytes: int = ROW_GROUP_BYTES) -> int:
-    """Rows per row group for ``table``: about ``target_bytes`` each, at least one row."""
+def row_group_rows(table: pa.Table, target_bytes: int | None = None) -> int:
+    """Rows per row group for ``table``: about ``target_bytes`` (default
+    :data:`ROW_GROUP_BYTES`) each, at least one row."""
+    target_bytes = ROW_GROUP_BYTES if target_bytes is None else target_bytes
     rows = int(table.num_rows)
     if rows == 0:
         return 1

@@ -13,6 +13,7 @@ artifacts together (:func:`scanpipe.artifacts.write_together`).
 from __future__ import annotations
 
 import difflib
+import functools
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -287,10 +288,33 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
         needed = {n for later in chain[index + 1:] for n in later.inputs}
         tables = {n: t for n, t in tables.items() if n in needed}
         record = replace(record, tables={})  # the chain's records hold no tables
+        release_free_memory()
         records.append(record)
         if on_stage is not None:
             on_stage(record)
     return records
+
+
+def release_free_memory() -> None:
+    """Hand the memory freed by a finished stage back to the system: Arrow's pool and the C
+    heap (glibc's ``malloc_trim``) keep freed pages for reuse, so without this each stage
+    starts from the previous stages' high-water marks (the lab chain's RSS between stages
+    crept from 0.3 to 1 GB). Costs a few ms; a no-op where the calls do not exist."""
+    pa.default_memory_pool().release_unused()
+    trim = getattr(_libc(), "malloc_trim", None)
+    if trim is not None:
+        trim(0)
+
+
+@functools.cache
+def _libc() -> object:
+    """The process's C library (glibc's functions by name), or a plain object elsewhere."""
+    import ctypes
+
+    try:
+        return ctypes.CDLL(None)
+    except OSError:
+        return object()
 
 
 def check_recording(recording: Path) -> None:
