@@ -154,3 +154,59 @@ def test_chain_memory_reports_the_chains_own_peak(tmp_path: Path) -> None:
     assert figures["rss_after_imports_mb"] <= figures["peak_rss_mb"] < 1200
     decode = figures["stages"]["decode"]
     assert decode["rss_after_mb"] <= decode["peak_rss_mb"] <= figures["peak_rss_mb"]
+
+
+def _chunk_offsets(path: Path) -> list[int]:
+    data = path.read_bytes()
+    pos, offsets = len(reader.MAGIC), []
+    while pos + 9 <= len(data):
+        opcode, length = data[pos], int.from_bytes(data[pos + 1:pos + 9], "little")
+        if opcode == reader.OP_CHUNK:
+            offsets.append(pos)
+        if opcode in (reader.OP_DATA_END, reader.OP_FOOTER):
+            break
+        pos += 9 + length
+    return offsets
+
+
+def _summary(recording: reader.Recording) -> tuple[Any, ...]:
+    return (recording.stream("scanner").data, [i.data for i in recording.images],
+            recording.motor.log_time_ns.tolist(), recording.warnings, recording.loss,
+            recording.chunks_read, recording.chunks_damaged)
+
+
+@pytest.mark.parametrize("damage", ["inflated bytes", "length field", "opcode", "cut"])
+def test_reading_ahead_reads_damage_as_reading_in_order(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, damage: str) -> None:
+    """The next chunk is decompressed in a worker while this one is parsed: a damaged chunk
+    read ahead gives the same warnings, loss and data as reading one chunk at a time."""
+    rec = tmp_path / "scan.mcap"
+    write_recording(rec, noise_jpegs(6))
+    offsets = _chunk_offsets(rec)
+    assert len(offsets) >= 4
+    data = bytearray(rec.read_bytes())
+    at = offsets[2]  # a chunk that is read ahead
+    if damage == "inflated bytes":
+        data[at + 9 + 200] ^= 0xFF
+    elif damage == "length field":
+        data[at + 3] ^= 0x10
+    elif damage == "opcode":
+        data[at] = 0x42
+    else:
+        data = data[:at + 300]
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(bytes(data))
+    started: list[int] = []
+    real_ahead = reader._ChunkPrefetch.ahead
+
+    def ahead(self: Any, pos: int) -> None:
+        started.append(pos)
+        real_ahead(self, pos)
+
+    monkeypatch.setattr(reader._ChunkPrefetch, "ahead", ahead)
+    with_worker = read_recording(bad)
+    assert started  # chunks were read ahead
+    monkeypatch.setattr(reader._ChunkPrefetch, "ahead", lambda self, pos: None)
+    in_order = read_recording(bad)
+    assert _summary(with_worker) == _summary(in_order)
+    assert with_worker.warnings  # the damage is reported

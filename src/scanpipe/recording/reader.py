@@ -25,6 +25,7 @@ import os
 import struct
 import zlib
 from collections import Counter, defaultdict
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Protocol
@@ -496,8 +497,66 @@ def _release_pages(data: mmap.mmap, start: int, end: int) -> int:
     return start
 
 
+class _ChunkPrefetch:
+    """Decompresses and checks the next chunk in a worker thread while the current one's
+    messages are parsed: zstd and crc32 release the GIL, so on two cores they overlap (most of
+    a recording's bytes are camera frames, whose inflating and CRC is most of the reading).
+
+    The worker only runs :func:`_decode_chunk` on a copy of the chunk's bytes: the same result,
+    or the same exception, as a direct call. The loop takes it only for the chunk at the same
+    offset with the same length, after its own checks; anything else is decoded directly.
+    """
+
+    #: How many records (message indexes) after a chunk are skipped to find the next one.
+    LOOK_AHEAD = 256
+
+    def __init__(self, data: mmap.mmap, size: int) -> None:
+        self._data, self._size = data, size
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="mcap-inflate")
+        self._pending: tuple[int, bytes, Future[tuple[int, int, bytes]]] | None = None
+
+    def take(self, pos: int, length: int) -> tuple[bytes, Future[tuple[int, int, bytes]]] | None:
+        """The body of the chunk record at ``pos`` and its decode, if that was started ahead."""
+        pending, self._pending = self._pending, None
+        if pending is None or pending[0] != pos or len(pending[1]) != length:
+            return None
+        return pending[1], pending[2]
+
+    def ahead(self, pos: int) -> None:
+        """Start decoding the next chunk record at or after ``pos`` (past message indexes)."""
+        data, size = self._data, self._size
+        for _ in range(self.LOOK_AHEAD):
+            if pos + 9 > size:
+                return
+            opcode = data[pos]
+            (length,) = struct.unpack_from("<Q", data, pos + 1)
+            if length > size - pos - 9:
+                return
+            if opcode == OP_CHUNK:
+                body = data[pos + 9:pos + 9 + length]
+                self._pending = (pos, body, self._pool.submit(_decode_chunk, body))
+                return
+            if opcode != OP_MESSAGE_INDEX:
+                return
+            pos += 9 + length
+
+    def close(self) -> None:
+        """Stop the worker (a pending decode is dropped)."""
+        self._pending = None
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
 def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
     """The outer record loop. Returns the offset where reading stopped."""
+    prefetch = _ChunkPrefetch(data, size)
+    try:
+        return _read_records_with(data, size, c, prefetch)
+    finally:
+        prefetch.close()
+
+
+def _read_records_with(data: mmap.mmap, size: int, c: _Collector,
+                       prefetch: _ChunkPrefetch) -> int:
     pos = len(MAGIC)
     released = 0
     while pos < size:
@@ -529,10 +588,13 @@ def _read_records(data: mmap.mmap, size: int, c: _Collector) -> int:
                 problem = (f"record {opcode:#04x} at byte {pos}: its length {length} does not "
                            "match its contents")
         if problem is None:
-            body = data[pos + 9:pos + 9 + length]  # a copy: no view may outlive the mmap
+            started = prefetch.take(pos, length) if opcode == OP_CHUNK else None
+            # A copy: no view may outlive the mmap.
+            body = started[0] if started else data[pos + 9:pos + 9 + length]
             try:
                 if opcode == OP_CHUNK:
-                    _read_chunk(body, pos, c)
+                    prefetch.ahead(pos + 9 + length)
+                    _read_chunk(body, pos, c, started[1] if started else None)
                 else:
                     _read_record(opcode, body, c)
                 pos += 9 + length
@@ -722,9 +784,12 @@ def _decode_chunk(body: bytes, require_crc: bool = False,
     return start_ns, end_ns, records
 
 
-def _read_chunk(body: bytes, offset: int, c: _Collector) -> None:
+def _read_chunk(body: bytes, offset: int, c: _Collector,
+                decoded: Future[tuple[int, int, bytes]] | None = None) -> None:
+    """One chunk record; ``decoded``: :func:`_decode_chunk` of ``body``, started already."""
     try:
-        start_ns, end_ns, records = _decode_chunk(body)
+        start_ns, end_ns, records = (decoded.result() if decoded is not None
+                                     else _decode_chunk(body))
     except _DAMAGE as err:
         start_ns, end_ns = struct.unpack_from("<QQ", body) if len(body) >= 16 else (0, 0)
         c.chunks_damaged += 1
