@@ -25,7 +25,7 @@ from scanpipe.exporters.model import (
     split_by_uv,
     unit_normals,
 )
-from scanpipe.exporters.textfmt import Fixed, Ints, Part, float_rows, render_lines
+from scanpipe.exporters.textfmt import Fixed, Ints, Part, float_rows, render_blocks
 from scanpipe.images import encode_png
 
 #: Untextured faces get a 2×2 map of this grey (0.7 of full scale): readers such as Open3D
@@ -44,12 +44,12 @@ def page_file_name(stem: str, page: int) -> str:
     return f"{safe_stem(stem)}_page{page}.png"
 
 
-def _face_lines(faces: np.ndarray, vt: np.ndarray | None, with_normals: bool) -> bytes:
+def _face_lines(faces: np.ndarray, vt: np.ndarray | None, with_normals: bool) -> list[bytes]:
     """``f`` lines for ``faces`` (0-based) with 1-based ``v[/vt][/vn]`` references; ``vt``
     (same shape as ``faces``, 0-based) gives each corner's texture coordinate."""
     rows = len(faces)
     if rows == 0:
-        return b""
+        return []
     parts: list[Part] = [b"f "]
     for k in range(3):
         if k:
@@ -62,7 +62,7 @@ def _face_lines(faces: np.ndarray, vt: np.ndarray | None, with_normals: bool) ->
                 parts += [b"/", v]
         elif with_normals:
             parts += [b"//", v]
-    return render_lines(rows, parts)
+    return render_blocks(rows, parts)
 
 
 def obj_files(mesh: MeshModel, stem: str,
@@ -88,12 +88,12 @@ def obj_files(mesh: MeshModel, stem: str,
             parts += [Fixed(mesh.colors[:, j].astype(np.float64) / 255.0, 4)]
             if j < 2:
                 parts.append(b" ")
-        chunks.append(render_lines(len(mesh.vertices), parts))
+        chunks += render_blocks(len(mesh.vertices), parts)
     else:
-        chunks.append(float_rows(b"v ", mesh.vertices, 6))
-    chunks.append(float_rows(b"vn ", normals, 5))
+        chunks += float_rows(b"v ", mesh.vertices, 6)
+    chunks += float_rows(b"vn ", normals, 5)
     if not textured:
-        chunks.append(_face_lines(mesh.faces, None, True))
+        chunks += _face_lines(mesh.faces, None, True)
         files[obj_name] = b"".join(chunks)
         return files
 
@@ -109,7 +109,7 @@ def obj_files(mesh: MeshModel, stem: str,
     # Untextured faces get one shared vt too: readers such as Open3D drop every UV of a mesh in
     # which some faces have none. It samples their material's plain grey map.
     plain_vt = len(uv_obj)
-    chunks.append(float_rows(b"vt ", np.vstack([uv_obj, [[0.0, 0.0]]]), 6))
+    chunks += float_rows(b"vt ", np.vstack([uv_obj, [[0.0, 0.0]]]), 6)
     mtl: list[str] = [f"# scanpipe {__version__} materials for {obj_name}", f"# {record}"]
     page_ids, starts, counts = np.unique(pages_sorted, return_index=True, return_counts=True)
     untextured_count = int(np.count_nonzero(pages_sorted < 0))
@@ -123,7 +123,7 @@ def obj_files(mesh: MeshModel, stem: str,
                     "d 1", "illum 1", f"map_Kd {plain_name}"]
             files[plain_name] = encode_png(np.full((2, 2, 3), UNTEXTURED_GREY, np.uint8))
             chunks.append(f"usemtl {material}\n".encode())
-            chunks.append(_face_lines(group, np.full(group.shape, plain_vt), True))
+            chunks += _face_lines(group, np.full(group.shape, plain_vt), True)
             continue
         material = f"{base}_page{page}"
         png = page_file_name(stem, page)
@@ -132,6 +132,6 @@ def obj_files(mesh: MeshModel, stem: str,
         files[png] = mesh.pages[page]
         chunks.append(f"usemtl {material}\n".encode())
         first = start - untextured_count
-        chunks.append(_face_lines(group, vt_of_face[first:first + count], True))
+        chunks += _face_lines(group, vt_of_face[first:first + count], True)
     files = {obj_name: b"".join(chunks), mtl_name: ("\n".join(mtl) + "\n").encode(), **files}
     return files

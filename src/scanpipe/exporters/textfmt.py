@@ -210,8 +210,14 @@ def _plan(rows: int, parts: Sequence[Part]) -> tuple[list[_Column], int]:
 
 def render_lines(rows: int, parts: Sequence[Part]) -> bytes:
     """Format ``rows`` lines, each the concatenation of ``parts``, ending with ``\\n``."""
+    return b"".join(render_blocks(rows, parts))
+
+
+def render_blocks(rows: int, parts: Sequence[Part]) -> list[bytes]:
+    """:func:`render_lines` as consecutive pieces of whole lines, for a caller that joins
+    them with more (one copy of the text instead of two)."""
     if rows == 0:
-        return b""
+        return []
     columns, width = _plan(rows, parts)
     out: list[bytes] = []
     words = np.empty((width, min(rows, BLOCK_ROWS)), dtype=np.uint32)
@@ -238,14 +244,14 @@ def render_lines(rows: int, parts: Sequence[Part]) -> bytes:
                     _fixed_words(values, column.part.decimals, column.top, target)
         lines = cv2.transpose(np.ascontiguousarray(block).view(np.int32))
         out.append(lines.tobytes().translate(None, b"\0"))
-    return b"".join(out)
+    return out
 
 
-def float_rows(prefix: bytes, values: NDArray[np.floating], decimals: int = 6) -> bytes:
-    """Lines ``prefix a b c`` for each row of a 2-D float array."""
+def float_rows(prefix: bytes, values: NDArray[np.floating], decimals: int = 6) -> list[bytes]:
+    """Lines ``prefix a b c`` for each row of a 2-D float array (as :func:`render_blocks`)."""
     parts: list[Part] = [prefix]
     for j in range(values.shape[1]):
         if j:
             parts.append(b" ")
         parts.append(Fixed(values[:, j], decimals))
-    return render_lines(values.shape[0], parts)
+    return render_blocks(values.shape[0], parts)

@@ -40,6 +40,8 @@ NO_DISTORTION = (0.0, 0.0, 0.0, 0.0, 0.0)
 #: A 360° camera turning on the axis sees the whole room in every frame: one frame per this many
 #: degrees of platform angle serves (the texture stage's ``equirect_spacing_deg`` default).
 EQUIRECT_SPACING_DEG = 20.0
+#: Points projected at once when colouring a cloud: the temporaries of a piece fit the cache.
+COLOUR_CHUNK_POINTS = 1 << 16
 
 
 @lru_cache(maxsize=64)
@@ -320,7 +322,8 @@ def colorize_points(
     camera's parallax; those near the axis always) are projected into it: the points are
     sorted by azimuth once, so a window is a few contiguous slices. Every point a frame sees
     is in its window, so the colours are those of projecting every point into every frame.
-    Each frame is decoded once, and only when it gives some point its colour.
+    Each frame is decoded once, and only when it gives some point its colour; the frames one
+    at a time.
     """
     for name in ("x", "y", "z"):
         if name not in points.column_names:
@@ -342,31 +345,38 @@ def colorize_points(
         window = view_window(cam, beta)
         ranges = ([(0, len(ordered))] if window is None
                   else index.ranges(window[0], window[1] + parallax_deg))
-        if not ranges:
-            progress("colour points", i + 1, len(chosen))
-            continue
-        if len(ranges) == 1:
-            inside, at = ordered[ranges[0][0]:ranges[0][1]], None
-        else:
-            inside = np.concatenate([ordered[a:b] for a, b in ranges])
-            at = np.concatenate([np.arange(a, b) for a, b in ranges])
-        uv, depth, valid = project_valid(inside, cam, beta, 0.0)
-        local = np.flatnonzero(valid)
-        col = np.clip(np.rint(uv[local, 0]), 0, cam.width - 1).astype(np.int64)
-        row = np.clip(np.rint(uv[local, 1]), 0, cam.height - 1).astype(np.int64)
         cells_w = cam.width // cell_px + 1
-        cell = (row // cell_px) * cells_w + col // cell_px
         nearest = np.full((cam.height // cell_px + 1) * cells_w, np.inf)
-        np.minimum.at(nearest, cell, depth[local])
-        seen = depth[local] <= nearest[cell] + 0.03 + 0.01 * depth[local]
-        local, col, row = local[seen], col[seen], row[seen]
-        score = centrality(uv[local], cam) * resolution[i]
-        idx = local + ranges[0][0] if at is None else at[local]
-        better = score > best[idx]
-        if np.any(better):
-            idx, col, row = idx[better], col[better], row[better]
+        # first the z-buffer over every point the frame sees, in cache-sized pieces (the
+        # projection's temporaries then stay in the cache: several times faster) ...
+        pieces = []
+        for a, b in ranges:
+            for start in range(a, b, COLOUR_CHUNK_POINTS):
+                uv, depth, valid = project_valid(
+                    ordered[start:min(b, start + COLOUR_CHUNK_POINTS)], cam, beta, 0.0)
+                local = np.flatnonzero(valid)
+                if len(local) == 0:
+                    continue
+                uv, depth = uv[local], depth[local]
+                col = np.clip(np.rint(uv[:, 0]), 0, cam.width - 1).astype(np.int32)
+                row = np.clip(np.rint(uv[:, 1]), 0, cam.height - 1).astype(np.int32)
+                cell = (row // cell_px) * cells_w + col // cell_px
+                np.minimum.at(nearest, cell, depth)
+                score = centrality(uv, cam) * resolution[i]
+                pieces.append((local + start, depth, cell, col, row, score))
+        # ... then the points in front that this frame sees nearer the image centre
+        image = None
+        for idx, depth, cell, col, row, score in pieces:
+            seen = depth <= nearest[cell] + 0.03 + 0.01 * depth
+            idx, col, row, score = idx[seen], col[seen], row[seen], score[seen]
+            better = score > best[idx]
+            if not np.any(better):
+                continue
+            if image is None:
+                image = chosen.image(i)
+            idx = idx[better]
             best[idx] = score[better]
-            rgb[idx] = chosen.image(i)[row, col, ::-1]
+            rgb[idx] = image[row[better], col[better], ::-1]
         progress("colour points", i + 1, len(chosen))
     colours = np.empty_like(rgb)
     colours[index.order] = rgb
