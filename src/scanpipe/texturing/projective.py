@@ -19,6 +19,9 @@ candidate is struck out.
 from __future__ import annotations
 
 import math
+import os
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -338,17 +341,18 @@ def colorize_points(
     # every per-point array below is in azimuth order: position k is point index.order[k]
     ordered = xyz[index.order]
     del xyz
-    best = np.zeros(len(ordered), dtype=np.float64)
-    rgb = np.tile(np.asarray(neutral_rgb, dtype=np.uint8), (len(ordered), 1))
-    for i, cam in enumerate(chosen.cameras):
-        beta = float(chosen.beta_deg[i])
+    Piece = tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.int32], F64]
+
+    def visible(i: int) -> list[Piece]:
+        """Frame ``i``'s points in front (z-buffer), as pieces ``(position, col, row,
+        score)``: first the z-buffer over every point of the window, in cache-sized pieces
+        (the projection's temporaries then stay in the cache: several times faster)."""
+        cam, beta = chosen.cameras[i], float(chosen.beta_deg[i])
         window = view_window(cam, beta)
         ranges = ([(0, len(ordered))] if window is None
                   else index.ranges(window[0], window[1] + parallax_deg))
         cells_w = cam.width // cell_px + 1
         nearest = np.full((cam.height // cell_px + 1) * cells_w, np.inf)
-        # first the z-buffer over every point the frame sees, in cache-sized pieces (the
-        # projection's temporaries then stay in the cache: several times faster) ...
         pieces = []
         for a, b in ranges:
             for start in range(a, b, COLOUR_CHUNK_POINTS):
@@ -364,20 +368,35 @@ def colorize_points(
                 np.minimum.at(nearest, cell, depth)
                 score = centrality(uv, cam) * resolution[i]
                 pieces.append((local + start, depth, cell, col, row, score))
-        # ... then the points in front that this frame sees nearer the image centre
-        image = None
+        out: list[Piece] = []
         for idx, depth, cell, col, row, score in pieces:
             seen = depth <= nearest[cell] + 0.03 + 0.01 * depth
-            idx, col, row, score = idx[seen], col[seen], row[seen], score[seen]
-            better = score > best[idx]
-            if not np.any(better):
-                continue
-            if image is None:
-                image = chosen.image(i)
-            idx = idx[better]
-            best[idx] = score[better]
-            rgb[idx] = image[row[better], col[better], ::-1]
-        progress("colour points", i + 1, len(chosen))
+            out.append((idx[seen], col[seen], row[seen], score[seen]))
+        return out
+
+    best = np.zeros(len(ordered), dtype=np.float64)
+    rgb = np.tile(np.asarray(neutral_rgb, dtype=np.uint8), (len(ordered), 1))
+    # frames are projected on worker threads (numpy releases the GIL) a few ahead; the
+    # colours are taken in frame order here, so ties go to the earlier frame as before
+    workers = max(1, min(os.cpu_count() or 1, 2))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        ahead: deque[Future[list[Piece]]] = deque()
+        submitted = 0
+        for done in range(len(chosen)):
+            while submitted < len(chosen) and submitted <= done + workers:
+                ahead.append(pool.submit(visible, submitted))
+                submitted += 1
+            image = None
+            for idx, col, row, score in ahead.popleft().result():
+                better = score > best[idx]
+                if not np.any(better):
+                    continue
+                if image is None:
+                    image = chosen.image(done)
+                idx = idx[better]
+                best[idx] = score[better]
+                rgb[idx] = image[row[better], col[better], ::-1]
+            progress("colour points", done + 1, len(chosen))
     colours = np.empty_like(rgb)
     colours[index.order] = rgb
     table = points
