@@ -361,7 +361,8 @@ def colorize_points(
                 local = np.flatnonzero(valid)
                 if len(local) == 0:
                     continue
-                uv, depth = uv[local], depth[local]
+                if len(local) < len(valid):  # a 360° camera's frame sees every point
+                    uv, depth = uv[local], depth[local]
                 col = np.clip(np.rint(uv[:, 0]), 0, cam.width - 1).astype(np.int32)
                 row = np.clip(np.rint(uv[:, 1]), 0, cam.height - 1).astype(np.int32)
                 cell = (row // cell_px) * cells_w + col // cell_px
