@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from scanpipe import __version__
+from scanpipe.errors import ExportError
 from scanpipe.exporters.model import (
     PROVENANCE_TAG,
     MeshModel,
@@ -69,6 +70,12 @@ def obj_files(mesh: MeshModel, stem: str,
               provenance: Mapping[str, Any] | None = None) -> dict[str, bytes]:
     """The OBJ export of ``mesh`` as ``{file name: bytes}`` (``<stem>.obj`` comes first), with
     the ``provenance`` record as a ``# scanpipe-provenance {json}`` comment in OBJ and MTL."""
+    finite = np.isfinite(mesh.vertices).all(axis=1)
+    if not finite.all():  # OBJ text has no number for them: refuse rather than print garbage
+        bad = np.flatnonzero(~finite)
+        raise ExportError(f"mesh_vertices: {len(bad)} vertices have non-finite coordinates "
+                          f"(first: vertex {int(bad[0])}); an OBJ needs finite numbers: "
+                          "re-run the mesh stage")
     base = safe_stem(stem)
     obj_name, mtl_name = f"{stem}.obj", f"{base}.mtl"
     record = f"{PROVENANCE_TAG} {provenance_bytes(provenance or {}).decode()}"
