@@ -19,9 +19,6 @@ candidate is struck out.
 from __future__ import annotations
 
 import math
-import os
-from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -370,34 +367,28 @@ def colorize_points(
                 score = centrality(uv, cam) * resolution[i]
                 pieces.append((local + start, depth, cell, col, row, score))
         out: list[Piece] = []
-        for idx, depth, cell, col, row, score in pieces:
+        while pieces:  # each piece's arrays go as its visible part is kept
+            idx, depth, cell, col, row, score = pieces.pop(0)
             seen = depth <= nearest[cell] + 0.03 + 0.01 * depth
             out.append((idx[seen], col[seen], row[seen], score[seen]))
         return out
 
     best = np.zeros(len(ordered), dtype=np.float64)
     rgb = np.tile(np.asarray(neutral_rgb, dtype=np.uint8), (len(ordered), 1))
-    # frames are projected on worker threads (numpy releases the GIL) a few ahead; the
-    # colours are taken in frame order here, so ties go to the earlier frame as before
-    workers = max(1, min(os.cpu_count() or 1, 2))
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        ahead: deque[Future[list[Piece]]] = deque()
-        submitted = 0
-        for done in range(len(chosen)):
-            while submitted < len(chosen) and submitted <= done + workers:
-                ahead.append(pool.submit(visible, submitted))
-                submitted += 1
-            image = None
-            for idx, col, row, score in ahead.popleft().result():
-                better = score > best[idx]
-                if not np.any(better):
-                    continue
-                if image is None:
-                    image = chosen.image(done)
-                idx = idx[better]
-                best[idx] = score[better]
-                rgb[idx] = image[row[better], col[better], ::-1]
-            progress("colour points", done + 1, len(chosen))
+    # one frame at a time: projecting frames on worker threads gave no CPU back and kept
+    # ~400 MB more resident (per-thread malloc arenas) into the rest of the export
+    for i in range(len(chosen)):
+        image = None
+        for idx, col, row, score in visible(i):
+            better = score > best[idx]
+            if not np.any(better):
+                continue
+            if image is None:
+                image = chosen.image(i)
+            idx = idx[better]
+            best[idx] = score[better]
+            rgb[idx] = image[row[better], col[better], ::-1]
+        progress("colour points", i + 1, len(chosen))
     colours = np.empty_like(rgb)
     colours[index.order] = rgb
     table = points
