@@ -108,8 +108,8 @@ def obj_files(mesh: MeshModel, stem: str,
     order = np.argsort(mesh.face_pages, kind="stable")
     pages_sorted = mesh.face_pages[order]
     textured_order = order[pages_sorted >= 0]
-    corner_uv = mesh.face_uvs[textured_order].reshape(-1, 2)
-    _, vt_uv, vt_index = split_by_uv(mesh.faces[textured_order].reshape(-1), corner_uv)
+    _, vt_uv, vt_index = split_by_uv(mesh.faces[textured_order].reshape(-1),
+                                     mesh.face_uvs[textured_order].reshape(-1, 2))
     vt_of_face = vt_index.reshape(-1, 3)
     uv_obj = np.stack([vt_uv[:, 0].astype(np.float64), 1.0 - vt_uv[:, 1].astype(np.float64)],
                       axis=1)
@@ -117,6 +117,7 @@ def obj_files(mesh: MeshModel, stem: str,
     # which some faces have none. It samples their material's plain grey map.
     plain_vt = len(uv_obj)
     chunks += float_rows(b"vt ", np.vstack([uv_obj, [[0.0, 0.0]]]), 6)
+    del uv_obj, vt_uv  # the text holds them now
     mtl: list[str] = [f"# scanpipe {__version__} materials for {obj_name}", f"# {record}"]
     page_ids, starts, counts = np.unique(pages_sorted, return_index=True, return_counts=True)
     untextured_count = int(np.count_nonzero(pages_sorted < 0))
