@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from scanpipe import __version__
 from scanpipe.errors import ExportError
-from scanpipe.exporters.model import MeshModel, split_by_uv, unit_normals
+from scanpipe.exporters.model import MeshModel, unit_normals
 
 FLOAT, UNSIGNED_BYTE, UNSIGNED_INT = 5126, 5121, 5125
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
@@ -168,9 +168,7 @@ def glb_bytes(mesh: MeshModel, name: str = "scan", provenance: Mapping[str, Any]
 
     for page in page_ids:
         assert pages is not None and mesh.face_uvs is not None
-        selected = np.flatnonzero(pages == page)
-        corners = mesh.faces[selected].reshape(-1).astype(np.int64)
-        source, uv, inverse = split_by_uv(corners, mesh.face_uvs[selected].reshape(-1, 2))
+        source, uv, inverse = mesh.page_splits[page]  # shared with OBJ
         image = len(images)
         images.append({"bufferView": builder.view(mesh.pages[page]), "mimeType": "image/png",
                        "name": f"page{page}"})

@@ -23,7 +23,6 @@ from scanpipe.exporters.model import (
     PROVENANCE_TAG,
     MeshModel,
     provenance_bytes,
-    split_by_uv,
     unit_normals,
 )
 from scanpipe.exporters.textfmt import Fixed, Ints, Part, float_rows, render_blocks
@@ -107,10 +106,11 @@ def obj_files(mesh: MeshModel, stem: str,
     assert mesh.face_pages is not None and mesh.face_uvs is not None
     order = np.argsort(mesh.face_pages, kind="stable")
     pages_sorted = mesh.face_pages[order]
-    textured_order = order[pages_sorted >= 0]
-    _, vt_uv, vt_index = split_by_uv(mesh.faces[textured_order].reshape(-1),
-                                     mesh.face_uvs[textured_order].reshape(-1, 2))
-    vt_of_face = vt_index.reshape(-1, 3)
+    # a vertex's corners on one page with one UV share a vt (the split GLB uses too)
+    splits = mesh.page_splits
+    vt_uv = np.concatenate([splits[page][1] for page in sorted(splits)])
+    vt_counts = [len(splits[page][1]) for page in sorted(splits)]
+    vt_start = dict(zip(sorted(splits), np.cumsum([0, *vt_counts[:-1]]).tolist(), strict=True))
     uv_obj = np.stack([vt_uv[:, 0].astype(np.float64), 1.0 - vt_uv[:, 1].astype(np.float64)],
                       axis=1)
     # Untextured faces get one shared vt too: readers such as Open3D drop every UV of a mesh in
@@ -120,7 +120,6 @@ def obj_files(mesh: MeshModel, stem: str,
     del uv_obj, vt_uv  # the text holds them now
     mtl: list[str] = [f"# scanpipe {__version__} materials for {obj_name}", f"# {record}"]
     page_ids, starts, counts = np.unique(pages_sorted, return_index=True, return_counts=True)
-    untextured_count = int(np.count_nonzero(pages_sorted < 0))
     for page, start, count in zip(page_ids.tolist(), starts.tolist(), counts.tolist(),
                                   strict=True):
         group = mesh.faces[order[start:start + count]]
@@ -139,7 +138,6 @@ def obj_files(mesh: MeshModel, stem: str,
                 "illum 1", f"map_Kd {png}"]
         files[png] = mesh.pages[page]
         chunks.append(f"usemtl {material}\n".encode())
-        first = start - untextured_count
-        chunks += _face_lines(group, vt_of_face[first:first + count], True)
+        chunks += _face_lines(group, splits[page][2].reshape(-1, 3) + vt_start[page], True)
     files = {obj_name: b"".join(chunks), mtl_name: ("\n".join(mtl) + "\n").encode(), **files}
     return files
