@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 import pytest
 import trimesh
@@ -156,3 +157,21 @@ def test_exports_get_ordinary_file_permissions(tmp_path: Path) -> None:
     assert path.stat().st_mode & 0o777 == FILE_MODE  # not mkstemp's 0o600
     atomic_write_bytes(tmp_path / "b.bin", b"2")
     assert (tmp_path / "b.bin").stat().st_mode & 0o777 == FILE_MODE
+
+
+def test_non_finite_vertices_are_refused_for_obj(cli: Callable, tmp_path: Path) -> None:
+    quad = textured_quad()
+    x = quad["mesh_vertices"].column("x").to_numpy().copy()
+    x[1] = np.nan
+    folder = tmp_path / "nan"
+    write_tables(folder, {**quad, "mesh_vertices": quad["mesh_vertices"].set_column(
+        quad["mesh_vertices"].column_names.index("x"), "x", pa.array(x, pa.float32()))})
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "m.obj").write_bytes(b"an earlier export")
+    result = cli("export", folder, "-f", "obj", "-o", out / "m.obj", "--force")
+    assert result.code == 1 and result.err.count("\n") == 1 and "Traceback" not in result.err
+    assert ("mesh_vertices: 1 vertices have non-finite coordinates (first: vertex 1)"
+            in result.err)
+    assert (out / "m.obj").read_bytes() == b"an earlier export"
+    assert sorted(p.name for p in out.iterdir()) == ["m.obj"]

@@ -23,7 +23,7 @@ from result_tables import (
     vertices_table,
 )
 
-from scanpipe.exporters.textfmt import Fixed, Ints, render_lines
+from scanpipe.exporters.textfmt import BLOCK_ROWS, Fixed, Ints, render_lines
 from scanpipe.exporting import write_files
 from scanpipe.stages.export import export_files
 
@@ -147,6 +147,52 @@ def test_float_columns_parse_back_to_the_value(values: list[float]) -> None:
     np.testing.assert_allclose(parsed, x, atol=5.01e-7, rtol=0)
     for line in lines:
         assert re.fullmatch(r"v -?\d+\.\d{6}", line), line
+
+
+def fixed_reference(x: float, decimals: int) -> str:
+    """The formatter's rule spelled out with Python integers: ``rint(|x|·10^d)`` printed with
+    ``d`` decimals, the sign only on a non-zero result."""
+    quantised = int(np.rint(abs(x) * 10**decimals))
+    whole, frac = divmod(quantised, 10**decimals)
+    sign = "-" if x < 0 and quantised else ""
+    return f"{sign}{whole}" + (f".{frac:0{decimals}d}" if decimals else "")
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.one_of(st.floats(-2e6, 2e6, allow_nan=False),
+                          st.floats(-1e-3, 1e-3, allow_nan=False),
+                          st.sampled_from([0.0, -0.0, 0.5, -0.5, 999.9999999, -999.99999,
+                                           1000.0, -1e6, 0.0005, -0.00049])),
+                min_size=1, max_size=30),
+       st.integers(0, 7))
+def test_fixed_columns_follow_the_rule_at_every_precision(values: list[float],
+                                                          decimals: int) -> None:
+    # whole parts below and above 1000 (the sign is then a word of its own), every number of
+    # decimals (partial three-digit groups), separators after each
+    x = np.array(values)
+    text = render_lines(len(values), [b"p ", Fixed(x, decimals), b" ", Fixed(-x, decimals),
+                                      b"|"]).decode()
+    expected = "".join(f"p {fixed_reference(a, decimals)} {fixed_reference(-a, decimals)}|\n"
+                       for a in values)
+    assert text == expected
+
+
+def test_lines_across_blocks_with_repeated_columns_and_separators() -> None:
+    # more rows than one block; a column used twice in a line (OBJ's v/vt/v) keeps no
+    # separator of its first use; literals of one byte, several bytes and none between numbers
+    rows = 2 * BLOCK_ROWS + 7
+    rng = np.random.default_rng(5)
+    a = rng.integers(0, 10**9, rows) // rng.integers(1, 10**8, rows)
+    b = rng.integers(0, 2**40, rows)
+    x = rng.standard_normal(rows) * 10.0 ** rng.integers(-3, 5, rows)
+    column = Ints(a)
+    text = render_lines(rows, [b"f ", column, b"/", Ints(b), b"/", column, b" ", Fixed(x, 3),
+                               b"ab", Fixed(x, 0), column, b"long literal"]).decode()
+    lines = text.split("\n")
+    assert lines[-1] == "" and len(lines) == rows + 1
+    for i in (0, 1, BLOCK_ROWS - 1, BLOCK_ROWS, rows // 2, rows - 1):
+        assert lines[i] == (f"f {a[i]}/{b[i]}/{a[i]} {fixed_reference(x[i], 3)}ab"
+                            f"{fixed_reference(x[i], 0)}{a[i]}long literal"), i
 
 
 def test_split_by_uv_keeps_every_corner_uv_and_shares_inside_charts() -> None:

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from scanpipe import __version__
 from scanpipe.errors import ExportError
-from scanpipe.exporters.model import MeshModel, split_by_uv, unit_normals
+from scanpipe.exporters.model import MeshModel, unit_normals
 
 FLOAT, UNSIGNED_BYTE, UNSIGNED_INT = 5126, 5121, 5125
 ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
@@ -147,27 +147,28 @@ def glb_bytes(mesh: MeshModel, name: str = "scan", provenance: Mapping[str, Any]
                                                 normals[source], indices, uv, rgba)
             primitives.append({**primitive, "material": material, "mode": 4})
             return
+        # gathers and dtype views, no further copies
         attributes = {
-            "POSITION": builder.accessor(mesh.vertices[source].astype(np.float32), "VEC3",
+            "POSITION": builder.accessor(np.asarray(mesh.vertices[source], np.float32), "VEC3",
                                          FLOAT, ARRAY_BUFFER, bounds=True),
             "NORMAL": builder.accessor(normals[source], "VEC3", FLOAT, ARRAY_BUFFER),
         }
         if uv is not None:
-            attributes["TEXCOORD_0"] = builder.accessor(uv.astype(np.float32), "VEC2", FLOAT,
-                                                        ARRAY_BUFFER)
+            attributes["TEXCOORD_0"] = builder.accessor(np.asarray(uv, np.float32), "VEC2",
+                                                        FLOAT, ARRAY_BUFFER)
         elif rgba is not None:
             attributes["COLOR_0"] = builder.accessor(rgba, "VEC4", UNSIGNED_BYTE,
                                                      ARRAY_BUFFER, normalized=True)
-        index_accessor = builder.accessor(indices.astype(np.uint32), "SCALAR", UNSIGNED_INT,
-                                          ELEMENT_ARRAY_BUFFER)
+        # split_by_uv's int32 indices are non-negative: the same bytes as uint32
+        as_u32 = (indices.view(np.uint32) if indices.dtype == np.int32
+                  else indices.astype(np.uint32))
+        index_accessor = builder.accessor(as_u32, "SCALAR", UNSIGNED_INT, ELEMENT_ARRAY_BUFFER)
         primitives.append({"attributes": attributes, "indices": index_accessor,
                            "material": material, "mode": 4})
 
     for page in page_ids:
         assert pages is not None and mesh.face_uvs is not None
-        selected = np.flatnonzero(pages == page)
-        corners = mesh.faces[selected].reshape(-1).astype(np.int64)
-        source, uv, inverse = split_by_uv(corners, mesh.face_uvs[selected].reshape(-1, 2))
+        source, uv, inverse = mesh.page_splits[page]  # shared with OBJ
         image = len(images)
         images.append({"bufferView": builder.view(mesh.pages[page]), "mimeType": "image/png",
                        "name": f"page{page}"})

@@ -59,6 +59,20 @@ class MeshModel:
         return self.face_pages is not None and bool(np.any(self.face_pages >= 0))
 
     @cached_property
+    def page_splits(self) -> dict[int, tuple[NDArray[np.int64], F32, NDArray[np.integer]]]:
+        """Per atlas page, :func:`split_by_uv` of its faces' corners (faces in index order):
+        ``(source vertex of each page vertex, its uv, page vertex of each corner)``. Computed
+        once per model: OBJ (its ``vt`` lines) and GLB (its primitives' vertices) share it."""
+        if not self.textured or self.face_pages is None or self.face_uvs is None:
+            return {}
+        splits = {}
+        for page in sorted(int(p) for p in np.unique(self.face_pages) if p >= 0):
+            selected = np.flatnonzero(self.face_pages == page)
+            splits[page] = split_by_uv(self.faces[selected].reshape(-1),
+                                       self.face_uvs[selected].reshape(-1, 2))
+        return splits
+
+    @cached_property
     def unit_normals(self) -> F32:
         """:func:`unit_normals`, computed once per model (OBJ, GLB and PLY all write them);
         read-only."""
@@ -149,7 +163,8 @@ def mesh_from_tables(
         if missing:
             raise ArtifactError(f"textured_faces: pages {missing} are not in texture_pages "
                                 f"(has {sorted(pages)})")
-        face_uvs = np.nan_to_num(face_uvs, nan=0.0)
+        if not np.isfinite(face_uvs).all():  # one pass; nan_to_num alone takes five
+            face_uvs = np.nan_to_num(face_uvs, nan=0.0)
     return MeshModel(xyz, tri, normals, _colors(vertices), face_pages, face_uvs, pages)
 
 

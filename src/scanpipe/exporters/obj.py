@@ -18,14 +18,14 @@ from typing import Any
 import numpy as np
 
 from scanpipe import __version__
+from scanpipe.errors import ExportError
 from scanpipe.exporters.model import (
     PROVENANCE_TAG,
     MeshModel,
     provenance_bytes,
-    split_by_uv,
     unit_normals,
 )
-from scanpipe.exporters.textfmt import Fixed, Ints, Part, float_rows, render_lines
+from scanpipe.exporters.textfmt import Fixed, Ints, Part, float_rows, render_blocks
 from scanpipe.images import encode_png
 
 #: Untextured faces get a 2×2 map of this grey (0.7 of full scale): readers such as Open3D
@@ -44,12 +44,12 @@ def page_file_name(stem: str, page: int) -> str:
     return f"{safe_stem(stem)}_page{page}.png"
 
 
-def _face_lines(faces: np.ndarray, vt: np.ndarray | None, with_normals: bool) -> bytes:
+def _face_lines(faces: np.ndarray, vt: np.ndarray | None, with_normals: bool) -> list[bytes]:
     """``f`` lines for ``faces`` (0-based) with 1-based ``v[/vt][/vn]`` references; ``vt``
     (same shape as ``faces``, 0-based) gives each corner's texture coordinate."""
     rows = len(faces)
     if rows == 0:
-        return b""
+        return []
     parts: list[Part] = [b"f "]
     for k in range(3):
         if k:
@@ -62,13 +62,19 @@ def _face_lines(faces: np.ndarray, vt: np.ndarray | None, with_normals: bool) ->
                 parts += [b"/", v]
         elif with_normals:
             parts += [b"//", v]
-    return render_lines(rows, parts)
+    return render_blocks(rows, parts)
 
 
 def obj_files(mesh: MeshModel, stem: str,
               provenance: Mapping[str, Any] | None = None) -> dict[str, bytes]:
     """The OBJ export of ``mesh`` as ``{file name: bytes}`` (``<stem>.obj`` comes first), with
     the ``provenance`` record as a ``# scanpipe-provenance {json}`` comment in OBJ and MTL."""
+    finite = np.isfinite(mesh.vertices).all(axis=1)
+    if not finite.all():  # OBJ text has no number for them: refuse rather than print garbage
+        bad = np.flatnonzero(~finite)
+        raise ExportError(f"mesh_vertices: {len(bad)} vertices have non-finite coordinates "
+                          f"(first: vertex {int(bad[0])}); an OBJ needs finite numbers: "
+                          "re-run the mesh stage")
     base = safe_stem(stem)
     obj_name, mtl_name = f"{stem}.obj", f"{base}.mtl"
     record = f"{PROVENANCE_TAG} {provenance_bytes(provenance or {}).decode()}"
@@ -88,31 +94,32 @@ def obj_files(mesh: MeshModel, stem: str,
             parts += [Fixed(mesh.colors[:, j].astype(np.float64) / 255.0, 4)]
             if j < 2:
                 parts.append(b" ")
-        chunks.append(render_lines(len(mesh.vertices), parts))
+        chunks += render_blocks(len(mesh.vertices), parts)
     else:
-        chunks.append(float_rows(b"v ", mesh.vertices, 6))
-    chunks.append(float_rows(b"vn ", normals, 5))
+        chunks += float_rows(b"v ", mesh.vertices, 6)
+    chunks += float_rows(b"vn ", normals, 5)
     if not textured:
-        chunks.append(_face_lines(mesh.faces, None, True))
+        chunks += _face_lines(mesh.faces, None, True)
         files[obj_name] = b"".join(chunks)
         return files
 
     assert mesh.face_pages is not None and mesh.face_uvs is not None
     order = np.argsort(mesh.face_pages, kind="stable")
     pages_sorted = mesh.face_pages[order]
-    textured_order = order[pages_sorted >= 0]
-    corner_uv = mesh.face_uvs[textured_order].reshape(-1, 2)
-    _, vt_uv, vt_index = split_by_uv(mesh.faces[textured_order].reshape(-1), corner_uv)
-    vt_of_face = vt_index.reshape(-1, 3)
+    # a vertex's corners on one page with one UV share a vt (the split GLB uses too)
+    splits = mesh.page_splits
+    vt_uv = np.concatenate([splits[page][1] for page in sorted(splits)])
+    vt_counts = [len(splits[page][1]) for page in sorted(splits)]
+    vt_start = dict(zip(sorted(splits), np.cumsum([0, *vt_counts[:-1]]).tolist(), strict=True))
     uv_obj = np.stack([vt_uv[:, 0].astype(np.float64), 1.0 - vt_uv[:, 1].astype(np.float64)],
                       axis=1)
     # Untextured faces get one shared vt too: readers such as Open3D drop every UV of a mesh in
     # which some faces have none. It samples their material's plain grey map.
     plain_vt = len(uv_obj)
-    chunks.append(float_rows(b"vt ", np.vstack([uv_obj, [[0.0, 0.0]]]), 6))
+    chunks += float_rows(b"vt ", np.vstack([uv_obj, [[0.0, 0.0]]]), 6)
+    del uv_obj, vt_uv  # the text holds them now
     mtl: list[str] = [f"# scanpipe {__version__} materials for {obj_name}", f"# {record}"]
     page_ids, starts, counts = np.unique(pages_sorted, return_index=True, return_counts=True)
-    untextured_count = int(np.count_nonzero(pages_sorted < 0))
     for page, start, count in zip(page_ids.tolist(), starts.tolist(), counts.tolist(),
                                   strict=True):
         group = mesh.faces[order[start:start + count]]
@@ -123,7 +130,7 @@ def obj_files(mesh: MeshModel, stem: str,
                     "d 1", "illum 1", f"map_Kd {plain_name}"]
             files[plain_name] = encode_png(np.full((2, 2, 3), UNTEXTURED_GREY, np.uint8))
             chunks.append(f"usemtl {material}\n".encode())
-            chunks.append(_face_lines(group, np.full(group.shape, plain_vt), True))
+            chunks += _face_lines(group, np.full(group.shape, plain_vt), True)
             continue
         material = f"{base}_page{page}"
         png = page_file_name(stem, page)
@@ -131,7 +138,6 @@ def obj_files(mesh: MeshModel, stem: str,
                 "illum 1", f"map_Kd {png}"]
         files[png] = mesh.pages[page]
         chunks.append(f"usemtl {material}\n".encode())
-        first = start - untextured_count
-        chunks.append(_face_lines(group, vt_of_face[first:first + count], True))
+        chunks += _face_lines(group, splits[page][2].reshape(-1, 3) + vt_start[page], True)
     files = {obj_name: b"".join(chunks), mtl_name: ("\n".join(mtl) + "\n").encode(), **files}
     return files

@@ -336,9 +336,10 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
 
 STAGE = Stage(
     name="export",
-    version=5,  # 2: coloured points in every format, LAS 1.2, COPC, COLMAP; 3: the Foxglove
+    version=6,  # 2: coloured points in every format, LAS 1.2, COPC, COLMAP; 3: the Foxglove
     # file has the cloud, camera images and a layout beside it; 4: E57 carries the frames;
-    # 5: the cloud PLY is the points (it was the mesh's PLY when the chain had a mesh)
+    # 5: the cloud PLY is the points (it was the mesh's PLY when the chain had a mesh);
+    # 6: OBJ vt lines shared per atlas page (the UV split GLB uses, computed once)
     params=ExportStageParams,
     inputs=(*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points", "frames", "motor", "rig"),
     outputs=("export_manifest",),
