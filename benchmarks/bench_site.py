@@ -59,13 +59,32 @@ def run_scanpipe(*args: str, json_out: Path | None = None) -> dict[str, Any]:
     return json.loads(text) if text.strip().startswith("{") else {}
 
 
+def pool_server_cpu_s() -> float:
+    """CPU seconds of this process's fork server (the local batch pool's,
+    :func:`scanpipe.batch.pool_context`), its reaped children — the pool's workers — included;
+    0 when none runs."""
+    import psutil
+
+    spent = 0.0
+    for child in psutil.Process().children():
+        try:
+            if "forkserver" not in " ".join(child.cmdline()):
+                continue
+            times = child.cpu_times()
+        except psutil.Error:  # gone meanwhile
+            continue
+        spent += times.user + times.system + times.children_user + times.children_system
+    return spent
+
+
 def cpu_seconds_all() -> float:
-    """CPU seconds of this process (every thread) and of its reaped children (batch
-    workers)."""
+    """CPU seconds of this process (every thread), of its reaped children, and of the batch
+    pool's fork server with its reaped workers (:func:`pool_server_cpu_s`)."""
     import resource
 
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.process_time() + children.ru_utime + children.ru_stime
+    return (time.process_time() + children.ru_utime + children.ru_stime
+            + pool_server_cpu_s())
 
 
 def run(scale: str, positions: int, workers: int, say: Any) -> dict[str, Any]:
