@@ -62,9 +62,9 @@ def test_site_positions_and_prior_error() -> None:
 
 def test_covariance_shrinks_with_more_information() -> None:
     poses = [np.eye(4), pose_matrix((0, 30, 0), (1, 0, 0))]
-    one = PairResult(0, 1, poses[1], 0.5, 0.01, "ransac", True, "", np.eye(6),
+    one = PairResult(0, 1, poses[1], 0.5, 0.01, "ransac", True, "",
                      pose_information=np.eye(6))
-    two = PairResult(0, 1, poses[1], 0.5, 0.01, "ransac", True, "", np.eye(6),
+    two = PairResult(0, 1, poses[1], 0.5, 0.01, "ransac", True, "",
                      pose_information=4 * np.eye(6))
     c1, c2 = covariances(poses, [one])[1], covariances(poses, [two])[1]
     assert c1 is not None and c2 is not None
@@ -201,7 +201,7 @@ def test_variance_factor_measures_the_loops_misclosure() -> None:
     def pair(target: int, source: int, off: Any = None) -> PairResult:
         measured = invert(poses[target]) @ poses[source]
         return PairResult(target, source, measured if off is None else off @ measured, 0.5,
-                          0.01, "ransac", True, "", np.eye(6),
+                          0.01, "ransac", True, "",
                           pose_information=np.eye(6) / 1e-6)  # σ 1 mm
     # no loop: nothing to measure
     assert variance_factor(poses, [pair(0, 1), pair(0, 2)]) == (1.0, 0)
