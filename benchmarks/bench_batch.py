@@ -23,10 +23,12 @@ steps), the parent's, and every process's (local: the fork server with its reape
 the driver's descendants — raylet, GCS, workers). From them a *CPU bound* on the speed-up: each
 run's wall cannot be shorter than its busiest worker's CPU, nor than all its CPU spread over the
 cores it may use, so ``cpu_speedup = bound(1 worker) / bound(2 workers)`` is what a quiet
-machine gives at best. Worker start: the local pool's, cold and warm (wall until every worker
-answered, and its CPU). Scheduling per task: the round trip of an empty task (local pool and
-Ray, median of sequential ones), Ray's wall per empty task with many in flight, the parent's CPU
-per task, and (Ray) the CPU of Ray's own processes per stage task.
+machine gives at best. On a loaded machine which worker takes the next recording depends on the
+load, so ``cpu_speedup_even`` bounds it with the recordings split evenly (the largest
+recording's CPU instead of the busiest worker's). Worker start: the local pool's, cold and warm
+(wall until every worker answered, and its CPU). Scheduling per task: the round trip of an empty
+task (local pool and Ray, median of sequential ones), Ray's wall per empty task with many in
+flight, the parent's CPU per task, and (Ray) the CPU of Ray's own processes per stage task.
 """
 
 from __future__ import annotations
@@ -163,6 +165,7 @@ def cpu_figures(summary: dict[str, Any], processes_cpu_s: float, cores: int) -> 
     per_worker = summary["workers_cpu_s"]
     busiest = max(per_worker.values(), default=0.0)
     total = processes_cpu_s + summary["parent_cpu_s"]
+    largest_item = max((i["cpu_s"] for i in summary["items"]), default=0.0)
     return {"workers_cpu_s": per_worker, "busiest_worker_cpu_s": round(busiest, 3),
             "worker_start_cpu_s": round(sum(starts.values()), 3),
             "stage_cpu_s": round(stage_cpu, 3), "parent_cpu_s": summary["parent_cpu_s"],
@@ -170,7 +173,10 @@ def cpu_figures(summary: dict[str, Any], processes_cpu_s: float, cores: int) -> 
             # what neither the stages nor the workers' start account for: the engine's own
             # work (Ray: raylet, GCS, object store, task (de)serialisation; local: the fork server)
             "engine_cpu_s": round(total - stage_cpu - sum(starts.values()), 3),
-            "cpu_bound_s": round(max(busiest, total / cores), 3)}
+            "cpu_bound_s": round(max(busiest, total / cores), 3),
+            # the same with the work split evenly between the workers: which worker takes
+            # the next recording depends on the load on a shared machine, not on a quiet one
+            "cpu_bound_even_s": round(max(largest_item, total / cores), 3)}
 
 
 def run(count: int, settings: list[str], say: Any, repeats: int = 1,
@@ -235,6 +241,7 @@ def run(count: int, settings: list[str], say: Any, repeats: int = 1,
     for entry in runs.values():
         entry["wall_s"] = min(entry["walls_s"])
         entry["cpu_bound_s"] = min(c["cpu_bound_s"] for c in entry["cpu"])
+        entry["cpu_bound_even_s"] = min(c["cpu_bound_even_s"] for c in entry["cpu"])
     tasks = {"local": count, "ray": count * n_stages}
     for engine in ("local", "ray"):
         cost = results.setdefault(f"{engine}_scheduling", {})
@@ -264,6 +271,10 @@ def run(count: int, settings: list[str], say: Any, repeats: int = 1,
     results["cpu_speedup"] = {engine: round(runs[f"{engine}-1"]["cpu_bound_s"]
                                             / max(runs[f"{engine}-2"]["cpu_bound_s"], 1e-9), 3)
                               for engine in ("local", "ray")}
+    results["cpu_speedup_even"] = {
+        engine: round(runs[f"{engine}-1"]["cpu_bound_even_s"]
+                      / max(runs[f"{engine}-2"]["cpu_bound_even_s"], 1e-9), 3)
+        for engine in ("local", "ray")}
     results["targets"] = [
         {"figure": f"speedup_{engine}", "value": round(
             runs[f"{engine}-1"]["wall_s"] / runs[f"{engine}-2"]["wall_s"], 3),
@@ -297,7 +308,9 @@ def report(results: dict[str, Any]) -> str:
     lines += [f"{t['figure']}: {t['value']:.2f} (target {t['target']}: "
               f"{'ok' if t['ok'] else 'MISSED'})" for t in results["targets"]]
     lines.append("CPU bound on the speed-up (what a quiet machine gives at best): "
-                 + ", ".join(f"{k} {v:.2f}" for k, v in results["cpu_speedup"].items()))
+                 + ", ".join(f"{k} {v:.2f}" for k, v in results["cpu_speedup"].items())
+                 + "; with the recordings split evenly between the workers: "
+                 + ", ".join(f"{k} {v:.2f}" for k, v in results["cpu_speedup_even"].items()))
     for engine in ("local", "ray"):
         cost = results[f"{engine}_scheduling"]
         lines.append(f"{engine} per task ({cost['tasks']} tasks): round trip "
