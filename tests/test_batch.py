@@ -159,7 +159,7 @@ def test_local_workers_fork_from_a_warm_server(recordings: list[Path], tmp_path:
 
     from scanpipe.batch import pool_context, stop_pool_server
 
-    assert pool_context(1).get_start_method() == "forkserver"  # Linux and macOS have it
+    assert pool_context(1).get_start_method() == "forkserver"  # on Linux
     params = pipeline_params_from_cli(None, GRID)
     stop_pool_server()
     first = run_batch(recordings[:1], tmp_path / "a", params, workers=1, threads=1,

@@ -6,20 +6,20 @@ folders never share a workdir, and a name that does not depend on the rest of th
 re-run with more or fewer recordings finds its cache. Each workdir has its own lock
 (:func:`scanpipe.workdir.workdir_lock`), so workers never wait on each other.
 
-``local`` runs :func:`scanpipe.pipeline.run_chain` per recording in a process pool of
-long-lived workers limited to ``threads`` threads each (OpenMP, BLAS, OpenCV), so that workers do
-not fight over the cores. Where the platform has it (Linux, macOS) the workers are forked from a
-*fork server* (:func:`pool_context`) that imported the chain and its heavy libraries once: a
-worker then starts in milliseconds instead of paying ~2 s of CPU for the interpreter and the
-imports (a spawned worker also re-imports the command line's main module), the start is paid
-once per process rather than once per worker, and a later batch in the same process (a
-notebook, a service, the benchmark) finds the server warm. Elsewhere (Windows) the workers are
-spawned and import all of it in their initializer. ``ray`` runs one Ray task per recording
-per stage (:func:`scanpipe.pipeline.chain_step`): the tasks of one recording are chained by
-object refs carrying only paths, keys and reports, while the tables go through the cached
-artifacts in the workdir, exactly as a local run writes them — so both engines give the same
-artifacts and keys, a re-run reuses them, and the workdir must be on a file system every Ray
-node sees. A failing recording is reported with its one-line error and the others finish.
+``local`` runs :func:`scanpipe.pipeline.run_chain` per recording in a process pool of long-lived
+workers limited to ``threads`` threads each (OpenMP, BLAS, OpenCV), so that workers do not fight
+over the cores. On Linux the workers are forked from a *fork server* (:func:`pool_context`) that
+imported the chain and its heavy libraries once: a worker then starts in milliseconds instead of
+paying ~2 s of CPU for the interpreter and the imports (a spawned worker also re-imports the
+command line's main module), the start is paid once per process rather than once per worker, and
+a later batch in the same process (a notebook, a service, the benchmark) finds the server warm.
+Elsewhere (macOS, Windows) the workers are spawned and import all of it in their initializer.
+``ray`` runs one Ray task per recording per stage (:func:`scanpipe.pipeline.chain_step`): the
+tasks of one recording are chained by object refs carrying only paths, keys and reports, while
+the tables go through the cached artifacts in the workdir, exactly as a local run writes them —
+so both engines give the same artifacts and keys, a re-run reuses them, and the workdir must be
+on a file system every Ray node sees. A failing recording is reported with its one-line error
+and the others finish.
 
 Both engines start the largest recordings first (file size: a proxy for their work), so that a
 long recording does not start last and leave the other workers idle at the end. Every stage
@@ -35,6 +35,7 @@ import json
 import multiprocessing as mp
 import os
 import re
+import sys
 import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -241,10 +242,12 @@ def pool_context(threads: int) -> mp.context.BaseContext:
     """The multiprocessing context of the local pool: ``forkserver`` preloading
     :data:`PRELOAD`, started (in the environment of :func:`_thread_env`, so its libraries size
     their thread pools for ``threads``) once per process and kept warm for later batches —
-    restarted only when a batch asks for another thread count; ``spawn`` where there is no
-    fork server (Windows) or it cannot be restarted."""
+    restarted only when a batch asks for another thread count; ``spawn`` elsewhere than on
+    Linux or when the server cannot be restarted."""
     global _FORKSERVER_THREADS
-    if "forkserver" not in mp.get_all_start_methods():
+    # Linux only: on macOS a forked child of a process holding system frameworks (OpenCV,
+    # Open3D) may crash, which is why Python spawns there by default
+    if not sys.platform.startswith("linux") or "forkserver" not in mp.get_all_start_methods():
         return mp.get_context("spawn")
     from multiprocessing import forkserver
 
