@@ -1,23 +1,27 @@
-"""``python -m benchmarks.bench_register [--scale small|lab] [--positions N] [--seeds N]``:
-site registration on the built-in virtual site — ``simulate --site`` with a wrong prior (±0.5 m,
-±10°), each position run to ``filter``, then ``register`` without a prior and with the wrong
-prior — per scan its pose error (mm, degrees; relative to the first scan) against the target
-(5 mm / 0.05°, issue 21), and its error against the pose covariance ``register`` wrote (error / σ
-per component and the squared Mahalanobis distance, χ² with 6 degrees of freedom when the
-covariance is honest); wall and CPU time of every step. Prints a table and writes
+"""``python -m benchmarks.bench_register [--scale small|lab] [--positions N] [--seeds N] [--jobs
+N]``: site registration on the built-in virtual site — ``simulate --site`` with a wrong prior
+(±0.5 m, ±10°), each position run to ``filter``, then ``register`` without a prior and with the
+wrong prior — per scan its pose error (mm, degrees; relative to the first scan) against the
+target (5 mm / 0.05°, issue 21), and its error against the pose covariance ``register`` wrote
+(error / σ per component and the squared Mahalanobis distance, χ² with 6 degrees of freedom when
+the covariance is honest); wall and CPU time of every step. Prints a table and writes
 ``benchmarks/results/register-<scale>-<date>.json``.
 
 ``lab`` is the figure (6 positions, motor 1°, beam 0.5°: the scans docs/sites.md measures);
 ``small`` (motor 2°, beam 1°, the tests' scans) is a smoke run on the target too, since its
 scans register within it. ``--seeds N`` repeats the whole site with N noise seeds (positions and
 prior change with the seed too), which is what checks the covariance: over seeds, about 99.7 %
-of the errors should lie within 3 σ.
+of the errors should lie within 3 σ. ``--jobs`` (2) runs that many steps at a time, each in its
+own process: a seed's simulation (and its runs to ``filter``) first, then its two registrations;
+each step's wall and CPU is its own.
 """
 
 from __future__ import annotations
 
 import argparse
+import concurrent.futures as cf
 import datetime as dt
+import multiprocessing as mp
 import sys
 import tempfile
 import time
@@ -78,59 +82,87 @@ def covariance_check(site: Path, truth: Path) -> list[dict[str, Any]]:
     return rows
 
 
-def run(scale: str, positions: int, seeds: int, say: Any) -> dict[str, Any]:
-    """Every seed and case; returns the results (JSON-ready)."""
+def prepare_seed(scale: str, positions: int, seed: int, root: Path) -> dict[str, Any]:
+    """One seed's site: ``simulate --site`` with the wrong prior, each position run to
+    ``filter``; its timings and workdirs."""
+    recs, truth = root / "recs", root / "truth"
+    timings: dict[str, Any] = {}
+    _timed("simulate", timings, "simulate", "--site", str(positions), "--direct",
+           "--out", str(recs), "--truth", str(truth), "--prior-error-m",
+           str(PRIOR_ERROR_M), "--prior-error-deg", str(PRIOR_ERROR_DEG), "--seed",
+           str(seed), "-q", *SCALES[scale])
+    workdirs = []
+    for k in range(positions):
+        work = root / "work" / f"pos{k:02d}"
+        _timed(f"run pos{k:02d}", timings, "run", str(recs / f"pos{k:02d}.mcap"),
+               "--workdir", str(work), "--to", "filter", "-q")
+        workdirs.append(str(work))
+    return {"timings": timings, "workdirs": workdirs}
+
+
+def register_case(seed: int, case: str, root: Path, workdirs: list[str]) -> dict[str, Any]:
+    """``register`` one seed's scans without a prior or with the wrong one; the run's record
+    (per scan: pose error, pass/fail, error against the covariance)."""
+    recs, truth = root / "recs", root / "truth"
+    extra = [] if case == "no prior" else ["--prior", str(recs / "prior_poses.parquet")]
+    site = root / ("site-" + case.replace(" ", "-"))
+    timings: dict[str, Any] = {}
+    try:
+        report = _timed(f"register ({case})", timings, "register", *workdirs, "--out",
+                        str(site), "--truth", str(truth), "--json", "-q", *extra)
+    except RuntimeError as err:
+        return {"seed": seed, "case": case, "error": str(err), "timings": timings,
+                "scans": []}
+    errors = {r["scan"]: r for r in report["pose_errors"]}
+    checks = {r["scan"]: r for r in covariance_check(site, truth)}
+    scans = []
+    for name, row in errors.items():
+        t_mm = None if row["translation_m"] is None else row["translation_m"] * 1e3
+        r_deg = row["rotation_deg"]
+        scans.append({"scan": name, "note": row["note"],
+                      "translation_mm": None if t_mm is None else round(t_mm, 3),
+                      "rotation_deg": None if r_deg is None else round(r_deg, 4),
+                      "ok": t_mm is not None and t_mm <= TARGET_MM and r_deg <= TARGET_DEG,
+                      **{k: v for k, v in checks.get(name, {}).items() if k != "scan"}})
+    return {"seed": seed, "case": case, "timings": timings, "scans": scans,
+            "pairs_kept": report["pairs_kept"], "pairs_rejected": report["pairs_rejected"],
+            "unregistered": report["unregistered"], "warnings": report["warnings"]}
+
+
+CASES = ("no prior", "wrong prior")
+
+
+def run(scale: str, positions: int, seeds: int, say: Any, jobs: int = 1) -> dict[str, Any]:
+    """Every seed and case, ``jobs`` at a time (each seed's simulation first, then its two
+    registrations); returns the results (JSON-ready)."""
     results: dict[str, Any] = {"machine": machine(), "scale": scale, "positions": positions,
-                               "seeds": seeds, "simulate_settings": SCALES[scale],
+                               "seeds": seeds, "jobs": jobs, "simulate_settings": SCALES[scale],
                                "prior_error": [PRIOR_ERROR_M, PRIOR_ERROR_DEG],
                                "target": [TARGET_MM, TARGET_DEG], "runs": []}
-    with tempfile.TemporaryDirectory(prefix="bench-register-") as scratch:
+    runs: dict[tuple[int, str], dict[str, Any]] = {}
+    with tempfile.TemporaryDirectory(prefix="bench-register-") as scratch, \
+            cf.ProcessPoolExecutor(jobs, mp_context=mp.get_context("spawn")) as pool:
+        roots = {seed: Path(scratch) / f"seed{seed}" for seed in range(seeds)}
+        pending: dict[cf.Future[dict[str, Any]], tuple[int, str]] = {}
         for seed in range(seeds):
-            root = Path(scratch) / f"seed{seed}"
-            recs, truth = root / "recs", root / "truth"
-            timings: dict[str, Any] = {}
-            say(f"seed {seed}: simulate {positions} positions")
-            _timed("simulate", timings, "simulate", "--site", str(positions), "--direct",
-                   "--out", str(recs), "--truth", str(truth), "--prior-error-m",
-                   str(PRIOR_ERROR_M), "--prior-error-deg", str(PRIOR_ERROR_DEG), "--seed",
-                   str(seed), "-q", *SCALES[scale])
-            say(f"seed {seed}: run each to filter")
-            workdirs = []
-            for k in range(positions):
-                work = root / "work" / f"pos{k:02d}"
-                _timed(f"run pos{k:02d}", timings, "run", str(recs / f"pos{k:02d}.mcap"),
-                       "--workdir", str(work), "--to", "filter", "-q")
-                workdirs.append(str(work))
-            for case, extra in (("no prior", []),
-                                ("wrong prior", ["--prior", str(recs / "prior_poses.parquet")])):
-                say(f"seed {seed}: register, {case}")
-                site = root / ("site-" + case.replace(" ", "-"))
-                try:
-                    report = _timed(f"register ({case})", timings, "register", *workdirs,
-                                    "--out", str(site), "--truth", str(truth), "--json", "-q",
-                                    *extra)
-                except RuntimeError as err:
-                    results["runs"].append({"seed": seed, "case": case, "error": str(err),
-                                            "timings": dict(timings), "scans": []})
-                    continue
-                errors = {r["scan"]: r for r in report["pose_errors"]}
-                checks = {r["scan"]: r for r in covariance_check(site, truth)}
-                scans = []
-                for name, row in errors.items():
-                    t_mm = None if row["translation_m"] is None else row["translation_m"] * 1e3
-                    r_deg = row["rotation_deg"]
-                    scans.append({"scan": name, "note": row["note"],
-                                  "translation_mm": None if t_mm is None else round(t_mm, 3),
-                                  "rotation_deg": None if r_deg is None else round(r_deg, 4),
-                                  "ok": t_mm is not None and t_mm <= TARGET_MM
-                                  and r_deg <= TARGET_DEG,
-                                  **{k: v for k, v in checks.get(name, {}).items()
-                                     if k != "scan"}})
-                results["runs"].append({
-                    "seed": seed, "case": case, "timings": dict(timings), "scans": scans,
-                    "pairs_kept": report["pairs_kept"],
-                    "pairs_rejected": report["pairs_rejected"],
-                    "unregistered": report["unregistered"], "warnings": report["warnings"]})
+            say(f"seed {seed}: simulate {positions} positions, run each to filter")
+            pending[pool.submit(prepare_seed, scale, positions, seed, roots[seed])] = (seed, "")
+        prepared: dict[int, dict[str, Any]] = {}
+        while pending:
+            finished, _ = cf.wait(pending, return_when=cf.FIRST_COMPLETED)
+            for future in finished:
+                seed, case = pending.pop(future)
+                if not case:
+                    prepared[seed] = future.result()
+                    for name in CASES:
+                        say(f"seed {seed}: register, {name}")
+                        pending[pool.submit(register_case, seed, name, roots[seed],
+                                            prepared[seed]["workdirs"])] = (seed, name)
+                else:
+                    record = future.result()
+                    record["timings"] = {**prepared[seed]["timings"], **record["timings"]}
+                    runs[(seed, case)] = record
+    results["runs"] = [runs[(seed, case)] for seed in range(seeds) for case in CASES]
     chis = [s["chi2"] for r in results["runs"] for s in r["scans"] if "chi2" in s]
     zs = [abs(z) for r in results["runs"] for s in r["scans"] for z in s.get("z", [])]
     results["covariance"] = {
@@ -187,15 +219,20 @@ def main(argv: list[str] | None = None) -> int:
                         help="lab: the figure (1° × 0.5°); small: the tests' scans (2° × 1°)")
     parser.add_argument("--positions", type=int, default=6, help="scan positions (default 6)")
     parser.add_argument("--seeds", type=int, default=1, help="noise seeds (default 1)")
+    parser.add_argument("--jobs", type=int, default=2, help="processes at a time (default 2: "
+                        "the 2-core machine; a seed's simulation and its two registrations "
+                        "are separate jobs)")
     args = parser.parse_args(argv)
     if args.positions < 6:
         parser.error(f"--positions {args.positions}: the target is for at least 6")
     if args.seeds < 1:
         parser.error(f"--seeds {args.seeds}: must be at least 1")
+    if args.jobs < 1:
+        parser.error(f"--jobs {args.jobs}: must be at least 1")
     started = time.perf_counter()
     say = timed_say(started)
 
-    results = run(args.scale, args.positions, args.seeds, say)
+    results = run(args.scale, args.positions, args.seeds, say, args.jobs)
     results["benchmark_s"] = round(time.perf_counter() - started, 1)
     saved = save(results, f"register-{args.scale}-{dt.date.today().isoformat()}")
     print(report(results))

@@ -150,6 +150,32 @@ def _check_cpu_accounting(summary: dict[str, Any], engine: str) -> None:
     assert sum(summary["workers_cpu_s"].values()) >= stage_cpu - 1e-3
 
 
+def test_local_workers_fork_from_a_warm_server(recordings: list[Path], tmp_path: Path) -> None:
+    """The local pool's workers are forked from one fork server that imported the chain: a
+    worker's own start costs little CPU (a spawned one paid ~2 s: interpreter, the chain,
+    Open3D, SciPy), a second batch in the process reuses the server, and a batch with another
+    thread count gets a new one (its libraries sized their thread pools when it started)."""
+    from multiprocessing import forkserver
+
+    from scanpipe.batch import pool_context, stop_pool_server
+
+    assert pool_context(1).get_start_method() == "forkserver"  # on Linux
+    params = pipeline_params_from_cli(None, GRID)
+    stop_pool_server()
+    first = run_batch(recordings[:1], tmp_path / "a", params, workers=1, threads=1,
+                      to="decode")
+    server = forkserver._forkserver._forkserver_pid  # type: ignore[attr-defined]
+    second = run_batch(recordings[:1], tmp_path / "b", params, workers=1, threads=1,
+                       to="decode")
+    assert forkserver._forkserver._forkserver_pid == server  # type: ignore[attr-defined]
+    for summary in (first, second):
+        assert summary["failed"] == 0
+        (start,) = summary["items"][0]["worker_start_cpu_s"].values()
+        assert 0 < start < 0.8, start
+    run_batch(recordings[:1], tmp_path / "c", params, workers=1, threads=2, to="decode")
+    assert forkserver._forkserver._forkserver_pid != server  # type: ignore[attr-defined]
+
+
 def test_largest_recording_starts_first(tmp_path: Path) -> None:
     sizes = {"small.mcap": 10, "big.mcap": 300, "mid.mcap": 100}
     for name, size in sizes.items():

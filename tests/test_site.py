@@ -62,9 +62,9 @@ def test_site_positions_and_prior_error() -> None:
 
 def test_covariance_shrinks_with_more_information() -> None:
     poses = [np.eye(4), pose_matrix((0, 30, 0), (1, 0, 0))]
-    one = PairResult(0, 1, poses[1], 0.5, 0.01, "ransac", True, "", np.eye(6),
+    one = PairResult(0, 1, poses[1], 0.5, 0.01, "ransac", True, "",
                      pose_information=np.eye(6))
-    two = PairResult(0, 1, poses[1], 0.5, 0.01, "ransac", True, "", np.eye(6),
+    two = PairResult(0, 1, poses[1], 0.5, 0.01, "ransac", True, "",
                      pose_information=4 * np.eye(6))
     c1, c2 = covariances(poses, [one])[1], covariances(poses, [two])[1]
     assert c1 is not None and c2 is not None
@@ -201,9 +201,36 @@ def test_variance_factor_measures_the_loops_misclosure() -> None:
     def pair(target: int, source: int, off: Any = None) -> PairResult:
         measured = invert(poses[target]) @ poses[source]
         return PairResult(target, source, measured if off is None else off @ measured, 0.5,
-                          0.01, "ransac", True, "", np.eye(6),
+                          0.01, "ransac", True, "",
                           pose_information=np.eye(6) / 1e-6)  # σ 1 mm
     # no loop: nothing to measure
     assert variance_factor(poses, [pair(0, 1), pair(0, 2)]) == (1.0, 0)
     factor, dof = variance_factor(poses, [pair(0, 1), pair(0, 2), pair(1, 2, error)])
     assert dof == 6 and factor == __import__("pytest").approx(9.0 / 6.0, rel=1e-6)
+
+
+def test_pose_graph_weighs_pairs_by_their_information() -> None:
+    """The pose graph is the weighted least-squares optimum: two measurements of one pair,
+    4 mm apart along x, weighted 3 : 1 land 1 mm from the stronger one; along a loop of three
+    scans whose third pair is 6 mm off, the misclosure is shared in inverse proportion to
+    the pairs' information, and the graph stays put where the pairs agree."""
+    from scanpipe.registration import _optimise
+
+    truth = [np.eye(4), pose_matrix((0, 30, 0), (2, 0, 0)), pose_matrix((0, -20, 0), (1, 0, 3))]
+
+    def pair(target: int, source: int, weight: float, off: Any = None) -> PairResult:
+        measured = invert(truth[target]) @ truth[source]
+        return PairResult(target, source, measured if off is None else off @ measured, 0.5,
+                          0.01, "ransac", True, "", pose_information=np.eye(6) * weight)
+
+    shift = pose_matrix((0, 0, 0), (0.004, 0, 0))  # target frame: 4 mm along x
+    start = [truth[0], truth[1] @ pose_matrix((0.5, -1, 0.2), (0.05, 0.02, -0.03))]
+    two = _optimise(start, [pair(0, 1, 3e6), pair(0, 1, 1e6, shift)])
+    assert pose_error(two[1], pose_matrix((0, 0, 0), (0.001, 0, 0)) @ truth[1])[0] < 1e-7
+    assert np.allclose(two[0], truth[0])
+    # a loop whose last pair is 6 mm off: the weakest pair takes most of the misclosure
+    loop = _optimise(list(truth), [pair(0, 1, 1e6), pair(1, 2, 1e6),
+                                   pair(0, 2, 1e4, pose_matrix((0, 0, 0), (0.006, 0, 0)))])
+    assert pose_error(loop[2], truth[2])[0] < 0.006 * 0.03  # equal weights: a third
+    agree = _optimise(list(truth), [pair(0, 1, 1e6), pair(1, 2, 1e6), pair(0, 2, 1e4)])
+    assert all(pose_error(a, b)[0] < 1e-9 for a, b in zip(agree, truth, strict=True))

@@ -6,15 +6,20 @@ folders never share a workdir, and a name that does not depend on the rest of th
 re-run with more or fewer recordings finds its cache. Each workdir has its own lock
 (:func:`scanpipe.workdir.workdir_lock`), so workers never wait on each other.
 
-``local`` runs :func:`scanpipe.pipeline.run_chain` per recording in a process pool of
-long-lived spawned workers: each imports the chain and its heavy libraries once when it starts
-(not per recording) and is limited to ``threads`` threads (OpenMP, BLAS, OpenCV), so that
-workers do not fight over the cores. ``ray`` runs one Ray task per recording
-per stage (:func:`scanpipe.pipeline.chain_step`): the tasks of one recording are chained by
-object refs carrying only paths, keys and reports, while the tables go through the cached
-artifacts in the workdir, exactly as a local run writes them — so both engines give the same
-artifacts and keys, a re-run reuses them, and the workdir must be on a file system every Ray
-node sees. A failing recording is reported with its one-line error and the others finish.
+``local`` runs :func:`scanpipe.pipeline.run_chain` per recording in a process pool of long-lived
+workers limited to ``threads`` threads each (OpenMP, BLAS, OpenCV), so that workers do not fight
+over the cores. On Linux the workers are forked from a *fork server* (:func:`pool_context`) that
+imported the chain and its heavy libraries once: a worker then starts in milliseconds instead of
+paying ~2 s of CPU for the interpreter and the imports (a spawned worker also re-imports the
+command line's main module), the start is paid once per process rather than once per worker, and
+a later batch in the same process (a notebook, a service, the benchmark) finds the server warm.
+Elsewhere (macOS, Windows) the workers are spawned and import all of it in their initializer.
+``ray`` runs one Ray task per recording per stage (:func:`scanpipe.pipeline.chain_step`): the
+tasks of one recording are chained by object refs carrying only paths, keys and reports, while
+the tables go through the cached artifacts in the workdir, exactly as a local run writes them —
+so both engines give the same artifacts and keys, a re-run reuses them, and the workdir must be
+on a file system every Ray node sees. A failing recording is reported with its one-line error
+and the others finish.
 
 Both engines start the largest recordings first (file size: a proxy for their work), so that a
 long recording does not start last and leave the other workers idle at the end. Every stage
@@ -30,6 +35,7 @@ import json
 import multiprocessing as mp
 import os
 import re
+import sys
 import time
 import traceback
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -196,19 +202,65 @@ def limit_opencv_threads(threads: int) -> None:
     cv2.setNumThreads(threads)
 
 
+#: What a worker needs before its first recording, imported once by the fork server (and by a
+#: spawned worker's initializer): the chain, and what its stages import lazily (Open3D ~1 s,
+#: SciPy's parts).
+PRELOAD = ("scanpipe.batch", "scanpipe.stages", "open3d", "scipy.ndimage",
+           "scipy.sparse.csgraph", "scipy.spatial")
+#: The thread count the fork server of this process was started with (None: not started by us).
+_FORKSERVER_THREADS: int | None = None
+
+
 def _start_worker(threads: int) -> None:
     """Pool initializer: limit OpenCV's threads (the environment sized the others), then import
-    what the stages import lazily (Open3D ~0.8 s, OpenCV, SciPy's parts), once per worker, so
-    that no recording pays it and the stage times measure the stages."""
+    :data:`PRELOAD` (already there in a worker forked from the fork server), so that no
+    recording pays it and the stage times measure the stages."""
     global _WORKER_START_CPU_S
-    limit_opencv_threads(threads)
-    import open3d  # noqa: F401
-    import scipy.ndimage
-    import scipy.sparse.csgraph
-    import scipy.spatial  # noqa: F401
+    import importlib
 
-    import scanpipe.stages  # noqa: F401
+    limit_opencv_threads(threads)
+    for name in PRELOAD:
+        importlib.import_module(name)
     _WORKER_START_CPU_S = round(time.process_time(), 4)
+
+
+def stop_pool_server() -> bool:
+    """Stop this process's fork server (the next local batch starts it afresh: a *cold* start,
+    as in a new ``scanpipe batch`` process); False when there is none we can stop."""
+    global _FORKSERVER_THREADS
+    from multiprocessing import forkserver
+
+    stop = getattr(getattr(forkserver, "_forkserver", None), "_stop", None)
+    if stop is None:
+        return False
+    stop()
+    _FORKSERVER_THREADS = None
+    return True
+
+
+def pool_context(threads: int) -> mp.context.BaseContext:
+    """The multiprocessing context of the local pool: ``forkserver`` preloading
+    :data:`PRELOAD`, started (in the environment of :func:`_thread_env`, so its libraries size
+    their thread pools for ``threads``) once per process and kept warm for later batches —
+    restarted only when a batch asks for another thread count; ``spawn`` elsewhere than on
+    Linux or when the server cannot be restarted."""
+    global _FORKSERVER_THREADS
+    # Linux only: on macOS a forked child of a process holding system frameworks (OpenCV,
+    # Open3D) may crash, which is why Python spawns there by default
+    if not sys.platform.startswith("linux") or "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    from multiprocessing import forkserver
+
+    if (_FORKSERVER_THREADS is not None and threads != _FORKSERVER_THREADS
+            and not stop_pool_server()):
+        return mp.get_context("spawn")  # no way to restart it on this Python
+    context = mp.get_context("forkserver")
+    # "__main__" too (the default): else every worker re-imports the main module (the command
+    # line, ~1 s) to set itself up
+    context.set_forkserver_preload(["__main__", *PRELOAD])
+    forkserver.ensure_running()
+    _FORKSERVER_THREADS = threads
+    return context
 
 
 @contextmanager
@@ -257,7 +309,7 @@ def _run_local(items: Sequence[BatchItem], params: Mapping[str, Params], workers
         while queue:
             # A worker killed by a signal breaks the pool: the items it held fail, the rest go
             # on in a new pool.
-            pool = cf.ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"),
+            pool = cf.ProcessPoolExecutor(workers, mp_context=pool_context(per_worker),
                                           initializer=_start_worker, initargs=(per_worker,))
             running: dict[cf.Future[ItemResult], BatchItem] = {}
             try:

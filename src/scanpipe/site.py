@@ -212,7 +212,7 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
         raise ArtifactError("register: no two scans could be placed unambiguously ("
                             + shown + (f"; {more} more pairs left out" if more > 0 else "")
                             + ")")
-    key = artifact_key("register", 1, params.model_dump(mode="json"),
+    key = artifact_key("register", 2, params.model_dump(mode="json"),
                        {n: k for n, (_, k) in zip(names, loaded, strict=True)}, {})
     provenance = {"stage": "register", "key": key, "params": params.model_dump(mode="json"),
                   "inputs": [str(w) for w in workdirs], "report": report}
