@@ -274,7 +274,7 @@ def select_frames_per_face(candidates: NDArray[np.int64], frames: FrameSet,
         struck = candidates[pending, slot] < 0  # none left, or an outlier: try the next
         waiting, pending = pending[struck], pending[~struck]
         best = candidates[pending, slot]
-        visible = occlusion.faces_visible(centres[best], pending)
+        visible = occlusion.faces_visible(centres[best], pending, views=best)
         chosen[pending[visible]] = best[visible]
         blocked = ~visible
         scores[best[blocked], pending[blocked]] = 0.0
