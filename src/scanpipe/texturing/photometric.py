@@ -15,6 +15,8 @@ overlaps serve twice (Waechter et al. 2014, sections 4.1 and 5):
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -77,14 +79,19 @@ def sample_views(points: F64, frame: I64, frames: FrameSet) -> F64:
     # frame numbers are small: a stable sort of int16 is a radix sort (several times faster)
     order = np.argsort(flat.astype(np.int16) if len(frames) < 2 ** 15 else flat, kind="stable")
     bounds = np.searchsorted(flat[order], np.arange(len(frames) + 1))
-    for i in range(len(frames)):
+
+    def sample_frame(i: int) -> None:
         cell = order[bounds[i]:bounds[i + 1]]
         if len(cell) == 0:
-            continue
+            return
         cam = frames.cameras[i]
         uv, _, valid = project_valid(points[cell // frame.shape[1]], cam,
                                      float(frames.beta_deg[i]), 0.0)
         colour[cell[valid]] = sample_mean_colour(frames.reduced(i), uv[valid], REDUCED_FACTOR)
+
+    # a frame per thread (decoding and numpy release the GIL; the frames' cells are disjoint)
+    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 4))) as pool:
+        list(pool.map(sample_frame, range(len(frames))))
     return colour.reshape(*frame.shape, 3)
 
 

@@ -19,6 +19,9 @@ candidate is struck out.
 from __future__ import annotations
 
 import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -200,10 +203,14 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     # cos θ = (n·c − n·p) / |c − p| from per-face constants and two mat-vec products per frame
     n_dot_p = np.einsum("ij,ij->i", normal_of, centre_of)
     p_squared = np.einsum("ij,ij->i", centre_of, centre_of)
-    u = np.zeros(len(vertices))
-    v = np.zeros(len(vertices))
-    valid = np.zeros(len(vertices), dtype=bool)
-    for i, cam in enumerate(frames.cameras):
+    scratch = threading.local()  # per thread: u, v and valid of every vertex (azimuth order)
+
+    def score_frame(i: int) -> None:
+        if not hasattr(scratch, "u"):
+            scratch.u, scratch.v = np.zeros(len(vertices)), np.zeros(len(vertices))
+            scratch.valid = np.zeros(len(vertices), dtype=bool)
+        u, v, valid = scratch.u, scratch.v, scratch.valid
+        cam = frames.cameras[i]
         beta = float(frames.beta_deg[i])
         window = view_window(cam, beta)
         if window is None:  # every direction in view
@@ -219,26 +226,31 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
             u[a:b], v[a:b] = uv[:, 0], uv[:, 1]
         centre = frames.centre(i)
         for a, b in face_ranges:
-            c0, c1, c2 = corners[0][a:b], corners[1][a:b], corners[2][a:b]
-            inside = np.flatnonzero(valid[c0] & valid[c1] & valid[c2])
-            c0, c1, c2 = c0[inside], c1[inside], c2[inside]
-            if cam.model == "equirect":
-                ok = ~wraps(np.stack([u[c0], u[c1], u[c2]], 1)[:, :, None], cam)
-                inside, c0, c1, c2 = inside[ok], c0[ok], c1[ok], c2[ok]
-            at = inside + a
+            # the angle first, over the contiguous slice (two mat-vec products); the corner
+            # look-ups then only for the faces that face the camera
             distance = np.sqrt(np.maximum(
-                p_squared[at] - 2 * (centre_of[at] @ centre) + centre @ centre, 1e-24))
-            cos = (normal_of[at] @ centre - n_dot_p[at]) / distance
+                p_squared[a:b] - 2 * (centre_of[a:b] @ centre) + centre @ centre, 1e-24))
+            cos = (normal_of[a:b] @ centre - n_dot_p[a:b]) / distance
             if two_sided:
                 cos = np.abs(cos)
-            keep = cos >= min_cos
-            score = cos[keep] * sharp[i]
+            facing = np.flatnonzero(cos >= min_cos)
+            c0, c1, c2 = corners[0][a:b][facing], corners[1][a:b][facing], corners[2][a:b][facing]
+            inside = valid[c0] & valid[c1] & valid[c2]
+            facing, c0, c1, c2 = facing[inside], c0[inside], c1[inside], c2[inside]
+            if cam.model == "equirect":
+                ok = ~wraps(np.stack([u[c0], u[c1], u[c2]], 1)[:, :, None], cam)
+                facing, c0, c1, c2 = facing[ok], c0[ok], c1[ok], c2[ok]
+            score = cos[facing] * sharp[i]
             if cam.model == "pinhole":
-                c0, c1, c2 = c0[keep], c1[keep], c2[keep]
                 mean_uv = np.stack([(u[c0] + u[c1] + u[c2]) / 3, (v[c0] + v[c1] + v[c2]) / 3], 1)
                 score *= centrality(mean_uv, cam)
-            scores[i, face_ids[at[keep]]] = score
-        progress("score frames", i + 1, len(frames))
+            scores[i, face_ids[facing + a]] = score
+
+    # one frame per thread (numpy and OpenCV release the GIL; each frame writes its own row)
+    workers = max(1, min(os.cpu_count() or 1, len(frames)))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for done, _ in enumerate(pool.map(score_frame, range(len(frames))), 1):
+            progress("score frames", done, len(frames))
     return scores
 
 

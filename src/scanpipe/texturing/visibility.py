@@ -82,9 +82,13 @@ class MeshOcclusion:
         """True where the segment origin → point reaches the point (or its face) first.
 
         ``origins`` and ``points`` are ``(M, 3)``; ``face_ids`` ``(M,)`` the face each point lies
-        on. A hit on that very face, or no closer than ``abs_tol_m + rel_tol · distance`` before
-        the point, counts as unobstructed.
+        on. A hit no closer than ``abs_tol_m + rel_tol · distance`` before the point counts as
+        unobstructed. Open3D's any-hit occlusion test over the segment up to that limit (Embree
+        stops at the first hit found; 10× cheaper than finding the nearest hit): a hit on the
+        point's own face can only come at the point itself, beyond the limit, so ``face_ids``
+        needs no test.
         """
+        del face_ids  # see above: the own face is never hit before the limit
         if len(points) == 0:
             return np.zeros(0, dtype=bool)
         # float32 throughout (what Open3D casts in; µm at room scale): this runs on millions
@@ -92,13 +96,13 @@ class MeshOcclusion:
         rays[:, :3] = origins
         delta = np.asarray(points, np.float32) - rays[:, :3]
         distance = np.sqrt(np.einsum("ij,ij->i", delta, delta))
-        rays[:, 3:] = delta / np.maximum(distance, 1e-12)[:, None]
+        limit = distance * (1 - rel_tol) - abs_tol_m
+        # the direction spans the segment up to the limit: t in [0, 1] for every ray
+        rays[:, 3:] = delta * (np.maximum(limit, 0.0) / np.maximum(distance, 1e-12))[:, None]
         self.rays_cast += len(points)
-        hits = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
-        t_hit = hits["t_hit"].numpy()
-        primitive = hits["primitive_ids"].numpy()
-        reached = t_hit >= distance * (1 - rel_tol) - abs_tol_m
-        return np.asarray(reached | (primitive.astype(np.int64) == face_ids))
+        occluded = self._scene.test_occlusions(self._o3d.core.Tensor.from_numpy(rays),
+                                               tnear=0.0, tfar=1.0).numpy()
+        return np.asarray(~occluded | (limit <= 0))
 
     def faces_visible(self, origins: NDArray[np.floating], face_ids: NDArray[np.integer],
                       abs_tol_m: float = 0.01, rel_tol: float = 0.005,
