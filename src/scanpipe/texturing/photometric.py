@@ -33,6 +33,8 @@ I64 = NDArray[np.int64]
 
 #: Colours this dark or bright are clipped in some channel: no use for gains.
 USABLE_LEVELS = (4.0, 251.0)
+#: Faces judged at once by :func:`photometric_outliers` (cache-sized blocks).
+OUTLIER_CHUNK = 1 << 16
 
 
 @dataclass
@@ -56,7 +58,8 @@ def candidate_views(scores: F32, max_views: int, chunk: int = 8192) -> I64:
     n_frames, n_faces = scores.shape
     k = min(max_views, n_frames)
     result = np.full((n_faces, k), -1, dtype=np.int64)
-    for start in range(0, n_faces, chunk):
+
+    def fill(start: int) -> None:
         block = np.ascontiguousarray(scores[:, start:start + chunk].T)  # rows: argmax is fast
         rows = np.arange(block.shape[0])
         for slot in range(k):
@@ -66,6 +69,10 @@ def candidate_views(scores: F32, max_views: int, chunk: int = 8192) -> I64:
                 break
             result[start + rows[positive], slot] = best[positive]
             block[rows, best] = 0.0
+
+    # chunks on a thread per core (numpy releases the GIL; each fills its own rows)
+    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 4))) as pool:
+        list(pool.map(fill, range(0, n_faces, chunk)))
     return result
 
 
@@ -141,14 +148,21 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
     outlier = np.zeros(frame.shape, dtype=bool)
     if len(judged) == 0:
         return outlier
-    # (faces, channel, candidate) float32: the medians sort short contiguous rows
-    sub = np.ascontiguousarray((views.colour[judged] * gains[np.maximum(frame[judged], 0)])
-                               .astype(np.float32).transpose(0, 2, 1))
-    median = nan_median(sub, axis=2)
-    # the largest channel's deviation, NaN where not sampled
-    deviation = np.abs(sub - median).max(axis=1)
-    mad = nan_median(deviation, axis=1) * 1.4826
-    limit = np.maximum(outlier_levels, 3 * mad)
-    with np.errstate(invalid="ignore"):
-        outlier[judged] = deviation > limit
+
+    def judge(start: int) -> None:
+        faces = judged[start:start + OUTLIER_CHUNK]
+        # (faces, channel, candidate) float32: the medians sort short contiguous rows
+        sub = np.ascontiguousarray((views.colour[faces] * gains[np.maximum(frame[faces], 0)])
+                                   .astype(np.float32).transpose(0, 2, 1))
+        median = nan_median(sub, axis=2)
+        # the largest channel's deviation, NaN where not sampled
+        deviation = np.abs(sub - median).max(axis=1)
+        mad = nan_median(deviation, axis=1) * 1.4826
+        limit = np.maximum(outlier_levels, 3 * mad)
+        with np.errstate(invalid="ignore"):
+            outlier[faces] = deviation > limit
+
+    # blocks of faces on a thread per core (numpy releases the GIL; each writes its own rows)
+    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 4))) as pool:
+        list(pool.map(judge, range(0, len(judged), OUTLIER_CHUNK)))
     return outlier

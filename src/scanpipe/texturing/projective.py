@@ -196,10 +196,12 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     position = np.empty(len(vertices), dtype=np.int64)
     position[vertex_index.order] = np.arange(len(vertices))
     face_ids = face_index.order
-    corners = [np.ascontiguousarray(position[faces[face_ids, k]]) for k in range(3)]
+    # float32 and int32 per face and vertex: the loop below streams them for every frame
+    corners = [np.ascontiguousarray(position[faces[face_ids, k]], dtype=np.int32)
+               for k in range(3)]
     points = vertices[vertex_index.order]
-    centre_of = np.ascontiguousarray(centroids[face_ids])
-    normal_of = np.ascontiguousarray(normals[face_ids])
+    centre_of = np.ascontiguousarray(centroids[face_ids], dtype=np.float32)
+    normal_of = np.ascontiguousarray(normals[face_ids], dtype=np.float32)
     # cos θ = (n·c − n·p) / |c − p| from per-face constants and two mat-vec products per frame
     n_dot_p = np.einsum("ij,ij->i", normal_of, centre_of)
     p_squared = np.einsum("ij,ij->i", centre_of, centre_of)
@@ -207,7 +209,8 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
 
     def score_frame(i: int) -> None:
         if not hasattr(scratch, "u"):
-            scratch.u, scratch.v = np.zeros(len(vertices)), np.zeros(len(vertices))
+            scratch.u = np.zeros(len(vertices), dtype=np.float32)
+            scratch.v = np.zeros(len(vertices), dtype=np.float32)
             scratch.valid = np.zeros(len(vertices), dtype=bool)
         u, v, valid = scratch.u, scratch.v, scratch.valid
         cam = frames.cameras[i]
@@ -224,12 +227,13 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
         for a, b in vertex_ranges:
             uv, _, valid[a:b] = project_valid(points[a:b], cam, beta, margin_px)
             u[a:b], v[a:b] = uv[:, 0], uv[:, 1]
-        centre = frames.centre(i)
+        centre = frames.centre(i).astype(np.float32)
+        centre_squared = np.float32(centre @ centre)
         for a, b in face_ranges:
             # the angle first, over the contiguous slice (two mat-vec products); the corner
             # look-ups then only for the faces that face the camera
             distance = np.sqrt(np.maximum(
-                p_squared[a:b] - 2 * (centre_of[a:b] @ centre) + centre @ centre, 1e-24))
+                p_squared[a:b] - 2 * (centre_of[a:b] @ centre) + centre_squared, 1e-24))
             cos = (normal_of[a:b] @ centre - n_dot_p[a:b]) / distance
             if two_sided:
                 cos = np.abs(cos)
@@ -240,7 +244,7 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
             if cam.model == "equirect":
                 ok = ~wraps(np.stack([u[c0], u[c1], u[c2]], 1)[:, :, None], cam)
                 facing, c0, c1, c2 = facing[ok], c0[ok], c1[ok], c2[ok]
-            score = cos[facing] * sharp[i]
+            score = cos[facing] * np.float32(sharp[i])
             if cam.model == "pinhole":
                 mean_uv = np.stack([(u[c0] + u[c1] + u[c2]) / 3, (v[c0] + v[c1] + v[c2]) / 3], 1)
                 score *= centrality(mean_uv, cam)

@@ -13,6 +13,10 @@ there is within the distance tolerance.
 
 from __future__ import annotations
 
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -55,9 +59,10 @@ class MeshOcclusion:
         #: Rays cast so far.
         self.rays_cast = 0
         self._edge_ids: NDArray[np.int64] | None = None
-        # scratch for sharing points between the faces of a block (see _visible_from)
-        self._vertex_slot = np.zeros(len(self.vertices), dtype=np.int32)
-        self._edge_slot = np.zeros(0, dtype=np.int32)
+        self._edge_count = 0
+        # per thread: scratch for sharing points between the faces of a block (_visible_from)
+        self._scratch = threading.local()
+        self._lock = threading.Lock()
         import open3d as o3d  # here, not at import: every command would pay ~0.8 s for it
 
         self._o3d = o3d
@@ -99,7 +104,8 @@ class MeshOcclusion:
         limit = distance * (1 - rel_tol) - abs_tol_m
         # the direction spans the segment up to the limit: t in [0, 1] for every ray
         rays[:, 3:] = delta * (np.maximum(limit, 0.0) / np.maximum(distance, 1e-12))[:, None]
-        self.rays_cast += len(points)
+        with self._lock:
+            self.rays_cast += len(points)
         occluded = self._scene.test_occlusions(self._o3d.core.Tensor.from_numpy(rays),
                                                tnear=0.0, tfar=1.0).numpy()
         return np.asarray(~occluded | (limit <= 0))
@@ -127,11 +133,17 @@ class MeshOcclusion:
                            and views.min(initial=0) >= 0 else views, kind="stable")
         ordered = views[order]
         starts = np.r_[0, np.flatnonzero(ordered[1:] != ordered[:-1]) + 1, len(order)]
-        for a, b in zip(starts[:-1].tolist(), starts[1:].tolist(), strict=True):
-            for start in range(a, b, FACES_PER_CAST):
-                rows = order[start:min(b, start + FACES_PER_CAST)]
-                result[rows] = self._visible_from(origins[rows[0]], ids[rows], abs_tol_m,
-                                                  rel_tol)
+        blocks = [order[start:min(b, start + FACES_PER_CAST)]
+                  for a, b in zip(starts[:-1].tolist(), starts[1:].tolist(), strict=True)
+                  for start in range(a, b, FACES_PER_CAST)]
+        self._face_edges()
+
+        def test(rows: NDArray[np.int64]) -> None:
+            result[rows] = self._visible_from(origins[rows[0]], ids[rows], abs_tol_m, rel_tol)
+
+        # blocks on a thread per core: Open3D casts on all cores, the numpy around it on one
+        with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 4))) as pool:
+            list(pool.map(test, blocks))
         return result
 
     def _face_edges(self) -> NDArray[np.int64]:
@@ -146,7 +158,7 @@ class MeshOcclusion:
             ids = np.empty(len(key), dtype=np.int64)
             ids[order] = np.cumsum(np.r_[False, ordered[1:] != ordered[:-1]])
             self._edge_ids = ids.reshape(-1, 3)
-            self._edge_slot = np.zeros(int(ids.max(initial=-1)) + 1, dtype=np.int32)
+            self._edge_count = int(ids.max(initial=-1)) + 1
         return self._edge_ids
 
     def _visible_from(self, origin: NDArray[np.float32], face_ids: NDArray[np.int64],
@@ -157,11 +169,15 @@ class MeshOcclusion:
         tri = self.faces[face_ids].astype(np.int64)  # (n, 3)
         corners = self.vertices[tri]  # (n, 3, 3) float32
         slots = np.arange(3 * n, dtype=np.int32)
+        if not hasattr(self._scratch, "vertex_slot"):
+            self._scratch.vertex_slot = np.zeros(len(self.vertices), dtype=np.int32)
+            self._scratch.edge_slot = np.zeros(self._edge_count, dtype=np.int32)
         # a corner or an edge shared by faces of this block is one point: the last slot that
         # names it (a scatter into a per-vertex / per-edge scratch array, no sort)
         shared = []
         edge_ids = self._face_edges()[face_ids].ravel()
-        for ids, scratch in ((tri.ravel(), self._vertex_slot), (edge_ids, self._edge_slot)):
+        for ids, scratch in ((tri.ravel(), self._scratch.vertex_slot),
+                             (edge_ids, self._scratch.edge_slot)):
             scratch[ids] = slots
             owner_slot = scratch[ids]
             first = np.flatnonzero(owner_slot == slots)
