@@ -124,7 +124,7 @@ def test_unobstructed_tolerance() -> None:
     vertices, faces = wall_and_pole()
     occlusion = MeshOcclusion(vertices, faces)
     points = np.array([[0.2, 0.2, 3.0], [0.2, 0.2, 3.02], [0.2, 0.2, 3.05], [0.2, 0.2, 0.0]])
-    ok = occlusion.unobstructed(np.zeros((4, 3)), points, np.zeros(4, np.int64))
+    ok = occlusion.unobstructed(np.zeros((4, 3)), points)
     assert ok.tolist() == [True, True, False, True]
 
 

@@ -82,18 +82,15 @@ class MeshOcclusion:
                           dtype=np.float32)
 
     def unobstructed(self, origins: NDArray[np.floating], points: NDArray[np.floating],
-                     face_ids: NDArray[np.integer], abs_tol_m: float = 0.01,
-                     rel_tol: float = 0.005) -> NDArray[np.bool_]:
-        """True where the segment origin → point reaches the point (or its face) first.
+                     abs_tol_m: float = 0.01, rel_tol: float = 0.005) -> NDArray[np.bool_]:
+        """True where the segment origin → point reaches the point first.
 
-        ``origins`` and ``points`` are ``(M, 3)``; ``face_ids`` ``(M,)`` the face each point lies
-        on. A hit no closer than ``abs_tol_m + rel_tol · distance`` before the point counts as
+        ``origins`` (``(M, 3)`` or one ``(3,)``) and ``points`` ``(M, 3)``, points on the mesh. A
+        hit no closer than ``abs_tol_m + rel_tol · distance`` before the point counts as
         unobstructed. Open3D's any-hit occlusion test over the segment up to that limit (Embree
-        stops at the first hit found; 10× cheaper than finding the nearest hit): a hit on the
-        point's own face can only come at the point itself, beyond the limit, so ``face_ids``
-        needs no test.
+        stops at the first hit it finds; 10× cheaper than finding the nearest hit): the face a
+        point lies on can only be hit at the point itself, beyond the limit.
         """
-        del face_ids  # see above: the own face is never hit before the limit
         if len(points) == 0:
             return np.zeros(0, dtype=bool)
         # float32 throughout (what Open3D casts in; µm at room scale): this runs on millions
@@ -192,13 +189,9 @@ class MeshOcclusion:
         dense = np.flatnonzero(longest > DENSE_EDGE_M)
         points = [corners.mean(axis=1), flat[vertex_first],
                   0.5 * (flat[edge_first] + following[edge_first])]
-        owners = [np.arange(n), vertex_first // 3, edge_first // 3]
         if len(dense):
             points.append(np.matmul(DENSE_WEIGHTS, corners[dense]).reshape(-1, 3))
-            owners.append(np.repeat(dense, len(DENSE_WEIGHTS)))
-        owner = np.concatenate(owners)
-        ok = self.unobstructed(origin, np.concatenate(points), face_ids[owner], abs_tol_m,
-                               rel_tol)
+        ok = self.unobstructed(origin, np.concatenate(points), abs_tol_m, rel_tol)
         vertex_base, edge_base = n, n + len(vertex_first)
         visible = ok[:n].copy()
         visible &= ok[vertex_base + vertex_point].reshape(n, 3).all(axis=1)
