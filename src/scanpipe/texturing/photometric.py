@@ -42,7 +42,9 @@ class Views:
     """Per face its candidate frames (best first, −1 = none) and their sampled colours."""
 
     frame: I64  # (faces, K)
-    colour: F64  # (faces, K, 3) in 8-bit levels (as recorded, before gains); NaN = not sampled
+    # (faces, K, 3) in 8-bit levels (as recorded, before gains); NaN = not sampled; float32
+    # holds them exactly (whole levels) in half the memory of float64
+    colour: F32
 
     @property
     def count(self) -> I64:
@@ -76,12 +78,12 @@ def candidate_views(scores: F32, max_views: int, chunk: int = 8192) -> I64:
     return result
 
 
-def sample_views(points: F64, frame: I64, frames: FrameSet) -> F64:
+def sample_views(points: F64, frame: I64, frames: FrameSet) -> F32:
     """``(faces, K, 3)`` RGB (8-bit levels, BGR order as decoded) of ``points[f]`` in frame
     ``frame[f, k]``; NaN where there is no candidate or the point leaves the image."""
     from scanpipe.texturing.projective import project_valid
 
-    colour = np.full((frame.size, 3), np.nan)
+    colour = np.full((frame.size, 3), np.nan, dtype=np.float32)
     flat = frame.ravel()
     # frame numbers are small: a stable sort of int16 is a radix sort (several times faster)
     order = np.argsort(flat.astype(np.int16) if len(frames) < 2 ** 15 else flat, kind="stable")
@@ -119,7 +121,8 @@ def overlap_pairs(views: Views, max_pairs: int = 200_000, seed: int = 0
         usable = (frame >= 0) & np.all((colour > lo) & (colour < hi), axis=2)
     ok = usable[:, :1] & usable[:, 1:] & (frame[:, 1:] != frame[:, :1])  # (rows, k − 1)
     face, slot = np.nonzero(ok)
-    return (frame[face, 0], frame[face, slot + 1], colour[face, 0], colour[face, slot + 1])
+    return (frame[face, 0], frame[face, slot + 1], colour[face, 0].astype(np.float64),
+            colour[face, slot + 1].astype(np.float64))
 
 
 def nan_median(values: NDArray[FloatT], axis: int) -> NDArray[FloatT]:
