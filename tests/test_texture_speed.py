@@ -9,8 +9,11 @@ from typing import Any
 
 import numpy as np
 import pytest
+from texture_scene import Caster, mesh_tables, record, room_mesh, small_rig
 
+from scanpipe.stages.texture import STAGE
 from scanpipe.texturing.exposure import shared_edges
+from scanpipe.texturing.frames import worker_count
 from scanpipe.texturing.labels import Smoothing, face_neighbours, seam_edge_count, smooth_labels
 from scanpipe.texturing.visibility import MeshOcclusion
 
@@ -205,3 +208,31 @@ def test_icm_on_the_seam_neighbourhood_moves_as_a_full_scan() -> None:
     assert result.moved > 100
     np.testing.assert_array_equal(result.labels, expected)
     assert seam_edge_count(result.labels, neighbours) < seam_edge_count(labels, neighbours)
+
+
+def test_worker_count_takes_a_batch_workers_share(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert worker_count(100) == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    assert worker_count(100) == 3
+    assert worker_count(2) == 2
+    assert worker_count(0) == 1
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    assert 1 <= worker_count(100) <= 4
+
+
+def test_threads_do_not_change_the_texture(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stage's threaded loops (scores, samples, candidates, outliers, occlusion blocks,
+    atlas regions) give the same artifacts on one thread and on four."""
+    caster = Caster()
+    rec = record(small_rig(), beta_step_deg=6.0, caster=caster)
+    vertices, faces, normals = room_mesh(0.25)
+    vt, ft = mesh_tables(vertices, faces, normals)
+    results = []
+    for threads in ("1", "4"):
+        monkeypatch.setenv("OMP_NUM_THREADS", threads)
+        results.append(STAGE.run(rec.inputs(vt, ft)))
+    one, four = results
+    assert one.report["faces_textured"] > 1000
+    for name in ("textured_faces", "texture_pages"):
+        assert one.tables[name].equals(four.tables[name]), name

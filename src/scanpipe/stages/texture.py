@@ -14,7 +14,6 @@ Two methods (docs/texture.md):
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -42,7 +41,12 @@ from scanpipe.schema import (
 from scanpipe.stage import Stage, StageResult
 from scanpipe.texturing.atlas import build_atlas
 from scanpipe.texturing.exposure import shared_edges, solve_gains
-from scanpipe.texturing.frames import choose_frames, known_camera_frames, pinhole_frames
+from scanpipe.texturing.frames import (
+    choose_frames,
+    known_camera_frames,
+    pinhole_frames,
+    worker_count,
+)
 from scanpipe.texturing.labels import face_neighbours, smooth_labels
 from scanpipe.texturing.panorama import texture_panorama
 from scanpipe.texturing.patches import bake_patches, partial_candidates
@@ -164,7 +168,7 @@ def pages_table(pages: list[NDArray[np.uint8]], level: int) -> pa.Table:
     releases the GIL), levels 1–3 with the fast PNG filter (:func:`scanpipe.images.encode_png`:
     as small as level 3 with every filter tried, 2–3× faster)."""
     fast = 1 <= level <= 3
-    with ThreadPoolExecutor(max_workers=max(1, min(len(pages), os.cpu_count() or 1))) as pool:
+    with ThreadPoolExecutor(max_workers=worker_count(len(pages), limit=8)) as pool:
         encoded = list(pool.map(lambda page: encode_png(page, level, fast=fast), pages))
     return pa.table({
         "page": pa.array(np.arange(len(pages), dtype=np.int16)),

@@ -14,7 +14,6 @@ top, texel centres at ``(i + 0.5) / size``.
 from __future__ import annotations
 
 import math
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -24,7 +23,7 @@ from numpy.typing import NDArray
 
 from scanpipe.camera import project_points
 from scanpipe.progress import ProgressFn, no_progress
-from scanpipe.texturing.frames import FrameSet
+from scanpipe.texturing.frames import FrameSet, worker_count
 from scanpipe.texturing.patches import Patches
 from scanpipe.texturing.seams import SeamCorrections, correction_field
 
@@ -164,7 +163,7 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         return (idx, uv, *frame_regions(uv, cam.width, cam.height, cell_px, pad_px))
 
     # a frame per thread (numpy and OpenCV release the GIL); regions numbered in frame order
-    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 4))) as pool:
+    with ThreadPoolExecutor(max_workers=worker_count(len(used_frames))) as pool:
         per_frame = list(pool.map(regions_of, range(len(used_frames))))
     for i, (idx, uv, region, boxes) in zip(used_frames, per_frame, strict=True):
         corner_uv[idx] = uv

@@ -109,6 +109,15 @@ class FrameSet:
         return result
 
 
+def worker_count(items: int, limit: int = 4) -> int:
+    """Threads for the texture stage's parallel loops over ``items``: ``OMP_NUM_THREADS`` when
+    set (a batch worker's share of the cores, :func:`scanpipe.batch.worker_threads`), else the
+    CPU count; at most ``limit`` and ``items``, at least 1."""
+    given = os.environ.get("OMP_NUM_THREADS", "")
+    cores = int(given) if given.isdigit() and int(given) > 0 else os.cpu_count() or 1
+    return max(1, min(cores, limit, items))
+
+
 def camera_for_size(cam: CameraConfig, width: int, height: int) -> CameraConfig:
     """``cam`` with intrinsics scaled to frames of ``width`` × ``height`` (same aspect ratio).
 
@@ -150,7 +159,7 @@ def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArr
     core (OpenCV decodes without the GIL: a video's worth of frames is most of the wall time
     of choosing); the first broken frame raises its :class:`StageError`."""
     sharp = np.empty(len(rows), dtype=np.float64)
-    workers = max(1, min(os.cpu_count() or 1, 4))
+    workers = worker_count(len(rows))
     batch = 16
     with ThreadPoolExecutor(max_workers=workers) as pool:
         for start in range(0, len(rows), batch):

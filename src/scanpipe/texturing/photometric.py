@@ -15,7 +15,6 @@ overlaps serve twice (Waechter et al. 2014, sections 4.1 and 5):
 
 from __future__ import annotations
 
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TypeVar
@@ -24,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.texturing.exposure import sample_mean_colour
-from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet
+from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet, worker_count
 
 F32 = NDArray[np.float32]
 FloatT = TypeVar("FloatT", np.float32, np.float64)
@@ -73,7 +72,7 @@ def candidate_views(scores: F32, max_views: int, chunk: int = 8192) -> I64:
             block[rows, best] = 0.0
 
     # chunks on a thread per core (numpy releases the GIL; each fills its own rows)
-    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 4))) as pool:
+    with ThreadPoolExecutor(max_workers=worker_count(-(-n_faces // chunk))) as pool:
         list(pool.map(fill, range(0, n_faces, chunk)))
     return result
 
@@ -99,7 +98,7 @@ def sample_views(points: F64, frame: I64, frames: FrameSet) -> F32:
         colour[cell[valid]] = sample_mean_colour(frames.reduced(i), uv[valid], REDUCED_FACTOR)
 
     # a frame per thread (decoding and numpy release the GIL; the frames' cells are disjoint)
-    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 4))) as pool:
+    with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
         list(pool.map(sample_frame, range(len(frames))))
     return colour.reshape(*frame.shape, 3)
 
@@ -166,6 +165,6 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
             outlier[faces] = deviation > limit
 
     # blocks of faces on a thread per core (numpy releases the GIL; each writes its own rows)
-    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 4))) as pool:
+    with ThreadPoolExecutor(max_workers=worker_count(-(-len(judged) // OUTLIER_CHUNK))) as pool:
         list(pool.map(judge, range(0, len(judged), OUTLIER_CHUNK)))
     return outlier

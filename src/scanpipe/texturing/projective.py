@@ -19,7 +19,6 @@ candidate is struck out.
 from __future__ import annotations
 
 import math
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -34,7 +33,7 @@ from scanpipe.camera import camera_pose_in_rig, intrinsic_matrix, project_points
 from scanpipe.errors import StageError
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import CameraConfig, Rig
-from scanpipe.texturing.frames import FrameSet, choose_frames
+from scanpipe.texturing.frames import FrameSet, choose_frames, worker_count
 from scanpipe.texturing.visibility import MeshOcclusion
 
 F64 = NDArray[np.float64]
@@ -209,8 +208,8 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
 
     def score_frame(i: int) -> None:
         if not hasattr(scratch, "u"):
-            scratch.u = np.zeros(len(vertices), dtype=np.float32)
-            scratch.v = np.zeros(len(vertices), dtype=np.float32)
+            # float64: a distorted lens throws points outside the view beyond float32's range
+            scratch.u, scratch.v = np.zeros(len(vertices)), np.zeros(len(vertices))
             scratch.valid = np.zeros(len(vertices), dtype=bool)
         u, v, valid = scratch.u, scratch.v, scratch.valid
         cam = frames.cameras[i]
@@ -251,8 +250,7 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
             scores[i, face_ids[facing + a]] = score
 
     # one frame per thread (numpy and OpenCV release the GIL; each frame writes its own row)
-    workers = max(1, min(os.cpu_count() or 1, len(frames)))
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
         for done, _ in enumerate(pool.map(score_frame, range(len(frames))), 1):
             progress("score frames", done, len(frames))
     return scores

@@ -13,7 +13,6 @@ there is within the distance tolerance.
 
 from __future__ import annotations
 
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -21,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.errors import StageError
+from scanpipe.texturing.frames import worker_count
 
 F64 = NDArray[np.float64]
 #: Where the corner samples sit between the centroid (0) and the corner (1).
@@ -139,7 +139,7 @@ class MeshOcclusion:
             result[rows] = self._visible_from(origins[rows[0]], ids[rows], abs_tol_m, rel_tol)
 
         # blocks on a thread per core: Open3D casts on all cores, the numpy around it on one
-        with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 4))) as pool:
+        with ThreadPoolExecutor(max_workers=worker_count(len(blocks))) as pool:
             list(pool.map(test, blocks))
         return result
 
