@@ -9,6 +9,7 @@ every frame of a video, and low for frames smeared by the turning platform.
 from __future__ import annotations
 
 import os
+import threading
 from collections import Counter, OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -57,15 +58,18 @@ class FrameSet:
     cache_size: int = 8
     _cache: OrderedDict[int, U8] = field(default_factory=OrderedDict, repr=False)
     _reduced: dict[int, U8] = field(default_factory=dict, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def __len__(self) -> int:
         return len(self.encoded)
 
     def image(self, index: int) -> U8:
-        """Frame ``index`` decoded (BGR), the size its camera says."""
-        if index in self._cache:
-            self._cache.move_to_end(index)
-            return self._cache[index]
+        """Frame ``index`` decoded (BGR), the size its camera says (safe from several threads:
+        the cache is locked, the decode is not)."""
+        with self._lock:
+            if index in self._cache:
+                self._cache.move_to_end(index)
+                return self._cache[index]
         image = decode_image(self.encoded[index], f"frame {self.sequences[index]} of "
                                                    f"{self.cameras[index].id!r}")
         cam = self.cameras[index]
@@ -73,9 +77,10 @@ class FrameSet:
             raise StageError(f"frames: frame {self.sequences[index]} of {cam.id!r} is "
                              f"{image.shape[1]}×{image.shape[0]}, its other frames "
                              f"{cam.width}×{cam.height}")
-        self._cache[index] = image
-        if len(self._cache) > self.cache_size:
-            self._cache.popitem(last=False)
+        with self._lock:
+            self._cache[index] = image
+            if len(self._cache) > self.cache_size:
+                self._cache.popitem(last=False)
         return image
 
     def reduced(self, index: int) -> U8:
