@@ -65,7 +65,7 @@ from scanpipe.texturing.projective import (
     select_frames_per_face,
 )
 from scanpipe.texturing.seams import seam_corrections
-from scanpipe.texturing.visibility import MeshOcclusion, face_normals
+from scanpipe.texturing.visibility import MeshOcclusion, face_centroids, face_normals
 
 __all__ = ["STAGE", "TextureParams", "colorize_points", "texture_stage"]
 
@@ -195,15 +195,17 @@ def coverage_report(areas: NDArray[np.float64], face_frame: NDArray[np.int64]) -
 
 
 def orient_towards_rig(vertices: NDArray[np.float64], faces: NDArray[np.int64],
-                       normals: NDArray[np.float64], areas: NDArray[np.float64], rig: Rig
-                       ) -> bool:
+                       normals: NDArray[np.float64], areas: NDArray[np.float64], rig: Rig,
+                       centroids: NDArray[np.float64] | None = None) -> bool:
     """Flip ``normals`` in place when most of the surface faces away from the cameras.
 
     Every surface the cameras can see faces the rig, so a mesh whose normals mostly point away
     has the opposite convention (inward-facing Poisson normals, say); True when flipped.
     """
     height = float(np.mean([c.pose.translation_m[1] for c in rig.cameras]))
-    to_rig = np.array([0.0, height, 0.0]) - vertices[faces].mean(axis=1)
+    if centroids is None:
+        centroids = face_centroids(vertices, faces)
+    to_rig = np.array([0.0, height, 0.0]) - centroids
     facing = np.einsum("ij,ij->i", normals, to_rig) > 0
     if float(areas[facing].sum()) >= 0.5 * float(areas.sum()):
         return False
@@ -275,7 +277,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
                          + "; ".join(w.removeprefix("frames: ") for w in warnings))
     inputs = {**inputs, "frames": known_frames}
     normals, areas = face_normals(vertices, faces, vertex_normals)
-    flipped = orient_towards_rig(vertices, faces, normals, areas, rig)
+    centroids = face_centroids(vertices, faces)
+    flipped = orient_towards_rig(vertices, faces, normals, areas, rig, centroids)
     if params.method == "panorama":
         inputs, rig, skipped = pinhole_frames_only(inputs, rig)
         warnings += skipped
@@ -294,9 +297,9 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     clock.lap("frames")
     scores = face_scores(vertices, faces, normals, frames, min_cos=params.min_cos,
                          margin_px=params.margin_px, sharpness_weight=params.sharpness_weight,
-                         two_sided=params.two_sided or vertex_normals is None, progress=progress)
+                         two_sided=params.two_sided or vertex_normals is None, progress=progress,
+                         centroids=centroids)
     clock.lap("score")
-    centroids = vertices[faces].mean(axis=1)
     candidates = candidate_views(scores, params.max_views + params.max_candidates)
     whole = candidates[:, 0] >= 0  # some frame holds the face whole
     views = Views(candidates[:, :params.max_views],

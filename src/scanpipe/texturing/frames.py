@@ -155,7 +155,9 @@ def sharpness_of(data: bytes, what: str) -> float:
     """Variance of the Laplacian of a quarter-size grey decode (higher is sharper)."""
     grey = decode_image_bytes(data, f"frames: {what}", MAX_FRAME_PX,
                               cv2.IMREAD_REDUCED_GRAYSCALE_4, StageError)
-    return float(cv2.Laplacian(grey, cv2.CV_32F).var())
+    # OpenCV's mean and deviation in one pass: a third of numpy's var here
+    _, deviation = cv2.meanStdDev(cv2.Laplacian(grey, cv2.CV_32F))
+    return float(deviation[0, 0]) ** 2
 
 
 def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArray[np.int64],

@@ -34,7 +34,7 @@ from scanpipe.errors import StageError
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import CameraConfig, Rig
 from scanpipe.texturing.frames import FrameSet, choose_frames, worker_count
-from scanpipe.texturing.visibility import MeshOcclusion
+from scanpipe.texturing.visibility import MeshOcclusion, face_centroids
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -171,7 +171,7 @@ def wraps(uv: F64, cam: CameraConfig) -> NDArray[np.bool_]:
 def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], normals: F64,
                 frames: FrameSet, *, min_cos: float = 0.2, margin_px: float = 2.0,
                 sharpness_weight: float = 1.0, two_sided: bool = False,
-                progress: ProgressFn = no_progress) -> F32:
+                progress: ProgressFn = no_progress, centroids: F64 | None = None) -> F32:
     """``(frames, faces)`` scores (0 = unusable); see the module docstring.
 
     Per frame only the vertices and faces within the camera's azimuth window (plus those near
@@ -188,7 +188,8 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
                   for c in frames.cameras), default=0.0)
     near_m = 4 * offset + 0.3
     parallax_deg = math.degrees(math.asin(offset / near_m))  # farther points shift less
-    centroids = np.asarray(vertices[faces].mean(axis=1), dtype=np.float64)
+    if centroids is None:
+        centroids = face_centroids(vertices, faces)
     vertex_index = AzimuthIndex(vertices, near_m)
     face_index = AzimuthIndex(centroids, near_m)
     # everything below in azimuth order: vertex k is vertices[vertex_index.order[k]]

@@ -202,6 +202,13 @@ class MeshOcclusion:
         return visible
 
 
+def face_centroids(vertices: NDArray[np.floating], faces: NDArray[np.integer]) -> F64:
+    """``(faces, 3)`` the mean of each face's corners (float64; as ``vertices[faces].mean(1)``
+    without its ``(faces, 3, 3)`` temporary)."""
+    points = np.asarray(vertices, np.float64)
+    return np.asarray((points[faces[:, 0]] + points[faces[:, 1]] + points[faces[:, 2]]) / 3.0)
+
+
 def face_normals(vertices: NDArray[np.floating], faces: NDArray[np.integer],
                  vertex_normals: NDArray[np.floating] | None = None) -> tuple[F64, F64]:
     """Unit face normals and face areas (m²).
