@@ -14,7 +14,6 @@ Two methods (docs/texture.md):
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -42,7 +41,12 @@ from scanpipe.schema import (
 from scanpipe.stage import Stage, StageResult
 from scanpipe.texturing.atlas import build_atlas
 from scanpipe.texturing.exposure import shared_edges, solve_gains
-from scanpipe.texturing.frames import choose_frames, known_camera_frames, pinhole_frames
+from scanpipe.texturing.frames import (
+    choose_frames,
+    known_camera_frames,
+    pinhole_frames,
+    worker_count,
+)
 from scanpipe.texturing.labels import face_neighbours, smooth_labels
 from scanpipe.texturing.panorama import texture_panorama
 from scanpipe.texturing.patches import bake_patches, partial_candidates
@@ -61,7 +65,7 @@ from scanpipe.texturing.projective import (
     select_frames_per_face,
 )
 from scanpipe.texturing.seams import seam_corrections
-from scanpipe.texturing.visibility import MeshOcclusion, face_normals
+from scanpipe.texturing.visibility import MeshOcclusion, face_centroids, face_normals
 
 __all__ = ["STAGE", "TextureParams", "colorize_points", "texture_stage"]
 
@@ -164,7 +168,7 @@ def pages_table(pages: list[NDArray[np.uint8]], level: int) -> pa.Table:
     releases the GIL), levels 1–3 with the fast PNG filter (:func:`scanpipe.images.encode_png`:
     as small as level 3 with every filter tried, 2–3× faster)."""
     fast = 1 <= level <= 3
-    with ThreadPoolExecutor(max_workers=max(1, min(len(pages), os.cpu_count() or 1))) as pool:
+    with ThreadPoolExecutor(max_workers=worker_count(len(pages), limit=8)) as pool:
         encoded = list(pool.map(lambda page: encode_png(page, level, fast=fast), pages))
     return pa.table({
         "page": pa.array(np.arange(len(pages), dtype=np.int16)),
@@ -191,15 +195,17 @@ def coverage_report(areas: NDArray[np.float64], face_frame: NDArray[np.int64]) -
 
 
 def orient_towards_rig(vertices: NDArray[np.float64], faces: NDArray[np.int64],
-                       normals: NDArray[np.float64], areas: NDArray[np.float64], rig: Rig
-                       ) -> bool:
+                       normals: NDArray[np.float64], areas: NDArray[np.float64], rig: Rig,
+                       centroids: NDArray[np.float64] | None = None) -> bool:
     """Flip ``normals`` in place when most of the surface faces away from the cameras.
 
     Every surface the cameras can see faces the rig, so a mesh whose normals mostly point away
     has the opposite convention (inward-facing Poisson normals, say); True when flipped.
     """
     height = float(np.mean([c.pose.translation_m[1] for c in rig.cameras]))
-    to_rig = np.array([0.0, height, 0.0]) - vertices[faces].mean(axis=1)
+    if centroids is None:
+        centroids = face_centroids(vertices, faces)
+    to_rig = np.array([0.0, height, 0.0]) - centroids
     facing = np.einsum("ij,ij->i", normals, to_rig) > 0
     if float(areas[facing].sum()) >= 0.5 * float(areas.sum()):
         return False
@@ -271,7 +277,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
                          + "; ".join(w.removeprefix("frames: ") for w in warnings))
     inputs = {**inputs, "frames": known_frames}
     normals, areas = face_normals(vertices, faces, vertex_normals)
-    flipped = orient_towards_rig(vertices, faces, normals, areas, rig)
+    centroids = face_centroids(vertices, faces)
+    flipped = orient_towards_rig(vertices, faces, normals, areas, rig, centroids)
     if params.method == "panorama":
         inputs, rig, skipped = pinhole_frames_only(inputs, rig)
         warnings += skipped
@@ -290,9 +297,9 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     clock.lap("frames")
     scores = face_scores(vertices, faces, normals, frames, min_cos=params.min_cos,
                          margin_px=params.margin_px, sharpness_weight=params.sharpness_weight,
-                         two_sided=params.two_sided or vertex_normals is None, progress=progress)
+                         two_sided=params.two_sided or vertex_normals is None, progress=progress,
+                         centroids=centroids)
     clock.lap("score")
-    centroids = vertices[faces].mean(axis=1)
     candidates = candidate_views(scores, params.max_views + params.max_candidates)
     whole = candidates[:, 0] >= 0  # some frame holds the face whole
     views = Views(candidates[:, :params.max_views],
@@ -385,7 +392,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
 
 STAGE = Stage(
     name="texture",
-    version=2,
+    version=3,  # 3: occlusion tested at exact shared corners and edge middles (a few faces at
+    # silhouettes take another frame): no cached texture of 2 is reused
     params=TextureParams,
     inputs=("mesh_vertices", "mesh_faces", "frames", "motor", "rig"),
     outputs=("textured_faces", "texture_pages"),

@@ -14,6 +14,7 @@ top, texel centres at ``(i + 0.5) / size``.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -22,7 +23,7 @@ from numpy.typing import NDArray
 
 from scanpipe.camera import project_points
 from scanpipe.progress import ProgressFn, no_progress
-from scanpipe.texturing.frames import FrameSet
+from scanpipe.texturing.frames import FrameSet, worker_count
 from scanpipe.texturing.patches import Patches
 from scanpipe.texturing.seams import SeamCorrections, correction_field
 
@@ -78,7 +79,11 @@ def frame_regions(corner_uv: F64, width: int, height: int, cell_px: int = 32,
     tile = (c0[:, 1] // SPLIT_CELLS) * tiles_w + c0[:, 0] // SPLIT_CELLS + 1
     face_label = face_label * (tiles_w * (-(-gh // SPLIT_CELLS)) + 1) + np.where(
         sparse[face_label], tile, 0)
-    used, region = np.unique(face_label, return_inverse=True)
+    # the labels in use, numbered in order (np.unique without its sort: labels are small)
+    present = np.zeros(int(face_label.max(initial=0)) + 1, dtype=bool)
+    present[face_label] = True
+    used = np.flatnonzero(present)
+    region = (np.cumsum(present) - 1)[face_label]
     boxes = np.empty((len(used), 4), dtype=np.int64)
     boxes[:, :2] = np.iinfo(np.int64).max
     boxes[:, 2:] = np.iinfo(np.int64).min
@@ -143,12 +148,24 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     region_boxes: list[I64] = []
     count = 0
     used_frames = np.unique(chosen[chosen >= 0])
-    for i in used_frames:
-        idx = np.flatnonzero(chosen == i)
+    textured = np.flatnonzero(chosen >= 0)
+    # the faces of each used frame: one stable sort (frame numbers are small: a radix sort)
+    by_frame = textured[np.argsort(chosen[textured].astype(np.int16) if len(frames) < 2 ** 15
+                                   else chosen[textured], kind="stable")]
+    bounds = [*np.searchsorted(chosen[by_frame], used_frames).tolist(), len(by_frame)]
+
+    def regions_of(k: int) -> tuple[I64, F64, I64, I64]:
+        i = int(used_frames[k])
+        idx = by_frame[bounds[k]:bounds[k + 1]]
         cam = frames.cameras[i]
         uv, _ = project_points(vertices[faces[idx]].reshape(-1, 3), cam, float(frames.beta_deg[i]))
         uv = uv.reshape(-1, 3, 2)
-        region, boxes = frame_regions(uv, cam.width, cam.height, cell_px, pad_px)
+        return (idx, uv, *frame_regions(uv, cam.width, cam.height, cell_px, pad_px))
+
+    # a frame per thread (numpy and OpenCV release the GIL); regions numbered in frame order
+    with ThreadPoolExecutor(max_workers=worker_count(len(used_frames))) as pool:
+        per_frame = list(pool.map(regions_of, range(len(used_frames))))
+    for i, (idx, uv, region, boxes) in zip(used_frames, per_frame, strict=True):
         corner_uv[idx] = uv
         face_region[idx] = region + count
         region_frame.append(np.full(len(boxes), i, dtype=np.int64))

@@ -27,14 +27,17 @@ def shared_edges(faces: NDArray[np.integer]) -> tuple[I64, I64]:
     n = len(faces)
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     edges.sort(axis=1)
-    owner = np.tile(np.arange(n, dtype=np.int64), 3)
     key = edges[:, 0] * (int(faces.max(initial=0)) + 1) + edges[:, 1]  # 1-D: fast to sort
-    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    twice = counts[inverse] == 2
-    order = np.argsort(inverse[twice], kind="stable")
-    owners = owner[twice][order].reshape(-1, 2)
-    vertices = edges[twice][order].reshape(-1, 2, 2)[:, 0]
-    return owners, vertices
+    # one stable sort; an edge used by exactly two faces is a run of two equal keys
+    order = np.argsort(key, kind="stable")
+    ordered = key[order]
+    same = ordered[1:] == ordered[:-1]  # position i equals i + 1
+    before = np.r_[False, same[:-1]] if len(same) else same
+    after = np.r_[same[1:], False] if len(same) else same
+    first = np.flatnonzero(same & ~before & ~after)
+    owners = np.stack([order[first] % n, order[first + 1] % n], axis=1) if n else np.zeros(
+        (0, 2), np.int64)
+    return owners, edges[order[first]]
 
 
 def shrink(image: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:

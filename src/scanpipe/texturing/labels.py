@@ -94,17 +94,23 @@ def smooth_labels(scores: F32, labels: I64, neighbours: I64, frames: FrameSet,
     centres = np.stack([frames.centre(i) for i in range(len(frames))])
     moved = struck = 0
     done = 0
+    # only faces on a seam can move, and a face joins a seam only when it or a neighbour
+    # changes frame: each round looks at the last round's seam faces and the neighbourhood of
+    # the faces that moved (the same faces, in the same order, as a scan of the whole mesh)
+    frontier = np.arange(len(labels))
     for done in range(1, rounds + 1):
-        lab_n = np.where(neighbours >= 0, labels[np.maximum(neighbours, 0)], -1)
-        lab_n[labels < 0] = -1
+        nbf = neighbours[frontier]
+        lab_n = np.where(nbf >= 0, labels[np.maximum(nbf, 0)], -1)
+        own_f = labels[frontier]
+        lab_n[own_f < 0] = -1
         counted = lab_n >= 0
-        active = np.flatnonzero((labels >= 0) & np.any(counted & (lab_n != labels[:, None]),
-                                                       axis=1))
+        on_seam = (own_f >= 0) & np.any(counted & (lab_n != own_f[:, None]), axis=1)
+        active = frontier[on_seam]
         if len(active) == 0:
             break
-        own = labels[active]
-        nb = lab_n[active]  # (A, 3) candidate labels
-        cnt = counted[active]
+        own = own_f[on_seam]
+        nb = lab_n[on_seam]  # (A, 3) candidate labels
+        cnt = counted[on_seam]
 
         current = _cost(own, active, scores, reference, nb, cnt, seam_weight)
         options = np.stack([_cost(nb[:, k], active, scores, reference, nb, cnt, seam_weight)
@@ -116,12 +122,16 @@ def smooth_labels(scores: F32, labels: I64, neighbours: I64, frames: FrameSet,
         if not move.any():
             if not (gain < -1e-9).any():
                 break
+            frontier = active
             continue
         face, target = active[move], nb[move, best[move]]
-        visible = occlusion.faces_visible(centres[target], face)
+        visible = occlusion.faces_visible(centres[target], face, views=target)
         labels[face[visible]] = target[visible]
         scores[target[~visible], face[~visible]] = 0.0
         moved += int(visible.sum())
         struck += int((~visible).sum())
+        changed = face[visible]
+        around = neighbours[changed].ravel()
+        frontier = np.unique(np.concatenate([active, changed, around[around >= 0]]))
         progress("seams", done, rounds)
     return Smoothing(labels, done, moved, struck, before, seam_edge_count(labels, neighbours))

@@ -120,7 +120,7 @@ def bake_patches(vertices: F64, faces: I64, face_ids: I64, candidates: I64, fram
             uv, _, valid = project_valid(where, cam, float(frames.beta_deg[i]), 0.5)
             centre = np.broadcast_to(frames.centre(int(i)), where[valid].shape)
             seen = valid.copy()
-            seen[valid] = occlusion.unobstructed(centre, where[valid], face_ids[face_of[valid]])
+            seen[valid] = occlusion.unobstructed(centre, where[valid])
             face_of, texel, uv = face_of[seen], texel[seen], uv[seen]
             if len(face_of) == 0:
                 continue

@@ -15,6 +15,7 @@ overlaps serve twice (Waechter et al. 2014, sections 4.1 and 5):
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -22,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.texturing.exposure import sample_mean_colour
-from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet
+from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet, worker_count
 
 F32 = NDArray[np.float32]
 FloatT = TypeVar("FloatT", np.float32, np.float64)
@@ -31,6 +32,8 @@ I64 = NDArray[np.int64]
 
 #: Colours this dark or bright are clipped in some channel: no use for gains.
 USABLE_LEVELS = (4.0, 251.0)
+#: Faces judged at once by :func:`photometric_outliers` (cache-sized blocks).
+OUTLIER_CHUNK = 1 << 16
 
 
 @dataclass
@@ -38,7 +41,9 @@ class Views:
     """Per face its candidate frames (best first, −1 = none) and their sampled colours."""
 
     frame: I64  # (faces, K)
-    colour: F64  # (faces, K, 3) in 8-bit levels (as recorded, before gains); NaN = not sampled
+    # (faces, K, 3) in 8-bit levels (as recorded, before gains); NaN = not sampled; float32
+    # holds them exactly (whole levels) in half the memory of float64
+    colour: F32
 
     @property
     def count(self) -> I64:
@@ -54,7 +59,8 @@ def candidate_views(scores: F32, max_views: int, chunk: int = 8192) -> I64:
     n_frames, n_faces = scores.shape
     k = min(max_views, n_frames)
     result = np.full((n_faces, k), -1, dtype=np.int64)
-    for start in range(0, n_faces, chunk):
+
+    def fill(start: int) -> None:
         block = np.ascontiguousarray(scores[:, start:start + chunk].T)  # rows: argmax is fast
         rows = np.arange(block.shape[0])
         for slot in range(k):
@@ -64,27 +70,36 @@ def candidate_views(scores: F32, max_views: int, chunk: int = 8192) -> I64:
                 break
             result[start + rows[positive], slot] = best[positive]
             block[rows, best] = 0.0
+
+    # chunks on a thread per core (numpy releases the GIL; each fills its own rows)
+    with ThreadPoolExecutor(max_workers=worker_count(-(-n_faces // chunk))) as pool:
+        list(pool.map(fill, range(0, n_faces, chunk)))
     return result
 
 
-def sample_views(points: F64, frame: I64, frames: FrameSet) -> F64:
+def sample_views(points: F64, frame: I64, frames: FrameSet) -> F32:
     """``(faces, K, 3)`` RGB (8-bit levels, BGR order as decoded) of ``points[f]`` in frame
     ``frame[f, k]``; NaN where there is no candidate or the point leaves the image."""
     from scanpipe.texturing.projective import project_valid
 
-    colour = np.full((frame.size, 3), np.nan)
+    colour = np.full((frame.size, 3), np.nan, dtype=np.float32)
     flat = frame.ravel()
     # frame numbers are small: a stable sort of int16 is a radix sort (several times faster)
     order = np.argsort(flat.astype(np.int16) if len(frames) < 2 ** 15 else flat, kind="stable")
     bounds = np.searchsorted(flat[order], np.arange(len(frames) + 1))
-    for i in range(len(frames)):
+
+    def sample_frame(i: int) -> None:
         cell = order[bounds[i]:bounds[i + 1]]
         if len(cell) == 0:
-            continue
+            return
         cam = frames.cameras[i]
         uv, _, valid = project_valid(points[cell // frame.shape[1]], cam,
                                      float(frames.beta_deg[i]), 0.0)
         colour[cell[valid]] = sample_mean_colour(frames.reduced(i), uv[valid], REDUCED_FACTOR)
+
+    # a frame per thread (decoding and numpy release the GIL; the frames' cells are disjoint)
+    with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
+        list(pool.map(sample_frame, range(len(frames))))
     return colour.reshape(*frame.shape, 3)
 
 
@@ -105,7 +120,8 @@ def overlap_pairs(views: Views, max_pairs: int = 200_000, seed: int = 0
         usable = (frame >= 0) & np.all((colour > lo) & (colour < hi), axis=2)
     ok = usable[:, :1] & usable[:, 1:] & (frame[:, 1:] != frame[:, :1])  # (rows, k − 1)
     face, slot = np.nonzero(ok)
-    return (frame[face, 0], frame[face, slot + 1], colour[face, 0], colour[face, slot + 1])
+    return (frame[face, 0], frame[face, slot + 1], colour[face, 0].astype(np.float64),
+            colour[face, slot + 1].astype(np.float64))
 
 
 def nan_median(values: NDArray[FloatT], axis: int) -> NDArray[FloatT]:
@@ -134,14 +150,21 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
     outlier = np.zeros(frame.shape, dtype=bool)
     if len(judged) == 0:
         return outlier
-    # (faces, channel, candidate) float32: the medians sort short contiguous rows
-    sub = np.ascontiguousarray((views.colour[judged] * gains[np.maximum(frame[judged], 0)])
-                               .astype(np.float32).transpose(0, 2, 1))
-    median = nan_median(sub, axis=2)
-    # the largest channel's deviation, NaN where not sampled
-    deviation = np.abs(sub - median).max(axis=1)
-    mad = nan_median(deviation, axis=1) * 1.4826
-    limit = np.maximum(outlier_levels, 3 * mad)
-    with np.errstate(invalid="ignore"):
-        outlier[judged] = deviation > limit
+
+    def judge(start: int) -> None:
+        faces = judged[start:start + OUTLIER_CHUNK]
+        # (faces, channel, candidate) float32: the medians sort short contiguous rows
+        sub = np.ascontiguousarray((views.colour[faces] * gains[np.maximum(frame[faces], 0)])
+                                   .astype(np.float32).transpose(0, 2, 1))
+        median = nan_median(sub, axis=2)
+        # the largest channel's deviation, NaN where not sampled
+        deviation = np.abs(sub - median).max(axis=1)
+        mad = nan_median(deviation, axis=1) * 1.4826
+        limit = np.maximum(outlier_levels, 3 * mad)
+        with np.errstate(invalid="ignore"):
+            outlier[faces] = deviation > limit
+
+    # blocks of faces on a thread per core (numpy releases the GIL; each writes its own rows)
+    with ThreadPoolExecutor(max_workers=worker_count(-(-len(judged) // OUTLIER_CHUNK))) as pool:
+        list(pool.map(judge, range(0, len(judged), OUTLIER_CHUNK)))
     return outlier

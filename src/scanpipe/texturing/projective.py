@@ -19,6 +19,8 @@ candidate is struck out.
 from __future__ import annotations
 
 import math
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -31,8 +33,8 @@ from scanpipe.camera import camera_pose_in_rig, intrinsic_matrix, project_points
 from scanpipe.errors import StageError
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import CameraConfig, Rig
-from scanpipe.texturing.frames import FrameSet, choose_frames
-from scanpipe.texturing.visibility import MeshOcclusion
+from scanpipe.texturing.frames import FrameSet, choose_frames, worker_count
+from scanpipe.texturing.visibility import MeshOcclusion, face_centroids
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -182,7 +184,7 @@ def wraps(uv: F64, cam: CameraConfig) -> NDArray[np.bool_]:
 def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], normals: F64,
                 frames: FrameSet, *, min_cos: float = 0.2, margin_px: float = 2.0,
                 sharpness_weight: float = 1.0, two_sided: bool = False,
-                progress: ProgressFn = no_progress) -> F32:
+                progress: ProgressFn = no_progress, centroids: F64 | None = None) -> F32:
     """``(frames, faces)`` scores (0 = unusable); see the module docstring.
 
     Per frame only the vertices and faces within the camera's azimuth window (plus those near
@@ -199,24 +201,32 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
                   for c in frames.cameras), default=0.0)
     near_m = 4 * offset + 0.3
     parallax_deg = math.degrees(math.asin(offset / near_m))  # farther points shift less
-    centroids = np.asarray(vertices[faces].mean(axis=1), dtype=np.float64)
+    if centroids is None:
+        centroids = face_centroids(vertices, faces)
     vertex_index = AzimuthIndex(vertices, near_m)
     face_index = AzimuthIndex(centroids, near_m)
     # everything below in azimuth order: vertex k is vertices[vertex_index.order[k]]
     position = np.empty(len(vertices), dtype=np.int64)
     position[vertex_index.order] = np.arange(len(vertices))
     face_ids = face_index.order
-    corners = [np.ascontiguousarray(position[faces[face_ids, k]]) for k in range(3)]
+    # float32 and int32 per face and vertex: the loop below streams them for every frame
+    corners = [np.ascontiguousarray(position[faces[face_ids, k]], dtype=np.int32)
+               for k in range(3)]
     points = vertices[vertex_index.order]
-    centre_of = np.ascontiguousarray(centroids[face_ids])
-    normal_of = np.ascontiguousarray(normals[face_ids])
+    centre_of = np.ascontiguousarray(centroids[face_ids], dtype=np.float32)
+    normal_of = np.ascontiguousarray(normals[face_ids], dtype=np.float32)
     # cos θ = (n·c − n·p) / |c − p| from per-face constants and two mat-vec products per frame
     n_dot_p = np.einsum("ij,ij->i", normal_of, centre_of)
     p_squared = np.einsum("ij,ij->i", centre_of, centre_of)
-    u = np.zeros(len(vertices))
-    v = np.zeros(len(vertices))
-    valid = np.zeros(len(vertices), dtype=bool)
-    for i, cam in enumerate(frames.cameras):
+    scratch = threading.local()  # per thread: u, v and valid of every vertex (azimuth order)
+
+    def score_frame(i: int) -> None:
+        if not hasattr(scratch, "u"):
+            # float64: a distorted lens throws points outside the view beyond float32's range
+            scratch.u, scratch.v = np.zeros(len(vertices)), np.zeros(len(vertices))
+            scratch.valid = np.zeros(len(vertices), dtype=bool)
+        u, v, valid = scratch.u, scratch.v, scratch.valid
+        cam = frames.cameras[i]
         beta = float(frames.beta_deg[i])
         window = view_window(cam, beta)
         if window is None:  # every direction in view
@@ -230,28 +240,33 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
         for a, b in vertex_ranges:
             uv, _, valid[a:b] = project_valid(points[a:b], cam, beta, margin_px)
             u[a:b], v[a:b] = uv[:, 0], uv[:, 1]
-        centre = frames.centre(i)
+        centre = frames.centre(i).astype(np.float32)
+        centre_squared = np.float32(centre @ centre)
         for a, b in face_ranges:
-            c0, c1, c2 = corners[0][a:b], corners[1][a:b], corners[2][a:b]
-            inside = np.flatnonzero(valid[c0] & valid[c1] & valid[c2])
-            c0, c1, c2 = c0[inside], c1[inside], c2[inside]
-            if cam.model == "equirect":
-                ok = ~wraps(np.stack([u[c0], u[c1], u[c2]], 1)[:, :, None], cam)
-                inside, c0, c1, c2 = inside[ok], c0[ok], c1[ok], c2[ok]
-            at = inside + a
+            # the angle first, over the contiguous slice (two mat-vec products); the corner
+            # look-ups then only for the faces that face the camera
             distance = np.sqrt(np.maximum(
-                p_squared[at] - 2 * (centre_of[at] @ centre) + centre @ centre, 1e-24))
-            cos = (normal_of[at] @ centre - n_dot_p[at]) / distance
+                p_squared[a:b] - 2 * (centre_of[a:b] @ centre) + centre_squared, 1e-24))
+            cos = (normal_of[a:b] @ centre - n_dot_p[a:b]) / distance
             if two_sided:
                 cos = np.abs(cos)
-            keep = cos >= min_cos
-            score = cos[keep] * sharp[i]
+            facing = np.flatnonzero(cos >= min_cos)
+            c0, c1, c2 = corners[0][a:b][facing], corners[1][a:b][facing], corners[2][a:b][facing]
+            inside = valid[c0] & valid[c1] & valid[c2]
+            facing, c0, c1, c2 = facing[inside], c0[inside], c1[inside], c2[inside]
+            if cam.model == "equirect":
+                ok = ~wraps(np.stack([u[c0], u[c1], u[c2]], 1)[:, :, None], cam)
+                facing, c0, c1, c2 = facing[ok], c0[ok], c1[ok], c2[ok]
+            score = cos[facing] * np.float32(sharp[i])
             if cam.model == "pinhole":
-                c0, c1, c2 = c0[keep], c1[keep], c2[keep]
                 mean_uv = np.stack([(u[c0] + u[c1] + u[c2]) / 3, (v[c0] + v[c1] + v[c2]) / 3], 1)
                 score *= centrality(mean_uv, cam)
-            scores[i, face_ids[at[keep]]] = score
-        progress("score frames", i + 1, len(frames))
+            scores[i, face_ids[facing + a]] = score
+
+    # one frame per thread (numpy and OpenCV release the GIL; each frame writes its own row)
+    with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
+        for done, _ in enumerate(pool.map(score_frame, range(len(frames))), 1):
+            progress("score frames", done, len(frames))
     return scores
 
 
@@ -287,7 +302,7 @@ def select_frames_per_face(candidates: NDArray[np.int64], frames: FrameSet,
         struck = candidates[pending, slot] < 0  # none left, or an outlier: try the next
         waiting, pending = pending[struck], pending[~struck]
         best = candidates[pending, slot]
-        visible = occlusion.faces_visible(centres[best], pending)
+        visible = occlusion.faces_visible(centres[best], pending, views=best)
         chosen[pending[visible]] = best[visible]
         blocked = ~visible
         scores[best[blocked], pending[blocked]] = 0.0

@@ -1,19 +1,26 @@
 """Is a surface point seen from a camera centre? Rays against the mesh (Open3D RaycastingScene).
 
 A face counts as visible from a camera only when points on it are all unobstructed: its
-centroid, and points near its corners and the middles of its edges (pulled 5 % towards the
-centroid, so that shared edges do not decide) — seven points — and for a face with an edge
-longer than :data:`DENSE_EDGE_M` also at a quarter and three quarters of each edge (thirteen),
-so that a sliver hidden along an edge of a large face is found. A face half hidden behind an
-edge or a thin object is not textured from that frame.
+centroid, its corners and the middles of its edges — seven points — and for a face with an edge
+longer than :data:`DENSE_EDGE_M` also points at a quarter and three quarters of each edge
+(pulled 5 % towards the centroid; thirteen), so that a sliver hidden along an edge of a large
+face is found. A face half hidden behind an edge or a thin object is not textured from that
+frame. Faces tested from the same camera centre share the rays to their common corners and
+edge middles (a corner of a scan-grid mesh belongs to six faces, an edge to two: about three
+rays per face instead of seven); a ray that reaches the point but hits a neighbouring face
+there is within the distance tolerance.
 """
 
 from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.errors import StageError
+from scanpipe.texturing.frames import worker_count
 
 F64 = NDArray[np.float64]
 #: Where the corner samples sit between the centroid (0) and the corner (1).
@@ -24,6 +31,8 @@ DENSE_EDGE_M = 0.05
 BASE_SAMPLES = np.array([0, 1, 2, 3, 7, 8, 9])
 #: Of :meth:`MeshOcclusion.face_samples`, the six more tested on faces with long edges.
 DENSE_SAMPLES = np.array([4, 5, 6, 10, 11, 12])
+#: Faces whose rays :meth:`MeshOcclusion.faces_visible` casts at once (≤ 3.4 M rays).
+FACES_PER_CAST = 1 << 18
 
 
 def _sample_weights() -> NDArray[np.float32]:
@@ -49,6 +58,11 @@ class MeshOcclusion:
         self.faces = np.ascontiguousarray(faces, dtype=np.uint32)
         #: Rays cast so far.
         self.rays_cast = 0
+        self._edge_ids: NDArray[np.int64] | None = None
+        self._edge_count = 0
+        # per thread: scratch for sharing points between the faces of a block (_visible_from)
+        self._scratch = threading.local()
+        self._lock = threading.Lock()
         import open3d as o3d  # here, not at import: every command would pay ~0.8 s for it
 
         self._o3d = o3d
@@ -68,13 +82,14 @@ class MeshOcclusion:
                           dtype=np.float32)
 
     def unobstructed(self, origins: NDArray[np.floating], points: NDArray[np.floating],
-                     face_ids: NDArray[np.integer], abs_tol_m: float = 0.01,
-                     rel_tol: float = 0.005) -> NDArray[np.bool_]:
-        """True where the segment origin → point reaches the point (or its face) first.
+                     abs_tol_m: float = 0.01, rel_tol: float = 0.005) -> NDArray[np.bool_]:
+        """True where the segment origin → point reaches the point first.
 
-        ``origins`` and ``points`` are ``(M, 3)``; ``face_ids`` ``(M,)`` the face each point lies
-        on. A hit on that very face, or no closer than ``abs_tol_m + rel_tol · distance`` before
-        the point, counts as unobstructed.
+        ``origins`` (``(M, 3)`` or one ``(3,)``) and ``points`` ``(M, 3)``, points on the mesh. A
+        hit no closer than ``abs_tol_m + rel_tol · distance`` before the point counts as
+        unobstructed. Open3D's any-hit occlusion test over the segment up to that limit (Embree
+        stops at the first hit it finds; 10× cheaper than finding the nearest hit): the face a
+        point lies on can only be hit at the point itself, beyond the limit.
         """
         if len(points) == 0:
             return np.zeros(0, dtype=bool)
@@ -83,40 +98,115 @@ class MeshOcclusion:
         rays[:, :3] = origins
         delta = np.asarray(points, np.float32) - rays[:, :3]
         distance = np.sqrt(np.einsum("ij,ij->i", delta, delta))
-        rays[:, 3:] = delta / np.maximum(distance, 1e-12)[:, None]
-        self.rays_cast += len(points)
-        hits = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
-        t_hit = hits["t_hit"].numpy()
-        primitive = hits["primitive_ids"].numpy()
-        reached = t_hit >= distance * (1 - rel_tol) - abs_tol_m
-        return np.asarray(reached | (primitive.astype(np.int64) == face_ids))
+        limit = distance * (1 - rel_tol) - abs_tol_m
+        # the direction spans the segment up to the limit: t in [0, 1] for every ray
+        rays[:, 3:] = delta * (np.maximum(limit, 0.0) / np.maximum(distance, 1e-12))[:, None]
+        with self._lock:
+            self.rays_cast += len(points)
+        occluded = self._scene.test_occlusions(self._o3d.core.Tensor.from_numpy(rays),
+                                               tnear=0.0, tfar=1.0).numpy()
+        return np.asarray(~occluded | (limit <= 0))
 
     def faces_visible(self, origins: NDArray[np.floating], face_ids: NDArray[np.integer],
-                      abs_tol_m: float = 0.01, rel_tol: float = 0.005) -> NDArray[np.bool_]:
-        """True where face ``face_ids[i]`` is wholly visible from camera centre ``origins[i]``."""
-        face_ids = np.asarray(face_ids, dtype=np.int64)
+                      abs_tol_m: float = 0.01, rel_tol: float = 0.005,
+                      views: NDArray[np.integer] | None = None) -> NDArray[np.bool_]:
+        """True where face ``face_ids[i]`` is wholly visible from camera centre ``origins[i]``.
+
+        ``views[i]`` names the origin (a frame number; found from ``origins`` when not given):
+        faces tested from the same origin share the rays to their common corners and edge
+        middles. Cast in blocks of at most :data:`FACES_PER_CAST` faces: the rays of millions
+        of faces at once would hold gigabytes of temporaries, for no speed.
+        """
+        ids: NDArray[np.int64] = np.asarray(face_ids, dtype=np.int64)
+        origins = np.asarray(origins, np.float32).reshape(-1, 3)
+        result = np.ones(len(ids), dtype=bool)
+        if len(ids) == 0:
+            return result
+        if views is None:
+            _, views = np.unique(origins, axis=0, return_inverse=True)
+        views = np.asarray(views).reshape(-1)
+        # frame numbers are small: a stable sort of int16 is a radix sort
+        order = np.argsort(views.astype(np.int16) if views.max(initial=0) < 2 ** 15
+                           and views.min(initial=0) >= 0 else views, kind="stable")
+        ordered = views[order]
+        starts = np.r_[0, np.flatnonzero(ordered[1:] != ordered[:-1]) + 1, len(order)]
+        blocks = [order[start:min(b, start + FACES_PER_CAST)]
+                  for a, b in zip(starts[:-1].tolist(), starts[1:].tolist(), strict=True)
+                  for start in range(a, b, FACES_PER_CAST)]
+        self._face_edges()
+
+        def test(rows: NDArray[np.int64]) -> None:
+            result[rows] = self._visible_from(origins[rows[0]], ids[rows], abs_tol_m, rel_tol)
+
+        # blocks on a thread per core: Open3D casts on all cores, the numpy around it on one
+        with ThreadPoolExecutor(max_workers=worker_count(len(blocks))) as pool:
+            list(pool.map(test, blocks))
+        return result
+
+    def _face_edges(self) -> NDArray[np.int64]:
+        """``(faces, 3)`` an id per undirected edge, the edge from corner k to k + 1."""
+        if self._edge_ids is None:
+            faces = self.faces.astype(np.int64)
+            lo = np.minimum(faces, np.roll(faces, -1, axis=1))
+            hi = np.maximum(faces, np.roll(faces, -1, axis=1))
+            key = (lo * len(self.vertices) + hi).ravel()
+            order = np.argsort(key)
+            ordered = key[order]
+            ids = np.empty(len(key), dtype=np.int64)
+            ids[order] = np.cumsum(np.r_[False, ordered[1:] != ordered[:-1]])
+            self._edge_ids = ids.reshape(-1, 3)
+            self._edge_count = int(ids.max(initial=-1)) + 1
+        return self._edge_ids
+
+    def _visible_from(self, origin: NDArray[np.float32], face_ids: NDArray[np.int64],
+                      abs_tol_m: float, rel_tol: float) -> NDArray[np.bool_]:
+        """:meth:`faces_visible` for faces seen from one origin: their centroids, corners and
+        edge middles, each corner and edge once, and the inset points of long-edged faces."""
         n = len(face_ids)
-        corners = self.vertices[self.faces[face_ids]]  # (n, 3, 3) float32
-        # the seven points as fixed mixtures of the corners: one product, no temporaries
-        base = np.matmul(BASE_WEIGHTS, corners)  # (n, 7, 3)
+        tri = self.faces[face_ids].astype(np.int64)  # (n, 3)
+        corners = self.vertices[tri]  # (n, 3, 3) float32
+        slots = np.arange(3 * n, dtype=np.int32)
+        if not hasattr(self._scratch, "vertex_slot"):
+            self._scratch.vertex_slot = np.zeros(len(self.vertices), dtype=np.int32)
+            self._scratch.edge_slot = np.zeros(self._edge_count, dtype=np.int32)
+        # a corner or an edge shared by faces of this block is one point: the last slot that
+        # names it (a scatter into a per-vertex / per-edge scratch array, no sort)
+        shared = []
+        edge_ids = self._face_edges()[face_ids].ravel()
+        for ids, scratch in ((tri.ravel(), self._scratch.vertex_slot),
+                             (edge_ids, self._scratch.edge_slot)):
+            scratch[ids] = slots
+            owner_slot = scratch[ids]
+            first = np.flatnonzero(owner_slot == slots)
+            compact = np.empty(3 * n, dtype=np.int64)
+            compact[first] = np.arange(len(first))
+            shared.append((first, compact[owner_slot]))
+        (vertex_first, vertex_point), (edge_first, edge_point) = shared
+        following = np.roll(corners, -1, axis=1).reshape(-1, 3)
+        flat = corners.reshape(-1, 3)
         edge = corners - np.roll(corners, -1, axis=1)
         longest = np.sqrt(np.einsum("fkc,fkc->fk", edge, edge).max(axis=1))
         dense = np.flatnonzero(longest > DENSE_EDGE_M)
-        origins = np.asarray(origins, np.float32)
-        points = [base.reshape(-1, 3)]
-        ray_origins = [np.repeat(origins, 7, axis=0)]
-        face_of = [np.repeat(np.arange(n), 7)]
+        points = [corners.mean(axis=1), flat[vertex_first],
+                  0.5 * (flat[edge_first] + following[edge_first])]
         if len(dense):
-            extra = np.matmul(DENSE_WEIGHTS, corners[dense])  # (d, 6, 3)
-            points.append(extra.reshape(-1, 3))
-            ray_origins.append(np.repeat(origins[dense], 6, axis=0))
-            face_of.append(np.repeat(dense, 6))
-        owner = np.concatenate(face_of)
-        ok = self.unobstructed(np.concatenate(ray_origins), np.concatenate(points),
-                               face_ids[owner], abs_tol_m, rel_tol)
-        hidden = np.zeros(n, dtype=bool)
-        hidden[owner[~ok]] = True
-        return ~hidden
+            points.append(np.matmul(DENSE_WEIGHTS, corners[dense]).reshape(-1, 3))
+        ok = self.unobstructed(origin, np.concatenate(points), abs_tol_m, rel_tol)
+        vertex_base, edge_base = n, n + len(vertex_first)
+        visible = ok[:n].copy()
+        visible &= ok[vertex_base + vertex_point].reshape(n, 3).all(axis=1)
+        visible &= ok[edge_base + edge_point].reshape(n, 3).all(axis=1)
+        if len(dense):
+            extra = ok[edge_base + len(edge_first):].reshape(len(dense), -1).all(axis=1)
+            visible[dense] &= extra
+        return visible
+
+
+def face_centroids(vertices: NDArray[np.floating], faces: NDArray[np.integer]) -> F64:
+    """``(faces, 3)`` the mean of each face's corners (float64; as ``vertices[faces].mean(1)``
+    without its ``(faces, 3, 3)`` temporary)."""
+    points = np.asarray(vertices, np.float64)
+    return np.asarray((points[faces[:, 0]] + points[faces[:, 1]] + points[faces[:, 2]]) / 3.0)
 
 
 def face_normals(vertices: NDArray[np.floating], faces: NDArray[np.integer],
