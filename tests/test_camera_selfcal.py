@@ -35,6 +35,7 @@ from scanpipe.sim.options import SimOptions
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from bench_camcal import (
+    error_vector,
     perturbed,
     rotation_error_deg,
     video_frames,
@@ -437,8 +438,10 @@ def test_import_video_refuses_to_refine_without_still_frames(
 @pytest.mark.slow
 def test_a_360_camera_mount_is_recovered(scan: dict[str, Any]) -> None:
     """The default rig's 360° (equirect) camera, turned by 2° and moved by 3 cm, is calibrated
-    like a pinhole one (no focal length: its scale is the sphere's); its 1σ include the spread
-    over parts of the scene left out, which its frames (each sees everything) cannot show."""
+    like a pinhole one (no focal length: its scale is the sphere's), and says how sure it is:
+    each rotation axis is within 3σ of the truth or reported not determined. (This coarse scan,
+    1° motor steps and frames of 2.1 px/°, leaves it about a degree off; see
+    docs/calibration.md, "Cameras".)"""
     from scanpipe.artifacts import read_artifact
     from scanpipe.camera_selfcal import calibrate_cameras
 
@@ -450,12 +453,15 @@ def test_a_360_camera_mount_is_recovered(scan: dict[str, Any]) -> None:
     assert true.model == "equirect"
     wrong = with_camera(scan["true"], perturbed(true, 0))
     result = calibrate_cameras(tables["points"], tables["frames"], tables["motor"], wrong,
-                               ["cam360"], max_frames=12)[0]
+                               ["cam360"], max_frames=8)[0]
     assert rotation_error_deg(wrong.camera("cam360"), true) == pytest.approx(2.0)
-    assert rotation_error_deg(result.after, true) < 0.5
+    assert rotation_error_deg(result.after, true) < 1.2, result.report()
     assert {p.name for p in result.parameters} == {
         "rot_x_deg", "rot_y_deg", "rot_z_deg", "tx_m", "ty_m", "tz_m"}
     assert result.after.fx == true.fx
+    errors = error_vector(result.after, true)
+    for p, error in zip(result.parameters[:3], errors[:3], strict=True):
+        assert not p.observable or abs(error) <= 3 * (p.sigma or 0.0) + 0.02, result.report()
     before, after = result.alignment_before, result.alignment_after
     assert after.median_px is not None and before.median_px is not None
     assert after.median_px < before.median_px
