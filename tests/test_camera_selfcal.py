@@ -351,6 +351,11 @@ def test_two_clock_basins_that_fit_alike_leave_the_offset_undetermined(
     assert offset.sigma is not None and offset.sigma >= 0.2
     assert not offset.observable and result.time_offset_s == 0.0
     assert result.report()["time_offset_determined"] is False
+    # the mount was fitted at that kept offset: its turn about the axis is not known either
+    # (benchmark seeds 3 and 5 once reported mounts 2° and 6° off as determined)
+    turns = {p.name: p.observable for p in result.parameters}
+    assert not any(turns[n] for n in ("rot_x_deg", "rot_y_deg", "rot_z_deg"))
+    assert any("neither is the mount's turn" in w for w in result.warnings)
 
 
 @pytest.mark.slow

@@ -953,6 +953,18 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
                                        float(sigma_scaled[i] * _UNITS[k])
                                        if np.isfinite(sigma_scaled[i]) else None,
                                        bool(observable[i]), True, bool(applied[i])))
+    clock_determined = bool(determined and observable[names.index("time_offset_s")]) \
+        if fit_time_offset else None
+    if clock_determined is False:
+        # the mount was refitted at the start offset; a clock offset looks like a turn about
+        # the axis (and, off the axis, a shift): never report those as known
+        for p in results:
+            if p.name in ("rot_x_deg", "rot_y_deg", "rot_z_deg", "tx_m", "tz_m"):
+                p.observable = False
+        warnings.append(f"camera {camera.id!r}: the clock offset is not determined, so neither "
+                        "is the mount's turn about the platform's axis (a clock offset looks "
+                        f"like one): the mount values hold only with the clock at "
+                        f"{final[7]:+.3f} s and are not determined")
     after_camera = camera_with(_rig_camera(camera, track.rig), final)
     after = fit.alignment(final)
     if after.median_px is not None and before.median_px is not None \
@@ -970,8 +982,7 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         time_offset_s=float(final[7]) if fit_time_offset else None, parameters=results,
         alignment_before=before, alignment_after=after, frames=len(frames),
         edge_points=int(after.distances_px.size), warnings=warnings, still_frames=still,
-        time_offset_determined=bool(determined and observable[names.index("time_offset_s")])
-        if fit_time_offset else None)
+        time_offset_determined=clock_determined)
 
 
 def _mount_on_lines(fit: CameraFit, x: F64, gate_px: float, level: tuple[float, float],
@@ -986,7 +997,7 @@ def _mount_on_lines(fit: CameraFit, x: F64, gate_px: float, level: tuple[float, 
     for passes in range(2):
         for widen in LINE_GATE_STEPS:
             try:
-                x, _ = fit.solve_lines(x, widen * gate_px, rounds=4, max_nfev=20, only=mount)
+                x, _ = fit.solve_lines(x, widen * gate_px, rounds=4, max_nfev=60, only=mount)
             except StageError:  # nothing matched within the gate: keep the map's values
                 return x
         if passes == 0:
@@ -1186,7 +1197,7 @@ def _final_fit(fit: CameraFit, x: F64, gate_px: float, level: tuple[float, float
         return fit.solve(x, *level, max_nfev=max_nfev or 60)
     for widen in LINE_GATE_STEPS:
         x, result = fit.solve_lines(x, widen * gate_px, rounds=rounds,
-                                    max_nfev=max_nfev or 30)
+                                    max_nfev=max_nfev or 100)
     return x, result
 
 
