@@ -27,9 +27,11 @@ search window, then everything is fitted together; every basin of the cost that 
 least final cost wins — two that end alike leave δ undetermined (a warning, the 1σ widened to
 cover both). The 1σ of each value is the larger of the
 curvature (the Jacobian's ``s² (JᵀJ)⁻¹``) and the spread over groups of frames (a jackknife: the
-fit repeated with each group left out), because neighbouring edge points share their errors and
+fit repeated with each group left out; for a 360° camera, whose every frame sees the whole
+scene, also over sectors of the scene), because neighbouring edge points share their errors and
 the curvature alone is optimistic. A value whose 1σ exceeds its limit is reported unobservable
-and keeps the rig's value.
+and keeps the rig's value unless it moved 2σ or more (a clock offset always keeps it, and then
+the mount's turn is reported undetermined too).
 
 Why frames outside the scan matter for δ: while the platform turns at a steady rate ω, a clock
 offset δ looks exactly like a turn of the camera about the axis by ω·δ. Frames while the platform
