@@ -35,6 +35,7 @@ from scanpipe.sim.options import SimOptions
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 from bench_camcal import (
+    error_vector,
     perturbed,
     rotation_error_deg,
     video_frames,
@@ -148,6 +149,23 @@ def test_depth_edges_find_a_crease() -> None:
     # every crease point lies on the corner line (x = y = 1 in the β = 0 plane, turned)
     horizontal = np.hypot(creases[:, 0], creases[:, 2])
     assert np.allclose(horizontal, 1.0, atol=0.01) and np.allclose(creases[:, 1], 1.0, atol=0.01)
+
+
+def test_a_crease_between_a_grazing_and_a_facing_surface_is_placed_on_the_corner() -> None:
+    """The ceiling y = 3 seen head-on meets the wall x = 1 seen at a grazing 71°: the peak of
+    the turn lies off the corner, always to the same side for such a corner (the grazing arm
+    spans more space per cell): the crease is placed where the arms' lines meet instead (the
+    peak alone put them up to 14 mm off, a bias that tilted the camera)."""
+    alpha = np.arange(2.0, 60.0, 0.25) + 0.1  # the corner (α = 18.43°) between two cells
+    beta = np.arange(0.0, 10.0, 0.5)
+    a = np.radians(alpha)
+    r = np.minimum(1.0 / np.sin(a), 3.0 / np.cos(a))
+    ranges = np.tile(r, (beta.size, 1))
+    edges = depth_edges(_grid_points(ranges, alpha, beta))
+    creases = edges.xyz[~edges.occluding]
+    assert len(creases) >= beta.size
+    horizontal = np.hypot(creases[:, 0], creases[:, 2])
+    assert np.abs(horizontal - 1.0).max() < 0.002 and np.abs(creases[:, 1] - 3.0).max() < 0.002
 
 
 def test_edge_distance_map_sees_a_colour_edge_of_equal_brightness() -> None:
@@ -333,6 +351,11 @@ def test_two_clock_basins_that_fit_alike_leave_the_offset_undetermined(
     assert offset.sigma is not None and offset.sigma >= 0.2
     assert not offset.observable and result.time_offset_s == 0.0
     assert result.report()["time_offset_determined"] is False
+    # the mount was fitted at that kept offset: its turn about the axis is not known either
+    # (benchmark seeds 3 and 5 once reported mounts 2° and 6° off as determined)
+    turns = {p.name: p.observable for p in result.parameters}
+    assert not any(turns[n] for n in ("rot_x_deg", "rot_y_deg", "rot_z_deg"))
+    assert any("neither is the mount's turn" in w for w in result.warnings)
 
 
 @pytest.mark.slow
@@ -417,18 +440,33 @@ def test_import_video_refuses_to_refine_without_still_frames(
     assert _digest(rec) == digest
 
 
-def test_a_360_camera_is_refused_by_name() -> None:
-    """The edge fit models pinhole cameras: the default rig's 360° camera is refused when named
-    (and left out when no camera is named)."""
-    import pyarrow as pa
-    import pytest
-
+@pytest.mark.slow
+def test_a_360_camera_mount_is_recovered(scan: dict[str, Any]) -> None:
+    """The default rig's 360° (equirect) camera, turned by 2° and moved by 3 cm, is calibrated
+    like a pinhole one (no focal length: its scale is the sphere's), and says how sure it is:
+    each rotation axis is within 3σ of the truth or reported not determined. (This coarse scan,
+    1° motor steps and frames of 2.1 px/°, leaves it about a degree off; see
+    docs/calibration.md, "Cameras".)"""
+    from scanpipe.artifacts import read_artifact
     from scanpipe.camera_selfcal import calibrate_cameras
-    from scanpipe.errors import StageError
-    from scanpipe.rig import default_rig
 
-    rig = default_rig()
-    (equirect,) = [c.id for c in rig.cameras if c.model == "equirect"]
-    empty = pa.table({"x": pa.array([], pa.float32())})
-    with pytest.raises(StageError, match=f"camera '{equirect}': model 'equirect'"):
-        calibrate_cameras(empty, empty, empty, rig, camera_ids=[equirect])
+    w = scan["workdir"]
+    tables = {n: read_artifact(p)[0] for n, p in (
+        ("points", w / "assemble" / "points.parquet"), ("frames", w / "decode" / "frames.parquet"),
+        ("motor", w / "decode" / "motor.parquet"))}
+    true = scan["true"].camera("cam360")
+    assert true.model == "equirect"
+    wrong = with_camera(scan["true"], perturbed(true, 0))
+    result = calibrate_cameras(tables["points"], tables["frames"], tables["motor"], wrong,
+                               ["cam360"], max_frames=8)[0]
+    assert rotation_error_deg(wrong.camera("cam360"), true) == pytest.approx(2.0)
+    assert rotation_error_deg(result.after, true) < 1.2, result.report()
+    assert {p.name for p in result.parameters} == {
+        "rot_x_deg", "rot_y_deg", "rot_z_deg", "tx_m", "ty_m", "tz_m"}
+    assert result.after.fx == true.fx
+    errors = error_vector(result.after, true)
+    for p, error in zip(result.parameters[:3], errors[:3], strict=True):
+        assert not p.observable or abs(error) <= 3 * (p.sigma or 0.0) + 0.02, result.report()
+    before, after = result.alignment_before, result.alignment_after
+    assert after.median_px is not None and before.median_px is not None
+    assert after.median_px < before.median_px

@@ -27,9 +27,11 @@ search window, then everything is fitted together; every basin of the cost that 
 least final cost wins — two that end alike leave δ undetermined (a warning, the 1σ widened to
 cover both). The 1σ of each value is the larger of the
 curvature (the Jacobian's ``s² (JᵀJ)⁻¹``) and the spread over groups of frames (a jackknife: the
-fit repeated with each group left out), because neighbouring edge points share their errors and
+fit repeated with each group left out; for a 360° camera, whose every frame sees the whole
+scene, also over sectors of the scene), because neighbouring edge points share their errors and
 the curvature alone is optimistic. A value whose 1σ exceeds its limit is reported unobservable
-and keeps the rig's value.
+and keeps the rig's value unless it moved 2σ or more (a clock offset always keeps it, and then
+the mount's turn is reported undetermined too).
 
 Why frames outside the scan matter for δ: while the platform turns at a steady rate ω, a clock
 offset δ looks exactly like a turn of the camera about the axis by ω·δ. Frames while the platform
@@ -71,7 +73,11 @@ B = NDArray[np.bool_]
 PARAMETERS = ("rot_x_deg", "rot_y_deg", "rot_z_deg", "tx_m", "ty_m", "tz_m", "focal_scale",
               "time_offset_s")
 _UNITS = np.array([0.05, 0.05, 0.05, 0.005, 0.005, 0.005, 0.001, 0.01])
-#: Above these 1σ a value counts as unobservable (kept at the rig's value).
+#: A mount value over its limit is still applied when it moved this many 1σ (the time offset
+#: never: an undetermined offset keeps the start value).
+SIGNIFICANT_SIGMAS = 2.0
+#: Above these 1σ a value counts as unobservable (kept at the rig's value unless it moved
+#: :data:`SIGNIFICANT_SIGMAS`).
 SIGMA_LIMITS = {"rot_x_deg": 0.2, "rot_y_deg": 0.2, "rot_z_deg": 0.2, "tx_m": 0.02,
                 "ty_m": 0.02, "tz_m": 0.02, "focal_scale": 0.01, "time_offset_s": 0.1}
 #: The share of edge points within this many pixels is the alignment's second figure.
@@ -256,7 +262,52 @@ def _creases(xyz: F64, jump_mask: B, axis: int, span: int, crease_deg: float) ->
     here = xyz[peak]
     moved = here + np.abs(shift)[:, None] * (toward - here)
     moved = np.where(np.isfinite(moved), moved, here)
-    return np.asarray(moved, dtype=np.float64)
+    return _arm_intersection(xyz, peak, axis, span, np.asarray(moved, dtype=np.float64))
+
+
+def _arm_line(xyz: F64, peak: B, axis: int, offsets: range) -> tuple[F64, F64, B]:
+    """A line fitted to the cells at ``offsets`` along ``axis`` from each peak cell: its centre,
+    unit direction and whether the cells lie on a line (all valid, nearly collinear)."""
+    arm = np.stack([_along(xyz, axis, k)[peak] for k in offsets], axis=1)  # (n, k, 3)
+    valid = np.all(np.isfinite(arm), axis=(1, 2))
+    arm = np.where(valid[:, None, None], arm, 0.0)
+    centre = arm.mean(axis=1)
+    centred = arm - centre[:, None, :]
+    values, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
+    # straight: the spread across the line is small against the spread along it
+    straight = values[:, 1] <= (0.05**2) * np.maximum(values[:, 2], 1e-18)
+    return centre, np.asarray(vectors[:, :, 2], np.float64), valid & straight
+
+
+def _arm_intersection(xyz: F64, peak: B, axis: int, span: int, fallback: F64) -> F64:
+    """Each crease point placed where the lines of its two arms meet (the midpoint of their
+    closest approach); ``fallback`` where an arm is not straight or the lines meet far away.
+
+    The peak of the turn lies off the corner by a fraction of a cell, and always the same way
+    for one kind of corner (the arm on a surface seen at a grazing angle spans more space per
+    cell), so the floor–wall creases all move alike: a bias that tilts the camera. Two planes
+    meet on a line wherever the cells fall; the cells next to the corner (rounded by the
+    smoothing) stay out of the arms.
+    """
+    gap = max(1, min(3, span // 3))
+    if span - gap < 2:
+        return fallback
+    c1, d1, ok1 = _arm_line(xyz, peak, axis, range(-span, -gap + 1))
+    c2, d2, ok2 = _arm_line(xyz, peak, axis, range(gap, span + 1))
+    w = c1 - c2
+    b = np.sum(d1 * d2, axis=1)
+    d, e = np.sum(d1 * w, axis=1), np.sum(d2 * w, axis=1)
+    denominator = 1.0 - b * b
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = (b * e - d) / denominator
+        t = (e - b * d) / denominator
+    meet = 0.5 * ((c1 + s[:, None] * d1) + (c2 + t[:, None] * d2))
+    apart = np.linalg.norm((c1 + s[:, None] * d1) - (c2 + t[:, None] * d2), axis=1)
+    cell = np.linalg.norm(_along(xyz, axis, 1)[peak] - xyz[peak], axis=1)
+    near = np.linalg.norm(meet - fallback, axis=1)
+    ok = (ok1 & ok2 & (denominator > 0.05) & np.isfinite(meet).all(axis=1)
+          & (near <= 2.0 * np.nan_to_num(cell, nan=0.0)) & (apart <= np.nan_to_num(cell, nan=0.0)))
+    return np.asarray(np.where(ok[:, None], meet, fallback), np.float64)
 
 
 @dataclass(frozen=True)
@@ -499,10 +550,10 @@ class CameraFit:
         for frame, beta in zip(self.frames, betas, strict=True):
             cam = camera_with(frame.camera, x)
             uv, depth = project_points(self.edges.xyz, cam, float(beta))
+            top, bottom = _rows_used(cam, self.margin_px)
             inside = ((depth > 0.1) & (uv[:, 0] >= self.margin_px)
                       & (uv[:, 0] <= cam.width - 1 - self.margin_px)
-                      & (uv[:, 1] >= self.margin_px)
-                      & (uv[:, 1] <= cam.height - 1 - self.margin_px))
+                      & (uv[:, 1] >= top) & (uv[:, 1] <= bottom))
             candidates = np.flatnonzero(inside)
             if candidates.size:
                 nearest = _zbuffer(self.edges.surface, cam, float(beta), 8)
@@ -682,6 +733,20 @@ class CameraFit:
         return out, result
 
 
+#: A 360° (equirect) frame is used within this latitude: towards the poles one pixel spans
+#: ever less longitude, an edge's image direction turns within a few pixels (the point-to-line
+#: match assumes a straight edge), and the floor right under the rig is mostly the rig itself.
+EQUIRECT_MAX_LATITUDE_DEG = 60.0
+
+
+def _rows_used(cam: CameraConfig, margin_px: float) -> tuple[float, float]:
+    """The first and last image row (px) whose edges the fit uses."""
+    if cam.model == "equirect":
+        band = cam.height * (0.5 - EQUIRECT_MAX_LATITUDE_DEG / 180.0)
+        return max(margin_px, band), cam.height - 1 - max(margin_px, band)
+    return margin_px, cam.height - 1 - margin_px
+
+
 def _zbuffer(points: F64, cam: CameraConfig, beta_deg: float, cell_px: int) -> F64:
     """The nearest depth per ``cell_px`` cell of the frame (inf where no point lands)."""
     uv, depth = project_points(points, cam, beta_deg)
@@ -706,6 +771,9 @@ class ParameterResult:
     sigma: float | None
     observable: bool
     fitted: bool
+    #: Whether the change was applied (an observable value, or one over its 1σ limit that
+    #: moved :data:`SIGNIFICANT_SIGMAS` or more); False: the rig's value was kept.
+    applied: bool = True
 
 
 @dataclass
@@ -741,7 +809,8 @@ class CameraCalibration:
             "time_offset_s": self.time_offset_s,
             "time_offset_determined": self.time_offset_determined,
             "parameters": [{"name": p.name, "change": p.change, "sigma": p.sigma,
-                            "observable": p.observable, "fitted": p.fitted}
+                            "observable": p.observable, "fitted": p.fitted,
+                            "applied": p.applied}
                            for p in self.parameters],
             "alignment_before": self.alignment_before.as_dict(),
             "alignment_after": self.alignment_after.as_dict(),
@@ -763,7 +832,7 @@ LINE_GATE_STEPS = (2.0, 1.0)
 
 def _levels(camera: CameraConfig) -> list[tuple[float, float]]:
     """``(σ, truncation)`` in pixels of each pass for ``camera``."""
-    focal = math.sqrt(camera.fx * camera.fy)
+    focal = camera.px_per_rad
     sigmas = [max(FINAL_SIGMA_PX, f * focal) for f in LEVELS]
     return [(s, TRUNCATE * s) for s in sigmas]
 
@@ -774,6 +843,8 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
                      fit_focal: bool = True) -> CameraCalibration:
     """Fit one camera (all ``frames`` are of it) and report values, 1σ and alignment."""
     camera = frames[0].camera
+    # a 360° image has no focal length: its scale is fixed by the sphere (width = 360°)
+    fit_focal = fit_focal and camera.model == "pinhole"
     free = [p for p in PARAMETERS if (p != "time_offset_s" or fit_time_offset)
             and (p != "focal_scale" or fit_focal)]
     fit = CameraFit(edges, frames, track, free)
@@ -831,35 +902,49 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
     # the last pass point to line — for the mount alone: with a clock offset to find, a frame
     # of the turning platform a little off in time matches nothing within a few pixels' gate,
     # and the clock stays with the finest distance map (see docs/calibration.md, "Cameras")
-    gate = LINE_GATE_PX * max(1.0, math.sqrt(camera.fx * camera.fy) / 1000.0)
+    gate = LINE_GATE_PX * max(1.0, camera.px_per_rad / 1000.0)
     lines = not fit_time_offset
     x, result = _final_fit(fit, x, gate, levels[-1], lines)
+    if fit_time_offset:
+        x = _mount_on_lines(fit, x, gate, levels[-1], names)
     curvature = _curvature_sigma(result)
     spread = _jackknife_sigma(fit, x, gate, levels[-1], lines, jackknife_groups)
+    if camera.model == "equirect":  # every frame sees the whole scene: leave parts of it out
+        spread = np.fmax(spread, _scene_jackknife_sigma(fit, x, gate, levels[-1], lines,
+                                                        jackknife_groups))
     sigma_scaled = np.fmax(curvature, spread)
     if spread_s > 0:  # the 1σ covers the competing basins: never a confident wrong offset
         k = names.index("time_offset_s")
         sigma_scaled[k] = max(float(sigma_scaled[k]), spread_s / _UNITS[7])
     results: list[ParameterResult] = []
     observable = np.ones(len(names), dtype=bool)
+    # a mount value over its limit still moves when the move is far beyond its 1σ: a camera
+    # 2° off that the fit puts right to ±0.4° is better served by the fit than by the rig
+    applied = np.ones(len(names), dtype=bool)
     for i, name in enumerate(names):
         sigma_value = float(sigma_scaled[i] * _UNITS[PARAMETERS.index(name)])
         ok = bool(np.isfinite(sigma_value)) and sigma_value <= SIGMA_LIMITS[name]
         observable[i] = ok
-        if not ok:
-            warnings.append(f"camera {camera.id!r}: {name} is not determined by these frames "
-                            f"(1σ {sigma_value:.3g}, limit {SIGMA_LIMITS[name]:g}); kept")
-    if not observable.all():
-        start = np.where(observable, x, 0.0)
+        if ok:
+            continue
+        ratio = abs(float(x[i])) / float(sigma_scaled[i]) if np.isfinite(sigma_scaled[i]) \
+            else 0.0
+        applied[i] = name != "time_offset_s" and ratio >= SIGNIFICANT_SIGMAS
+        outcome = (f"applied, being {ratio:.1f}σ from the rig's value" if applied[i]
+                   else "kept")
+        warnings.append(f"camera {camera.id!r}: {name} is not determined by these frames "
+                        f"(1σ {sigma_value:.3g}, limit {SIGMA_LIMITS[name]:g}); {outcome}")
+    if not applied.all():
+        start = np.where(applied, x, 0.0)
         kept = fit.free.copy()
-        kept[fit.free] = observable
+        kept[fit.free] = applied
         refit = CameraFit(edges, frames, track, [p for p, k in zip(PARAMETERS, kept,
                                                                     strict=True) if k])
         refit.base = fit.base
         refit.frames = fit.frames
         x = np.zeros(len(names))
-        if observable.any():
-            x[observable], _ = _final_fit(refit, start[observable], gate, levels[-1], lines)
+        if applied.any():
+            x[applied], _ = _final_fit(refit, start[applied], gate, levels[-1], lines)
     final = fit.full(x)
     for i, name in enumerate(names):
         k = PARAMETERS.index(name)
@@ -869,7 +954,19 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         results.append(ParameterResult(name, change,
                                        float(sigma_scaled[i] * _UNITS[k])
                                        if np.isfinite(sigma_scaled[i]) else None,
-                                       bool(observable[i]), True))
+                                       bool(observable[i]), True, bool(applied[i])))
+    clock_determined = bool(determined and observable[names.index("time_offset_s")]) \
+        if fit_time_offset else None
+    if clock_determined is False:
+        # the mount was refitted at the start offset; a clock offset looks like a turn about
+        # the axis (and, off the axis, a shift): never report those as known
+        for p in results:
+            if p.name in ("rot_x_deg", "rot_y_deg", "rot_z_deg", "tx_m", "tz_m"):
+                p.observable = False
+        warnings.append(f"camera {camera.id!r}: the clock offset is not determined, so neither "
+                        "is the mount's turn about the platform's axis (a clock offset looks "
+                        f"like one): the mount values hold only with the clock at "
+                        f"{final[7]:+.3f} s and are not determined")
     after_camera = camera_with(_rig_camera(camera, track.rig), final)
     after = fit.alignment(final)
     if after.median_px is not None and before.median_px is not None \
@@ -887,8 +984,27 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         time_offset_s=float(final[7]) if fit_time_offset else None, parameters=results,
         alignment_before=before, alignment_after=after, frames=len(frames),
         edge_points=int(after.distances_px.size), warnings=warnings, still_frames=still,
-        time_offset_determined=bool(determined and observable[names.index("time_offset_s")])
-        if fit_time_offset else None)
+        time_offset_determined=clock_determined)
+
+
+def _mount_on_lines(fit: CameraFit, x: F64, gate_px: float, level: tuple[float, float],
+                    names: list[str]) -> F64:
+    """With the clock found on the distance map, the mount point to line (the clock held),
+    the clock once more on the finest map (the mount held), and the mount again: the distance
+    map's own minimum lies a fraction of a pixel off (its whole pixels, its blur, the texture
+    it lands on), and with the clock within a few tens of ms the turning platform's frames
+    match their image edges within the gate."""
+    time_only = np.array([n == "time_offset_s" for n in names])
+    mount = ~time_only
+    for passes in range(2):
+        for widen in LINE_GATE_STEPS:
+            try:
+                x, _ = fit.solve_lines(x, widen * gate_px, rounds=4, max_nfev=60, only=mount)
+            except StageError:  # nothing matched within the gate: keep the map's values
+                return x
+        if passes == 0:
+            x, _ = fit.solve(x, *level, max_nfev=30, only=time_only)
+    return x
 
 
 def _rig_camera(camera: CameraConfig, rig: Rig) -> CameraConfig:
@@ -1083,7 +1199,7 @@ def _final_fit(fit: CameraFit, x: F64, gate_px: float, level: tuple[float, float
         return fit.solve(x, *level, max_nfev=max_nfev or 60)
     for widen in LINE_GATE_STEPS:
         x, result = fit.solve_lines(x, widen * gate_px, rounds=rounds,
-                                    max_nfev=max_nfev or 30)
+                                    max_nfev=max_nfev or 100)
     return x, result
 
 
@@ -1106,6 +1222,45 @@ def _jackknife_sigma(fit: CameraFit, x: F64, gate_px: float, level: tuple[float,
         fit.frames, fit.times_ns = everything, all_times
     values = np.array(estimates)
     return np.asarray(np.sqrt((groups - 1) / groups * np.sum(
+        (values - values.mean(axis=0)) ** 2, axis=0)), np.float64)
+
+
+def _scene_jackknife_sigma(fit: CameraFit, x: F64, gate_px: float,
+                           level: tuple[float, float], lines: bool, groups: int) -> F64:
+    """1σ (scaled units) from the spread of the fit over sectors of the scene (the edge
+    points' azimuth about the platform's axis), each left out in turn.
+
+    The scan's edges carry errors of their own (a corner placed a fraction of a cell off, an
+    object's outline seen from the scanner and not from the camera), the same in every frame:
+    leaving frames out does not show them, leaving parts of the scene out does. A 360° camera
+    sees every edge in every frame, so for it this is the only spread there is. (A pinhole
+    camera's frames each see one sector: left out, a quarter of the room takes the valleys'
+    conditioning with it, and the spread measured the missing quarter, not the error — on the
+    benchmark a 0.1° mount read 0.4°: so only for 360° cameras.)
+    """
+    if groups < 3:
+        return np.zeros(len(x))
+    azimuth = np.arctan2(fit.edges.xyz[:, 0], fit.edges.xyz[:, 2])
+    sector = np.floor((azimuth + np.pi) / (2 * np.pi) * groups).astype(np.int64) % groups
+    kept = [(frame.edges, frame.all_edges) for frame in fit.frames]
+    estimates = []
+    try:
+        for g in range(groups):
+            for frame, (chosen, seen) in zip(fit.frames, kept, strict=True):
+                frame.edges = chosen[sector[chosen] != g]
+                frame.all_edges = seen[sector[seen] != g]
+            if sum(f.edges.size for f in fit.frames) < 50:
+                continue
+            estimate, _ = _final_fit(fit, x, gate_px, level, lines, rounds=3, max_nfev=10)
+            estimates.append(estimate)
+    finally:
+        for frame, (chosen, seen) in zip(fit.frames, kept, strict=True):
+            frame.edges, frame.all_edges = chosen, seen
+    if len(estimates) < 3:
+        return np.zeros(len(x))
+    values = np.array(estimates)
+    n = len(estimates)
+    return np.asarray(np.sqrt((n - 1) / n * np.sum(
         (values - values.mean(axis=0)) ** 2, axis=0)), np.float64)
 
 
@@ -1172,14 +1327,8 @@ def calibrate_cameras(points: pa.Table, frames: pa.Table, motor: pa.Table, rig: 
                       start_offsets_s: dict[str, float] | None = None,
                       fit_focal: bool = True) -> list[CameraCalibration]:
     """Calibrate each camera (default: every rig camera with frames) against the scan."""
-    # The fit models a pinhole (its focal length, its edges' projection): a 360° camera
-    # (model "equirect") is left out unless named, and refused when named.
     ids = list(camera_ids) if camera_ids is not None else [
-        c.id for c in rig.cameras if c.model == "pinhole" and frame_rows(frames, c.id, 1).size]
-    for camera_id in ids:
-        if rig.camera(camera_id).model != "pinhole":
-            raise StageError(f"camera {camera_id!r}: model {rig.camera(camera_id).model!r} (a "
-                             "360° camera); self-calibration handles pinhole cameras only")
+        c.id for c in rig.cameras if frame_rows(frames, c.id, 1).size]
     if not ids:
         raise StageError("frames: no frames of any rig camera "
                          f"(cameras: {', '.join(c.id for c in rig.cameras) or 'none'})")
