@@ -6,8 +6,6 @@ string is pinned so that a release does not change them.
 
 from __future__ import annotations
 
-import hashlib
-
 import numpy as np
 import pyarrow as pa
 import pytest
@@ -20,6 +18,7 @@ from result_tables import (
     vertices_table,
 )
 
+from scanpipe.artifacts import file_sha256
 from scanpipe.exporters import glb, obj, ply
 from scanpipe.stages.export import export_files
 
@@ -64,7 +63,8 @@ GOLDEN_CLOUD = {"golden.ply": "193a02bc6192601d"}
 
 
 def _digests(tables: dict[str, pa.Table], fmt: str) -> dict[str, str]:
-    return {name: hashlib.sha256(data).hexdigest()[:16]
+    # the manifest's piece-by-piece hash: the digest of the bytes written
+    return {name: file_sha256(data)[:16]
             for name, data in export_files(tables, fmt, "golden").items()
             if not name.endswith(".png")}  # pages pass through; the grey map is the encoder's
 

@@ -6,7 +6,8 @@
   Kd, so anything but white would tint it); faces are grouped per page under ``usemtl``.
 - Every file name derives from the output stem (``room.obj``, ``room.mtl``,
   ``room_page0.png``), with relative paths, so two exports into one folder never collide.
-- Lines are formatted column-wise with numpy (:mod:`scanpipe.exporters.textfmt`).
+- Lines are formatted column-wise with numpy (:mod:`scanpipe.exporters.textfmt`), in blocks
+  that stay apart (:class:`~scanpipe.artifacts.Pieces`): the text is held once, never joined.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from scanpipe import __version__
+from scanpipe.artifacts import FileData, Pieces
 from scanpipe.errors import ExportError
 from scanpipe.exporters.model import (
     PROVENANCE_TAG,
@@ -66,8 +68,9 @@ def _face_lines(faces: np.ndarray, vt: np.ndarray | None, with_normals: bool) ->
 
 
 def obj_files(mesh: MeshModel, stem: str,
-              provenance: Mapping[str, Any] | None = None) -> dict[str, bytes]:
-    """The OBJ export of ``mesh`` as ``{file name: bytes}`` (``<stem>.obj`` comes first), with
+              provenance: Mapping[str, Any] | None = None) -> dict[str, FileData]:
+    """The OBJ export of ``mesh`` as ``{file name: content}`` (``<stem>.obj`` comes first, as
+    :class:`~scanpipe.artifacts.Pieces`), with
     the ``provenance`` record as a ``# scanpipe-provenance {json}`` comment in OBJ and MTL."""
     finite = np.isfinite(mesh.vertices).all(axis=1)
     if not finite.all():  # OBJ text has no number for them: refuse rather than print garbage
@@ -80,7 +83,7 @@ def obj_files(mesh: MeshModel, stem: str,
     record = f"{PROVENANCE_TAG} {provenance_bytes(provenance or {}).decode()}"
     chunks: list[bytes] = [f"# scanpipe {__version__} OBJ export; y up, metres\n# {record}\n"
                            .encode()]
-    files: dict[str, bytes] = {}
+    files: dict[str, FileData] = {}
     normals = unit_normals(mesh)
     textured = mesh.textured
     if textured:
@@ -100,7 +103,7 @@ def obj_files(mesh: MeshModel, stem: str,
     chunks += float_rows(b"vn ", normals, 5)
     if not textured:
         chunks += _face_lines(mesh.faces, None, True)
-        files[obj_name] = b"".join(chunks)
+        files[obj_name] = Pieces(tuple(chunks))
         return files
 
     assert mesh.face_pages is not None and mesh.face_uvs is not None
@@ -139,5 +142,5 @@ def obj_files(mesh: MeshModel, stem: str,
         files[png] = mesh.pages[page]
         chunks.append(f"usemtl {material}\n".encode())
         chunks += _face_lines(group, splits[page][2].reshape(-1, 3) + vt_start[page], True)
-    files = {obj_name: b"".join(chunks), mtl_name: ("\n".join(mtl) + "\n").encode(), **files}
+    files = {obj_name: Pieces(tuple(chunks)), mtl_name: ("\n".join(mtl) + "\n").encode(), **files}
     return files
