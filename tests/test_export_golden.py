@@ -19,7 +19,7 @@ from result_tables import (
 )
 
 from scanpipe.artifacts import file_sha256
-from scanpipe.exporters import glb, obj, ply
+from scanpipe.exporters import glb, obj, ply, textfmt
 from scanpipe.stages.export import export_files
 
 
@@ -77,6 +77,18 @@ def test_mesh_exports_are_byte_identical(monkeypatch: pytest.MonkeyPatch, fmt: s
         monkeypatch.setattr(module, "__version__", "golden")
     got = _digests(golden_mesh(textured), fmt)
     assert got == GOLDEN_MESH[(fmt, textured)]
+
+
+@pytest.mark.parametrize("textured", [True, False])
+def test_obj_in_small_slices_and_blocks_is_byte_identical(monkeypatch: pytest.MonkeyPatch,
+                                                          textured: bool) -> None:
+    """Faces formatted slice by slice (and lines block by block) give the same file."""
+    monkeypatch.setattr(obj, "__version__", "golden")
+    tables = golden_mesh(textured)
+    assert tables["mesh_faces"].num_rows > 3 * 37  # several slices, one cut mid-page
+    monkeypatch.setattr(obj, "FACE_SLICE", 37)
+    monkeypatch.setattr(textfmt, "BLOCK_ROWS", 11)
+    assert _digests(tables, "obj") == GOLDEN_MESH[("obj", textured)]
 
 
 def test_cloud_ply_is_byte_identical(monkeypatch: pytest.MonkeyPatch) -> None:
