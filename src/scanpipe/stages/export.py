@@ -313,15 +313,24 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
         (fmt, tables if fmt == "mcap" else mesh_tables, params.name)
         for fmt in params.mesh_formats]
     jobs += [(fmt, cloud_tables, params.cloud_name) for fmt in params.cloud_formats]
-    # each model is checked and built once, not once per format
-    mesh = models_from_tables(mesh_tables)[0]
-    cloud = models_from_tables(cloud_tables)[1]
-    for done, (fmt, job_tables, stem) in enumerate(jobs):
+    # Each model is checked and built once, not once per format: the mesh's before the first
+    # job that needs it, dropped after the last one; the cloud's only then (the mesh formats
+    # come first), so the two models never share the peak of the OBJ text.
+    uses = [(fmt == "mcap" or job_tables is mesh_tables,
+             fmt == "mcap" or job_tables is cloud_tables) for fmt, job_tables, _ in jobs]
+    mesh: MeshModel | None = None
+    cloud: CloudModel | None = None
+    for done, ((fmt, job_tables, stem), (use_mesh, use_cloud)) in enumerate(
+            zip(jobs, uses, strict=True)):
         progress("export", done, len(jobs))
-        models = (mesh, cloud) if fmt == "mcap" else (
-            (mesh, None) if job_tables is mesh_tables else (None, cloud))
+        if use_mesh and mesh is None:
+            mesh = models_from_tables(mesh_tables)[0]
+        if use_cloud and cloud is None:
+            cloud = models_from_tables(cloud_tables)[1]
         files.update(export_files(job_tables, fmt, stem, params.las_version, params.glb_draco,
-                                  models))
+                                  (mesh if use_mesh else None, cloud if use_cloud else None)))
+        if not any(later for later, _ in uses[done + 1:]):
+            mesh = None
     progress("export", len(jobs), len(jobs))
     manifest = pa.table({
         "file": pa.array(list(files), pa.string()),
