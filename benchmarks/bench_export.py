@@ -20,11 +20,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from harness import cli, cpu_seconds, measure, table
 
-from scanpipe.exporters.glb import glb_bytes
+from scanpipe.artifacts import file_size
+from scanpipe.exporters.glb import glb_pieces
 from scanpipe.exporters.las import las_bytes
 from scanpipe.exporters.model import CloudModel, MeshModel
 from scanpipe.exporters.obj import obj_files
-from scanpipe.exporters.ply import ply_mesh_bytes
+from scanpipe.exporters.ply import ply_mesh_pieces
 
 
 def grid_mesh(rows: int, cols: int, pages: int = 4) -> MeshModel:
@@ -62,17 +63,17 @@ def run(quick: bool = False) -> dict[str, Any]:
     repeats = 3
     results = [
         measure("obj (+mtl, png)", lambda: obj_files(mesh, "bench"), faces, "faces", repeats),
-        measure("glb", lambda: glb_bytes(mesh), faces, "faces", repeats),
-        measure("ply (texture → vertex colours)", lambda: ply_mesh_bytes(mesh), faces, "faces",
+        measure("glb", lambda: glb_pieces(mesh), faces, "faces", repeats),
+        measure("ply (texture → vertex colours)", lambda: ply_mesh_pieces(mesh), faces, "faces",
                 repeats),
         measure("las", lambda: las_bytes(cloud), points, "points", repeats),
         measure("laz", lambda: las_bytes(cloud, compressed=True), points, "points", repeats),
     ]
-    obj_size = sum(len(b) for b in obj_files(mesh, "bench").values())
+    obj_size = sum(file_size(b) for b in obj_files(mesh, "bench").values())
     # CPU time too: on a shared machine wall time measures the neighbours as much as the code
     # (the writers are single-threaded numpy, so on an idle machine CPU ≈ wall).
     obj_cpu_s = cpu_seconds(lambda: obj_files(mesh, "bench"), warm_up=False)
-    glb_cpu_s = cpu_seconds(lambda: glb_bytes(mesh), warm_up=False)
+    glb_cpu_s = cpu_seconds(lambda: glb_pieces(mesh), warm_up=False)
     figures = {
         "faces": faces,
         "vertices": len(mesh.vertices),

@@ -23,6 +23,7 @@ from result_tables import (
     vertices_table,
 )
 
+from scanpipe.artifacts import file_bytes
 from scanpipe.exporters.textfmt import BLOCK_ROWS, Fixed, Ints, render_lines
 from scanpipe.exporting import write_files
 from scanpipe.stages.export import export_files
@@ -39,7 +40,8 @@ def _export(tables: dict, tmp_path: Path, stem: str = "quad") -> Path:
 def test_obj_files_are_named_after_the_stem_with_relative_references(tmp_path: Path) -> None:
     files = export_files(textured_quad(), "obj", "my room")
     assert list(files) == ["my room.obj", "my_room.mtl", "my_room_page0.png"]
-    obj, mtl = files["my room.obj"].decode(), files["my_room.mtl"].decode()
+    obj = file_bytes(files["my room.obj"]).decode()
+    mtl = file_bytes(files["my_room.mtl"]).decode()
     assert "mtllib my_room.mtl\n" in obj
     assert "usemtl my_room_page0\n" in obj
     assert "map_Kd my_room_page0.png" in mtl

@@ -19,8 +19,9 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
+from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import IO, Any
@@ -102,6 +103,57 @@ def stream_key(handle: IO[bytes]) -> str:
     for block in iter(lambda: handle.read(1 << 20), b""):
         digest.update(block)
     return digest.hexdigest()[:24]
+
+
+@dataclass(frozen=True)
+class Pieces:
+    """A file's content as consecutive pieces that are never joined: a large file rendered in
+    blocks (an OBJ's text) or assembled from arrays (a GLB's buffers) is held once, not once
+    in pieces and again joined. Writing and hashing go piece by piece (:func:`write_file_data`,
+    :func:`file_sha256`)."""
+
+    parts: tuple[bytes | memoryview, ...]
+
+    @property
+    def nbytes(self) -> int:
+        """The file's size in bytes."""
+        return sum(memoryview(part).nbytes for part in self.parts)
+
+
+#: A file's content: its bytes, or :class:`Pieces` of them (what a stage hands back as
+#: :attr:`scanpipe.stage.StageResult.files` and an exporter returns).
+FileData = bytes | Pieces
+
+
+def file_pieces(data: FileData) -> Iterable[bytes | memoryview]:
+    """The content in order, piece by piece (one piece for plain bytes)."""
+    return data.parts if isinstance(data, Pieces) else (data,)
+
+
+def file_size(data: FileData) -> int:
+    """The content's size in bytes."""
+    return data.nbytes if isinstance(data, Pieces) else len(data)
+
+
+def file_sha256(data: FileData) -> str:
+    """The SHA-256 of the content (hex), hashed piece by piece: the same digest as of the
+    joined bytes."""
+    digest = hashlib.sha256()
+    for part in file_pieces(data):
+        digest.update(part)
+    return digest.hexdigest()
+
+
+def file_bytes(data: FileData) -> bytes:
+    """The content joined into one bytes object (a copy for :class:`Pieces`: for small files
+    and for reading an export in memory, not for writing one)."""
+    return b"".join(data.parts) if isinstance(data, Pieces) else data
+
+
+def write_file_data(handle: IO[bytes], data: FileData) -> None:
+    """Write the content to an open binary file piece by piece (OSError propagates)."""
+    for part in file_pieces(data):
+        handle.write(part)
 
 
 @contextmanager
@@ -201,11 +253,12 @@ def write_together(
     out_dir: Path,
     stage: str,
     tables: Mapping[str, tuple[pa.Table, Mapping[str, Any]]],
-    files: Mapping[str, bytes],
+    files: Mapping[str, FileData],
     replace_folder: bool,
 ) -> None:
-    """Write a stage's artifacts (``name.parquet``) and extra files so that they replace the
-    previous set together; on any OSError the previous set is kept.
+    """Write a stage's artifacts (``name.parquet``) and extra files (bytes or :class:`Pieces`,
+    written piece by piece) so that they replace the previous set together; on any OSError the
+    previous set is kept.
 
     ``replace_folder``: ``out_dir`` belongs to the stage (``W/<stage>/`` of a workdir) and is
     replaced as a whole by two renames, so a reader sees the old set, the new set, or (for the
@@ -231,7 +284,8 @@ def write_together(
         for file_name, data in files.items():
             where = out_dir / file_name
             (staging / file_name).parent.mkdir(parents=True, exist_ok=True)
-            (staging / file_name).write_bytes(data)
+            with (staging / file_name).open("wb") as handle:
+                write_file_data(handle, data)
             _fsync(staging / file_name)
         for name, (table, provenance) in tables.items():
             where = out_dir / f"{name}.parquet"

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pyarrow as pa
 
-from scanpipe.artifacts import FILE_MODE, read_artifact
+from scanpipe.artifacts import FILE_MODE, FileData, read_artifact, write_file_data
 from scanpipe.errors import ArtifactError, ExportError
 from scanpipe.outpaths import (
     check_output_file,
@@ -39,8 +39,9 @@ from scanpipe.stages.export import (
 from scanpipe.workdir import find_artifacts
 
 
-def write_files(files: Mapping[str, bytes], out_dir: Path) -> list[Path]:
-    """Write every file into ``out_dir``, all or nothing; returns the paths written."""
+def write_files(files: Mapping[str, FileData], out_dir: Path) -> list[Path]:
+    """Write every file (bytes or pieces: :func:`scanpipe.artifacts.write_file_data`) into
+    ``out_dir``, all or nothing; returns the paths written."""
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -55,7 +56,7 @@ def write_files(files: Mapping[str, bytes], out_dir: Path) -> list[Path]:
             staged.append((Path(tmp_name), target))
             os.fchmod(fd, FILE_MODE)
             with os.fdopen(fd, "wb") as handle:
-                handle.write(data)
+                write_file_data(handle, data)
         for _, target in staged:
             if target.is_dir():
                 raise ExportError(f"{target}: is a folder; choose another --out")

@@ -44,6 +44,7 @@ from pydantic import Field
 
 from scanpipe.artifacts import (
     PROVENANCE_KEY,
+    FileData,
     artifact_key,
     canonical_json,
     read_artifact,
@@ -392,7 +393,7 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
     tables = {"poses": used_poses, "points": merged, **mesh_tables(mesh, camera, frame)}
     tables = {n: t.replace_schema_metadata({PROVENANCE_KEY: json.dumps(
         {**provenance, "stage": f"site-model/{n}"})}) for n, t in tables.items()}
-    files: dict[str, bytes] = {}
+    files: dict[str, FileData] = {}
     files.update(export_files(tables, "las", MODEL_STEM, params.las_version))
     files.update(export_files(tables, "glb", MODEL_STEM))
     files.update(export_files(tables, "obj", MODEL_STEM))

@@ -14,6 +14,7 @@ from typing import Any
 
 import pyarrow as pa
 
+from scanpipe.artifacts import FileData
 from scanpipe.errors import ArtifactError
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
@@ -25,11 +26,12 @@ RAW_INPUTS = frozenset({"recording", "point_file", "profile_file"})
 
 @dataclass
 class StageResult:
-    """What a stage returns: output tables by artifact name, extra files, and a report."""
+    """What a stage returns: output tables by artifact name, extra files (bytes, or
+    :class:`scanpipe.artifacts.Pieces` for a large one), and a report."""
 
     tables: dict[str, pa.Table]
     report: dict[str, Any] = field(default_factory=dict)
-    files: dict[str, bytes] = field(default_factory=dict)
+    files: dict[str, FileData] = field(default_factory=dict)
 
 
 StageFn = Callable[[Mapping[str, Any], Any, ProgressFn], StageResult]

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe import __version__
+from scanpipe.artifacts import Pieces, file_bytes
 from scanpipe.errors import ExportError
 from scanpipe.exporters.model import MeshModel, unit_normals
 
@@ -125,8 +126,15 @@ def _number(value: np.generic) -> float | int:
 
 def glb_bytes(mesh: MeshModel, name: str = "scan", provenance: Mapping[str, Any] | None = None,
               draco: bool = False) -> bytes:
-    """The mesh as one GLB file (bytes): ``provenance`` in ``asset.extras.scanpipe``, the
-    geometry Draco-compressed with ``draco``."""
+    """:func:`glb_pieces` joined: the GLB as one bytes object (to embed it elsewhere)."""
+    return file_bytes(glb_pieces(mesh, name, provenance, draco))
+
+
+def glb_pieces(mesh: MeshModel, name: str = "scan",
+               provenance: Mapping[str, Any] | None = None, draco: bool = False) -> Pieces:
+    """The mesh as one GLB file, in pieces (the arrays' buffers are not joined):
+    ``provenance`` in ``asset.extras.scanpipe``, the geometry Draco-compressed with
+    ``draco``."""
     if len(mesh.faces) == 0:
         raise ExportError("mesh has no faces: a glTF mesh needs at least one triangle")
     normals = unit_normals(mesh)
@@ -217,9 +225,9 @@ def glb_bytes(mesh: MeshModel, name: str = "scan", provenance: Mapping[str, Any]
     text = json.dumps(document, separators=(",", ":")).encode()
     text += b" " * ((-len(text)) % 4)
     total = 12 + 8 + len(text) + 8 + builder.offset
-    # one join of every piece: the binary chunk is never assembled on its own
-    return b"".join([
+    # the pieces as they are: neither the binary chunk nor the file is assembled
+    return Pieces((
         struct.pack("<4sII", b"glTF", 2, total),
         struct.pack("<I4s", len(text), b"JSON"), text,
         struct.pack("<I4s", builder.offset, b"BIN\0"), *builder.blobs,
-    ])
+    ))

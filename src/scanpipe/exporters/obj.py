@@ -6,7 +6,8 @@
   Kd, so anything but white would tint it); faces are grouped per page under ``usemtl``.
 - Every file name derives from the output stem (``room.obj``, ``room.mtl``,
   ``room_page0.png``), with relative paths, so two exports into one folder never collide.
-- Lines are formatted column-wise with numpy (:mod:`scanpipe.exporters.textfmt`).
+- Lines are formatted column-wise with numpy (:mod:`scanpipe.exporters.textfmt`), in blocks
+  that stay apart (:class:`~scanpipe.artifacts.Pieces`): the text is held once, never joined.
 """
 
 from __future__ import annotations
@@ -16,8 +17,10 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from scanpipe import __version__
+from scanpipe.artifacts import FileData, Pieces
 from scanpipe.errors import ExportError
 from scanpipe.exporters.model import (
     PROVENANCE_TAG,
@@ -44,30 +47,45 @@ def page_file_name(stem: str, page: int) -> str:
     return f"{safe_stem(stem)}_page{page}.png"
 
 
-def _face_lines(faces: np.ndarray, vt: np.ndarray | None, with_normals: bool) -> list[bytes]:
-    """``f`` lines for ``faces`` (0-based) with 1-based ``v[/vt][/vn]`` references; ``vt``
-    (same shape as ``faces``, 0-based) gives each corner's texture coordinate."""
-    rows = len(faces)
-    if rows == 0:
-        return []
-    parts: list[Part] = [b"f "]
-    for k in range(3):
-        if k:
-            parts.append(b" ")
-        v = Ints(np.ascontiguousarray(faces[:, k]) + 1)
-        parts.append(v)
-        if vt is not None:
-            parts += [b"/", Ints(np.ascontiguousarray(vt[:, k]) + 1)]
-            if with_normals:
-                parts += [b"/", v]
-        elif with_normals:
-            parts += [b"//", v]
-    return render_blocks(rows, parts)
+#: Faces formatted per slice: the index columns :func:`_face_lines` makes (six of them, with
+#: the ``+ 1``) are temporaries of one slice, not of the whole mesh (≈ 300 MB at 4.8 M faces).
+FACE_SLICE = 1 << 18
+
+
+def _face_lines(faces: NDArray[np.integer], rows: NDArray[np.integer] | None,
+                vt: NDArray[np.integer] | int | None, with_normals: bool,
+                vt_offset: int = 0) -> list[bytes]:
+    """``f`` lines for the faces ``faces[rows]`` (all with ``rows`` None; 0-based) with
+    1-based ``v[/vt][/vn]`` references; ``vt`` gives each corner's texture coordinate (an
+    array of ``(len(rows), 3)``, 0-based, plus ``vt_offset``) or one for every corner (an
+    int)."""
+    count = len(faces) if rows is None else len(rows)
+    out: list[bytes] = []
+    for start in range(0, count, FACE_SLICE):
+        stop = min(count, start + FACE_SLICE)
+        group = faces[start:stop] if rows is None else faces[rows[start:stop]]
+        corners = (None if vt is None else
+                   np.full(group.shape, vt) if isinstance(vt, int) else vt[start:stop] + vt_offset)
+        parts: list[Part] = [b"f "]
+        for k in range(3):
+            if k:
+                parts.append(b" ")
+            v = Ints(group[:, k] + 1)
+            parts.append(v)
+            if corners is not None:
+                parts += [b"/", Ints(corners[:, k] + 1)]
+                if with_normals:
+                    parts += [b"/", v]
+            elif with_normals:
+                parts += [b"//", v]
+        out += render_blocks(stop - start, parts)
+    return out
 
 
 def obj_files(mesh: MeshModel, stem: str,
-              provenance: Mapping[str, Any] | None = None) -> dict[str, bytes]:
-    """The OBJ export of ``mesh`` as ``{file name: bytes}`` (``<stem>.obj`` comes first), with
+              provenance: Mapping[str, Any] | None = None) -> dict[str, FileData]:
+    """The OBJ export of ``mesh`` as ``{file name: content}`` (``<stem>.obj`` comes first, as
+    :class:`~scanpipe.artifacts.Pieces`), with
     the ``provenance`` record as a ``# scanpipe-provenance {json}`` comment in OBJ and MTL."""
     finite = np.isfinite(mesh.vertices).all(axis=1)
     if not finite.all():  # OBJ text has no number for them: refuse rather than print garbage
@@ -80,7 +98,7 @@ def obj_files(mesh: MeshModel, stem: str,
     record = f"{PROVENANCE_TAG} {provenance_bytes(provenance or {}).decode()}"
     chunks: list[bytes] = [f"# scanpipe {__version__} OBJ export; y up, metres\n# {record}\n"
                            .encode()]
-    files: dict[str, bytes] = {}
+    files: dict[str, FileData] = {}
     normals = unit_normals(mesh)
     textured = mesh.textured
     if textured:
@@ -99,8 +117,8 @@ def obj_files(mesh: MeshModel, stem: str,
         chunks += float_rows(b"v ", mesh.vertices, 6)
     chunks += float_rows(b"vn ", normals, 5)
     if not textured:
-        chunks += _face_lines(mesh.faces, None, True)
-        files[obj_name] = b"".join(chunks)
+        chunks += _face_lines(mesh.faces, None, None, True)
+        files[obj_name] = Pieces(tuple(chunks))
         return files
 
     assert mesh.face_pages is not None and mesh.face_uvs is not None
@@ -122,7 +140,7 @@ def obj_files(mesh: MeshModel, stem: str,
     page_ids, starts, counts = np.unique(pages_sorted, return_index=True, return_counts=True)
     for page, start, count in zip(page_ids.tolist(), starts.tolist(), counts.tolist(),
                                   strict=True):
-        group = mesh.faces[order[start:start + count]]
+        rows = order[start:start + count]
         if page < 0:
             material = f"{base}_untextured"
             plain_name = f"{base}_untextured.png"
@@ -130,7 +148,7 @@ def obj_files(mesh: MeshModel, stem: str,
                     "d 1", "illum 1", f"map_Kd {plain_name}"]
             files[plain_name] = encode_png(np.full((2, 2, 3), UNTEXTURED_GREY, np.uint8))
             chunks.append(f"usemtl {material}\n".encode())
-            chunks += _face_lines(group, np.full(group.shape, plain_vt), True)
+            chunks += _face_lines(mesh.faces, rows, plain_vt, True)
             continue
         material = f"{base}_page{page}"
         png = page_file_name(stem, page)
@@ -138,6 +156,8 @@ def obj_files(mesh: MeshModel, stem: str,
                 "illum 1", f"map_Kd {png}"]
         files[png] = mesh.pages[page]
         chunks.append(f"usemtl {material}\n".encode())
-        chunks += _face_lines(group, splits[page][2].reshape(-1, 3) + vt_start[page], True)
-    files = {obj_name: b"".join(chunks), mtl_name: ("\n".join(mtl) + "\n").encode(), **files}
+        # the page's faces in index order, as its split has its corners
+        chunks += _face_lines(mesh.faces, rows, splits[page][2].reshape(-1, 3), True,
+                              vt_start[page])
+    files = {obj_name: Pieces(tuple(chunks)), mtl_name: ("\n".join(mtl) + "\n").encode(), **files}
     return files

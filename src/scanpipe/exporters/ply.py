@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from scanpipe import __version__
+from scanpipe.artifacts import Pieces, file_bytes
 from scanpipe.errors import ExportError
 from scanpipe.exporters.model import (
     PROVENANCE_TAG,
@@ -88,7 +89,18 @@ def _header(comment: str, vertex_count: int, properties: list[str],
     return ("\n".join(lines) + "\n").encode()
 
 
+def _raw(records: NDArray[Any]) -> memoryview:
+    """The bytes of a contiguous array of records, without a copy."""
+    raw: Any = np.ascontiguousarray(records).view(np.uint8)
+    return memoryview(raw)
+
+
 def ply_mesh_bytes(mesh: MeshModel, provenance: Mapping[str, Any] | None = None) -> bytes:
+    """:func:`ply_mesh_pieces` joined into one bytes object."""
+    return file_bytes(ply_mesh_pieces(mesh, provenance))
+
+
+def ply_mesh_pieces(mesh: MeshModel, provenance: Mapping[str, Any] | None = None) -> Pieces:
     """A binary PLY of the mesh with normals and vertex colours (from the texture if needed),
     the ``provenance`` record in a header comment."""
     colors = mesh.colors if mesh.colors is not None else vertex_colors_from_texture(mesh)
@@ -110,10 +122,16 @@ def ply_mesh_bytes(mesh: MeshModel, provenance: Mapping[str, Any] | None = None)
     faces["i"] = mesh.faces
     header = _header(f"scanpipe {__version__} mesh; y up, metres", len(vertices), properties,
                      len(faces), provenance)
-    return header + vertices.tobytes() + faces.tobytes()
+    return Pieces((header, _raw(vertices), _raw(faces)))
 
 
 def ply_cloud_bytes(cloud: CloudModel, provenance: Mapping[str, Any] | None = None) -> bytes:
+    """:func:`ply_cloud_pieces` joined into one bytes object."""
+    return file_bytes(ply_cloud_pieces(cloud, provenance))
+
+
+def ply_cloud_pieces(cloud: CloudModel, provenance: Mapping[str, Any] | None = None
+                     ) -> Pieces:
     """A binary PLY of the points with intensity (echo) and colour when present, the
     ``provenance`` record in a header comment."""
     fields: list[tuple[str, str]] = [(n, "<f4") for n in ("x", "y", "z")]
@@ -134,4 +152,4 @@ def ply_cloud_bytes(cloud: CloudModel, provenance: Mapping[str, Any] | None = No
             vertices[n] = cloud.colors[:, j]
     header = _header(f"scanpipe {__version__} points; y up, metres", len(vertices),
                      properties, None, provenance)
-    return header + vertices.tobytes()
+    return Pieces((header, _raw(vertices)))

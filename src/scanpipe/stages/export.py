@@ -1,7 +1,8 @@
 """Export: artifacts to files other tools open (OBJ, GLB, PLY, LAS/LAZ, E57, Foxglove MCAP,
 COLMAP).
 
-Pure: :func:`export_files` turns tables into ``{file name: bytes}`` (the shape of
+Pure: :func:`export_files` turns tables into ``{file name: content}`` (bytes, or
+:class:`~scanpipe.artifacts.Pieces` for the large OBJ/GLB/PLY files; the shape of
 :attr:`scanpipe.stage.StageResult.files`), and the chain's export stage is that plus a
 manifest. Writing files for ``scanpipe export`` is the shell's: :mod:`scanpipe.exporting`.
 
@@ -19,7 +20,6 @@ writes every format from the same tables, with the provenance of the exported ar
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, Literal
@@ -29,10 +29,10 @@ import pyarrow as pa
 from pydantic import Field
 
 from scanpipe import __version__
-from scanpipe.artifacts import PROVENANCE_KEY
+from scanpipe.artifacts import PROVENANCE_KEY, FileData, file_sha256, file_size
 from scanpipe.errors import ArtifactError, ExportError, UsageError
 from scanpipe.exporters.e57 import E57Image, e57_bytes
-from scanpipe.exporters.glb import glb_bytes
+from scanpipe.exporters.glb import glb_pieces
 from scanpipe.exporters.las import LAS_VERSIONS, las_bytes, pdal_pipeline_bytes
 from scanpipe.exporters.mcap_foxglove import camera_views_from_tables, foxglove_export_files
 from scanpipe.exporters.model import (
@@ -44,7 +44,7 @@ from scanpipe.exporters.model import (
     rig_to_z_up,
 )
 from scanpipe.exporters.obj import obj_files
-from scanpipe.exporters.ply import ply_cloud_bytes, ply_mesh_bytes
+from scanpipe.exporters.ply import ply_cloud_pieces, ply_mesh_pieces
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.stage import Stage, StageResult
@@ -138,7 +138,7 @@ def prepare_tables(tables: Mapping[str, pa.Table], colors: bool = True,
 def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
                  las_version: str = "1.2", draco: bool = False,
                  models: tuple[MeshModel | None, CloudModel | None] | None = None
-                 ) -> dict[str, bytes]:
+                 ) -> dict[str, FileData]:
     """The files of one export, by name; the first is the main file. ``tables`` as
     :func:`prepare_tables` gives them; ``draco`` compresses a GLB's geometry. ``models`` is
     :func:`models_from_tables` of ``tables`` when the caller has it (built once per stage)."""
@@ -154,11 +154,11 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
         if fmt == "obj":
             return obj_files(mesh, stem, provenance)
         if fmt == "glb":
-            return {f"{stem}.glb": glb_bytes(mesh, stem, provenance, draco)}
-        return {f"{stem}.ply": ply_mesh_bytes(mesh, provenance)}
+            return {f"{stem}.glb": glb_pieces(mesh, stem, provenance, draco)}
+        return {f"{stem}.ply": ply_mesh_pieces(mesh, provenance)}
     if fmt == "mcap":
-        return foxglove_export_files(cloud, mesh, stem, camera_views_from_tables(tables),
-                                     provenance_of(tables))
+        return {**foxglove_export_files(cloud, mesh, stem, camera_views_from_tables(tables),
+                                        provenance_of(tables))}
     provenance = provenance_of({k: v for k, v in tables.items() if k == "points"})
     if fmt == "colmap":
         return _colmap(tables, cloud, stem, provenance)
@@ -166,7 +166,7 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
         raise ArtifactError(f"{fmt} export needs a points artifact; found: "
                             f"{', '.join(sorted(tables)) or 'nothing'}")
     if fmt == "ply":
-        return {f"{stem}.ply": ply_cloud_bytes(cloud, provenance)}
+        return {f"{stem}.ply": ply_cloud_pieces(cloud, provenance)}
     if fmt in ("las", "laz"):
         return {f"{stem}.{fmt}": las_bytes(cloud, compressed=fmt == "laz", version=las_version,
                                            provenance=provenance),
@@ -208,7 +208,7 @@ def _chosen_frames(tables: Mapping[str, pa.Table]) -> tuple[
 
 
 def _colmap(tables: Mapping[str, pa.Table], cloud: CloudModel | None, stem: str,
-            provenance: Mapping[str, Any]) -> dict[str, bytes]:
+            provenance: Mapping[str, Any]) -> dict[str, FileData]:
     missing = [n for n in CAMERA_ARTIFACTS if n not in tables]
     if missing or tables["frames"].num_rows == 0:
         raise ArtifactError("colmap export needs camera frames (frames, motor and rig "
@@ -219,8 +219,8 @@ def _colmap(tables: Mapping[str, pa.Table], cloud: CloudModel | None, stem: str,
     if not cameras:
         raise ArtifactError("colmap export needs frames of a pinhole camera; the rig's are "
                             "360° (equirect), which COLMAP has no model for")
-    return colmap_files(stem, cameras, poses, encoded, names, cloud,
-                        provenance_bytes(provenance).decode())
+    return {**colmap_files(stem, cameras, poses, encoded, names, cloud,
+                           provenance_bytes(provenance).decode())}
 
 
 #: The E57 camera frame as CloudCompare's E57 reader uses it (the image pose becomes a
@@ -301,7 +301,7 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
     if params.name == params.cloud_name:
         raise UsageError(f"export.name and export.cloud_name are both {params.name!r}: "
                          "the mesh and the cloud files would overwrite each other")
-    files: dict[str, bytes] = {}
+    files: dict[str, FileData] = {}
     tables, coloured = prepare_tables(
         inputs, params.cloud_colors and bool(params.cloud_formats or "mcap" in
                                              params.mesh_formats), progress)
@@ -313,24 +313,32 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
         (fmt, tables if fmt == "mcap" else mesh_tables, params.name)
         for fmt in params.mesh_formats]
     jobs += [(fmt, cloud_tables, params.cloud_name) for fmt in params.cloud_formats]
-    # each model is checked and built once, not once per format
-    mesh = models_from_tables(mesh_tables)[0]
-    cloud = models_from_tables(cloud_tables)[1]
-    for done, (fmt, job_tables, stem) in enumerate(jobs):
+    # Each model is checked and built once, not once per format: the mesh's before the first
+    # job that needs it, dropped after the last one; the cloud's only then (the mesh formats
+    # come first), so the two models never share the peak of the OBJ text.
+    uses = [(fmt == "mcap" or job_tables is mesh_tables,
+             fmt == "mcap" or job_tables is cloud_tables) for fmt, job_tables, _ in jobs]
+    mesh: MeshModel | None = None
+    cloud: CloudModel | None = None
+    for done, ((fmt, job_tables, stem), (use_mesh, use_cloud)) in enumerate(
+            zip(jobs, uses, strict=True)):
         progress("export", done, len(jobs))
-        models = (mesh, cloud) if fmt == "mcap" else (
-            (mesh, None) if job_tables is mesh_tables else (None, cloud))
+        if use_mesh and mesh is None:
+            mesh = models_from_tables(mesh_tables)[0]
+        if use_cloud and cloud is None:
+            cloud = models_from_tables(cloud_tables)[1]
         files.update(export_files(job_tables, fmt, stem, params.las_version, params.glb_draco,
-                                  models))
+                                  (mesh if use_mesh else None, cloud if use_cloud else None)))
+        if not any(later for later, _ in uses[done + 1:]):
+            mesh = None
     progress("export", len(jobs), len(jobs))
     manifest = pa.table({
         "file": pa.array(list(files), pa.string()),
-        "bytes": pa.array([len(data) for data in files.values()], pa.int64()),
-        "sha256": pa.array([hashlib.sha256(data).hexdigest() for data in files.values()],
-                           pa.string()),
+        "bytes": pa.array([file_size(data) for data in files.values()], pa.int64()),
+        "sha256": pa.array([file_sha256(data) for data in files.values()], pa.string()),
     })
     return StageResult({"export_manifest": manifest},
-                       {"files": {name: len(data) for name, data in files.items()},
+                       {"files": {name: file_size(data) for name, data in files.items()},
                         "cloud_coloured": coloured}, files)
 
 

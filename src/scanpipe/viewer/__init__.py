@@ -49,13 +49,14 @@ def model_glb(workdir: Path, draco: bool = True) -> bytes:
     """The workdir's textured model as GLB bytes (the same as ``export -f glb``, with
     ``draco`` as ``--draco``: the page decodes it with the bundled decoder and is about three
     times smaller)."""
+    from scanpipe.artifacts import file_bytes
     from scanpipe.exporting import load_tables
     from scanpipe.stages.export import export_files
 
     if not workdir.is_dir():
         raise UsageError(f"{workdir}: not a folder (give a workdir or a folder of artifacts)")
     files = export_files(load_tables(workdir, "glb"), "glb", "model", draco=draco)
-    return files["model.glb"]
+    return file_bytes(files["model.glb"])
 
 
 def _inline_script(text: str) -> str:

@@ -1,0 +1,107 @@
+"""Large export files as pieces (``scanpipe.artifacts.Pieces``): written and hashed piece by
+piece, the same bytes as joined, the chain's export identical to ``scanpipe export``."""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from pathlib import Path
+
+import pyarrow as pa
+import pytest
+from result_tables import points_table, textured_box
+
+from scanpipe.artifacts import (
+    Pieces,
+    file_bytes,
+    file_sha256,
+    file_size,
+    read_artifact,
+    write_artifact,
+    write_together,
+)
+from scanpipe.errors import ArtifactError
+from scanpipe.exporters import obj, textfmt
+from scanpipe.progress import no_progress
+from scanpipe.stages.export import INPUT_ARTIFACTS, ExportStageParams, export_stage
+from scanpipe.workdir import find_artifacts
+
+
+def _sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def test_pieces_hash_size_and_write_as_the_joined_bytes(tmp_path: Path) -> None:
+    import numpy as np
+
+    array = np.arange(1000, dtype=np.float32)
+    pieces = Pieces((b"head\n", memoryview(array).cast("B"), b"", b"tail"))
+    joined = b"head\n" + array.tobytes() + b"tail"
+    assert file_bytes(pieces) == joined
+    assert file_size(pieces) == len(joined) == 4009
+    assert file_sha256(pieces) == _sha(joined)
+    out = tmp_path / "stage"
+    write_together(out, "stage", {}, {"big.bin": pieces, "sub/small.txt": b"x"}, True)
+    assert (out / "big.bin").read_bytes() == joined
+    assert (out / "sub" / "small.txt").read_bytes() == b"x"
+
+
+def test_a_failed_write_of_pieces_keeps_the_previous_set(tmp_path: Path) -> None:
+    out = tmp_path / "flat"
+    out.mkdir()
+    (out / "a.obj").write_bytes(b"old a")
+    (out / "b.glb").mkdir()  # a folder where a file of the set must go
+    with pytest.raises(ArtifactError, match=r"b\.glb: is a folder"):
+        write_together(out, "export", {}, {"a.obj": Pieces((b"new ", b"a")), "b.glb": b"b"},
+                       False)
+    assert (out / "a.obj").read_bytes() == b"old a"
+    assert sorted(p.name for p in out.iterdir()) == ["a.obj", "b.glb"]
+
+
+@pytest.fixture
+def workdir(tmp_path: Path) -> Path:
+    """Artifacts of a textured box and a cloud, as a run leaves them (provenance and all)."""
+    root = tmp_path / "work"
+    box = textured_box()
+    for stage, tables in (("filter", {"points": points_table(profiles=5, seed=3)}),
+                          ("mesh", {k: box[k] for k in ("mesh_vertices", "mesh_faces")}),
+                          ("texture", {k: box[k] for k in ("textured_faces",
+                                                            "texture_pages")})):
+        for name, table in tables.items():
+            write_artifact(root / stage / f"{name}.parquet", table,
+                           {"stage": stage, "key": f"{stage}-key", "rows": table.num_rows})
+    return root
+
+
+def test_chain_export_equals_scanpipe_export_and_its_manifest(
+        cli: Callable, workdir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stage's files, written by ``write_together`` piece by piece (many pieces: tiny
+    slices and blocks), are byte for byte ``scanpipe export``'s; the manifest's sizes and
+    digests are the written files'."""
+    monkeypatch.setattr(obj, "FACE_SLICE", 3)
+    monkeypatch.setattr(textfmt, "BLOCK_ROWS", 2)
+    tables: dict[str, pa.Table] = {
+        name: read_artifact(path)[0]
+        for name, path in find_artifacts(workdir, INPUT_ARTIFACTS).items()}
+    result = export_stage(tables, ExportStageParams(), no_progress)
+    assert isinstance(result.files["model.obj"], Pieces)
+    assert len(result.files["model.obj"].parts) > 4
+    manifest = result.tables["export_manifest"]
+    stage_dir = tmp_path / "run" / "export"
+    write_together(stage_dir, "export",
+                   {"export_manifest": (manifest, {"stage": "export"})}, result.files, True)
+    written = {row["file"]: (stage_dir / row["file"]).read_bytes()
+               for row in manifest.to_pylist()}
+    assert set(written) == set(result.files)
+    for row in manifest.to_pylist():
+        assert row["bytes"] == len(written[row["file"]])
+        assert row["sha256"] == _sha(written[row["file"]])
+    assert (stage_dir / "export_manifest.parquet").is_file()
+
+    out = tmp_path / "cli"
+    for fmt in ("obj", "glb"):
+        run = cli("export", workdir, "--format", fmt, "--out", out / f"model.{fmt}")
+        assert run.code == 0, run.err
+    exported = {p.name: p.read_bytes() for p in out.iterdir()}
+    mesh_files = {k: v for k, v in written.items() if k.startswith("model")}
+    assert exported == mesh_files
