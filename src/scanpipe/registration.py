@@ -34,6 +34,12 @@ Kernel functions over numpy arrays (Open3D for the features, RANSAC and the coar
    is reported, never averaged in. An ambiguous pair whose scans the graph already joins is
    resolved by that loop when exactly one of its hypotheses agrees with it (the pair is then
    refined and added, and the graph re-run); a scan reached by no kept pair gets no pose.
+   Then the loop-closing round (:func:`close_loops`): every pair still left out between two
+   placed scans is refined once more, started from the relative pose the graph implies, and
+   joins when it passes the pair checks and agrees with that pose within the covariances
+   (the misclosure's squared Mahalanobis distance under the pair's covariance plus the implied
+   pose's ≤ ``loop_gate_chi2``); the graph is re-run. Without a prior, the pairs two steps
+   apart (15–30 % overlap) often get no valid RANSAC hypothesis, which left bare chains.
 4. Check: every two registered scans (neighbours or not) are tested for free-space conflict at
    their final poses; a conflict is a warning naming both scans (one of them is misplaced).
 5. Gauge: scan 0 at the identity, or with a prior, the rigid transform that best fits the
