@@ -126,7 +126,8 @@ def register_case(seed: int, case: str, root: Path, workdirs: list[str]) -> dict
                       **{k: v for k, v in checks.get(name, {}).items() if k != "scan"}})
     return {"seed": seed, "case": case, "timings": timings, "scans": scans,
             "pairs_kept": report["pairs_kept"], "pairs_rejected": report["pairs_rejected"],
-            "unregistered": report["unregistered"], "warnings": report["warnings"]}
+            "unregistered": report["unregistered"], "warnings": report["warnings"],
+            "loop_closures": report.get("loop_closures", [])}
 
 
 CASES = ("no prior", "wrong prior")

@@ -98,6 +98,13 @@ def test_register_site_without_prior(cli: Callable[..., Any], small_site: Path) 
     # the look-alike rooms were offered and refused by free space, not silently taken
     refused = [p for p in report["pairs"] if "free space" in p["reason"]]
     assert refused, report["pairs"]
+    # the pairs two steps apart that RANSAC gave no valid placement were tried again from the
+    # graph's poses and joined within the χ² gate (seed 0: pos01–pos03), marked as such
+    closed = [r for r in report["loop_closures"] if r["accepted"]]
+    assert closed, report["loop_closures"]
+    assert all(r["chi2"] <= 16.81 for r in closed)
+    from_graph = [p for p in report["pairs"] if p["init"] == "graph"]
+    assert len(from_graph) == len(closed) and all(p["accepted"] for p in from_graph)
 
 
 def test_register_site_with_wrong_prior(cli: Callable[..., Any], small_site: Path) -> None:

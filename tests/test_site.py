@@ -22,12 +22,16 @@ from scanpipe.poses import (
 from scanpipe.registration import (
     PairResult,
     RegisterParams,
+    close_loops,
     covariances,
     error_twists,
+    information_covariance,
+    joint_covariance,
     normalised_errors,
     pair_information,
     prepare_scan,
     refine,
+    relative_covariance,
     variance_factor,
 )
 from scanpipe.sim.site import prior_poses, scene_pose_for, site_positions
@@ -234,3 +238,74 @@ def test_pose_graph_weighs_pairs_by_their_information() -> None:
     assert pose_error(loop[2], truth[2])[0] < 0.006 * 0.03  # equal weights: a third
     agree = _optimise(list(truth), [pair(0, 1, 1e6), pair(1, 2, 1e6), pair(0, 2, 1e4)])
     assert all(pose_error(a, b)[0] < 1e-9 for a, b in zip(agree, truth, strict=True))
+
+
+def test_relative_covariance_along_a_chain() -> None:
+    """The covariance of the relative pose the graph implies: along a bare chain 0–1–2 it is
+    the pair's own for neighbours, and Σ₀₁ + Ad(T₀₁) Σ₁₂ Ad(T₀₁)ᵀ for the ends."""
+    from scanpipe.registration import _adjoint
+
+    rng = np.random.default_rng(3)
+    poses = [np.eye(4), pose_matrix((0, 30, 0), (2, 0, 0.5)),
+             pose_matrix((0, -20, 5), (3, 0.4, 2))]
+    informations = []
+    for _ in range(2):
+        a = rng.normal(size=(6, 6))
+        informations.append(a @ a.T + 6 * np.eye(6))
+    pairs = [PairResult(k, k + 1, invert(poses[k]) @ poses[k + 1], 0.5, 0.01, "ransac", True,
+                        "", pose_information=informations[k]) for k in range(2)]
+    joint = joint_covariance(poses, pairs)
+    assert joint is not None and not joint[:6].any()  # scan 0 fixed
+    sigma = [np.linalg.inv(i) for i in informations]
+    assert np.allclose(relative_covariance(joint, poses, 1, 2), sigma[1], atol=1e-9)
+    assert np.allclose(relative_covariance(joint, poses, 0, 1), sigma[0], atol=1e-9)
+    turn = _adjoint(pairs[0].transform)
+    assert np.allclose(relative_covariance(joint, poses, 0, 2),
+                       sigma[0] + turn @ sigma[1] @ turn.T, atol=1e-9)
+    # a direction a pair does not constrain gets a large variance, not zero (pinv's)
+    flat = np.diag([1e6, 1e6, 1e6, 0.0, 1e6, 1e6])
+    assert information_covariance(flat)[3, 3] >= 1e5
+
+
+def _three_scans_of_a_room(params: RegisterParams) -> list[Any]:
+    rng = np.random.default_rng(11)
+    clouds = []
+    for name in ("a", "b", "c"):
+        xyz, normals = _room(rng, 6_000, 0.0, 0.01)
+        origin = np.tile([0.0, 1.5, 0.0], (len(xyz), 1))
+        clouds.append(prepare_scan(name, xyz, origin, params, normals))
+    return clouds
+
+
+def test_loop_closing_pair_is_gated_by_covariance() -> None:
+    """Three scans of one room (all at the identity) chained a–b–c; the pair a–c had no valid
+    hypothesis. Started from the pose the chain implies, it joins when it agrees with that pose
+    within the covariances (χ² small); when the chain is 2 cm off (b–c measured 2 cm wrong, the
+    graph sure of it), the ICP still finds the true placement, 2 cm from the implied pose:
+    refused by the χ² gate with the reason, never averaged in."""
+    params = RegisterParams(fine_source_points=6000)
+    clouds = _three_scans_of_a_room(params)
+
+    def attempt(shift: Any) -> tuple[list[dict[str, Any]], PairResult]:
+        chain = [PairResult(0, 1, np.eye(4), 0.9, 0.01, "ransac", True),
+                 PairResult(1, 2, shift, 0.9, 0.01, "ransac", True)]
+        for p in chain:
+            p.pose_information = pair_information(clouds[p.source], clouds[p.target],
+                                                  np.eye(4), params)
+        loop = PairResult(0, 2, np.eye(4), 0.0, 0.0, "none", False, "no hypothesis")
+        poses = [np.eye(4), np.eye(4), shift]
+        return close_loops(clouds, [*chain, loop], list(poses), chain, params), loop
+
+    records, loop = attempt(np.eye(4))
+    assert len(records) == 1 and records[0]["accepted"], records
+    assert records[0]["chi2"] <= params.loop_gate_chi2
+    assert loop.accepted and loop.init == "graph" and loop.pose_information.any()
+    assert pose_error(loop.transform, np.eye(4))[0] < 0.005
+
+    records, loop = attempt(pose_matrix((0, 0, 0), (0.02, 0, 0)))
+    assert len(records) == 1 and not records[0]["accepted"], records
+    assert records[0]["chi2"] > params.loop_gate_chi2
+    assert "from the pose the graph implies" in records[0]["reason"]
+    assert "loop_gate_chi2" in records[0]["reason"]
+    assert 0.015 <= records[0]["from_graph_m"] <= 0.025
+    assert not loop.accepted and loop.reason == "no hypothesis"

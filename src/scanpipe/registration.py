@@ -34,6 +34,12 @@ Kernel functions over numpy arrays (Open3D for the features, RANSAC and the coar
    is reported, never averaged in. An ambiguous pair whose scans the graph already joins is
    resolved by that loop when exactly one of its hypotheses agrees with it (the pair is then
    refined and added, and the graph re-run); a scan reached by no kept pair gets no pose.
+   Then the loop-closing round (:func:`close_loops`): every pair still left out between two
+   placed scans is refined once more, started from the relative pose the graph implies, and
+   joins when it passes the pair checks and agrees with that pose within the covariances
+   (the misclosure's squared Mahalanobis distance under the pair's covariance plus the implied
+   pose's ≤ ``loop_gate_chi2``); the graph is re-run. Without a prior, the pairs two steps
+   apart (15–30 % overlap) often get no valid RANSAC hypothesis, which left bare chains.
 4. Check: every two registered scans (neighbours or not) are tested for free-space conflict at
    their final poses; a conflict is a warning naming both scans (one of them is misplaced).
 5. Gauge: scan 0 at the identity, or with a prior, the rigid transform that best fits the
@@ -104,6 +110,11 @@ class RegisterParams(Params):
                                 "moves the scans this far from the prior's relative pose is "
                                 "not valid (a match to a look-alike place).")
     prior_gate_deg: float = Field(30.0, gt=0, le=180)
+    loop_gate_chi2: float = Field(16.81, gt=0, description="A loop-closing pair (one placed "
+                                  "from the pose the graph implies) joins the graph only when "
+                                  "its squared Mahalanobis distance from that pose, under the "
+                                  "pair's and the graph's covariance, is at most this (χ² with "
+                                  "6 degrees of freedom: 16.81 at 99 %).")
     covariance_cluster_m: float = Field(0.5, gt=0, le=10, description="Cell size within which "
                                         "the residuals of a pair's points count as "
                                         "correlated (the pose covariance's clusters).")
@@ -669,9 +680,10 @@ def _adjoint(pose: F64) -> F64:
     return adjoint
 
 
-def covariances(poses: list[F64], pairs: list[PairResult]) -> list[F64 | None]:
-    """Per-scan 6 × 6 covariance (site frame, rx ry rz tx ty tz) from the graph's information,
-    scan 0 fixed; None for scan 0 and when the system is singular."""
+def joint_covariance(poses: list[F64], pairs: list[PairResult]) -> F64 | None:
+    """The joint 6n × 6n covariance of all scans' poses (site frame, rx ry rz tx ty tz, left
+    perturbations) from the graph's information, scan 0 fixed (its rows zero); None when the
+    system is singular."""
     n = len(poses)
     hessian = np.zeros((6 * n, 6 * n))
     for p in pairs:
@@ -680,15 +692,52 @@ def covariances(poses: list[F64], pairs: list[PairResult]) -> list[F64 | None]:
         i, j = p.target, p.source
         for u, v, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
             hessian[6 * u:6 * u + 6, 6 * v:6 * v + 6] += sign * block
-    reduced = hessian[6:, 6:]
-    result: list[F64 | None] = [None] * n
+    joint = np.zeros((6 * n, 6 * n))
     try:
-        inverse = np.linalg.inv(reduced)
+        joint[6:, 6:] = np.linalg.inv(hessian[6:, 6:])
     except np.linalg.LinAlgError:
+        return None
+    return joint
+
+
+def covariances(poses: list[F64], pairs: list[PairResult]) -> list[F64 | None]:
+    """Per-scan 6 × 6 covariance (site frame, rx ry rz tx ty tz) from the graph's information,
+    scan 0 fixed; None for scan 0 and when the system is singular."""
+    joint = joint_covariance(poses, pairs)
+    result: list[F64 | None] = [None] * len(poses)
+    if joint is None:
         return result
-    for k in range(1, n):
-        result[k] = np.asarray(inverse[6 * k - 6:6 * k, 6 * k - 6:6 * k], np.float64)
+    for k in range(1, len(poses)):
+        result[k] = np.asarray(joint[6 * k:6 * k + 6, 6 * k:6 * k + 6], np.float64)
     return result
+
+
+def relative_covariance(joint: F64, poses: list[F64], target: int, source: int) -> F64:
+    """The covariance of the relative pose ``target⁻¹ · source`` the graph implies, in the
+    pairs' convention (target frame, ``implied = exp(δ) · implied₀``): δ = Ad(P_t⁻¹)(ξ_s − ξ_t)
+    with the two scans' correlated site-frame errors ξ from ``joint``."""
+    rows = [slice(6 * k, 6 * k + 6) for k in (source, target)]
+    difference = (joint[rows[0], rows[0]] + joint[rows[1], rows[1]]
+                  - joint[rows[0], rows[1]] - joint[rows[1], rows[0]])
+    a = _adjoint(invert(poses[target]))
+    return np.asarray(a @ difference @ a.T, np.float64)
+
+
+def misclosure(measured: F64, implied: F64) -> F64:
+    """The twist ``e`` (rx ry rz tx ty tz) with ``measured = exp(e) · implied``."""
+    from scipy.spatial.transform import Rotation
+
+    delta = measured @ invert(implied)
+    return np.concatenate([Rotation.from_matrix(delta[:3, :3]).as_rotvec(), delta[:3, 3]])
+
+
+def information_covariance(information: F64, unconstrained: float = 1e6) -> F64:
+    """A pair's covariance from its information; a direction the pair does not constrain
+    (zero information) gets the variance ``unconstrained`` instead of an infinite one."""
+    values, vectors = np.linalg.eigh((information + information.T) / 2.0)
+    floor = max(float(values.max()), 1e-300) * 1e-12
+    variance = np.where(values > floor, 1.0 / np.maximum(values, 1e-300), unconstrained)
+    return np.asarray((vectors * variance) @ vectors.T, np.float64)
 
 
 def variance_factor(poses: list[F64], pairs: list[PairResult]) -> tuple[float, int]:
@@ -698,16 +747,12 @@ def variance_factor(poses: list[F64], pairs: list[PairResult]) -> tuple[float, i
     loop. Above 1, the pairs disagree more than their covariances allow — their errors are
     correlated (pairs sharing a scan share its errors) — and the covariances are scaled up by
     it."""
-    from scipy.spatial.transform import Rotation
-
     dof = 6 * (len(pairs) - (len(poses) - 1))
     if dof <= 0:
         return 1.0, 0
     total = 0.0
     for p in pairs:
-        implied = invert(poses[p.target]) @ poses[p.source]
-        delta = p.transform @ invert(implied)  # measured = exp(e) · implied, target frame
-        e = np.concatenate([Rotation.from_matrix(delta[:3, :3]).as_rotvec(), delta[:3, 3]])
+        e = misclosure(p.transform, invert(poses[p.target]) @ poses[p.source])
         total += float(e @ p.pose_information @ e)
     return total / dof, dof
 
@@ -763,6 +808,82 @@ def _solve_graph(n: int, kept: list[PairResult], names: list[str], params: Regis
         kept = [p for p in kept if p is not inside[worst]]
 
 
+def _subgraph(poses: list[F64 | None], edges: list[PairResult]
+              ) -> tuple[list[int], list[F64], list[PairResult]]:
+    """The registered scans (their indices), their poses and the edges renumbered among
+    them."""
+    reached = [k for k, pose in enumerate(poses) if pose is not None]
+    sub = {old: new for new, old in enumerate(reached)}
+    sub_edges = [PairResult(sub[p.target], sub[p.source], p.transform, p.fitness, p.rmse_m,
+                            p.init, True, "", pose_information=p.pose_information)
+                 for p in edges if p.target in sub and p.source in sub]
+    return reached, [poses[k] for k in reached], sub_edges  # type: ignore[misc]
+
+
+def close_loops(clouds: list[ScanClouds], results: list[PairResult], poses: list[F64 | None],
+                edges: list[PairResult], params: RegisterParams) -> list[dict[str, Any]]:
+    """The second round: each pair left out (no valid hypothesis, or rejected) between two
+    scans the graph already places is refined by the fine ICP started from the relative pose
+    the graph implies, and joins (accepted, ``init`` "graph") when its overlap, residual and
+    free-space conflict pass and its result agrees with that pose within its covariance: the
+    squared Mahalanobis distance of the misclosure under the pair's covariance plus the
+    implied pose's (from the graph's joint covariance, scaled by its variance factor when
+    above 1) at most ``loop_gate_chi2``. A fixed distance gate either admits a pair that slid
+    a few mm along a door or rejects a sound pair along a long chain; the covariance knows
+    which directions each is sure of. Pairs that see less than half ``min_overlap`` of each
+    other at the implied pose are not tried. Returns one record per pair tried."""
+    reached, sub_poses, sub_edges = _subgraph(poses, edges)
+    joint = joint_covariance(sub_poses, sub_edges)
+    if joint is None:
+        return []
+    joint = joint * max(1.0, variance_factor(sub_poses, sub_edges)[0])
+    sub = {old: new for new, old in enumerate(reached)}
+    names = [c.name for c in clouds]
+    records: list[dict[str, Any]] = []
+    for pair in results:
+        if pair.accepted or pair.target not in sub or pair.source not in sub:
+            continue
+        source, target = clouds[pair.source], clouds[pair.target]
+        implied = invert(sub_poses[sub[pair.target]]) @ sub_poses[sub[pair.source]]
+        if plane_fit(source, target, implied, params)[0] < params.min_overlap / 2.0:
+            continue
+        record: dict[str, Any] = {"target": names[pair.target], "source": names[pair.source]}
+        transform, fitness, rmse = refine(source, target, implied, params)
+        conflict = pair_conflict(target, source, transform, params)
+        record.update(overlap=round(fitness, 4), rmse_m=round(rmse, 5),
+                      conflict=round(conflict, 4), chi2=None, accepted=False)
+        if fitness < params.min_overlap:
+            record["reason"] = f"overlap {fitness:.1%} < min_overlap {params.min_overlap:.0%}"
+        elif rmse > params.max_rmse_m:
+            record["reason"] = f"residual {rmse * 1000:.1f} mm > max_rmse_m"
+        elif conflict > params.max_conflict:
+            record["reason"] = (f"{conflict:.1%} of the points lie in the other scan's free "
+                                f"space (max_conflict {params.max_conflict:.0%})")
+        else:
+            information = pair_information(source, target, transform, params)
+            spread = (information_covariance(information)
+                      + relative_covariance(joint, sub_poses, sub[pair.target],
+                                            sub[pair.source]))
+            e = misclosure(transform, implied)
+            chi2 = float(e @ np.linalg.solve(spread, e))
+            dt, dr = pose_error(transform, implied)
+            record.update(chi2=round(chi2, 2), from_graph_m=round(dt, 5),
+                          from_graph_deg=round(dr, 4))
+            if chi2 > params.loop_gate_chi2:
+                record["reason"] = (f"{dt * 1000:.1f} mm / {dr:.3f}° from the pose the graph "
+                                    f"implies: χ² {chi2:.1f} > loop_gate_chi2 "
+                                    f"{params.loop_gate_chi2:g}")
+            else:
+                record.update(accepted=True, reason="")
+                pair.transform, pair.fitness, pair.rmse_m = transform, fitness, rmse
+                pair.conflict, pair.pose_information = conflict, information
+                pair.init, pair.accepted = "graph", True
+                pair.reason = (f"no valid hypothesis alone; placed from the graph's pose, "
+                               f"χ² {chi2:.1f} within loop_gate_chi2")
+        records.append(record)
+    return records
+
+
 def register_scans(clouds: list[ScanClouds], params: RegisterParams,
                    prior: list[F64] | None = None, progress: Any = None
                    ) -> tuple[list[F64 | None], list[F64 | None], dict[str, Any]]:
@@ -799,6 +920,11 @@ def register_scans(clouds: list[ScanClouds], params: RegisterParams,
     if resolved:
         kept = [p for p in results if p.accepted]
         poses, edges, dropped = _solve_graph(n, kept, names, params)
+    # pairs that closed no loop alone: once more from the graph's poses, gated by covariance
+    loops = close_loops(clouds, results, poses, edges, params)
+    if any(record["accepted"] for record in loops):
+        kept = [p for p in results if p.accepted]
+        poses, edges, dropped = _solve_graph(n, kept, names, params)
     for record in dropped:
         warnings.append(f"pair {record['target']}–{record['source']} disagrees with the other "
                         f"pairs by {record['disagreement_m'] * 1000:.1f} mm / "
@@ -827,11 +953,7 @@ def register_scans(clouds: list[ScanClouds], params: RegisterParams,
     if prior is not None:
         gauge = _fit_to_prior([poses[k] for k in reached],  # type: ignore[misc]
                               [prior[k] for k in reached])
-    sub = {old: new for new, old in enumerate(reached)}
-    sub_edges = [PairResult(sub[p.target], sub[p.source], p.transform, p.fitness, p.rmse_m,
-                            p.init, True, "", pose_information=p.pose_information)
-                 for p in edges]
-    sub_poses: list[F64] = [poses[k] for k in reached]  # type: ignore[misc]
+    _, sub_poses, sub_edges = _subgraph(poses, edges)
     sub_cov = covariances(sub_poses, sub_edges)
     factor, dof = variance_factor(sub_poses, sub_edges)
     sub_cov = [None if c is None else c * max(1.0, factor) for c in sub_cov]
@@ -854,7 +976,7 @@ def register_scans(clouds: list[ScanClouds], params: RegisterParams,
               "pairs_ambiguous": [{"target": names[p.target], "source": names[p.source],
                                    "reason": p.reason} for p in results
                                   if p.ambiguous and not p.accepted],
-              "pairs_resolved_by_loop": resolved,
+              "pairs_resolved_by_loop": resolved, "loop_closures": loops,
               "edges_dropped": dropped, "unregistered": missing, "conflicts": conflicts,
               "warnings": warnings,
               "covariance_variance_factor": {"value": round(factor, 3), "dof": dof,
