@@ -151,6 +151,10 @@ class _EveryThirdHidden:
         frame = origins[:, 0].astype(np.int64)
         return np.asarray((face_ids + frame) % 3 != 0)
 
+    def faces_visible_from(self, centres: np.ndarray, views: np.ndarray, face_ids: np.ndarray,
+                           *_: Any) -> np.ndarray:
+        return self.faces_visible(centres[views], face_ids)
+
 
 def plain_icm(scores: np.ndarray, labels: np.ndarray, neighbours: np.ndarray, n_frames: int,
               seam_weight: float, rounds: int) -> np.ndarray:

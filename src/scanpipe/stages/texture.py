@@ -304,6 +304,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     whole = candidates[:, 0] >= 0  # some frame holds the face whole
     views = Views(candidates[:, :params.max_views],
                   sample_views(centroids, candidates[:, :params.max_views], frames))
+    del centroids
     gains = np.ones((len(frames), 3))
     fa = np.zeros(0, np.int64)
     if params.exposure:
@@ -339,6 +340,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         straddling, partial = straddling[partial[:, 0] >= 0], partial[partial[:, 0] >= 0]
         patches = bake_patches(vertices, faces, straddling, partial, frames, gains, occlusion,
                                params.patch_texels)
+    rays_cast = occlusion.rays_cast
+    del occlusion, normals  # the ray scene is ~1 GB at lab scale: not held through the atlas
     clock.lap("patches")
     seams = None
     if params.seam_strip_px > 0:
@@ -367,7 +370,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         "frames_considered": len(frames),
         "frames_used": len(used),
         "occluded_candidates": selection.occluded_candidates,
-        "rays_cast": occlusion.rays_cast,
+        "rays_cast": rays_cast,
         "regions": atlas.regions,
         "pages": len(atlas.pages),
         "page_sizes": [[int(p.shape[1]), int(p.shape[0])] for p in atlas.pages],

@@ -132,7 +132,7 @@ def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64, frames: Fram
             frontier = active
             continue
         face, target = active[move], nb[move, best[move]]
-        visible = occlusion.faces_visible(centres[target], face, views=target)
+        visible = occlusion.faces_visible_from(centres, target, face)
         labels[face[visible]] = target[visible]
         scores.strike(target[~visible], face[~visible])
         moved += int(visible.sum())

@@ -451,7 +451,7 @@ def select_frames_per_face(scores: FaceScores, frames: FrameSet, occlusion: Mesh
         struck = candidates[pending, slot] < 0  # none left, or an outlier: try the next
         waiting, pending = pending[struck], pending[~struck]
         best = candidates[pending, slot]
-        visible = occlusion.faces_visible(centres[best], pending, views=best)
+        visible = occlusion.faces_visible_from(centres, best, pending)
         chosen[pending[visible]] = best[visible]
         blocked = ~visible
         scores.score[pending[blocked], slot] = 0.0
