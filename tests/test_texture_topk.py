@@ -1,11 +1,16 @@
 """The texture stage keeps each face's best frames (FaceScores), not a frames × faces matrix:
-the kept frames are the dense matrix's best, in its order, and lookups and strikes see them."""
+the kept frames are the dense matrix's best, in its order, and lookups and strikes see them.
+Frames are rated once per content in a process."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
+import pyarrow as pa
+import pytest
 from texture_scene import Caster, record, room_mesh, small_rig
 
+import scanpipe.texturing.frames as frames_module
 from scanpipe.texturing.frames import choose_frames
 from scanpipe.texturing.projective import FaceScores, face_scores
 from scanpipe.texturing.visibility import face_normals
@@ -70,3 +75,36 @@ def test_face_scores_keeps_the_best_of_every_frame_scored() -> None:
     dense[every.frame[seen], rows[seen]] = every.score[seen]
     np.testing.assert_array_equal(dense_best(dense, len(frames)), every.frame)
     assert (np.diff(every.score, axis=1) <= 0).all()  # best first
+
+
+def test_frames_are_rated_once_per_content(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The texture and export stages of one run both choose frames: the second choice takes
+    the ratings of the same bytes, a changed frame is rated anew."""
+    monkeypatch.setattr(frames_module, "_RATED", {})
+    decoded: list[int] = []
+    plain = frames_module.sharpness_of
+
+    def counting(data: bytes, what: str) -> float:
+        decoded.append(len(data))
+        return plain(data, what)
+
+    monkeypatch.setattr(frames_module, "sharpness_of", counting)
+    rec = record(small_rig(), beta_step_deg=10.0, caster=Caster())
+    first = choose_frames(rec.frames, rec.motor, rec.rig, 10.0)
+    rated = len(decoded)
+    # identical frames (the simulator renders a still platform alike) are rated once
+    assert rated == len(set(rec.frames.column("data").to_pylist())) > 20
+    again = choose_frames(rec.frames, rec.motor, rec.rig, 10.0)
+    assert len(decoded) == rated  # nothing decoded twice
+    np.testing.assert_array_equal(again.sharpness, first.sharpness)
+    data = rec.frames.column("data").to_pylist()
+    blurred = cv2.imencode(".jpg", cv2.GaussianBlur(
+        cv2.imdecode(np.frombuffer(data[0], np.uint8), cv2.IMREAD_COLOR), (9, 9), 3))[1]
+    changed = rec.frames.set_column(
+        rec.frames.schema.get_field_index("data"), "data",
+        pa.array([blurred.tobytes(), *data[1:]], pa.binary()))
+    third = frames_module.rate_frames(changed.column("data"), np.arange(2),
+                                      np.arange(2), np.array(["a", "a"], dtype=object))
+    assert len(decoded) == rated + 1  # only the changed frame
+    assert third[0] < frames_module.rate_frames(
+        rec.frames.column("data"), np.arange(1), np.arange(1), np.array(["a"], dtype=object))[0]
