@@ -15,6 +15,7 @@ from scanpipe.stages.texture import STAGE
 from scanpipe.texturing.exposure import shared_edges
 from scanpipe.texturing.frames import worker_count
 from scanpipe.texturing.labels import Smoothing, face_neighbours, seam_edge_count, smooth_labels
+from scanpipe.texturing.projective import FaceScores
 from scanpipe.texturing.visibility import MeshOcclusion
 
 
@@ -150,6 +151,10 @@ class _EveryThirdHidden:
         frame = origins[:, 0].astype(np.int64)
         return np.asarray((face_ids + frame) % 3 != 0)
 
+    def faces_visible_from(self, centres: np.ndarray, views: np.ndarray, face_ids: np.ndarray,
+                           *_: Any) -> np.ndarray:
+        return self.faces_visible(centres[views], face_ids)
+
 
 def plain_icm(scores: np.ndarray, labels: np.ndarray, neighbours: np.ndarray, n_frames: int,
               seam_weight: float, rounds: int) -> np.ndarray:
@@ -203,7 +208,8 @@ def test_icm_on_the_seam_neighbourhood_moves_as_a_full_scan() -> None:
     expected = plain_icm(scores.copy(), labels, neighbours, n_frames, 0.3, 10)
     frames: Any = _Frames(n_frames)
     occlusion: Any = _EveryThirdHidden()
-    result = smooth_labels(scores.copy(), labels, neighbours, frames, occlusion, 0.3, 10)
+    kept = FaceScores.from_dense(scores, n_frames)  # every frame kept: as the dense matrix
+    result = smooth_labels(kept, labels, neighbours, frames, occlusion, 0.3, 10)
     assert isinstance(result, Smoothing)
     assert result.moved > 100
     np.testing.assert_array_equal(result.labels, expected)

@@ -52,7 +52,6 @@ from scanpipe.texturing.panorama import texture_panorama
 from scanpipe.texturing.patches import bake_patches, partial_candidates
 from scanpipe.texturing.photometric import (
     Views,
-    candidate_views,
     overlap_pairs,
     photometric_outliers,
     sample_views,
@@ -295,15 +294,17 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     frames = choose_frames(inputs["frames"], inputs["motor"], rig, params.frame_spacing_deg,
                            params.frame_stride, progress, params.equirect_spacing_deg)
     clock.lap("frames")
+    # each face's best frames only, not a frames × faces matrix (1.9 GB at lab scale)
     scores = face_scores(vertices, faces, normals, frames, min_cos=params.min_cos,
                          margin_px=params.margin_px, sharpness_weight=params.sharpness_weight,
                          two_sided=params.two_sided or vertex_normals is None, progress=progress,
-                         centroids=centroids)
+                         centroids=centroids, keep=params.max_views + params.max_candidates)
     clock.lap("score")
-    candidates = candidate_views(scores, params.max_views + params.max_candidates)
+    candidates = scores.frame  # best first, −1 = none
     whole = candidates[:, 0] >= 0  # some frame holds the face whole
     views = Views(candidates[:, :params.max_views],
                   sample_views(centroids, candidates[:, :params.max_views], frames))
+    del centroids
     gains = np.ones((len(frames), 3))
     fa = np.zeros(0, np.int64)
     if params.exposure:
@@ -312,14 +313,14 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     outliers = 0
     if params.outlier_levels > 0:
         face_of, slot = np.nonzero(photometric_outliers(views, gains, params.outlier_levels))
-        scores[candidates[face_of, slot], face_of] = 0.0
+        scores.score[face_of, slot] = 0.0
         candidates[face_of, slot] = -1
         outliers = len(face_of)
     del views
     clock.lap("photometric")
     occlusion = MeshOcclusion(vertices, faces)
     clock.lap("ray_scene")
-    selection = select_frames_per_face(candidates, frames, occlusion, scores, progress)
+    selection = select_frames_per_face(scores, frames, occlusion, progress)
     del candidates
     clock.lap("visibility")
     edges = shared_edges(faces)
@@ -339,6 +340,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         straddling, partial = straddling[partial[:, 0] >= 0], partial[partial[:, 0] >= 0]
         patches = bake_patches(vertices, faces, straddling, partial, frames, gains, occlusion,
                                params.patch_texels)
+    rays_cast = occlusion.rays_cast
+    del occlusion, normals  # the ray scene is ~1 GB at lab scale: not held through the atlas
     clock.lap("patches")
     seams = None
     if params.seam_strip_px > 0:
@@ -367,7 +370,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         "frames_considered": len(frames),
         "frames_used": len(used),
         "occluded_candidates": selection.occluded_candidates,
-        "rays_cast": occlusion.rays_cast,
+        "rays_cast": rays_cast,
         "regions": atlas.regions,
         "pages": len(atlas.pages),
         "page_sizes": [[int(p.shape[1]), int(p.shape[0])] for p in atlas.pages],

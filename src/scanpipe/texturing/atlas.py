@@ -32,6 +32,8 @@ I64 = NDArray[np.int64]
 U8 = NDArray[np.uint8]
 #: Width of the neutral strip at the left of page 0.
 NEUTRAL_PX = 8
+#: Faces whose atlas UVs are computed at once.
+UV_BLOCK_FACES = 1 << 18
 #: A region whose cells fill less than this share of its box is cut into tiles ...
 SPLIT_FILL = 0.7
 #: ... of this many cells a side.
@@ -162,15 +164,17 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         uv = uv.reshape(-1, 3, 2)
         return (idx, uv, *frame_regions(uv, cam.width, cam.height, cell_px, pad_px))
 
-    # a frame per thread (numpy and OpenCV release the GIL); regions numbered in frame order
+    # a frame per thread (numpy and OpenCV release the GIL); regions numbered in frame order,
+    # each frame's result stored as it comes (all frames' at once: ~0.3 GB at lab scale)
     with ThreadPoolExecutor(max_workers=worker_count(len(used_frames))) as pool:
-        per_frame = list(pool.map(regions_of, range(len(used_frames))))
-    for i, (idx, uv, region, boxes) in zip(used_frames, per_frame, strict=True):
-        corner_uv[idx] = uv
-        face_region[idx] = region + count
-        region_frame.append(np.full(len(boxes), i, dtype=np.int64))
-        region_boxes.append(boxes)
-        count += len(boxes)
+        for i, (idx, uv, region, boxes) in zip(
+                used_frames, pool.map(regions_of, range(len(used_frames))), strict=True):
+            corner_uv[idx] = uv
+            face_region[idx] = region + count
+            region_frame.append(np.full(len(boxes), i, dtype=np.int64))
+            region_boxes.append(boxes)
+            count += len(boxes)
+            del idx, uv, region
     frame_of = np.concatenate(region_frame) if region_frame else np.zeros(0, np.int64)
     boxes = np.concatenate(region_boxes) if region_boxes else np.zeros((0, 4), np.int64)
     src_w, src_h = boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]
@@ -224,8 +228,10 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     face_uv = np.empty((n_faces, 3, 2), dtype=np.float32)
     face_uv[:, :, 0] = (NEUTRAL_PX / 2) / sizes[0][0]
     face_uv[:, :, 1] = (NEUTRAL_PX / 2) / sizes[0][1]
-    done = np.flatnonzero(face_region >= 0)
-    if len(done):
+    all_done = np.flatnonzero(face_region >= 0)
+    # in blocks of faces: the whole mesh's float64 temporaries at once were ~1 GB at lab scale
+    for start in range(0, len(all_done), UV_BLOCK_FACES):
+        done = all_done[start:start + UV_BLOCK_FACES]
         reg = face_region[done]
         sx, sy = dst[reg, 0] / src_w[reg], dst[reg, 1] / src_h[reg]
         page_w = np.array([s[0] for s in sizes], dtype=np.float64)[page[reg]]

@@ -8,6 +8,7 @@ every frame of a video, and low for frames smeared by the turning platform.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import threading
 from collections import Counter, OrderedDict
@@ -160,11 +161,31 @@ def sharpness_of(data: bytes, what: str) -> float:
     return float(deviation[0, 0]) ** 2
 
 
+#: Sharpness of encoded frames already rated in this process, by a digest of their bytes: the
+#: texture and export stages of one run both choose frames from the same video (~5 s of CPU
+#: each at lab scale). By content, so a different frame can never take another's rating.
+_RATED: dict[bytes, float] = {}
+#: Ratings kept at most (a float and a 16-byte digest each); the cache starts over when full.
+RATED_LIMIT = 1 << 16
+
+
+def rated_sharpness(data: bytes, what: str) -> float:
+    """:func:`sharpness_of`, remembered by the content of ``data`` (see :data:`_RATED`)."""
+    key = hashlib.blake2b(data, digest_size=16).digest()
+    value = _RATED.get(key)
+    if value is None:
+        value = sharpness_of(data, what)
+        if len(_RATED) >= RATED_LIMIT:
+            _RATED.clear()
+        _RATED[key] = value
+    return value
+
+
 def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArray[np.int64],
                 camera_ids: NDArray[np.object_], progress: ProgressFn = no_progress) -> F64:
-    """:func:`sharpness_of` each of ``rows`` of the encoded frames ``data``, on one thread per
-    core (OpenCV decodes without the GIL: a video's worth of frames is most of the wall time
-    of choosing); the first broken frame raises its :class:`StageError`."""
+    """:func:`rated_sharpness` of each of ``rows`` of the encoded frames ``data``, on one
+    thread per core (OpenCV decodes without the GIL: a video's worth of frames is most of the
+    wall time of choosing); the first broken frame raises its :class:`StageError`."""
     sharp = np.empty(len(rows), dtype=np.float64)
     workers = worker_count(len(rows))
     batch = 16
@@ -172,8 +193,8 @@ def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArr
         for start in range(0, len(rows), batch):
             block = rows[start:start + batch]
             sharp[start:start + len(block)] = list(pool.map(
-                lambda row: sharpness_of(data[int(row)].as_py(),
-                                         f"frame {sequences[row]} of {camera_ids[row]!r}"),
+                lambda row: rated_sharpness(data[int(row)].as_py(),
+                                            f"frame {sequences[row]} of {camera_ids[row]!r}"),
                 block))
             progress("rate frames", start + len(block), len(rows))
     return sharp

@@ -6,6 +6,9 @@ Energy (Waechter et al. 2014, eq. 1, with our score as the data term)::
     E(l) = Σ_f D(f, l_f) + λ · Σ_(f,g adjacent) [l_f ≠ l_g]
     D(f, l) = 1 − score(l, f) / score(best visible frame of f)       (∞ where score is 0)
 
+Scores are each face's best frames only (:class:`~scanpipe.texturing.projective.FaceScores`):
+a frame not among them scores 0 for the face, so a face never moves to it.
+
 Start: every face in its best visible frame
 (:func:`scanpipe.texturing.projective.select_frames_per_face`).
 Each round, every face on a seam may take the label of one of its neighbours when that lowers
@@ -25,9 +28,11 @@ from numpy.typing import NDArray
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.texturing.exposure import shared_edges
 from scanpipe.texturing.frames import FrameSet
+from scanpipe.texturing.projective import FaceScores
 from scanpipe.texturing.visibility import MeshOcclusion
 
 F32 = NDArray[np.float32]
+I32 = NDArray[np.int32]
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
@@ -68,17 +73,18 @@ def seam_edge_count(labels: I64, neighbours: I64) -> int:
     return int(((lab_n >= 0) & (mine >= 0) & (lab_n != mine)).sum() // 2)
 
 
-def _cost(candidate: I64, active: I64, scores: F32, reference: F64, nb: I64,
+def _cost(candidate: I64, rows_frame: I32, rows_score: F32, reference: F64, nb: I64,
           counted: NDArray[np.bool_], seam_weight: float) -> F64:
-    """The energy terms of faces ``active`` labelled ``candidate`` (∞ where not allowed)."""
-    score = scores[np.maximum(candidate, 0), active].astype(np.float64)
-    data = 1.0 - score / np.maximum(reference[active], 1e-12)
+    """The energy terms of the faces of ``rows_frame``/``rows_score`` (their kept frames and
+    scores) labelled ``candidate`` (∞ where not allowed); ``reference`` of those faces."""
+    score = FaceScores.lookup_rows(candidate, rows_frame, rows_score).astype(np.float64)
+    data = 1.0 - score / np.maximum(reference, 1e-12)
     data[(candidate < 0) | (score <= 0)] = np.inf
     potts = (counted & (nb != candidate[:, None])).sum(axis=1)
     return np.asarray(data + seam_weight * potts)
 
 
-def smooth_labels(scores: F32, labels: I64, neighbours: I64, frames: FrameSet,
+def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64, frames: FrameSet,
                   occlusion: MeshOcclusion, seam_weight: float = 0.3, rounds: int = 10,
                   seed: int = 0, progress: ProgressFn = no_progress) -> Smoothing:
     """ICM on the Potts energy above, from ``labels``; ``scores`` is modified (hidden
@@ -90,7 +96,7 @@ def smooth_labels(scores: F32, labels: I64, neighbours: I64, frames: FrameSet,
     rng = np.random.default_rng(seed)
     textured = labels >= 0
     reference = np.zeros(len(labels), dtype=np.float64)
-    reference[textured] = scores[labels[textured], np.flatnonzero(textured)]
+    reference[textured] = scores.lookup(labels[textured], np.flatnonzero(textured))
     centres = np.stack([frames.centre(i) for i in range(len(frames))])
     moved = struck = 0
     done = 0
@@ -112,8 +118,9 @@ def smooth_labels(scores: F32, labels: I64, neighbours: I64, frames: FrameSet,
         nb = lab_n[on_seam]  # (A, 3) candidate labels
         cnt = counted[on_seam]
 
-        current = _cost(own, active, scores, reference, nb, cnt, seam_weight)
-        options = np.stack([_cost(nb[:, k], active, scores, reference, nb, cnt, seam_weight)
+        rows_frame, rows_score, ref = scores.frame[active], scores.score[active], reference[active]
+        current = _cost(own, rows_frame, rows_score, ref, nb, cnt, seam_weight)
+        options = np.stack([_cost(nb[:, k], rows_frame, rows_score, ref, nb, cnt, seam_weight)
                             for k in range(nb.shape[1])], axis=1)
         options[nb == own[:, None]] = np.inf
         best = np.argmin(options, axis=1)
@@ -125,9 +132,9 @@ def smooth_labels(scores: F32, labels: I64, neighbours: I64, frames: FrameSet,
             frontier = active
             continue
         face, target = active[move], nb[move, best[move]]
-        visible = occlusion.faces_visible(centres[target], face, views=target)
+        visible = occlusion.faces_visible_from(centres, target, face)
         labels[face[visible]] = target[visible]
-        scores[target[~visible], face[~visible]] = 0.0
+        scores.strike(target[~visible], face[~visible])
         moved += int(visible.sum())
         struck += int((~visible).sum())
         changed = face[visible]

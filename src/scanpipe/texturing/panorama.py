@@ -280,8 +280,7 @@ def texture_panorama(vertices: F64, faces: I64, normals: F64, inputs: Mapping[st
     occlusion = MeshOcclusion(vertices, faces)
     centres = np.stack([frames.centre(i) for i in range(len(frames))]) if len(frames) else (
         np.zeros((0, 3)))
-    visible = occlusion.faces_visible(centres[face_frame[candidates]], candidates,
-                                     views=face_frame[candidates])
+    visible = occlusion.faces_visible_from(centres, face_frame[candidates], candidates)
     face_frame[candidates[~visible]] = -1
     page = np.empty((height + NEUTRAL_ROWS, width, 3), dtype=np.uint8)
     page[:height] = panorama

@@ -1,6 +1,7 @@
 """What several frames say about one face: colour samples, global levelling, outlier rejection.
 
-For every face its best ``max_views`` frames by score (:func:`candidate_views`) are sampled at
+For every face its best ``max_views`` frames by score
+(:class:`~scanpipe.texturing.projective.FaceScores`) are sampled at
 the face's centroid (:func:`sample_views`: a 4 × 4 pixel mean from a shrunk image). These
 overlaps serve twice (Waechter et al. 2014, sections 4.1 and 5):
 
@@ -17,7 +18,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,6 +30,8 @@ F32 = NDArray[np.float32]
 FloatT = TypeVar("FloatT", np.float32, np.float64)
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+#: Frame numbers per face (int32 as kept by FaceScores, or int64).
+FrameIds = NDArray[np.signedinteger[Any]]
 
 #: Colours this dark or bright are clipped in some channel: no use for gains.
 USABLE_LEVELS = (4.0, 251.0)
@@ -40,7 +43,7 @@ OUTLIER_CHUNK = 1 << 16
 class Views:
     """Per face its candidate frames (best first, −1 = none) and their sampled colours."""
 
-    frame: I64  # (faces, K)
+    frame: FrameIds  # (faces, K)
     # (faces, K, 3) in 8-bit levels (as recorded, before gains); NaN = not sampled; float32
     # holds them exactly (whole levels) in half the memory of float64
     colour: F32
@@ -51,33 +54,7 @@ class Views:
         return np.asarray((self.frame >= 0).sum(axis=1), dtype=np.int64)
 
 
-def candidate_views(scores: F32, max_views: int, chunk: int = 8192) -> I64:
-    """``(faces, K)`` the best ``K = min(max_views, frames)`` frames of each face by score
-    (−1 where a face has fewer with a positive score), best first: K passes of argmax over a
-    chunk of faces at a time (a full sort or argpartition of the score matrix costs seconds;
-    a chunk of a few thousand faces stays in the cache over the K passes)."""
-    n_frames, n_faces = scores.shape
-    k = min(max_views, n_frames)
-    result = np.full((n_faces, k), -1, dtype=np.int64)
-
-    def fill(start: int) -> None:
-        block = np.ascontiguousarray(scores[:, start:start + chunk].T)  # rows: argmax is fast
-        rows = np.arange(block.shape[0])
-        for slot in range(k):
-            best = np.argmax(block, axis=1)
-            positive = block[rows, best] > 0
-            if not positive.any():
-                break
-            result[start + rows[positive], slot] = best[positive]
-            block[rows, best] = 0.0
-
-    # chunks on a thread per core (numpy releases the GIL; each fills its own rows)
-    with ThreadPoolExecutor(max_workers=worker_count(-(-n_faces // chunk))) as pool:
-        list(pool.map(fill, range(0, n_faces, chunk)))
-    return result
-
-
-def sample_views(points: F64, frame: I64, frames: FrameSet) -> F32:
+def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> F32:
     """``(faces, K, 3)`` RGB (8-bit levels, BGR order as decoded) of ``points[f]`` in frame
     ``frame[f, k]``; NaN where there is no candidate or the point leaves the image."""
     from scanpipe.texturing.projective import project_valid
@@ -120,7 +97,8 @@ def overlap_pairs(views: Views, max_pairs: int = 200_000, seed: int = 0
         usable = (frame >= 0) & np.all((colour > lo) & (colour < hi), axis=2)
     ok = usable[:, :1] & usable[:, 1:] & (frame[:, 1:] != frame[:, :1])  # (rows, k − 1)
     face, slot = np.nonzero(ok)
-    return (frame[face, 0], frame[face, slot + 1], colour[face, 0].astype(np.float64),
+    return (frame[face, 0].astype(np.int64), frame[face, slot + 1].astype(np.int64),
+            colour[face, 0].astype(np.float64),
             colour[face, slot + 1].astype(np.float64))
 
 

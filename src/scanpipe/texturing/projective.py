@@ -10,8 +10,10 @@ with θ the angle between the face normal and the direction to the camera centre
 ``1 − ½ r²`` (r the distance of the face's image from the principal point, in half image sizes,
 floored at 0.05) and sharpness relative to the sharpest frame of that camera. A face scores 0
 where a corner falls outside the image (less a margin), behind the camera, or where it is seen
-at more than ``acos(min_cos)``. Faces then take their best frame in which they are really
-visible: in rounds, the best remaining candidate of every unresolved face (of its
+at more than ``acos(min_cos)``. Only each face's best :attr:`FaceScores.keep` frames are kept
+(:class:`FaceScores`), taken while the frames are scored (:class:`BestFrames`): a dense
+frames × faces matrix is gigabytes at lab scale. Faces then take their best frame in which
+they are really visible: in rounds, the best remaining candidate of every unresolved face (of its
 ``max_candidates`` best) is tested against the mesh (one batch of rays per round); an occluded
 candidate is struck out.
 """
@@ -20,7 +22,8 @@ from __future__ import annotations
 
 import math
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -44,6 +47,126 @@ NO_DISTORTION = (0.0, 0.0, 0.0, 0.0, 0.0)
 EQUIRECT_SPACING_DEG = 20.0
 #: Points projected at once when colouring a cloud: the temporaries of a piece fit the cache.
 COLOUR_CHUNK_POINTS = 1 << 16
+#: Vertices or faces :func:`face_scores` looks at at once: a whole 360° view of a lab-scale mesh
+#: at once held ~0.4 GB of temporaries per thread.
+SCORE_CHUNK = 1 << 18
+#: Faces whose kept frames :meth:`FaceScores.best_first` orders at once (cache-sized blocks).
+SORT_CHUNK_FACES = 1 << 16
+I32 = NDArray[np.int32]
+I64 = NDArray[np.int64]
+
+
+@dataclass
+class FaceScores:
+    """Each face's best ``keep`` frames by score instead of a dense ``(frames, faces)`` matrix.
+
+    ``frame`` ``(faces, keep)`` int32 (−1 = none) and ``score`` ``(faces, keep)`` float32
+    (0 = none or struck out), best first (ties: the lower frame number, as an argmax over the
+    dense matrix would take). Built frame by frame by :class:`BestFrames`. A frame not kept for
+    a face scores 0 there.
+    """
+
+    frame: I32
+    score: F32
+
+    @classmethod
+    def from_dense(cls, scores: NDArray[np.floating], keep: int) -> FaceScores:
+        """From a ``(frames, faces)`` matrix (tests, small inputs)."""
+        best = BestFrames(scores.shape[1], keep)
+        for i, row in enumerate(np.asarray(scores, np.float32)):
+            face = np.flatnonzero(row > 0)
+            best.add(i, face, row[face])
+        return best.result()
+
+    @property
+    def keep(self) -> int:
+        """Frames kept per face."""
+        return int(self.frame.shape[1])
+
+    def best_first(self) -> FaceScores:
+        """Order every row by score, best first, in place (empty slots last); returns self.
+
+        The float32 score's bits (positive: ordered as integers) and the frame's complement
+        pack into one int64 key per slot, so a plain sort of each row orders both.
+        """
+        n_faces, keep = self.frame.shape
+        if keep == 0:
+            return self
+        top = np.int64(np.iinfo(np.int32).max)
+
+        def order(start: int) -> None:
+            stop = min(start + SORT_CHUNK_FACES, n_faces)
+            score = self.score[start:stop]
+            bits = score.view(np.int32).astype(np.int64)
+            key = np.where(score > 0, (bits << 32) | (top - self.frame[start:stop]), 0)
+            key = -np.sort(-key, axis=1)  # descending
+            self.score[start:stop] = (key >> 32).astype(np.int32).view(np.float32)
+            self.frame[start:stop] = np.where(key > 0, top - (key & 0xFFFFFFFF), -1)
+
+        # blocks of faces on a thread per core (numpy releases the GIL; each its own rows)
+        with ThreadPoolExecutor(max_workers=worker_count(-(-n_faces // SORT_CHUNK_FACES))
+                                ) as pool:
+            list(pool.map(order, range(0, n_faces, SORT_CHUNK_FACES)))
+        return self
+
+    def lookup(self, frame: I64, face: I64) -> F32:
+        """Score of frame ``frame[i]`` for face ``face[i]`` (0 where not kept or struck)."""
+        return self.lookup_rows(frame, self.frame[face], self.score[face])
+
+    @staticmethod
+    def lookup_rows(frame: I64, rows_frame: I32, rows_score: F32) -> F32:
+        """:meth:`lookup` on rows already gathered (``self.frame[face]``, ``self.score[face]``)."""
+        match = (rows_frame == frame[:, None]) & (frame[:, None] >= 0)
+        slot = np.argmax(match, axis=1)
+        found = rows_score[np.arange(len(frame)), slot]
+        return np.asarray(np.where(match.any(axis=1), found, np.float32(0.0)), dtype=np.float32)
+
+    def strike(self, frame: I64, face: I64) -> None:
+        """Score 0 for frame ``frame[i]`` of face ``face[i]`` (an occluded candidate)."""
+        match = (self.frame[face] == frame[:, None]) & (frame[:, None] >= 0)
+        has = match.any(axis=1)
+        self.score[face[has], np.argmax(match[has], axis=1)] = 0.0
+
+
+class BestFrames:
+    """Keeps each face's best ``keep`` frames while frames are offered one after another
+    (:meth:`add`), for :class:`FaceScores`. Per face: the slots filled so far, and once all
+    are, the lowest kept score and its slot: a score must beat it to be kept."""
+
+    def __init__(self, n_faces: int, keep: int) -> None:
+        self.keep = keep
+        self.frame = np.full((n_faces, keep), -1, dtype=np.int32)
+        self.score = np.zeros((n_faces, keep), dtype=np.float32)
+        self._filled = np.zeros(n_faces, dtype=np.int32)
+        self._floor = np.zeros(n_faces, dtype=np.float32)  # 0 while a slot is free
+        self._low = np.zeros(n_faces, dtype=np.int64)  # flat index of the lowest slot
+
+    def add(self, frame: int, face: I64, score: F32) -> None:
+        """Offer frame ``frame``'s positive scores of (distinct) faces ``face``: into a free
+        slot, else into the slot of the face's lowest kept score when higher (an equal score
+        keeps the earlier, lower frame)."""
+        if self.keep == 0:
+            return
+        better = score > self._floor[face]
+        face, score = face[better], score[better]
+        filled = self._filled[face]
+        free = filled < self.keep
+        # flat slot of each kept score: the next free one, or the lowest one's
+        flat = np.where(free, face * self.keep + filled, self._low[face])
+        self.score.reshape(-1)[flat] = score
+        self.frame.reshape(-1)[flat] = frame
+        self._filled[face] = np.minimum(filled + 1, self.keep)
+        # the faces whose lowest slot may have changed: those just full and those replaced
+        redo = face[(filled >= self.keep - 1)]
+        if len(redo):
+            rows = self.score[redo]
+            slot = np.argmin(rows, axis=1)
+            self._low[redo] = redo * self.keep + slot
+            self._floor[redo] = rows[np.arange(len(redo)), slot]
+
+    def result(self) -> FaceScores:
+        """The kept frames, best first (the builder's arrays, not copies)."""
+        return FaceScores(self.frame, self.score).best_first()
 
 
 @lru_cache(maxsize=64)
@@ -181,11 +304,22 @@ def wraps(uv: F64, cam: CameraConfig) -> NDArray[np.bool_]:
     return np.asarray(spread > cam.width / 4)
 
 
+def _pieces(ranges: list[tuple[int, int]], size: int = SCORE_CHUNK) -> list[tuple[int, int]]:
+    """``ranges`` cut into pieces of at most ``size`` items."""
+    return [(start, min(start + size, b)) for a, b in ranges for start in range(a, b, size)]
+
+
 def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], normals: F64,
                 frames: FrameSet, *, min_cos: float = 0.2, margin_px: float = 2.0,
                 sharpness_weight: float = 1.0, two_sided: bool = False,
-                progress: ProgressFn = no_progress, centroids: F64 | None = None) -> F32:
-    """``(frames, faces)`` scores (0 = unusable); see the module docstring.
+                progress: ProgressFn = no_progress, centroids: F64 | None = None,
+                keep: int = 14) -> FaceScores:
+    """Each face's best ``keep`` frames by score, best first (see the module docstring).
+
+    ``keep``: the texture stage passes ``max_views + max_candidates``, every frame a face's
+    later steps read but ICM's (which then may move a face only to one of these frames). The
+    frames are scored on threads, a frame each, and offered to :class:`FaceScores` in frame
+    order on this thread (the result does not depend on the threads).
 
     Per frame only the vertices and faces within the camera's azimuth window (plus those near
     the axis, where the camera's offset from the axis matters) are looked at. Vertices and
@@ -196,7 +330,7 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     sharp = frames.relative_sharpness() ** sharpness_weight * resolution_weights(frames.cameras)
-    scores = np.zeros((len(frames), len(faces)), dtype=np.float32)
+    kept = BestFrames(len(faces), keep)
     offset = max((math.hypot(c.pose.translation_m[0], c.pose.translation_m[2])
                   for c in frames.cameras), default=0.0)
     near_m = 4 * offset + 0.3
@@ -220,7 +354,7 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     p_squared = np.einsum("ij,ij->i", centre_of, centre_of)
     scratch = threading.local()  # per thread: u, v and valid of every vertex (azimuth order)
 
-    def score_frame(i: int) -> None:
+    def score_frame(i: int) -> tuple[I64, F32]:
         if not hasattr(scratch, "u"):
             # float64: a distorted lens throws points outside the view beyond float32's range
             scratch.u, scratch.v = np.zeros(len(vertices)), np.zeros(len(vertices))
@@ -237,12 +371,14 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
             vertex_ranges = vertex_index.ranges(*window)
             face_ranges = face_index.ranges(*window)
             valid[:] = False
-        for a, b in vertex_ranges:
+        for a, b in _pieces(vertex_ranges):
             uv, _, valid[a:b] = project_valid(points[a:b], cam, beta, margin_px)
             u[a:b], v[a:b] = uv[:, 0], uv[:, 1]
         centre = frames.centre(i).astype(np.float32)
         centre_squared = np.float32(centre @ centre)
-        for a, b in face_ranges:
+        seen: list[I64] = []
+        scored: list[F32] = []
+        for a, b in _pieces(face_ranges):
             # the angle first, over the contiguous slice (two mat-vec products); the corner
             # look-ups then only for the faces that face the camera
             distance = np.sqrt(np.maximum(
@@ -261,13 +397,27 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
             if cam.model == "pinhole":
                 mean_uv = np.stack([(u[c0] + u[c1] + u[c2]) / 3, (v[c0] + v[c1] + v[c2]) / 3], 1)
                 score *= centrality(mean_uv, cam)
-            scores[i, face_ids[facing + a]] = score
+            positive = score > 0  # a frame of sharpness 0 is of no use
+            seen.append(face_ids[facing[positive] + a])
+            scored.append(np.asarray(score[positive], dtype=np.float32))
+        if not seen:
+            return np.zeros(0, np.int64), np.zeros(0, np.float32)
+        return np.concatenate(seen), np.concatenate(scored)
 
-    # one frame per thread (numpy and OpenCV release the GIL; each frame writes its own row)
-    with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
-        for done, _ in enumerate(pool.map(score_frame, range(len(frames))), 1):
-            progress("score frames", done, len(frames))
-    return scores
+    workers = worker_count(len(frames))
+    # one frame per thread (numpy and OpenCV release the GIL); offered in frame order here, at
+    # most one frame ahead (a 360° frame's scores are ~60 MB at lab scale)
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending: deque[Future[tuple[I64, F32]]] = deque()
+        submitted = 0
+        for done in range(len(frames)):
+            while submitted < len(frames) and len(pending) < workers + 1:
+                pending.append(pool.submit(score_frame, submitted))
+                submitted += 1
+            face, score = pending.popleft().result()
+            kept.add(done, face, score)
+            progress("score frames", done + 1, len(frames))
+    return kept.result()
 
 
 @dataclass
@@ -279,15 +429,14 @@ class Selection:
     rays_cast: int
 
 
-def select_frames_per_face(candidates: NDArray[np.int64], frames: FrameSet,
-                           occlusion: MeshOcclusion, scores: F32,
+def select_frames_per_face(scores: FaceScores, frames: FrameSet, occlusion: MeshOcclusion,
                            progress: ProgressFn = no_progress) -> Selection:
     """Each face's best frame in which it is wholly visible (see module docstring), from its
-    ``candidates`` (``(faces, K)`` frames best first, −1 = none: :func:`~scanpipe.texturing.
-    photometric.candidate_views`).
+    kept frames (``scores.frame``: best first, −1 = none or struck out).
 
-    ``scores`` is modified: occluded candidates are set to 0.
+    ``scores`` is modified: occluded candidates score 0.
     """
+    candidates = scores.frame
     n_faces, k = candidates.shape
     chosen = np.full(n_faces, -1, dtype=np.int64)
     if len(frames) == 0 or n_faces == 0:
@@ -302,10 +451,10 @@ def select_frames_per_face(candidates: NDArray[np.int64], frames: FrameSet,
         struck = candidates[pending, slot] < 0  # none left, or an outlier: try the next
         waiting, pending = pending[struck], pending[~struck]
         best = candidates[pending, slot]
-        visible = occlusion.faces_visible(centres[best], pending, views=best)
+        visible = occlusion.faces_visible_from(centres, best, pending)
         chosen[pending[visible]] = best[visible]
         blocked = ~visible
-        scores[best[blocked], pending[blocked]] = 0.0
+        scores.score[pending[blocked], slot] = 0.0
         occluded += int(blocked.sum())
         pending = np.sort(np.concatenate([pending[blocked], waiting]))
         progress("visibility", slot + 1, k)

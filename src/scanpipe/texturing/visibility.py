@@ -117,13 +117,26 @@ class MeshOcclusion:
         middles. Cast in blocks of at most :data:`FACES_PER_CAST` faces: the rays of millions
         of faces at once would hold gigabytes of temporaries, for no speed.
         """
-        ids: NDArray[np.int64] = np.asarray(face_ids, dtype=np.int64)
         origins = np.asarray(origins, np.float32).reshape(-1, 3)
+        if views is None:
+            origins, views = np.unique(origins, axis=0, return_inverse=True)
+            return self.faces_visible_from(origins, views, face_ids, abs_tol_m, rel_tol)
+        # views numbered 0, 1, …, each with its origin (its first face's: they share it)
+        _, first, number = np.unique(np.asarray(views).reshape(-1), return_index=True,
+                                     return_inverse=True)
+        return self.faces_visible_from(origins[first], number.reshape(-1), face_ids, abs_tol_m,
+                                       rel_tol)
+
+    def faces_visible_from(self, centres: NDArray[np.floating], views: NDArray[np.integer],
+                           face_ids: NDArray[np.integer], abs_tol_m: float = 0.01,
+                           rel_tol: float = 0.005) -> NDArray[np.bool_]:
+        """:meth:`faces_visible` with the origin of face ``face_ids[i]`` given as
+        ``centres[views[i]]`` (a frame's camera centre): no per-face copy of the origins."""
+        ids: NDArray[np.int64] = np.asarray(face_ids, dtype=np.int64)
+        origins = np.asarray(centres, np.float32).reshape(-1, 3)
         result = np.ones(len(ids), dtype=bool)
         if len(ids) == 0:
             return result
-        if views is None:
-            _, views = np.unique(origins, axis=0, return_inverse=True)
         views = np.asarray(views).reshape(-1)
         # frame numbers are small: a stable sort of int16 is a radix sort
         order = np.argsort(views.astype(np.int16) if views.max(initial=0) < 2 ** 15
@@ -136,7 +149,8 @@ class MeshOcclusion:
         self._face_edges()
 
         def test(rows: NDArray[np.int64]) -> None:
-            result[rows] = self._visible_from(origins[rows[0]], ids[rows], abs_tol_m, rel_tol)
+            result[rows] = self._visible_from(origins[views[rows[0]]], ids[rows], abs_tol_m,
+                                              rel_tol)
 
         # blocks on a thread per core: Open3D casts on all cores, the numpy around it on one
         with ThreadPoolExecutor(max_workers=worker_count(len(blocks))) as pool:
