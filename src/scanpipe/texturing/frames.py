@@ -169,35 +169,40 @@ _RATED: dict[bytes, float] = {}
 RATED_LIMIT = 1 << 16
 
 
-def rated_sharpness(data: bytes, what: str) -> float:
-    """:func:`sharpness_of`, remembered by the content of ``data`` (see :data:`_RATED`)."""
-    key = hashlib.blake2b(data, digest_size=16).digest()
-    value = _RATED.get(key)
-    if value is None:
-        value = sharpness_of(data, what)
-        if len(_RATED) >= RATED_LIMIT:
-            _RATED.clear()
-        _RATED[key] = value
-    return value
+def _content_key(data: bytes) -> bytes:
+    """The key of an encoded frame in :data:`_RATED`: a digest of its bytes."""
+    return hashlib.blake2b(data, digest_size=16).digest()
 
 
 def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArray[np.int64],
                 camera_ids: NDArray[np.object_], progress: ProgressFn = no_progress) -> F64:
-    """:func:`rated_sharpness` of each of ``rows`` of the encoded frames ``data``, on one
-    thread per core (OpenCV decodes without the GIL: a video's worth of frames is most of the
-    wall time of choosing); the first broken frame raises its :class:`StageError`."""
-    sharp = np.empty(len(rows), dtype=np.float64)
+    """:func:`sharpness_of` of each of ``rows`` of the encoded frames ``data``, on one thread
+    per core (OpenCV decodes without the GIL: a video's worth of frames is most of the wall
+    time of choosing); each distinct content is rated once, also across calls in this process
+    (:data:`_RATED`); the first broken frame raises its :class:`StageError`."""
     workers = worker_count(len(rows))
-    batch = 16
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        for start in range(0, len(rows), batch):
-            block = rows[start:start + batch]
-            sharp[start:start + len(block)] = list(pool.map(
-                lambda row: rated_sharpness(data[int(row)].as_py(),
-                                            f"frame {sequences[row]} of {camera_ids[row]!r}"),
-                block))
-            progress("rate frames", start + len(block), len(rows))
-    return sharp
+        keys = list(pool.map(lambda row: _content_key(data[int(row)].as_py()), rows))
+        ratings = {key: _RATED[key] for key in set(keys) if key in _RATED}
+        # one row per content not rated yet: identical frames (a still platform) are decoded
+        # once, never by two threads at a time
+        todo: dict[bytes, int] = {}
+        for index, key in enumerate(keys):
+            if key not in ratings and key not in todo:
+                todo[key] = index
+        pending = list(todo.items())
+        batch = 16
+        for start in range(0, len(pending), batch):
+            block = pending[start:start + batch]
+            values = pool.map(lambda item: sharpness_of(
+                data[int(rows[item[1]])].as_py(),
+                f"frame {sequences[rows[item[1]]]} of {camera_ids[rows[item[1]]]!r}"), block)
+            ratings.update(zip((key for key, _ in block), values, strict=True))
+            progress("rate frames", start + len(block), len(pending))
+    if len(_RATED) + len(todo) > RATED_LIMIT:
+        _RATED.clear()
+    _RATED.update((key, ratings[key]) for key in todo)
+    return np.array([ratings[key] for key in keys], dtype=np.float64)
 
 
 def _shown_id(camera_id: str, limit: int = 60) -> str:
