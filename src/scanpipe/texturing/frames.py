@@ -198,7 +198,9 @@ def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArr
                 data[int(rows[item[1]])].as_py(),
                 f"frame {sequences[rows[item[1]]]} of {camera_ids[rows[item[1]]]!r}"), block)
             ratings.update(zip((key for key, _ in block), values, strict=True))
-            progress("rate frames", start + len(block), len(pending))
+            progress("rate frames", len(rows) - len(pending) + start + len(block), len(rows))
+        if not pending:  # every content rated before: the bar still ends
+            progress("rate frames", len(rows), len(rows))
     if len(_RATED) + len(todo) > RATED_LIMIT:
         _RATED.clear()
     _RATED.update((key, ratings[key]) for key in todo)
