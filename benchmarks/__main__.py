@@ -9,7 +9,7 @@ import datetime as dt
 import sys
 import time
 
-from benchmarks.harness import save, timed_say
+from benchmarks.harness import positive_int, save, timed_say
 from benchmarks.pipeline_bench import report, run
 from benchmarks.scans import LAB, QUICK
 
@@ -19,11 +19,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__)
     parser.add_argument("--quick", action="store_true",
                         help="a small scan (1° × 1.08°, 2 s of video) for CI smoke runs")
-    parser.add_argument("--repeats", type=int, default=3,
+    parser.add_argument("--repeats", type=positive_int, default=3,
                         help="runs per fast stage (median); slow ones run max(1, N // 3) times")
     args = parser.parse_args(argv)
-    if args.repeats < 1:
-        parser.error(f"--repeats {args.repeats}: must be at least 1")
     started = time.perf_counter()
     say = timed_say(started)
 

@@ -47,7 +47,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.bench_site import pool_server_cpu_s
-from benchmarks.harness import machine, save, table, timed_say
+from benchmarks.harness import machine, positive_int, save, table, timed_say
 from scanpipe.batch import run_batch, stop_pool_server
 from scanpipe.cli.main import main as scanpipe_main
 from scanpipe.cli.pipeline import pipeline_params_from_cli
@@ -341,19 +341,13 @@ def main(argv: list[str] | None = None) -> int:
                                      description=__doc__)
     parser.add_argument("--quick", action="store_true",
                         help="tiny recordings without cameras (a smoke run, not the figure)")
-    parser.add_argument("--recordings", type=int, default=RECORDINGS,
+    parser.add_argument("--recordings", type=positive_int, default=RECORDINGS,
                         help=f"how many recordings (default {RECORDINGS}, the target's)")
-    parser.add_argument("--repeats", type=int, default=1,
+    parser.add_argument("--repeats", type=positive_int, default=1,
                         help="runs per configuration, the fastest counts (default 1)")
-    parser.add_argument("--threads", type=int, default=1,
+    parser.add_argument("--threads", type=positive_int, default=1,
                         help="threads per worker in every run (default 1: equal pinning)")
     args = parser.parse_args(argv)
-    if args.recordings < 1:
-        parser.error(f"--recordings {args.recordings}: must be at least 1")
-    if args.repeats < 1:
-        parser.error(f"--repeats {args.repeats}: must be at least 1")
-    if args.threads < 1:
-        parser.error(f"--threads {args.threads}: must be at least 1")
     started = time.perf_counter()
     say = timed_say(started)
 

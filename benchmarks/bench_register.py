@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.bench_site import cpu_seconds_all, run_scanpipe
-from benchmarks.harness import machine, save, table, timed_say
+from benchmarks.harness import machine, positive_int, save, table, timed_say
 
 SCALES: dict[str, list[str]] = {
     "small": ["--motor-step", "2", "--beam-step", "1", "--no-cameras"],
@@ -219,17 +219,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scale", choices=sorted(SCALES), default="lab",
                         help="lab: the figure (1° × 0.5°); small: the tests' scans (2° × 1°)")
     parser.add_argument("--positions", type=int, default=6, help="scan positions (default 6)")
-    parser.add_argument("--seeds", type=int, default=1, help="noise seeds (default 1)")
-    parser.add_argument("--jobs", type=int, default=2, help="processes at a time (default 2: "
-                        "the 2-core machine; a seed's simulation and its two registrations "
-                        "are separate jobs)")
+    parser.add_argument("--seeds", type=positive_int, default=1, help="noise seeds (default 1)")
+    parser.add_argument("--jobs", type=positive_int, default=2,
+                        help="processes at a time (default 2: the 2-core machine; a seed's "
+                        "simulation and its two registrations are separate jobs)")
     args = parser.parse_args(argv)
     if args.positions < 6:
         parser.error(f"--positions {args.positions}: the target is for at least 6")
-    if args.seeds < 1:
-        parser.error(f"--seeds {args.seeds}: must be at least 1")
-    if args.jobs < 1:
-        parser.error(f"--jobs {args.jobs}: must be at least 1")
     started = time.perf_counter()
     say = timed_say(started)
 

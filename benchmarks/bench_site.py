@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from benchmarks.harness import machine, save, table, timed_say
+from benchmarks.harness import machine, positive_int, save, table, timed_say
 from scanpipe.cli.main import main as scanpipe_main
 
 #: `simulate --site` settings per scale (σ = 10 mm, the unnamed scanner's noise).
@@ -212,12 +212,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--positions", type=int, default=None,
                         help="scan positions (default 6)")
     parser.add_argument("--workers", type=int, default=2, help="batch workers (default 2)")
-    parser.add_argument("--jobs", type=int, default=2, help="2 (default): the true-pose "
+    parser.add_argument("--jobs", type=positive_int, default=2, help="2 (default): the true-pose "
                         "model and its eval beside register and the registered model; 1: "
                         "one after the other")
     args = parser.parse_args(argv)
-    if args.jobs < 1:
-        parser.error(f"--jobs {args.jobs}: must be at least 1")
     positions = args.positions or SCALES[args.scale]["positions"]
     if positions < 2:
         parser.error(f"--positions {positions}: a site needs at least 2")

@@ -6,6 +6,7 @@ over what it inherited, so that one stage's allocations do not hide another's.
 
 from __future__ import annotations
 
+import argparse
 import datetime as dt
 import json
 import multiprocessing as mp
@@ -120,6 +121,17 @@ def timed_say(started: float) -> Callable[[str], None]:
         print(f"[{time.perf_counter() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
 
     return say
+
+
+def positive_int(text: str) -> int:
+    """An argparse ``type`` for counts (repeats, seeds, jobs…): an integer of at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: must be at least 1")
+    return value
 
 
 def machine() -> dict[str, Any]:
