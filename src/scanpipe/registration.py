@@ -1022,15 +1022,9 @@ def error_twists(estimated: list[F64], truth: list[F64]) -> list[F64]:
     """Each scan's error as a twist (rx, ry, rz in rad, tx, ty, tz in m) in the estimate's
     site frame, the covariance's convention: the true pose, carried into the estimate's frame
     by tying the two frames at scan 0, is ``exp(twist) · estimate`` (so scan 0's is zero)."""
-    from scipy.spatial.transform import Rotation
-
     tie = estimated[0] @ invert(truth[0])
-    twists = []
-    for estimate, true in zip(estimated, truth, strict=True):
-        delta = tie @ true @ invert(estimate)
-        twists.append(np.concatenate([Rotation.from_matrix(delta[:3, :3]).as_rotvec(),
-                                      delta[:3, 3]]))
-    return twists
+    return [misclosure(tie @ true, estimate)
+            for estimate, true in zip(estimated, truth, strict=True)]
 
 
 def normalised_errors(twist: F64, covariance: F64) -> tuple[F64, float]:

@@ -193,17 +193,14 @@ def coverage_report(areas: NDArray[np.float64], face_frame: NDArray[np.int64]) -
     }
 
 
-def orient_towards_rig(vertices: NDArray[np.float64], faces: NDArray[np.int64],
-                       normals: NDArray[np.float64], areas: NDArray[np.float64], rig: Rig,
-                       centroids: NDArray[np.float64] | None = None) -> bool:
+def orient_towards_rig(centroids: NDArray[np.float64], normals: NDArray[np.float64],
+                       areas: NDArray[np.float64], rig: Rig) -> bool:
     """Flip ``normals`` in place when most of the surface faces away from the cameras.
 
     Every surface the cameras can see faces the rig, so a mesh whose normals mostly point away
     has the opposite convention (inward-facing Poisson normals, say); True when flipped.
     """
     height = float(np.mean([c.pose.translation_m[1] for c in rig.cameras]))
-    if centroids is None:
-        centroids = face_centroids(vertices, faces)
     to_rig = np.array([0.0, height, 0.0]) - centroids
     facing = np.einsum("ij,ij->i", normals, to_rig) > 0
     if float(areas[facing].sum()) >= 0.5 * float(areas.sum()):
@@ -277,7 +274,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     inputs = {**inputs, "frames": known_frames}
     normals, areas = face_normals(vertices, faces, vertex_normals)
     centroids = face_centroids(vertices, faces)
-    flipped = orient_towards_rig(vertices, faces, normals, areas, rig, centroids)
+    flipped = orient_towards_rig(centroids, normals, areas, rig)
     if params.method == "panorama":
         inputs, rig, skipped = pinhole_frames_only(inputs, rig)
         warnings += skipped
