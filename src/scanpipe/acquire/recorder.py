@@ -324,8 +324,8 @@ class Recorder:
                 "to bring it home")
         state = self.motor.query_position()
         self.motor.set_rate(self.rig.motor.pulse_rate_hz)
-        self.phase = "going home"
-        self._move_to(state.step_count - travel.absolute, self.rig.motor.pulse_rate_hz)
+        self._move_to(state.step_count - travel.absolute, self.rig.motor.pulse_rate_hz,
+                      phase="going home")
         self.sink.event("motor_homed", f"motor: brought home from {travel.absolute} pulses "
                         f"({away_deg:.3f}°) before the scan", {"from_absolute": travel.absolute})
 
@@ -346,7 +346,7 @@ class Recorder:
             if state.step_count != start:
                 motor.set_rate(self.rig.motor.pulse_rate_hz)
                 self._move_to(start, self.rig.motor.pulse_rate_hz, stop=self._abort_return,
-                              watch_scanner=False)
+                              watch_scanner=False, phase="returning to the start")
             travel = motor.query_travel()
         except (DeviceError, RecordingStopped) as err:
             self._returned = False
@@ -471,10 +471,11 @@ class Recorder:
         return list(range(start, self._end_count + 1, self.step_count))
 
     def _move_to(self, target: int, rate_hz: float, stop: threading.Event | None = None,
-                 watch_scanner: bool = True) -> None:
+                 watch_scanner: bool = True, phase: str | None = None) -> None:
         """Move to the count ``target`` and wait for the controller to report it reached,
         stopped. ``stop`` (default: the recording's stop) ends the wait with
-        :class:`RecordingStopped`; ``watch_scanner``: a lost scanner ends it too."""
+        :class:`RecordingStopped`; ``watch_scanner``: a lost scanner ends it too; ``phase``
+        names the move in the live status (default "moving to TARGET")."""
         stop = self.stop_event if stop is None else stop
         assert self.motor is not None and self.sink is not None
         state = self.motor.state or self.motor.query_position()
@@ -482,7 +483,7 @@ class Recorder:
         if pulses == 0 and not state.moving:
             return
         expected = move_time_s(abs(pulses), rate_hz, self.rig.motor.accel_hz_per_s)
-        self.phase = f"moving to {target}"
+        self.phase = phase or f"moving to {target}"
         try:
             self.motor.move(pulses)
         except DeviceError as err:
