@@ -12,7 +12,12 @@ Formats, by file extension or ``format``:
   three hold only integers in 0–255, they are the colour.
 - ``3d``: 3DTK's ``scanNNN.3d`` (left-handed, y up, centimetres; a first line that is not three
   numbers is the resolution and skipped), with its ``.pose`` (:func:`read_pose`).
-- ``las`` (``.las``, ``.laz``): through laspy (LAZ with lazrs); 16-bit colours become 8-bit.
+- ``las`` (``.las``, ``.laz``): through laspy (LAZ with lazrs); 16-bit colours become 8-bit,
+  the intensity the echo.
+- ``pts`` (Leica PTS): an optional point-count line, then x y z [intensity] [r g b].
+
+Coordinates are stored as float32: an axis beyond ±2048 m (a georeferenced file) is shifted
+by whole metres (:func:`float32_safe_offset`, the report's ``offset_m``, warned).
 
 No header is trusted: every count a header states is checked against the file's size before
 anything is allocated (a binary PLY needs count × record size bytes, an ASCII value at least two
@@ -52,6 +57,8 @@ F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
 
 TEXT_SUFFIXES = (".xyz", ".txt", ".csv", ".pts")
+#: Leica PTS intensities run −2048…2047; shifted by this into the echo's 0…4095.
+PTS_INTENSITY_SHIFT = 2048
 SUFFIXES = (".ply", *TEXT_SUFFIXES, ".las", ".laz")
 
 
@@ -63,7 +70,7 @@ class ImportParams(Params):
     up: Literal["auto", "y", "z"] = Field(
         "auto", description="the file's up axis; auto = z for LAS/LAZ, y for 3DTK .3d, "
                             "else detected from the cloud (see detect_z_up)")
-    format: Literal["auto", "xyz", "csv", "ply", "las", "3d"] = Field(
+    format: Literal["auto", "xyz", "csv", "pts", "ply", "las", "3d"] = Field(
         "auto", description="file format; auto = from the extension")
     columns: str | None = Field(
         None, description="text columns: each column's role in order (x,y,z,-,intensity; "
@@ -101,9 +108,11 @@ def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:
     if suffix == ".ply":
         return (*_read_ply(path), False)
     if suffix in (".las", ".laz"):
-        return (*_read_las(path), True)
-    table = _read_text(path)
-    points, colours, _, _ = _map_columns(path, table, ImportParams(), [])
+        points, colours, _ = _read_las(path)
+        return points, colours, True
+    fmt = "pts" if suffix == ".pts" else "xyz"
+    table = _read_text(path, fmt)
+    points, colours, _, _ = _map_columns(path, table, ImportParams(), [], fmt)
     return points, colours, False
 
 
@@ -316,7 +325,8 @@ def _check_las_header(path: Path) -> int:
     return int(count)
 
 
-def _read_las(path: Path) -> tuple[F64, U8 | None]:
+def _read_las(path: Path) -> tuple[F64, U8 | None, NDArray[np.uint16]]:
+    """Points, 8-bit colours (or None) and the intensity (u16, LAS's own type)."""
     import laspy
 
     count = _check_las_header(path)
@@ -332,6 +342,7 @@ def _read_las(path: Path) -> tuple[F64, U8 | None]:
         names = set(las.point_format.dimension_names)
         rgb = (np.stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)],
                         axis=1) if {"red", "green", "blue"} <= names else None)
+        intensity = np.asarray(las.intensity, np.uint16)
     except (laspy.LaspyException, OSError, ValueError, struct.error, EOFError, IndexError,
             KeyError, OverflowError, TypeError, *lazrs_errors) as err:
         raise ArtifactError(f"{path}: not a readable LAS/LAZ file "
@@ -343,7 +354,7 @@ def _read_las(path: Path) -> tuple[F64, U8 | None]:
     if rgb is not None:
         # LAS stores 16-bit colour; some writers put 8-bit values there anyway.
         colours = (rgb >> 8 if rgb.max(initial=0) > 255 else rgb).astype(np.uint8)
-    return points.astype(np.float64), colours
+    return points.astype(np.float64), colours, intensity
 
 
 #: Column roles ``--columns`` and a header may name (aliases in the header, lower case).
@@ -363,9 +374,12 @@ class _Table:
     names: list[str] | None
 
 
-def _read_text(path: Path, skip_header: bool = False) -> _Table:
-    """A text table; ``skip_header`` drops a first line that is not three numbers (3DTK's
-    ``.3d`` files start with a resolution line)."""
+def _read_text(path: Path, fmt: str = "xyz", warnings_out: list[str] | None = None
+               ) -> _Table:
+    """A text table. ``3d``: a first line that is not three numbers is dropped (3DTK's ``.3d``
+    files start with a resolution line). A first line holding one whole number followed by
+    rows of three or more numbers is a point count (Leica PTS writes one): it is dropped and
+    compared with the rows (a warning when they differ)."""
     try:
         with path.open("r", encoding="utf-8", errors="strict") as handle:
             first = handle.readline()
@@ -373,18 +387,24 @@ def _read_text(path: Path, skip_header: bool = False) -> _Table:
         raise ArtifactError(f"{path}: not a readable text point file ({err})") from err
     delimiter = "," if "," in first else ";" if ";" in first else None
     tokens = [t.strip() for t in (first.split(delimiter) if delimiter else first.split())]
-    header = not all(_is_number(t) for t in tokens if t)
+    tokens = [t for t in tokens if t]
+    header = not all(_is_number(t) for t in tokens)
+    count_line = (not header and len(tokens) == 1 and tokens[0].isdigit()
+                  and fmt in ("xyz", "csv", "pts"))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data": below
-            data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, ndmin=2,
-                              dtype=np.float64, comments="#")
+            data = np.loadtxt(path, delimiter=delimiter, ndmin=2, dtype=np.float64,
+                              skiprows=1 if header or count_line else 0, comments="#")
     except ValueError as err:
         raise ArtifactError(f"{path}: not a table of numbers ({err})") from err
     if data.shape[0] == 0:
         raise ArtifactError(f"{path}: no points")
+    if count_line and data.shape[0] != int(tokens[0]) and warnings_out is not None:
+        warnings_out.append(f"{path}: its first line says {int(tokens[0])} points but "
+                            f"{data.shape[0]} rows follow; all rows were read")
     names = None
-    if header and not skip_header:
+    if header and fmt != "3d":
         names = [re.sub(r"^//", "", t).strip().lower() for t in tokens]
     return _Table(data, names)
 
@@ -497,6 +517,9 @@ UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 #: Extents (metres) outside which a cloud is implausible for its units.
 MAX_PLAUSIBLE_EXTENT_M = 500.0
 MIN_PLAUSIBLE_EXTENT_M = 0.05
+#: Artifacts hold float32 coordinates: an axis whose values would be rounded by more than this
+#: (beyond ±2048 m) is shifted (georeferenced files: UTM eastings are ~10⁵–10⁶ m).
+MAX_FLOAT32_ERROR_M = 1e-4
 #: Fewer points than this cannot tell z-up from y-up.
 MIN_POINTS_FOR_UP = 200
 
@@ -525,11 +548,13 @@ def _format_of(path: Path, params: ImportParams) -> str:
         return "las"
     if suffix == ".3d":
         return "3d"
+    if suffix == ".pts":
+        return "pts"
     if suffix in TEXT_SUFFIXES:
         return "xyz"
     raise UsageError(f"{path}: unknown point file type {suffix!r}; allowed: "
                      f"{', '.join((*SUFFIXES, '.3d'))}, or name the format with --format "
-                     "xyz|csv|ply|las|3d")
+                     "xyz|csv|pts|ply|las|3d")
 
 
 def parse_organised(text: str) -> tuple[int, int]:
@@ -550,12 +575,15 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
     if fmt in ("ply", "las"):
         if params.columns:
             raise UsageError(f"--columns applies to text files, not {fmt} ({path})")
-        raw, colours = _read_ply(path) if fmt == "ply" else _read_las(path)
+        if fmt == "ply":
+            raw, colours = _read_ply(path)
+        else:
+            raw, colours, echo = _read_las(path)
         table_range: F64 | None = None
         z_up: bool | None = fmt == "las"
     else:
-        table = _read_text(path, skip_header=fmt == "3d")
-        raw, colours, echo, table_range = _map_columns(path, table, params, warnings_out)
+        table = _read_text(path, fmt, warnings_out)
+        raw, colours, echo, table_range = _map_columns(path, table, params, warnings_out, fmt)
         z_up = False if fmt == "3d" else (True if table_range is not None and params.columns
                                           and "x" not in params.columns else None)
     n = len(raw)
@@ -583,9 +611,15 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
                  int(np.count_nonzero(no_return)))
 
 
-def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: list[str]
+def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: list[str],
+                 fmt: str = "xyz"
                  ) -> tuple[F64, U8 | None, NDArray[np.uint16] | None, F64 | None]:
-    """Points (file frame), colours, intensity and the polar range column of a text table."""
+    """Points (file frame), colours, intensity and the polar range column of a text table.
+
+    Without a header: x, y, z first; Leica PTS (``fmt`` ``pts``) then has ``intensity`` and
+    ``r g b`` (4, 6 or 7 columns: x y z i, x y z r g b, x y z i r g b); other text takes
+    columns 4–6 as colours when they hold only whole numbers in 0–255, with a warning when
+    columns 5–7 would qualify too (the PTS order, which CloudCompare also writes)."""
     data, names = table.data, table.names
     if params.columns:
         roles = parse_columns(params.columns, data.shape[1], str(path))
@@ -611,10 +645,19 @@ def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: 
         if data.shape[1] < 3:
             raise ArtifactError(f"{path}: {data.shape[1]} columns; need at least x, y, z")
         roles = {"x": 0, "y": 1, "z": 2}
-        if data.shape[1] >= 6:
-            rgb = data[:, 3:6]
-            if np.all(rgb == np.round(rgb)) and rgb.min() >= 0 and rgb.max() <= 255:
-                roles.update(red=3, green=4, blue=5)
+        width = data.shape[1]
+        if fmt == "pts":
+            if width in (4, 7):
+                roles["intensity"] = 3
+            if width in (6, 7):
+                roles.update(red=width - 3, green=width - 2, blue=width - 1)
+        elif width >= 6 and _bytes_only(data[:, 3:6]):
+            roles.update(red=3, green=4, blue=5)
+            if width >= 7 and _bytes_only(data[:, 4:7]):
+                warnings_out.append(
+                    f"{path}: no header; columns 4–6 taken as red, green, blue, but columns "
+                    "5–7 could be the colours as well (x y z intensity r g b, as Leica PTS and "
+                    "CloudCompare write): if so, give --columns x,y,z,intensity,red,green,blue")
     polar_xyz = None
     # A range column alone still tells no-returns (0) from points.
     range_col = data[:, roles["range"]] if "range" in roles else None
@@ -634,9 +677,37 @@ def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: 
         colours = np.clip(np.rint(np.nan_to_num(rgb)), 0, 255).astype(np.uint8)
     echo = None
     if "intensity" in roles:
-        echo = np.clip(np.rint(np.nan_to_num(data[:, roles["intensity"]])), 0,
-                       65535).astype(np.uint16)
+        echo = _intensity_to_echo(path, data[:, roles["intensity"]], fmt, warnings_out)
     return points, colours, echo, range_col
+
+
+def _bytes_only(values: F64) -> bool:
+    """Whether every value is a whole number in 0…255 (an 8-bit colour channel)."""
+    return bool(np.all(values == np.round(values)) and values.min() >= 0
+                and values.max() <= 255)
+
+
+def _intensity_to_echo(path: Path, values: F64, fmt: str, warnings_out: list[str]
+                       ) -> NDArray[np.uint16]:
+    """An intensity column as the ``echo`` (u16), never silently truncated: a 0…1 fraction is
+    scaled to 0…65535, PTS's −2048…2047 shifted into 0…4095 (both warned), any other negative
+    or too large value clipped with a warning."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return np.zeros(len(values), np.uint16)
+    low, high = float(finite.min()), float(finite.max())
+    if fmt == "pts" and -PTS_INTENSITY_SHIFT <= low < 0 and high < PTS_INTENSITY_SHIFT:
+        values = values + PTS_INTENSITY_SHIFT
+    elif low >= 0.0 and high <= 1.0 and np.any(finite != np.round(finite)):
+        values = values * 65535.0
+        warnings_out.append(f"{path}: intensity in 0…1 (fractions): scaled to the echo's "
+                            "0…65535")
+    else:
+        clipped = int(np.count_nonzero((finite < -0.5) | (finite > 65535.5)))
+        if clipped:
+            warnings_out.append(f"{path}: {clipped} intensities outside the echo's 0…65535 "
+                                f"(negative or too large; {low:g}…{high:g}) clipped to it")
+    return np.clip(np.rint(np.nan_to_num(values)), 0, 65535).astype(np.uint16)
 
 
 def read_pose(path: Path) -> F64:
@@ -706,6 +777,22 @@ def detect_z_up(points: F64) -> tuple[bool, str]:
                                  f"z {floor[1]:.2f}")
 
 
+def float32_error_m(coordinate_m: float) -> float:
+    """The largest rounding error of a coordinate this far from the origin, as float32."""
+    return float(np.spacing(np.float32(abs(coordinate_m)))) / 2.0
+
+
+def float32_safe_offset(points: F64) -> F64:
+    """Whole metres to subtract per axis so float32 keeps ``MAX_FLOAT32_ERROR_M``: the centre
+    of the bounds, rounded, on each axis that needs it; zero elsewhere."""
+    if len(points) == 0:
+        return np.zeros(3)
+    low, high = points.min(axis=0), points.max(axis=0)
+    far = np.maximum(np.abs(low), np.abs(high))
+    needed = np.array([float32_error_m(v) > MAX_FLOAT32_ERROR_M for v in far])
+    return np.where(needed, np.round((low + high) / 2.0), 0.0)
+
+
 def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str, object]]:
     """Read point files into one ``points`` table (rig frame) and a short report.
 
@@ -758,6 +845,14 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
     given_origin = any(params.poses)
     origin_rig = (origin_file @ axes.T if given_origin
                   else np.broadcast_to(np.asarray(params.origin_m, np.float64), points.shape))
+    offset = float32_safe_offset(points)
+    if offset.any():
+        far = float(np.abs(points).max())
+        points, origin_rig = points - offset, origin_rig - offset
+        notes.append(f"coordinates up to {far:.6g} m from the origin would lose up to "
+                     f"{float32_error_m(far) * 1000:.2g} mm as float32: shifted by "
+                     f"−({', '.join(f'{v:g}' for v in offset)}) m (rig frame; offset_m in the "
+                     "report): add it back for georeferenced output")
     colours = (np.concatenate([s.colours for s in scans if s.colours is not None])
                if all(s.colours is not None for s in scans) else None)
     echo = (np.concatenate([s.echo for s in scans if s.echo is not None])
@@ -797,6 +892,7 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
         "grid": grid,
         "bounds_min": points.min(axis=0).tolist() if len(points) else None,
         "bounds_max": points.max(axis=0).tolist() if len(points) else None,
+        "offset_m": offset.tolist(),
         "warnings": notes,
     }
     return table, report

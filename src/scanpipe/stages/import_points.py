@@ -30,7 +30,7 @@ def import_points_stage(inputs: Mapping[str, Any], params: ImportParams,
 
 STAGE = Stage(
     name="import-points",
-    version=2,
+    version=3,
     params=ImportParams,
     inputs=("point_file",),
     outputs=("points",),

@@ -1,0 +1,161 @@
+"""import-points on files as other tools write them: georeferenced LAS (laspy), Leica PTS and
+CloudCompare-style text (x y z intensity r g b), intensities as 0–1 floats or PTS's
+−2048…2047, LAS intensity. Each case was once read silently wrong."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import laspy
+import numpy as np
+import pyarrow as pa
+
+from scanpipe.artifacts import read_artifact
+from scanpipe.pointio import ImportParams, import_points
+
+Cli = Callable[..., Any]
+RNG = np.random.default_rng(7)
+N = 400
+#: A small site in a projected CRS: 10 m around (637 000 E, 849 000 N), 400 m up (z-up).
+GEO_LOW = np.array([637_000.0, 849_000.0, 400.0])
+
+
+def xyz(table: pa.Table) -> np.ndarray:
+    return np.stack([table.column(c).to_numpy() for c in "xyz"], axis=1).astype(np.float64)
+
+
+def rgb(table: pa.Table) -> np.ndarray:
+    return np.stack([table.column(c).to_numpy() for c in ("red", "green", "blue")], axis=1)
+
+
+def write_geo_las(path: Path) -> np.ndarray:
+    """A LAS file at 1 mm resolution in UTM-like coordinates; returns the z-up points."""
+    points = RNG.uniform(GEO_LOW, GEO_LOW + np.array([10.0, 10.0, 5.0]), (N, 3))
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.offsets = GEO_LOW
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    las.intensity = RNG.integers(0, 65536, N).astype(np.uint16)
+    las.write(str(path))
+    back = laspy.read(str(path))
+    return np.stack([back.x, back.y, back.z], axis=1)
+
+
+def test_georeferenced_las_keeps_millimetres_by_shifting_and_says_so(tmp_path: Path) -> None:
+    # float32 at 849 000 m has a 6 cm spacing: read as is, every point moved by up to 3 cm.
+    path = tmp_path / "site.las"
+    geo = write_geo_las(path)
+    table, report = import_points(path, ImportParams())
+    offset = np.asarray(report["offset_m"])
+    rig = np.stack([geo[:, 0], geo[:, 2], -geo[:, 1]], axis=1)  # z-up → rig (x, z, −y)
+    np.testing.assert_allclose(xyz(table) + offset, rig, atol=2e-4, rtol=0)
+    # Only the axes that need it move, by whole metres: heights (400 m) stay as they are.
+    assert np.all(np.abs(xyz(table)[:, [0, 2]]) < 20.0) and offset[1] == 0.0
+    assert np.all(offset == np.round(offset))
+    assert any("shifted" in w and "float32" in w for w in report["warnings"])  # type: ignore
+    # A cloud near the origin is not shifted.
+    near = tmp_path / "near.xyz"
+    np.savetxt(near, RNG.uniform(-3, 3, (N, 3)))
+    _, report = import_points(near, ImportParams(up="y"))
+    assert report["offset_m"] == [0.0, 0.0, 0.0]
+
+
+def test_las_intensity_becomes_echo(tmp_path: Path) -> None:
+    path = tmp_path / "site.las"
+    write_geo_las(path)
+    table, _ = import_points(path, ImportParams())
+    np.testing.assert_array_equal(table.column("echo").to_numpy(),
+                                  laspy.read(str(path)).intensity)
+
+
+def intensity_rgb_rows() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    points = RNG.uniform(-3.0, 3.0, (N, 3))
+    intensity = RNG.integers(-2048, 2048, N)
+    colours = RNG.integers(0, 256, (N, 3))
+    return points, intensity, colours
+
+
+def write_rows(path: Path, points: np.ndarray, intensity: np.ndarray, colours: np.ndarray,
+               count_line: bool) -> None:
+    lines = [f"{len(points)}"] if count_line else []
+    lines += [f"{p[0]:.4f} {p[1]:.4f} {p[2]:.4f} {i} {c[0]} {c[1]} {c[2]}"
+              for p, i, c in zip(points, intensity, colours, strict=True)]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_leica_pts_with_its_count_line_is_x_y_z_intensity_r_g_b(tmp_path: Path) -> None:
+    points, intensity, colours = intensity_rgb_rows()
+    for count_line in (True, False):
+        path = tmp_path / f"scan{int(count_line)}.pts"
+        write_rows(path, points, intensity, colours, count_line)
+        table, report = import_points(path, ImportParams(up="y"))
+        np.testing.assert_allclose(xyz(table), points, atol=1e-4)
+        np.testing.assert_array_equal(rgb(table), colours)
+        # PTS intensity is −2048…2047: shifted into the echo's 0…4095, nothing clipped.
+        np.testing.assert_array_equal(table.column("echo").to_numpy(), intensity + 2048)
+        assert report["points"] == N
+
+
+def test_pts_count_line_that_disagrees_is_warned(tmp_path: Path) -> None:
+    points, intensity, colours = intensity_rgb_rows()
+    path = tmp_path / "scan.pts"
+    write_rows(path, points, intensity, colours, count_line=True)
+    text = path.read_text().splitlines()
+    path.write_text("\n".join([str(N + 5), *text[1:]]) + "\n")
+    _, report = import_points(path, ImportParams(up="y"))
+    assert any("says 405 points" in w and "400" in w for w in report["warnings"])  # type: ignore
+
+
+def test_headerless_seven_columns_are_not_silently_taken_as_x_y_z_r_g_b_a(
+        tmp_path: Path) -> None:
+    # CloudCompare's "x y z intensity r g b" without a header: columns 4–6 look like colours
+    # too, so the guess is warned about and --columns settles it.
+    points, _, colours = intensity_rgb_rows()
+    intensity = RNG.integers(0, 256, N)
+    path = tmp_path / "cloud.xyz"
+    write_rows(path, points, intensity, colours, count_line=False)
+    table, report = import_points(path, ImportParams(up="y"))
+    assert any("--columns x,y,z,intensity,red,green,blue" in w
+               for w in report["warnings"])  # type: ignore[union-attr]
+    table, report = import_points(path, ImportParams(
+        up="y", columns="x,y,z,intensity,red,green,blue"))
+    np.testing.assert_array_equal(rgb(table), colours)
+    np.testing.assert_array_equal(table.column("echo").to_numpy(), intensity)
+
+
+def test_intensity_as_a_fraction_is_scaled_not_rounded_to_0_or_1(tmp_path: Path) -> None:
+    points = RNG.uniform(-3.0, 3.0, (N, 3))
+    fraction = RNG.uniform(0.0, 1.0, N)
+    path = tmp_path / "cloud.csv"
+    lines = ["x,y,z,intensity"] + [f"{p[0]},{p[1]},{p[2]},{f:.6f}"
+                                    for p, f in zip(points, fraction, strict=True)]
+    path.write_text("\n".join(lines) + "\n")
+    table, report = import_points(path, ImportParams(up="y"))
+    np.testing.assert_allclose(table.column("echo").to_numpy(), fraction * 65535, atol=1.0)
+    assert any("0…1" in w for w in report["warnings"])  # type: ignore[union-attr]
+
+
+def test_negative_intensities_are_warned_not_clipped_silently(tmp_path: Path) -> None:
+    points = RNG.uniform(-3.0, 3.0, (N, 3))
+    values = RNG.integers(-100, 100, N)
+    path = tmp_path / "cloud.csv"
+    lines = ["x,y,z,intensity"] + [f"{p[0]},{p[1]},{p[2]},{v}"
+                                    for p, v in zip(points, values, strict=True)]
+    path.write_text("\n".join(lines) + "\n")
+    _, report = import_points(path, ImportParams(up="y"))
+    assert any("negative" in w and "intensit" in w for w in report["warnings"])  # type: ignore
+
+
+def test_cli_prints_the_shift_of_a_georeferenced_file(tmp_path: Path, cli: Cli) -> None:
+    path = tmp_path / "site.las"
+    write_geo_las(path)
+    out = tmp_path / "out"
+    result = cli("import-points", path, "--out", out, "-q")
+    assert result.code == 0, result.err
+    assert "shifted" in result.err and result.err.count("\n") >= 1
+    table, provenance = read_artifact(out / "points.parquet")
+    assert abs(provenance["report"]["offset_m"][0] - 637005.0) <= 1.0
+    assert table.num_rows == N
