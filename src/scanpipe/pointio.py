@@ -70,7 +70,7 @@ class ImportParams(Params):
     up: Literal["auto", "y", "z"] = Field(
         "auto", description="the file's up axis; auto = z for LAS/LAZ, y for 3DTK .3d, "
                             "else detected from the cloud (see detect_z_up)")
-    format: Literal["auto", "xyz", "csv", "pts", "ply", "las", "3d"] = Field(
+    format: Literal["auto", "xyz", "csv", "pts", "ply", "las", "e57", "pcd", "3d"] = Field(
         "auto", description="file format; auto = from the extension")
     columns: str | None = Field(
         None, description="text columns: each column's role in order (x,y,z,-,intensity; "
@@ -536,6 +536,8 @@ class _Scan:
     units: str
     left_handed: bool
     no_return: int
+    #: Each point's sensor origin in the file's frame when the file says (E57 scan poses).
+    origins: F64 | None = None
 
 
 def _format_of(path: Path, params: ImportParams) -> str:
@@ -546,6 +548,8 @@ def _format_of(path: Path, params: ImportParams) -> str:
         return "ply"
     if suffix in (".las", ".laz"):
         return "las"
+    if suffix in (".e57", ".pcd"):
+        return suffix[1:]
     if suffix == ".3d":
         return "3d"
     if suffix == ".pts":
@@ -553,8 +557,8 @@ def _format_of(path: Path, params: ImportParams) -> str:
     if suffix in TEXT_SUFFIXES:
         return "xyz"
     raise UsageError(f"{path}: unknown point file type {suffix!r}; allowed: "
-                     f"{', '.join((*SUFFIXES, '.3d'))}, or name the format with --format "
-                     "xyz|csv|pts|ply|las|3d")
+                     f"{', '.join((*SUFFIXES, '.e57', '.pcd', '.3d'))}, or name the format "
+                     "with --format xyz|csv|pts|ply|las|e57|pcd|3d")
 
 
 def parse_organised(text: str) -> tuple[int, int]:
@@ -572,22 +576,30 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
     units = params.units if params.units != "auto" else ("cm" if fmt == "3d" else "m")
     left = params.left_handed if params.left_handed is not None else fmt == "3d"
     echo = None
-    if fmt in ("ply", "las"):
+    origins: F64 | None = None
+    file_grid: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None
+    no_return_file = 0
+    if fmt in ("ply", "las", "e57", "pcd"):
         if params.columns:
             raise UsageError(f"--columns applies to text files, not {fmt} ({path})")
         if fmt == "ply":
             raw, colours = _read_ply(path)
-        else:
+        elif fmt == "las":
             raw, colours, echo = _read_las(path)
+        else:
+            cloud = (_read_pcd(path, warnings_out) if fmt == "pcd"
+                     else _read_e57(path, warnings_out))
+            raw, colours, echo, origins = cloud.points, cloud.colours, cloud.echo, cloud.origins
+            file_grid, no_return_file = cloud.grid, cloud.invalid
         table_range: F64 | None = None
-        z_up: bool | None = fmt == "las"
+        z_up: bool | None = True if fmt in ("las", "e57") else None
     else:
         table = _read_text(path, fmt, warnings_out)
         raw, colours, echo, table_range = _map_columns(path, table, params, warnings_out, fmt)
         z_up = False if fmt == "3d" else (True if table_range is not None and params.columns
                                           and "x" not in params.columns else None)
     n = len(raw)
-    grid = None
+    grid = file_grid
     if params.organised:
         rows, cols = parse_organised(params.organised)
         if rows * cols != n:
@@ -596,7 +608,8 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
         index = np.arange(n, dtype=np.int32)
         grid = (index // cols, index % cols)
     # No return: a range of 0 (a point at the sensor), or at/above the maximum range.
-    range_file = table_range if table_range is not None else np.linalg.norm(raw, axis=1)
+    range_file = (table_range if table_range is not None else
+                  np.linalg.norm(raw if origins is None else raw - origins, axis=1))
     finite = np.isfinite(raw).all(axis=1) & np.isfinite(range_file)
     with np.errstate(invalid="ignore"):
         no_return = finite & (range_file <= 0)
@@ -608,7 +621,8 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
     return _Scan(raw[keep], None if colours is None else colours[keep],
                  None if echo is None else echo[keep],
                  None if grid is None else (grid[0][keep], grid[1][keep]), z_up, units, left,
-                 int(np.count_nonzero(no_return)))
+                 int(np.count_nonzero(no_return)) + no_return_file,
+                 None if origins is None else origins[keep])
 
 
 def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: list[str],
@@ -811,12 +825,14 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
                          f"--axes {Z_UP_AXES})")
     parts: list[F64] = []
     origins: list[F64] = []
+    own_origin: list[NDArray[np.bool_]] = []
     for k, scan in enumerate(scans):
         pose = read_pose(Path(params.poses[k])) if params.poses and params.poses[k] else None
-        pts, origin = scan.points, np.zeros(3)
+        pts = scan.points
+        origin = scan.origins if scan.origins is not None else np.zeros((1, 3))
         if pose is not None:
             pts = pts @ pose[:3, :3].T + pose[:3, 3]
-            origin = pose[:3, 3].copy()
+            origin = origin @ pose[:3, :3].T + pose[:3, 3]
         scale = UNIT_SCALE[scan.units]
         pts, origin = pts * scale, origin * scale
         if scan.left_handed:
@@ -824,8 +840,12 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
             origin = origin * (1.0, 1.0, -1.0)
         parts.append(pts)
         origins.append(np.broadcast_to(origin, pts.shape))
+        # A file's sensor origins are its own when a pose or the file (E57) gives them.
+        own_origin.append(np.full(len(pts), bool(any(params.poses))
+                                  or scan.origins is not None))
     points = np.concatenate(parts)
     origin_file = np.concatenate(origins)
+    own = np.concatenate(own_origin)
     up_reason = "given"
     if params.axes:
         axes = parse_axes(params.axes)
@@ -842,9 +862,8 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
                          "to override")
         axes = parse_axes(Z_UP_AXES if z_up else "x,y,z")
     points = points @ axes.T
-    given_origin = any(params.poses)
-    origin_rig = (origin_file @ axes.T if given_origin
-                  else np.broadcast_to(np.asarray(params.origin_m, np.float64), points.shape))
+    origin_rig = np.where(own[:, None], origin_file @ axes.T,
+                          np.asarray(params.origin_m, np.float64))
     offset = float32_safe_offset(points)
     if offset.any():
         far = float(np.abs(points).max())
@@ -859,7 +878,7 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
             if all(s.echo is not None for s in scans) else None)
     table = points_table(points, colours, origin_rig, echo)
     grid = None
-    if len(scans) == 1 and scans[0].grid is not None:
+    if len(scans) == 1 and scans[0].grid is not None and len(scans[0].grid[0]):
         profile, sample = scans[0].grid
         table = table.set_column(table.column_names.index("profile"), "profile",
                                  pa.array(profile))
@@ -897,3 +916,307 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
     }
     return table, report
 
+
+
+# -- E57 (pye57 / libE57Format) -----------------------------------------------------------------
+
+#: A point takes at least one bit of an E57 compressed vector: a larger recordCount is a lie,
+#: refused before pye57 allocates its buffers.
+_E57_MAX_POINTS_PER_BYTE = 8
+
+
+@dataclass
+class _FileCloud:
+    """A format's points with what it says besides xyz (file frame and units)."""
+
+    points: F64
+    colours: U8 | None
+    echo: NDArray[np.uint16] | None
+    origins: F64 | None = None
+    grid: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None
+    invalid: int = 0
+
+
+def _read_e57(path: Path, warnings_out: list[str]) -> _FileCloud:
+    """Every ``data3D`` scan of an E57 file in the file's frame (each scan's pose applied),
+    each point's sensor origin (its scan's pose translation), intensity (whole numbers in
+    0…65535 kept, else scaled by ``intensityLimits``), 8-bit colour and, for a single scan,
+    its ``rowIndex``/``columnIndex`` grid. Invalid points (``…InvalidState`` ≠ 0) are
+    no-returns."""
+    import pye57
+
+    with path.open("rb") as handle:
+        if handle.read(8) != b"ASTM-E57":
+            raise ArtifactError(f"{path}: not an E57 file (no 'ASTM-E57' signature)")
+    try:
+        reader = pye57.E57(str(path))
+    except Exception as err:  # libE57Format raises its own exception types
+        raise ArtifactError(f"{path}: not a readable E57 file ({_first_line(err)})") from None
+    try:
+        scans = [_e57_scan(path, reader, index, warnings_out)
+                 for index in range(reader.scan_count)]
+    except ArtifactError:
+        raise
+    except Exception as err:  # libE57Format's types, ValueError, KeyError from pye57
+        raise ArtifactError(f"{path}: not a readable E57 file "
+                            f"({type(err).__name__}: {_first_line(err)})") from None
+    finally:
+        reader.close()
+    if not scans:
+        raise ArtifactError(f"{path}: E57 file has no scan (its data3D is empty)")
+    grid = scans[0].grid if len(scans) == 1 else None
+    if len(scans) > 1:
+        warnings_out.append(f"{path}: {len(scans)} E57 scans merged in the file's frame, each "
+                            "with its scan position as the sensor origin (no grid kept)")
+    colours = (np.concatenate([s.colours for s in scans if s.colours is not None])
+               if all(s.colours is not None for s in scans) else None)
+    echo = (np.concatenate([s.echo for s in scans if s.echo is not None])
+            if all(s.echo is not None for s in scans) else None)
+    return _FileCloud(np.concatenate([s.points for s in scans]), colours, echo,
+                      np.concatenate([s.origins for s in scans if s.origins is not None]),
+                      grid, sum(s.invalid for s in scans))
+
+
+def _first_line(err: Exception) -> str:
+    """libE57Format's messages run over many lines (debug context); the first says it."""
+    lines = str(err).strip().splitlines()
+    return lines[0].strip() if lines else type(err).__name__
+
+
+def _e57_limits(header: object, node: str, low: str, high: str) -> tuple[float, float] | None:
+    """A ``…Limits`` structure's (minimum, maximum), or None when the scan has none."""
+    scan = header.node  # type: ignore[attr-defined]
+    if not scan.isDefined(node):
+        return None
+    limits = scan[node]
+    if not (limits.isDefined(low) and limits.isDefined(high)):
+        return None
+    return float(limits[low].value()), float(limits[high].value())
+
+
+def _e57_scan(path: Path, reader: object, index: int, warnings_out: list[str]) -> _FileCloud:
+    header = reader.get_header(index)  # type: ignore[attr-defined]
+    count = int(header.point_count)
+    if count > path.stat().st_size * _E57_MAX_POINTS_PER_BYTE:
+        raise ArtifactError(f"{path}: E57 scan {index} claims {count} points; the file's "
+                            f"{path.stat().st_size} bytes cannot hold that many")
+    fields = set(header.point_fields)
+    data = reader.read_scan_raw(index, ignore_unsupported_fields=True)  # type: ignore
+    if {"cartesianX", "cartesianY", "cartesianZ"} <= fields:
+        xyz = np.stack([np.asarray(data[f"cartesian{a}"], np.float64) for a in "XYZ"], axis=1)
+        state = data.get("cartesianInvalidState")
+    elif {"sphericalRange", "sphericalAzimuth", "sphericalElevation"} <= fields:
+        # E57 angles are radians: azimuth from +x towards +y, elevation from the x-y plane.
+        xyz = polar_to_xyz(np.asarray(data["sphericalRange"], np.float64),
+                           np.degrees(np.asarray(data["sphericalAzimuth"], np.float64)),
+                           np.degrees(np.asarray(data["sphericalElevation"], np.float64)))
+        state = data.get("sphericalInvalidState")
+    else:
+        raise ArtifactError(f"{path}: E57 scan {index} has neither cartesianX/Y/Z nor "
+                            f"sphericalRange/Azimuth/Elevation (fields: "
+                            f"{', '.join(sorted(fields)) or 'none'})")
+    valid = np.ones(count, bool) if state is None else np.asarray(state) == 0
+    rotation = np.asarray(header.rotation_matrix, np.float64)
+    translation = np.asarray(header.translation, np.float64)
+    points = xyz[valid] @ rotation.T + translation
+    where = f"{path} scan {index}"
+    echo = None
+    if "intensity" in data:
+        values = np.asarray(data["intensity"], np.float64)[valid]
+        limits = _e57_limits(header, "intensityLimits", "intensityMinimum", "intensityMaximum")
+        whole = values.size == 0 or bool(np.all(values == np.round(values))
+                                         and values.min() >= 0 and values.max() <= 65535)
+        if not whole and limits is not None and limits[1] > limits[0]:
+            values = (values - limits[0]) / (limits[1] - limits[0])
+            warnings_out.append(f"{where}: intensity scaled from its intensityLimits "
+                                f"{limits[0]:g}…{limits[1]:g} to the echo's 0…65535")
+            values = values * 65535.0
+            echo = np.clip(np.rint(values), 0, 65535).astype(np.uint16)
+        else:
+            echo = _intensity_to_echo(Path(where), values, "e57", warnings_out)
+    colours = None
+    if {"colorRed", "colorGreen", "colorBlue"} <= set(data):
+        rgb = np.stack([np.asarray(data[f"color{c}"], np.float64)[valid]
+                        for c in ("Red", "Green", "Blue")], axis=1)
+        limits = _e57_limits(header, "colorLimits", "colorRedMinimum", "colorRedMaximum")
+        if limits is not None and limits[1] > 255:
+            rgb = rgb * 255.0 / limits[1]
+        colours = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+    grid = None
+    if "rowIndex" in data and "columnIndex" in data:
+        grid = (np.asarray(data["rowIndex"], np.int32)[valid],
+                np.asarray(data["columnIndex"], np.int32)[valid])
+    return _FileCloud(points, colours, echo, np.broadcast_to(translation, points.shape).copy(),
+                      grid, int(count - np.count_nonzero(valid)))
+
+
+# -- PCD (PCL's point cloud data) ---------------------------------------------------------------
+
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4",
+              ("I", 8): "i8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
+_PCD_HEADER_MAX_BYTES = 1 << 16
+#: LZF (binary_compressed) shrinks constant data ~100×; no real file gets near this.
+_PCD_MAX_COMPRESSION = 1024
+
+
+@dataclass(frozen=True)
+class _PcdHeader:
+    fields: tuple[str, ...]
+    dtype: np.dtype[np.void]
+    width: int
+    height: int
+    points: int
+    viewpoint: tuple[float, ...]
+    data: str
+    header_bytes: int
+
+
+def _pcd_header(path: Path) -> _PcdHeader:
+    with path.open("rb") as handle:
+        head = handle.read(_PCD_HEADER_MAX_BYTES)
+    values: dict[str, list[str]] = {}
+    offset = 0
+    for raw_line in head.split(b"\n"):
+        offset += len(raw_line) + 1
+        try:
+            words = raw_line.decode("ascii").split()
+        except UnicodeDecodeError:
+            break
+        if not words or words[0].startswith("#"):
+            continue
+        values[words[0].upper()] = words[1:]
+        if words[0].upper() == "DATA":
+            break
+    if "DATA" not in values or "FIELDS" not in values:
+        raise ArtifactError(f"{path}: not a PCD file (no FIELDS and DATA lines in its header)")
+    try:
+        fields = values["FIELDS"]
+        sizes = [int(v) for v in values.get("SIZE", [])]
+        types = values.get("TYPE", [])
+        counts = [int(v) for v in values.get("COUNT", ["1"] * len(fields))]
+        width, height = int(values["WIDTH"][0]), int(values.get("HEIGHT", ["1"])[0])
+        points = int(values.get("POINTS", [str(width * height)])[0])
+        viewpoint = tuple(float(v) for v in values.get("VIEWPOINT", ["0"] * 3 + ["1"]
+                                                             + ["0"] * 3))
+        data = values["DATA"][0].lower()
+        if not (len(sizes) == len(types) == len(counts) == len(fields)) or min(counts) < 1:
+            raise ValueError("FIELDS, SIZE, TYPE and COUNT differ in length")
+        if points < 0 or width < 0 or height < 0 or len(viewpoint) != 7:
+            raise ValueError("negative POINTS/WIDTH/HEIGHT or a VIEWPOINT of not 7 numbers")
+        names = [f"{name}_{k}" if name == "_" else name for k, name in enumerate(fields)]
+        dtype = np.dtype([(n, "<" + _PCD_TYPES[(t.upper(), s)], (c,)) if c > 1 else
+                          (n, "<" + _PCD_TYPES[(t.upper(), s)])
+                          for n, t, s, c in zip(names, types, sizes, counts, strict=True)])
+    except (KeyError, ValueError, IndexError) as err:
+        raise ArtifactError(f"{path}: PCD header is not valid ({err}); need FIELDS, SIZE, TYPE "
+                            "(F, I or U), COUNT, WIDTH, POINTS and DATA") from None
+    if data not in ("ascii", "binary", "binary_compressed"):
+        raise ArtifactError(f"{path}: PCD DATA {data!r}; allowed: ascii, binary, "
+                            "binary_compressed")
+    return _PcdHeader(tuple(names), dtype, width, height, points, viewpoint, data, offset)
+
+
+def _read_pcd(path: Path, warnings_out: list[str]) -> _FileCloud:
+    """A PCD file (ascii, binary; binary_compressed through Open3D): x y z, ``rgb``/``rgba``
+    (packed; PCL writes it as an unsigned integer in ASCII files although its TYPE is F —
+    Open3D's reader then makes wrong colours, so ASCII is read here), ``intensity``, the grid
+    of an organised cloud (HEIGHT > 1) and the VIEWPOINT's position as the sensor origin."""
+    header = _pcd_header(path)
+    if not {"x", "y", "z"} <= set(header.fields):
+        raise ArtifactError(f"{path}: PCD FIELDS has no x, y, z ({' '.join(header.fields)})")
+    if header.points == 0:
+        raise ArtifactError(f"{path}: PCD file has 0 points")
+    available = path.stat().st_size - header.header_bytes
+    per_point = {"ascii": 2 * sum(max(1, int(np.prod(header.dtype[n].shape)))
+                                  for n in header.fields),
+                 "binary": header.dtype.itemsize,
+                 "binary_compressed": header.dtype.itemsize / _PCD_MAX_COMPRESSION}[header.data]
+    if header.points * per_point > available:
+        raise ArtifactError(f"{path}: PCD header field 'POINTS {header.points}' needs at least "
+                            f"{header.points * per_point:.0f} bytes of {header.data} data but "
+                            f"the file has {available} after its header")
+    rgb_bits: NDArray[np.uint32] | None = None
+    intensity: F64 | None = None
+    if header.data == "binary_compressed":
+        points, colours, intensity = _pcd_open3d(path, header)
+    else:
+        if header.data == "binary":
+            records = np.fromfile(path, dtype=header.dtype, count=header.points,
+                                  offset=header.header_bytes)
+            columns = {n: np.asarray(records[n]) for n in header.fields}
+        else:
+            columns = _pcd_ascii(path, header)
+        points = np.stack([np.asarray(columns[a], np.float64).reshape(-1) for a in "xyz"],
+                          axis=1)
+        packed = next((n for n in ("rgb", "rgba") if n in columns), None)
+        if packed is not None:
+            rgb_bits = _pcd_packed(columns[packed], header.data)
+        if "intensity" in columns:
+            intensity = np.asarray(columns["intensity"], np.float64).reshape(-1)
+        colours = None
+        if rgb_bits is not None:
+            colours = np.stack([(rgb_bits >> 16) & 255, (rgb_bits >> 8) & 255, rgb_bits & 255],
+                               axis=1).astype(np.uint8)
+    echo = (None if intensity is None
+            else _intensity_to_echo(path, intensity, "pcd", warnings_out))
+    grid = None
+    if header.height > 1 and header.width * header.height == len(points):
+        index = np.arange(len(points), dtype=np.int32)
+        grid = (index // header.width, index % header.width)
+    origins = np.broadcast_to(np.asarray(header.viewpoint[:3], np.float64), points.shape).copy()
+    return _FileCloud(points, colours, echo, origins, grid)
+
+
+def _pcd_ascii(path: Path, header: _PcdHeader) -> dict[str, F64]:
+    try:
+        with path.open("rb") as raw:
+            raw.seek(header.header_bytes)
+            text = io.TextIOWrapper(raw, encoding="ascii", errors="strict")
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                values = np.loadtxt(text, dtype=np.float64, max_rows=header.points, ndmin=2)
+    except ValueError as err:  # UnicodeDecodeError included
+        raise ArtifactError(f"{path}: PCD ascii data is not a table of numbers ({err})") from None
+    widths = [max(1, int(np.prod(header.dtype[n].shape))) for n in header.fields]
+    if values.shape != (header.points, sum(widths)):
+        raise ArtifactError(f"{path}: PCD header says {header.points} points of {sum(widths)} "
+                            f"values; the data has {values.shape[0]} lines of "
+                            f"{values.shape[1] if values.ndim == 2 else 0}")
+    starts = np.cumsum([0, *widths])
+    return {n: values[:, starts[k]:starts[k + 1]] for k, n in enumerate(header.fields)}
+
+
+def _pcd_packed(values: NDArray[np.generic], data: str) -> NDArray[np.uint32]:
+    """Packed 0xAARRGGBB colours. Binary: the field's bits. ASCII: a whole number is the
+    integer PCL writes; anything else is the float whose bits hold the colour."""
+    flat = np.asarray(values).reshape(-1)
+    if data == "binary":
+        return flat.view(np.uint32) if flat.dtype.itemsize == 4 else flat.astype(np.uint32)
+    numbers = np.asarray(flat, np.float64)
+    whole = np.isfinite(numbers) & (numbers == np.round(numbers)) & (numbers >= 0) & (
+        numbers < 2.0**32)
+    bits = np.asarray(numbers, np.float32).view(np.uint32)
+    return np.where(whole, np.where(whole, numbers, 0).astype(np.uint32), bits)
+
+
+def _pcd_open3d(path: Path, header: _PcdHeader) -> tuple[F64, U8 | None, F64 | None]:
+    """binary_compressed (LZF) through Open3D, which keeps every point in order."""
+    import open3d as o3d
+
+    cloud = o3d.t.io.read_point_cloud(path, remove_nan_points=False,
+                                      remove_infinite_points=False)
+    attributes = set(cloud.point)
+    if "positions" not in attributes or len(cloud.point.positions) != header.points:
+        raise ArtifactError(f"{path}: PCD binary_compressed data could not be read (Open3D read "
+                            f"{len(cloud.point.positions) if 'positions' in attributes else 0} "
+                            f"of {header.points} points)")
+    points = np.asarray(cloud.point.positions.numpy(), np.float64)
+    colours = None
+    if "colors" in attributes:
+        rgb = cloud.point.colors.numpy()
+        colours = (rgb if rgb.dtype == np.uint8 else
+                   np.clip(np.rint(np.asarray(rgb, np.float64) * 255.0), 0, 255)
+                   ).astype(np.uint8)
+    intensity = (np.asarray(cloud.point.intensity.numpy(), np.float64).reshape(-1)
+                 if "intensity" in attributes else None)
+    return points, colours, intensity
