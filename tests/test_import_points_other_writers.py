@@ -159,3 +159,61 @@ def test_cli_prints_the_shift_of_a_georeferenced_file(tmp_path: Path, cli: Cli) 
     table, provenance = read_artifact(out / "points.parquet")
     assert abs(provenance["report"]["offset_m"][0] - 637005.0) <= 1.0
     assert table.num_rows == N
+
+
+FIXTURES = Path(__file__).parent / "fixtures" / "laspy"
+
+
+def test_public_las_in_feet_is_read_in_metres(tmp_path: Path) -> None:
+    # Autzen (laspy's test data): NAD83(HARN) / Oregon Lambert (ft); its WKT says
+    # UNIT["foot",0.3048] and its GeoKeys ProjLinearUnits 9002. Read as metres, the cloud
+    # came out 3.28× too large with a hint at centimetres.
+    path = FIXTURES / "autzen_geo_proj.las"
+    las = laspy.read(str(path))
+    table, report = import_points(path, ImportParams())
+    feet = np.stack([las.x, las.y, las.z], axis=1)
+    rig = np.stack([feet[:, 0], feet[:, 2], -feet[:, 1]], axis=1) * 0.3048
+    np.testing.assert_allclose(xyz(table) + np.asarray(report["offset_m"]), rig, atol=2e-4,
+                               rtol=0)
+    assert report["units"] == ["ft"]
+    notes = " ".join(report["warnings"])  # type: ignore[arg-type]
+    assert "foot" in notes and "0.3048" in notes
+    assert "centimetres or millimetres" not in notes
+    # --units says otherwise: the file's unit is named in a warning, the user's is used.
+    table, report = import_points(path, ImportParams(units="m"))
+    np.testing.assert_allclose(xyz(table) + np.asarray(report["offset_m"]), rig / 0.3048,
+                               atol=2e-4, rtol=0)
+    assert any("--units m" in w and "foot" in w for w in report["warnings"])  # type: ignore
+
+
+def test_las_geokeys_alone_give_the_unit(tmp_path: Path) -> None:
+    # A LAS with GeoTIFF keys only (no WKT): ProjLinearUnitsGeoKey 9003 is the US survey foot.
+    header = laspy.LasHeader(point_format=0, version="1.2")
+    header.scales = np.array([0.01, 0.01, 0.01])
+    header.offsets = np.zeros(3)
+    keys = laspy.vlrs.known.GeoKeyDirectoryVlr()
+    keys.geo_keys_header.number_of_keys = 1
+    entry = laspy.vlrs.geotiff.GeoKeyEntryStruct()
+    entry.id, entry.tiff_tag_location, entry.count, entry.value_offset = 3076, 0, 1, 9003
+    keys.geo_keys = [entry]
+    header.vlrs.append(keys)
+    las = laspy.LasData(header)
+    points = RNG.uniform(0.0, 30.0, (N, 3))
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    path = tmp_path / "survey_feet.las"
+    las.write(str(path))
+    table, report = import_points(path, ImportParams())
+    back = laspy.read(str(path))
+    rig = np.stack([back.x, back.z, -np.asarray(back.y)], axis=1) * (1200.0 / 3937.0)
+    np.testing.assert_allclose(xyz(table), rig, atol=1e-5)
+    assert report["units"] == ["us-ft"]
+
+
+def test_public_las_with_8_bit_values_in_its_16_bit_colour(tmp_path: Path) -> None:
+    # laspy's simple.las stores colours 0…249 in the 16-bit fields (a writer's habit).
+    path = FIXTURES / "simple.las"
+    las = laspy.read(str(path))
+    table, report = import_points(path, ImportParams())
+    np.testing.assert_array_equal(rgb(table)[:, 0], np.asarray(las.red))
+    np.testing.assert_array_equal(table.column("echo").to_numpy(), np.asarray(las.intensity))
+    assert report["points"] == 1065 and report["units"] == ["m"]

@@ -76,7 +76,7 @@ class ImportParams(Params):
         None, description="text columns: each column's role in order (x,y,z,-,intensity; "
                           "- skips) or ROLE=INDEX pairs; roles x y z red green blue intensity "
                           "range azimuth elevation")
-    units: Literal["auto", "m", "cm", "mm"] = Field(
+    units: Literal["auto", "m", "cm", "mm", "ft", "us-ft"] = Field(
         "auto", description="length unit of the file (and its pose); auto = cm for 3DTK .3d, "
                             "m otherwise")
     axes: str | None = Field(
@@ -98,7 +98,8 @@ class ImportParams(Params):
 
 
 def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:
-    """Points ``(N, 3)`` float64, colours ``(N, 3)`` uint8 or None, and whether it is z-up."""
+    """Points ``(N, 3)`` float64 in the file's own units, colours ``(N, 3)`` uint8 or None, and
+    whether it is z-up."""
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise UsageError(f"{path}: unknown point file type {suffix!r}; "
@@ -108,7 +109,7 @@ def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:
     if suffix == ".ply":
         return (*_read_ply(path), False)
     if suffix in (".las", ".laz"):
-        points, colours, _ = _read_las(path)
+        points, colours, _, _ = _read_las(path)
         return points, colours, True
     fmt = "pts" if suffix == ".pts" else "xyz"
     table = _read_text(path, fmt)
@@ -325,8 +326,10 @@ def _check_las_header(path: Path) -> int:
     return int(count)
 
 
-def _read_las(path: Path) -> tuple[F64, U8 | None, NDArray[np.uint16]]:
-    """Points, 8-bit colours (or None) and the intensity (u16, LAS's own type)."""
+def _read_las(path: Path, warnings_out: list[str] | None = None
+              ) -> tuple[F64, U8 | None, NDArray[np.uint16], tuple[str, str, str] | None]:
+    """Points, 8-bit colours (or None), the intensity (u16, LAS's own type) and the length
+    units its coordinate system states (:func:`las_units`), or None."""
     import laspy
 
     count = _check_las_header(path)
@@ -343,6 +346,7 @@ def _read_las(path: Path) -> tuple[F64, U8 | None, NDArray[np.uint16]]:
         rgb = (np.stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)],
                         axis=1) if {"red", "green", "blue"} <= names else None)
         intensity = np.asarray(las.intensity, np.uint16)
+        crs_units = las_units(path, las.header, [] if warnings_out is None else warnings_out)
     except (laspy.LaspyException, OSError, ValueError, struct.error, EOFError, IndexError,
             KeyError, OverflowError, TypeError, *lazrs_errors) as err:
         raise ArtifactError(f"{path}: not a readable LAS/LAZ file "
@@ -354,7 +358,64 @@ def _read_las(path: Path) -> tuple[F64, U8 | None, NDArray[np.uint16]]:
     if rgb is not None:
         # LAS stores 16-bit colour; some writers put 8-bit values there anyway.
         colours = (rgb >> 8 if rgb.max(initial=0) > 255 else rgb).astype(np.uint8)
-    return points.astype(np.float64), colours, intensity
+    return points.astype(np.float64), colours, intensity, crs_units
+
+
+#: EPSG length units of GeoTIFF's ProjLinearUnitsGeoKey (3076) / VerticalUnitsGeoKey (4099).
+_EPSG_UNITS = {9001: "m", 9002: "ft", 9003: "us-ft"}
+_GEOKEY_LINEAR, _GEOKEY_VERTICAL = 3076, 4099
+_WKT_UNIT = re.compile(r'(?:LENGTH)?UNIT\[\s*"([^"]*)"\s*,\s*([-+0-9.eE]+)')
+_ANGULAR = re.compile(r"degree|radian|grad|arc|second|minute|unity|ppm|per", re.IGNORECASE)
+
+
+def _unit_key(factor_m: float) -> str | None:
+    """The ``UNIT_SCALE`` key of a length unit given in metres, if it is one of them."""
+    return next((k for k, v in UNIT_SCALE.items() if abs(v - factor_m) <= 1e-9 * v), None)
+
+
+def _wkt_length_unit(text: str) -> tuple[str, float] | None:
+    """The last length unit (name, metres) of a WKT 1 or 2 text (its CS's unit comes last)."""
+    found = [(n, float(f)) for n, f in _WKT_UNIT.findall(text) if not _ANGULAR.search(n)]
+    return found[-1] if found else None
+
+
+def las_units(path: Path, header: object, warnings_out: list[str]) -> tuple[str, str, str] | None:
+    """The horizontal and vertical length units (``UNIT_SCALE`` keys) a LAS header's CRS
+    states and where it says so: its WKT (``LASF_Projection``/``liblas`` 2112; a ``VERT_CS``
+    or ``VERTCRS`` part gives the vertical unit) or else its GeoTIFF keys 3076 / 4099. None
+    when it states none; a unit scanpipe does not know is warned about and read as metres."""
+    wkt, keys = None, {}
+    for vlr in getattr(header, "vlrs", []):
+        if getattr(vlr, "record_id", None) == 2112:
+            data = getattr(vlr, "record_data", None)
+            text = getattr(vlr, "string", None) or (bytes(data).decode("utf-8", "replace")
+                                                    if data is not None else "")
+            wkt = text.rstrip("\0") or wkt
+        for key in getattr(vlr, "geo_keys", []) or []:
+            if key.tiff_tag_location == 0:
+                keys[int(key.id)] = int(key.value_offset)
+    if wkt:
+        split = re.search(r"VERT_?CS|VERTCRS", wkt)
+        horizontal = _wkt_length_unit(wkt[:split.start()] if split else wkt)
+        vertical = _wkt_length_unit(wkt[split.start():]) if split else None
+        if horizontal is None:
+            return None
+        vertical = vertical or horizontal
+        named = [(name, factor, _unit_key(factor)) for name, factor in (horizontal, vertical)]
+        source = "its WKT"
+    elif _GEOKEY_LINEAR in keys:
+        codes = (keys[_GEOKEY_LINEAR], keys.get(_GEOKEY_VERTICAL, keys[_GEOKEY_LINEAR]))
+        named = [(f"EPSG:{c}", UNIT_SCALE.get(_EPSG_UNITS.get(c, ""), float("nan")),
+                  _EPSG_UNITS.get(c)) for c in codes]
+        source = "its GeoTIFF keys"
+    else:
+        return None
+    unknown = [f"{name} ({factor:g} m)" for name, factor, key in named if key is None]
+    if unknown:
+        warnings_out.append(f"{path}: {source} state a length unit scanpipe does not know: "
+                            f"{', '.join(unknown)}; read as metres: give --units")
+    h_key, v_key = (key or "m" for _, _, key in named)
+    return h_key, v_key, source
 
 
 #: Column roles ``--columns`` and a header may name (aliases in the header, lower case).
@@ -513,7 +574,10 @@ def points_table(points: F64, colours: U8 | None,
 
 
 #: Metres per file unit.
-UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048, "us-ft": 1200.0 / 3937.0}
+#: Names of the length units (WKT ``UNIT``/``LENGTHUNIT``, EPSG codes in GeoTIFF keys).
+UNIT_NAMES = {"m": "metre", "cm": "centimetre", "mm": "millimetre", "ft": "foot",
+              "us-ft": "US survey foot"}
 #: Extents (metres) outside which a cloud is implausible for its units.
 MAX_PLAUSIBLE_EXTENT_M = 500.0
 MIN_PLAUSIBLE_EXTENT_M = 0.05
@@ -538,6 +602,10 @@ class _Scan:
     no_return: int
     #: Each point's sensor origin in the file's frame when the file says (E57 scan poses).
     origins: F64 | None = None
+    #: The unit of the file's z (LAS: its CRS's vertical unit), when not ``units``.
+    vertical_units: str | None = None
+    #: The file itself states its unit (a LAS CRS): no plausibility guess about it.
+    units_stated: bool = False
 
 
 def _format_of(path: Path, params: ImportParams) -> str:
@@ -573,7 +641,9 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
     if not path.is_file():
         raise UsageError(f"{path}: not found")
     fmt = _format_of(path, params)
-    units = params.units if params.units != "auto" else ("cm" if fmt == "3d" else "m")
+    units: str = params.units if params.units != "auto" else ("cm" if fmt == "3d" else "m")
+    vertical_units = units
+    units_stated = False
     left = params.left_handed if params.left_handed is not None else fmt == "3d"
     echo = None
     origins: F64 | None = None
@@ -585,7 +655,9 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
         if fmt == "ply":
             raw, colours = _read_ply(path)
         elif fmt == "las":
-            raw, colours, echo = _read_las(path)
+            raw, colours, echo, crs = _read_las(path, warnings_out)
+            units, vertical_units = _las_file_units(path, params, crs, units, warnings_out)
+            units_stated = crs is not None and params.units == "auto"
         else:
             cloud = (_read_pcd(path, warnings_out) if fmt == "pcd"
                      else _read_e57(path, warnings_out))
@@ -622,7 +694,27 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
                  None if echo is None else echo[keep],
                  None if grid is None else (grid[0][keep], grid[1][keep]), z_up, units, left,
                  int(np.count_nonzero(no_return)) + no_return_file,
-                 None if origins is None else origins[keep])
+                 None if origins is None else origins[keep], vertical_units, units_stated)
+
+
+def _las_file_units(path: Path, params: ImportParams, crs: tuple[str, str, str] | None,
+                    units: str, warnings_out: list[str]) -> tuple[str, str]:
+    """The units a LAS file is read in: its CRS's (horizontal, vertical) unless ``--units``
+    says otherwise (then warned when they differ)."""
+    if crs is None:
+        return units, units
+    horizontal, vertical, source = crs
+    said = (UNIT_NAMES[horizontal] if horizontal == vertical else
+            f"{UNIT_NAMES[horizontal]} horizontally, {UNIT_NAMES[vertical]} vertically")
+    if params.units != "auto":
+        if {horizontal, vertical} != {params.units}:
+            warnings_out.append(f"{path}: --units {params.units} given, but {source} say "
+                                f"{said}; read in {UNIT_NAMES[params.units]} as asked")
+        return units, units
+    if {horizontal, vertical} != {"m"}:
+        warnings_out.append(f"{path}: {source} state the unit: {said} "
+                            f"({UNIT_SCALE[horizontal]:.6g} m); converted to metres")
+    return horizontal, vertical
 
 
 def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: list[str],
@@ -833,7 +925,8 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
         if pose is not None:
             pts = pts @ pose[:3, :3].T + pose[:3, 3]
             origin = origin @ pose[:3, :3].T + pose[:3, 3]
-        scale = UNIT_SCALE[scan.units]
+        scale = np.array([UNIT_SCALE[scan.units], UNIT_SCALE[scan.units],
+                          UNIT_SCALE[scan.vertical_units or scan.units]])
         pts, origin = pts * scale, origin * scale
         if scan.left_handed:
             pts = pts * (1.0, 1.0, -1.0)
@@ -887,7 +980,7 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
         grid = {"profiles": int(profile.max()) + 1, "samples": int(sample.max()) + 1}
     elif params.organised and len(scans) > 1:
         notes.append("--organised with several files: the grid is not kept (one grid per file)")
-    if len(points):
+    if len(points) and not all(s.units_stated for s in scans):
         extent = float(np.max(np.ptp(points, axis=0)))
         units = sorted({s.units for s in scans})
         if extent > MAX_PLAUSIBLE_EXTENT_M:

@@ -82,7 +82,7 @@ def import_points_command(
     columns: str | None = typer.Option(None, "--columns",
                                        help="Text columns: roles in order (x,y,z,-,intensity) "
                                             "or ROLE=INDEX; see docs/import.md."),
-    units: str = typer.Option("auto", "--units", help="auto, m, cm or mm."),
+    units: str = typer.Option("auto", "--units", help="auto, m, cm, mm, ft or us-ft."),
     axes: str | None = typer.Option(None, "--axes",
                                     help="File axis for rig x,y,z, signed (e.g. x,z,-y)."),
     left_handed: bool | None = typer.Option(None, "--left-handed/--right-handed",
