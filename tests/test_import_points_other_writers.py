@@ -217,3 +217,22 @@ def test_public_las_with_8_bit_values_in_its_16_bit_colour(tmp_path: Path) -> No
     np.testing.assert_array_equal(rgb(table)[:, 0], np.asarray(las.red))
     np.testing.assert_array_equal(table.column("echo").to_numpy(), np.asarray(las.intensity))
     assert report["points"] == 1065 and report["units"] == ["m"]
+
+
+def test_ply_intensity_as_cloudcompare_and_pdal_name_it(tmp_path: Path) -> None:
+    # CloudCompare writes a scalar field as "scalar_Intensity" (float), PDAL as "intensity"
+    # (ushort): both are the echo; before, the PLY reader dropped them.
+    points = RNG.uniform(-3.0, 3.0, (N, 3)).astype(np.float32)
+    values = RNG.integers(0, 4096, N)
+    for name, kind, code in (("scalar_Intensity", "float", "<f4"),
+                             ("intensity", "ushort", "<u2")):
+        path = tmp_path / f"{name}.ply"
+        header = ("ply\nformat binary_little_endian 1.0\ncomment written like CloudCompare\n"
+                  f"element vertex {N}\nproperty float x\nproperty float y\nproperty float z\n"
+                  f"property {kind} {name}\nend_header\n").encode()
+        records = np.zeros(N, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("i", code)])
+        records["x"], records["y"], records["z"] = points.T
+        records["i"] = values
+        path.write_bytes(header + records.tobytes())
+        table, _ = import_points(path, ImportParams(up="y"))
+        np.testing.assert_array_equal(table.column("echo").to_numpy(), values)

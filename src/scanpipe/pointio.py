@@ -107,7 +107,8 @@ def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:
     if not path.is_file():
         raise UsageError(f"{path}: not found")
     if suffix == ".ply":
-        return (*_read_ply(path), False)
+        points, colours, _ = _read_ply(path)
+        return points, colours, False
     if suffix in (".las", ".laz"):
         points, colours, _, _ = _read_las(path)
         return points, colours, True
@@ -188,7 +189,13 @@ def _ply_header(path: Path, head: bytes) -> tuple[str, int, list[_PlyElement]]:
     return fmt, newline + 1, [_PlyElement(n, c, tuple(p), b) for n, c, p, b in elements]
 
 
-def _read_ply(path: Path) -> tuple[F64, U8 | None]:
+#: PLY vertex properties that hold the intensity (lower case): PDAL's, CloudCompare's
+#: scalar field, and others' spellings.
+_PLY_INTENSITY = ("intensity", "scalar_intensity", "reflectance", "scalar_reflectance")
+
+
+def _read_ply(path: Path) -> tuple[F64, U8 | None, F64 | None]:
+    """Points, 8-bit colours (or None) and the intensity property's values (or None)."""
     size = path.stat().st_size
     with path.open("rb") as handle:
         head = handle.read(_PLY_HEADER_MAX_BYTES)
@@ -232,7 +239,10 @@ def _read_ply(path: Path) -> tuple[F64, U8 | None]:
             raise ArtifactError(f"{path}: PLY data ends after {len(data)} of {vertex.count} "
                                 "vertices")
     points = np.stack([np.asarray(data[a], np.float64) for a in "xyz"], axis=1)
-    return points, _ply_colours(data, vertex)
+    lower = {name.lower(): name for name, _ in vertex.properties}
+    found = next((lower[n] for n in _PLY_INTENSITY if n in lower), None)
+    intensity = None if found is None else np.asarray(data[found], np.float64)
+    return points, _ply_colours(data, vertex), intensity
 
 
 def _ply_ascii_vertices(path: Path, header_bytes: int, before: list[_PlyElement],
@@ -653,7 +663,9 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
         if params.columns:
             raise UsageError(f"--columns applies to text files, not {fmt} ({path})")
         if fmt == "ply":
-            raw, colours = _read_ply(path)
+            raw, colours, intensity = _read_ply(path)
+            if intensity is not None:
+                echo = _intensity_to_echo(path, intensity, fmt, warnings_out)
         elif fmt == "las":
             raw, colours, echo, crs = _read_las(path, warnings_out)
             units, vertical_units = _las_file_units(path, params, crs, units, warnings_out)
