@@ -51,3 +51,21 @@ def test_a_beam_off_the_equal_step_grid_is_refused(tmp_path: Path, cli: Any) -> 
     assert result.code != 0 and result.err.count("\n") == 1, result.err
     assert "beam_deg" in result.err and "not on the equal-step grid" in result.err
     assert not (out / "profiles.parquet").exists()
+
+
+def test_wide_npz_with_float32_beam_angles(tmp_path: Path, cli: Any) -> None:
+    # np.linspace in float32, as many tools store angles: steps differ by ~1e-5°.
+    beam = np.linspace(-45.0, 225.0, 811, dtype=np.float32)  # a SICK TiM's 1/3°
+    ranges = RNG.uniform(0.5, 5.0, (3, beam.size))
+    path = tmp_path / "scan.npz"
+    np.savez(path, ranges=ranges, beam_deg=beam, platform_deg=np.array([0.0, 1.0, 2.0]))
+    result = cli("import-profiles", path, "--out", tmp_path / "out", "-q")
+    assert result.code == 0, result.err
+    profiles, _ = read_artifact(tmp_path / "out" / "profiles.parquet")
+    assert abs(profiles.column("step_deg")[0].as_py() - 1 / 3) < 1e-6
+    assert abs(profiles.column("start_angle_deg")[0].as_py() + 45.0) < 1e-4
+    uneven = tmp_path / "uneven.npz"
+    bad = np.array([0.0, 0.5, 1.0, 1.7, 2.0])
+    np.savez(uneven, ranges=np.ones((1, 5)), beam_deg=bad, platform_deg=np.zeros(1))
+    result = cli("import-profiles", uneven, "--out", tmp_path / "bad", "-q")
+    assert result.code != 0 and "equal steps" in result.err

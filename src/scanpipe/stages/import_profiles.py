@@ -168,7 +168,18 @@ def import_profiles(path: Path, params: ImportProfilesParams) -> StageResult:
         raise ArtifactError(f"{path}: beam_deg and platform_deg must be finite")
     steps = np.diff(beam)
     step = float(np.median(steps)) if steps.size else 1.0
-    if step <= 0 or (steps.size and np.max(np.abs(steps - step)) > 1e-6 * max(1.0, step)):
+    if steps.size and step > 0:
+        # Angles stored as float32 (np.linspace) step unevenly by ~1e-5°: fit the grid and
+        # accept beams within OFF_GRID_STEPS of it, as the long layout does.
+        index = np.arange(beam.size, dtype=np.float64)
+        fitted = np.polyfit(index, beam, 1)
+        grid = fitted[1] + index * fitted[0]
+        if np.max(np.abs(beam - grid)) <= OFF_GRID_STEPS * float(fitted[0]):
+            if np.max(np.abs(steps - step)) > 1e-9 * max(1.0, step):
+                beam, step = grid, float(fitted[0])
+        else:
+            step = -1.0
+    if step <= 0:
         raise ArtifactError(f"{path}: beam_deg must rise in equal steps (found steps "
                             f"{np.min(steps):g}…{np.max(steps):g}°)")
     fov = step * beam.size
