@@ -236,3 +236,63 @@ def test_ply_intensity_as_cloudcompare_and_pdal_name_it(tmp_path: Path) -> None:
         path.write_bytes(header + records.tobytes())
         table, _ = import_points(path, ImportParams(up="y"))
         np.testing.assert_array_equal(table.column("echo").to_numpy(), values)
+
+
+def _las_with_wkt(path: Path, wkt: str) -> np.ndarray:
+    header = laspy.LasHeader(point_format=0, version="1.2")
+    header.scales = np.array([0.01, 0.01, 0.01])
+    header.offsets = np.zeros(3)
+    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(wkt))
+    las = laspy.LasData(header)
+    points = RNG.uniform(0.0, 30.0, (N, 3))
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    las.write(str(path))
+    back = laspy.read(str(path))
+    return np.stack([back.x, back.y, back.z], axis=1)
+
+
+def test_compound_wkt_with_heights_in_us_feet_and_a_unit_whose_factor_is_wrong(
+        tmp_path: Path) -> None:
+    # As in laspy's simple.copc.laz: metres horizontally, NAVD88 heights in US survey feet.
+    compound = ('COMPD_CS["x",PROJCS["NAD83 / Oregon LCC (m)",GEOGCS["NAD83",UNIT["degree",'
+                '0.0174532925199433]],UNIT["metre",1],AXIS["Easting",EAST]],VERT_CS["NAVD88 '
+                'height (ftUS)",UNIT["US survey foot",0.304800609601219]]]')
+    path = tmp_path / "compound.las"
+    zup = _las_with_wkt(path, compound)
+    table, report = import_points(path, ImportParams())
+    us_ft = 1200.0 / 3937.0
+    np.testing.assert_allclose(xyz(table), np.stack([zup[:, 0], zup[:, 2] * us_ft, -zup[:, 1]],
+                                                    axis=1), atol=1e-5)
+    notes = " ".join(report["warnings"])  # type: ignore[arg-type]
+    assert "metre horizontally, US survey foot vertically" in notes
+    # As in laspy's test1_4.las (liblas): VERTCS UNIT["US survey foot",1.0]: the name wins.
+    broken = ('PROJCS["NAD83(HARN) / New Mexico Central (ftUS)",GEOGCS["NAD83(HARN)",UNIT['
+              '"degree",0.0174532925199433]],UNIT["US survey foot",0.3048006096012192],'
+              'VERTCS["NAVD88",UNIT["US survey foot",1.0]]]')
+    path = tmp_path / "broken.las"
+    zup = _las_with_wkt(path, broken)
+    table, report = import_points(path, ImportParams())
+    np.testing.assert_allclose(xyz(table), np.stack([zup[:, 0], zup[:, 2], -zup[:, 1]],
+                                                    axis=1) * us_ft, atol=1e-5)
+    assert any("US survey foot" in w and "1.0" in w and "disagree" in w
+               for w in report["warnings"])  # type: ignore[union-attr]
+
+
+def test_a_crs_code_in_the_unit_key_is_named_as_such(tmp_path: Path) -> None:
+    # laspy's simple1_3.las has ProjLinearUnitsGeoKey = 32632 (a CRS, UTM 32N).
+    header = laspy.LasHeader(point_format=0, version="1.2")
+    keys = laspy.vlrs.known.GeoKeyDirectoryVlr()
+    keys.geo_keys_header.number_of_keys = 1
+    entry = laspy.vlrs.geotiff.GeoKeyEntryStruct()
+    entry.id, entry.tiff_tag_location, entry.count, entry.value_offset = 3076, 0, 1, 32632
+    keys.geo_keys = [entry]
+    header.vlrs.append(keys)
+    las = laspy.LasData(header)
+    points = RNG.uniform(0.0, 30.0, (N, 3))
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    path = tmp_path / "utm.las"
+    las.write(str(path))
+    _, report = import_points(path, ImportParams())
+    assert report["units"] == ["m"]
+    assert any("EPSG:32632" in w and "not a length unit" in w and "nan" not in w
+               for w in report["warnings"])  # type: ignore[union-attr]

@@ -389,6 +389,37 @@ def _wkt_length_unit(text: str) -> tuple[str, float] | None:
     return found[-1] if found else None
 
 
+def _verb(source: str, verb: str = "state") -> str:
+    """``state``/``states`` (or another verb) agreeing with "its WKT" / "its GeoTIFF keys"."""
+    return verb if source.endswith("keys") else f"{verb}s"
+
+
+def _unit_by_name(name: str) -> str | None:
+    """The ``UNIT_SCALE`` key a WKT unit name spells, if any."""
+    low = name.lower().replace("_", " ")
+    if "us survey" in low or "ftus" in low or "foot us" in low:
+        return "us-ft"
+    if low in ("foot", "feet", "international foot", "ft"):
+        return "ft"
+    if low in ("metre", "meter", "m"):
+        return "m"
+    return None
+
+
+def _wkt_unit_key(path: Path, unit: tuple[str, float], warnings_out: list[str]
+                  ) -> tuple[str, float, str | None]:
+    """(name, metres, key) of a WKT unit; a known name whose factor disagrees with it (liblas
+    wrote ``UNIT["US survey foot",1.0]``) is taken by its name, with a warning."""
+    name, factor = unit
+    by_name, by_factor = _unit_by_name(name), _unit_key(factor)
+    if by_name is not None and by_factor != by_name:
+        warnings_out.append(f"{path}: its WKT's UNIT[\"{name}\",{factor!r}]: the name and "
+                            f"the factor disagree; taken as {UNIT_NAMES[by_name]} "
+                            f"({UNIT_SCALE[by_name]:.10g} m)")
+        return name, UNIT_SCALE[by_name], by_name
+    return name, factor, by_factor
+
+
 def las_units(path: Path, header: object, warnings_out: list[str]) -> tuple[str, str, str] | None:
     """The horizontal and vertical length units (``UNIT_SCALE`` keys) a LAS header's CRS
     states and where it says so: its WKT (``LASF_Projection``/``liblas`` 2112; a ``VERT_CS``
@@ -411,7 +442,7 @@ def las_units(path: Path, header: object, warnings_out: list[str]) -> tuple[str,
         if horizontal is None:
             return None
         vertical = vertical or horizontal
-        named = [(name, factor, _unit_key(factor)) for name, factor in (horizontal, vertical)]
+        named = [_wkt_unit_key(path, unit, warnings_out) for unit in (horizontal, vertical)]
         source = "its WKT"
     elif _GEOKEY_LINEAR in keys:
         codes = (keys[_GEOKEY_LINEAR], keys.get(_GEOKEY_VERTICAL, keys[_GEOKEY_LINEAR]))
@@ -420,10 +451,13 @@ def las_units(path: Path, header: object, warnings_out: list[str]) -> tuple[str,
         source = "its GeoTIFF keys"
     else:
         return None
-    unknown = [f"{name} ({factor:g} m)" for name, factor, key in named if key is None]
+    unknown = list(dict.fromkeys(
+        f"{name} ({factor:g} m)" if np.isfinite(factor) else
+        f"{name} (not a length unit code: a CRS? EPSG 9001 metre, 9002 foot, 9003 US survey "
+        "foot)" for name, factor, key in named if key is None))
     if unknown:
-        warnings_out.append(f"{path}: {source} state a length unit scanpipe does not know: "
-                            f"{', '.join(unknown)}; read as metres: give --units")
+        warnings_out.append(f"{path}: {source} {_verb(source)} a length unit scanpipe does "
+                            f"not know: {', '.join(unknown)}; read as metres: give --units")
     h_key, v_key = (key or "m" for _, _, key in named)
     return h_key, v_key, source
 
@@ -720,12 +754,15 @@ def _las_file_units(path: Path, params: ImportParams, crs: tuple[str, str, str] 
             f"{UNIT_NAMES[horizontal]} horizontally, {UNIT_NAMES[vertical]} vertically")
     if params.units != "auto":
         if {horizontal, vertical} != {params.units}:
-            warnings_out.append(f"{path}: --units {params.units} given, but {source} say "
-                                f"{said}; read in {UNIT_NAMES[params.units]} as asked")
+            warnings_out.append(f"{path}: --units {params.units} given, but {source} "
+                                f"{_verb(source, 'say')} {said}; read in "
+                                f"{UNIT_NAMES[params.units]} as asked")
         return units, units
     if {horizontal, vertical} != {"m"}:
-        warnings_out.append(f"{path}: {source} state the unit: {said} "
-                            f"({UNIT_SCALE[horizontal]:.6g} m); converted to metres")
+        factors = ", ".join(f"{UNIT_NAMES[k]} = {UNIT_SCALE[k]:.10g} m"
+                            for k in dict.fromkeys((horizontal, vertical)) if k != "m")
+        warnings_out.append(f"{path}: {source} {_verb(source)} the unit: {said} ({factors}); "
+                            "converted to metres")
     return horizontal, vertical
 
 
@@ -997,7 +1034,8 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
         units = sorted({s.units for s in scans})
         if extent > MAX_PLAUSIBLE_EXTENT_M:
             notes.append(f"the cloud is {extent:.4g} m across read as {'/'.join(units)}: "
-                         "implausible for a scan; centimetres or millimetres? give --units")
+                         "implausible for a scan from one position; a site, or another "
+                         "unit (feet, centimetres, millimetres)? give --units m|cm|mm|ft|us-ft")
         elif extent < MIN_PLAUSIBLE_EXTENT_M:
             notes.append(f"the cloud is {extent:.3g} m across read as {'/'.join(units)}: "
                          "implausibly small; the wrong unit? give --units")
