@@ -210,3 +210,45 @@ def test_bad_pcd_files_are_one_line(tmp_path: Path, cli: Cli, content: bytes,
     assert result.code != 0 and result.err.count("\n") == 1 and message.split("'")[0] in \
         result.err
     assert (out / "points.parquet").read_bytes() == b"keep me"
+
+
+E57_FIXTURES = Path(__file__).parent / "fixtures" / "e57"
+
+
+def _libe57_read(path: Path, fields: dict[str, str]) -> dict[str, np.ndarray]:
+    """Fields read with libE57Format's own buffers (pye57's uint8 colour buffer fails)."""
+    from pye57 import libe57
+
+    reader = pye57.E57(str(path))
+    header = reader.get_header(0)
+    data, buffers = {}, libe57.VectorSourceDestBuffer()
+    for name, code in fields.items():
+        data[name] = np.empty(header.point_count, code)
+        buffers.append(libe57.SourceDestBuffer(reader.image_file, name, data[name],
+                                               header.point_count, True, True))
+    header.points.reader(buffers).read()
+    return data
+
+
+def test_third_party_e57_with_16_bit_colour(tmp_path: Path) -> None:
+    # las2e57's output (libE57Format's test data): colours 0…65280 with the prototype's
+    # 0…65535 and no colorLimits; pye57 cannot read it, and taken as 8-bit it saturates.
+    path = E57_FIXTURES / "ColourRepresentation.e57"
+    raw = _libe57_read(path, {"cartesianX": "d", "cartesianY": "d", "cartesianZ": "d",
+                              "colorRed": "H", "colorGreen": "H", "colorBlue": "H"})
+    table, report = import_points(path, ImportParams())
+    assert table.num_rows == 153 and report["colours"] is True
+    rig = np.stack([raw["cartesianX"], raw["cartesianZ"], -raw["cartesianY"]], axis=1)
+    np.testing.assert_allclose(xyz(table), rig, atol=1e-6)
+    expected = np.stack([raw[f"color{c}"] >> 8 for c in ("Red", "Green", "Blue")], axis=1)
+    np.testing.assert_array_equal(rgb(table), expected)
+    assert len(np.unique(rgb(table), axis=0)) > 2  # not all saturated
+
+
+def test_e57_with_zero_points_is_one_line(tmp_path: Path, cli: Cli) -> None:
+    path = E57_FIXTURES / "ZeroPoints.e57"
+    with pytest.raises(ArtifactError, match="no points"):
+        import_points(path, ImportParams())
+    result = cli("import-points", path, "--out", tmp_path / "out")
+    assert result.code != 0 and result.err.count("\n") == 1 and "no points" in result.err
+    assert not (tmp_path / "out" / "points.parquet").exists()

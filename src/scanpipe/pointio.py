@@ -986,6 +986,10 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
         own_origin.append(np.full(len(pts), bool(any(params.poses))
                                   or scan.origins is not None))
     points = np.concatenate(parts)
+    if len(points) == 0:
+        dropped = sum(s.no_return for s in scans)
+        raise ArtifactError(f"{', '.join(str(f) for f in files)}: no points"
+                            + (f" left ({dropped} no-returns dropped)" if dropped else ""))
     origin_file = np.concatenate(origins)
     own = np.concatenate(own_origin)
     up_reason = "given"
@@ -1137,6 +1141,49 @@ def _e57_limits(header: object, node: str, low: str, high: str) -> tuple[float, 
     return float(limits[low].value()), float(limits[high].value())
 
 
+#: E57 fields read and the numpy type of their buffer (libE57Format converts into it): wide
+#: integers, so 16-bit colours and more than 65535 rows fit (pye57's own buffers are uint8
+#: and uint16 and fail on them).
+_E57_FIELDS = {"cartesianX": "d", "cartesianY": "d", "cartesianZ": "d",
+               "sphericalRange": "d", "sphericalAzimuth": "d", "sphericalElevation": "d",
+               "cartesianInvalidState": "q", "sphericalInvalidState": "q", "intensity": "d",
+               "colorRed": "q", "colorGreen": "q", "colorBlue": "q", "rowIndex": "q",
+               "columnIndex": "q"}
+
+
+def _e57_fields(reader: object, header: object, count: int) -> dict[str, NDArray[np.generic]]:
+    """The scan's fields that scanpipe uses, read into buffers of :data:`_E57_FIELDS`."""
+    from pye57 import libe57
+
+    data: dict[str, NDArray[np.generic]] = {}
+    buffers = libe57.VectorSourceDestBuffer()
+    for name in header.point_fields:  # type: ignore[attr-defined]
+        if name in _E57_FIELDS:
+            data[name] = np.empty(count, _E57_FIELDS[name])
+            buffers.append(libe57.SourceDestBuffer(reader.image_file,  # type: ignore
+                                                   name, data[name], count, True, True))
+    if count:
+        vector_reader = header.points.reader(buffers)  # type: ignore[attr-defined]
+        try:
+            vector_reader.read()
+        finally:
+            vector_reader.close()
+    return data
+
+
+def _e57_field_maximum(header: object, name: str) -> float | None:
+    """The maximum an integer field's prototype declares, or None."""
+    from pye57 import libe57
+
+    prototype = libe57.StructureNode(header.points.prototype())  # type: ignore[attr-defined]
+    if not prototype.isDefined(name):
+        return None
+    node = prototype.get(name)
+    if node.type() != libe57.NodeType.E57_INTEGER:
+        return None
+    return float(libe57.IntegerNode(node).maximum())
+
+
 def _e57_scan(path: Path, reader: object, index: int, warnings_out: list[str]) -> _FileCloud:
     header = reader.get_header(index)  # type: ignore[attr-defined]
     count = int(header.point_count)
@@ -1144,7 +1191,7 @@ def _e57_scan(path: Path, reader: object, index: int, warnings_out: list[str]) -
         raise ArtifactError(f"{path}: E57 scan {index} claims {count} points; the file's "
                             f"{path.stat().st_size} bytes cannot hold that many")
     fields = set(header.point_fields)
-    data = reader.read_scan_raw(index, ignore_unsupported_fields=True)  # type: ignore
+    data = _e57_fields(reader, header, count)
     if {"cartesianX", "cartesianY", "cartesianZ"} <= fields:
         xyz = np.stack([np.asarray(data[f"cartesian{a}"], np.float64) for a in "XYZ"], axis=1)
         state = data.get("cartesianInvalidState")
@@ -1179,12 +1226,19 @@ def _e57_scan(path: Path, reader: object, index: int, warnings_out: list[str]) -
             echo = _intensity_to_echo(Path(where), values, "e57", warnings_out)
     colours = None
     if {"colorRed", "colorGreen", "colorBlue"} <= set(data):
-        rgb = np.stack([np.asarray(data[f"color{c}"], np.float64)[valid]
+        rgb = np.stack([np.asarray(data[f"color{c}"], np.int64)[valid]
                         for c in ("Red", "Green", "Blue")], axis=1)
+        # The colour's range: colorLimits, else the field's own (its prototype's maximum).
         limits = _e57_limits(header, "colorLimits", "colorRedMinimum", "colorRedMaximum")
-        if limits is not None and limits[1] > 255:
-            rgb = rgb * 255.0 / limits[1]
-        colours = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+        top = limits[1] if limits is not None else _e57_field_maximum(header, "colorRed")
+        if top is None:
+            top = 65535.0 if rgb.size and rgb.max() > 255 else 255.0
+        if top == 65535.0:  # 16 bits: the high byte (exact for both c·256 and c·257)
+            colours = (np.clip(rgb, 0, 65535) >> 8).astype(np.uint8)
+        elif top > 255.0:
+            colours = np.clip(np.rint(rgb * 255.0 / top), 0, 255).astype(np.uint8)
+        else:
+            colours = np.clip(rgb, 0, 255).astype(np.uint8)
     grid = None
     if "rowIndex" in data and "columnIndex" in data:
         grid = (np.asarray(data["rowIndex"], np.int32)[valid],
