@@ -115,3 +115,37 @@ def test_sink_splits_by_duration(tmp_path: Path) -> None:
                                             "scan-003.mcap"]
     counts = [len(read_recording(p).stream("motor").log_time_ns) for p in sink.paths]
     assert counts == [2, 2, 2, 1]
+
+
+def test_every_part_but_the_last_says_where_the_scan_continues(
+        tmp_path: Path, cli: Callable[..., object]) -> None:
+    # `scanpipe run scan.mcap` on the first part of a split recording made a model of that
+    # part alone with no word said; each part now carries the fact, and info says it.
+    now = [T0]
+    sink = RecordingSink(tmp_path / "scan.mcap", rig_with_cameras(), {"mode": "step"},
+                         lambda p, r, s: RecordingWriter(p, r, s), split_s=2.0,
+                         clock_ns=lambda: now[0])
+    for second in range(5):
+        now[0] = T0 + second * 10**9
+        sink.write_stream("motor", b"POS 0 0 0 0\n", 0, now[0])
+    sink.close()
+    assert len(sink.paths) == 3
+    for index, path in enumerate(sink.paths):
+        events = [e for e in read_recording(path).events if e.kind == "recording_continues"]
+        if index < len(sink.paths) - 1:
+            assert len(events) == 1
+            assert events[0].data["next_file"] == sink.paths[index + 1].name
+            assert events[0].data["part"] == index
+        else:
+            assert events == []
+    assert sink.stats.events["recording_continues"] == 2
+    first = cli("info", sink.paths[0], "--json")
+    assert first.code == 0, first.err  # type: ignore[attr-defined]
+    warnings = json.loads(first.out)["warnings"]  # type: ignore[attr-defined]
+    assert any("continues in scan-001.mcap" in w for w in warnings)
+    last = json.loads(cli("info", sink.paths[-1], "--json").out)  # type: ignore[attr-defined]
+    assert any("part 2 of a split recording" in w for w in last["warnings"])
+    # An unsplit recording has no such warning.
+    whole = tmp_path / "whole.mcap"
+    _write(whole)
+    assert json.loads(cli("info", whole, "--json").out)["warnings"] == []  # type: ignore

@@ -92,6 +92,10 @@ class Topic:
         return f"{self.name} ({self.msgtype.replace('/msg/', '/')}, {self.count})"
 
 
+#: The echo's (u16) full scale: intensities normalised to 0…1 are fractions of it.
+ECHO_FULL_SCALE = 65535.0
+
+
 @dataclass
 class BagContent:
     """What :func:`import_bag` read from a bag before writing the recording."""
@@ -200,6 +204,22 @@ def _profile(msg: Any, msgtype: str, log_time_ns: int, index: int
              "angle_min_deg": math.degrees(float(msg.angle_min)),
              "scan_time_s": float(msg.scan_time), "range_min_m": lo, "range_max_m": hi}
     return (end or start), profile, facts
+
+
+def _scale_fraction_intensities(content: BagContent) -> None:
+    """Intensities a driver normalised to 0…1 become fractions of the echo's 0…65535 (decode
+    rounds the echo to whole numbers: they would all be 0 or 1); warned."""
+    values = [np.asarray(p.intensities, np.float64) for _, p in content.profiles]
+    every = np.concatenate(values) if values else np.zeros(0)
+    every = every[np.isfinite(every)]
+    if every.size == 0 or every.min() < 0 or every.max() > 1 or np.all(every == np.round(every)):
+        return
+    for (_, profile), value in zip(content.profiles, values, strict=True):
+        if value.size:
+            del profile.intensities[:]
+            profile.intensities.extend((value * ECHO_FULL_SCALE).astype(np.float32).tolist())
+    content.warnings.append(f"intensities in 0…1 (normalised by the driver): scaled to the "
+                            f"echo's 0…{ECHO_FULL_SCALE:g}")
 
 
 def quaternion_matrix(x: float, y: float, z: float, w: float) -> F64:
@@ -481,8 +501,14 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
         raise BagError(f"{bag}: {scan.name}: angle_increment {facts['step_deg']:g}°: only "
                        "scans with a positive angle_increment are taken")
     if len(steps_seen) > 1:
+        low, high = min(steps_seen), max(steps_seen)
         raise BagError(f"{bag}: {scan.name}: angle_increment changes during the bag "
-                       f"({sorted(steps_seen)[:4]} …°); one scan must use one beam step")
+                       f"({sorted(steps_seen)[:4]} …°, {low:.6g}…{high:.6g}°, "
+                       f"{(high - low) / high:.2%}); one scan must use one beam step. Drivers "
+                       "that set it from the measured motor speed (LDRobot's ldlidar ROS "
+                       "driver) do so: record the scanner with scanpipe record, or capture its "
+                       "link and use import-capture, which keep every beam's own angle")
+    _scale_fraction_intensities(content)
     if scan.msgtype == MULTI_ECHO:
         content.warnings.append(f"{scan.name}: MultiEchoLaserScan: the first echo of each "
                                 "beam is taken, the others are dropped")

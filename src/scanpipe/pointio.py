@@ -12,7 +12,12 @@ Formats, by file extension or ``format``:
   three hold only integers in 0–255, they are the colour.
 - ``3d``: 3DTK's ``scanNNN.3d`` (left-handed, y up, centimetres; a first line that is not three
   numbers is the resolution and skipped), with its ``.pose`` (:func:`read_pose`).
-- ``las`` (``.las``, ``.laz``): through laspy (LAZ with lazrs); 16-bit colours become 8-bit.
+- ``las`` (``.las``, ``.laz``): through laspy (LAZ with lazrs); 16-bit colours become 8-bit,
+  the intensity the echo.
+- ``pts`` (Leica PTS): an optional point-count line, then x y z [intensity] [r g b].
+
+Coordinates are stored as float32: an axis beyond ±2048 m (a georeferenced file) is shifted
+by whole metres (:func:`float32_safe_offset`, the report's ``offset_m``, warned).
 
 No header is trusted: every count a header states is checked against the file's size before
 anything is allocated (a binary PLY needs count × record size bytes, an ASCII value at least two
@@ -52,6 +57,8 @@ F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
 
 TEXT_SUFFIXES = (".xyz", ".txt", ".csv", ".pts")
+#: Leica PTS intensities run −2048…2047; shifted by this into the echo's 0…4095.
+PTS_INTENSITY_SHIFT = 2048
 SUFFIXES = (".ply", *TEXT_SUFFIXES, ".las", ".laz")
 
 
@@ -63,13 +70,13 @@ class ImportParams(Params):
     up: Literal["auto", "y", "z"] = Field(
         "auto", description="the file's up axis; auto = z for LAS/LAZ, y for 3DTK .3d, "
                             "else detected from the cloud (see detect_z_up)")
-    format: Literal["auto", "xyz", "csv", "ply", "las", "3d"] = Field(
+    format: Literal["auto", "xyz", "csv", "pts", "ply", "las", "e57", "pcd", "3d"] = Field(
         "auto", description="file format; auto = from the extension")
     columns: str | None = Field(
         None, description="text columns: each column's role in order (x,y,z,-,intensity; "
                           "- skips) or ROLE=INDEX pairs; roles x y z red green blue intensity "
                           "range azimuth elevation")
-    units: Literal["auto", "m", "cm", "mm"] = Field(
+    units: Literal["auto", "m", "cm", "mm", "ft", "us-ft"] = Field(
         "auto", description="length unit of the file (and its pose); auto = cm for 3DTK .3d, "
                             "m otherwise")
     axes: str | None = Field(
@@ -91,7 +98,8 @@ class ImportParams(Params):
 
 
 def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:
-    """Points ``(N, 3)`` float64, colours ``(N, 3)`` uint8 or None, and whether it is z-up."""
+    """Points ``(N, 3)`` float64 in the file's own units, colours ``(N, 3)`` uint8 or None, and
+    whether it is z-up."""
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise UsageError(f"{path}: unknown point file type {suffix!r}; "
@@ -99,11 +107,14 @@ def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:
     if not path.is_file():
         raise UsageError(f"{path}: not found")
     if suffix == ".ply":
-        return (*_read_ply(path), False)
+        points, colours, _ = _read_ply(path)
+        return points, colours, False
     if suffix in (".las", ".laz"):
-        return (*_read_las(path), True)
-    table = _read_text(path)
-    points, colours, _, _ = _map_columns(path, table, ImportParams(), [])
+        points, colours, _, _ = _read_las(path)
+        return points, colours, True
+    fmt = "pts" if suffix == ".pts" else "xyz"
+    table = _read_text(path, fmt)
+    points, colours, _, _ = _map_columns(path, table, ImportParams(), [], fmt)
     return points, colours, False
 
 
@@ -178,7 +189,13 @@ def _ply_header(path: Path, head: bytes) -> tuple[str, int, list[_PlyElement]]:
     return fmt, newline + 1, [_PlyElement(n, c, tuple(p), b) for n, c, p, b in elements]
 
 
-def _read_ply(path: Path) -> tuple[F64, U8 | None]:
+#: PLY vertex properties that hold the intensity (lower case): PDAL's, CloudCompare's
+#: scalar field, and others' spellings.
+_PLY_INTENSITY = ("intensity", "scalar_intensity", "reflectance", "scalar_reflectance")
+
+
+def _read_ply(path: Path) -> tuple[F64, U8 | None, F64 | None]:
+    """Points, 8-bit colours (or None) and the intensity property's values (or None)."""
     size = path.stat().st_size
     with path.open("rb") as handle:
         head = handle.read(_PLY_HEADER_MAX_BYTES)
@@ -222,7 +239,10 @@ def _read_ply(path: Path) -> tuple[F64, U8 | None]:
             raise ArtifactError(f"{path}: PLY data ends after {len(data)} of {vertex.count} "
                                 "vertices")
     points = np.stack([np.asarray(data[a], np.float64) for a in "xyz"], axis=1)
-    return points, _ply_colours(data, vertex)
+    lower = {name.lower(): name for name, _ in vertex.properties}
+    found = next((lower[n] for n in _PLY_INTENSITY if n in lower), None)
+    intensity = None if found is None else np.asarray(data[found], np.float64)
+    return points, _ply_colours(data, vertex), intensity
 
 
 def _ply_ascii_vertices(path: Path, header_bytes: int, before: list[_PlyElement],
@@ -316,7 +336,10 @@ def _check_las_header(path: Path) -> int:
     return int(count)
 
 
-def _read_las(path: Path) -> tuple[F64, U8 | None]:
+def _read_las(path: Path, warnings_out: list[str] | None = None
+              ) -> tuple[F64, U8 | None, NDArray[np.uint16], tuple[str, str, str] | None]:
+    """Points, 8-bit colours (or None), the intensity (u16, LAS's own type) and the length
+    units its coordinate system states (:func:`las_units`), or None."""
     import laspy
 
     count = _check_las_header(path)
@@ -332,6 +355,8 @@ def _read_las(path: Path) -> tuple[F64, U8 | None]:
         names = set(las.point_format.dimension_names)
         rgb = (np.stack([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)],
                         axis=1) if {"red", "green", "blue"} <= names else None)
+        intensity = np.asarray(las.intensity, np.uint16)
+        crs_units = las_units(path, las.header, [] if warnings_out is None else warnings_out)
     except (laspy.LaspyException, OSError, ValueError, struct.error, EOFError, IndexError,
             KeyError, OverflowError, TypeError, *lazrs_errors) as err:
         raise ArtifactError(f"{path}: not a readable LAS/LAZ file "
@@ -343,7 +368,98 @@ def _read_las(path: Path) -> tuple[F64, U8 | None]:
     if rgb is not None:
         # LAS stores 16-bit colour; some writers put 8-bit values there anyway.
         colours = (rgb >> 8 if rgb.max(initial=0) > 255 else rgb).astype(np.uint8)
-    return points.astype(np.float64), colours
+    return points.astype(np.float64), colours, intensity, crs_units
+
+
+#: EPSG length units of GeoTIFF's ProjLinearUnitsGeoKey (3076) / VerticalUnitsGeoKey (4099).
+_EPSG_UNITS = {9001: "m", 9002: "ft", 9003: "us-ft"}
+_GEOKEY_LINEAR, _GEOKEY_VERTICAL = 3076, 4099
+_WKT_UNIT = re.compile(r'(?:LENGTH)?UNIT\[\s*"([^"]*)"\s*,\s*([-+0-9.eE]+)')
+_ANGULAR = re.compile(r"degree|radian|grad|arc|second|minute|unity|ppm|per", re.IGNORECASE)
+
+
+def _unit_key(factor_m: float) -> str | None:
+    """The ``UNIT_SCALE`` key of a length unit given in metres, if it is one of them."""
+    return next((k for k, v in UNIT_SCALE.items() if abs(v - factor_m) <= 1e-9 * v), None)
+
+
+def _wkt_length_unit(text: str) -> tuple[str, float] | None:
+    """The last length unit (name, metres) of a WKT 1 or 2 text (its CS's unit comes last)."""
+    found = [(n, float(f)) for n, f in _WKT_UNIT.findall(text) if not _ANGULAR.search(n)]
+    return found[-1] if found else None
+
+
+def _verb(source: str, verb: str = "state") -> str:
+    """``state``/``states`` (or another verb) agreeing with "its WKT" / "its GeoTIFF keys"."""
+    return verb if source.endswith("keys") else f"{verb}s"
+
+
+def _unit_by_name(name: str) -> str | None:
+    """The ``UNIT_SCALE`` key a WKT unit name spells, if any."""
+    low = name.lower().replace("_", " ")
+    if "us survey" in low or "ftus" in low or "foot us" in low:
+        return "us-ft"
+    if low in ("foot", "feet", "international foot", "ft"):
+        return "ft"
+    if low in ("metre", "meter", "m"):
+        return "m"
+    return None
+
+
+def _wkt_unit_key(path: Path, unit: tuple[str, float], warnings_out: list[str]
+                  ) -> tuple[str, float, str | None]:
+    """(name, metres, key) of a WKT unit; a known name whose factor disagrees with it (liblas
+    wrote ``UNIT["US survey foot",1.0]``) is taken by its name, with a warning."""
+    name, factor = unit
+    by_name, by_factor = _unit_by_name(name), _unit_key(factor)
+    if by_name is not None and by_factor != by_name:
+        warnings_out.append(f"{path}: its WKT's UNIT[\"{name}\",{factor!r}]: the name and "
+                            f"the factor disagree; taken as {UNIT_NAMES[by_name]} "
+                            f"({UNIT_SCALE[by_name]:.10g} m)")
+        return name, UNIT_SCALE[by_name], by_name
+    return name, factor, by_factor
+
+
+def las_units(path: Path, header: object, warnings_out: list[str]) -> tuple[str, str, str] | None:
+    """The horizontal and vertical length units (``UNIT_SCALE`` keys) a LAS header's CRS
+    states and where it says so: its WKT (``LASF_Projection``/``liblas`` 2112; a ``VERT_CS``
+    or ``VERTCRS`` part gives the vertical unit) or else its GeoTIFF keys 3076 / 4099. None
+    when it states none; a unit scanpipe does not know is warned about and read as metres."""
+    wkt, keys = None, {}
+    for vlr in getattr(header, "vlrs", []):
+        if getattr(vlr, "record_id", None) == 2112:
+            data = getattr(vlr, "record_data", None)
+            text = getattr(vlr, "string", None) or (bytes(data).decode("utf-8", "replace")
+                                                    if data is not None else "")
+            wkt = text.rstrip("\0") or wkt
+        for key in getattr(vlr, "geo_keys", []) or []:
+            if key.tiff_tag_location == 0:
+                keys[int(key.id)] = int(key.value_offset)
+    if wkt:
+        split = re.search(r"VERT_?CS|VERTCRS", wkt)
+        horizontal = _wkt_length_unit(wkt[:split.start()] if split else wkt)
+        vertical = _wkt_length_unit(wkt[split.start():]) if split else None
+        if horizontal is None:
+            return None
+        vertical = vertical or horizontal
+        named = [_wkt_unit_key(path, unit, warnings_out) for unit in (horizontal, vertical)]
+        source = "its WKT"
+    elif _GEOKEY_LINEAR in keys:
+        codes = (keys[_GEOKEY_LINEAR], keys.get(_GEOKEY_VERTICAL, keys[_GEOKEY_LINEAR]))
+        named = [(f"EPSG:{c}", UNIT_SCALE.get(_EPSG_UNITS.get(c, ""), float("nan")),
+                  _EPSG_UNITS.get(c)) for c in codes]
+        source = "its GeoTIFF keys"
+    else:
+        return None
+    unknown = list(dict.fromkeys(
+        f"{name} ({factor:g} m)" if np.isfinite(factor) else
+        f"{name} (not a length unit code: a CRS? EPSG 9001 metre, 9002 foot, 9003 US survey "
+        "foot)" for name, factor, key in named if key is None))
+    if unknown:
+        warnings_out.append(f"{path}: {source} {_verb(source)} a length unit scanpipe does "
+                            f"not know: {', '.join(unknown)}; read as metres: give --units")
+    h_key, v_key = (key or "m" for _, _, key in named)
+    return h_key, v_key, source
 
 
 #: Column roles ``--columns`` and a header may name (aliases in the header, lower case).
@@ -363,9 +479,12 @@ class _Table:
     names: list[str] | None
 
 
-def _read_text(path: Path, skip_header: bool = False) -> _Table:
-    """A text table; ``skip_header`` drops a first line that is not three numbers (3DTK's
-    ``.3d`` files start with a resolution line)."""
+def _read_text(path: Path, fmt: str = "xyz", warnings_out: list[str] | None = None
+               ) -> _Table:
+    """A text table. ``3d``: a first line that is not three numbers is dropped (3DTK's ``.3d``
+    files start with a resolution line). A first line holding one whole number followed by
+    rows of three or more numbers is a point count (Leica PTS writes one): it is dropped and
+    compared with the rows (a warning when they differ)."""
     try:
         with path.open("r", encoding="utf-8", errors="strict") as handle:
             first = handle.readline()
@@ -373,18 +492,24 @@ def _read_text(path: Path, skip_header: bool = False) -> _Table:
         raise ArtifactError(f"{path}: not a readable text point file ({err})") from err
     delimiter = "," if "," in first else ";" if ";" in first else None
     tokens = [t.strip() for t in (first.split(delimiter) if delimiter else first.split())]
-    header = not all(_is_number(t) for t in tokens if t)
+    tokens = [t for t in tokens if t]
+    header = not all(_is_number(t) for t in tokens)
+    count_line = (not header and len(tokens) == 1 and tokens[0].isdigit()
+                  and fmt in ("xyz", "csv", "pts"))
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # "input contained no data": below
-            data = np.loadtxt(path, delimiter=delimiter, skiprows=1 if header else 0, ndmin=2,
-                              dtype=np.float64, comments="#")
+            data = np.loadtxt(path, delimiter=delimiter, ndmin=2, dtype=np.float64,
+                              skiprows=1 if header or count_line else 0, comments="#")
     except ValueError as err:
         raise ArtifactError(f"{path}: not a table of numbers ({err})") from err
     if data.shape[0] == 0:
         raise ArtifactError(f"{path}: no points")
+    if count_line and data.shape[0] != int(tokens[0]) and warnings_out is not None:
+        warnings_out.append(f"{path}: its first line says {int(tokens[0])} points but "
+                            f"{data.shape[0]} rows follow; all rows were read")
     names = None
-    if header and not skip_header:
+    if header and fmt != "3d":
         names = [re.sub(r"^//", "", t).strip().lower() for t in tokens]
     return _Table(data, names)
 
@@ -493,10 +618,16 @@ def points_table(points: F64, colours: U8 | None,
 
 
 #: Metres per file unit.
-UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001, "ft": 0.3048, "us-ft": 1200.0 / 3937.0}
+#: Names of the length units (WKT ``UNIT``/``LENGTHUNIT``, EPSG codes in GeoTIFF keys).
+UNIT_NAMES = {"m": "metre", "cm": "centimetre", "mm": "millimetre", "ft": "foot",
+              "us-ft": "US survey foot"}
 #: Extents (metres) outside which a cloud is implausible for its units.
 MAX_PLAUSIBLE_EXTENT_M = 500.0
 MIN_PLAUSIBLE_EXTENT_M = 0.05
+#: Artifacts hold float32 coordinates: an axis whose values would be rounded by more than this
+#: (beyond ±2048 m) is shifted (georeferenced files: UTM eastings are ~10⁵–10⁶ m).
+MAX_FLOAT32_ERROR_M = 1e-4
 #: Fewer points than this cannot tell z-up from y-up.
 MIN_POINTS_FOR_UP = 200
 
@@ -513,6 +644,12 @@ class _Scan:
     units: str
     left_handed: bool
     no_return: int
+    #: Each point's sensor origin in the file's frame when the file says (E57 scan poses).
+    origins: F64 | None = None
+    #: The unit of the file's z (LAS: its CRS's vertical unit), when not ``units``.
+    vertical_units: str | None = None
+    #: The file itself states its unit (a LAS CRS): no plausibility guess about it.
+    units_stated: bool = False
 
 
 def _format_of(path: Path, params: ImportParams) -> str:
@@ -523,13 +660,17 @@ def _format_of(path: Path, params: ImportParams) -> str:
         return "ply"
     if suffix in (".las", ".laz"):
         return "las"
+    if suffix in (".e57", ".pcd"):
+        return suffix[1:]
     if suffix == ".3d":
         return "3d"
+    if suffix == ".pts":
+        return "pts"
     if suffix in TEXT_SUFFIXES:
         return "xyz"
     raise UsageError(f"{path}: unknown point file type {suffix!r}; allowed: "
-                     f"{', '.join((*SUFFIXES, '.3d'))}, or name the format with --format "
-                     "xyz|csv|ply|las|3d")
+                     f"{', '.join((*SUFFIXES, '.e57', '.pcd', '.3d'))}, or name the format "
+                     "with --format xyz|csv|pts|ply|las|e57|pcd|3d")
 
 
 def parse_organised(text: str) -> tuple[int, int]:
@@ -544,22 +685,39 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
     if not path.is_file():
         raise UsageError(f"{path}: not found")
     fmt = _format_of(path, params)
-    units = params.units if params.units != "auto" else ("cm" if fmt == "3d" else "m")
+    units: str = params.units if params.units != "auto" else ("cm" if fmt == "3d" else "m")
+    vertical_units = units
+    units_stated = False
     left = params.left_handed if params.left_handed is not None else fmt == "3d"
     echo = None
-    if fmt in ("ply", "las"):
+    origins: F64 | None = None
+    file_grid: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None
+    no_return_file = 0
+    if fmt in ("ply", "las", "e57", "pcd"):
         if params.columns:
             raise UsageError(f"--columns applies to text files, not {fmt} ({path})")
-        raw, colours = _read_ply(path) if fmt == "ply" else _read_las(path)
+        if fmt == "ply":
+            raw, colours, intensity = _read_ply(path)
+            if intensity is not None:
+                echo = _intensity_to_echo(path, intensity, fmt, warnings_out)
+        elif fmt == "las":
+            raw, colours, echo, crs = _read_las(path, warnings_out)
+            units, vertical_units = _las_file_units(path, params, crs, units, warnings_out)
+            units_stated = crs is not None and params.units == "auto"
+        else:
+            cloud = (_read_pcd(path, warnings_out) if fmt == "pcd"
+                     else _read_e57(path, warnings_out))
+            raw, colours, echo, origins = cloud.points, cloud.colours, cloud.echo, cloud.origins
+            file_grid, no_return_file = cloud.grid, cloud.invalid
         table_range: F64 | None = None
-        z_up: bool | None = fmt == "las"
+        z_up: bool | None = True if fmt in ("las", "e57") else None
     else:
-        table = _read_text(path, skip_header=fmt == "3d")
-        raw, colours, echo, table_range = _map_columns(path, table, params, warnings_out)
+        table = _read_text(path, fmt, warnings_out)
+        raw, colours, echo, table_range = _map_columns(path, table, params, warnings_out, fmt)
         z_up = False if fmt == "3d" else (True if table_range is not None and params.columns
                                           and "x" not in params.columns else None)
     n = len(raw)
-    grid = None
+    grid = file_grid
     if params.organised:
         rows, cols = parse_organised(params.organised)
         if rows * cols != n:
@@ -568,7 +726,8 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
         index = np.arange(n, dtype=np.int32)
         grid = (index // cols, index % cols)
     # No return: a range of 0 (a point at the sensor), or at/above the maximum range.
-    range_file = table_range if table_range is not None else np.linalg.norm(raw, axis=1)
+    range_file = (table_range if table_range is not None else
+                  np.linalg.norm(raw if origins is None else raw - origins, axis=1))
     finite = np.isfinite(raw).all(axis=1) & np.isfinite(range_file)
     with np.errstate(invalid="ignore"):
         no_return = finite & (range_file <= 0)
@@ -580,12 +739,42 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
     return _Scan(raw[keep], None if colours is None else colours[keep],
                  None if echo is None else echo[keep],
                  None if grid is None else (grid[0][keep], grid[1][keep]), z_up, units, left,
-                 int(np.count_nonzero(no_return)))
+                 int(np.count_nonzero(no_return)) + no_return_file,
+                 None if origins is None else origins[keep], vertical_units, units_stated)
 
 
-def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: list[str]
+def _las_file_units(path: Path, params: ImportParams, crs: tuple[str, str, str] | None,
+                    units: str, warnings_out: list[str]) -> tuple[str, str]:
+    """The units a LAS file is read in: its CRS's (horizontal, vertical) unless ``--units``
+    says otherwise (then warned when they differ)."""
+    if crs is None:
+        return units, units
+    horizontal, vertical, source = crs
+    said = (UNIT_NAMES[horizontal] if horizontal == vertical else
+            f"{UNIT_NAMES[horizontal]} horizontally, {UNIT_NAMES[vertical]} vertically")
+    if params.units != "auto":
+        if {horizontal, vertical} != {params.units}:
+            warnings_out.append(f"{path}: --units {params.units} given, but {source} "
+                                f"{_verb(source, 'say')} {said}; read in "
+                                f"{UNIT_NAMES[params.units]} as asked")
+        return units, units
+    if {horizontal, vertical} != {"m"}:
+        factors = ", ".join(f"{UNIT_NAMES[k]} = {UNIT_SCALE[k]:.10g} m"
+                            for k in dict.fromkeys((horizontal, vertical)) if k != "m")
+        warnings_out.append(f"{path}: {source} {_verb(source)} the unit: {said} ({factors}); "
+                            "converted to metres")
+    return horizontal, vertical
+
+
+def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: list[str],
+                 fmt: str = "xyz"
                  ) -> tuple[F64, U8 | None, NDArray[np.uint16] | None, F64 | None]:
-    """Points (file frame), colours, intensity and the polar range column of a text table."""
+    """Points (file frame), colours, intensity and the polar range column of a text table.
+
+    Without a header: x, y, z first; Leica PTS (``fmt`` ``pts``) then has ``intensity`` and
+    ``r g b`` (4, 6 or 7 columns: x y z i, x y z r g b, x y z i r g b); other text takes
+    columns 4–6 as colours when they hold only whole numbers in 0–255, with a warning when
+    columns 5–7 would qualify too (the PTS order, which CloudCompare also writes)."""
     data, names = table.data, table.names
     if params.columns:
         roles = parse_columns(params.columns, data.shape[1], str(path))
@@ -611,10 +800,19 @@ def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: 
         if data.shape[1] < 3:
             raise ArtifactError(f"{path}: {data.shape[1]} columns; need at least x, y, z")
         roles = {"x": 0, "y": 1, "z": 2}
-        if data.shape[1] >= 6:
-            rgb = data[:, 3:6]
-            if np.all(rgb == np.round(rgb)) and rgb.min() >= 0 and rgb.max() <= 255:
-                roles.update(red=3, green=4, blue=5)
+        width = data.shape[1]
+        if fmt == "pts":
+            if width in (4, 7):
+                roles["intensity"] = 3
+            if width in (6, 7):
+                roles.update(red=width - 3, green=width - 2, blue=width - 1)
+        elif width >= 6 and _bytes_only(data[:, 3:6]):
+            roles.update(red=3, green=4, blue=5)
+            if width >= 7 and _bytes_only(data[:, 4:7]):
+                warnings_out.append(
+                    f"{path}: no header; columns 4–6 taken as red, green, blue, but columns "
+                    "5–7 could be the colours as well (x y z intensity r g b, as Leica PTS and "
+                    "CloudCompare write): if so, give --columns x,y,z,intensity,red,green,blue")
     polar_xyz = None
     # A range column alone still tells no-returns (0) from points.
     range_col = data[:, roles["range"]] if "range" in roles else None
@@ -634,9 +832,37 @@ def _map_columns(path: Path, table: _Table, params: ImportParams, warnings_out: 
         colours = np.clip(np.rint(np.nan_to_num(rgb)), 0, 255).astype(np.uint8)
     echo = None
     if "intensity" in roles:
-        echo = np.clip(np.rint(np.nan_to_num(data[:, roles["intensity"]])), 0,
-                       65535).astype(np.uint16)
+        echo = _intensity_to_echo(path, data[:, roles["intensity"]], fmt, warnings_out)
     return points, colours, echo, range_col
+
+
+def _bytes_only(values: F64) -> bool:
+    """Whether every value is a whole number in 0…255 (an 8-bit colour channel)."""
+    return bool(np.all(values == np.round(values)) and values.min() >= 0
+                and values.max() <= 255)
+
+
+def _intensity_to_echo(path: Path, values: F64, fmt: str, warnings_out: list[str]
+                       ) -> NDArray[np.uint16]:
+    """An intensity column as the ``echo`` (u16), never silently truncated: a 0…1 fraction is
+    scaled to 0…65535, PTS's −2048…2047 shifted into 0…4095 (both warned), any other negative
+    or too large value clipped with a warning."""
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        return np.zeros(len(values), np.uint16)
+    low, high = float(finite.min()), float(finite.max())
+    if fmt == "pts" and -PTS_INTENSITY_SHIFT <= low < 0 and high < PTS_INTENSITY_SHIFT:
+        values = values + PTS_INTENSITY_SHIFT
+    elif low >= 0.0 and high <= 1.0 and np.any(finite != np.round(finite)):
+        values = values * 65535.0
+        warnings_out.append(f"{path}: intensity in 0…1 (fractions): scaled to the echo's "
+                            "0…65535")
+    else:
+        clipped = int(np.count_nonzero((finite < -0.5) | (finite > 65535.5)))
+        if clipped:
+            warnings_out.append(f"{path}: {clipped} intensities outside the echo's 0…65535 "
+                                f"(negative or too large; {low:g}…{high:g}) clipped to it")
+    return np.clip(np.rint(np.nan_to_num(values)), 0, 65535).astype(np.uint16)
 
 
 def read_pose(path: Path) -> F64:
@@ -706,6 +932,22 @@ def detect_z_up(points: F64) -> tuple[bool, str]:
                                  f"z {floor[1]:.2f}")
 
 
+def float32_error_m(coordinate_m: float) -> float:
+    """The largest rounding error of a coordinate this far from the origin, as float32."""
+    return float(np.spacing(np.float32(abs(coordinate_m)))) / 2.0
+
+
+def float32_safe_offset(points: F64) -> F64:
+    """Whole metres to subtract per axis so float32 keeps ``MAX_FLOAT32_ERROR_M``: the centre
+    of the bounds, rounded, on each axis that needs it; zero elsewhere."""
+    if len(points) == 0:
+        return np.zeros(3)
+    low, high = points.min(axis=0), points.max(axis=0)
+    far = np.maximum(np.abs(low), np.abs(high))
+    needed = np.array([float32_error_m(v) > MAX_FLOAT32_ERROR_M for v in far])
+    return np.where(needed, np.round((low + high) / 2.0), 0.0)
+
+
 def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str, object]]:
     """Read point files into one ``points`` table (rig frame) and a short report.
 
@@ -724,21 +966,32 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
                          f"--axes {Z_UP_AXES})")
     parts: list[F64] = []
     origins: list[F64] = []
+    own_origin: list[NDArray[np.bool_]] = []
     for k, scan in enumerate(scans):
         pose = read_pose(Path(params.poses[k])) if params.poses and params.poses[k] else None
-        pts, origin = scan.points, np.zeros(3)
+        pts = scan.points
+        origin = scan.origins if scan.origins is not None else np.zeros((1, 3))
         if pose is not None:
             pts = pts @ pose[:3, :3].T + pose[:3, 3]
-            origin = pose[:3, 3].copy()
-        scale = UNIT_SCALE[scan.units]
+            origin = origin @ pose[:3, :3].T + pose[:3, 3]
+        scale = np.array([UNIT_SCALE[scan.units], UNIT_SCALE[scan.units],
+                          UNIT_SCALE[scan.vertical_units or scan.units]])
         pts, origin = pts * scale, origin * scale
         if scan.left_handed:
             pts = pts * (1.0, 1.0, -1.0)
             origin = origin * (1.0, 1.0, -1.0)
         parts.append(pts)
         origins.append(np.broadcast_to(origin, pts.shape))
+        # A file's sensor origins are its own when a pose or the file (E57) gives them.
+        own_origin.append(np.full(len(pts), bool(any(params.poses))
+                                  or scan.origins is not None))
     points = np.concatenate(parts)
+    if len(points) == 0:
+        dropped = sum(s.no_return for s in scans)
+        raise ArtifactError(f"{', '.join(str(f) for f in files)}: no points"
+                            + (f" left ({dropped} no-returns dropped)" if dropped else ""))
     origin_file = np.concatenate(origins)
+    own = np.concatenate(own_origin)
     up_reason = "given"
     if params.axes:
         axes = parse_axes(params.axes)
@@ -755,16 +1008,23 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
                          "to override")
         axes = parse_axes(Z_UP_AXES if z_up else "x,y,z")
     points = points @ axes.T
-    given_origin = any(params.poses)
-    origin_rig = (origin_file @ axes.T if given_origin
-                  else np.broadcast_to(np.asarray(params.origin_m, np.float64), points.shape))
+    origin_rig = np.where(own[:, None], origin_file @ axes.T,
+                          np.asarray(params.origin_m, np.float64))
+    offset = float32_safe_offset(points)
+    if offset.any():
+        far = float(np.abs(points).max())
+        points, origin_rig = points - offset, origin_rig - offset
+        notes.append(f"coordinates up to {far:.6g} m from the origin would lose up to "
+                     f"{float32_error_m(far) * 1000:.2g} mm as float32: shifted by "
+                     f"−({', '.join(f'{v:g}' for v in offset)}) m (rig frame; offset_m in the "
+                     "report): add it back for georeferenced output")
     colours = (np.concatenate([s.colours for s in scans if s.colours is not None])
                if all(s.colours is not None for s in scans) else None)
     echo = (np.concatenate([s.echo for s in scans if s.echo is not None])
             if all(s.echo is not None for s in scans) else None)
     table = points_table(points, colours, origin_rig, echo)
     grid = None
-    if len(scans) == 1 and scans[0].grid is not None:
+    if len(scans) == 1 and scans[0].grid is not None and len(scans[0].grid[0]):
         profile, sample = scans[0].grid
         table = table.set_column(table.column_names.index("profile"), "profile",
                                  pa.array(profile))
@@ -773,12 +1033,13 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
         grid = {"profiles": int(profile.max()) + 1, "samples": int(sample.max()) + 1}
     elif params.organised and len(scans) > 1:
         notes.append("--organised with several files: the grid is not kept (one grid per file)")
-    if len(points):
+    if len(points) and not all(s.units_stated for s in scans):
         extent = float(np.max(np.ptp(points, axis=0)))
         units = sorted({s.units for s in scans})
         if extent > MAX_PLAUSIBLE_EXTENT_M:
             notes.append(f"the cloud is {extent:.4g} m across read as {'/'.join(units)}: "
-                         "implausible for a scan; centimetres or millimetres? give --units")
+                         "implausible for a scan from one position; a site, or another "
+                         "unit (feet, centimetres, millimetres)? give --units m|cm|mm|ft|us-ft")
         elif extent < MIN_PLAUSIBLE_EXTENT_M:
             notes.append(f"the cloud is {extent:.3g} m across read as {'/'.join(units)}: "
                          "implausibly small; the wrong unit? give --units")
@@ -797,7 +1058,362 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
         "grid": grid,
         "bounds_min": points.min(axis=0).tolist() if len(points) else None,
         "bounds_max": points.max(axis=0).tolist() if len(points) else None,
+        "offset_m": offset.tolist(),
         "warnings": notes,
     }
     return table, report
 
+
+
+# -- E57 (pye57 / libE57Format) -----------------------------------------------------------------
+
+#: A point takes at least one bit of an E57 compressed vector: a larger recordCount is a lie,
+#: refused before pye57 allocates its buffers.
+_E57_MAX_POINTS_PER_BYTE = 8
+
+
+@dataclass
+class _FileCloud:
+    """A format's points with what it says besides xyz (file frame and units)."""
+
+    points: F64
+    colours: U8 | None
+    echo: NDArray[np.uint16] | None
+    origins: F64 | None = None
+    grid: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None
+    invalid: int = 0
+
+
+def _read_e57(path: Path, warnings_out: list[str]) -> _FileCloud:
+    """Every ``data3D`` scan of an E57 file in the file's frame (each scan's pose applied),
+    each point's sensor origin (its scan's pose translation), intensity (whole numbers in
+    0…65535 kept, else scaled by ``intensityLimits``), 8-bit colour and, for a single scan,
+    its ``rowIndex``/``columnIndex`` grid. Invalid points (``…InvalidState`` ≠ 0) are
+    no-returns."""
+    import pye57
+
+    with path.open("rb") as handle:
+        if handle.read(8) != b"ASTM-E57":
+            raise ArtifactError(f"{path}: not an E57 file (no 'ASTM-E57' signature)")
+    try:
+        reader = pye57.E57(str(path))
+    except Exception as err:  # libE57Format raises its own exception types
+        raise ArtifactError(f"{path}: not a readable E57 file ({_first_line(err)})") from None
+    try:
+        scans = [_e57_scan(path, reader, index, warnings_out)
+                 for index in range(reader.scan_count)]
+    except ArtifactError:
+        raise
+    except Exception as err:  # libE57Format's types, ValueError, KeyError from pye57
+        raise ArtifactError(f"{path}: not a readable E57 file "
+                            f"({type(err).__name__}: {_first_line(err)})") from None
+    finally:
+        reader.close()
+    if not scans:
+        raise ArtifactError(f"{path}: E57 file has no scan (its data3D is empty)")
+    grid = scans[0].grid if len(scans) == 1 else None
+    if len(scans) > 1:
+        warnings_out.append(f"{path}: {len(scans)} E57 scans merged in the file's frame, each "
+                            "with its scan position as the sensor origin (no grid kept)")
+    colours = (np.concatenate([s.colours for s in scans if s.colours is not None])
+               if all(s.colours is not None for s in scans) else None)
+    echo = (np.concatenate([s.echo for s in scans if s.echo is not None])
+            if all(s.echo is not None for s in scans) else None)
+    return _FileCloud(np.concatenate([s.points for s in scans]), colours, echo,
+                      np.concatenate([s.origins for s in scans if s.origins is not None]),
+                      grid, sum(s.invalid for s in scans))
+
+
+def _first_line(err: Exception) -> str:
+    """libE57Format's messages run over many lines (debug context); the first says it."""
+    lines = str(err).strip().splitlines()
+    return lines[0].strip() if lines else type(err).__name__
+
+
+def _e57_limits(header: object, node: str, low: str, high: str) -> tuple[float, float] | None:
+    """A ``…Limits`` structure's (minimum, maximum), or None when the scan has none."""
+    scan = header.node  # type: ignore[attr-defined]
+    if not scan.isDefined(node):
+        return None
+    limits = scan[node]
+    if not (limits.isDefined(low) and limits.isDefined(high)):
+        return None
+    return float(limits[low].value()), float(limits[high].value())
+
+
+#: E57 fields read and the numpy type of their buffer (libE57Format converts into it): wide
+#: integers, so 16-bit colours and more than 65535 rows fit (pye57's own buffers are uint8
+#: and uint16 and fail on them).
+_E57_FIELDS = {"cartesianX": "d", "cartesianY": "d", "cartesianZ": "d",
+               "sphericalRange": "d", "sphericalAzimuth": "d", "sphericalElevation": "d",
+               "cartesianInvalidState": "q", "sphericalInvalidState": "q", "intensity": "d",
+               "colorRed": "q", "colorGreen": "q", "colorBlue": "q", "rowIndex": "q",
+               "columnIndex": "q"}
+
+
+def _e57_fields(reader: object, header: object, count: int) -> dict[str, NDArray[np.generic]]:
+    """The scan's fields that scanpipe uses, read into buffers of :data:`_E57_FIELDS`."""
+    from pye57 import libe57
+
+    data: dict[str, NDArray[np.generic]] = {}
+    buffers = libe57.VectorSourceDestBuffer()
+    for name in header.point_fields:  # type: ignore[attr-defined]
+        if name in _E57_FIELDS:
+            data[name] = np.empty(count, _E57_FIELDS[name])
+            buffers.append(libe57.SourceDestBuffer(reader.image_file,  # type: ignore
+                                                   name, data[name], count, True, True))
+    if count:
+        vector_reader = header.points.reader(buffers)  # type: ignore[attr-defined]
+        try:
+            vector_reader.read()
+        finally:
+            vector_reader.close()
+    return data
+
+
+def _e57_field_maximum(header: object, name: str) -> float | None:
+    """The maximum an integer field's prototype declares, or None."""
+    from pye57 import libe57
+
+    prototype = libe57.StructureNode(header.points.prototype())  # type: ignore[attr-defined]
+    if not prototype.isDefined(name):
+        return None
+    node = prototype.get(name)
+    if node.type() != libe57.NodeType.E57_INTEGER:
+        return None
+    return float(libe57.IntegerNode(node).maximum())
+
+
+def _e57_scan(path: Path, reader: object, index: int, warnings_out: list[str]) -> _FileCloud:
+    header = reader.get_header(index)  # type: ignore[attr-defined]
+    count = int(header.point_count)
+    if count > path.stat().st_size * _E57_MAX_POINTS_PER_BYTE:
+        raise ArtifactError(f"{path}: E57 scan {index} claims {count} points; the file's "
+                            f"{path.stat().st_size} bytes cannot hold that many")
+    fields = set(header.point_fields)
+    data = _e57_fields(reader, header, count)
+    if {"cartesianX", "cartesianY", "cartesianZ"} <= fields:
+        xyz = np.stack([np.asarray(data[f"cartesian{a}"], np.float64) for a in "XYZ"], axis=1)
+        state = data.get("cartesianInvalidState")
+    elif {"sphericalRange", "sphericalAzimuth", "sphericalElevation"} <= fields:
+        # E57 angles are radians: azimuth from +x towards +y, elevation from the x-y plane.
+        xyz = polar_to_xyz(np.asarray(data["sphericalRange"], np.float64),
+                           np.degrees(np.asarray(data["sphericalAzimuth"], np.float64)),
+                           np.degrees(np.asarray(data["sphericalElevation"], np.float64)))
+        state = data.get("sphericalInvalidState")
+    else:
+        raise ArtifactError(f"{path}: E57 scan {index} has neither cartesianX/Y/Z nor "
+                            f"sphericalRange/Azimuth/Elevation (fields: "
+                            f"{', '.join(sorted(fields)) or 'none'})")
+    valid = np.ones(count, bool) if state is None else np.asarray(state) == 0
+    rotation = np.asarray(header.rotation_matrix, np.float64)
+    translation = np.asarray(header.translation, np.float64)
+    points = xyz[valid] @ rotation.T + translation
+    where = f"{path} scan {index}"
+    echo = None
+    if "intensity" in data:
+        values = np.asarray(data["intensity"], np.float64)[valid]
+        limits = _e57_limits(header, "intensityLimits", "intensityMinimum", "intensityMaximum")
+        whole = values.size == 0 or bool(np.all(values == np.round(values))
+                                         and values.min() >= 0 and values.max() <= 65535)
+        if not whole and limits is not None and limits[1] > limits[0]:
+            values = (values - limits[0]) / (limits[1] - limits[0])
+            warnings_out.append(f"{where}: intensity scaled from its intensityLimits "
+                                f"{limits[0]:g}…{limits[1]:g} to the echo's 0…65535")
+            values = values * 65535.0
+            echo = np.clip(np.rint(values), 0, 65535).astype(np.uint16)
+        else:
+            echo = _intensity_to_echo(Path(where), values, "e57", warnings_out)
+    colours = None
+    if {"colorRed", "colorGreen", "colorBlue"} <= set(data):
+        rgb = np.stack([np.asarray(data[f"color{c}"], np.int64)[valid]
+                        for c in ("Red", "Green", "Blue")], axis=1)
+        # The colour's range: colorLimits, else the field's own (its prototype's maximum).
+        limits = _e57_limits(header, "colorLimits", "colorRedMinimum", "colorRedMaximum")
+        top = limits[1] if limits is not None else _e57_field_maximum(header, "colorRed")
+        if top is None:
+            top = 65535.0 if rgb.size and rgb.max() > 255 else 255.0
+        if top == 65535.0:  # 16 bits: the high byte (exact for both c·256 and c·257)
+            colours = (np.clip(rgb, 0, 65535) >> 8).astype(np.uint8)
+        elif top > 255.0:
+            colours = np.clip(np.rint(rgb * 255.0 / top), 0, 255).astype(np.uint8)
+        else:
+            colours = np.clip(rgb, 0, 255).astype(np.uint8)
+    grid = None
+    if "rowIndex" in data and "columnIndex" in data:
+        grid = (np.asarray(data["rowIndex"], np.int32)[valid],
+                np.asarray(data["columnIndex"], np.int32)[valid])
+    return _FileCloud(points, colours, echo, np.broadcast_to(translation, points.shape).copy(),
+                      grid, int(count - np.count_nonzero(valid)))
+
+
+# -- PCD (PCL's point cloud data) ---------------------------------------------------------------
+
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4",
+              ("I", 8): "i8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
+_PCD_HEADER_MAX_BYTES = 1 << 16
+#: LZF (binary_compressed) shrinks constant data ~100×; no real file gets near this.
+_PCD_MAX_COMPRESSION = 1024
+
+
+@dataclass(frozen=True)
+class _PcdHeader:
+    fields: tuple[str, ...]
+    dtype: np.dtype[np.void]
+    width: int
+    height: int
+    points: int
+    viewpoint: tuple[float, ...]
+    data: str
+    header_bytes: int
+
+
+def _pcd_header(path: Path) -> _PcdHeader:
+    with path.open("rb") as handle:
+        head = handle.read(_PCD_HEADER_MAX_BYTES)
+    values: dict[str, list[str]] = {}
+    offset = 0
+    for raw_line in head.split(b"\n"):
+        offset += len(raw_line) + 1
+        try:
+            words = raw_line.decode("ascii").split()
+        except UnicodeDecodeError:
+            break
+        if not words or words[0].startswith("#"):
+            continue
+        values[words[0].upper()] = words[1:]
+        if words[0].upper() == "DATA":
+            break
+    if "DATA" not in values or "FIELDS" not in values:
+        raise ArtifactError(f"{path}: not a PCD file (no FIELDS and DATA lines in its header)")
+    try:
+        fields = values["FIELDS"]
+        sizes = [int(v) for v in values.get("SIZE", [])]
+        types = values.get("TYPE", [])
+        counts = [int(v) for v in values.get("COUNT", ["1"] * len(fields))]
+        width, height = int(values["WIDTH"][0]), int(values.get("HEIGHT", ["1"])[0])
+        points = int(values.get("POINTS", [str(width * height)])[0])
+        viewpoint = tuple(float(v) for v in values.get("VIEWPOINT", ["0"] * 3 + ["1"]
+                                                             + ["0"] * 3))
+        data = values["DATA"][0].lower()
+        if not (len(sizes) == len(types) == len(counts) == len(fields)) or min(counts) < 1:
+            raise ValueError("FIELDS, SIZE, TYPE and COUNT differ in length")
+        if points < 0 or width < 0 or height < 0 or len(viewpoint) != 7:
+            raise ValueError("negative POINTS/WIDTH/HEIGHT or a VIEWPOINT of not 7 numbers")
+        names = [f"{name}_{k}" if name == "_" else name for k, name in enumerate(fields)]
+        dtype = np.dtype([(n, "<" + _PCD_TYPES[(t.upper(), s)], (c,)) if c > 1 else
+                          (n, "<" + _PCD_TYPES[(t.upper(), s)])
+                          for n, t, s, c in zip(names, types, sizes, counts, strict=True)])
+    except (KeyError, ValueError, IndexError) as err:
+        raise ArtifactError(f"{path}: PCD header is not valid ({err}); need FIELDS, SIZE, TYPE "
+                            "(F, I or U), COUNT, WIDTH, POINTS and DATA") from None
+    if data not in ("ascii", "binary", "binary_compressed"):
+        raise ArtifactError(f"{path}: PCD DATA {data!r}; allowed: ascii, binary, "
+                            "binary_compressed")
+    return _PcdHeader(tuple(names), dtype, width, height, points, viewpoint, data, offset)
+
+
+def _read_pcd(path: Path, warnings_out: list[str]) -> _FileCloud:
+    """A PCD file (ascii, binary; binary_compressed through Open3D): x y z, ``rgb``/``rgba``
+    (packed; PCL writes it as an unsigned integer in ASCII files although its TYPE is F —
+    Open3D's reader then makes wrong colours, so ASCII is read here), ``intensity``, the grid
+    of an organised cloud (HEIGHT > 1) and the VIEWPOINT's position as the sensor origin."""
+    header = _pcd_header(path)
+    if not {"x", "y", "z"} <= set(header.fields):
+        raise ArtifactError(f"{path}: PCD FIELDS has no x, y, z ({' '.join(header.fields)})")
+    if header.points == 0:
+        raise ArtifactError(f"{path}: PCD file has 0 points")
+    available = path.stat().st_size - header.header_bytes
+    per_point = {"ascii": 2 * sum(max(1, int(np.prod(header.dtype[n].shape)))
+                                  for n in header.fields),
+                 "binary": header.dtype.itemsize,
+                 "binary_compressed": header.dtype.itemsize / _PCD_MAX_COMPRESSION}[header.data]
+    if header.points * per_point > available:
+        raise ArtifactError(f"{path}: PCD header field 'POINTS {header.points}' needs at least "
+                            f"{header.points * per_point:.0f} bytes of {header.data} data but "
+                            f"the file has {available} after its header")
+    rgb_bits: NDArray[np.uint32] | None = None
+    intensity: F64 | None = None
+    if header.data == "binary_compressed":
+        points, colours, intensity = _pcd_open3d(path, header)
+    else:
+        if header.data == "binary":
+            records = np.fromfile(path, dtype=header.dtype, count=header.points,
+                                  offset=header.header_bytes)
+            columns = {n: np.asarray(records[n]) for n in header.fields}
+        else:
+            columns = _pcd_ascii(path, header)
+        points = np.stack([np.asarray(columns[a], np.float64).reshape(-1) for a in "xyz"],
+                          axis=1)
+        packed = next((n for n in ("rgb", "rgba") if n in columns), None)
+        if packed is not None:
+            rgb_bits = _pcd_packed(columns[packed], header.data)
+        if "intensity" in columns:
+            intensity = np.asarray(columns["intensity"], np.float64).reshape(-1)
+        colours = None
+        if rgb_bits is not None:
+            colours = np.stack([(rgb_bits >> 16) & 255, (rgb_bits >> 8) & 255, rgb_bits & 255],
+                               axis=1).astype(np.uint8)
+    echo = (None if intensity is None
+            else _intensity_to_echo(path, intensity, "pcd", warnings_out))
+    grid = None
+    if header.height > 1 and header.width * header.height == len(points):
+        index = np.arange(len(points), dtype=np.int32)
+        grid = (index // header.width, index % header.width)
+    origins = np.broadcast_to(np.asarray(header.viewpoint[:3], np.float64), points.shape).copy()
+    return _FileCloud(points, colours, echo, origins, grid)
+
+
+def _pcd_ascii(path: Path, header: _PcdHeader) -> dict[str, F64]:
+    try:
+        with path.open("rb") as raw:
+            raw.seek(header.header_bytes)
+            text = io.TextIOWrapper(raw, encoding="ascii", errors="strict")
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                values = np.loadtxt(text, dtype=np.float64, max_rows=header.points, ndmin=2)
+    except ValueError as err:  # UnicodeDecodeError included
+        raise ArtifactError(f"{path}: PCD ascii data is not a table of numbers ({err})") from None
+    widths = [max(1, int(np.prod(header.dtype[n].shape))) for n in header.fields]
+    if values.shape != (header.points, sum(widths)):
+        raise ArtifactError(f"{path}: PCD header says {header.points} points of {sum(widths)} "
+                            f"values; the data has {values.shape[0]} lines of "
+                            f"{values.shape[1] if values.ndim == 2 else 0}")
+    starts = np.cumsum([0, *widths])
+    return {n: values[:, starts[k]:starts[k + 1]] for k, n in enumerate(header.fields)}
+
+
+def _pcd_packed(values: NDArray[np.generic], data: str) -> NDArray[np.uint32]:
+    """Packed 0xAARRGGBB colours. Binary: the field's bits. ASCII: a whole number is the
+    integer PCL writes; anything else is the float whose bits hold the colour."""
+    flat = np.asarray(values).reshape(-1)
+    if data == "binary":
+        return flat.view(np.uint32) if flat.dtype.itemsize == 4 else flat.astype(np.uint32)
+    numbers = np.asarray(flat, np.float64)
+    whole = np.isfinite(numbers) & (numbers == np.round(numbers)) & (numbers >= 0) & (
+        numbers < 2.0**32)
+    bits = np.asarray(numbers, np.float32).view(np.uint32)
+    return np.where(whole, np.where(whole, numbers, 0).astype(np.uint32), bits)
+
+
+def _pcd_open3d(path: Path, header: _PcdHeader) -> tuple[F64, U8 | None, F64 | None]:
+    """binary_compressed (LZF) through Open3D, which keeps every point in order."""
+    import open3d as o3d
+
+    cloud = o3d.t.io.read_point_cloud(path, remove_nan_points=False,
+                                      remove_infinite_points=False)
+    attributes = set(cloud.point)
+    if "positions" not in attributes or len(cloud.point.positions) != header.points:
+        raise ArtifactError(f"{path}: PCD binary_compressed data could not be read (Open3D read "
+                            f"{len(cloud.point.positions) if 'positions' in attributes else 0} "
+                            f"of {header.points} points)")
+    points = np.asarray(cloud.point.positions.numpy(), np.float64)
+    colours = None
+    if "colors" in attributes:
+        rgb = cloud.point.colors.numpy()
+        colours = (rgb if rgb.dtype == np.uint8 else
+                   np.clip(np.rint(np.asarray(rgb, np.float64) * 255.0), 0, 255)
+                   ).astype(np.uint8)
+    intensity = (np.asarray(cloud.point.intensity.numpy(), np.float64).reshape(-1)
+                 if "intensity" in attributes else None)
+    return points, colours, intensity

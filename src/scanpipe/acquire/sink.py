@@ -25,6 +25,11 @@ Link = Literal["scanner", "motor"]
 RX, TX = 0, 1
 
 
+#: The event that ends every part of a split recording but the last (data: ``part``,
+#: ``next_part``, ``next_file``).
+PART_CONTINUES = "recording_continues"
+
+
 def part_path(out: Path, index: int) -> Path:
     """The path of part ``index`` of a split recording: ``scan.mcap`` → ``scan-001.mcap``.
 
@@ -133,6 +138,16 @@ class RecordingSink:
             except OSError:
                 too_big = False
         if too_old or too_big:
+            # Each part decodes on its own: say in it that the scan goes on elsewhere, so a
+            # reader of one part can tell it holds only part of the scan.
+            following = part_path(self.out, len(self.paths))
+            data = {"part": len(self.paths) - 1, "next_part": len(self.paths),
+                    "next_file": following.name}
+            message = f"the recording continues in {following.name}"
+            self.stats.events[PART_CONTINUES] += 1
+            self.stats.event_log.append({"time_ns": now_ns, "kind": PART_CONTINUES,
+                                         "message": message, "data": data})
+            self._writer.write_event(now_ns, PART_CONTINUES, message, data)
             self._writer.close()
             self._open_part(len(self.paths))
 

@@ -71,17 +71,18 @@ def _parse_origin(text: str) -> tuple[float, float, float]:
 
 def import_points_command(
     files: list[Path] = typer.Argument(..., help="Point files: PLY, XYZ/CSV/TXT/PTS, LAS/LAZ, "
-                                                  "3DTK .3d (several are merged)."),
+                                                  "E57, PCD, 3DTK .3d (several are merged)."),
     out: Path = OUT,
     origin: str = typer.Option("0,0,0", "--origin",
                                help="Sensor origin x,y,z in metres (rig frame) when no --pose."),
     up: str = typer.Option("auto", "--up", help="The file's up axis: auto, y or z."),
     file_format: str = typer.Option("auto", "--format",
-                                    help="auto (from the extension), xyz, csv, ply, las or 3d."),
+                                    help="auto (from the extension), xyz, csv, pts, ply, las, "
+                                         "e57, pcd or 3d."),
     columns: str | None = typer.Option(None, "--columns",
                                        help="Text columns: roles in order (x,y,z,-,intensity) "
                                             "or ROLE=INDEX; see docs/import.md."),
-    units: str = typer.Option("auto", "--units", help="auto, m, cm or mm."),
+    units: str = typer.Option("auto", "--units", help="auto, m, cm, mm, ft or us-ft."),
     axes: str | None = typer.Option(None, "--axes",
                                     help="File axis for rig x,y,z, signed (e.g. x,z,-y)."),
     left_handed: bool | None = typer.Option(None, "--left-handed/--right-handed",

@@ -19,6 +19,7 @@ import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -31,6 +32,8 @@ from scanpipe.exporters.model import CloudModel, rig_to_z_up
 #: and the pixel size; only their ratio (the focal length in pixels) is known from a
 #: calibration, so the pitch is nominal and ``focalLength = fx · pitch``.
 NOMINAL_PIXEL_M = 1e-6
+#: The echo's (u16) largest value: the intensity limit written.
+ECHO_MAX = 65535
 
 
 @dataclass(frozen=True)
@@ -89,6 +92,19 @@ def _scan_data(cloud: CloudModel) -> dict[str, NDArray[Any]]:
     return data
 
 
+def _header_limits(data: dict[str, NDArray[Any]]) -> SimpleNamespace:
+    """What pye57 takes from a ``scan_header``: ``intensityLimits`` 0…65535 (the echo's range;
+    pye57 would write the data's extremes, and readers that rescale by the limits, such as
+    PDAL's, would stretch each scan differently) and ``cartesianBounds`` in the scan's own frame
+    (ASTM E57; pye57 would move the two corners by the pose)."""
+    xyz = np.stack([data["cartesianX"], data["cartesianY"], data["cartesianZ"]], axis=1)
+    low, high = xyz.min(axis=0), xyz.max(axis=0)
+    return SimpleNamespace(
+        intensityMinimum=0.0, intensityMaximum=float(ECHO_MAX),
+        xMinimum=float(low[0]), yMinimum=float(low[1]), zMinimum=float(low[2]),
+        xMaximum=float(high[0]), yMaximum=float(high[1]), zMaximum=float(high[2]))
+
+
 def write_e57(path: Path, scans: Sequence[E57Scan], images: Sequence[E57Image] = ()) -> None:
     """Write ``scans`` (one ``data3D`` entry each, in order) and ``images`` (one ``images2D``
     entry each) to the E57 file ``path``."""
@@ -107,9 +123,11 @@ def write_e57(path: Path, scans: Sequence[E57Scan], images: Sequence[E57Image] =
         writer = pye57.E57(str(path), mode="w")
         try:
             for scan in scans:
-                writer.write_scan_raw(_scan_data(scan.cloud), name=scan.name,
+                data = _scan_data(scan.cloud)
+                writer.write_scan_raw(data, name=scan.name,
                                       rotation=np.asarray(scan.rotation_wxyz, np.float64),
-                                      translation=np.asarray(scan.translation_m, np.float64))
+                                      translation=np.asarray(scan.translation_m, np.float64),
+                                      scan_header=_header_limits(data))
                 _describe(writer, len(writer.data3d) - 1, scan)
             for image in images:
                 _write_image(writer.image_file, image)

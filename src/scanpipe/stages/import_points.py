@@ -1,4 +1,4 @@
-"""Import points: another tool's point file (PLY, XYZ/CSV, LAS/LAZ) to a ``points`` artifact.
+"""Import points: another tool's point file (PLY, XYZ/CSV/PTS, LAS/LAZ, E57, PCD) to ``points``.
 
 A stage with a raw input, like decode: the file reaches it as a path and is keyed by its
 bytes. The reading and the frame conversion are :mod:`scanpipe.pointio`'s.
@@ -30,11 +30,11 @@ def import_points_stage(inputs: Mapping[str, Any], params: ImportParams,
 
 STAGE = Stage(
     name="import-points",
-    version=2,
+    version=3,
     params=ImportParams,
     inputs=("point_file",),
     outputs=("points",),
     func=import_points_stage,
-    description="a point file from another tool (PLY, XYZ/CSV, LAS/LAZ) → points (no grid)",
-    libraries=("numpy", "pyarrow", "laspy"),
+    description="a point file from another tool (PLY, XYZ/CSV/PTS, LAS/LAZ, E57, PCD) → points",
+    libraries=("numpy", "pyarrow", "laspy", "pye57", "open3d"),
 )

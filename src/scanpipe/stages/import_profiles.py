@@ -46,6 +46,15 @@ POSITION_NS = 1_000_000_000
 EPOCH_NS = 1_700_000_000_000_000_000
 
 
+#: Beam angles closer than this (degrees) are one beam written with float noise (float32
+#: angles printed in full differ by ~1e-5° at 270°); no scanner's step is near it.
+BEAM_NOISE_DEG = 1e-4
+#: A beam farther than this fraction of a step from the equal-step grid is refused.
+OFF_GRID_STEPS = 0.01
+#: More beams than this per profile is not a 2-D scanner (and would not fit in memory).
+MAX_BEAMS = 100_000
+
+
 class ImportProfilesParams(Params):
     """How a ranges + angles data set becomes profiles, motor states and a rig."""
 
@@ -101,11 +110,32 @@ def _load(path: Path, params: ImportProfilesParams) -> tuple[F64, F64, F64, F64 
     if not np.isfinite(profile).all() or not np.isfinite(cols["beam_deg"]).all():
         raise ArtifactError(f"{path}: profile and beam_deg must be finite numbers")
     ids, row = np.unique(profile, return_inverse=True)
-    beam_values = np.unique(np.round(cols["beam_deg"], 9))
-    if beam_values.size > 1:
-        step = float(np.min(np.diff(beam_values)))
-        column = np.rint((cols["beam_deg"] - beam_values[0]) / step).astype(np.int64)
+    beam_values = np.unique(cols["beam_deg"])
+    # Values closer than BEAM_NOISE_DEG are one beam written with float noise: group them,
+    # take the smallest gap between groups as a first step, then fit start and step to every
+    # group (noise must not accumulate over a thousand beams).
+    group = np.concatenate([[0], np.cumsum(np.diff(beam_values) > BEAM_NOISE_DEG)])
+    centres = np.bincount(group, beam_values) / np.bincount(group)
+    if centres.size > 1:
+        rough = float(np.min(np.diff(centres)))
+        index = np.rint((centres - centres[0]) / rough)
+        start, step = float(centres[0]), rough
+        if np.max(np.abs(centres - (start + index * step))) > 1e-9 * max(1.0, abs(step)):
+            fitted = np.polyfit(index, centres, 1)
+            step, start = float(fitted[0]), float(fitted[1])
+        position = (cols["beam_deg"] - start) / step
+        column = np.rint(position).astype(np.int64)
+        off = np.abs(position - column)
+        worst = int(np.argmax(off))
+        if off[worst] > OFF_GRID_STEPS:
+            raise ArtifactError(f"{path}: beam_deg {cols['beam_deg'][worst]:g} is not on the "
+                                f"equal-step grid from {start:.6g}° by {step:.6g}° (off by "
+                                f"{off[worst] * step:g}°); beam angles must rise in equal "
+                                "steps")
         samples = int(column.max()) + 1
+        if samples > MAX_BEAMS:
+            raise ArtifactError(f"{path}: beam_deg from {start:g}° to {beam_values[-1]:g}° by "
+                                f"{step:g}° is {samples} beams; at most {MAX_BEAMS}")
     else:
         step, column, samples = 1.0, np.zeros(profile.size, np.int64), 1
     ranges = np.full((ids.size, samples), np.nan)
@@ -124,7 +154,8 @@ def _load(path: Path, params: ImportProfilesParams) -> tuple[F64, F64, F64, F64 
         raise ArtifactError(f"{path}: platform_deg varies within a profile (by up to "
                             f"{np.nanmax(spread):g}°); one platform angle per profile is "
                             "supported")
-    beam = beam_values[0] + np.arange(samples) * step
+    first = start if centres.size > 1 else float(beam_values[0])
+    beam = first + np.arange(samples, dtype=np.float64) * step
     return ranges, beam, platform, intensity
 
 
@@ -137,7 +168,18 @@ def import_profiles(path: Path, params: ImportProfilesParams) -> StageResult:
         raise ArtifactError(f"{path}: beam_deg and platform_deg must be finite")
     steps = np.diff(beam)
     step = float(np.median(steps)) if steps.size else 1.0
-    if step <= 0 or (steps.size and np.max(np.abs(steps - step)) > 1e-6 * max(1.0, step)):
+    if steps.size and step > 0:
+        # Angles stored as float32 (np.linspace) step unevenly by ~1e-5°: fit the grid and
+        # accept beams within OFF_GRID_STEPS of it, as the long layout does.
+        index = np.arange(beam.size, dtype=np.float64)
+        fitted = np.polyfit(index, beam, 1)
+        grid = fitted[1] + index * fitted[0]
+        if np.max(np.abs(beam - grid)) <= OFF_GRID_STEPS * float(fitted[0]):
+            if np.max(np.abs(steps - step)) > 1e-9 * max(1.0, step):
+                beam, step = grid, float(fitted[0])
+        else:
+            step = -1.0
+    if step <= 0:
         raise ArtifactError(f"{path}: beam_deg must rise in equal steps (found steps "
                             f"{np.min(steps):g}…{np.max(steps):g}°)")
     fov = step * beam.size
@@ -229,7 +271,7 @@ def import_profiles_stage(inputs: Mapping[str, Any], params: ImportProfilesParam
 
 STAGE = Stage(
     name="import-profiles",
-    version=1,
+    version=2,
     params=ImportProfilesParams,
     inputs=("profile_file",),
     outputs=("profiles", "motor", "rig"),
