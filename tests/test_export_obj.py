@@ -207,6 +207,7 @@ def test_split_by_uv_keeps_every_corner_uv_and_shares_inside_charts() -> None:
     seams = rng.random(600) < 0.1
     corner_uv[seams] = rng.random((int(seams.sum()), 2)).astype(np.float32)
     source, vt_uv, vt_index = split_by_uv(corner_vertex, corner_uv)
+    assert vt_index.dtype == np.uint32  # glTF's index type: GLB writes it as it is
     np.testing.assert_array_equal(vt_uv[vt_index], corner_uv)  # every corner keeps its uv
     np.testing.assert_array_equal(source[vt_index], corner_vertex)  # and its vertex
     # slow reference: a corner needs its own vt unless it repeats its vertex's first uv

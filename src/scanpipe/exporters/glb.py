@@ -167,10 +167,8 @@ def glb_pieces(mesh: MeshModel, name: str = "scan",
         elif rgba is not None:
             attributes["COLOR_0"] = builder.accessor(rgba, "VEC4", UNSIGNED_BYTE,
                                                      ARRAY_BUFFER, normalized=True)
-        # split_by_uv's int32 indices are non-negative: the same bytes as uint32
-        as_u32 = (indices.view(np.uint32) if indices.dtype == np.int32
-                  else indices.astype(np.uint32))
-        index_accessor = builder.accessor(as_u32, "SCALAR", UNSIGNED_INT, ELEMENT_ARRAY_BUFFER)
+        index_accessor = builder.accessor(np.asarray(indices, np.uint32), "SCALAR",
+                                          UNSIGNED_INT, ELEMENT_ARRAY_BUFFER)
         primitives.append({"attributes": attributes, "indices": index_accessor,
                            "material": material, "mode": 4})
 
@@ -193,7 +191,7 @@ def glb_pieces(mesh: MeshModel, name: str = "scan",
              else np.flatnonzero(pages < 0))
     if len(plain):
         corners = mesh.faces[plain].reshape(-1).astype(np.int64)
-        source, inverse = np.unique(corners, return_inverse=True)
+        plain_source, plain_index = np.unique(corners, return_inverse=True)
         grey = 1.0 if mesh.colors is not None else 0.7
         materials.append({
             "name": "untextured",
@@ -201,7 +199,8 @@ def glb_pieces(mesh: MeshModel, name: str = "scan",
                                      "metallicFactor": 0.0, "roughnessFactor": 1.0},
             "doubleSided": True,
         })
-        add_primitive(source.astype(np.int64), inverse.ravel(), None, len(materials) - 1)
+        add_primitive(plain_source.astype(np.int64), plain_index.ravel(), None,
+                      len(materials) - 1)
 
     document: dict[str, Any] = {
         "asset": {"version": "2.0", "generator": f"scanpipe {__version__}",
