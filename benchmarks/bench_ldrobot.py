@@ -24,7 +24,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import cli, cpu_seconds, measure, measurement_table, throughput_line
+from harness import (
+    cli,
+    cpu_seconds,
+    damage_frames,
+    measure,
+    measurement_table,
+    throughput_line,
+)
 
 from scanpipe.protocol import ldrobot as ld
 from scanpipe.rig import default_rig
@@ -66,32 +73,19 @@ def decode_chunks(stream: bytes) -> int:
 
 
 def damage(stream: bytes, seed: int, rate: float) -> tuple[bytes, list[int]]:
-    """Damage packets at random; the new stream and the indices of the packets left intact."""
+    """Damage packets at random (the protocol tests' damage: :func:`harness.damage_frames`);
+    the new stream and the indices of the packets left intact."""
     rng = np.random.default_rng(seed)
+
+    def fake() -> bytes:
+        packet = bytearray(rng.integers(0, 256, ld.PACKET_BYTES, np.uint8).tobytes())
+        packet[:2] = b"\x54\x2c"
+        packet[-1] = ld.crc8(bytes(packet[:-1]))
+        return bytes(packet)
+
     n = len(stream) // ld.PACKET_BYTES
-    kinds = np.where(rng.random(n) < rate, rng.integers(0, 5, n), -1)
-    out, intact = [], []
-    for k in range(n):
-        packet = bytearray(stream[k * 47:(k + 1) * 47])
-        kind = int(kinds[k])
-        if kind == 0:
-            packet[int(rng.integers(2, 47))] ^= 0x20
-        elif kind == 1:
-            packet = packet[:int(rng.integers(1, 46))]
-        else:
-            intact.append(k)
-            if kind >= 2:
-                junk = bytearray(rng.integers(0, 256, int(rng.integers(1, 60)), np.uint8))
-                if kind == 3:
-                    junk[0:2] = b"\x54\x2c"
-                if kind == 4:
-                    fake = bytearray(rng.integers(0, 256, 47, np.uint8))
-                    fake[:2] = b"\x54\x2c"
-                    fake[46] = ld.crc8(bytes(fake[:46]))
-                    junk += fake
-                out.append(bytes(junk))
-        out.append(bytes(packet))
-    return b"".join(out), intact
+    packets = [stream[k * ld.PACKET_BYTES:(k + 1) * ld.PACKET_BYTES] for k in range(n)]
+    return damage_frames(packets, rng, rate, fake, markers=b"\x54\x2c")
 
 
 def recovery(stream: bytes, packets: int) -> dict[str, Any]:

@@ -19,7 +19,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from harness import cli, cpu_seconds, measure, measurement_table, throughput_line
+from harness import (
+    cli,
+    cpu_seconds,
+    damage_stream,
+    measure,
+    measurement_table,
+    throughput_line,
+)
 
 from scanpipe.protocol import scip
 from scanpipe.protocol.registry import StreamDecoder, decode_bytes, score_recovery
@@ -55,19 +62,8 @@ def chunked_decode(stream: bytes) -> int:
 
 
 def damaged(stream: bytes, events: int, seed: int = 1) -> bytes:
-    """Cuts, bit flips and insertions."""
-    rng = np.random.default_rng(seed)
-    data = bytearray(stream)
-    for _ in range(events):
-        at = int(rng.integers(0, len(data)))
-        kind = int(rng.integers(0, 3))
-        if kind == 0:
-            del data[at:at + int(rng.integers(1, 2000))]
-        elif kind == 1:
-            data[at] ^= 1 << int(rng.integers(0, 8))
-        else:
-            data[at:at] = rng.bytes(int(rng.integers(1, 100)))
-    return bytes(data)
+    """Cuts, bit flips and insertions (:func:`harness.damage_stream`)."""
+    return damage_stream(stream, np.random.default_rng(seed), events, 2000, 100)
 
 
 def run(quick: bool = False) -> dict[str, Any]:

@@ -21,6 +21,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 RESULTS_DIR = Path(__file__).parent / "results"
 
 
@@ -95,6 +97,74 @@ def measure(name: str, fn: Callable[[], Any], items: float, unit: str,
         runs, cpu_runs = _timed_runs(fn, repeats)
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return Measurement(name, statistics.median(runs), runs, peak, items, unit, cpu_runs)
+
+
+def made(files: Any) -> int:
+    """Make every file of an export (``{name: FileData}``, or one file) as writing would,
+    without writing: a streamed file (:class:`scanpipe.artifacts.Stream`) is formatted only
+    when consumed, so timing the exporter call alone would time nothing. The total bytes."""
+    from scanpipe.artifacts import file_pieces
+
+    contents = files.values() if isinstance(files, dict) else [files]
+    return sum(memoryview(piece).nbytes for data in contents for piece in file_pieces(data))
+
+
+def damage_stream(stream: bytes, rng: Any, events: int, max_cut: int = 2000,
+                  max_insert: int = 100, false_starts: tuple[bytes, ...] = ()) -> bytes:
+    """``events`` random damages of a byte stream (``rng``: a numpy Generator): a cut of up to
+    ``max_cut`` bytes, a flipped bit, up to ``max_insert`` random bytes inserted, or (when
+    given) one of ``false_starts`` inserted. The protocol tests and benchmarks share it."""
+    data = bytearray(stream)
+    kinds = 4 if false_starts else 3
+    for _ in range(events):
+        at = int(rng.integers(0, len(data)))
+        kind = int(rng.integers(0, kinds))
+        if kind == 0:
+            del data[at:at + int(rng.integers(1, max_cut))]
+        elif kind == 1:
+            data[at] ^= 1 << int(rng.integers(0, 8))
+        elif kind == 2:
+            data[at:at] = rng.bytes(int(rng.integers(1, max_insert)))
+        else:
+            data[at:at] = false_starts[int(rng.integers(0, len(false_starts)))]
+    return bytes(data)
+
+
+def damage_frames(frames: list[bytes], rng: Any, rate: float,
+                  fake: Callable[[], bytes] | None = None,
+                  markers: bytes = b"", flip_mask: int | None = None
+                  ) -> tuple[bytes, list[int]]:
+    """Damage whole frames at random, ``rate`` of them: a flipped bit (``flip_mask``: that
+    XOR mask instead, e.g. 0xFF where a format has no checksum and a flipped bit of a digit
+    would be another valid number), cut short, bytes lost in the middle (those three are
+    lost), or garbage before the frame (kept intact): random bytes, with ``markers`` put
+    inside, or followed by ``fake()`` (a frame-shaped fake with a good checksum). The stream
+    and the indices of the frames left intact."""
+    out = bytearray()
+    intact = []
+    for k, frame in enumerate(frames):
+        data = bytearray(frame)
+        kind = int(rng.integers(0, 6)) if rng.random() < rate else -1
+        if kind == 0:  # a flipped bit past the marker
+            mask = 1 << int(rng.integers(0, 8)) if flip_mask is None else flip_mask
+            data[int(rng.integers(2, len(data)))] ^= mask
+        elif kind == 1:  # cut short
+            data = data[:int(rng.integers(1, len(data) - 1))]
+        elif kind == 2:  # bytes lost in the middle
+            a = int(rng.integers(2, len(data) - 7))
+            del data[a:a + int(rng.integers(1, 6))]
+        else:
+            intact.append(k)
+        if kind in (3, 4, 5):
+            junk = bytearray(rng.integers(0, 256, int(rng.integers(1, 80)), np.uint8).tobytes())
+            if kind == 4 and markers:
+                for at in rng.integers(0, len(junk), 3):
+                    junk[at:at + len(markers)] = markers
+            if kind == 5 and fake is not None:
+                junk += fake()
+            out += junk
+        out += data
+    return bytes(out), intact
 
 
 def cpu_seconds(work: Callable[[], object], repeats: int = 3, warm_up: bool = True) -> float:

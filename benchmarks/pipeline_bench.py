@@ -30,12 +30,15 @@ import pyarrow.compute as pc
 import pyarrow.parquet as pq
 
 from benchmarks.baseline import BaselineMesh, baseline_summary, finite_xyz, open3d_baseline
-from benchmarks.harness import Measurement, measure, table
+from benchmarks.harness import Measurement, made, measure, table
 from benchmarks.scans import CACHE_DIR, BenchScan, ScanFiles, cached_scan
 from scanpipe.artifacts import read_artifact
 from scanpipe.evaluate import evaluate_result, load_reference, mesh_metrics, stage_times
 from scanpipe.params import Params
 from scanpipe.pipeline import RunRecord, registry, run_chain, validate_pipeline_params
+from scanpipe.protocol.registry import decode_bytes, resolve_dialect
+from scanpipe.recording.reader import read_recording
+from scanpipe.recording.schemas import RX
 from scanpipe.render import RenderMesh
 from scanpipe.rig import rig_from_table
 from scanpipe.sim.options import SimOptions
@@ -114,9 +117,17 @@ def stage_measurements(recording: Path, tables: Mapping[str, Mapping[str, pa.Tab
     def stage(name: str, inputs: Mapping[str, Any], **overrides: Any) -> Callable[[], Any]:
         return lambda: stages[name].run(inputs, **overrides)
 
+    # The decode stage reads the whole recording, camera frames and all (on the lab scan 95 %
+    # of its bytes are JPEG frames): its samples/s are not the scanner decoder's. The decoder
+    # alone (the dialect on the recorded scanner stream, what issue 17's ≥ 10 M samples/s is
+    # about) is its own row.
+    stream = read_recording(recording).stream("scanner", RX).data
+    dialect = resolve_dialect("auto", stream)
     results = [
         measure("decode", stage("decode", {"recording": recording}), samples, "samples",
                 repeats),
+        measure(f"decode scanner stream ({dialect.name})",
+                lambda: decode_bytes(stream, dialect), samples, "samples", repeats),
         measure("assemble", stage("assemble", {k: decoded[k] for k in ("profiles", "motor",
                                                                        "rig")}),
                 assembled.num_rows, "points", repeats),
@@ -136,9 +147,10 @@ def stage_measurements(recording: Path, tables: Mapping[str, Mapping[str, pa.Tab
     results += [
         measure("texture (projective)", stage("texture", texture_inputs), faces, "faces",
                 heavy_repeats),
-        measure("export OBJ (+MTL, PNG)", lambda: export_files(export_tables, "obj", "model"),
+        measure("export OBJ (+MTL, PNG)",
+                lambda: made(export_files(export_tables, "obj", "model")),
                 faces, "faces", repeats),
-        measure("export GLB", lambda: export_files(export_tables, "glb", "model"), faces,
+        measure("export GLB", lambda: made(export_files(export_tables, "glb", "model")), faces,
                 "faces", repeats),
         measure("export stage (defaults)", stage("export", export_inputs), faces, "faces",
                 heavy_repeats),
@@ -361,7 +373,9 @@ def targets(by_name: Mapping[str, Measurement], e2e_s: float, acquisition_s: flo
 
     poisson9 = by_name.get("mesh Poisson depth 9")
     return [
-        target("decode", by_name["decode"].throughput / 1e6, 10, "M samples/s", at_least=True),
+        target("decode scanner stream", next(
+            m for name, m in by_name.items() if name.startswith("decode scanner stream")
+        ).throughput / 1e6, 10, "M samples/s", at_least=True),
         target("assemble", by_name["assemble"].throughput / 1e6, 20, "M points/s",
                at_least=True),
         target("grid filters", seconds("filter (defaults)"), 1, "s"),

@@ -42,8 +42,8 @@ def results(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 @pytest.mark.slow
 def test_every_stage_is_measured_with_positive_figures(results: dict[str, Any]) -> None:
     names = [m["name"] for m in results["stages"]]
-    assert names == ["decode", "assemble", "filter (defaults)", "filter without smoothing",
-                     "mesh grid", "mesh Poisson depth 5",
+    assert names == ["decode", "decode scanner stream (ldoem)", "assemble", "filter (defaults)",
+                     "filter without smoothing", "mesh grid", "mesh Poisson depth 5",
                      "mesh Poisson depth 6", "texture (projective)", "export OBJ (+MTL, PNG)",
                      "export GLB", "export stage (defaults)"]
     for m in results["stages"]:
@@ -121,6 +121,7 @@ def test_acquisition_targets_and_table(results: dict[str, Any]) -> None:
     rows = {t["name"]: t for t in results["targets"]}
     assert len(rows) == 16 and all(isinstance(t["met"], bool) for t in rows.values())
     assert positive(rows["grid mesh at full resolution (CPU)"]["value"])
+    assert positive(rows["decode scanner stream"]["value"])
     assert positive(rows["end to end / acquisition (CPU)"]["value"])
     assert positive(rows["peak memory of the default chain (peak RSS, fresh process)"]["value"])
     assert rows["Poisson depth 9 time"]["value"] is None  # the tiny scan stops at depth 6

@@ -429,3 +429,31 @@ def test_e57_frames_are_undistorted_to_the_pinhole_they_are_written_with() -> No
     # without distortion the bytes are passed through unchanged
     data = encode_png(np.zeros((8, 8, 3), np.uint8))
     assert pinhole_image(data, "png", no_lens) is data
+
+
+def test_run_writes_a_manifest_of_the_files_as_written(cli, workdir: Path,  # type: ignore[no-untyped-def]
+                                                       tmp_path: Path) -> None:
+    """The user's path: ``scanpipe run`` with the default exports (the OBJ streamed while it
+    is written): the manifest names every file beside it with its size and digest on disk,
+    and a second run reuses the export."""
+    import hashlib
+
+    import pyarrow.parquet as pq
+
+    work = tmp_path / "w"
+    done = cli("run", workdir / "scan.mcap", "--workdir", work, "--set", "mesh.method=grid")
+    assert done.code == 0, done.err
+    folder = work / "export"
+    rows = pq.read_table(folder / "export_manifest.parquet").to_pylist()
+    assert {"model.obj", "model.glb", "cloud.ply"} <= {row["file"] for row in rows}
+    assert sorted(p.name for p in folder.iterdir()) == sorted(
+        [row["file"] for row in rows] + ["export_manifest.parquet"])
+    for row in rows:
+        data = (folder / row["file"]).read_bytes()
+        assert (row["bytes"], row["sha256"]) == (len(data), hashlib.sha256(data).hexdigest())
+    obj = (folder / "model.obj").read_text()
+    assert obj.count("\nf ") > 100 and obj.endswith("\n")
+    before = (folder / "model.obj").stat().st_mtime_ns
+    again = cli("run", workdir / "scan.mcap", "--workdir", work, "--set", "mesh.method=grid")
+    assert again.code == 0, again.err
+    assert (folder / "model.obj").stat().st_mtime_ns == before  # reused by key

@@ -197,8 +197,13 @@ def test_lines_across_blocks_with_repeated_columns_and_separators() -> None:
                             f"{fixed_reference(x[i], 0)}{a[i]}long literal"), i
 
 
-def test_split_by_uv_keeps_every_corner_uv_and_shares_inside_charts() -> None:
+@pytest.mark.parametrize("slice_corners", [1 << 20, 7])
+def test_split_by_uv_keeps_every_corner_uv_and_shares_inside_charts(
+        slice_corners: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    from scanpipe.exporters import model
     from scanpipe.exporters.model import split_by_uv
+
+    monkeypatch.setattr(model, "SPLIT_SLICE", slice_corners)  # one slice, or many
 
     rng = np.random.default_rng(7)
     corner_vertex = rng.integers(0, 50, 600)
@@ -207,6 +212,7 @@ def test_split_by_uv_keeps_every_corner_uv_and_shares_inside_charts() -> None:
     seams = rng.random(600) < 0.1
     corner_uv[seams] = rng.random((int(seams.sum()), 2)).astype(np.float32)
     source, vt_uv, vt_index = split_by_uv(corner_vertex, corner_uv)
+    assert vt_index.dtype == np.uint32  # glTF's index type: GLB writes it as it is
     np.testing.assert_array_equal(vt_uv[vt_index], corner_uv)  # every corner keeps its uv
     np.testing.assert_array_equal(source[vt_index], corner_vertex)  # and its vertex
     # slow reference: a corner needs its own vt unless it repeats its vertex's first uv

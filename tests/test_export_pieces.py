@@ -4,7 +4,7 @@ piece, the same bytes as joined, the chain's export identical to ``scanpipe expo
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pyarrow as pa
@@ -13,7 +13,9 @@ from result_tables import points_table, textured_box
 
 from scanpipe.artifacts import (
     Pieces,
+    Stream,
     file_bytes,
+    file_pieces,
     file_sha256,
     file_size,
     read_artifact,
@@ -23,6 +25,8 @@ from scanpipe.artifacts import (
 from scanpipe.errors import ArtifactError
 from scanpipe.exporters import obj, textfmt
 from scanpipe.progress import no_progress
+from scanpipe.stage import complete_manifest
+from scanpipe.stages import export as ex
 from scanpipe.stages.export import INPUT_ARTIFACTS, ExportStageParams, export_stage
 from scanpipe.workdir import find_artifacts
 
@@ -76,27 +80,33 @@ def workdir(tmp_path: Path) -> Path:
 def test_chain_export_equals_scanpipe_export_and_its_manifest(
         cli: Callable, workdir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The stage's files, written by ``write_together`` piece by piece (many pieces: tiny
-    slices and blocks), are byte for byte ``scanpipe export``'s; the manifest's sizes and
-    digests are the written files'."""
+    slices and blocks; the OBJ streamed), are byte for byte ``scanpipe export``'s; the
+    manifest made while writing has the written files' sizes and digests, as the in-memory
+    one (``Stage.call``) has."""
     monkeypatch.setattr(obj, "FACE_SLICE", 3)
     monkeypatch.setattr(textfmt, "BLOCK_ROWS", 2)
     tables: dict[str, pa.Table] = {
         name: read_artifact(path)[0]
         for name, path in find_artifacts(workdir, INPUT_ARTIFACTS).items()}
     result = export_stage(tables, ExportStageParams(), no_progress)
-    assert isinstance(result.files["model.obj"], Pieces)
-    assert len(result.files["model.obj"].parts) > 4
-    manifest = result.tables["export_manifest"]
+    streamed = result.files["model.obj"]
+    assert isinstance(streamed, Stream)
+    assert len(list(file_pieces(streamed))) > 4
+    assert "export_manifest" not in result.tables and result.manifest == "export_manifest"
     stage_dir = tmp_path / "run" / "export"
-    write_together(stage_dir, "export",
-                   {"export_manifest": (manifest, {"stage": "export"})}, result.files, True)
+    manifest = write_together(stage_dir, "export", {}, result.files, True,
+                              ("export_manifest", {"stage": "export"}))
+    assert manifest is not None
+    assert read_artifact(stage_dir / "export_manifest.parquet")[0].equals(manifest)
     written = {row["file"]: (stage_dir / row["file"]).read_bytes()
                for row in manifest.to_pylist()}
     assert set(written) == set(result.files)
     for row in manifest.to_pylist():
         assert row["bytes"] == len(written[row["file"]])
         assert row["sha256"] == _sha(written[row["file"]])
-    assert (stage_dir / "export_manifest.parquet").is_file()
+    in_memory = export_stage(tables, ExportStageParams(), no_progress)
+    complete_manifest(in_memory)  # what Stage.call does when nothing is written
+    assert in_memory.tables["export_manifest"].equals(manifest)
 
     out = tmp_path / "cli"
     for fmt in ("obj", "glb"):
@@ -105,3 +115,34 @@ def test_chain_export_equals_scanpipe_export_and_its_manifest(
     exported = {p.name: p.read_bytes() for p in out.iterdir()}
     mesh_files = {k: v for k, v in written.items() if k.startswith("model")}
     assert exported == mesh_files
+
+
+def test_a_stream_is_made_block_by_block_and_a_failing_one_keeps_the_previous_set(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The OBJ's text comes one block at a time (never the whole text at once); a stream
+    that fails part-way leaves the stage's previous files and no staging behind."""
+    monkeypatch.setattr(textfmt, "BLOCK_ROWS", 4)
+    box = textured_box()
+    mesh = ex.models_from_tables({k: box[k] for k in (*ex.MESH_ARTIFACTS,
+                                                       *ex.TEXTURE_ARTIFACTS)})[0]
+    assert mesh is not None
+    streamed = obj.obj_files(mesh, "model")["model.obj"]
+    assert isinstance(streamed, Stream)
+    pieces = [bytes(p) for p in file_pieces(streamed)]
+    whole = b"".join(pieces)
+    assert max(len(p) for p in pieces) < len(whole) // 4
+    assert file_bytes(streamed) == whole  # made afresh, the same bytes
+
+    out = tmp_path / "run" / "export"
+    write_together(out, "export", {}, {"model.obj": b"old"}, True)
+
+    def broken() -> Iterator[bytes]:
+        yield b"v 0 0 0\n"
+        raise ArtifactError("mesh_faces: cannot be read")
+
+    with pytest.raises(ArtifactError, match="cannot be read"):
+        write_together(out, "export", {}, {"model.obj": Stream(broken)}, True,
+                       ("export_manifest", {"stage": "export"}))
+    assert (out / "model.obj").read_bytes() == b"old"
+    assert sorted(p.name for p in out.iterdir()) == ["model.obj"]
+    assert not any((tmp_path / "run" / ".scanpipe").glob("tmp-*"))

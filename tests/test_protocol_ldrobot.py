@@ -10,6 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from benchmarks.harness import damage_frames
 from scanpipe.errors import ProtocolError, ScanpipeError
 from scanpipe.protocol import ldrobot as ld
 from scanpipe.protocol.profile import Profile
@@ -175,37 +176,19 @@ def test_consumed_plus_skipped_is_everything() -> None:
 
 
 def damage(data: bytes, seed: int, rate: float) -> tuple[bytes, list[int]]:
-    """Damage whole packets at random (byte flips, truncation, garbage with markers and good
-    CRCs inserted); return the new stream and the indices of the packets left intact."""
+    """Damage whole packets at random (byte flips, truncation, garbage with markers and
+    packet-shaped fakes with good CRCs inserted: :func:`benchmarks.harness.damage_frames`);
+    return the new stream and the indices of the packets left intact."""
     rng = np.random.default_rng(seed)
-    out = bytearray()
-    intact = []
-    for k in range(len(data) // 47):
-        packet = bytearray(data[k * 47:(k + 1) * 47])
-        kind = int(rng.integers(0, 6)) if rng.random() < rate else -1
-        if kind == 0:  # a flipped byte
-            packet[int(rng.integers(2, 47))] ^= 1 << int(rng.integers(0, 8))
-        elif kind == 1:  # cut short
-            packet = packet[:int(rng.integers(1, 46))]
-        elif kind == 2:  # bytes lost in the middle
-            a = int(rng.integers(2, 40))
-            del packet[a:a + int(rng.integers(1, 6))]
-        if kind in (3, 4, 5):
-            intact.append(k)
-            junk = bytearray(rng.integers(0, 256, int(rng.integers(1, 80)), np.uint8).tobytes())
-            if kind == 4:  # markers inside the garbage
-                for at in rng.integers(0, len(junk), 3):
-                    junk[at:at + 2] = b"\x54\x2c"
-            if kind == 5:  # a whole packet-shaped fake with a good CRC
-                fake = bytearray(rng.integers(0, 256, 47, np.uint8).tobytes())
-                fake[:2] = b"\x54\x2c"
-                fake[46] = ld.crc8(bytes(fake[:46]))
-                junk += fake
-            out += junk
-        elif kind == -1:
-            intact.append(k)
-        out += packet
-    return bytes(out), intact
+
+    def fake() -> bytes:
+        packet = bytearray(rng.integers(0, 256, 47, np.uint8).tobytes())
+        packet[:2] = b"\x54\x2c"
+        packet[46] = ld.crc8(bytes(packet[:46]))
+        return bytes(packet)
+
+    packets = [data[k * 47:(k + 1) * 47] for k in range(len(data) // 47)]
+    return damage_frames(packets, rng, rate, fake, markers=b"\x54\x2c")
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -11,6 +11,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
+from benchmarks.harness import damage_stream
 from scanpipe.errors import ProtocolError, ScanpipeError
 from scanpipe.protocol import scip
 from scanpipe.protocol.profile import Profile
@@ -172,18 +173,8 @@ def test_consumed_plus_skipped_is_everything() -> None:
 
 
 def damage(stream: bytes, rng: np.random.Generator, events: int) -> bytes:
-    """Cuts, bit flips and insertions at random places."""
-    data = bytearray(stream)
-    for _ in range(events):
-        at = int(rng.integers(0, len(data)))
-        kind = rng.integers(0, 3)
-        if kind == 0:
-            del data[at:at + int(rng.integers(1, 400))]
-        elif kind == 1:
-            data[at] ^= 1 << int(rng.integers(0, 8))
-        else:
-            data[at:at] = rng.bytes(int(rng.integers(1, 60)))
-    return bytes(data)
+    """Cuts, bit flips and insertions at random places (the benchmarks' damage)."""
+    return damage_stream(stream, rng, events, max_cut=400, max_insert=60)
 
 
 @pytest.mark.parametrize("seed", range(6))

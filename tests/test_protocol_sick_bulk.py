@@ -14,6 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from benchmarks.harness import damage_stream
 from scanpipe.protocol import sick_cola
 from scanpipe.protocol.framing import NOT_PARSED, FrameCounters, FrameReader
 from scanpipe.protocol.profile import Profile
@@ -94,20 +95,10 @@ def _stream(seed: int, binary: bool) -> bytes:
 
 
 def _damage(data: bytes, seed: int, events: int) -> bytes:
-    rng = np.random.default_rng(seed)
-    out = bytearray(data)
-    for _ in range(events):
-        at = int(rng.integers(0, len(out)))
-        kind = int(rng.integers(0, 4))
-        if kind == 0:
-            out[at] ^= 1 << int(rng.integers(0, 8))
-        elif kind == 1:
-            del out[at:at + int(rng.integers(1, 3000))]
-        elif kind == 2:
-            out[at:at] = rng.bytes(int(rng.integers(1, 40)))
-        else:  # a false start: a marker / STX and a plausible length
-            out[at:at] = b"\x02\x02\x02\x02\x00\x00\x01\x00" if seed % 2 else b"\x02sSN "
-    return bytes(out)
+    """Bit flips, cuts, insertions and false starts (a marker / STX and a plausible length)."""
+    false_start = b"\x02\x02\x02\x02\x00\x00\x01\x00" if seed % 2 else b"\x02sSN "
+    return damage_stream(data, np.random.default_rng(seed), events, max_cut=3000,
+                         max_insert=40, false_starts=(false_start,))
 
 
 def _run(reader: Any, data: bytes, cuts: list[int]) -> tuple[list[tuple[Any, ...]],

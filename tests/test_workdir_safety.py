@@ -69,15 +69,16 @@ def recording(tmp_path: Path) -> Path:
 def _fail_on_call(monkeypatch: pytest.MonkeyPatch, number: int, code: int) -> None:
     """Make the ``number``-th Parquet write raise OSError(``code``) (its file begun)."""
     calls = [0]
+    write_table = artifacts.pq.write_table
 
-    class Writer(artifacts.pq.ParquetWriter):  # type: ignore[misc]
-        def write_table(self, *args: Any, **kwargs: Any) -> None:
-            calls[0] += 1
-            if calls[0] == number:
-                raise OSError(code, os.strerror(code))
-            super().write_table(*args, **kwargs)
+    def failing(table: Any, where: Any, *args: Any, **kwargs: Any) -> None:
+        calls[0] += 1
+        if calls[0] == number:
+            Path(where).write_bytes(b"PAR1")  # begun, then the disk fails
+            raise OSError(code, os.strerror(code))
+        write_table(table, where, *args, **kwargs)
 
-    monkeypatch.setattr(artifacts.pq, "ParquetWriter", Writer)
+    monkeypatch.setattr(artifacts.pq, "write_table", failing)
 
 
 @pytest.mark.parametrize("replace_folder", [True, False])

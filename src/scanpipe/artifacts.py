@@ -19,7 +19,7 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
@@ -120,40 +120,90 @@ class Pieces:
         return sum(memoryview(part).nbytes for part in self.parts)
 
 
-#: A file's content: its bytes, or :class:`Pieces` of them (what a stage hands back as
-#: :attr:`scanpipe.stage.StageResult.files` and an exporter returns).
-FileData = bytes | Pieces
+@dataclass(frozen=True)
+class Stream:
+    """A file's content made piece by piece each time it is consumed, never held whole: a
+    large text file (an OBJ's) is formatted block by block while it is written, and its
+    digest taken on the way (:func:`write_file_data`). ``make()`` gives the pieces afresh."""
+
+    make: Callable[[], Iterable[bytes | memoryview]]
+
+
+#: A file's content: its bytes, :class:`Pieces` of them, or a :class:`Stream` (what a stage
+#: hands back as :attr:`scanpipe.stage.StageResult.files` and an exporter returns).
+FileData = bytes | Pieces | Stream
+
+
+@dataclass(frozen=True)
+class FileDigest:
+    """A file's size and SHA-256 (hex)."""
+
+    nbytes: int
+    sha256: str
 
 
 def file_pieces(data: FileData) -> Iterable[bytes | memoryview]:
-    """The content in order, piece by piece (one piece for plain bytes)."""
+    """The content in order, piece by piece (one piece for plain bytes; a :class:`Stream`
+    makes its pieces now)."""
+    if isinstance(data, Stream):
+        return data.make()
     return data.parts if isinstance(data, Pieces) else (data,)
 
 
+def _consume(data: FileData, handle: IO[bytes] | None = None, hashed: bool = True
+             ) -> FileDigest:
+    """Hash (and write to ``handle``) the content piece by piece; ``hashed`` False: only
+    write and count (the digest is then empty)."""
+    digest = hashlib.sha256()
+    size = 0
+    for part in file_pieces(data):
+        if hashed:
+            digest.update(part)
+        size += memoryview(part).nbytes
+        if handle is not None:
+            handle.write(part)
+    return FileDigest(size, digest.hexdigest() if hashed else "")
+
+
 def file_size(data: FileData) -> int:
-    """The content's size in bytes."""
+    """The content's size in bytes (a :class:`Stream` is made to count it)."""
+    if isinstance(data, Stream):
+        return _consume(data).nbytes
     return data.nbytes if isinstance(data, Pieces) else len(data)
+
+
+def file_digest(data: FileData) -> FileDigest:
+    """The content's size and SHA-256, hashed piece by piece: the digest of the joined
+    bytes."""
+    return _consume(data)
 
 
 def file_sha256(data: FileData) -> str:
     """The SHA-256 of the content (hex), hashed piece by piece: the same digest as of the
     joined bytes."""
-    digest = hashlib.sha256()
-    for part in file_pieces(data):
-        digest.update(part)
-    return digest.hexdigest()
+    return _consume(data).sha256
+
+
+def files_manifest(digests: Mapping[str, FileDigest]) -> pa.Table:
+    """The ``export_manifest`` table of files: name, size and SHA-256 of each."""
+    return pa.table({
+        "file": pa.array(list(digests), pa.string()),
+        "bytes": pa.array([d.nbytes for d in digests.values()], pa.int64()),
+        "sha256": pa.array([d.sha256 for d in digests.values()], pa.string()),
+    })
 
 
 def file_bytes(data: FileData) -> bytes:
-    """The content joined into one bytes object (a copy for :class:`Pieces`: for small files
-    and for reading an export in memory, not for writing one)."""
-    return b"".join(data.parts) if isinstance(data, Pieces) else data
+    """The content joined into one bytes object (a copy for :class:`Pieces` and
+    :class:`Stream`: for small files and for reading an export in memory, not for writing
+    one)."""
+    return data if isinstance(data, bytes) else b"".join(file_pieces(data))
 
 
-def write_file_data(handle: IO[bytes], data: FileData) -> None:
-    """Write the content to an open binary file piece by piece (OSError propagates)."""
-    for part in file_pieces(data):
-        handle.write(part)
+def write_file_data(handle: IO[bytes], data: FileData, hashed: bool = False) -> FileDigest:
+    """Write the content to an open binary file piece by piece; its size and, with
+    ``hashed``, its SHA-256 taken on the way (OSError propagates)."""
+    return _consume(data, handle, hashed)
 
 
 @contextmanager
@@ -225,10 +275,8 @@ def _write_parquet(path: Path, table: pa.Table, provenance: Mapping[str, Any]) -
         compression = {path: "none" if pa.types.is_binary(f.type) else "zstd"
                        for f in table.schema for path in _leaf_paths(f)}
         levels = {path: 1 for path, codec in compression.items() if codec == "zstd"}
-    with pq.ParquetWriter(path, table.schema, compression=compression,
-                          compression_level=levels,
-                          use_dictionary=dictionary_columns or False) as writer:
-        writer.write_table(table, row_group_size=row_group_rows(table))
+    pq.write_table(table, path, row_group_size=row_group_rows(table), compression=compression,
+                   compression_level=levels, use_dictionary=dictionary_columns or False)
 
 
 def write_artifact(path: Path, table: pa.Table, provenance: Mapping[str, Any]) -> None:
@@ -255,10 +303,15 @@ def write_together(
     tables: Mapping[str, tuple[pa.Table, Mapping[str, Any]]],
     files: Mapping[str, FileData],
     replace_folder: bool,
-) -> None:
-    """Write a stage's artifacts (``name.parquet``) and extra files (bytes or :class:`Pieces`,
-    written piece by piece) so that they replace the previous set together; on any OSError the
-    previous set is kept.
+    manifest: tuple[str, Mapping[str, Any]] | None = None,
+) -> pa.Table | None:
+    """Write a stage's artifacts (``name.parquet``) and extra files (bytes, :class:`Pieces` or
+    a :class:`Stream`, written piece by piece) so that they replace the previous set together;
+    on any error the previous set is kept.
+
+    ``manifest``: (artifact name, provenance) of a :func:`files_manifest` of the files, their
+    sizes and digests taken while they are written (a streamed file is made once); it is
+    written with the tables and returned.
 
     ``replace_folder``: ``out_dir`` belongs to the stage (``W/<stage>/`` of a workdir) and is
     replaced as a whole by two renames, so a reader sees the old set, the new set, or (for the
@@ -270,24 +323,31 @@ def write_together(
     owner = out_dir.parent if replace_folder else out_dir
     state = owner / STATE_DIR
     staging = state / f"tmp-{stage}-{os.getpid()}"
-    names = [*(f"{name}.parquet" for name in tables), *files]
+    table_names = [*tables, *([manifest[0]] if manifest else [])]
+    names = [*(f"{name}.parquet" for name in table_names), *files]
     commit = state / f"commit-{stage}-{os.getpid()}"
     for file_name in [] if replace_folder else names:
         if (out_dir / file_name).is_dir():
             raise ArtifactError(f"{out_dir / file_name}: is a folder; the {stage} output of "
                                 "that name cannot replace it")
     where = out_dir
+    made = None
     try:
         if staging.exists():
             shutil.rmtree(staging)
         staging.mkdir(parents=True)
+        digests: dict[str, FileDigest] = {}
         for file_name, data in files.items():
             where = out_dir / file_name
             (staging / file_name).parent.mkdir(parents=True, exist_ok=True)
             with (staging / file_name).open("wb") as handle:
-                write_file_data(handle, data)
+                digests[file_name] = write_file_data(handle, data, hashed=manifest is not None)
             _fsync(staging / file_name)
-        for name, (table, provenance) in tables.items():
+        to_write = dict(tables)
+        if manifest is not None:
+            made = files_manifest(digests)
+            to_write[manifest[0]] = (made, {**manifest[1], "rows": made.num_rows})
+        for name, (table, provenance) in to_write.items():
             where = out_dir / f"{name}.parquet"
             _write_parquet(staging / f"{name}.parquet", table, provenance)
             _fsync(staging / f"{name}.parquet")
@@ -295,12 +355,15 @@ def write_together(
         _fsync(staging)
         if replace_folder:
             _swap_folder(staging, out_dir, state / f"old-{stage}-{os.getpid()}")
-            return
+            return made
         os.rename(staging, commit)  # the commit point: from here on the new set wins
     except OSError as err:
         shutil.rmtree(staging, ignore_errors=True)
         raise ArtifactError(f"{where}: cannot be written ({err.strerror or err}); the previous "
                             f"{stage} artifacts are kept") from None
+    except BaseException:  # a streamed file's maker failed: nothing half-made stays
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
     try:
         _fsync(state)
         _roll_forward(commit, out_dir)
@@ -308,6 +371,7 @@ def write_together(
         raise ArtifactError(f"{out_dir}: replacing the {stage} artifacts was interrupted "
                             f"({err.strerror or err}); the next scanpipe command writing there "
                             "completes it") from None
+    return made
 
 
 def _swap_folder(staging: Path, target: Path, aside: Path) -> None:

@@ -144,8 +144,8 @@ def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, par
     if hold.compute is not None:
         result = hold.compute(loaded)
         stage.check_result(result)
-    else:
-        result = stage.call(loaded, params, progress)  # inputs and outputs checked by schema
+    else:  # inputs and outputs checked by schema; a files manifest is made while writing
+        result = stage.call(loaded, params, progress, write_manifest=True)
     seconds = time.perf_counter() - started
     provenance = {
         "key": key,
@@ -163,7 +163,14 @@ def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, par
     }
     tables = {name: (table, {**provenance, "artifact": name, "rows": table.num_rows})
               for name, table in result.tables.items()}
-    write_together(out_dir, stage.name, tables, result.files, replace_folder)
+    manifest = result.manifest if result.manifest not in result.tables else None
+    made = write_together(out_dir, stage.name, tables, result.files, replace_folder,
+                          None if manifest is None else (manifest, {**provenance,
+                                                                    "artifact": manifest}))
+    if made is not None and manifest is not None:
+        result.tables[manifest] = made
+    # the record's time includes writing: a streamed file is made then
+    seconds = time.perf_counter() - started
     return RunRecord(stage.name, key, False, seconds, outputs, result.report,
                      dict(result.tables) if hold.keep_tables else {})
 

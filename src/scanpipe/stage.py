@@ -14,7 +14,7 @@ from typing import Any
 
 import pyarrow as pa
 
-from scanpipe.artifacts import FileData
+from scanpipe.artifacts import FileData, file_digest, files_manifest
 from scanpipe.errors import ArtifactError
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
@@ -27,11 +27,25 @@ RAW_INPUTS = frozenset({"recording", "point_file", "profile_file"})
 @dataclass
 class StageResult:
     """What a stage returns: output tables by artifact name, extra files (bytes, or
-    :class:`scanpipe.artifacts.Pieces` for a large one), and a report."""
+    :class:`scanpipe.artifacts.Pieces` / :class:`scanpipe.artifacts.Stream` for a large one),
+    and a report."""
 
     tables: dict[str, pa.Table]
     report: dict[str, Any] = field(default_factory=dict)
     files: dict[str, FileData] = field(default_factory=dict)
+    #: An output artifact that is the manifest of ``files`` (name, size, SHA-256 of each:
+    #: :func:`scanpipe.artifacts.files_manifest`), made as they are written, so a streamed
+    #: file is formatted once; it is then not in ``tables`` (:meth:`Stage.call` makes it in
+    #: memory unless the runner writes the files).
+    manifest: str | None = None
+
+
+def complete_manifest(result: StageResult) -> None:
+    """Put the manifest of ``result``'s files into its tables when the stage left it to the
+    writer (streamed files are made once more, to hash them)."""
+    if result.manifest is not None and result.manifest not in result.tables:
+        result.tables[result.manifest] = files_manifest(
+            {name: file_digest(data) for name, data in result.files.items()})
 
 
 StageFn = Callable[[Mapping[str, Any], Any, ProgressFn], StageResult]
@@ -84,19 +98,27 @@ class Stage:
                 self.schema(name).check(inputs[name])
 
     def check_result(self, result: StageResult) -> None:
-        """The stage produced exactly its declared outputs, each matching its schema."""
-        if set(result.tables) != set(self.outputs):
+        """The stage produced exactly its declared outputs (its files' manifest may be left
+        to the writer: :attr:`StageResult.manifest`), each matching its schema."""
+        made = set(result.tables)
+        if result.manifest is not None and result.manifest not in made:
+            made.add(result.manifest)
+        if made != set(self.outputs):
             raise ArtifactError(f"stage {self.name!r} produced {sorted(result.tables)}, "
                                 f"declared {list(self.outputs)}")
         for name, table in result.tables.items():
             self.schema(name).check(table, where=f"{self.name} output {name}")
 
     def call(self, inputs: Mapping[str, Any], params: Params,
-             progress: ProgressFn = no_progress) -> StageResult:
-        """Run the function with the inputs and the result checked against the schemas."""
+             progress: ProgressFn = no_progress, write_manifest: bool = False) -> StageResult:
+        """Run the function with the inputs and the result checked against the schemas.
+        ``write_manifest``: the caller writes the files and makes their manifest then
+        (:func:`scanpipe.artifacts.write_together`); otherwise it is made here, in memory."""
         self.check_inputs(inputs)
         result = self.func(inputs, params, progress)
         self.check_result(result)
+        if not write_manifest:
+            complete_manifest(result)
         return result
 
     def run(self, inputs: Mapping[str, Any], params: Params | None = None,

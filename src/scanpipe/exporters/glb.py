@@ -18,14 +18,14 @@ from __future__ import annotations
 
 import json
 import struct
-from collections.abc import Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe import __version__
-from scanpipe.artifacts import Pieces, file_bytes
+from scanpipe.artifacts import Stream, file_bytes
 from scanpipe.errors import ExportError
 from scanpipe.exporters.model import MeshModel, unit_normals
 
@@ -42,24 +42,58 @@ DRACO_LEVEL = 4
 _DRACO_TYPES = {"POSITION": 0, "NORMAL": 1, "COLOR_0": 2, "TEXCOORD_0": 3}
 
 
+#: Rows of a gathered attribute made at a time while the GLB is written.
+GATHER_ROWS = 1 << 18
+
+_Blob = bytes | memoryview | Callable[[], Iterator[bytes | memoryview]]
+
+
 class _Builder:
     """Accumulates buffer views and accessors into one binary buffer."""
 
     def __init__(self) -> None:
-        self.blobs: list[bytes | memoryview] = []
+        self.blobs: list[_Blob] = []
         self.offset = 0
         self.views: list[dict[str, Any]] = []
         self.accessors: list[dict[str, Any]] = []
 
-    def view(self, data: bytes | memoryview, target: int | None = None) -> int:
-        view: dict[str, Any] = {"buffer": 0, "byteOffset": self.offset, "byteLength": len(data)}
+    def view(self, data: _Blob, target: int | None = None, nbytes: int = 0) -> int:
+        """A buffer view of ``data``: bytes, or a maker of its pieces, ``nbytes`` long."""
+        length = nbytes if callable(data) else len(data)
+        view: dict[str, Any] = {"buffer": 0, "byteOffset": self.offset, "byteLength": length}
         if target is not None:
             view["target"] = target
         self.views.append(view)
-        padding = (-len(data)) % 4
+        padding = (-length) % 4
         self.blobs += [data, b"\0" * padding]
-        self.offset += len(data) + padding
+        self.offset += length + padding
         return len(self.views) - 1
+
+    def gathered(self, base: NDArray[Any], rows: NDArray[np.integer], kind: str,
+                 component: int, target: int, bounds: bool = False) -> int:
+        """An accessor of ``base[rows]`` that is gathered only while the file is written,
+        :data:`GATHER_ROWS` rows at a time (the same bytes as the gathered array)."""
+
+        def pieces() -> Iterator[memoryview]:
+            for part in _parts(rows):
+                yield np.ascontiguousarray(base[part]).data.cast("B")
+
+        count = len(rows)
+        row_bytes = base.dtype.itemsize * int(np.prod(base.shape[1:], dtype=np.int64))
+        accessor: dict[str, Any] = {
+            "bufferView": self.view(pieces, target, count * row_bytes),
+            "componentType": component,
+            "count": count,
+            "type": kind,
+        }
+        if bounds:  # the gathered rows' bounds, slice by slice
+            flat = base.reshape(base.shape[0], -1)
+            lows = [flat[part].min(axis=0) for part in _parts(rows)]
+            highs = [flat[part].max(axis=0) for part in _parts(rows)]
+            accessor["min"] = [_number(v) for v in np.min(lows, axis=0).astype(base.dtype)]
+            accessor["max"] = [_number(v) for v in np.max(highs, axis=0).astype(base.dtype)]
+        self.accessors.append(accessor)
+        return len(self.accessors) - 1
 
     def accessor(self, array: NDArray[Any], kind: str, component: int, target: int,
                  normalized: bool = False, bounds: bool = False) -> int:
@@ -120,6 +154,12 @@ class _Builder:
                 "extensions": {DRACO: extension}}
 
 
+def _parts(rows: NDArray[np.integer]) -> Iterator[NDArray[np.integer]]:
+    """``rows`` in slices of :data:`GATHER_ROWS`."""
+    for start in range(0, len(rows), GATHER_ROWS):
+        yield rows[start:start + GATHER_ROWS]
+
+
 def _number(value: np.generic) -> float | int:
     return int(value) if np.issubdtype(value.dtype, np.integer) else float(value)
 
@@ -131,8 +171,9 @@ def glb_bytes(mesh: MeshModel, name: str = "scan", provenance: Mapping[str, Any]
 
 
 def glb_pieces(mesh: MeshModel, name: str = "scan",
-               provenance: Mapping[str, Any] | None = None, draco: bool = False) -> Pieces:
-    """The mesh as one GLB file, in pieces (the arrays' buffers are not joined):
+               provenance: Mapping[str, Any] | None = None, draco: bool = False) -> Stream:
+    """The mesh as one GLB file, made piece by piece as it is written (the arrays' buffers
+    are not joined; positions and normals are gathered per vertex only then):
     ``provenance`` in ``asset.extras.scanpipe``, the geometry Draco-compressed with
     ``draco``."""
     if len(mesh.faces) == 0:
@@ -155,11 +196,11 @@ def glb_pieces(mesh: MeshModel, name: str = "scan",
                                                 normals[source], indices, uv, rgba)
             primitives.append({**primitive, "material": material, "mode": 4})
             return
-        # gathers and dtype views, no further copies
+        # positions and normals gathered while the file is written; the rest are views
         attributes = {
-            "POSITION": builder.accessor(np.asarray(mesh.vertices[source], np.float32), "VEC3",
+            "POSITION": builder.gathered(np.asarray(mesh.vertices, np.float32), source, "VEC3",
                                          FLOAT, ARRAY_BUFFER, bounds=True),
-            "NORMAL": builder.accessor(normals[source], "VEC3", FLOAT, ARRAY_BUFFER),
+            "NORMAL": builder.gathered(normals, source, "VEC3", FLOAT, ARRAY_BUFFER),
         }
         if uv is not None:
             attributes["TEXCOORD_0"] = builder.accessor(np.asarray(uv, np.float32), "VEC2",
@@ -167,10 +208,8 @@ def glb_pieces(mesh: MeshModel, name: str = "scan",
         elif rgba is not None:
             attributes["COLOR_0"] = builder.accessor(rgba, "VEC4", UNSIGNED_BYTE,
                                                      ARRAY_BUFFER, normalized=True)
-        # split_by_uv's int32 indices are non-negative: the same bytes as uint32
-        as_u32 = (indices.view(np.uint32) if indices.dtype == np.int32
-                  else indices.astype(np.uint32))
-        index_accessor = builder.accessor(as_u32, "SCALAR", UNSIGNED_INT, ELEMENT_ARRAY_BUFFER)
+        index_accessor = builder.accessor(np.asarray(indices, np.uint32), "SCALAR",
+                                          UNSIGNED_INT, ELEMENT_ARRAY_BUFFER)
         primitives.append({"attributes": attributes, "indices": index_accessor,
                            "material": material, "mode": 4})
 
@@ -193,7 +232,7 @@ def glb_pieces(mesh: MeshModel, name: str = "scan",
              else np.flatnonzero(pages < 0))
     if len(plain):
         corners = mesh.faces[plain].reshape(-1).astype(np.int64)
-        source, inverse = np.unique(corners, return_inverse=True)
+        plain_source, plain_index = np.unique(corners, return_inverse=True)
         grey = 1.0 if mesh.colors is not None else 0.7
         materials.append({
             "name": "untextured",
@@ -201,7 +240,8 @@ def glb_pieces(mesh: MeshModel, name: str = "scan",
                                      "metallicFactor": 0.0, "roughnessFactor": 1.0},
             "doubleSided": True,
         })
-        add_primitive(source.astype(np.int64), inverse.ravel(), None, len(materials) - 1)
+        add_primitive(plain_source.astype(np.int64), plain_index.ravel(), None,
+                      len(materials) - 1)
 
     document: dict[str, Any] = {
         "asset": {"version": "2.0", "generator": f"scanpipe {__version__}",
@@ -225,9 +265,17 @@ def glb_pieces(mesh: MeshModel, name: str = "scan",
     text = json.dumps(document, separators=(",", ":")).encode()
     text += b" " * ((-len(text)) % 4)
     total = 12 + 8 + len(text) + 8 + builder.offset
-    # the pieces as they are: neither the binary chunk nor the file is assembled
-    return Pieces((
-        struct.pack("<4sII", b"glTF", 2, total),
-        struct.pack("<I4s", len(text), b"JSON"), text,
-        struct.pack("<I4s", builder.offset, b"BIN\0"), *builder.blobs,
-    ))
+    head = (struct.pack("<4sII", b"glTF", 2, total), struct.pack("<I4s", len(text), b"JSON"),
+            text, struct.pack("<I4s", builder.offset, b"BIN\0"))
+    blobs = builder.blobs
+
+    def pieces() -> Iterator[bytes | memoryview]:
+        # neither the binary chunk nor the file is assembled; gathers are made one by one
+        yield from head
+        for blob in blobs:
+            if callable(blob):
+                yield from blob()
+            else:
+                yield blob
+
+    return Stream(pieces)

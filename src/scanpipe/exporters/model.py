@@ -18,7 +18,7 @@ import numpy as np
 import pyarrow as pa
 from numpy.typing import NDArray
 
-from scanpipe.errors import ArtifactError
+from scanpipe.errors import ArtifactError, ExportError
 from scanpipe.schema import (
     FACE_CORNERS,
     MESH_FACES,
@@ -59,7 +59,7 @@ class MeshModel:
         return self.face_pages is not None and bool(np.any(self.face_pages >= 0))
 
     @cached_property
-    def page_splits(self) -> dict[int, tuple[NDArray[np.int64], F32, NDArray[np.integer]]]:
+    def page_splits(self) -> dict[int, tuple[NDArray[np.int64], F32, NDArray[np.uint32]]]:
         """Per atlas page, :func:`split_by_uv` of its faces' corners (faces in index order):
         ``(source vertex of each page vertex, its uv, page vertex of each corner)``. Computed
         once per model: OBJ (its ``vt`` lines) and GLB (its primitives' vertices) share it."""
@@ -197,26 +197,43 @@ def cloud_from_table(points: pa.Table) -> CloudModel:
     )
 
 
+#: Corners handled at a time by :func:`split_by_uv` (its temporaries are of one slice).
+SPLIT_SLICE = 1 << 20
+
+
 def split_by_uv(corner_vertex: NDArray[np.integer], corner_uv: NDArray[np.floating]
-                ) -> tuple[NDArray[np.int64], F32, NDArray[np.integer]]:
+                ) -> tuple[NDArray[np.int64], F32, NDArray[np.uint32]]:
     """Per-corner UVs to per-vertex ones: ``(source vertex of each new vertex, its uv, new
-    vertex index of each corner)``.
+    vertex index of each corner)``; the indices are uint32, what glTF's index accessors hold.
 
     A corner reuses its vertex's first corner when their UVs are equal (inside a texture
     chart); corners on a seam get a vertex of their own. O(n), no sorting. OBJ uses it for
     shared ``vt`` lines, glTF to split vertices.
     """
     n = len(corner_vertex)
-    order = np.arange(n, dtype=np.int32 if n < 2**31 else np.int64)
-    first = np.zeros(int(np.max(corner_vertex, initial=0)) + 1, dtype=order.dtype)
-    first[corner_vertex[::-1]] = order[::-1]  # the last write wins: each vertex's first corner
-    first_of_corner = first[corner_vertex]
+    if n >= 2**32:
+        raise ExportError(f"{n} face corners: more than 32-bit indices (glTF's) can hold")
+    first = np.zeros(int(np.max(corner_vertex, initial=0)) + 1, dtype=np.uint32)
+    # the last write wins: each vertex's first corner
+    first[corner_vertex[::-1]] = np.arange(n - 1, -1, -1, dtype=np.uint32)
     # compare (u, v) float32 pairs as one 64-bit word each: exact equality, half the work
     uv = np.ascontiguousarray(corner_uv, dtype=np.float32).reshape(-1, 2)
     packed = uv.view(np.uint64).ravel()
-    own = (order == first_of_corner) | (packed != packed[first_of_corner])
-    own_index = np.cumsum(own, dtype=order.dtype) - 1
-    index = np.where(own, own_index, own_index[first_of_corner])
+    # slice by slice: the per-corner temporaries (first corner, its uv) stay slice-sized
+    own = np.empty(n, dtype=np.bool_)
+    for start in range(0, n, SPLIT_SLICE):
+        stop = min(n, start + SPLIT_SLICE)
+        first_of_corner = first[corner_vertex[start:stop]]
+        own[start:stop] = ((first_of_corner == np.arange(start, stop, dtype=np.uint32))
+                           | (packed[start:stop] != packed[first_of_corner]))
+    # the first corner is its vertex's first: the count is ≥ 1 before the − 1
+    own_index = np.cumsum(own, dtype=np.uint32)
+    own_index -= np.uint32(1)
+    index = np.empty(n, dtype=np.uint32)
+    for start in range(0, n, SPLIT_SLICE):
+        stop = min(n, start + SPLIT_SLICE)
+        index[start:stop] = np.where(own[start:stop], own_index[start:stop],
+                                     own_index[first[corner_vertex[start:stop]]])
     return np.asarray(corner_vertex[own], dtype=np.int64), uv[own], index
 
 

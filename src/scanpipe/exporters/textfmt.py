@@ -16,7 +16,7 @@ minus sign only on a non-zero result).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
@@ -210,16 +210,16 @@ def _plan(rows: int, parts: Sequence[Part]) -> tuple[list[_Column], int]:
 
 def render_lines(rows: int, parts: Sequence[Part]) -> bytes:
     """Format ``rows`` lines, each the concatenation of ``parts``, ending with ``\\n``."""
-    return b"".join(render_blocks(rows, parts))
+    return b"".join(iter_blocks(rows, parts))
 
 
-def render_blocks(rows: int, parts: Sequence[Part]) -> list[bytes]:
-    """:func:`render_lines` as consecutive pieces of whole lines, for a caller that joins
-    them with more (one copy of the text instead of two)."""
+def iter_blocks(rows: int, parts: Sequence[Part]) -> Iterator[bytes]:
+    """:func:`render_lines` as consecutive blocks of whole lines, each made when asked for: a
+    caller that writes (or hashes) and drops each block holds one block of text, not the
+    whole text."""
     if rows == 0:
-        return []
+        return
     columns, width = _plan(rows, parts)
-    out: list[bytes] = []
     words = np.empty((width, min(rows, BLOCK_ROWS)), dtype=np.uint32)
     for start in range(0, rows, BLOCK_ROWS):
         stop = min(rows, start + BLOCK_ROWS)
@@ -243,15 +243,15 @@ def render_blocks(rows: int, parts: Sequence[Part]) -> list[bytes]:
                 elif isinstance(column.part, Fixed):
                     _fixed_words(values, column.part.decimals, column.top, target)
         lines = cv2.transpose(np.ascontiguousarray(block).view(np.int32))
-        out.append(lines.tobytes().translate(None, b"\0"))
-    return out
+        yield lines.tobytes().translate(None, b"\0")
 
 
-def float_rows(prefix: bytes, values: NDArray[np.floating], decimals: int = 6) -> list[bytes]:
-    """Lines ``prefix a b c`` for each row of a 2-D float array (as :func:`render_blocks`)."""
+def float_rows(prefix: bytes, values: NDArray[np.floating], decimals: int = 6
+               ) -> Iterator[bytes]:
+    """Lines ``prefix a b c`` for each row of a 2-D float array (as :func:`iter_blocks`)."""
     parts: list[Part] = [prefix]
     for j in range(values.shape[1]):
         if j:
             parts.append(b" ")
         parts.append(Fixed(values[:, j], decimals))
-    return render_blocks(values.shape[0], parts)
+    return iter_blocks(values.shape[0], parts)

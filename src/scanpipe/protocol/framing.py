@@ -51,6 +51,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from scanpipe.errors import ProtocolError
 
@@ -135,9 +136,11 @@ class RawFrame:
 #: ``check(parsed)``: raises :class:`ImplausibleFrame` (or another :class:`ProtocolError`) for a
 #: parsed frame the device cannot have sent; returns the frame's counter, or None if it has none.
 FrameCheck = Callable[[Any], "int | None"]
-#: ``parse_many(payloads)``: what ``parse(payload, True)`` returns for each payload, or
-#: ``NOT_PARSED`` where it cannot vouch for that (the reader then parses it on its own).
-ParseMany = Callable[[list[bytes]], list[Any]]
+#: ``parse_many(payloads, block, starts)``: what ``parse(payload, True)`` returns for each
+#: payload, or ``NOT_PARSED`` where it cannot vouch for that (the reader then parses it on its
+#: own). ``block`` holds the same bytes (payload ``i`` from ``starts[i]``), read in place: the
+#: payloads are not joined again.
+ParseMany = Callable[[list[bytes], NDArray[np.uint8], NDArray[np.intp]], list[Any]]
 
 
 class FrameReader:
@@ -307,14 +310,20 @@ class FrameReader:
         if len(spans) < BULK_MIN_FRAMES:
             return [], start
         payloads = [bytes(buf[a + HEADER_BYTES:b - 1]) for a, b in spans]
-        joined = np.frombuffer(b"".join(payloads), np.uint8)
-        firsts = np.cumsum([0] + [len(p) for p in payloads[:-1]])
-        computed = np.bitwise_xor.reduceat(joined, firsts).tolist()
+        # the run's bytes in place (a view of the buffer: released before it is resized)
+        block = np.frombuffer(buf, np.uint8, spans[-1][1] - start, start)
+        bounds = np.array(spans, np.intp) - start
+        bounds[:, 0] += HEADER_BYTES
+        bounds[:, 1] -= TRAILER_BYTES
+        # XOR over [payload start, payload end) of each frame: every other reduceat segment
+        computed = np.bitwise_xor.reduceat(block, bounds.ravel())[::2].tolist()
         received = [buf[b - 1] for _, b in spans]
         good = next((i for i, (c, r) in enumerate(zip(computed, received, strict=True))
                      if c != r), len(spans))
+        parsed_all = (self.parse_many(payloads[:good], block, bounds[:good, 0])
+                      if good >= BULK_MIN_FRAMES else [])
+        del block
         frames: list[RawFrame] = []
-        parsed_all = self.parse_many(payloads[:good]) if good >= BULK_MIN_FRAMES else []
         for (a, b), payload, parsed, checksum in zip(spans, payloads, parsed_all, received,
                                                      strict=False):
             if parsed is NOT_PARSED:

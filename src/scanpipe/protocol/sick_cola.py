@@ -453,17 +453,29 @@ def _big_endian(rows: NDArray[np.uint8], at: int, width: int) -> NDArray[np.uint
     return out
 
 
-def decode_payloads(payloads: list[bytes]) -> list[Any]:
+def decode_payloads(payloads: list[bytes], block: NDArray[np.uint8] | None = None,
+                    starts: NDArray[np.intp] | None = None) -> list[Any]:
     """``decode_payload(p, True)`` for each CoLa-B payload, those of a layout at once; NOT_PARSED
-    for payloads left to :func:`decode_payload` (another telegram, another layout, an error)."""
+    for payloads left to :func:`decode_payload` (another telegram, another layout, an error).
+    ``block``/``starts``: the payloads' bytes where they already lie (payload ``i`` at
+    ``starts[i]``, the framing's buffer); without them they are joined here."""
+    if block is None or starts is None:
+        block = np.frombuffer(b"".join(payloads), np.uint8)
+        starts = np.cumsum([0, *(len(p) for p in payloads[:-1])], dtype=np.intp)
     out: list[Any] = [NOT_PARSED] * len(payloads)
     by_size: dict[int, list[int]] = {}
     for i, payload in enumerate(payloads):
         by_size.setdefault(len(payload), []).append(i)
     layouts = 0
     for size, members in by_size.items():
-        rows = np.frombuffer(b"".join([payloads[i] for i in members]), np.uint8).reshape(
-            len(members), size)
+        at = starts[members]
+        gaps = np.diff(at)
+        if len(at) > 1 and (gaps == gaps[0]).all() and gaps[0] >= size:
+            # evenly spaced (a run of one telegram size): the rows are a view, not a copy
+            rows = np.lib.stride_tricks.as_strided(block[at[0]:], (len(at), size),
+                                                   (int(gaps[0]), 1), writeable=False)
+        else:  # gathered in one copy
+            rows = block[at[:, None] + np.arange(size, dtype=np.intp)]
         left = np.arange(len(members))
         while left.size and layouts < _MAX_LAYOUTS:
             layouts += 1

@@ -803,6 +803,9 @@ def _read_chunk(body: bytes, offset: int, c: _Collector,
 #: A record's opcode and length; a message record's fields before its payload.
 _RECORD_HEAD = struct.Struct("<BQ")
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel, sequence, log time, publish time
+#: A message's log time: after its channel (u16) and sequence (u32).
+_LOG_TIME, _LOG_TIME_AT = struct.Struct("<Q"), 6
+_LOG_TIME_END = _LOG_TIME_AT + _LOG_TIME.size
 
 
 def _read_chunk_records(records: bytes, offset: int, start_ns: int, end_ns: int,
@@ -818,19 +821,22 @@ def _read_chunk_records(records: bytes, offset: int, start_ns: int, end_ns: int,
         end = pos + 9 + length
         if end > size:
             break
-        if opcode == OP_MESSAGE and length >= _MESSAGE_HEAD.size:
+        whole = opcode == OP_MESSAGE and length >= _MESSAGE_HEAD.size
+        log_ns = None
+        if whole:
             channel, sequence, log_ns, publish_ns = message_head(records, pos + 9)
+        elif opcode == OP_MESSAGE and length >= _LOG_TIME_END:  # cut short after its time
+            (log_ns,) = _LOG_TIME.unpack_from(records, pos + 9 + _LOG_TIME_AT)
+        if log_ns is not None:
             if first_ns is None or log_ns < first_ns:
                 first_ns = log_ns
             if last_ns is None or log_ns > last_ns:
                 last_ns = log_ns
+        if whole:
+            assert log_ns is not None
             _message(channel, sequence, log_ns, publish_ns,
                      view[pos + 9 + _MESSAGE_HEAD.size:end], c)
-        else:
-            if opcode == OP_MESSAGE and length >= 14:
-                (log_ns,) = struct.unpack_from("<Q", records, pos + 9 + 6)
-                first_ns = log_ns if first_ns is None else min(first_ns, log_ns)
-                last_ns = log_ns if last_ns is None else max(last_ns, log_ns)
+        else:  # another record, or a message too short for its fields: _read_record says so
             _read_record(opcode, view[pos + 9:end], c)
         pos = end
     c.good_chunks[offset] = ((start_ns, end_ns) if first_ns is None or last_ns is None

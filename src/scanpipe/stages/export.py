@@ -29,7 +29,7 @@ import pyarrow as pa
 from pydantic import Field
 
 from scanpipe import __version__
-from scanpipe.artifacts import PROVENANCE_KEY, FileData, file_sha256, file_size
+from scanpipe.artifacts import PROVENANCE_KEY, FileData
 from scanpipe.errors import ArtifactError, ExportError, UsageError
 from scanpipe.exporters.e57 import E57Image, e57_bytes
 from scanpipe.exporters.glb import glb_pieces
@@ -309,37 +309,26 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
     # a cloud format gets no mesh: ``ply`` of tables with a mesh is the mesh's PLY
     cloud_tables = {k: v for k, v in tables.items()
                     if k not in (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)}
-    jobs: list[tuple[str, Mapping[str, pa.Table], str]] = [
-        (fmt, tables if fmt == "mcap" else mesh_tables, params.name)
-        for fmt in params.mesh_formats]
-    jobs += [(fmt, cloud_tables, params.cloud_name) for fmt in params.cloud_formats]
-    # Each model is checked and built once, not once per format: the mesh's before the first
-    # job that needs it, dropped after the last one; the cloud's only then (the mesh formats
-    # come first), so the two models never share the peak of the OBJ text.
-    uses = [(fmt == "mcap" or job_tables is mesh_tables,
-             fmt == "mcap" or job_tables is cloud_tables) for fmt, job_tables, _ in jobs]
-    mesh: MeshModel | None = None
-    cloud: CloudModel | None = None
-    for done, ((fmt, job_tables, stem), (use_mesh, use_cloud)) in enumerate(
-            zip(jobs, uses, strict=True)):
+    # Each model is checked and built once for every format that needs it. The files refer
+    # to its arrays (GLB and PLY pieces, the OBJ's stream) until they are written.
+    use_mesh = bool(params.mesh_formats)
+    use_cloud = bool(params.cloud_formats) or "mcap" in params.mesh_formats
+    mesh = models_from_tables(mesh_tables)[0] if use_mesh else None
+    cloud = models_from_tables(cloud_tables)[1] if use_cloud else None
+    jobs: list[tuple[str, Mapping[str, pa.Table], str, tuple[MeshModel | None,
+                                                             CloudModel | None]]] = [
+        (fmt, tables if fmt == "mcap" else mesh_tables, params.name,
+         (mesh, cloud if fmt == "mcap" else None)) for fmt in params.mesh_formats]
+    jobs += [(fmt, cloud_tables, params.cloud_name, (None, cloud))
+             for fmt in params.cloud_formats]
+    for done, (fmt, job_tables, stem, models) in enumerate(jobs):
         progress("export", done, len(jobs))
-        if use_mesh and mesh is None:
-            mesh = models_from_tables(mesh_tables)[0]
-        if use_cloud and cloud is None:
-            cloud = models_from_tables(cloud_tables)[1]
         files.update(export_files(job_tables, fmt, stem, params.las_version, params.glb_draco,
-                                  (mesh if use_mesh else None, cloud if use_cloud else None)))
-        if not any(later for later, _ in uses[done + 1:]):
-            mesh = None
+                                  models))
     progress("export", len(jobs), len(jobs))
-    manifest = pa.table({
-        "file": pa.array(list(files), pa.string()),
-        "bytes": pa.array([file_size(data) for data in files.values()], pa.int64()),
-        "sha256": pa.array([file_sha256(data) for data in files.values()], pa.string()),
-    })
-    return StageResult({"export_manifest": manifest},
-                       {"files": {name: file_size(data) for name, data in files.items()},
-                        "cloud_coloured": coloured}, files)
+    # the manifest (sizes, digests) is made as the files are written: the OBJ is streamed
+    return StageResult({}, {"files": list(files), "cloud_coloured": coloured}, files,
+                       manifest="export_manifest")
 
 
 STAGE = Stage(
