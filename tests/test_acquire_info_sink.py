@@ -10,6 +10,7 @@ import numpy as np
 from acquire_helpers import rig_with_cameras, small_camera
 
 from scanpipe.acquire.sink import RecordingSink, part_path
+from scanpipe.pipeline import get_stage
 from scanpipe.protocol import paper
 from scanpipe.protocol.profile import Profile
 from scanpipe.recording.reader import read_recording
@@ -145,6 +146,9 @@ def test_every_part_but_the_last_says_where_the_scan_continues(
     assert any("continues in scan-001.mcap" in w for w in warnings)
     last = json.loads(cli("info", sink.paths[-1], "--json").out)  # type: ignore[attr-defined]
     assert any("part 2 of a split recording" in w for w in last["warnings"])
+    # … and decode, so that `scanpipe run` on one part says so.
+    decoded = get_stage("decode").run({"recording": sink.paths[0]}).report["warnings"]
+    assert any("continues in scan-001.mcap" in w for w in decoded)
     # An unsplit recording has no such warning.
     whole = tmp_path / "whole.mcap"
     _write(whole)

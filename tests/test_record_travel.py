@@ -101,7 +101,8 @@ def test_away_from_home_the_next_scan_is_refused(tmp_path: Path, scene: Scene) -
     assert kinds.index("motor_homed") < kinds.index("motor_zeroed")
 
 
-def test_a_stopped_scan_still_returns_home(tmp_path: Path, scene: Scene) -> None:
+def test_a_stopped_scan_still_returns_home(tmp_path: Path, scene: Scene,
+                                           cli: Callable[..., Any]) -> None:
     with VirtualRig(sim_options("paper", pulse_limit=LIMIT), speedup=SPEEDUP, scene=scene) as rig:
         options = RecordOptions(mode="step", motor_step_deg=5.0, speedup=SPEEDUP, cameras=False,
                                 install_signal_handlers=False)
@@ -122,6 +123,12 @@ def test_a_stopped_scan_still_returns_home(tmp_path: Path, scene: Scene) -> None
         # The next scan is accepted (it stands at home).
         again = record_against(rig, tmp_path / "again.mcap", motor_step_deg=ANGLE)
         assert again["status"] == "complete" and _max_absolute(rig) <= LIMIT
+    # The workstation is told that the model will be partial (it was made without a word).
+    cut = cli("run", tmp_path / "rec.mcap", "--workdir", tmp_path / "w", "--to", "decode")
+    assert cut.code == 0, cut.err
+    assert "the scan ended interrupted (stopped by the test) before its sweep was done" in cut.err
+    whole = get_stage("decode").run({"recording": tmp_path / "again.mcap"}).report["warnings"]
+    assert not any("before its sweep was done" in w for w in whole)
 
 
 def test_an_unlimited_rig_and_controller_may_turn_past_a_turn(tmp_path: Path,

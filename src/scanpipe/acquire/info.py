@@ -14,7 +14,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.acquire.display import format_bytes, format_duration
-from scanpipe.acquire.sink import PART_CONTINUES
 from scanpipe.errors import ProtocolError, RecordingError
 from scanpipe.recording.reader import Recording
 from scanpipe.recording.writer import EVENTS, MOTOR_STATE, MOTOR_STREAM, SCANNER_STREAM
@@ -57,20 +56,6 @@ def _profile_figures(recording: Recording) -> dict[str, Any]:
     counters = decoder.counters.as_dict()
     return {"count": len(frames), "sectors": sum(len(f.profiles) for f in frames),
             "dialect": dialect, **counters}
-
-
-def _split_warnings(recording: Recording) -> list[str]:
-    """A part of a split recording (``record --split-*``) holds only part of the scan."""
-    if "part" not in recording.session:
-        return []
-    part = recording.session["part"]
-    following = [e for e in recording.events if e.kind == PART_CONTINUES]
-    if following:
-        return [f"part {part} of a split recording: the scan continues in "
-                f"{following[-1].data.get('next_file', 'the next part')}; this file alone "
-                "holds only part of it"]
-    return [f"part {part} of a split recording (the last one if its recorder finished); "
-            "the scan's other parts are separate files"]
 
 
 def recording_info(recording: Recording, gap_s: float = 1.0) -> dict[str, Any]:
@@ -129,7 +114,7 @@ def recording_info(recording: Recording, gap_s: float = 1.0) -> dict[str, Any]:
         "chunks_read": recording.chunks_read,
         "chunks_damaged": recording.chunks_damaged,
         "loss": recording.loss.as_dict(),
-        "warnings": [*recording.warnings, *_split_warnings(recording)],
+        "warnings": [*recording.warnings, *recording.partial_scan_warnings()],
         "session": recording.session,
         "rig": rig,
         "start_ns": min(firsts) if firsts else None,

@@ -55,7 +55,7 @@ from scanpipe.errors import DeviceError, ScanpipeError
 from scanpipe.params import Params
 from scanpipe.planning import DEFAULT_MOTOR_STEP_DEG, choose_steps, move_time_s
 from scanpipe.protocol import ldoem
-from scanpipe.recording.writer import SCAN_END_EVENT
+from scanpipe.recording.writer import RECORDING_END_EVENT, SCAN_END_EVENT
 from scanpipe.rig import Rig
 
 CameraOpener = Callable[[Any], FrameSource]
@@ -194,7 +194,7 @@ class Recorder:
             if failure is not None:  # data were lost, whatever the procedure's status was
                 self.status, self.stop_reason = "failed", f"cannot write the recording: {failure}"
             summary = self.summary()
-            self.sink.event("recording_end", f"recording ended: {self.status}",
+            self.sink.event(RECORDING_END_EVENT, f"recording ended: {self.status}",
                             {"status": self.status, "reason": self.stop_reason})
             self.sink.close()
         return summary

@@ -19,15 +19,12 @@ from pathlib import Path
 from typing import Any, Literal, Protocol
 
 from scanpipe.errors import RecordingError
+from scanpipe.recording.writer import PART_CONTINUES_EVENT
 from scanpipe.rig import Rig
 
 Link = Literal["scanner", "motor"]
 RX, TX = 0, 1
 
-
-#: The event that ends every part of a split recording but the last (data: ``part``,
-#: ``next_part``, ``next_file``).
-PART_CONTINUES = "recording_continues"
 
 
 def part_path(out: Path, index: int) -> Path:
@@ -144,10 +141,10 @@ class RecordingSink:
             data = {"part": len(self.paths) - 1, "next_part": len(self.paths),
                     "next_file": following.name}
             message = f"the recording continues in {following.name}"
-            self.stats.events[PART_CONTINUES] += 1
-            self.stats.event_log.append({"time_ns": now_ns, "kind": PART_CONTINUES,
+            self.stats.events[PART_CONTINUES_EVENT] += 1
+            self.stats.event_log.append({"time_ns": now_ns, "kind": PART_CONTINUES_EVENT,
                                          "message": message, "data": data})
-            self._writer.write_event(now_ns, PART_CONTINUES, message, data)
+            self._writer.write_event(now_ns, PART_CONTINUES_EVENT, message, data)
             self._writer.close()
             self._open_part(len(self.paths))
 

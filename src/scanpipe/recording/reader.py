@@ -42,9 +42,12 @@ from scanpipe.recording.writer import (
     EVENTS,
     MOTOR_STATE,
     MOTOR_STREAM,
+    PART_CONTINUES_EVENT,
     PROFILE,
+    RECORDING_END_EVENT,
     RIG_KEY,
     RIG_METADATA,
+    SCAN_END_EVENT,
     SCANNER_PROFILES,
     SCANNER_STREAM,
     SESSION_METADATA,
@@ -221,6 +224,35 @@ class Recording:
             return rig_from_toml(text, f"{self.path}:{RIG_METADATA}")
         except RigError as err:
             raise RecordingError(f"{self.path}: stored rig is invalid: {err}") from None
+
+    def partial_scan_warnings(self) -> list[str]:
+        """Why this file may hold only part of a scan: a part of a split recording
+        (``record --split-*``), or a scan the recorder ended before its sweep was done
+        (Ctrl-C, a lost device, a failure)."""
+        warnings = []
+        if "part" in self.session:
+            part = self.session["part"]
+            following = [e for e in self.events if e.kind == PART_CONTINUES_EVENT]
+            if following:
+                warnings.append(
+                    f"part {part} of a split recording: the scan continues in "
+                    f"{following[-1].data.get('next_file', 'the next part')}; this file alone "
+                    "holds only part of it")
+            else:
+                warnings.append(f"part {part} of a split recording (the last one if its "
+                                "recorder finished); the scan's other parts are separate files")
+        # The scan's end says whether the sweep was done (the way back that follows may still
+        # fail); a recording cut before it only has the recording's end.
+        ends = [e for e in self.events if e.kind in (SCAN_END_EVENT, RECORDING_END_EVENT)]
+        status = ends[0].data.get("status") if ends else None
+        if status not in (None, "complete"):
+            reasons = [e.data.get("reason") for e in self.events
+                       if e.kind == RECORDING_END_EVENT and e.data.get("reason")]
+            why = f" ({reasons[0]})" if reasons else ""
+            warnings.append(f"the scan ended {status}{why} before its sweep was done: the "
+                            "recording holds only part of the scan, so the model will be "
+                            "partial")
+        return warnings
 
     def stream(self, link: str, direction: int = schemas.RX) -> StreamData:
         """The bytes of one link and direction (empty when the recording has none)."""

@@ -46,6 +46,11 @@ EVENTS = "/events"
 #: The event the recorder writes when the scan has ended (scanner and cameras stopped), before
 #: the platform returns to the start: a follower (``run --follow``) finishes the model then.
 SCAN_END_EVENT = "scan_end"
+#: The event that ends every part of a split recording but the last (``record --split-*``;
+#: data: ``part``, ``next_part``, ``next_file``).
+PART_CONTINUES_EVENT = "recording_continues"
+#: The recorder's last event, with the recording's status ("complete", "interrupted", …).
+RECORDING_END_EVENT = "recording_end"
 RIG_METADATA = "scanpipe.rig"
 RIG_KEY = "rig.toml"
 SESSION_METADATA = "scanpipe.session"

@@ -278,6 +278,7 @@ def decode_recording(recording: Recording, params: DecodeParams,
     """The decode stage on a recording already read (pure: no file access); ``decoded``: its
     scanner stream decoded already, with ``params``."""
     warnings = list(recording.warnings)
+    warnings += [f"{recording.path}: {w}" for w in recording.partial_scan_warnings()]
     rig, rig_artifact = _recording_rig(recording, warnings)
     stream = recording.stream("scanner", RX)
     data = stream.data
@@ -384,7 +385,7 @@ def decode_stage(inputs: Mapping[str, Any], params: DecodeParams,
 
 STAGE = Stage(
     name="decode",
-    version=4,
+    version=5,  # 5: a scan the recorder ended early or a part of a split recording is warned
     params=DecodeParams,
     inputs=("recording",),
     outputs=("profiles", "motor", "frames", "rig"),
