@@ -66,8 +66,16 @@ def test_model_limits_are_checked_in_the_rig(tmp_path: Path, cli: Callable[..., 
     assert result.code == 2
     assert "scanner.scan_hz: scan_hz = 30 is outside the LMS111 limit (one of 25 Hz at 0.5°" \
         in result.err
+    assert "beam_step_deg" not in result.err  # 0.5° is right; only the rate is wrong
     assert path.read_text() == text
-    bad = path.read_text().replace('dialect = "cola_b"', 'dialect = "ldoem"')
+    # a rate it has with a step it lacks at that rate: the step alone is named, not the rate
+    path.write_text(text.replace("scan_hz = 30.0", "scan_hz = 25.0").replace(
+        "beam_step_deg = 0.5", "beam_step_deg = 0.3"))
+    result = cli("rig", "check", path)
+    assert result.code == 2 and "scan_hz" not in result.err
+    assert "beam_step_deg = 0.3 is outside the LMS111 limit (at 25 Hz: one of 0.5°, 0.25°)" \
+        in result.err
+    bad = text.replace('dialect = "cola_b"', 'dialect = "ldoem"')
     path.write_text(bad)
     result = cli("rig", "check", path)
     assert result.code == 2 and "model lms111 speaks dialect cola_b or cola_a, not ldoem" \

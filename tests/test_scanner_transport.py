@@ -100,7 +100,9 @@ def test_settings_outside_the_model_are_refused_before_connecting() -> None:
     with VirtualRig(_options(model="lms111"), speedup=2.0, scene=box_room()) as virtual:
         scanner = virtual.client_rig().scanner.model_copy(update={"scan_hz": 50.0,
                                                                   "beam_step_deg": 0.25})
-        with pytest.raises(DeviceError, match=r"scan_hz = 50 is outside the LMS111 limit"):
+        # 50 Hz is one of its rates, 0.25° is not a step it offers at 50 Hz: the step is named
+        with pytest.raises(DeviceError, match=r"beam_step_deg = 0.25 is outside the LMS111 "
+                                              r"limit \(at 50 Hz: one of 0.5°\)"):
             ScannerClient(scanner, Sink()).connect()
         assert virtual.scanner.requests == []
 

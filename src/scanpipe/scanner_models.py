@@ -108,11 +108,16 @@ def table_limit_checks(model: ScannerModel, scanner: ModelSettings) -> tuple[Lim
     """A model's limits from its table row: a mode it offers, the field of view, the range."""
     hz, step = scanner.scan_hz, scanner.beam_step_deg
     modes = ", ".join(f"{h:g} Hz at {s:g}°" for h, s in model.modes)
-    mode_ok = any(abs(hz - h) < 1e-6 and abs(step - s) < 1e-6 for h, s in model.modes)
+    # The scan rate is judged alone, the beam step at that rate: only the wrong one is named.
+    steps_at_hz = [s for h, s in model.modes if abs(hz - h) < 1e-6]
+    hz_ok = bool(steps_at_hz)
+    step_ok = any(abs(step - s) < 1e-6 for s in steps_at_hz)
+    step_limit = (f"at {hz:g} Hz: one of {', '.join(f'{s:g}°' for s in steps_at_hz)}"
+                  if hz_ok else f"one of {modes}")
     first, last = model.fov_deg
     return (
-        LimitCheck("scan_hz", hz, f"one of {modes}", mode_ok),
-        LimitCheck("beam_step_deg", step, f"one of {modes}", mode_ok),
+        LimitCheck("scan_hz", hz, f"one of {modes}", hz_ok),
+        LimitCheck("beam_step_deg", step, step_limit, step_ok or not hz_ok),
         LimitCheck("start_angle_deg", scanner.start_angle_deg, f"≥ {first:g}°",
                    scanner.start_angle_deg >= first - 1e-9),
         LimitCheck("end_angle_deg", scanner.end_angle_deg, f"≤ {last:g}° + one beam step",
