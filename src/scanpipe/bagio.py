@@ -50,6 +50,7 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import RecordingError, UsageError
 from scanpipe.images import encode_png
+from scanpipe.protocol.profile import ranges_between
 from scanpipe.recording import schemas
 from scanpipe.recording.writer import RecordingWriter
 from scanpipe.rig import CameraConfig, Rig, default_rig, rig_from_dict, rig_to_dict
@@ -94,6 +95,10 @@ class Topic:
 
 #: The echo's (u16) full scale: intensities normalised to 0…1 are fractions of it.
 ECHO_FULL_SCALE = 65535.0
+#: Beam steps that differ by up to this share from scan to scan are one step that follows the
+#: head's measured speed (LDRobot's ldlidar ROS drivers): resampled onto one grid. More is two
+#: settings in one bag, refused.
+MAX_STEP_SPREAD = 0.05
 
 
 @dataclass
@@ -204,6 +209,55 @@ def _profile(msg: Any, msgtype: str, log_time_ns: int, index: int
              "angle_min_deg": math.degrees(float(msg.angle_min)),
              "scan_time_s": float(msg.scan_time), "range_min_m": lo, "range_max_m": hi}
     return (end or start), profile, facts
+
+
+def on_one_beam_grid(profiles: Sequence[tuple[int, Any]], label: str = "") -> str:
+    """Resample profiles whose beam step follows the head's speed scan by scan (LDRobot's
+    ldlidar ROS drivers set ``angle_increment`` to the measured speed ÷ the sample rate, and
+    ``angle_min`` to the first sample's angle) onto one grid: the median step from the median
+    start, over the median span, in place. A grid beam gets the range between its two nearest
+    samples by :func:`~scanpipe.protocol.profile.ranges_between` (as the LDRobot dialect's
+    revolutions), the nearer sample's echo, NaN farther than half a step from every sample; the
+    device times move to the grid's first and last beams. Returns the warning to give."""
+    starts = np.array([p.start_angle_deg for _, p in profiles], np.float64)
+    steps = np.array([p.step_deg for _, p in profiles], np.float64)
+    counts = np.array([len(p.ranges_m) for _, p in profiles], np.int64)
+    step = float(np.median(steps))
+    start = float(np.median(starts))
+    beams = round(float(np.median(starts + (counts - 1) * steps) - start) / step) + 1
+    grid = start + np.arange(beams) * step
+    for _, profile in profiles:
+        n = len(profile.ranges_m)
+        if n == 0:
+            profile.start_angle_deg, profile.step_deg = start, step
+            continue
+        ranges = np.asarray(profile.ranges_m, np.float32)
+        angles = profile.start_angle_deg + np.arange(n) * profile.step_deg
+        right = np.clip(np.searchsorted(angles, grid), 1, n - 1) if n > 1 else \
+            np.zeros(beams, np.int64)
+        left = np.maximum(right - 1, 0)
+        gap = np.maximum(angles[right] - angles[left], 1e-12)
+        fraction = np.clip((grid - angles[left]) / gap, 0.0, 1.0).astype(np.float32)
+        out = ranges_between(ranges[left], ranges[right], fraction)
+        nearer = np.where(fraction > 0.5, right, left)
+        out[np.abs(grid - angles[nearer]) > 0.5 * step] = np.nan
+        if n > 1 and profile.device_end_time_ns:
+            per_deg = (profile.device_end_time_ns - profile.device_time_ns) / (angles[-1]
+                                                                              - angles[0])
+            first_ns = profile.device_time_ns + round((grid[0] - angles[0]) * per_deg)
+            profile.device_end_time_ns = first_ns + round((grid[-1] - grid[0]) * per_deg)
+            profile.device_time_ns = first_ns
+        if len(profile.intensities) == n:
+            echo = np.asarray(profile.intensities, np.float32)[nearer]
+            del profile.intensities[:]
+            profile.intensities.extend(echo.tolist())
+        del profile.ranges_m[:]
+        profile.ranges_m.extend(out.tolist())
+        profile.start_angle_deg, profile.step_deg = start, step
+    return (f"{label}angle_increment follows the head's speed scan by scan "
+            f"({steps.min():.6g}…{steps.max():.6g}°, as LDRobot's ldlidar ROS drivers set it): "
+            f"every scan resampled onto one grid of {beams} beams of {step:.6g}° from "
+            f"{start:.6g}° (linear on one surface, the nearer sample across a depth jump)")
 
 
 def _scale_fraction_intensities(content: BagContent) -> None:
@@ -502,12 +556,12 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
                        "scans with a positive angle_increment are taken")
     if len(steps_seen) > 1:
         low, high = min(steps_seen), max(steps_seen)
-        raise BagError(f"{bag}: {scan.name}: angle_increment changes during the bag "
-                       f"({sorted(steps_seen)[:4]} …°, {low:.6g}…{high:.6g}°, "
-                       f"{(high - low) / high:.2%}); one scan must use one beam step. Drivers "
-                       "that set it from the measured motor speed (LDRobot's ldlidar ROS "
-                       "driver) do so: record the scanner with scanpipe record, or capture its "
-                       "link and use import-capture, which keep every beam's own angle")
+        if (high - low) / high > MAX_STEP_SPREAD:
+            raise BagError(f"{bag}: {scan.name}: angle_increment changes during the bag "
+                           f"({low:.6g}…{high:.6g}°, {(high - low) / high:.2%}; up to "
+                           f"{MAX_STEP_SPREAD:.0%} is taken as one step following the head's "
+                           "speed): one scan must use one beam step")
+        content.warnings.append(on_one_beam_grid(content.profiles, f"{scan.name}: "))
     _scale_fraction_intensities(content)
     if scan.msgtype == MULTI_ECHO:
         content.warnings.append(f"{scan.name}: MultiEchoLaserScan: the first echo of each "

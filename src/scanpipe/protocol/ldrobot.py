@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import ProtocolError
 from scanpipe.protocol.framing import FrameCounters, RawFrame
-from scanpipe.protocol.profile import Profile
+from scanpipe.protocol.profile import Profile, ranges_between
 
 MARKER = b"\x54\x2c"
 HEADER = 0x54
@@ -72,10 +72,6 @@ MAX_PACKET_SPAN_S = 11 / 2_300 * 1.4
 #: Grids per revolution are bounded (36 … 16 384 beams).
 MIN_GRID_BEAMS = 36
 MAX_GRID_BEAMS = 16_384
-#: Two samples of one surface: their ranges differ by less than this share of the nearer, plus
-#: the absolute part below (a wall seen at 80° incidence changes by ~8 % per 0.8° step).
-CONTINUITY_SHARE = 0.10
-CONTINUITY_M = 0.03
 #: A packet with no good neighbour must continue the last packet kept within this time (s):
 #: beyond it, speed drift makes the predicted angle too loose a test.
 MAX_FOLLOW_S = 0.1
@@ -733,11 +729,7 @@ def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
     flat_intensity = p.intensity.reshape(-1)
     if order is not None:  # samples in angle order, not stream order
         flat_range, flat_intensity = flat_range[order], flat_intensity[order]
-    r0 = flat_range[left]
-    dr = flat_range[right] - r0
-    # One surface: the jump is small against the range (NaN, a no-return, compares False).
-    smooth = np.abs(dr) <= np.float32(CONTINUITY_SHARE) * r0 + np.float32(CONTINUITY_M)
-    ranges = np.where(smooth, r0 + w * dr, flat_range[nearer])
+    ranges = ranges_between(flat_range[left], flat_range[right], w)
     # A beam farther than half a grid step from every sample was not measured: in a hole
     # (a lost packet) or beyond the first or last sample.
     half = 0.5 * step
