@@ -366,12 +366,9 @@ def pair_information(source: ScanClouds, target: ScanClouds, transform: F64,
     # the residuals' mean over the whole fit is part of the error too: not removed
     meat = scores.T @ scores * cells / (cells - 6)  # small-sample correction
     bread = np.linalg.pinv(hessian)
-    covariance = bread @ meat @ bread * params.covariance_scale
-    values, vectors = np.linalg.eigh((covariance + covariance.T) / 2.0)
     # a direction the fit does not constrain (a corridor sliding along itself) gets no
     # information, not an infinite one
-    inverse = np.where(values > values.max() * 1e-12, 1.0 / np.maximum(values, 1e-300), 0.0)
-    return np.asarray((vectors * inverse) @ vectors.T, np.float64)
+    return _pseudo_inverse(bread @ meat @ bread * params.covariance_scale, 0.0)
 
 
 def search_radius(target: ScanClouds, params: RegisterParams) -> float:
@@ -731,13 +728,20 @@ def misclosure(measured: F64, implied: F64) -> F64:
     return np.concatenate([Rotation.from_matrix(delta[:3, :3]).as_rotvec(), delta[:3, 3]])
 
 
+def _pseudo_inverse(matrix: F64, null_value: float) -> F64:
+    """The inverse of a symmetric positive semi-definite 6 × 6 (a covariance or an
+    information) through its eigenvalues; an eigenvalue below 1e-12 of the largest (a
+    direction the data does not reach) gets ``null_value`` instead of its reciprocal."""
+    values, vectors = np.linalg.eigh((matrix + matrix.T) / 2.0)
+    floor = max(float(values.max()), 1e-300) * 1e-12
+    inverse = np.where(values > floor, 1.0 / np.maximum(values, 1e-300), null_value)
+    return np.asarray((vectors * inverse) @ vectors.T, np.float64)
+
+
 def information_covariance(information: F64, unconstrained: float = 1e6) -> F64:
     """A pair's covariance from its information; a direction the pair does not constrain
     (zero information) gets the variance ``unconstrained`` instead of an infinite one."""
-    values, vectors = np.linalg.eigh((information + information.T) / 2.0)
-    floor = max(float(values.max()), 1e-300) * 1e-12
-    variance = np.where(values > floor, 1.0 / np.maximum(values, 1e-300), unconstrained)
-    return np.asarray((vectors * variance) @ vectors.T, np.float64)
+    return _pseudo_inverse(information, unconstrained)
 
 
 def variance_factor(poses: list[F64], pairs: list[PairResult]) -> tuple[float, int]:
@@ -781,13 +785,10 @@ def _solve_graph(n: int, kept: list[PairResult], names: list[str], params: Regis
     dropped: list[dict[str, Any]] = []
     while True:
         initial, _ = _spanning_tree(n, kept)
-        reached = [k for k in range(n) if initial[k] is not None]
-        sub = {old: new for new, old in enumerate(reached)}
-        inside = [p for p in kept if p.target in sub and p.source in sub]
-        edges = [PairResult(sub[p.target], sub[p.source], p.transform, p.fitness, p.rmse_m,
-                            p.init, True, "", pose_information=p.pose_information)
-                 for p in inside]
-        optimised = _optimise([initial[k] for k in reached], edges)  # type: ignore[misc]
+        reached, start, edges = _subgraph(initial, kept)
+        inside = [p for p in kept if initial[p.target] is not None
+                  and initial[p.source] is not None]  # the same pairs as edges, in order
+        optimised = _optimise(start, edges)
         worst, worst_score, worst_record = -1, 1.0, {}
         for e, p in enumerate(edges):
             implied = invert(optimised[p.target]) @ optimised[p.source]
