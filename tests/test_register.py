@@ -144,6 +144,13 @@ def test_registration_takes_the_filters_unsmoothed_points(small_site: Path,
     cloud, warning = registration_cloud("pos00", bare, table, params)
     assert warning is not None and warning.startswith("pos00: the filter's input points")
     assert np.allclose(np.asarray(cloud.fine.points), smoothed[np.isfinite(smoothed).all(1)])
+    # a damaged input: the same, never a crash
+    damaged = tmp_path / "damaged"
+    shutil.copytree(work, damaged)
+    (damaged / "assemble" / "points.parquet").write_bytes(b"not parquet")
+    assert unsmoothed_points(damaged, table) is None
+    _, warning = registration_cloud("pos00", damaged, table, params)
+    assert warning is not None and "not readable" in warning
     # positions=filtered: as before, no warning
     _, warning = registration_cloud("pos00", bare, table, RegisterParams(positions="filtered"))
     assert warning is None

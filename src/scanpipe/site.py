@@ -59,21 +59,33 @@ def scan_points(workdir: Path) -> tuple[pa.Table, str]:
 def unsmoothed_points(workdir: Path, table: pa.Table) -> tuple[F64, F64] | None:
     """The positions and beam origins that the filter's points (``table``, from
     :func:`scan_points`) had in the filter's input — before its range smoothing moved them —
-    matched by grid cell; None when the workdir does not hold that input (the artifact whose
-    key the filter's provenance names) or the points have no grid."""
+    matched by grid cell; None when the workdir does not hold that input readably (the
+    artifact whose key the filter's provenance names) or the points have no grid."""
     from scanpipe.artifacts import read_provenance
+
+    def key_of(candidate: Path) -> object:
+        try:
+            return read_provenance(candidate).get("key")
+        except ArtifactError:  # an unreadable file is not the input we look for
+            return None
 
     path = find_artifact(workdir, "points")
     profile = table.column("profile").to_numpy().astype(np.int64)
     sample = table.column("sample").to_numpy().astype(np.int64)
     if path is None or len(profile) == 0 or profile.min() < 0 or sample.min() < 0:
         return None
-    wanted = read_provenance(path).get("inputs", {}).get("points")
-    source = next((p for p in sorted(workdir.glob(f"*/{POINTS_FILE}"))
-                   if p != path and read_provenance(p).get("key") == wanted), None)
-    if wanted is None or source is None:
+    try:
+        wanted = read_provenance(path).get("inputs", {}).get("points")
+    except ArtifactError:
         return None
-    raw, _ = read_artifact(source, POINTS)
+    source = next((p for p in sorted(workdir.glob(f"*/{POINTS_FILE}"))
+                   if p != path and wanted is not None and key_of(p) == wanted), None)
+    if source is None:
+        return None
+    try:
+        raw, _ = read_artifact(source, POINTS)
+    except ArtifactError:
+        return None
     width = int(max(sample.max(), raw.column("sample").to_numpy().max())) + 1
     raw_cell = (raw.column("profile").to_numpy().astype(np.int64) * width
                 + raw.column("sample").to_numpy().astype(np.int64))
@@ -101,8 +113,8 @@ def registration_cloud(name: str, workdir: Path, table: pa.Table, params: Regist
         raw = unsmoothed_points(workdir, table)
         if raw is None:
             warning = (f"{name}: the filter's input points (the assemble stage's) are not in "
-                       f"{workdir}: registered on the smoothed points, which lie mm behind far "
-                       "and oblique surfaces on coarse scans (docs/sites.md)")
+                       f"{workdir} or not readable: registered on the smoothed points, which "
+                       "lie mm behind far and oblique surfaces on coarse scans (docs/sites.md)")
         else:
             fine = plane_projected_points(raw[0], raw[1], normals,
                                           table.column("profile").to_numpy(),
