@@ -213,6 +213,17 @@ def test_bad_usage(cli, recordings: list[Path], tmp_path: Path, extra: list[str]
     assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["keep.txt"]
 
 
+def test_ray_threads_above_the_largest_node_are_refused(cli, recordings: list[Path],  # type: ignore[no-untyped-def]
+                                                       ray_local: Any, tmp_path: Path) -> None:
+    # the module's local Ray has 2 CPUs: a task asking for 3 would never be scheduled
+    result = cli("batch", recordings[0], "--workdir", tmp_path / "w", "--engine", "ray",
+                 "--threads", "3")
+    assert result.code == 2
+    assert result.err.count("\n") == 1, result.err
+    assert "--threads 3: more than the 2 CPUs of the largest Ray node" in result.err
+    assert not (tmp_path / "w").exists()
+
+
 def test_workdir_that_is_a_file_is_refused(cli, recordings: list[Path], tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     target = tmp_path / "w"
     target.write_text("mine")

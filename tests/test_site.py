@@ -29,6 +29,7 @@ from scanpipe.registration import (
     joint_covariance,
     normalised_errors,
     pair_information,
+    plane_projected_points,
     prepare_scan,
     refine,
     relative_covariance,
@@ -309,3 +310,48 @@ def test_loop_closing_pair_is_gated_by_covariance() -> None:
     assert "loop_gate_chi2" in records[0]["reason"]
     assert 0.015 <= records[0]["from_graph_m"] <= 0.025
     assert not loop.accepted and loop.reason == "no hypothesis"
+
+
+def _wall_grid(rng: np.random.Generator, distance_m: float, noise_m: float
+               ) -> tuple[Any, Any, Any, Any, Any]:
+    """A wall at ``distance_m`` (normal −z toward the scanner at the origin) seen over ±40° on a
+    2° × 1° grid of beams, each range with Gaussian noise: (true ranges, measured points,
+    beam directions, profile, sample)."""
+    az, el = np.radians(np.arange(-40.0, 40.01, 2.0)), np.radians(np.arange(-30.0, 30.01, 1.0))
+    profile, sample = (a.ravel() for a in np.meshgrid(np.arange(len(az)), np.arange(len(el)),
+                                                        indexing="ij"))
+    beam = np.stack([np.sin(az[profile]) * np.cos(el[sample]), np.sin(el[sample]),
+                     np.cos(az[profile]) * np.cos(el[sample])], axis=1)
+    true_range = distance_m / beam[:, 2]
+    measured = true_range + rng.normal(0.0, noise_m, len(beam))
+    return true_range, beam * measured[:, None], beam, profile, sample
+
+
+def test_plane_projection_has_no_range_smoothing_bias() -> None:
+    """Averaging a 3 × 3 window of *ranges* (the filter's smoothing) puts a far wall behind
+    where it is — the range d / cos θ is convex in the beam angle — and by an amount that
+    depends on the view, which biased the site's pairs; averaging the *points* along each
+    beam does not, and still averages the noise."""
+    rng = np.random.default_rng(3)
+    distance_m, noise_m = 6.0, 0.01
+    true_range, xyz, beam, profile, sample = _wall_grid(rng, distance_m, noise_m)
+    ranges = np.full((profile.max() + 3, sample.max() + 3), np.nan)
+    ranges[profile + 1, sample + 1] = np.linalg.norm(xyz, axis=1)
+    window = [ranges[profile + 1 + i, sample + 1 + j] for i in (-1, 0, 1) for j in (-1, 0, 1)]
+    smoothed = beam * np.nanmean(window, axis=0)[:, None]
+    normals = np.tile([0.0, 0.0, -1.0], (len(xyz), 1))
+    projected = plane_projected_points(xyz, np.zeros_like(xyz), normals, profile, sample, 0.03)
+    inner = (profile > 0) & (profile < profile.max()) & (sample > 0) & (sample < sample.max())
+
+    def behind_mm(points: Any) -> float:  # mean distance behind the wall (z > d)
+        return float(np.mean(points[inner, 2] - distance_m) * 1000)
+
+    assert behind_mm(smoothed) > 2.0  # the range average's bias (~3 mm here)
+    assert abs(behind_mm(projected)) < 0.3
+    assert abs(behind_mm(xyz)) < 0.3  # the raw points are unbiased too, but noisier:
+    spread = np.std(projected[inner, 2] - distance_m)
+    assert spread < 0.5 * np.std(xyz[inner, 2] - distance_m)
+    # each point stays on its own beam
+    along = np.cross(projected, beam)
+    assert np.abs(along).max() < 1e-9
+    assert np.allclose(np.linalg.norm(projected, axis=1)[inner], true_range[inner], atol=0.03)

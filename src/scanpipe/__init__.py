@@ -18,6 +18,11 @@ import importlib
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
+from scanpipe.lazy_open3d import defer_plotly_viewer
+
+# Open3D's plotly/dash viewer (~0.45 s of CPU per process) loads only if someone calls it
+defer_plotly_viewer()
+
 try:
     __version__ = version("scanpipe")
 except PackageNotFoundError:  # running from a source tree without installation

@@ -409,12 +409,27 @@ def ray_session(workers: int | None, address: str | None) -> Iterator[Any]:
         ray.shutdown()
 
 
+def check_ray_threads(ray: Any, threads: int | None) -> None:
+    """Refuse ``--threads`` above the CPUs of the largest live Ray node: a task asking for
+    more CPUs than any node has is never scheduled, and the batch would wait for ever."""
+    if threads is None:
+        return
+    largest = max((int(node.get("Resources", {}).get("CPU", 0)) for node in ray.nodes()
+                   if node.get("Alive")), default=0)
+    if threads > largest:
+        raise UsageError(f"--threads {threads}: more than the {largest} CPUs of the largest Ray "
+                         f"node (each task asks for --threads CPUs and could never start); "
+                         f"give at most {largest}")
+
+
 def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: int | None,
              threads: int | None, address: str | None, to: str | None, force: bool,
              lock_wait_s: float, done: Callable[[ItemResult], None],
              stage_done: Callable[[], None]) -> None:
     stages = [s.name for s in _chain(to)]
     with ray_session(workers, address) as ray:
+        check_ray_threads(ray, threads)
+        items[0].workdir.parent.mkdir(parents=True, exist_ok=True)
         limit = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
         # each task asks for its threads as CPUs: Ray then sets OMP_NUM_THREADS to them
         task = ray.remote(num_cpus=threads or 1)(stage_task)
@@ -521,7 +536,8 @@ def run_batch(
     _check_manifest(root / MANIFEST)
     if engine == "ray":
         import_ray()  # the install hint before any folder is made
-    root.mkdir(parents=True, exist_ok=True)
+    else:
+        root.mkdir(parents=True, exist_ok=True)  # Ray's: once the cluster accepts the batch
     results: dict[str, ItemResult] = {}
     n_stages = len(_chain(to))
     counts = {"stages": 0}

@@ -8,7 +8,12 @@ Kernel functions over numpy arrays (Open3D for the features, RANSAC and the coar
    (the scan's own points with their normals — not voxel centroids, which bias the planes of a
    noisy scan by a few hundredths of a degree — all of them as the ICP target, an even subsample
    of ``fine_source_points`` as the source) and its *free-space image*: per direction from the
-   scanner, the nearest range it measured.
+   scanner, the nearest range it measured. The fine clouds' points are, by default
+   (``positions`` "unsmoothed"), where the filter's input had them, each averaged with its grid
+   neighbours along its own beam (:func:`plane_projected_points`): the filter's range
+   smoothing puts far and oblique surfaces a few mm behind where they are, by an amount that
+   depends on the view, so two scans of one wall disagreed and the pairs slid by mm, in the
+   same direction along the site (docs/sites.md).
 2. Per candidate pair (all pairs; with a prior, those whose prior positions are within
    ``pair_max_distance_m``): up to ``hypotheses`` distinct starting guesses from FPFH
    correspondences by sequential RANSAC (each round removes the correspondences the last
@@ -87,6 +92,11 @@ class RegisterParams(Params):
     fine_distance_m: float = Field(0.03, gt=0, le=0.5, description="The scale of Tukey's "
                                    "biweight in the fine ICP's last round (~3 noise σ).")
     fine_method: Literal["point_to_plane", "generalized"] = "point_to_plane"
+    positions: Literal["unsmoothed", "filtered"] = Field(
+        "unsmoothed", description="unsmoothed: each point where the filter found it (its "
+        "input, before the range smoothing, which puts far and oblique surfaces mm behind "
+        "where they are) averaged with its grid neighbours along its own beam "
+        "(plane_projected_points); filtered: the filter's points as they are.")
     normal_compat_deg: float = Field(30.0, gt=0, le=90, description="The fine ICP pairs a "
                                      "point with its nearest target point only when their "
                                      "normals agree within this angle (a wall's point with "
@@ -263,19 +273,65 @@ def pair_conflict(target: ScanClouds, source: ScanClouds, transform: F64,
     return max(into_target, into_source)
 
 
+def plane_projected_points(xyz: F64, origin: F64, normals: F64, profile: NDArray[np.integer],
+                           sample: NDArray[np.integer], gate_m: float) -> F64:
+    """Each point of a grid scan moved along its own beam onto the plane (its ``normals``)
+    through the mean of its 3 × 3 grid neighbours that lie within ``gate_m`` of that plane:
+    noise averaged over ~9 points, without the bias of averaging *ranges*.
+
+    A range image's neighbourhood mean (the filter's smoothing) is biased: along a plane the
+    range ``d / cos θ`` is convex in the beam angle, so its mean over neighbouring beams lies
+    behind the surface, by more the farther and more oblique it is — ~7 mm at 6 m on a 2° × 1°
+    grid, which differs between two scans of the same wall and slid the site's pairs by mm
+    (docs/sites.md). The mean of the *points* of a plane lies on the plane. Points with fewer
+    than 3 such neighbours, no normal, or a beam within ~78° of the plane stay where they are.
+    """
+    rows, cols = int(profile.max()) + 1, int(sample.max()) + 1
+    grid = np.full((rows + 2, cols + 2, 3), np.nan)
+    grid[profile + 1, sample + 1] = xyz
+    usable = np.all(np.isfinite(normals), axis=1)
+    unit = np.where(usable[:, None], normals, 0.0)
+    total = np.zeros_like(xyz)
+    count = np.zeros(len(xyz))
+    for d_row in (-1, 0, 1):
+        for d_col in (-1, 0, 1):
+            neighbour = grid[profile + 1 + d_row, sample + 1 + d_col]
+            found = np.all(np.isfinite(neighbour), axis=1)
+            near = np.abs(np.einsum("ij,ij->i", np.where(found[:, None], neighbour, xyz) - xyz,
+                                    unit)) <= gate_m
+            take = found & near & usable
+            total[take] += neighbour[take]
+            count[take] += 1
+    beam = xyz - origin
+    beam /= np.maximum(np.linalg.norm(beam, axis=1), 1e-12)[:, None]
+    facing = np.einsum("ij,ij->i", beam, unit)
+    moved = usable & (count >= 3) & (np.abs(facing) >= 0.2)
+    centroid = total[moved] / count[moved][:, None]
+    shift = np.einsum("ij,ij->i", centroid - xyz[moved], unit[moved]) / facing[moved]
+    out = np.array(xyz, np.float64)
+    out[moved] += beam[moved] * shift[:, None]
+    return out
+
+
 def prepare_scan(name: str, xyz: NDArray[np.floating], origin: NDArray[np.floating],
-                 params: RegisterParams, normals: NDArray[np.floating] | None = None
-                 ) -> ScanClouds:
+                 params: RegisterParams, normals: NDArray[np.floating] | None = None,
+                 fine_xyz: NDArray[np.floating] | None = None) -> ScanClouds:
     """Downsample, estimate normals (toward the scanner) and FPFH features of one scan; the
-    fine clouds keep the scan's own points (with ``normals`` when given, e.g. the grid's)."""
+    fine clouds keep the scan's own points (with ``normals`` when given, e.g. the grid's) —
+    or ``fine_xyz``, the same points placed otherwise (:func:`plane_projected_points`), when
+    given: the coarse cloud, its features and the free-space image stay ``xyz``'s (the
+    hypotheses do not need millimetres, and RANSAC's draws then stay as they were)."""
     o3d = _o3d()
     finite = np.all(np.isfinite(xyz), axis=1)
+    if fine_xyz is not None:
+        finite &= np.all(np.isfinite(fine_xyz), axis=1)
     points = np.asarray(xyz, np.float64)[finite]
     origins = np.asarray(origin, np.float64)[finite]
     if len(points) < 100:
         raise StageError(f"{name}: only {len(points)} points; too few to register")
     centre = origins.mean(axis=0)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    fine_points = points if fine_xyz is None else np.asarray(fine_xyz, np.float64)[finite]
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(fine_points))
     if normals is not None:
         given = np.asarray(normals, np.float64)[finite]
         usable = np.all(np.isfinite(given), axis=1)
@@ -298,9 +354,9 @@ def prepare_scan(name: str, xyz: NDArray[np.floating], origin: NDArray[np.floati
                                                      max_nn=100))
     from scipy.spatial import cKDTree
 
-    fine_points = np.asarray(cloud.points)
-    tree = cKDTree(fine_points)
-    probe = fine_points[::max(1, len(fine_points) // 5000)]
+    kept = np.asarray(cloud.points)
+    tree = cKDTree(kept)
+    probe = kept[::max(1, len(kept) // 5000)]
     spacing = float(np.median(tree.query(probe, k=2)[0][:, 1]))
     return ScanClouds(name, coarse, features, cloud, len(points), fine_source,
                       free_space_image(points, origins), spacing, tree)
@@ -366,12 +422,9 @@ def pair_information(source: ScanClouds, target: ScanClouds, transform: F64,
     # the residuals' mean over the whole fit is part of the error too: not removed
     meat = scores.T @ scores * cells / (cells - 6)  # small-sample correction
     bread = np.linalg.pinv(hessian)
-    covariance = bread @ meat @ bread * params.covariance_scale
-    values, vectors = np.linalg.eigh((covariance + covariance.T) / 2.0)
     # a direction the fit does not constrain (a corridor sliding along itself) gets no
     # information, not an infinite one
-    inverse = np.where(values > values.max() * 1e-12, 1.0 / np.maximum(values, 1e-300), 0.0)
-    return np.asarray((vectors * inverse) @ vectors.T, np.float64)
+    return _pseudo_inverse(bread @ meat @ bread * params.covariance_scale, 0.0)
 
 
 def search_radius(target: ScanClouds, params: RegisterParams) -> float:
@@ -731,13 +784,20 @@ def misclosure(measured: F64, implied: F64) -> F64:
     return np.concatenate([Rotation.from_matrix(delta[:3, :3]).as_rotvec(), delta[:3, 3]])
 
 
+def _pseudo_inverse(matrix: F64, null_value: float) -> F64:
+    """The inverse of a symmetric positive semi-definite 6 × 6 (a covariance or an
+    information) through its eigenvalues; an eigenvalue below 1e-12 of the largest (a
+    direction the data does not reach) gets ``null_value`` instead of its reciprocal."""
+    values, vectors = np.linalg.eigh((matrix + matrix.T) / 2.0)
+    floor = max(float(values.max()), 1e-300) * 1e-12
+    inverse = np.where(values > floor, 1.0 / np.maximum(values, 1e-300), null_value)
+    return np.asarray((vectors * inverse) @ vectors.T, np.float64)
+
+
 def information_covariance(information: F64, unconstrained: float = 1e6) -> F64:
     """A pair's covariance from its information; a direction the pair does not constrain
     (zero information) gets the variance ``unconstrained`` instead of an infinite one."""
-    values, vectors = np.linalg.eigh((information + information.T) / 2.0)
-    floor = max(float(values.max()), 1e-300) * 1e-12
-    variance = np.where(values > floor, 1.0 / np.maximum(values, 1e-300), unconstrained)
-    return np.asarray((vectors * variance) @ vectors.T, np.float64)
+    return _pseudo_inverse(information, unconstrained)
 
 
 def variance_factor(poses: list[F64], pairs: list[PairResult]) -> tuple[float, int]:
@@ -781,13 +841,10 @@ def _solve_graph(n: int, kept: list[PairResult], names: list[str], params: Regis
     dropped: list[dict[str, Any]] = []
     while True:
         initial, _ = _spanning_tree(n, kept)
-        reached = [k for k in range(n) if initial[k] is not None]
-        sub = {old: new for new, old in enumerate(reached)}
-        inside = [p for p in kept if p.target in sub and p.source in sub]
-        edges = [PairResult(sub[p.target], sub[p.source], p.transform, p.fitness, p.rmse_m,
-                            p.init, True, "", pose_information=p.pose_information)
-                 for p in inside]
-        optimised = _optimise([initial[k] for k in reached], edges)  # type: ignore[misc]
+        reached, start, edges = _subgraph(initial, kept)
+        inside = [p for p in kept if initial[p.target] is not None
+                  and initial[p.source] is not None]  # the same pairs as edges, in order
+        optimised = _optimise(start, edges)
         worst, worst_score, worst_record = -1, 1.0, {}
         for e, p in enumerate(edges):
             implied = invert(optimised[p.target]) @ optimised[p.source]

@@ -27,7 +27,13 @@ from numpy.typing import NDArray
 from scanpipe.artifacts import artifact_key, read_artifact, write_artifact
 from scanpipe.errors import ArtifactError, UsageError
 from scanpipe.poses import pose_errors, poses_from_table, poses_table
-from scanpipe.registration import RegisterParams, prepare_scan, register_scans
+from scanpipe.registration import (
+    RegisterParams,
+    ScanClouds,
+    plane_projected_points,
+    prepare_scan,
+    register_scans,
+)
 from scanpipe.schema import ORIGIN, POINTS, POSES, XYZ
 from scanpipe.workdir import find_artifact
 
@@ -48,6 +54,73 @@ def scan_points(workdir: Path) -> tuple[pa.Table, str]:
                          f"--workdir {workdir} --to filter` first")
     table, provenance = read_artifact(path, POINTS)
     return table, str(provenance.get("key", path))
+
+
+def unsmoothed_points(workdir: Path, table: pa.Table) -> tuple[F64, F64] | None:
+    """The positions and beam origins that the filter's points (``table``, from
+    :func:`scan_points`) had in the filter's input — before its range smoothing moved them —
+    matched by grid cell; None when the workdir does not hold that input readably (the
+    artifact whose key the filter's provenance names) or the points have no grid."""
+    from scanpipe.artifacts import read_provenance
+
+    def key_of(candidate: Path) -> object:
+        try:
+            return read_provenance(candidate).get("key")
+        except ArtifactError:  # an unreadable file is not the input we look for
+            return None
+
+    path = find_artifact(workdir, "points")
+    profile = table.column("profile").to_numpy().astype(np.int64)
+    sample = table.column("sample").to_numpy().astype(np.int64)
+    if path is None or len(profile) == 0 or profile.min() < 0 or sample.min() < 0:
+        return None
+    try:
+        wanted = read_provenance(path).get("inputs", {}).get("points")
+    except ArtifactError:
+        return None
+    source = next((p for p in sorted(workdir.glob(f"*/{POINTS_FILE}"))
+                   if p != path and wanted is not None and key_of(p) == wanted), None)
+    if source is None:
+        return None
+    try:
+        raw, _ = read_artifact(source, POINTS)
+    except ArtifactError:
+        return None
+    width = int(max(sample.max(), raw.column("sample").to_numpy().max())) + 1
+    raw_cell = (raw.column("profile").to_numpy().astype(np.int64) * width
+                + raw.column("sample").to_numpy().astype(np.int64))
+    cell = profile * width + sample
+    order = np.argsort(raw_cell, kind="stable")
+    at = order[np.minimum(np.searchsorted(raw_cell[order], cell), len(order) - 1)]
+    if not np.array_equal(raw_cell[at], cell):
+        return None  # a cell the input does not have: not this filter's input
+    return _columns(raw, XYZ)[at], _columns(raw, ORIGIN)[at]
+
+
+def registration_cloud(name: str, workdir: Path, table: pa.Table, params: RegisterParams
+                       ) -> tuple[ScanClouds, str | None]:
+    """One scan prepared for registration (:func:`~scanpipe.registration.prepare_scan`) with
+    the grid normals of its filtered points and, with ``positions`` "unsmoothed", fine clouds
+    at the positions of :func:`unsmoothed_points` averaged along their beams
+    (:func:`~scanpipe.registration.plane_projected_points`); and a warning when those
+    positions could not be had (the filtered points are used then)."""
+    from scanpipe.normals import estimate_normals
+
+    normals = estimate_normals(table)[0].astype(np.float64)
+    xyz, origin = _columns(table, XYZ), _columns(table, ORIGIN)
+    warning, fine = None, None
+    if params.positions == "unsmoothed":
+        raw = unsmoothed_points(workdir, table)
+        if raw is None:
+            warning = (f"{name}: the filter's input points (the assemble stage's) are not in "
+                       f"{workdir} or not readable: registered on the smoothed points, which "
+                       "lie mm behind far and oblique surfaces on coarse scans (docs/sites.md)")
+        else:
+            fine = plane_projected_points(raw[0], raw[1], normals,
+                                          table.column("profile").to_numpy(),
+                                          table.column("sample").to_numpy(),
+                                          params.fine_distance_m)
+    return prepare_scan(name, xyz, origin, params, normals, fine), warning
 
 
 def _columns(table: pa.Table, names: Sequence[str]) -> F64:
@@ -198,12 +271,11 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
     loaded = [scan_points(w) for w in workdirs]
     prior = read_prior(prior_path, names) if prior_path is not None else None
     truth = read_true_poses(truth_path) if truth_path is not None else None
-    from scanpipe.normals import estimate_normals
-
-    clouds = [prepare_scan(n, _columns(t, XYZ), _columns(t, ORIGIN), params,
-                           estimate_normals(t)[0])
-              for n, (t, _) in zip(names, loaded, strict=True)]
+    prepared = [registration_cloud(n, w, t, params)
+                for n, w, (t, _) in zip(names, workdirs, loaded, strict=True)]
+    clouds = [cloud for cloud, _ in prepared]
     poses, covs, report = register_scans(clouds, params, prior, progress)
+    report["warnings"] = [w for _, w in prepared if w is not None] + report["warnings"]
     done = [k for k, p in enumerate(poses) if p is not None]
     if len(done) < 2:
         shown = "; ".join(f"{p['target']}–{p['source']}: {p['reason']}"
@@ -212,7 +284,7 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
         raise ArtifactError("register: no two scans could be placed unambiguously ("
                             + shown + (f"; {more} more pairs left out" if more > 0 else "")
                             + ")")
-    key = artifact_key("register", 2, params.model_dump(mode="json"),
+    key = artifact_key("register", 3, params.model_dump(mode="json"),
                        {n: k for n, (_, k) in zip(names, loaded, strict=True)}, {})
     provenance = {"stage": "register", "key": key, "params": params.model_dump(mode="json"),
                   "inputs": [str(w) for w in workdirs], "report": report}
