@@ -23,7 +23,7 @@ from typing import Any, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from scanpipe.texturing.exposure import sample_mean_colour
+from scanpipe.texturing.exposure import sample_pixels
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet, worker_count
 
 F32 = NDArray[np.float32]
@@ -35,6 +35,8 @@ FrameIds = NDArray[np.signedinteger[Any]]
 
 #: Colours this dark or bright are clipped in some channel: no use for gains.
 USABLE_LEVELS = (4.0, 251.0)
+#: Faces :func:`sample_views` projects at once (bounded temporaries per thread).
+SAMPLE_CHUNK = 1 << 18
 #: Faces judged at once by :func:`photometric_outliers` (cache-sized blocks).
 OUTLIER_CHUNK = 1 << 16
 
@@ -56,28 +58,42 @@ class Views:
 
 def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> F32:
     """``(faces, K, 3)`` RGB (8-bit levels, BGR order as decoded) of ``points[f]`` in frame
-    ``frame[f, k]``; NaN where there is no candidate or the point leaves the image."""
+    ``frame[f, k]``; NaN where there is no candidate or the point leaves the image.
+
+    Slot by slot, the faces are grouped by frame (a stable sort of small frame numbers) and
+    each frame's faces are sampled in pieces of :data:`SAMPLE_CHUNK` on a thread per core
+    (a 360° frame holds millions: whole, its projection's temporaries were ~0.5 GB a thread).
+    """
     from scanpipe.texturing.projective import project_valid
 
-    colour = np.full((frame.size, 3), np.nan, dtype=np.float32)
-    flat = frame.ravel()
-    # frame numbers are small: a stable sort of int16 is a radix sort (several times faster)
-    order = np.argsort(flat.astype(np.int16) if len(frames) < 2 ** 15 else flat, kind="stable")
-    bounds = np.searchsorted(flat[order], np.arange(len(frames) + 1))
-
-    def sample_frame(i: int) -> None:
-        cell = order[bounds[i]:bounds[i + 1]]
-        if len(cell) == 0:
-            return
-        cam = frames.cameras[i]
-        uv, _, valid = project_valid(points[cell // frame.shape[1]], cam,
-                                     float(frames.beta_deg[i]), 0.0)
-        colour[cell[valid]] = sample_mean_colour(frames.reduced(i), uv[valid], REDUCED_FACTOR)
-
-    # a frame per thread (decoding and numpy release the GIL; the frames' cells are disjoint)
+    n_faces, k = frame.shape
+    colour = np.full((n_faces, k, 3), np.nan, dtype=np.float32)
     with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
-        list(pool.map(sample_frame, range(len(frames))))
-    return colour.reshape(*frame.shape, 3)
+        # every frame decoded once, before its pieces are spread over the threads
+        used = np.flatnonzero(np.bincount(frame[frame >= 0].astype(np.int64),
+                                          minlength=len(frames)))
+        list(pool.map(frames.reduced, used.tolist()))
+        for slot in range(k):
+            column = frame[:, slot]
+            # frame numbers are small: a stable sort of int16 is a radix sort
+            order = np.argsort(column.astype(np.int16) if len(frames) < 2 ** 15 else column,
+                               kind="stable")
+            bounds = np.searchsorted(column[order], np.arange(len(frames) + 1))
+
+            def sample(piece: tuple[int, int, int], slot: int = slot, order: I64 = order
+                       ) -> None:
+                i, start, stop = piece
+                face = order[start:stop]
+                uv, _, valid = project_valid(points[face], frames.cameras[i],
+                                             float(frames.beta_deg[i]), 0.0)
+                colour[face[valid], slot] = sample_pixels(frames.reduced(i), uv[valid],
+                                                          REDUCED_FACTOR)
+
+            list(pool.map(sample, [(i, start, min(start + SAMPLE_CHUNK, int(bounds[i + 1])))
+                                   for i in range(len(frames))
+                                   for start in range(int(bounds[i]), int(bounds[i + 1]),
+                                                      SAMPLE_CHUNK)]))
+    return colour
 
 
 def overlap_pairs(views: Views, max_pairs: int = 200_000, seed: int = 0
