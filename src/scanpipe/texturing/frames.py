@@ -28,6 +28,7 @@ from scanpipe.motion import beta_deg_at
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import CameraConfig, Rig
 from scanpipe.schema import FRAMES
+from scanpipe.threads import omp_threads
 
 U8 = NDArray[np.uint8]
 F64 = NDArray[np.float64]
@@ -117,10 +118,10 @@ class FrameSet:
 
 def worker_count(items: int, limit: int = 4) -> int:
     """Threads for the texture stage's parallel loops over ``items``: ``OMP_NUM_THREADS`` when
-    set (a batch worker's share of the cores, :func:`scanpipe.batch.worker_threads`), else the
-    CPU count; at most ``limit`` and ``items``, at least 1."""
-    given = os.environ.get("OMP_NUM_THREADS", "")
-    cores = int(given) if given.isdigit() and int(given) > 0 else os.cpu_count() or 1
+    set (:func:`scanpipe.threads.omp_threads`: a batch worker's share of the cores, as
+    :func:`scanpipe.batch.worker_threads` reads it), else the CPU count; at most ``limit`` and
+    ``items``, at least 1."""
+    cores = omp_threads() or os.cpu_count() or 1
     return max(1, min(cores, limit, items))
 
 
