@@ -139,8 +139,8 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
     """
     frame = views.frame
     # a candidate is sampled in all channels or none
-    sampled = np.isfinite(views.colour[:, :, 0])
-    judged = np.flatnonzero(sampled.sum(axis=1) >= 3)
+    sampled = np.isfinite(views.colour[:, :, 0]).sum(axis=1)
+    judged = np.flatnonzero(sampled >= 3)
     outlier = np.zeros(frame.shape, dtype=bool)
     if len(judged) == 0:
         return outlier
@@ -150,13 +150,22 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
         # (faces, channel, candidate) float32: the medians sort short contiguous rows
         sub = np.ascontiguousarray((views.colour[faces] * gains[np.maximum(frame[faces], 0)])
                                    .astype(np.float32).transpose(0, 2, 1))
-        median = nan_median(sub, axis=2)
+        # nan_median with the count known (every face here has ≥ 3 samples, in all channels):
+        # the middle of the sorted finite values, NaNs sorted last
+        rows = np.arange(len(faces))
+        lower, upper = (sampled[faces] - 1) // 2, sampled[faces] // 2
+        ordered = np.sort(sub, axis=2)
+        median = 0.5 * (ordered[rows, :, lower] + ordered[rows, :, upper])  # (faces, channel)
         # the largest channel's deviation, NaN where not sampled
-        deviation = np.abs(sub - median).max(axis=1)
-        mad = nan_median(deviation, axis=1) * 1.4826
+        deviation = np.abs(sub[:, 0] - median[:, :1])
+        for channel in range(1, sub.shape[1]):
+            np.maximum(deviation, np.abs(sub[:, channel] - median[:, channel:channel + 1]),
+                       out=deviation)
+        ordered = np.sort(deviation, axis=1)
+        mad = 0.5 * (ordered[rows, lower] + ordered[rows, upper]) * 1.4826
         limit = np.maximum(outlier_levels, 3 * mad)
         with np.errstate(invalid="ignore"):
-            outlier[faces] = deviation > limit
+            outlier[faces] = deviation > limit[:, None]
 
     # blocks of faces on a thread per core (numpy releases the GIL; each writes its own rows)
     with ThreadPoolExecutor(max_workers=worker_count(-(-len(judged) // OUTLIER_CHUNK))) as pool:
