@@ -83,40 +83,36 @@ class FaceScores:
         """Frames kept per face."""
         return int(self.frame.shape[1])
 
-    def best_first(self) -> FaceScores:
-        """Order every row by score, best first, in place (empty slots last); returns self.
+    def best_first(self, rows: I64 | None = None) -> FaceScores:
+        """Order every row by score, best first (empty slots last): in place, returning self;
+        or, given ``rows`` (a permutation of the faces), into a new one whose row ``rows[k]``
+        is this one's row ``k`` ordered (one pass over the rows for both).
 
         The float32 score's bits (positive: ordered as integers) and the frame's complement
         pack into one int64 key per slot, so a plain sort of each row orders both.
         """
         n_faces, keep = self.frame.shape
+        out = self if rows is None else FaceScores(np.empty_like(self.frame),
+                                                   np.empty_like(self.score))
         if keep == 0:
-            return self
+            return out
         top = np.int64(np.iinfo(np.int32).max)
 
         def order(start: int) -> None:
             stop = min(start + SORT_CHUNK_FACES, n_faces)
+            target = slice(start, stop) if rows is None else rows[start:stop]
             score = self.score[start:stop]
             bits = score.view(np.int32).astype(np.int64)
             key = np.where(score > 0, (bits << 32) | (top - self.frame[start:stop]), 0)
             key = -np.sort(-key, axis=1)  # descending
-            self.score[start:stop] = (key >> 32).astype(np.int32).view(np.float32)
-            self.frame[start:stop] = np.where(key > 0, top - (key & 0xFFFFFFFF), -1)
+            out.score[target] = (key >> 32).astype(np.int32).view(np.float32)
+            out.frame[target] = np.where(key > 0, top - (key & 0xFFFFFFFF), -1)
 
         # blocks of faces on a thread per core (numpy releases the GIL; each its own rows)
         with ThreadPoolExecutor(max_workers=worker_count(-(-n_faces // SORT_CHUNK_FACES))
                                 ) as pool:
             list(pool.map(order, range(0, n_faces, SORT_CHUNK_FACES)))
-        return self
-
-    def reordered(self, rows: I64) -> FaceScores:
-        """A copy whose row ``rows[k]`` is row ``k`` of this (``rows`` a permutation)."""
-        frame, score = np.empty_like(self.frame), np.empty_like(self.score)
-        for start in range(0, len(rows), SORT_CHUNK_FACES):
-            stop = start + SORT_CHUNK_FACES
-            frame[rows[start:stop]] = self.frame[start:stop]
-            score[rows[start:stop]] = self.score[start:stop]
-        return FaceScores(frame, score)
+        return out
 
     def lookup(self, frame: I64, face: I64) -> F32:
         """Score of frame ``frame[i]`` for face ``face[i]`` (0 where not kept or struck)."""
@@ -173,9 +169,10 @@ class BestFrames:
             self._low[redo] = redo * self.keep + slot
             self._floor[redo] = rows[np.arange(len(redo)), slot]
 
-    def result(self) -> FaceScores:
-        """The kept frames, best first (the builder's arrays, not copies)."""
-        return FaceScores(self.frame, self.score).best_first()
+    def result(self, rows: I64 | None = None) -> FaceScores:
+        """The kept frames, best first (the builder's arrays, not copies); given ``rows``, a
+        copy with the builder's row ``k`` as row ``rows[k]`` (:meth:`FaceScores.best_first`)."""
+        return FaceScores(self.frame, self.score).best_first(rows)
 
 
 @lru_cache(maxsize=64)
@@ -346,9 +343,7 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
         vertices, faces, normals, frames, min_cos=min_cos, margin_px=margin_px,
         sharpness_weight=sharpness_weight, two_sided=two_sided, progress=progress,
         centroids=centroids, keep=keep)
-    result = kept.result()
-    del kept
-    return result.reordered(face_ids)
+    return kept.result(face_ids)
 
 
 def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer], normals: F64,
