@@ -13,7 +13,9 @@ views inside the room (over the textured pixels, and over all of the visible sur
 unseen faces as error), both methods, and the CPU seconds (all threads) beside the wall time
 (the machine is shared; CPU time depends far less on the load), in all and per phase of the
 projective method (``phase_s``, ``phase_cpu_s``: frames, score, photometric, ray_scene,
-visibility, icm, patches, seam_strip, atlas, png).
+visibility, icm, patches, seam_strip, atlas, png), and each phase's peak resident memory
+(``phase_peak_rss_mb``: the process's RSS sampled every few ms, so a phase's peak includes
+what earlier phases still hold).
 ``python benchmarks/bench_texture.py [--quick] [--render-scale S]`` prints the figures and
 saves JSON into ``benchmarks/results/``.
 """
@@ -23,7 +25,10 @@ from __future__ import annotations
 import os
 import resource
 import sys
+import threading
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +46,7 @@ from scanpipe.rig import Rig, default_rig, rig_table
 from scanpipe.sim.camera import render_rgb, scaled_camera
 from scanpipe.sim.room import builtin_room
 from scanpipe.sim.scene import Scene
+from scanpipe.stages import texture as texture_module
 from scanpipe.stages.texture import STAGE, TextureParams
 
 T0_NS = 1_700_000_000_000_000_000
@@ -121,6 +127,47 @@ def psnr_db(result: Any, vertices: np.ndarray, faces: np.ndarray, reference: Ref
     return texture_psnr(mesh, reference, views=8, width=320)
 
 
+def _rss_mb() -> float:
+    """The process's resident memory now (Linux: /proc/self/statm), in MB."""
+    with open("/proc/self/statm") as statm:
+        return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+
+
+@contextmanager
+def phase_peaks(interval_s: float = 0.003) -> Iterator[dict[str, float]]:
+    """Each texture phase's peak RSS (MB) while the block runs, by phase name: a thread samples
+    the RSS and the stage's :class:`~scanpipe.stages.texture.PhaseClock` laps close a phase
+    (empty where /proc is missing)."""
+    peaks: dict[str, float] = {}
+    if not os.path.exists("/proc/self/statm"):
+        yield peaks
+        return
+    current = [_rss_mb()]
+    stop = threading.Event()
+
+    def sample() -> None:
+        while not stop.wait(interval_s):
+            current[0] = max(current[0], _rss_mb())
+
+    lap: Callable[[Any, str], None] = texture_module.PhaseClock.lap
+
+    def lap_with_peak(clock: Any, phase: str) -> None:
+        lap(clock, phase)
+        now = _rss_mb()
+        peaks[phase] = round(max(peaks.get(phase, 0.0), current[0], now))
+        current[0] = now
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    setattr(texture_module.PhaseClock, "lap", lap_with_peak)  # noqa: B010
+    try:
+        yield peaks
+    finally:
+        setattr(texture_module.PhaseClock, "lap", lap)  # noqa: B010
+        stop.set()
+        sampler.join()
+
+
 def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any]:
     """Texture a lab-scale mesh from video at the rig's resolution; return the figures."""
     scene = builtin_room()
@@ -153,7 +200,8 @@ def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any
     for method in ("projective", "panorama"):
         params = TextureParams(method=method)  # type: ignore[arg-type]
         wall0, cpu0 = time.perf_counter(), time.process_time()
-        result = STAGE.run(inputs, params)
+        with phase_peaks() as peaks:
+            result = STAGE.run(inputs, params)
         wall_s, cpu_s = time.perf_counter() - wall0, time.process_time() - cpu0
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         report = result.report
@@ -162,6 +210,7 @@ def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any
         figures["methods"][method] = {"seconds": round(wall_s, 2), "cpu_seconds": round(cpu_s, 2),
                                       "phase_s": report.get("phase_s", {}),
                                       "phase_cpu_s": report.get("phase_cpu_s", {}),
+                                      "phase_peak_rss_mb": peaks,
                                       "process_peak_rss_mb": round(peak_mb), **quality,
                                       "report": report}
         rows.append((method, f"{wall_s:.1f} s", f"{cpu_s:.1f} s", f"{peak_mb:.0f} MB",
@@ -175,9 +224,10 @@ def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any
     print(table(rows, ("method", "wall", "CPU", "process peak RSS", "coverage", "untextured",
                        "frames used", "PSNR textured", "PSNR visible")))
     phases = figures["methods"]["projective"]
-    print(table([(name, f"{phases['phase_s'][name]:.2f} s", f"{cpu:.2f} s")
+    print(table([(name, f"{phases['phase_s'][name]:.2f} s", f"{cpu:.2f} s",
+                  f"{phases['phase_peak_rss_mb'].get(name, 0):.0f} MB")
                  for name, cpu in phases["phase_cpu_s"].items()],
-                ("projective phase", "wall", "CPU")))
+                ("projective phase", "wall", "CPU", "peak RSS")))
     return figures
 
 
