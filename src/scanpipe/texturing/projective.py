@@ -92,7 +92,7 @@ class FaceScores:
         pack into one int64 key per slot, so a plain sort of each row orders both.
         """
         n_faces, keep = self.frame.shape
-        out = self if rows is None else FaceScores(np.empty_like(self.frame),
+        out = self if rows is None else FaceScores(np.empty(self.frame.shape, np.int32),
                                                    np.empty_like(self.score))
         if keep == 0:
             return out
@@ -136,11 +136,13 @@ class FaceScores:
 class BestFrames:
     """Keeps each face's best ``keep`` frames while frames are offered one after another
     (:meth:`add`), for :class:`FaceScores`. Per face: the slots filled so far, and once all
-    are, the lowest kept score and its slot: a score must beat it to be kept."""
+    are, the lowest kept score and its slot: a score must beat it to be kept. ``small``: fewer
+    than 2¹⁵ frames, held as int16 (a quarter less memory; :meth:`result` with ``rows`` gives
+    int32 as :class:`FaceScores` holds them)."""
 
-    def __init__(self, n_faces: int, keep: int) -> None:
+    def __init__(self, n_faces: int, keep: int, small: bool = False) -> None:
         self.keep = keep
-        self.frame = np.full((n_faces, keep), -1, dtype=np.int32)
+        self.frame = np.full((n_faces, keep), -1, dtype=np.int16 if small else np.int32)
         self.score = np.zeros((n_faces, keep), dtype=np.float32)
         self._filled = np.zeros(n_faces, dtype=np.int32)
         self._floor = np.zeros(n_faces, dtype=np.float32)  # 0 while a slot is free
@@ -172,6 +174,9 @@ class BestFrames:
     def result(self, rows: I64 | None = None) -> FaceScores:
         """The kept frames, best first (the builder's arrays, not copies); given ``rows``, a
         copy with the builder's row ``k`` as row ``rows[k]`` (:meth:`FaceScores.best_first`)."""
+        # done with: not held through the copy
+        self._filled, self._low = np.zeros(0, np.int32), np.zeros(0, np.int64)
+        self._floor = np.zeros(0, np.float32)
         return FaceScores(self.frame, self.score).best_first(rows)
 
 
@@ -378,7 +383,7 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
     # cos θ = (n·c − n·p) / |c − p| from per-face constants and two dot products per frame
     n_dot_p = sum((normal_of[k] * centre_of[k] for k in range(1, 3)), normal_of[0] * centre_of[0])
     p_squared = sum((centre_of[k] * centre_of[k] for k in range(1, 3)), centre_of[0] * centre_of[0])
-    kept = BestFrames(len(faces), keep)
+    kept = BestFrames(len(faces), keep, small=len(frames) < 2 ** 15)
     scratch = threading.local()  # per thread: u, v and valid of every vertex (azimuth order)
 
     def cosines(a: int, b: int, centre: F32) -> F32:
