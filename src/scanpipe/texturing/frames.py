@@ -170,9 +170,10 @@ _RATED: dict[bytes, float] = {}
 RATED_LIMIT = 1 << 16
 
 
-def _content_key(data: bytes) -> bytes:
-    """The key of an encoded frame in :data:`_RATED`: a digest of its bytes."""
-    return hashlib.blake2b(data, digest_size=16).digest()
+def _content_key(data: bytes | pa.Buffer) -> bytes:
+    """The key of an encoded frame in :data:`_RATED`: a digest of its bytes (read in place from
+    an Arrow buffer: no copy into a Python ``bytes``)."""
+    return hashlib.blake2b(memoryview(data), digest_size=16).digest()
 
 
 def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArray[np.int64],
@@ -183,7 +184,7 @@ def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArr
     (:data:`_RATED`); the first broken frame raises its :class:`StageError`."""
     workers = worker_count(len(rows))
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        keys = list(pool.map(lambda row: _content_key(data[int(row)].as_py()), rows))
+        keys = list(pool.map(lambda row: _content_key(data[int(row)].as_buffer()), rows))
         ratings = {key: _RATED[key] for key in set(keys) if key in _RATED}
         # one row per content not rated yet: identical frames (a still platform) are decoded
         # once, never by two threads at a time
