@@ -18,6 +18,12 @@ visibility, icm, patches, seam_strip, atlas, png), and each phase's peak residen
 what earlier phases still hold).
 ``python benchmarks/bench_texture.py [--quick] [--render-scale S]`` prints the figures and
 saves JSON into ``benchmarks/results/``.
+
+``--lab RUN`` instead textures a finished chain's artifacts (``RUN``: a workdir such as
+``benchmarks/cache/lab-…/runs/default``, read only: the mesh, the decoded frames and motor, the
+calibrated rig) with the default parameters, once, and reports the stage's wall and CPU seconds,
+per phase with each phase's peak RSS, and its coverage and counts
+(``results/texture-lab-<date>.json``): the lab-scale figures of the texture phases.
 """
 
 from __future__ import annotations
@@ -231,6 +237,60 @@ def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any
     return figures
 
 
+#: The artifacts the texture stage reads from a finished chain's workdir.
+LAB_INPUTS = {"mesh_vertices": "mesh/mesh_vertices.parquet",
+              "mesh_faces": "mesh/mesh_faces.parquet", "frames": "decode/frames.parquet",
+              "motor": "decode/motor.parquet", "rig": "calibrate/rig.parquet"}
+
+
+def run_lab(run_dir: Path) -> dict[str, Any]:
+    """Texture a finished chain's mesh from its frames once (the default parameters): wall,
+    CPU and peak RSS in all and per phase, and the report's coverage and counts."""
+    import pyarrow.parquet as pq
+
+    missing = [name for name in LAB_INPUTS.values() if not (run_dir / name).is_file()]
+    if missing:
+        sys.exit(f"bench_texture: {run_dir} lacks {', '.join(missing)} (a finished chain's "
+                 "workdir, e.g. benchmarks/cache/lab-…/runs/default)")
+    inputs = {key: pq.read_table(run_dir / name) for key, name in LAB_INPUTS.items()}
+    rss_before = _rss_mb()
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    with phase_peaks() as peaks:
+        result = STAGE.run(inputs, TextureParams())
+    wall_s, cpu_s = time.perf_counter() - wall0, time.process_time() - cpu0
+    report = result.report
+    kept = ("coverage", "faces", "faces_textured", "frames_considered", "frames_used",
+            "occluded_candidates", "rays_cast", "exposure_pairs", "photometric_outliers",
+            "faces_multiview", "seam_edges", "gain_min", "gain_max")
+    figures: dict[str, Any] = {
+        "run": str(run_dir), "seconds": round(wall_s, 2), "cpu_seconds": round(cpu_s, 2),
+        "rss_before_mb": round(rss_before),
+        "process_peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+        "phase_s": report.get("phase_s", {}), "phase_cpu_s": report.get("phase_cpu_s", {}),
+        "phase_peak_rss_mb": peaks, **{k: report[k] for k in kept if k in report},
+        "load_average": os.getloadavg()}
+    print(f"texture of {run_dir}: {wall_s:.1f} s wall, {cpu_s:.1f} s CPU, process peak RSS "
+          f"{figures['process_peak_rss_mb']} MB (inputs held: {rss_before:.0f} MB), coverage "
+          f"{report.get('coverage')}")
+    print(table([(name, f"{figures['phase_s'][name]:.2f} s", f"{cpu:.2f} s",
+                  f"{peaks.get(name, 0):.0f} MB")
+                 for name, cpu in figures["phase_cpu_s"].items()],
+                ("phase", "wall", "CPU", "peak RSS")))
+    return figures
+
+
+def _lab_option() -> Path | None:
+    """``--lab RUN`` taken off the command line."""
+    if "--lab" not in sys.argv:
+        return None
+    at = sys.argv.index("--lab")
+    if at + 1 >= len(sys.argv):
+        sys.exit("bench_texture: --lab needs a workdir of a finished chain")
+    value = Path(sys.argv[at + 1])
+    del sys.argv[at:at + 2]
+    return value
+
+
 def _render_scale_option() -> float | None:
     """``--render-scale S`` taken off the command line (the shared harness knows --quick)."""
     if "--render-scale" not in sys.argv:
@@ -247,6 +307,14 @@ def _render_scale_option() -> float | None:
 
 
 if __name__ == "__main__":
+    LAB = _lab_option()
+    if LAB is not None:
+        import datetime as dt
+
+        from harness import save
+
+        print(f"saved {save(run_lab(LAB), f'texture-lab-{dt.date.today().isoformat()}')}")
+        sys.exit(0)
     SCALE = _render_scale_option()
     cli("texture", lambda quick: run(quick, SCALE), __doc__ or "",
         "a coarser mesh and 2 s of video")
