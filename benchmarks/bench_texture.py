@@ -150,18 +150,21 @@ def phase_peaks(interval_s: float = 0.003) -> Iterator[dict[str, float]]:
         return
     current = [_rss_mb()]
     stop = threading.Event()
+    lock = threading.Lock()  # a sample taken before a lap must not land in the next phase
 
     def sample() -> None:
         while not stop.wait(interval_s):
-            current[0] = max(current[0], _rss_mb())
+            with lock:
+                current[0] = max(current[0], _rss_mb())
 
     lap: Callable[[Any, str], None] = texture_module.PhaseClock.lap
 
     def lap_with_peak(clock: Any, phase: str) -> None:
         lap(clock, phase)
-        now = _rss_mb()
-        peaks[phase] = round(max(peaks.get(phase, 0.0), current[0], now))
-        current[0] = now
+        with lock:
+            now = _rss_mb()
+            peaks[phase] = round(max(peaks.get(phase, 0.0), current[0], now))
+            current[0] = now
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
