@@ -307,15 +307,13 @@ def resolution_weights(cameras: list[CameraConfig]) -> F64:
     return res / res.max() if len(res) else res
 
 
-def wraps(uv: F64, cam: CameraConfig) -> NDArray[np.bool_]:
-    """Faces (corner pixels ``(k, 3, 2)``, or only their u ``(k, 3, 1)``) that cross an
-    equirect image's left/right wrap (or sit so near a pole that they spread across a quarter
-    of it): they cannot be cut from it."""
+def wraps(u0: F64, u1: F64, u2: F64, cam: CameraConfig) -> NDArray[np.bool_]:
+    """Faces (their corners' image columns ``u0``, ``u1``, ``u2``) that cross an equirect
+    image's left/right wrap (or sit so near a pole that they spread across a quarter of it):
+    they cannot be cut from it (none for a pinhole camera)."""
     if cam.model != "equirect":
-        return np.zeros(len(uv), dtype=bool)
-    u = uv[:, :, 0]
-    spread = np.maximum(np.maximum(u[:, 0], u[:, 1]), u[:, 2]) - np.minimum(
-        np.minimum(u[:, 0], u[:, 1]), u[:, 2])
+        return np.zeros(len(u0), dtype=bool)
+    spread = np.maximum(np.maximum(u0, u1), u2) - np.minimum(np.minimum(u0, u1), u2)
     return np.asarray(spread > cam.width / 4)
 
 
@@ -441,10 +439,7 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
             c0, c1, c2 = (corner[a:b][facing] for corner in corners)
             inside = valid[c0] & valid[c1] & valid[c2]
             if cam.model == "equirect":
-                u0, u1, u2 = u[c0], u[c1], u[c2]
-                # wraps(): the corners spread across more than a quarter of the image
-                spread = np.maximum(np.maximum(u0, u1), u2) - np.minimum(np.minimum(u0, u1), u2)
-                inside &= spread <= cam.width / 4
+                inside &= ~wraps(u[c0], u[c1], u[c2], cam)
                 facing = facing[inside]
                 score = cos[facing] * weight
             else:
