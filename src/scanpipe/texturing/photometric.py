@@ -69,16 +69,14 @@ def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> F32:
     n_faces, k = frame.shape
     colour = np.full((n_faces, k, 3), np.nan, dtype=np.float32)
     with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
-        # every frame decoded once, before its pieces are spread over the threads
-        used = np.flatnonzero(np.bincount(frame[frame >= 0].astype(np.int64),
-                                          minlength=len(frames)))
-        list(pool.map(frames.reduced, used.tolist()))
         for slot in range(k):
             column = frame[:, slot]
             # frame numbers are small: a stable sort of int16 is a radix sort
             order = np.argsort(column.astype(np.int16) if len(frames) < 2 ** 15 else column,
                                kind="stable")
             bounds = np.searchsorted(column[order], np.arange(len(frames) + 1))
+            # each frame decoded once (kept), before its pieces are spread over the threads
+            list(pool.map(frames.reduced, np.flatnonzero(np.diff(bounds)).tolist()))
 
             def sample(piece: tuple[int, int, int], slot: int = slot, order: I64 = order
                        ) -> None:
