@@ -13,9 +13,17 @@ views inside the room (over the textured pixels, and over all of the visible sur
 unseen faces as error), both methods, and the CPU seconds (all threads) beside the wall time
 (the machine is shared; CPU time depends far less on the load), in all and per phase of the
 projective method (``phase_s``, ``phase_cpu_s``: frames, score, photometric, ray_scene,
-visibility, icm, patches, seam_strip, atlas, png).
+visibility, icm, patches, seam_strip, atlas, png), and each phase's peak resident memory
+(``phase_peak_rss_mb``: the process's RSS sampled every few ms, so a phase's peak includes
+what earlier phases still hold).
 ``python benchmarks/bench_texture.py [--quick] [--render-scale S]`` prints the figures and
 saves JSON into ``benchmarks/results/``.
+
+``--lab RUN`` instead textures a finished chain's artifacts (``RUN``: a workdir such as
+``benchmarks/cache/lab-…/runs/default``, read only: the mesh, the decoded frames and motor, the
+calibrated rig) with the default parameters, once, and reports the stage's wall and CPU seconds,
+per phase with each phase's peak RSS, and its coverage and counts
+(``results/texture-lab-<date>.json``): the lab-scale figures of the texture phases.
 """
 
 from __future__ import annotations
@@ -23,7 +31,10 @@ from __future__ import annotations
 import os
 import resource
 import sys
+import threading
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +52,7 @@ from scanpipe.rig import Rig, default_rig, rig_table
 from scanpipe.sim.camera import render_rgb, scaled_camera
 from scanpipe.sim.room import builtin_room
 from scanpipe.sim.scene import Scene
+from scanpipe.stages import texture as texture_module
 from scanpipe.stages.texture import STAGE, TextureParams
 
 T0_NS = 1_700_000_000_000_000_000
@@ -121,6 +133,50 @@ def psnr_db(result: Any, vertices: np.ndarray, faces: np.ndarray, reference: Ref
     return texture_psnr(mesh, reference, views=8, width=320)
 
 
+def _rss_mb() -> float:
+    """The process's resident memory now (Linux: /proc/self/statm), in MB."""
+    with open("/proc/self/statm") as statm:
+        return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+
+
+@contextmanager
+def phase_peaks(interval_s: float = 0.003) -> Iterator[dict[str, float]]:
+    """Each texture phase's peak RSS (MB) while the block runs, by phase name: a thread samples
+    the RSS and the stage's :class:`~scanpipe.stages.texture.PhaseClock` laps close a phase
+    (empty where /proc is missing)."""
+    peaks: dict[str, float] = {}
+    if not os.path.exists("/proc/self/statm"):
+        yield peaks
+        return
+    current = [_rss_mb()]
+    stop = threading.Event()
+    lock = threading.Lock()  # a sample taken before a lap must not land in the next phase
+
+    def sample() -> None:
+        while not stop.wait(interval_s):
+            with lock:
+                current[0] = max(current[0], _rss_mb())
+
+    lap: Callable[[Any, str], None] = texture_module.PhaseClock.lap
+
+    def lap_with_peak(clock: Any, phase: str) -> None:
+        lap(clock, phase)
+        with lock:
+            now = _rss_mb()
+            peaks[phase] = round(max(peaks.get(phase, 0.0), current[0], now))
+            current[0] = now
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    setattr(texture_module.PhaseClock, "lap", lap_with_peak)  # noqa: B010
+    try:
+        yield peaks
+    finally:
+        setattr(texture_module.PhaseClock, "lap", lap)  # noqa: B010
+        stop.set()
+        sampler.join()
+
+
 def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any]:
     """Texture a lab-scale mesh from video at the rig's resolution; return the figures."""
     scene = builtin_room()
@@ -153,7 +209,8 @@ def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any
     for method in ("projective", "panorama"):
         params = TextureParams(method=method)  # type: ignore[arg-type]
         wall0, cpu0 = time.perf_counter(), time.process_time()
-        result = STAGE.run(inputs, params)
+        with phase_peaks() as peaks:
+            result = STAGE.run(inputs, params)
         wall_s, cpu_s = time.perf_counter() - wall0, time.process_time() - cpu0
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
         report = result.report
@@ -162,6 +219,7 @@ def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any
         figures["methods"][method] = {"seconds": round(wall_s, 2), "cpu_seconds": round(cpu_s, 2),
                                       "phase_s": report.get("phase_s", {}),
                                       "phase_cpu_s": report.get("phase_cpu_s", {}),
+                                      "phase_peak_rss_mb": peaks,
                                       "process_peak_rss_mb": round(peak_mb), **quality,
                                       "report": report}
         rows.append((method, f"{wall_s:.1f} s", f"{cpu_s:.1f} s", f"{peak_mb:.0f} MB",
@@ -175,10 +233,65 @@ def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any
     print(table(rows, ("method", "wall", "CPU", "process peak RSS", "coverage", "untextured",
                        "frames used", "PSNR textured", "PSNR visible")))
     phases = figures["methods"]["projective"]
-    print(table([(name, f"{phases['phase_s'][name]:.2f} s", f"{cpu:.2f} s")
+    print(table([(name, f"{phases['phase_s'][name]:.2f} s", f"{cpu:.2f} s",
+                  f"{phases['phase_peak_rss_mb'].get(name, 0):.0f} MB")
                  for name, cpu in phases["phase_cpu_s"].items()],
-                ("projective phase", "wall", "CPU")))
+                ("projective phase", "wall", "CPU", "peak RSS")))
     return figures
+
+
+#: The artifacts the texture stage reads from a finished chain's workdir.
+LAB_INPUTS = {"mesh_vertices": "mesh/mesh_vertices.parquet",
+              "mesh_faces": "mesh/mesh_faces.parquet", "frames": "decode/frames.parquet",
+              "motor": "decode/motor.parquet", "rig": "calibrate/rig.parquet"}
+
+
+def run_lab(run_dir: Path) -> dict[str, Any]:
+    """Texture a finished chain's mesh from its frames once (the default parameters): wall,
+    CPU and peak RSS in all and per phase, and the report's coverage and counts."""
+    import pyarrow.parquet as pq
+
+    missing = [name for name in LAB_INPUTS.values() if not (run_dir / name).is_file()]
+    if missing:
+        sys.exit(f"bench_texture: {run_dir} lacks {', '.join(missing)} (a finished chain's "
+                 "workdir, e.g. benchmarks/cache/lab-…/runs/default)")
+    inputs = {key: pq.read_table(run_dir / name) for key, name in LAB_INPUTS.items()}
+    rss_before = _rss_mb()
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    with phase_peaks() as peaks:
+        result = STAGE.run(inputs, TextureParams())
+    wall_s, cpu_s = time.perf_counter() - wall0, time.process_time() - cpu0
+    report = result.report
+    kept = ("coverage", "faces", "faces_textured", "frames_considered", "frames_used",
+            "occluded_candidates", "rays_cast", "exposure_pairs", "photometric_outliers",
+            "faces_multiview", "seam_edges", "gain_min", "gain_max")
+    figures: dict[str, Any] = {
+        "run": str(run_dir), "seconds": round(wall_s, 2), "cpu_seconds": round(cpu_s, 2),
+        "rss_before_mb": round(rss_before),
+        "process_peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
+        "phase_s": report.get("phase_s", {}), "phase_cpu_s": report.get("phase_cpu_s", {}),
+        "phase_peak_rss_mb": peaks, **{k: report[k] for k in kept if k in report},
+        "load_average": os.getloadavg()}
+    print(f"texture of {run_dir}: {wall_s:.1f} s wall, {cpu_s:.1f} s CPU, process peak RSS "
+          f"{figures['process_peak_rss_mb']} MB (inputs held: {rss_before:.0f} MB), coverage "
+          f"{report.get('coverage')}")
+    print(table([(name, f"{figures['phase_s'][name]:.2f} s", f"{cpu:.2f} s",
+                  f"{peaks.get(name, 0):.0f} MB")
+                 for name, cpu in figures["phase_cpu_s"].items()],
+                ("phase", "wall", "CPU", "peak RSS")))
+    return figures
+
+
+def _lab_option() -> Path | None:
+    """``--lab RUN`` taken off the command line."""
+    if "--lab" not in sys.argv:
+        return None
+    at = sys.argv.index("--lab")
+    if at + 1 >= len(sys.argv):
+        sys.exit("bench_texture: --lab needs a workdir of a finished chain")
+    value = Path(sys.argv[at + 1])
+    del sys.argv[at:at + 2]
+    return value
 
 
 def _render_scale_option() -> float | None:
@@ -197,6 +310,14 @@ def _render_scale_option() -> float | None:
 
 
 if __name__ == "__main__":
+    LAB = _lab_option()
+    if LAB is not None:
+        import datetime as dt
+
+        from harness import save
+
+        print(f"saved {save(run_lab(LAB), f'texture-lab-{dt.date.today().isoformat()}')}")
+        sys.exit(0)
     SCALE = _render_scale_option()
     cli("texture", lambda quick: run(quick, SCALE), __doc__ or "",
         "a coarser mesh and 2 s of video")

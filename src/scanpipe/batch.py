@@ -50,6 +50,7 @@ from scanpipe.params import Params
 from scanpipe.pipeline import RunRecord, chain_step, check_recording, run_chain
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.stages import chain_stages, get_stage
+from scanpipe.threads import omp_threads
 from scanpipe.workdir import DEFAULT_LOCK_WAIT_S
 
 ENGINES = ("local", "ray")
@@ -284,9 +285,9 @@ def worker_threads(workers: int, threads: int | None) -> int:
     CPUs shared out among the workers (so 1 worker gets every core's threads)."""
     if threads is not None:
         return threads
-    given = os.environ.get("OMP_NUM_THREADS", "")
-    if given.isdigit() and int(given) > 0:
-        return int(given)
+    given = omp_threads()
+    if given is not None:
+        return given
     return max(1, (os.cpu_count() or 1) // workers)
 
 

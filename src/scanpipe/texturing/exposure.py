@@ -49,10 +49,18 @@ def shrink(image: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:
 
 def sample_mean_colour(small: NDArray[np.uint8], uv: F64, factor: int) -> F64:
     """Colours at full-size pixel positions ``uv`` from an image shrunk by ``factor``."""
+    return np.asarray(sample_pixels(small, uv, factor), dtype=np.float64)
+
+
+def sample_pixels(small: NDArray[np.uint8], uv: F64, factor: int) -> NDArray[np.uint8]:
+    """:func:`sample_mean_colour` as the image's own uint8 pixels, ``(n, channels)`` (``(n,)``
+    from a one-channel image): one flat look-up per point."""
     h, w = small.shape[:2]
     col = np.clip(np.floor((uv[:, 0] + 0.5) / factor), 0, w - 1).astype(np.int64)
     row = np.clip(np.floor((uv[:, 1] + 0.5) / factor), 0, h - 1).astype(np.int64)
-    return np.asarray(small[row, col], dtype=np.float64)
+    row *= w
+    row += col
+    return np.asarray(small.reshape(h * w, *small.shape[2:])[row])
 
 
 def solve_gains(frame_a: I64, frame_b: I64, colour_a: F64, colour_b: F64, n_frames: int,

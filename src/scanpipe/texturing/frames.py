@@ -28,6 +28,7 @@ from scanpipe.motion import beta_deg_at
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import CameraConfig, Rig
 from scanpipe.schema import FRAMES
+from scanpipe.threads import omp_threads
 
 U8 = NDArray[np.uint8]
 F64 = NDArray[np.float64]
@@ -117,10 +118,10 @@ class FrameSet:
 
 def worker_count(items: int, limit: int = 4) -> int:
     """Threads for the texture stage's parallel loops over ``items``: ``OMP_NUM_THREADS`` when
-    set (a batch worker's share of the cores, :func:`scanpipe.batch.worker_threads`), else the
-    CPU count; at most ``limit`` and ``items``, at least 1."""
-    given = os.environ.get("OMP_NUM_THREADS", "")
-    cores = int(given) if given.isdigit() and int(given) > 0 else os.cpu_count() or 1
+    set (:func:`scanpipe.threads.omp_threads`: a batch worker's share of the cores, as
+    :func:`scanpipe.batch.worker_threads` reads it), else the CPU count; at most ``limit`` and
+    ``items``, at least 1."""
+    cores = omp_threads() or os.cpu_count() or 1
     return max(1, min(cores, limit, items))
 
 
@@ -169,9 +170,10 @@ _RATED: dict[bytes, float] = {}
 RATED_LIMIT = 1 << 16
 
 
-def _content_key(data: bytes) -> bytes:
-    """The key of an encoded frame in :data:`_RATED`: a digest of its bytes."""
-    return hashlib.blake2b(data, digest_size=16).digest()
+def _content_key(data: bytes | pa.Buffer) -> bytes:
+    """The key of an encoded frame in :data:`_RATED`: a digest of its bytes (read in place from
+    an Arrow buffer: no copy into a Python ``bytes``)."""
+    return hashlib.blake2b(memoryview(data), digest_size=16).digest()
 
 
 def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArray[np.int64],
@@ -182,7 +184,7 @@ def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArr
     (:data:`_RATED`); the first broken frame raises its :class:`StageError`."""
     workers = worker_count(len(rows))
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        keys = list(pool.map(lambda row: _content_key(data[int(row)].as_py()), rows))
+        keys = list(pool.map(lambda row: _content_key(data[int(row)].as_buffer()), rows))
         ratings = {key: _RATED[key] for key in set(keys) if key in _RATED}
         # one row per content not rated yet: identical frames (a still platform) are decoded
         # once, never by two threads at a time

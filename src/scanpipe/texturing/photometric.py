@@ -23,7 +23,7 @@ from typing import Any, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from scanpipe.texturing.exposure import sample_mean_colour
+from scanpipe.texturing.exposure import sample_pixels
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet, worker_count
 
 F32 = NDArray[np.float32]
@@ -35,6 +35,8 @@ FrameIds = NDArray[np.signedinteger[Any]]
 
 #: Colours this dark or bright are clipped in some channel: no use for gains.
 USABLE_LEVELS = (4.0, 251.0)
+#: Faces :func:`sample_views` projects at once (bounded temporaries per thread).
+SAMPLE_CHUNK = 1 << 18
 #: Faces judged at once by :func:`photometric_outliers` (cache-sized blocks).
 OUTLIER_CHUNK = 1 << 16
 
@@ -56,28 +58,40 @@ class Views:
 
 def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> F32:
     """``(faces, K, 3)`` RGB (8-bit levels, BGR order as decoded) of ``points[f]`` in frame
-    ``frame[f, k]``; NaN where there is no candidate or the point leaves the image."""
+    ``frame[f, k]``; NaN where there is no candidate or the point leaves the image.
+
+    Slot by slot, the faces are grouped by frame (a stable sort of small frame numbers) and
+    each frame's faces are sampled in pieces of :data:`SAMPLE_CHUNK` on a thread per core
+    (a 360° frame holds millions: whole, its projection's temporaries were ~0.5 GB a thread).
+    """
     from scanpipe.texturing.projective import project_valid
 
-    colour = np.full((frame.size, 3), np.nan, dtype=np.float32)
-    flat = frame.ravel()
-    # frame numbers are small: a stable sort of int16 is a radix sort (several times faster)
-    order = np.argsort(flat.astype(np.int16) if len(frames) < 2 ** 15 else flat, kind="stable")
-    bounds = np.searchsorted(flat[order], np.arange(len(frames) + 1))
-
-    def sample_frame(i: int) -> None:
-        cell = order[bounds[i]:bounds[i + 1]]
-        if len(cell) == 0:
-            return
-        cam = frames.cameras[i]
-        uv, _, valid = project_valid(points[cell // frame.shape[1]], cam,
-                                     float(frames.beta_deg[i]), 0.0)
-        colour[cell[valid]] = sample_mean_colour(frames.reduced(i), uv[valid], REDUCED_FACTOR)
-
-    # a frame per thread (decoding and numpy release the GIL; the frames' cells are disjoint)
+    n_faces, k = frame.shape
+    colour = np.full((n_faces, k, 3), np.nan, dtype=np.float32)
     with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
-        list(pool.map(sample_frame, range(len(frames))))
-    return colour.reshape(*frame.shape, 3)
+        for slot in range(k):
+            column = frame[:, slot]
+            # frame numbers are small: a stable sort of int16 is a radix sort
+            order = np.argsort(column.astype(np.int16) if len(frames) < 2 ** 15 else column,
+                               kind="stable")
+            bounds = np.searchsorted(column[order], np.arange(len(frames) + 1))
+            # each frame decoded once (kept), before its pieces are spread over the threads
+            list(pool.map(frames.reduced, np.flatnonzero(np.diff(bounds)).tolist()))
+
+            def sample(piece: tuple[int, int, int], slot: int = slot, order: I64 = order
+                       ) -> None:
+                i, start, stop = piece
+                face = order[start:stop]
+                uv, _, valid = project_valid(points[face], frames.cameras[i],
+                                             float(frames.beta_deg[i]), 0.0)
+                colour[face[valid], slot] = sample_pixels(frames.reduced(i), uv[valid],
+                                                          REDUCED_FACTOR)
+
+            list(pool.map(sample, [(i, start, min(start + SAMPLE_CHUNK, int(bounds[i + 1])))
+                                   for i in range(len(frames))
+                                   for start in range(int(bounds[i]), int(bounds[i + 1]),
+                                                      SAMPLE_CHUNK)]))
+    return colour
 
 
 def overlap_pairs(views: Views, max_pairs: int = 200_000, seed: int = 0
@@ -123,8 +137,8 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
     """
     frame = views.frame
     # a candidate is sampled in all channels or none
-    sampled = np.isfinite(views.colour[:, :, 0])
-    judged = np.flatnonzero(sampled.sum(axis=1) >= 3)
+    sampled = np.isfinite(views.colour[:, :, 0]).sum(axis=1)
+    judged = np.flatnonzero(sampled >= 3)
     outlier = np.zeros(frame.shape, dtype=bool)
     if len(judged) == 0:
         return outlier
@@ -134,13 +148,22 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
         # (faces, channel, candidate) float32: the medians sort short contiguous rows
         sub = np.ascontiguousarray((views.colour[faces] * gains[np.maximum(frame[faces], 0)])
                                    .astype(np.float32).transpose(0, 2, 1))
-        median = nan_median(sub, axis=2)
+        # nan_median with the count known (every face here has ≥ 3 samples, in all channels):
+        # the middle of the sorted finite values, NaNs sorted last
+        rows = np.arange(len(faces))
+        lower, upper = (sampled[faces] - 1) // 2, sampled[faces] // 2
+        ordered = np.sort(sub, axis=2)
+        median = 0.5 * (ordered[rows, :, lower] + ordered[rows, :, upper])  # (faces, channel)
         # the largest channel's deviation, NaN where not sampled
-        deviation = np.abs(sub - median).max(axis=1)
-        mad = nan_median(deviation, axis=1) * 1.4826
+        deviation = np.abs(sub[:, 0] - median[:, :1])
+        for channel in range(1, sub.shape[1]):
+            np.maximum(deviation, np.abs(sub[:, channel] - median[:, channel:channel + 1]),
+                       out=deviation)
+        ordered = np.sort(deviation, axis=1)
+        mad = 0.5 * (ordered[rows, lower] + ordered[rows, upper]) * 1.4826
         limit = np.maximum(outlier_levels, 3 * mad)
         with np.errstate(invalid="ignore"):
-            outlier[faces] = deviation > limit
+            outlier[faces] = deviation > limit[:, None]
 
     # blocks of faces on a thread per core (numpy releases the GIL; each writes its own rows)
     with ThreadPoolExecutor(max_workers=worker_count(-(-len(judged) // OUTLIER_CHUNK))) as pool:

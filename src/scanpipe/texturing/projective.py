@@ -83,31 +83,36 @@ class FaceScores:
         """Frames kept per face."""
         return int(self.frame.shape[1])
 
-    def best_first(self) -> FaceScores:
-        """Order every row by score, best first, in place (empty slots last); returns self.
+    def best_first(self, rows: I64 | None = None) -> FaceScores:
+        """Order every row by score, best first (empty slots last): in place, returning self;
+        or, given ``rows`` (a permutation of the faces), into a new one whose row ``rows[k]``
+        is this one's row ``k`` ordered (one pass over the rows for both).
 
         The float32 score's bits (positive: ordered as integers) and the frame's complement
         pack into one int64 key per slot, so a plain sort of each row orders both.
         """
         n_faces, keep = self.frame.shape
+        out = self if rows is None else FaceScores(np.empty(self.frame.shape, np.int32),
+                                                   np.empty_like(self.score))
         if keep == 0:
-            return self
+            return out
         top = np.int64(np.iinfo(np.int32).max)
 
         def order(start: int) -> None:
             stop = min(start + SORT_CHUNK_FACES, n_faces)
+            target = slice(start, stop) if rows is None else rows[start:stop]
             score = self.score[start:stop]
             bits = score.view(np.int32).astype(np.int64)
             key = np.where(score > 0, (bits << 32) | (top - self.frame[start:stop]), 0)
             key = -np.sort(-key, axis=1)  # descending
-            self.score[start:stop] = (key >> 32).astype(np.int32).view(np.float32)
-            self.frame[start:stop] = np.where(key > 0, top - (key & 0xFFFFFFFF), -1)
+            out.score[target] = (key >> 32).astype(np.int32).view(np.float32)
+            out.frame[target] = np.where(key > 0, top - (key & 0xFFFFFFFF), -1)
 
         # blocks of faces on a thread per core (numpy releases the GIL; each its own rows)
         with ThreadPoolExecutor(max_workers=worker_count(-(-n_faces // SORT_CHUNK_FACES))
                                 ) as pool:
             list(pool.map(order, range(0, n_faces, SORT_CHUNK_FACES)))
-        return self
+        return out
 
     def lookup(self, frame: I64, face: I64) -> F32:
         """Score of frame ``frame[i]`` for face ``face[i]`` (0 where not kept or struck)."""
@@ -131,11 +136,13 @@ class FaceScores:
 class BestFrames:
     """Keeps each face's best ``keep`` frames while frames are offered one after another
     (:meth:`add`), for :class:`FaceScores`. Per face: the slots filled so far, and once all
-    are, the lowest kept score and its slot: a score must beat it to be kept."""
+    are, the lowest kept score and its slot: a score must beat it to be kept. ``small``: fewer
+    than 2¹⁵ frames, held as int16 (a quarter less memory; :meth:`result` with ``rows`` gives
+    int32 as :class:`FaceScores` holds them)."""
 
-    def __init__(self, n_faces: int, keep: int) -> None:
+    def __init__(self, n_faces: int, keep: int, small: bool = False) -> None:
         self.keep = keep
-        self.frame = np.full((n_faces, keep), -1, dtype=np.int32)
+        self.frame = np.full((n_faces, keep), -1, dtype=np.int16 if small else np.int32)
         self.score = np.zeros((n_faces, keep), dtype=np.float32)
         self._filled = np.zeros(n_faces, dtype=np.int32)
         self._floor = np.zeros(n_faces, dtype=np.float32)  # 0 while a slot is free
@@ -164,9 +171,13 @@ class BestFrames:
             self._low[redo] = redo * self.keep + slot
             self._floor[redo] = rows[np.arange(len(redo)), slot]
 
-    def result(self) -> FaceScores:
-        """The kept frames, best first (the builder's arrays, not copies)."""
-        return FaceScores(self.frame, self.score).best_first()
+    def result(self, rows: I64 | None = None) -> FaceScores:
+        """The kept frames, best first (the builder's arrays, not copies); given ``rows``, a
+        copy with the builder's row ``k`` as row ``rows[k]`` (:meth:`FaceScores.best_first`)."""
+        # done with: not held through the copy
+        self._filled, self._low = np.zeros(0, np.int32), np.zeros(0, np.int64)
+        self._floor = np.zeros(0, np.float32)
+        return FaceScores(self.frame, self.score).best_first(rows)
 
 
 @lru_cache(maxsize=64)
@@ -211,8 +222,12 @@ def centrality(uv: F64, cam: CameraConfig) -> F64:
     direction, and more across near the poles)."""
     if cam.model == "equirect":
         return np.ones(len(uv))
-    rr = (((uv[:, 0] - cam.cx) / (cam.width / 2)) ** 2
-          + ((uv[:, 1] - cam.cy) / (cam.height / 2)) ** 2)
+    return pinhole_centrality(uv[:, 0], uv[:, 1], cam)
+
+
+def pinhole_centrality(u: F64, v: F64, cam: CameraConfig) -> F64:
+    """:func:`centrality` of a pinhole camera from the pixel columns ``u`` and ``v``."""
+    rr = ((u - cam.cx) / (cam.width / 2)) ** 2 + ((v - cam.cy) / (cam.height / 2)) ** 2
     return np.asarray(np.clip(1.0 - 0.5 * rr, 0.05, 1.0))
 
 
@@ -292,15 +307,13 @@ def resolution_weights(cameras: list[CameraConfig]) -> F64:
     return res / res.max() if len(res) else res
 
 
-def wraps(uv: F64, cam: CameraConfig) -> NDArray[np.bool_]:
-    """Faces (corner pixels ``(k, 3, 2)``, or only their u ``(k, 3, 1)``) that cross an
-    equirect image's left/right wrap (or sit so near a pole that they spread across a quarter
-    of it): they cannot be cut from it."""
+def wraps(u0: F64, u1: F64, u2: F64, cam: CameraConfig) -> NDArray[np.bool_]:
+    """Faces (their corners' image columns ``u0``, ``u1``, ``u2``) that cross an equirect
+    image's left/right wrap (or sit so near a pole that they spread across a quarter of it):
+    they cannot be cut from it (none for a pinhole camera)."""
     if cam.model != "equirect":
-        return np.zeros(len(uv), dtype=bool)
-    u = uv[:, :, 0]
-    spread = np.maximum(np.maximum(u[:, 0], u[:, 1]), u[:, 2]) - np.minimum(
-        np.minimum(u[:, 0], u[:, 1]), u[:, 2])
+        return np.zeros(len(u0), dtype=bool)
+    spread = np.maximum(np.maximum(u0, u1), u2) - np.minimum(np.minimum(u0, u1), u2)
     return np.asarray(spread > cam.width / 4)
 
 
@@ -318,54 +331,95 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
 
     ``keep``: the texture stage passes ``max_views + max_candidates``, every frame a face's
     later steps read but ICM's (which then may move a face only to one of these frames). The
-    frames are scored on threads, a frame each, and offered to :class:`FaceScores` in frame
+    frames are scored on threads, a frame each, and offered to :class:`BestFrames` in frame
     order on this thread (the result does not depend on the threads).
 
     Per frame only the vertices and faces within the camera's azimuth window (plus those near
     the axis, where the camera's offset from the axis matters) are looked at. Vertices and
     faces are renumbered by azimuth once, so that a window is a few contiguous slices of
-    every per-face array (no gathers of the face data per frame; this loop is a large share
-    of the stage).
+    every per-face array, and the kept frames are gathered in that order too (a frame's faces
+    then fill contiguous rows); they are put back in face order at the end.
     """
+    # the per-face arrays of the loop are gone before the kept frames are put back in face
+    # order (a copy)
+    kept, face_ids = _kept_by_azimuth(
+        vertices, faces, normals, frames, min_cos=min_cos, margin_px=margin_px,
+        sharpness_weight=sharpness_weight, two_sided=two_sided, progress=progress,
+        centroids=centroids, keep=keep)
+    return kept.result(face_ids)
+
+
+def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer], normals: F64,
+                     frames: FrameSet, *, min_cos: float, margin_px: float,
+                     sharpness_weight: float, two_sided: bool, progress: ProgressFn,
+                     centroids: F64 | None, keep: int) -> tuple[BestFrames, I64]:
+    """:func:`face_scores`' frames kept for the faces in azimuth order, and the face of each
+    row (:attr:`AzimuthIndex.order`)."""
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     sharp = frames.relative_sharpness() ** sharpness_weight * resolution_weights(frames.cameras)
-    kept = BestFrames(len(faces), keep)
-    offset = max((math.hypot(c.pose.translation_m[0], c.pose.translation_m[2])
-                  for c in frames.cameras), default=0.0)
-    near_m = 4 * offset + 0.3
-    parallax_deg = math.degrees(math.asin(offset / near_m))  # farther points shift less
+    near_m, parallax_deg = _window_margins(frames.cameras)
     if centroids is None:
         centroids = face_centroids(vertices, faces)
     vertex_index = AzimuthIndex(vertices, near_m)
     face_index = AzimuthIndex(centroids, near_m)
-    # everything below in azimuth order: vertex k is vertices[vertex_index.order[k]]
+    # everything below in azimuth order: vertex k is vertices[vertex_index.order[k]], face
+    # position k is face face_ids[k]
     position = np.empty(len(vertices), dtype=np.int64)
     position[vertex_index.order] = np.arange(len(vertices))
     face_ids = face_index.order
-    # float32 and int32 per face and vertex: the loop below streams them for every frame
+    # float32 and int32 columns per face and vertex: the loop below streams them for every
+    # frame (column arithmetic: an (n, 3) @ (3,) product is ~7× slower than three columns)
     corners = [np.ascontiguousarray(position[faces[face_ids, k]], dtype=np.int32)
                for k in range(3)]
+    del position
     points = vertices[vertex_index.order]
-    centre_of = np.ascontiguousarray(centroids[face_ids], dtype=np.float32)
-    normal_of = np.ascontiguousarray(normals[face_ids], dtype=np.float32)
-    # cos θ = (n·c − n·p) / |c − p| from per-face constants and two mat-vec products per frame
-    n_dot_p = np.einsum("ij,ij->i", normal_of, centre_of)
-    p_squared = np.einsum("ij,ij->i", centre_of, centre_of)
+    centre_of = [np.ascontiguousarray(centroids[face_ids, k], dtype=np.float32)
+                 for k in range(3)]
+    normal_of = [np.ascontiguousarray(normals[face_ids, k], dtype=np.float32)
+                 for k in range(3)]
+    # cos θ = (n·c − n·p) / |c − p| from per-face constants and two dot products per frame
+    n_dot_p = sum((normal_of[k] * centre_of[k] for k in range(1, 3)), normal_of[0] * centre_of[0])
+    p_squared = sum((centre_of[k] * centre_of[k] for k in range(1, 3)), centre_of[0] * centre_of[0])
+    kept = BestFrames(len(faces), keep, small=len(frames) < 2 ** 15)
     scratch = threading.local()  # per thread: u, v and valid of every vertex (azimuth order)
 
-    def score_frame(i: int) -> tuple[I64, F32]:
+    def cosines(a: int, b: int, centre: F32) -> F32:
+        """cos θ of the faces at positions ``[a, b)`` seen from ``centre`` (in place, in the
+        thread's buffers)."""
+        cos: F32 = scratch.cos[:b - a]
+        distance: F32 = scratch.distance[:b - a]
+        np.multiply(centre_of[0][a:b], centre[0], out=distance)
+        distance += centre_of[1][a:b] * centre[1]
+        distance += centre_of[2][a:b] * centre[2]
+        distance *= np.float32(-2.0)
+        distance += p_squared[a:b]
+        distance += np.float32(centre @ centre)
+        np.maximum(distance, np.float32(1e-24), out=distance)
+        np.sqrt(distance, out=distance)
+        np.multiply(normal_of[0][a:b], centre[0], out=cos)
+        cos += normal_of[1][a:b] * centre[1]
+        cos += normal_of[2][a:b] * centre[2]
+        cos -= n_dot_p[a:b]
+        cos /= distance
+        if two_sided:
+            np.abs(cos, out=cos)
+        return cos
+
+    def score_frame(i: int) -> list[tuple[I64, F32]]:
         if not hasattr(scratch, "u"):
             # float64: a distorted lens throws points outside the view beyond float32's range
-            scratch.u, scratch.v = np.zeros(len(vertices)), np.zeros(len(vertices))
-            scratch.valid = np.zeros(len(vertices), dtype=bool)
+            scratch.u, scratch.v = np.zeros(len(points)), np.zeros(len(points))
+            scratch.valid = np.zeros(len(points), dtype=bool)
+            scratch.cos = np.empty(SCORE_CHUNK, np.float32)
+            scratch.distance = np.empty(SCORE_CHUNK, np.float32)
         u, v, valid = scratch.u, scratch.v, scratch.valid
         cam = frames.cameras[i]
         beta = float(frames.beta_deg[i])
         window = view_window(cam, beta)
         if window is None:  # every direction in view
-            vertex_ranges = [(0, len(vertices))]
-            face_ranges = [(0, len(faces))]
+            vertex_ranges = [(0, len(points))]
+            face_ranges = [(0, len(face_ids))]
         else:
             window = (window[0], window[1] + parallax_deg)
             vertex_ranges = vertex_index.ranges(*window)
@@ -375,49 +429,43 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
             uv, _, valid[a:b] = project_valid(points[a:b], cam, beta, margin_px)
             u[a:b], v[a:b] = uv[:, 0], uv[:, 1]
         centre = frames.centre(i).astype(np.float32)
-        centre_squared = np.float32(centre @ centre)
-        seen: list[I64] = []
-        scored: list[F32] = []
+        weight = np.float32(sharp[i])
+        out: list[tuple[I64, F32]] = []
         for a, b in _pieces(face_ranges):
-            # the angle first, over the contiguous slice (two mat-vec products); the corner
-            # look-ups then only for the faces that face the camera
-            distance = np.sqrt(np.maximum(
-                p_squared[a:b] - 2 * (centre_of[a:b] @ centre) + centre_squared, 1e-24))
-            cos = (normal_of[a:b] @ centre - n_dot_p[a:b]) / distance
-            if two_sided:
-                cos = np.abs(cos)
+            # the angle first, over the contiguous slice; the corner look-ups then only for
+            # the faces that face the camera
+            cos = cosines(a, b, centre)
             facing = np.flatnonzero(cos >= min_cos)
-            c0, c1, c2 = corners[0][a:b][facing], corners[1][a:b][facing], corners[2][a:b][facing]
+            c0, c1, c2 = (corner[a:b][facing] for corner in corners)
             inside = valid[c0] & valid[c1] & valid[c2]
-            facing, c0, c1, c2 = facing[inside], c0[inside], c1[inside], c2[inside]
             if cam.model == "equirect":
-                ok = ~wraps(np.stack([u[c0], u[c1], u[c2]], 1)[:, :, None], cam)
-                facing, c0, c1, c2 = facing[ok], c0[ok], c1[ok], c2[ok]
-            score = cos[facing] * np.float32(sharp[i])
-            if cam.model == "pinhole":
-                mean_uv = np.stack([(u[c0] + u[c1] + u[c2]) / 3, (v[c0] + v[c1] + v[c2]) / 3], 1)
-                score *= centrality(mean_uv, cam)
+                inside &= ~wraps(u[c0], u[c1], u[c2], cam)
+                facing = facing[inside]
+                score = cos[facing] * weight
+            else:
+                facing, c0, c1, c2 = facing[inside], c0[inside], c1[inside], c2[inside]
+                score = cos[facing] * weight
+                mean_u = (u[c0] + u[c1] + u[c2]) / 3
+                mean_v = (v[c0] + v[c1] + v[c2]) / 3
+                score *= pinhole_centrality(mean_u, mean_v, cam)
             positive = score > 0  # a frame of sharpness 0 is of no use
-            seen.append(face_ids[facing[positive] + a])
-            scored.append(np.asarray(score[positive], dtype=np.float32))
-        if not seen:
-            return np.zeros(0, np.int64), np.zeros(0, np.float32)
-        return np.concatenate(seen), np.concatenate(scored)
+            out.append((facing[positive] + a, np.asarray(score[positive], dtype=np.float32)))
+        return out
 
     workers = worker_count(len(frames))
     # one frame per thread (numpy and OpenCV release the GIL); offered in frame order here, at
     # most one frame ahead (a 360° frame's scores are ~60 MB at lab scale)
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        pending: deque[Future[tuple[I64, F32]]] = deque()
+        pending: deque[Future[list[tuple[I64, F32]]]] = deque()
         submitted = 0
         for done in range(len(frames)):
             while submitted < len(frames) and len(pending) < workers + 1:
                 pending.append(pool.submit(score_frame, submitted))
                 submitted += 1
-            face, score = pending.popleft().result()
-            kept.add(done, face, score)
+            for face, score in pending.popleft().result():
+                kept.add(done, face, score)
             progress("score frames", done + 1, len(frames))
-    return kept.result()
+    return kept, face_ids
 
 
 @dataclass
