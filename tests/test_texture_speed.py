@@ -242,3 +242,94 @@ def test_threads_do_not_change_the_texture(monkeypatch: pytest.MonkeyPatch) -> N
     assert one.report["faces_textured"] > 1000
     for name in ("textured_faces", "texture_pages"):
         assert one.tables[name].equals(four.tables[name]), name
+
+
+def plain_neighbours(faces: np.ndarray) -> list[list[int]]:
+    """Per face the faces sharing a two-face edge with it: first the edges it is the first
+    owner of (lower corner slot ``k · faces + face``), then those it is second in, each group
+    in the order of the edge's sorted vertex pair."""
+    n = len(faces)
+    owners: dict[tuple[int, int], list[int]] = defaultdict(list)
+    for k in range(3):
+        for f, tri in enumerate(faces.tolist()):
+            owners[tuple(sorted((tri[k], tri[(k + 1) % 3])))].append(k * n + f)  # type: ignore
+    firsts: list[list[int]] = [[] for _ in range(n)]
+    seconds: list[list[int]] = [[] for _ in range(n)]
+    for _, slots in sorted(owners.items()):
+        if len(slots) == 2:
+            a, b = sorted(slots)
+            firsts[a % n].append(b % n)
+            seconds[b % n].append(a % n)
+    return [(firsts[f] + seconds[f] + [-1, -1, -1])[:3] for f in range(n)]
+
+
+def test_mesh_edges_give_shared_edges_and_neighbours_in_one_sort() -> None:
+    """One sort of the edge keys gives the occlusion test's edge ids, shared_edges' pairs and
+    edge vertices (same order) and each face's neighbours as a plain walk over the edges
+    lists them: boundary, non-manifold (three faces) and a face with a repeated vertex."""
+    from scanpipe.texturing.visibility import mesh_edges
+
+    rng = np.random.default_rng(5)
+    faces = np.concatenate([grid_faces(6, 7), [[0, 1, 50], [8, 9, 51], [8, 9, 52], [3, 3, 4]]])
+    faces = faces[rng.permutation(len(faces))]
+    faces = np.where(rng.random(faces.shape[0])[:, None] < 0.5, faces, faces[:, [1, 2, 0]])
+    edges = mesh_edges(faces)
+    pairs, edge_vertices = shared_edges(faces)
+    np.testing.assert_array_equal(edges.pairs(), pairs)
+    np.testing.assert_array_equal(edges.vertices(faces), edge_vertices)
+    assert edges.neighbours().tolist() == plain_neighbours(faces)
+    np.testing.assert_array_equal(face_neighbours(faces), edges.neighbours())
+    # ids: one per undirected edge, numbered in the order of the sorted vertex pairs
+    keys = sorted({tuple(sorted((a, b))) for tri in faces.tolist()
+                   for a, b in zip(tri, tri[1:] + tri[:1], strict=True)})
+    for f, tri in enumerate(faces.tolist()):
+        for k in range(3):
+            key = tuple(sorted((tri[k], tri[(k + 1) % 3])))
+            assert edges.ids[f, k] == keys.index(key)
+    assert edges.count == len(keys)
+
+
+def test_atlas_regions_match_a_cell_by_cell_painting() -> None:
+    """frame_regions (difference grid by bincounts, corner min/max elementwise) covers exactly
+    the cells a plain per-face painting covers, and each region's box is its faces' boxes."""
+    import math
+
+    import cv2
+
+    from scanpipe.texturing.atlas import frame_regions
+
+    rng = np.random.default_rng(2)
+    width, height, cell, pad = 640, 480, 32, 3
+    centre = rng.uniform([0, 0], [width, height], (300, 1, 2))
+    corner_uv = centre + rng.normal(0, 12, (300, 3, 2))
+    region, boxes = frame_regions(corner_uv, width, height, cell, pad)
+    covered = np.zeros((math.ceil(height / cell), math.ceil(width / cell)), np.uint8)
+    lo_all, hi_all = [], []
+    for tri in corner_uv:
+        lo = np.clip(np.floor(tri.min(axis=0)).astype(int) - pad, 0, [width - 1, height - 1])
+        hi = np.clip(np.ceil(tri.max(axis=0)).astype(int) + pad + 1, lo + 1, [width, height])
+        covered[lo[1] // cell:(hi[1] - 1) // cell + 1, lo[0] // cell:(hi[0] - 1) // cell + 1] = 1
+        lo_all.append(lo)
+        hi_all.append(hi)
+    count, labels = cv2.connectedComponents(covered, connectivity=8)
+    first_cell = labels[np.array(lo_all)[:, 1] // cell, np.array(lo_all)[:, 0] // cell]
+    # faces in one 8-connected component of painted cells share a region or a tile of it
+    for r in range(len(boxes)):
+        mine = region == r
+        assert len(set(first_cell[mine].tolist())) == 1
+        np.testing.assert_array_equal(boxes[r, :2], np.array(lo_all)[mine].min(axis=0))
+        np.testing.assert_array_equal(boxes[r, 2:], np.array(hi_all)[mine].max(axis=0))
+    assert len(set(region.tolist())) >= count - 1
+
+
+def test_textured_faces_name_the_camera_or_none() -> None:
+    from scanpipe.stages.texture import textured_faces_table
+
+    frame = np.array([2, -1, 0, 1, -1])
+    table = textured_faces_table(np.zeros(5, np.int16), np.zeros((5, 3, 2), np.float32), frame,
+                                 ["a", "b", "a"], np.array([10, 11, 12]))
+    assert table.column("camera_id").to_pylist() == ["a", None, "a", "b", None]
+    assert table.column("frame").to_pylist() == [12, -1, 10, 11, -1]
+    empty = textured_faces_table(np.zeros(2, np.int16), np.zeros((2, 3, 2), np.float32),
+                                 np.full(2, -1), [], np.zeros(0, np.int64))
+    assert empty.column("camera_id").to_pylist() == [None, None]

@@ -26,10 +26,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.progress import ProgressFn, no_progress
-from scanpipe.texturing.exposure import shared_edges
 from scanpipe.texturing.frames import FrameSet
 from scanpipe.texturing.projective import FaceScores
-from scanpipe.texturing.visibility import MeshOcclusion
+from scanpipe.texturing.visibility import MeshOcclusion, mesh_edges
 
 F32 = NDArray[np.float32]
 I32 = NDArray[np.int32]
@@ -37,21 +36,11 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 
-def face_neighbours(faces: NDArray[np.integer], pairs: I64 | None = None) -> I64:
-    """``(faces, 3)`` the faces sharing an edge with each face, −1 padded (manifold edges);
-    ``pairs`` from :func:`~scanpipe.texturing.exposure.shared_edges` when already known."""
-    if pairs is None:
-        pairs, _ = shared_edges(faces)
-    n = len(faces)
-    result = np.full((n, 3), -1, dtype=np.int64)
-    both = np.concatenate([pairs, pairs[:, ::-1]])
-    order = np.argsort(both[:, 0], kind="stable")
-    owner, other = both[order, 0], both[order, 1]
-    start = np.searchsorted(owner, np.arange(n))
-    slot = np.arange(len(owner)) - start[owner]
-    keep = slot < 3
-    result[owner[keep], slot[keep]] = other[keep]
-    return result
+def face_neighbours(faces: NDArray[np.integer]) -> I64:
+    """``(faces, 3)`` the faces sharing an edge with each face, −1 padded (manifold edges):
+    :meth:`~scanpipe.texturing.visibility.MeshEdges.neighbours` (the stage takes them from its
+    ray scene's edges, found once)."""
+    return mesh_edges(faces).neighbours()
 
 
 @dataclass

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from scanpipe.texturing.frames import FrameSet
 from scanpipe.texturing.photometric import nan_median
-from scanpipe.texturing.visibility import MeshOcclusion
+from scanpipe.texturing.visibility import MeshOcclusion, face_centroids
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -56,7 +56,8 @@ def partial_candidates(vertices: F64, faces: I64, normals: F64, face_ids: I64,
     if n == 0:
         return np.full((0, min(count, len(frames))), -1, dtype=np.int64)
     corners = vertices[faces[face_ids]].reshape(-1, 3)
-    centroid = vertices[faces[face_ids]].mean(axis=1)
+    centroid = face_centroids(vertices, faces[face_ids])
+    normals_of = normals[face_ids]
     ids = np.asarray(frames.camera_ids)
     per_camera = max(1, MAX_PARTIAL_FRAMES // max(1, len(set(frames.camera_ids))))
     looked = []
@@ -68,7 +69,7 @@ def partial_candidates(vertices: F64, faces: I64, normals: F64, face_ids: I64,
         _, _, valid = project_valid(corners, cam, float(frames.beta_deg[i]), 0.0)
         inside = valid.reshape(n, 3).sum(axis=1)
         to_cam = frames.centre(i) - centroid
-        cos = np.einsum("ij,ij->i", normals[face_ids], to_cam) / np.maximum(
+        cos = np.einsum("ij,ij->i", normals_of, to_cam) / np.maximum(
             np.linalg.norm(to_cam, axis=1), 1e-12)
         ok = (inside > 0) & (cos >= min_cos)
         score[i, ok] = cos[ok] * inside[ok] / 3 * weights[i]
