@@ -55,11 +55,43 @@ class Smoothing:
     seam_edges_after: int
 
 
+#: Faces looked at at once by the passes over the whole mesh (bounded temporaries).
+BLOCK_FACES = 1 << 20
+
+
+def _seam_faces(labels: I64, neighbours: I64) -> tuple[I64, int]:
+    """The textured faces with a textured neighbour of another frame (ascending) and the
+    number of such edges, in blocks of faces (no ``(faces, 3)`` temporaries)."""
+    padded = np.append(labels, -1)  # neighbour −1 reads −1
+    faces: list[I64] = []
+    ends = 0
+    for start in range(0, len(labels), BLOCK_FACES):
+        mine = labels[start:start + BLOCK_FACES, None]
+        lab_n = padded[neighbours[start:start + BLOCK_FACES]]
+        seam = (lab_n >= 0) & (mine >= 0) & (lab_n != mine)
+        ends += int(seam.sum())
+        faces.append(start + np.flatnonzero(seam.any(axis=1)))
+    return (np.concatenate(faces) if faces else np.zeros(0, np.int64)), ends // 2
+
+
 def seam_edge_count(labels: I64, neighbours: I64) -> int:
     """Edges between two textured faces with different frames."""
-    lab_n = np.where(neighbours >= 0, labels[np.maximum(neighbours, 0)], -1)
-    mine = labels[:, None]
-    return int(((lab_n >= 0) & (mine >= 0) & (lab_n != mine)).sum() // 2)
+    return _seam_faces(labels, neighbours)[1]
+
+
+def _reference_scores(scores: FaceScores, labels: I64) -> F64:
+    """Each textured face's score in its frame (0 untextured), in blocks of faces; most faces
+    are in their best frame (slot 0): only the others look through their kept frames."""
+    reference = np.zeros(len(labels), dtype=np.float64)
+    for start in range(0, len(labels), BLOCK_FACES):
+        label = labels[start:start + BLOCK_FACES]
+        first = scores.frame[start:start + BLOCK_FACES, 0]
+        at_first = (first == label) & (label >= 0)
+        reference[start:start + BLOCK_FACES][at_first] = scores.score[
+            start:start + BLOCK_FACES, 0][at_first]
+        other = np.flatnonzero(~at_first & (label >= 0))
+        reference[start + other] = scores.lookup(label[other], start + other)
+    return reference
 
 
 def _cost(candidate: I64, rows_frame: I32, rows_score: F32, reference: F64, nb: I64,
@@ -79,20 +111,17 @@ def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64, frames: Fram
     """ICM on the Potts energy above, from ``labels``; ``scores`` is modified (hidden
     candidates set to 0)."""
     labels = labels.copy()
-    before = seam_edge_count(labels, neighbours)
+    frontier, before = _seam_faces(labels, neighbours)  # round 1 looks at these of all faces
     if seam_weight <= 0 or len(labels) == 0 or len(frames) == 0:
         return Smoothing(labels, 0, 0, 0, before, before)
     rng = np.random.default_rng(seed)
-    textured = labels >= 0
-    reference = np.zeros(len(labels), dtype=np.float64)
-    reference[textured] = scores.lookup(labels[textured], np.flatnonzero(textured))
+    reference = _reference_scores(scores, labels)
     centres = np.stack([frames.centre(i) for i in range(len(frames))])
     moved = struck = 0
     done = 0
     # only faces on a seam can move, and a face joins a seam only when it or a neighbour
     # changes frame: each round looks at the last round's seam faces and the neighbourhood of
     # the faces that moved (the same faces, in the same order, as a scan of the whole mesh)
-    frontier = np.arange(len(labels))
     for done in range(1, rounds + 1):
         nbf = neighbours[frontier]
         lab_n = np.where(nbf >= 0, labels[np.maximum(nbf, 0)], -1)
