@@ -16,7 +16,7 @@ from scanpipe.texturing.exposure import shared_edges
 from scanpipe.texturing.frames import worker_count
 from scanpipe.texturing.labels import Smoothing, face_neighbours, seam_edge_count, smooth_labels
 from scanpipe.texturing.projective import FaceScores
-from scanpipe.texturing.visibility import MeshOcclusion
+from scanpipe.texturing.visibility import MeshOcclusion, mesh_edges
 
 
 def grid_faces(rows: int, cols: int, start: int = 0) -> np.ndarray:
@@ -214,6 +214,15 @@ def test_icm_on_the_seam_neighbourhood_moves_as_a_full_scan() -> None:
     assert result.moved > 100
     np.testing.assert_array_equal(result.labels, expected)
     assert seam_edge_count(result.labels, neighbours) < seam_edge_count(labels, neighbours)
+    # the mesh's edges instead of the neighbour table (as the stage calls it): the same moves
+    edges = mesh_edges(faces)
+    again = smooth_labels(FaceScores.from_dense(scores, n_frames), labels, edges, frames,
+                          _EveryThirdHidden(), 0.3, 10)
+    np.testing.assert_array_equal(again.labels, expected)
+    assert (again.seam_edges_before, again.seam_edges_after, again.moved) == (
+        result.seam_edges_before, result.seam_edges_after, result.moved)
+    assert seam_edge_count(result.labels, edges) == result.seam_edges_after
+    np.testing.assert_array_equal(edges.neighbours(np.array([5, 0, 899])), neighbours[[5, 0, 899]])
 
 
 def test_worker_count_takes_a_batch_workers_share(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -267,8 +276,6 @@ def test_mesh_edges_give_shared_edges_and_neighbours_in_one_sort() -> None:
     """One sort of the edge keys gives the occlusion test's edge ids, shared_edges' pairs and
     edge vertices (same order) and each face's neighbours as a plain walk over the edges
     lists them: boundary, non-manifold (three faces) and a face with a repeated vertex."""
-    from scanpipe.texturing.visibility import mesh_edges
-
     rng = np.random.default_rng(5)
     faces = np.concatenate([grid_faces(6, 7), [[0, 1, 50], [8, 9, 51], [8, 9, 52], [3, 3, 4]]])
     faces = faces[rng.permutation(len(faces))]

@@ -322,7 +322,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     del candidates
     clock.lap("visibility")
     edges = occlusion.edges  # found once for the rays, the seam step and the seam strip
-    smoothing = smooth_labels(scores, selection.frame, edges.neighbours(), frames,
+    smoothing = smooth_labels(scores, selection.frame, edges, frames,
                               occlusion, params.seam_weight, params.seam_rounds,
                               progress=progress)
     labels = smoothing.labels

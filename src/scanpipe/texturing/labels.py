@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.texturing.frames import FrameSet
 from scanpipe.texturing.projective import FaceScores
-from scanpipe.texturing.visibility import MeshOcclusion, mesh_edges
+from scanpipe.texturing.visibility import MeshEdges, MeshOcclusion, mesh_edges
 
 F32 = NDArray[np.float32]
 I32 = NDArray[np.int32]
@@ -74,8 +74,10 @@ def _seam_faces(labels: I64, neighbours: I64) -> tuple[I64, int]:
     return (np.concatenate(faces) if faces else np.zeros(0, np.int64)), ends // 2
 
 
-def seam_edge_count(labels: I64, neighbours: I64) -> int:
+def seam_edge_count(labels: I64, neighbours: I64 | MeshEdges) -> int:
     """Edges between two textured faces with different frames."""
+    if isinstance(neighbours, MeshEdges):
+        return neighbours.seam_faces(labels)[1]
     return _seam_faces(labels, neighbours)[1]
 
 
@@ -105,13 +107,24 @@ def _cost(candidate: I64, rows_frame: I32, rows_score: F32, reference: F64, nb: 
     return np.asarray(data + seam_weight * potts)
 
 
-def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64, frames: FrameSet,
+def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64 | MeshEdges, frames: FrameSet,
                   occlusion: MeshOcclusion, seam_weight: float = 0.3, rounds: int = 10,
                   seed: int = 0, progress: ProgressFn = no_progress) -> Smoothing:
     """ICM on the Potts energy above, from ``labels``; ``scores`` is modified (hidden
-    candidates set to 0)."""
+    candidates set to 0). ``neighbours``: :func:`face_neighbours`, or the mesh's
+    :class:`~scanpipe.texturing.visibility.MeshEdges` (then only the neighbours of the faces
+    looked at are found)."""
     labels = labels.copy()
-    frontier, before = _seam_faces(labels, neighbours)  # round 1 looks at these of all faces
+    if isinstance(neighbours, MeshEdges):
+        edges = neighbours
+        frontier, before = edges.seam_faces(labels)  # round 1 looks at these of all faces
+        neighbours_of = edges.neighbours
+    else:
+        table = neighbours
+        frontier, before = _seam_faces(labels, table)
+
+        def neighbours_of(rows: NDArray[np.integer] | None = None) -> I64:
+            return table if rows is None else table[rows]
     if seam_weight <= 0 or len(labels) == 0 or len(frames) == 0:
         return Smoothing(labels, 0, 0, 0, before, before)
     rng = np.random.default_rng(seed)
@@ -123,7 +136,7 @@ def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64, frames: Fram
     # changes frame: each round looks at the last round's seam faces and the neighbourhood of
     # the faces that moved (the same faces, in the same order, as a scan of the whole mesh)
     for done in range(1, rounds + 1):
-        nbf = neighbours[frontier]
+        nbf = neighbours_of(frontier)
         lab_n = np.where(nbf >= 0, labels[np.maximum(nbf, 0)], -1)
         own_f = labels[frontier]
         lab_n[own_f < 0] = -1
@@ -156,7 +169,7 @@ def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64, frames: Fram
         moved += int(visible.sum())
         struck += int((~visible).sum())
         changed = face[visible]
-        around = neighbours[changed].ravel()
+        around = neighbours_of(changed).ravel()
         frontier = np.unique(np.concatenate([active, changed, around[around >= 0]]))
         progress("seams", done, rounds)
     return Smoothing(labels, done, moved, struck, before, seam_edge_count(labels, neighbours))

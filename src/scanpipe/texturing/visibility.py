@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -69,6 +69,7 @@ class MeshEdges:
     ids: I32
     count: int
     pair_slots: I64
+    _slot_pair: I32 | None = field(default=None, repr=False)  # per face slot, its pair or −1
 
     def pairs(self) -> I64:
         """``(E, 2)`` the faces sharing each two-face edge; the pairs of
@@ -84,27 +85,30 @@ class MeshEdges:
         b = faces[face, (corner + 1) % 3].astype(np.int64)
         return np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
 
-    def neighbours(self) -> I64:
-        """``(faces, 3)`` the faces sharing a two-face edge with each face, −1 padded: first
-        the pairs the face is first in, then those it is second in, each in edge order (the
-        order a stable sort of both directions of :meth:`pairs` by face gives), without a
-        sort."""
+    def neighbours(self, rows: NDArray[np.integer] | None = None) -> I64:
+        """``(faces, 3)`` the faces sharing a two-face edge with each face (or each face in
+        ``rows``), −1 padded: first the pairs the face is first in, then those it is second
+        in, each in edge order (the order a stable sort of both directions of :meth:`pairs`
+        by face gives), without a sort."""
         n = len(self.ids)
-        slot_pair = np.full(3 * n, -1, dtype=np.int32)
-        for side in (0, 1):
-            slot_pair[self.pair_slots[:, side]] = np.arange(len(self.pair_slots), dtype=np.int32)
-        pairs_by_corner = slot_pair.reshape(3, n).T  # (faces, 3) by corner k
-        result = np.empty((n, 3), dtype=np.int64)
+        if self._slot_pair is None:
+            slot_pair = np.full(3 * n, -1, dtype=np.int32)
+            for side in (0, 1):
+                slot_pair[self.pair_slots[:, side]] = np.arange(len(self.pair_slots),
+                                                                dtype=np.int32)
+            self._slot_pair = slot_pair
+        pairs_by_corner = self._slot_pair.reshape(3, n).T  # (faces, 3) by corner k
+        faces = np.arange(n) if rows is None else np.asarray(rows, dtype=np.int64)
+        result = np.empty((len(faces), 3), dtype=np.int64)
         big = 2 * len(self.pair_slots) + 2
         # in blocks of faces: the temporaries of the whole mesh at once were ~0.6 GB at lab scale
-        for start in range(0, n, NEIGHBOUR_BLOCK_FACES):
-            stop = min(n, start + NEIGHBOUR_BLOCK_FACES)
-            pair = pairs_by_corner[start:stop]
+        for start in range(0, len(faces), NEIGHBOUR_BLOCK_FACES):
+            block = faces[start:start + NEIGHBOUR_BLOCK_FACES]
+            pair = pairs_by_corner[block]
             has = pair >= 0
             safe = np.maximum(pair, 0)
             first_slot, second_slot = self.pair_slots[safe, 0], self.pair_slots[safe, 1]
-            slots = np.arange(start, stop, dtype=np.int64)[:, None] + n * np.arange(3)
-            second = second_slot == slots
+            second = second_slot == block[:, None] + n * np.arange(3)
             # the other face of the pair: its slot modulo the face count
             other = np.where(second, first_slot, second_slot) % max(n, 1)
             other[~has] = -1
@@ -113,9 +117,24 @@ class MeshEdges:
             key = np.where(has, second * (len(self.pair_slots) + 1) + pair,
                            big + np.arange(3, dtype=np.int64))
             rank = (key[:, :, None] > key[:, None, :]).sum(axis=2)
-            np.put_along_axis(result[start:stop], rank, other, axis=1)
+            np.put_along_axis(result[start:start + len(block)], rank, other, axis=1)
         return result
 
+    def seam_faces(self, labels: I64) -> tuple[I64, int]:
+        """The faces (ascending) on an edge between two labelled faces (label ≥ 0) of
+        different labels, and the number of such edges; in blocks of edges."""
+        n = len(self.ids)
+        on_seam = np.zeros(n, dtype=bool)
+        count = 0
+        for start in range(0, len(self.pair_slots), NEIGHBOUR_BLOCK_FACES):
+            slots = self.pair_slots[start:start + NEIGHBOUR_BLOCK_FACES]
+            a, b = slots[:, 0] % max(n, 1), slots[:, 1] % max(n, 1)
+            la, lb = labels[a], labels[b]
+            seam = (la >= 0) & (lb >= 0) & (la != lb)
+            count += int(seam.sum())
+            on_seam[a[seam]] = True
+            on_seam[b[seam]] = True
+        return np.flatnonzero(on_seam), count
 
 def mesh_edges(faces: NDArray[np.integer], n_vertices: int | None = None) -> MeshEdges:
     """The :class:`MeshEdges` of ``faces`` (one sort of the face slots' edge keys)."""
