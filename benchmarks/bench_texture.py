@@ -16,6 +16,11 @@ projective method (``phase_s``, ``phase_cpu_s``: frames, score, photometric, ray
 visibility, icm, patches, seam_strip, atlas, png).
 ``python benchmarks/bench_texture.py [--quick] [--render-scale S]`` prints the figures and
 saves JSON into ``benchmarks/results/``.
+
+``--lab RUN`` instead textures a finished lab-scale run's mesh and frames (a workdir with
+``mesh/``, ``decode/`` and ``calibrate/``, e.g. ``benchmarks/cache/lab-*/runs/default``: 4.76 M
+faces, Full-HD frames) and reports the stage's wall and CPU seconds per phase, the process's peak
+RSS and the counts that must not change (coverage, seam edges, rays), as ``texture-lab-<date>``.
 """
 
 from __future__ import annotations
@@ -181,6 +186,50 @@ def run(quick: bool = False, render_scale: float | None = None) -> dict[str, Any
     return figures
 
 
+def run_lab(workdir: Path) -> dict[str, Any]:
+    """The projective texture stage on a finished lab-scale run (see the module docstring)."""
+    import pyarrow.parquet as pq
+
+    def read(stage: str, name: str) -> pa.Table:
+        return pq.read_table(workdir / stage / f"{name}.parquet")
+
+    rig_stage = "calibrate" if (workdir / "calibrate" / "rig.parquet").exists() else "decode"
+    inputs = {"mesh_vertices": read("mesh", "mesh_vertices"),
+              "mesh_faces": read("mesh", "mesh_faces"), "frames": read("decode", "frames"),
+              "motor": read("decode", "motor"), "rig": read(rig_stage, "rig")}
+    inputs_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    report = STAGE.run(inputs, TextureParams()).report
+    wall_s, cpu_s = time.perf_counter() - wall0, time.process_time() - cpu0
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    keys = ("faces", "coverage", "faces_untextured", "frames_considered", "frames_used",
+            "occluded_candidates", "rays_cast", "regions", "pages", "photometric_outliers",
+            "faces_multiview", "seam_edges_best_frame", "seam_edges", "seam_faces_moved",
+            "seam_points")
+    figures = {"workdir": str(workdir), "seconds": round(wall_s, 2),
+               "cpu_seconds": round(cpu_s, 2), "phase_s": report["phase_s"],
+               "phase_cpu_s": report["phase_cpu_s"], "inputs_peak_rss_mb": round(inputs_mb),
+               "process_peak_rss_mb": round(peak_mb), "load_average": os.getloadavg(),
+               **{k: report[k] for k in keys}}
+    print(f"{report['faces']:,} faces, texture {wall_s:.1f} s wall, {cpu_s:.1f} s CPU, "
+          f"process peak RSS {peak_mb:.0f} MB (inputs {inputs_mb:.0f} MB)")
+    print(table([(name, f"{report['phase_s'][name]:.2f} s", f"{cpu:.2f} s")
+                 for name, cpu in report["phase_cpu_s"].items()], ("phase", "wall", "CPU")))
+    return figures
+
+
+def _lab_option() -> Path | None:
+    """``--lab RUN`` taken off the command line."""
+    if "--lab" not in sys.argv:
+        return None
+    at = sys.argv.index("--lab")
+    if at + 1 >= len(sys.argv) or not (Path(sys.argv[at + 1]) / "mesh").is_dir():
+        sys.exit("bench_texture: --lab needs a run folder with mesh/, decode/ (and calibrate/)")
+    path = Path(sys.argv[at + 1])
+    del sys.argv[at:at + 2]
+    return path
+
+
 def _render_scale_option() -> float | None:
     """``--render-scale S`` taken off the command line (the shared harness knows --quick)."""
     if "--render-scale" not in sys.argv:
@@ -197,6 +246,10 @@ def _render_scale_option() -> float | None:
 
 
 if __name__ == "__main__":
+    LAB = _lab_option()
     SCALE = _render_scale_option()
-    cli("texture", lambda quick: run(quick, SCALE), __doc__ or "",
-        "a coarser mesh and 2 s of video")
+    if LAB is not None:
+        cli("texture-lab", lambda _quick: run_lab(LAB), __doc__ or "", "(ignored with --lab)")
+    else:
+        cli("texture", lambda quick: run(quick, SCALE), __doc__ or "",
+            "a coarser mesh and 2 s of video")

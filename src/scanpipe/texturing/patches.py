@@ -128,13 +128,16 @@ def bake_patches(vertices: F64, faces: I64, face_ids: I64, candidates: I64, fram
             sampled = remap_points(frames.image(int(i)), uv)
             samples[face_of, texel, slot] = sampled * gains[i]
             np.add.at(votes[:, int(i)], face_of, 1)
-    filled = np.isfinite(samples[:, :, :, 0]).any(axis=2)
+    seen_in = np.isfinite(samples[:, :, :, 0])
+    filled = seen_in.any(axis=2)
     # a texel seen in three or more frames takes their median: one frame with a passer-by
-    # in it does not decide; with fewer, the best frame's colour
-    count = np.isfinite(samples[:, :, :, 0]).sum(axis=2)
-    first = np.argmax(np.isfinite(samples[:, :, :, 0]), axis=2)
-    best = np.take_along_axis(samples, first[:, :, None, None], axis=2)[:, :, 0]
-    colour = np.where((count >= 3)[:, :, None], nan_median(samples, axis=2)[:, :, 0], best)
+    # in it does not decide; with fewer, the best frame's colour (the median only where used)
+    count = seen_in.sum(axis=2)
+    first = np.argmax(seen_in, axis=2)
+    colour = np.take_along_axis(samples, first[:, :, None, None], axis=2)[:, :, 0]
+    many = count >= 3
+    if many.any():
+        colour[many] = nan_median(samples[many], axis=1)[:, 0]
     share = (filled & inside).sum(axis=1) / max(1, int(inside.sum()))
     keep = share >= MIN_FILLED
     colour = np.where(filled[:, :, None], colour, 0.0)
