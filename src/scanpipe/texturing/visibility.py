@@ -175,6 +175,7 @@ class MeshOcclusion:
         #: Rays cast so far.
         self.rays_cast = 0
         self._edges = edges
+        self._dense: NDArray[np.bool_] | None = None
         # per thread: scratch for sharing points between the faces of a block (_visible_from)
         self._scratch = threading.local()
         self._lock = threading.Lock()
@@ -273,6 +274,7 @@ class MeshOcclusion:
                   for a, b in zip(starts[:-1].tolist(), starts[1:].tolist(), strict=True)
                   for start in range(a, b, FACES_PER_CAST)]
         edge_ids = self.edges.ids
+        self.dense_faces()  # found once, before the threads
 
         def test(rows: NDArray[np.int64]) -> None:
             result[rows] = self._visible_from(origins[views[rows[0]]], ids[rows], edge_ids,
@@ -283,13 +285,26 @@ class MeshOcclusion:
             list(pool.map(test, blocks))
         return result
 
+    def dense_faces(self) -> NDArray[np.bool_]:
+        """Per face: an edge longer than :data:`DENSE_EDGE_M` (tested at 13 points, not 7);
+        found once, in blocks of faces."""
+        with self._lock:
+            if self._dense is None:
+                dense = np.empty(len(self.faces), dtype=bool)
+                for start in range(0, len(self.faces), FACES_PER_CAST):
+                    corners = self.vertices[self.faces[start:start + FACES_PER_CAST]]
+                    edge = corners[:, [1, 2, 0]] - corners
+                    longest = np.sqrt(np.einsum("fkc,fkc->fk", edge, edge).max(axis=1))
+                    dense[start:start + FACES_PER_CAST] = longest > DENSE_EDGE_M
+                self._dense = dense
+            return self._dense
+
     def _visible_from(self, origin: NDArray[np.float32], face_ids: NDArray[np.int64],
                       edge_ids: I32, abs_tol_m: float, rel_tol: float) -> NDArray[np.bool_]:
         """:meth:`faces_visible` for faces seen from one origin: their centroids, corners and
         edge middles, each corner and edge once, and the inset points of long-edged faces."""
         n = len(face_ids)
         tri = self.faces[face_ids]  # (n, 3)
-        corners = self.vertices[tri]  # (n, 3, 3) float32
         slots = np.arange(3 * n, dtype=np.int32)
         if not hasattr(self._scratch, "vertex_slot"):
             self._scratch.vertex_slot = np.zeros(len(self.vertices), dtype=np.int32)
@@ -307,15 +322,21 @@ class MeshOcclusion:
             compact -= 1
             shared.append((first, compact[owner_slot]))
         (vertex_first, vertex_point), (edge_first, edge_point) = shared
-        following = corners[:, [1, 2, 0]]
-        edge = following - corners
-        longest = np.sqrt(np.einsum("fkc,fkc->fk", edge, edge).max(axis=1))
-        dense = np.flatnonzero(longest > DENSE_EDGE_M)
-        flat, flat_next = corners.reshape(-1, 3), following.reshape(-1, 3)
-        points = [corners.mean(axis=1), flat[vertex_first],
-                  0.5 * (flat[edge_first] + flat_next[edge_first])]
+        # the points from the vertices (no (n, 3, 3) corner array): centroids (as a mean
+        # over the corners), the shared corners, the shared edges' middles (slot k of a face
+        # runs from its corner k to k + 1)
+        flat = tri.reshape(-1)
+        vertices = self.vertices
+        centroid = vertices[tri[:, 0]] + vertices[tri[:, 1]]
+        centroid += vertices[tri[:, 2]]
+        centroid /= 3
+        following = edge_first - edge_first % 3 + (edge_first % 3 + 1) % 3
+        middle = vertices[flat[edge_first]] + vertices[flat[following]]
+        middle *= np.float32(0.5)
+        points = [centroid, vertices[flat[vertex_first]], middle]
+        dense = np.flatnonzero(self.dense_faces()[face_ids])
         if len(dense):
-            points.append(np.matmul(DENSE_WEIGHTS, corners[dense]).reshape(-1, 3))
+            points.append(np.matmul(DENSE_WEIGHTS, vertices[tri[dense]]).reshape(-1, 3))
         ok = self.unobstructed(origin, np.concatenate(points), abs_tol_m, rel_tol)
         vertex_base, edge_base = n, n + len(vertex_first)
         visible = ok[:n].copy()
