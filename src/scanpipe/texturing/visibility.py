@@ -34,6 +34,8 @@ DENSE_EDGE_M = 0.05
 BASE_SAMPLES = np.array([0, 1, 2, 3, 7, 8, 9])
 #: Of :meth:`MeshOcclusion.face_samples`, the six more tested on faces with long edges.
 DENSE_SAMPLES = np.array([4, 5, 6, 10, 11, 12])
+#: Face slots whose edge keys :func:`mesh_edges` compares at once.
+EDGE_BLOCK_SLOTS = 1 << 21
 #: Faces whose neighbours :meth:`MeshEdges.neighbours` finds at once.
 NEIGHBOUR_BLOCK_FACES = 1 << 20
 #: Faces whose rays :meth:`MeshOcclusion.faces_visible` casts at once (≤ 3.4 M rays).
@@ -150,19 +152,29 @@ def mesh_edges(faces: NDArray[np.integer], n_vertices: int | None = None) -> Mes
         key[k] += np.maximum(a, b)
     flat = key.reshape(-1)
     order = np.argsort(flat, kind="stable")
-    ordered = flat[order]
+    # where the sorted keys change, in blocks (no sorted copy of all keys beside them)
+    new = np.empty(len(order), dtype=bool)
+    for start in range(0, len(order), EDGE_BLOCK_SLOTS):
+        block = flat[order[start:start + EDGE_BLOCK_SLOTS]]
+        new[start] = start == 0 or bool(block[0] != flat[order[start - 1]])
+        np.not_equal(block[1:], block[:-1], out=new[start + 1:start + len(block)])
     del key, flat
-    new = np.empty(len(ordered), dtype=bool)
-    new[:1] = True
-    np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
-    del ordered
     starts = np.flatnonzero(new)
     ids = np.empty(3 * n, dtype=np.int32)
-    ids[order] = np.cumsum(new, dtype=np.int32) - 1
-    del new
-    first = starts[np.diff(np.r_[starts, 3 * n]) == 2]
-    pair_slots = np.stack([order[first], order[first + 1]], axis=1)
-    return MeshEdges(np.ascontiguousarray(ids.reshape(3, n).T), len(starts), pair_slots)
+    number = np.cumsum(new, dtype=np.int32)
+    number -= 1
+    ids[order] = number
+    del new, number
+    count = len(starts)
+    first = starts[np.diff(starts, append=3 * n) == 2]  # edges of exactly two face slots
+    del starts
+    pair_slots = np.empty((len(first), 2), dtype=np.int64)
+    pair_slots[:, 0] = order[first]
+    first += 1
+    pair_slots[:, 1] = order[first]
+    del order, first
+    by_face = np.ascontiguousarray(ids.reshape(3, n).T)
+    return MeshEdges(by_face, count, pair_slots)
 
 
 class MeshOcclusion:
