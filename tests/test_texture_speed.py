@@ -296,6 +296,21 @@ def test_mesh_edges_give_shared_edges_and_neighbours_in_one_sort() -> None:
     assert edges.count == len(keys)
 
 
+def test_a_triangle_soup_has_no_neighbours_and_no_seams() -> None:
+    """Faces that share no edge (an imported mesh with its vertices unshared): every neighbour
+    is −1, no seam, and ICM moves nothing (it used to index an empty pair list)."""
+    faces = np.arange(12).reshape(4, 3)
+    edges = mesh_edges(faces)
+    assert edges.pairs().shape == (0, 2)
+    assert (edges.neighbours() == -1).all() and (edges.neighbours(np.array([2])) == -1).all()
+    labels = np.array([0, 1, 0, 1])
+    assert edges.seam_faces(labels)[1] == 0
+    scores = FaceScores.from_dense(np.ones((2, 4), np.float32), 2)
+    result = smooth_labels(scores, labels, edges, _Frames(2), _EveryThirdHidden(), 0.3, 10)
+    np.testing.assert_array_equal(result.labels, labels)
+    assert (result.moved, result.seam_edges_before, result.seam_edges_after) == (0, 0, 0)
+
+
 def test_atlas_regions_match_a_cell_by_cell_painting() -> None:
     """frame_regions (difference grid by bincounts, corner min/max elementwise) covers exactly
     the cells a plain per-face painting covers, and each region's box is its faces' boxes."""

@@ -101,6 +101,8 @@ class MeshEdges:
             self._slot_pair = slot_pair
         pairs_by_corner = self._slot_pair.reshape(3, n).T  # (faces, 3) by corner k
         faces = np.arange(n) if rows is None else np.asarray(rows, dtype=np.int64)
+        if len(self.pair_slots) == 0:  # no face shares an edge
+            return np.full((len(faces), 3), -1, dtype=np.int64)
         result = np.empty((len(faces), 3), dtype=np.int64)
         big = 2 * len(self.pair_slots) + 2
         # in blocks of faces: the temporaries of the whole mesh at once were ~0.6 GB at lab scale
