@@ -355,3 +355,19 @@ def test_textured_faces_name_the_camera_or_none() -> None:
     empty = textured_faces_table(np.zeros(2, np.int16), np.zeros((2, 3, 2), np.float32),
                                  np.full(2, -1), [], np.zeros(0, np.int64))
     assert empty.column("camera_id").to_pylist() == [None, None]
+
+
+def test_a_triangle_soup_is_textured_as_the_shared_mesh() -> None:
+    """The stage on a mesh whose faces share no vertex (as some exporters write it): no seam
+    step (no neighbours), every face still gets a frame where the shared mesh's best frame
+    does; no error."""
+    caster = Caster()
+    rec = record(small_rig(), beta_step_deg=6.0, caster=caster)
+    vertices, faces, normals = room_mesh(0.25)
+    soup_v, soup_n = vertices[faces].reshape(-1, 3), normals[faces].reshape(-1, 3)
+    soup_f = np.arange(3 * len(faces)).reshape(-1, 3)
+    shared = STAGE.run(rec.inputs(*mesh_tables(vertices, faces, normals)))
+    soup = STAGE.run(rec.inputs(*mesh_tables(soup_v, soup_f, soup_n)))
+    assert soup.report["seam_edges"] == soup.report["seam_edges_best_frame"] == 0
+    assert shared.report["seam_edges_best_frame"] > 0
+    assert soup.report["faces_textured"] >= 0.95 * shared.report["faces_textured"] > 1000
