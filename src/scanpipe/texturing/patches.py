@@ -116,18 +116,17 @@ def bake_patches(vertices: F64, faces: I64, face_ids: I64, candidates: I64, fram
             rows = np.flatnonzero(frame_of == i)
             face_of = np.repeat(rows, p * p)
             texel = np.tile(np.arange(p * p), len(rows))
-            where = points[face_of, texel]
+            where = points[rows].reshape(-1, 3)  # = points[face_of, texel], one gather
             cam = frames.cameras[int(i)]
             uv, _, valid = project_valid(where, cam, float(frames.beta_deg[i]), 0.5)
-            centre = np.broadcast_to(frames.centre(int(i)), where[valid].shape)
             seen = valid.copy()
-            seen[valid] = occlusion.unobstructed(centre, where[valid])
+            seen[valid] = occlusion.unobstructed(frames.centre(int(i)), where[valid])
             face_of, texel, uv = face_of[seen], texel[seen], uv[seen]
             if len(face_of) == 0:
                 continue
             sampled = remap_points(frames.image(int(i)), uv)
             samples[face_of, texel, slot] = sampled * gains[i]
-            np.add.at(votes[:, int(i)], face_of, 1)
+            votes[:, int(i)] += np.bincount(face_of, minlength=n)
     seen_in = np.isfinite(samples[:, :, :, 0])
     filled = seen_in.any(axis=2)
     # a texel seen in three or more frames takes their median: one frame with a passer-by
@@ -137,7 +136,8 @@ def bake_patches(vertices: F64, faces: I64, face_ids: I64, candidates: I64, fram
     colour = np.take_along_axis(samples, first[:, :, None, None], axis=2)[:, :, 0]
     many = count >= 3
     if many.any():
-        colour[many] = nan_median(samples[many], axis=1)[:, 0]
+        # each texel's samples of a channel contiguous: the row sorts are several times faster
+        colour[many] = nan_median(samples[many].transpose(0, 2, 1).copy(), axis=2)[:, :, 0]
     share = (filled & inside).sum(axis=1) / max(1, int(inside.sum()))
     keep = share >= MIN_FILLED
     colour = np.where(filled[:, :, None], colour, 0.0)
