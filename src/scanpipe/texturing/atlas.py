@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import cv2
 import numpy as np
@@ -207,7 +208,9 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     for p in pages:
         p[:] = neutral_bgr
     levels = np.arange(256, dtype=np.float32)[:, None]
-    for r in range(n_regions):
+
+    def cut(r: int) -> None:
+        """Region ``r`` cut from its frame, levelled, blended and placed on its page."""
         x0, y0, x1, y1 = (int(b) for b in boxes[r])
         frame = int(frame_of[r])
         source = frames.image(frame)[y0:y1, x0:x1]
@@ -229,8 +232,20 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         if (w, h) != (x1 - x0, y1 - y0):
             patch = cv2.resize(patch, (w, h), interpolation=cv2.INTER_AREA)
         pages[page[r]][oy[r]:oy[r] + h, ox[r]:ox[r] + w] = patch
-        if r % 64 == 0:
-            progress("atlas", r + 1, len(boxes))
+
+    def cut_frame(rows: range) -> int:
+        for r in rows:
+            cut(r)
+        return rows.stop
+
+    # a frame's regions per thread (each frame decoded once; OpenCV and numpy release the
+    # GIL; regions never overlap on the pages); progress from this thread only
+    changes = np.flatnonzero(np.diff(frame_of[:n_regions])) + 1
+    edges = [0, *changes.tolist(), n_regions] if n_regions else [0]
+    runs = [range(a, b) for a, b in pairwise(edges)]
+    with ThreadPoolExecutor(max_workers=worker_count(len(runs))) as pool:
+        for finished in pool.map(cut_frame, runs):
+            progress("atlas", finished, len(boxes))
     progress("atlas", len(boxes), len(boxes))
     if patches is not None and len(patches.face):
         at = np.arange(n_regions, len(dst))
