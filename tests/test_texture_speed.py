@@ -16,7 +16,7 @@ from scanpipe.texturing.exposure import shared_edges
 from scanpipe.texturing.frames import worker_count
 from scanpipe.texturing.labels import Smoothing, face_neighbours, seam_edge_count, smooth_labels
 from scanpipe.texturing.projective import FaceScores
-from scanpipe.texturing.visibility import MeshOcclusion
+from scanpipe.texturing.visibility import MeshOcclusion, mesh_edges
 
 
 def grid_faces(rows: int, cols: int, start: int = 0) -> np.ndarray:
@@ -214,6 +214,15 @@ def test_icm_on_the_seam_neighbourhood_moves_as_a_full_scan() -> None:
     assert result.moved > 100
     np.testing.assert_array_equal(result.labels, expected)
     assert seam_edge_count(result.labels, neighbours) < seam_edge_count(labels, neighbours)
+    # the mesh's edges instead of the neighbour table (as the stage calls it): the same moves
+    edges = mesh_edges(faces)
+    again = smooth_labels(FaceScores.from_dense(scores, n_frames), labels, edges, frames,
+                          _EveryThirdHidden(), 0.3, 10)
+    np.testing.assert_array_equal(again.labels, expected)
+    assert (again.seam_edges_before, again.seam_edges_after, again.moved) == (
+        result.seam_edges_before, result.seam_edges_after, result.moved)
+    assert seam_edge_count(result.labels, edges) == result.seam_edges_after
+    np.testing.assert_array_equal(edges.neighbours(np.array([5, 0, 899])), neighbours[[5, 0, 899]])
 
 
 def test_worker_count_takes_a_batch_workers_share(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -242,3 +251,123 @@ def test_threads_do_not_change_the_texture(monkeypatch: pytest.MonkeyPatch) -> N
     assert one.report["faces_textured"] > 1000
     for name in ("textured_faces", "texture_pages"):
         assert one.tables[name].equals(four.tables[name]), name
+
+
+def plain_neighbours(faces: np.ndarray) -> list[list[int]]:
+    """Per face the faces sharing a two-face edge with it: first the edges it is the first
+    owner of (lower corner slot ``k · faces + face``), then those it is second in, each group
+    in the order of the edge's sorted vertex pair."""
+    n = len(faces)
+    owners: dict[tuple[int, int], list[int]] = defaultdict(list)
+    for k in range(3):
+        for f, tri in enumerate(faces.tolist()):
+            owners[tuple(sorted((tri[k], tri[(k + 1) % 3])))].append(k * n + f)  # type: ignore
+    firsts: list[list[int]] = [[] for _ in range(n)]
+    seconds: list[list[int]] = [[] for _ in range(n)]
+    for _, slots in sorted(owners.items()):
+        if len(slots) == 2:
+            a, b = sorted(slots)
+            firsts[a % n].append(b % n)
+            seconds[b % n].append(a % n)
+    return [(firsts[f] + seconds[f] + [-1, -1, -1])[:3] for f in range(n)]
+
+
+def test_mesh_edges_give_shared_edges_and_neighbours_in_one_sort() -> None:
+    """One sort of the edge keys gives the occlusion test's edge ids, shared_edges' pairs and
+    edge vertices (same order) and each face's neighbours as a plain walk over the edges
+    lists them: boundary, non-manifold (three faces) and a face with a repeated vertex."""
+    rng = np.random.default_rng(5)
+    faces = np.concatenate([grid_faces(6, 7), [[0, 1, 50], [8, 9, 51], [8, 9, 52], [3, 3, 4]]])
+    faces = faces[rng.permutation(len(faces))]
+    faces = np.where(rng.random(faces.shape[0])[:, None] < 0.5, faces, faces[:, [1, 2, 0]])
+    edges = mesh_edges(faces)
+    pairs, edge_vertices = shared_edges(faces)
+    np.testing.assert_array_equal(edges.pairs(), pairs)
+    np.testing.assert_array_equal(edges.vertices(faces), edge_vertices)
+    assert edges.neighbours().tolist() == plain_neighbours(faces)
+    np.testing.assert_array_equal(face_neighbours(faces), edges.neighbours())
+    # ids: one per undirected edge, numbered in the order of the sorted vertex pairs
+    keys = sorted({tuple(sorted((a, b))) for tri in faces.tolist()
+                   for a, b in zip(tri, tri[1:] + tri[:1], strict=True)})
+    for f, tri in enumerate(faces.tolist()):
+        for k in range(3):
+            key = tuple(sorted((tri[k], tri[(k + 1) % 3])))
+            assert edges.ids[f, k] == keys.index(key)
+    assert edges.count == len(keys)
+
+
+def test_a_triangle_soup_has_no_neighbours_and_no_seams() -> None:
+    """Faces that share no edge (an imported mesh with its vertices unshared): every neighbour
+    is −1, no seam, and ICM moves nothing (it used to index an empty pair list)."""
+    faces = np.arange(12).reshape(4, 3)
+    edges = mesh_edges(faces)
+    assert edges.pairs().shape == (0, 2)
+    assert (edges.neighbours() == -1).all() and (edges.neighbours(np.array([2])) == -1).all()
+    labels = np.array([0, 1, 0, 1])
+    assert edges.seam_faces(labels)[1] == 0
+    scores = FaceScores.from_dense(np.ones((2, 4), np.float32), 2)
+    result = smooth_labels(scores, labels, edges, _Frames(2), _EveryThirdHidden(), 0.3, 10)
+    np.testing.assert_array_equal(result.labels, labels)
+    assert (result.moved, result.seam_edges_before, result.seam_edges_after) == (0, 0, 0)
+
+
+def test_atlas_regions_match_a_cell_by_cell_painting() -> None:
+    """frame_regions (difference grid by bincounts, corner min/max elementwise) covers exactly
+    the cells a plain per-face painting covers, and each region's box is its faces' boxes."""
+    import math
+
+    import cv2
+
+    from scanpipe.texturing.atlas import frame_regions
+
+    rng = np.random.default_rng(2)
+    width, height, cell, pad = 640, 480, 32, 3
+    centre = rng.uniform([0, 0], [width, height], (300, 1, 2))
+    corner_uv = centre + rng.normal(0, 12, (300, 3, 2))
+    region, boxes = frame_regions(corner_uv, width, height, cell, pad)
+    covered = np.zeros((math.ceil(height / cell), math.ceil(width / cell)), np.uint8)
+    lo_all, hi_all = [], []
+    for tri in corner_uv:
+        lo = np.clip(np.floor(tri.min(axis=0)).astype(int) - pad, 0, [width - 1, height - 1])
+        hi = np.clip(np.ceil(tri.max(axis=0)).astype(int) + pad + 1, lo + 1, [width, height])
+        covered[lo[1] // cell:(hi[1] - 1) // cell + 1, lo[0] // cell:(hi[0] - 1) // cell + 1] = 1
+        lo_all.append(lo)
+        hi_all.append(hi)
+    count, labels = cv2.connectedComponents(covered, connectivity=8)
+    first_cell = labels[np.array(lo_all)[:, 1] // cell, np.array(lo_all)[:, 0] // cell]
+    # faces in one 8-connected component of painted cells share a region or a tile of it
+    for r in range(len(boxes)):
+        mine = region == r
+        assert len(set(first_cell[mine].tolist())) == 1
+        np.testing.assert_array_equal(boxes[r, :2], np.array(lo_all)[mine].min(axis=0))
+        np.testing.assert_array_equal(boxes[r, 2:], np.array(hi_all)[mine].max(axis=0))
+    assert len(set(region.tolist())) >= count - 1
+
+
+def test_textured_faces_name_the_camera_or_none() -> None:
+    from scanpipe.stages.texture import textured_faces_table
+
+    frame = np.array([2, -1, 0, 1, -1])
+    table = textured_faces_table(np.zeros(5, np.int16), np.zeros((5, 3, 2), np.float32), frame,
+                                 ["a", "b", "a"], np.array([10, 11, 12]))
+    assert table.column("camera_id").to_pylist() == ["a", None, "a", "b", None]
+    assert table.column("frame").to_pylist() == [12, -1, 10, 11, -1]
+    empty = textured_faces_table(np.zeros(2, np.int16), np.zeros((2, 3, 2), np.float32),
+                                 np.full(2, -1), [], np.zeros(0, np.int64))
+    assert empty.column("camera_id").to_pylist() == [None, None]
+
+
+def test_a_triangle_soup_is_textured_as_the_shared_mesh() -> None:
+    """The stage on a mesh whose faces share no vertex (as some exporters write it): no seam
+    step (no neighbours), every face still gets a frame where the shared mesh's best frame
+    does; no error."""
+    caster = Caster()
+    rec = record(small_rig(), beta_step_deg=6.0, caster=caster)
+    vertices, faces, normals = room_mesh(0.25)
+    soup_v, soup_n = vertices[faces].reshape(-1, 3), normals[faces].reshape(-1, 3)
+    soup_f = np.arange(3 * len(faces)).reshape(-1, 3)
+    shared = STAGE.run(rec.inputs(*mesh_tables(vertices, faces, normals)))
+    soup = STAGE.run(rec.inputs(*mesh_tables(soup_v, soup_f, soup_n)))
+    assert soup.report["seam_edges"] == soup.report["seam_edges_best_frame"] == 0
+    assert shared.report["seam_edges_best_frame"] > 0
+    assert soup.report["faces_textured"] >= 0.95 * shared.report["faces_textured"] > 1000

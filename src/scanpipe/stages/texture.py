@@ -40,14 +40,14 @@ from scanpipe.schema import (
 )
 from scanpipe.stage import Stage, StageResult
 from scanpipe.texturing.atlas import build_atlas
-from scanpipe.texturing.exposure import shared_edges, solve_gains
+from scanpipe.texturing.exposure import solve_gains
 from scanpipe.texturing.frames import (
     choose_frames,
     known_camera_frames,
     pinhole_frames,
     worker_count,
 )
-from scanpipe.texturing.labels import face_neighbours, smooth_labels
+from scanpipe.texturing.labels import smooth_labels
 from scanpipe.texturing.panorama import texture_panorama
 from scanpipe.texturing.patches import bake_patches, partial_candidates
 from scanpipe.texturing.photometric import (
@@ -150,14 +150,15 @@ def textured_faces_table(face_page: NDArray[np.int16], face_uv: NDArray[np.float
     """The ``textured_faces`` artifact from per-face page, UVs and chosen frame index."""
     n = len(face_page)
     textured = face_frame >= 0
-    camera = np.asarray([*camera_ids, ""], dtype=object)[np.where(textured, face_frame, -1)]
     seq = np.where(textured, np.r_[sequences, -1][face_frame], -1)
     columns: dict[str, Any] = {"face": pa.array(np.arange(n, dtype=np.int32)),
                                "page": pa.array(face_page.astype(np.int16))}
     for k in range(3):
         columns[f"u{k}"] = pa.array(face_uv[:, k, 0].astype(np.float32))
         columns[f"v{k}"] = pa.array(face_uv[:, k, 1].astype(np.float32))
-    columns["camera_id"] = pa.array(camera.tolist(), pa.string(), mask=~textured)
+    # camera ids by a take in Arrow (no Python string per face; null where untextured)
+    columns["camera_id"] = pa.array(camera_ids, pa.string()).take(
+        pa.array(np.where(textured, face_frame, 0).astype(np.int32), mask=~textured))
     columns["frame"] = pa.array(seq.astype(np.int64))
     return pa.table(columns, schema=TEXTURED_FACES.arrow_schema)
 
@@ -315,13 +316,13 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         outliers = len(face_of)
     del views
     clock.lap("photometric")
-    occlusion = MeshOcclusion(vertices, faces)
+    occlusion = MeshOcclusion(vertices, faces)  # its tree is built here, not at the first ray
     clock.lap("ray_scene")
     selection = select_frames_per_face(scores, frames, occlusion, progress)
     del candidates
     clock.lap("visibility")
-    edges = shared_edges(faces)
-    smoothing = smooth_labels(scores, selection.frame, face_neighbours(faces, edges[0]), frames,
+    edges = occlusion.edges  # found once for the rays, the seam step and the seam strip
+    smoothing = smooth_labels(scores, selection.frame, edges, frames,
                               occlusion, params.seam_weight, params.seam_rounds,
                               progress=progress)
     labels = smoothing.labels
@@ -342,7 +343,9 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     clock.lap("patches")
     seams = None
     if params.seam_strip_px > 0:
-        seams = seam_corrections(vertices, faces, labels, frames, gains, edges=edges)
+        seams = seam_corrections(vertices, faces, labels, frames, gains,
+                                 edges=(edges.pairs(), edges.vertices(faces)))
+    del edges
     clock.lap("seam_strip")
     red, green, blue = params.neutral_rgb
     atlas = build_atlas(vertices, faces, labels, frames, gains,

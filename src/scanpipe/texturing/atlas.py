@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from itertools import pairwise
 
 import cv2
 import numpy as np
@@ -57,19 +58,26 @@ def frame_regions(corner_uv: F64, width: int, height: int, cell_px: int = 32,
     Returns ``(region_of_face (k,), boxes (R, 4))`` with boxes ``x0, y0, x1, y1`` (x1, y1
     exclusive), clipped to the image.
     """
-    lo = np.floor(corner_uv.min(axis=1)).astype(np.int64) - pad_px
-    hi = np.ceil(corner_uv.max(axis=1)).astype(np.int64) + pad_px + 1
-    lo = np.clip(lo, 0, [width - 1, height - 1])
-    hi = np.clip(hi, lo + 1, [width, height])
+    # the corners' min and max as two elementwise passes (a reduction over the middle axis of
+    # a (k, 3, 2) array is several times slower)
+    low = np.minimum(np.minimum(corner_uv[:, 0], corner_uv[:, 1]), corner_uv[:, 2])
+    high = np.maximum(np.maximum(corner_uv[:, 0], corner_uv[:, 1]), corner_uv[:, 2])
+    lo = np.floor(low, out=low).astype(np.int64)
+    hi = np.ceil(high, out=high).astype(np.int64)
+    lo -= pad_px
+    hi += pad_px + 1
+    for axis, size in enumerate((width, height)):
+        np.clip(lo[:, axis], 0, size - 1, out=lo[:, axis])
+        np.clip(hi[:, axis], lo[:, axis] + 1, size, out=hi[:, axis])
     gw, gh = math.ceil(width / cell_px), math.ceil(height / cell_px)
     c0 = lo // cell_px
     c1 = (hi - 1) // cell_px + 1
-    diff = np.zeros((gh + 1, gw + 1), dtype=np.int64)
-    np.add.at(diff, (c0[:, 1], c0[:, 0]), 1)
-    np.add.at(diff, (c0[:, 1], c1[:, 0]), -1)
-    np.add.at(diff, (c1[:, 1], c0[:, 0]), -1)
-    np.add.at(diff, (c1[:, 1], c1[:, 0]), 1)
-    covered = (diff.cumsum(0).cumsum(1)[:gh, :gw] > 0).astype(np.uint8)
+    # each face's box of cells as +1/−1 at its corners of a difference grid (bincounts)
+    row0, col0, row1, col1 = c0[:, 1] * (gw + 1), c0[:, 0], c1[:, 1] * (gw + 1), c1[:, 0]
+    cells = (gh + 1) * (gw + 1)
+    diff = (np.bincount(row0 + col0, minlength=cells) - np.bincount(row0 + col1, minlength=cells)
+            - np.bincount(row1 + col0, minlength=cells) + np.bincount(row1 + col1, minlength=cells))
+    covered = (diff.reshape(gh + 1, gw + 1).cumsum(0).cumsum(1)[:gh, :gw] > 0).astype(np.uint8)
     _, labels, stats, _ = cv2.connectedComponentsWithStats(covered, connectivity=8)
     face_label = labels[c0[:, 1], c0[:, 0]].astype(np.int64)
     # a sparse region (a diagonal band, an L) is cut into tiles of SPLIT_CELLS cells (by the
@@ -144,8 +152,8 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     n_faces = len(faces)
-    face_region = np.full(n_faces, -1, dtype=np.int64)
-    corner_uv = np.zeros((n_faces, 3, 2))
+    # per used frame: its faces, their corner pixels and regions (numbered over all frames)
+    charts: list[tuple[I64, F64, I64]] = []
     region_frame: list[I64] = []
     region_boxes: list[I64] = []
     count = 0
@@ -160,17 +168,24 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         i = int(used_frames[k])
         idx = by_frame[bounds[k]:bounds[k + 1]]
         cam = frames.cameras[i]
-        uv, _ = project_points(vertices[faces[idx]].reshape(-1, 3), cam, float(frames.beta_deg[i]))
-        uv = uv.reshape(-1, 3, 2)
+        # each vertex of these faces projected once (a scan-grid vertex has six faces), then
+        # gathered per corner: the same numbers as projecting every corner
+        tri = faces[idx]
+        used = np.zeros(len(vertices), dtype=bool)
+        used[tri.reshape(-1)] = True
+        points = np.flatnonzero(used)
+        local = np.zeros(len(vertices), dtype=np.int32)
+        local[points] = np.arange(len(points), dtype=np.int32)
+        vertex_uv, _ = project_points(vertices[points], cam, float(frames.beta_deg[i]))
+        uv = vertex_uv[local[tri]]
         return (idx, uv, *frame_regions(uv, cam.width, cam.height, cell_px, pad_px))
 
     # a frame per thread (numpy and OpenCV release the GIL); regions numbered in frame order,
-    # each frame's result stored as it comes (all frames' at once: ~0.3 GB at lab scale)
+    # each frame's faces, corner pixels and regions kept for its UVs once the pages are packed
     with ThreadPoolExecutor(max_workers=worker_count(len(used_frames))) as pool:
         for i, (idx, uv, region, boxes) in zip(
                 used_frames, pool.map(regions_of, range(len(used_frames))), strict=True):
-            corner_uv[idx] = uv
-            face_region[idx] = region + count
+            charts.append((idx, uv, region + count))
             region_frame.append(np.full(len(boxes), i, dtype=np.int64))
             region_boxes.append(boxes)
             count += len(boxes)
@@ -193,7 +208,9 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     for p in pages:
         p[:] = neutral_bgr
     levels = np.arange(256, dtype=np.float32)[:, None]
-    for r in range(n_regions):
+
+    def cut(r: int) -> None:
+        """Region ``r`` cut from its frame, levelled, blended and placed on its page."""
         x0, y0, x1, y1 = (int(b) for b in boxes[r])
         frame = int(frame_of[r])
         source = frames.image(frame)[y0:y1, x0:x1]
@@ -215,8 +232,20 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         if (w, h) != (x1 - x0, y1 - y0):
             patch = cv2.resize(patch, (w, h), interpolation=cv2.INTER_AREA)
         pages[page[r]][oy[r]:oy[r] + h, ox[r]:ox[r] + w] = patch
-        if r % 64 == 0:
-            progress("atlas", r + 1, len(boxes))
+
+    def cut_frame(rows: range) -> int:
+        for r in rows:
+            cut(r)
+        return rows.stop
+
+    # a frame's regions per thread (each frame decoded once; OpenCV and numpy release the
+    # GIL; regions never overlap on the pages); progress from this thread only
+    changes = np.flatnonzero(np.diff(frame_of[:n_regions])) + 1
+    edges = [0, *changes.tolist(), n_regions] if n_regions else [0]
+    runs = [range(a, b) for a, b in pairwise(edges)]
+    with ThreadPoolExecutor(max_workers=worker_count(len(runs))) as pool:
+        for finished in pool.map(cut_frame, runs):
+            progress("atlas", finished, len(boxes))
     progress("atlas", len(boxes), len(boxes))
     if patches is not None and len(patches.face):
         at = np.arange(n_regions, len(dst))
@@ -228,20 +257,22 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     face_uv = np.empty((n_faces, 3, 2), dtype=np.float32)
     face_uv[:, :, 0] = (NEUTRAL_PX / 2) / sizes[0][0]
     face_uv[:, :, 1] = (NEUTRAL_PX / 2) / sizes[0][1]
-    all_done = np.flatnonzero(face_region >= 0)
-    # in blocks of faces: the whole mesh's float64 temporaries at once were ~1 GB at lab scale
-    for start in range(0, len(all_done), UV_BLOCK_FACES):
-        done = all_done[start:start + UV_BLOCK_FACES]
-        reg = face_region[done]
-        sx, sy = dst[reg, 0] / src_w[reg], dst[reg, 1] / src_h[reg]
-        page_w = np.array([s[0] for s in sizes], dtype=np.float64)[page[reg]]
-        page_h = np.array([s[1] for s in sizes], dtype=np.float64)[page[reg]]
-        uv = corner_uv[done]
-        face_uv[done, :, 0] = (ox[reg, None] + (uv[:, :, 0] - boxes[reg, 0, None] + 0.5)
-                               * sx[:, None]) / page_w[:, None]
-        face_uv[done, :, 1] = (oy[reg, None] + (uv[:, :, 1] - boxes[reg, 1, None] + 0.5)
-                               * sy[:, None]) / page_h[:, None]
-        face_page[done] = page[reg]
+    page_width = np.array([s[0] for s in sizes], dtype=np.float64)
+    page_height = np.array([s[1] for s in sizes], dtype=np.float64)
+    # per frame, in blocks of faces: the whole mesh's float64 temporaries at once were ~1 GB
+    for idx, corner_uv, region in charts:
+        for start in range(0, len(idx), UV_BLOCK_FACES):
+            done = idx[start:start + UV_BLOCK_FACES]
+            reg = region[start:start + UV_BLOCK_FACES]
+            uv = corner_uv[start:start + UV_BLOCK_FACES]
+            sx, sy = dst[reg, 0] / src_w[reg], dst[reg, 1] / src_h[reg]
+            page_w, page_h = page_width[page[reg]], page_height[page[reg]]
+            face_uv[done, :, 0] = (ox[reg, None] + (uv[:, :, 0] - boxes[reg, 0, None] + 0.5)
+                                   * sx[:, None]) / page_w[:, None]
+            face_uv[done, :, 1] = (oy[reg, None] + (uv[:, :, 1] - boxes[reg, 1, None] + 0.5)
+                                   * sy[:, None]) / page_h[:, None]
+            face_page[done] = page[reg]
+    del charts
     if patches is not None and len(patches.face):
         texels = float(patches.texels.shape[1])
         at = np.arange(n_regions, len(dst))

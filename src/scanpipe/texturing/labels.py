@@ -26,10 +26,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.progress import ProgressFn, no_progress
-from scanpipe.texturing.exposure import shared_edges
 from scanpipe.texturing.frames import FrameSet
 from scanpipe.texturing.projective import FaceScores
-from scanpipe.texturing.visibility import MeshOcclusion
+from scanpipe.texturing.visibility import MeshEdges, MeshOcclusion, mesh_edges
 
 F32 = NDArray[np.float32]
 I32 = NDArray[np.int32]
@@ -37,21 +36,11 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 
-def face_neighbours(faces: NDArray[np.integer], pairs: I64 | None = None) -> I64:
-    """``(faces, 3)`` the faces sharing an edge with each face, −1 padded (manifold edges);
-    ``pairs`` from :func:`~scanpipe.texturing.exposure.shared_edges` when already known."""
-    if pairs is None:
-        pairs, _ = shared_edges(faces)
-    n = len(faces)
-    result = np.full((n, 3), -1, dtype=np.int64)
-    both = np.concatenate([pairs, pairs[:, ::-1]])
-    order = np.argsort(both[:, 0], kind="stable")
-    owner, other = both[order, 0], both[order, 1]
-    start = np.searchsorted(owner, np.arange(n))
-    slot = np.arange(len(owner)) - start[owner]
-    keep = slot < 3
-    result[owner[keep], slot[keep]] = other[keep]
-    return result
+def face_neighbours(faces: NDArray[np.integer]) -> I64:
+    """``(faces, 3)`` the faces sharing an edge with each face, −1 padded (manifold edges):
+    :meth:`~scanpipe.texturing.visibility.MeshEdges.neighbours` (the stage takes them from its
+    ray scene's edges, found once)."""
+    return mesh_edges(faces).neighbours()
 
 
 @dataclass
@@ -66,11 +55,45 @@ class Smoothing:
     seam_edges_after: int
 
 
-def seam_edge_count(labels: I64, neighbours: I64) -> int:
+#: Faces looked at at once by the passes over the whole mesh (bounded temporaries).
+BLOCK_FACES = 1 << 20
+
+
+def _seam_faces(labels: I64, neighbours: I64) -> tuple[I64, int]:
+    """The textured faces with a textured neighbour of another frame (ascending) and the
+    number of such edges, in blocks of faces (no ``(faces, 3)`` temporaries)."""
+    padded = np.append(labels, -1)  # neighbour −1 reads −1
+    faces: list[I64] = []
+    ends = 0
+    for start in range(0, len(labels), BLOCK_FACES):
+        mine = labels[start:start + BLOCK_FACES, None]
+        lab_n = padded[neighbours[start:start + BLOCK_FACES]]
+        seam = (lab_n >= 0) & (mine >= 0) & (lab_n != mine)
+        ends += int(seam.sum())
+        faces.append(start + np.flatnonzero(seam.any(axis=1)))
+    return (np.concatenate(faces) if faces else np.zeros(0, np.int64)), ends // 2
+
+
+def seam_edge_count(labels: I64, neighbours: I64 | MeshEdges) -> int:
     """Edges between two textured faces with different frames."""
-    lab_n = np.where(neighbours >= 0, labels[np.maximum(neighbours, 0)], -1)
-    mine = labels[:, None]
-    return int(((lab_n >= 0) & (mine >= 0) & (lab_n != mine)).sum() // 2)
+    if isinstance(neighbours, MeshEdges):
+        return neighbours.seam_faces(labels)[1]
+    return _seam_faces(labels, neighbours)[1]
+
+
+def _reference_scores(scores: FaceScores, labels: I64) -> F64:
+    """Each textured face's score in its frame (0 untextured), in blocks of faces; most faces
+    are in their best frame (slot 0): only the others look through their kept frames."""
+    reference = np.zeros(len(labels), dtype=np.float64)
+    for start in range(0, len(labels), BLOCK_FACES):
+        label = labels[start:start + BLOCK_FACES]
+        first = scores.frame[start:start + BLOCK_FACES, 0]
+        at_first = (first == label) & (label >= 0)
+        reference[start:start + BLOCK_FACES][at_first] = scores.score[
+            start:start + BLOCK_FACES, 0][at_first]
+        other = np.flatnonzero(~at_first & (label >= 0))
+        reference[start + other] = scores.lookup(label[other], start + other)
+    return reference
 
 
 def _cost(candidate: I64, rows_frame: I32, rows_score: F32, reference: F64, nb: I64,
@@ -84,28 +107,36 @@ def _cost(candidate: I64, rows_frame: I32, rows_score: F32, reference: F64, nb: 
     return np.asarray(data + seam_weight * potts)
 
 
-def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64, frames: FrameSet,
+def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64 | MeshEdges, frames: FrameSet,
                   occlusion: MeshOcclusion, seam_weight: float = 0.3, rounds: int = 10,
                   seed: int = 0, progress: ProgressFn = no_progress) -> Smoothing:
     """ICM on the Potts energy above, from ``labels``; ``scores`` is modified (hidden
-    candidates set to 0)."""
+    candidates set to 0). ``neighbours``: :func:`face_neighbours`, or the mesh's
+    :class:`~scanpipe.texturing.visibility.MeshEdges` (then only the neighbours of the faces
+    looked at are found)."""
     labels = labels.copy()
-    before = seam_edge_count(labels, neighbours)
+    if isinstance(neighbours, MeshEdges):
+        edges = neighbours
+        frontier, before = edges.seam_faces(labels)  # round 1 looks at these of all faces
+        neighbours_of = edges.neighbours
+    else:
+        table = neighbours
+        frontier, before = _seam_faces(labels, table)
+
+        def neighbours_of(rows: NDArray[np.integer] | None = None) -> I64:
+            return table if rows is None else table[rows]
     if seam_weight <= 0 or len(labels) == 0 or len(frames) == 0:
         return Smoothing(labels, 0, 0, 0, before, before)
     rng = np.random.default_rng(seed)
-    textured = labels >= 0
-    reference = np.zeros(len(labels), dtype=np.float64)
-    reference[textured] = scores.lookup(labels[textured], np.flatnonzero(textured))
+    reference = _reference_scores(scores, labels)
     centres = np.stack([frames.centre(i) for i in range(len(frames))])
     moved = struck = 0
     done = 0
     # only faces on a seam can move, and a face joins a seam only when it or a neighbour
     # changes frame: each round looks at the last round's seam faces and the neighbourhood of
     # the faces that moved (the same faces, in the same order, as a scan of the whole mesh)
-    frontier = np.arange(len(labels))
     for done in range(1, rounds + 1):
-        nbf = neighbours[frontier]
+        nbf = neighbours_of(frontier)
         lab_n = np.where(nbf >= 0, labels[np.maximum(nbf, 0)], -1)
         own_f = labels[frontier]
         lab_n[own_f < 0] = -1
@@ -138,7 +169,7 @@ def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64, frames: Fram
         moved += int(visible.sum())
         struck += int((~visible).sum())
         changed = face[visible]
-        around = neighbours[changed].ravel()
+        around = neighbours_of(changed).ravel()
         frontier = np.unique(np.concatenate([active, changed, around[around >= 0]]))
         progress("seams", done, rounds)
     return Smoothing(labels, done, moved, struck, before, seam_edge_count(labels, neighbours))

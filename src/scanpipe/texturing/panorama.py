@@ -39,7 +39,7 @@ from scanpipe.progress import ProgressFn
 from scanpipe.rig import MotorConfig, Rig
 from scanpipe.texturing.exposure import sample_mean_colour, shrink, solve_gains
 from scanpipe.texturing.frames import FrameSet, choose_frames
-from scanpipe.texturing.visibility import MeshOcclusion
+from scanpipe.texturing.visibility import MeshOcclusion, face_centroids
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -269,7 +269,7 @@ def texture_panorama(vertices: F64, faces: I64, normals: F64, inputs: Mapping[st
     inside = ((v_px.min(axis=1) >= 0.5) & (v_px.max(axis=1) <= height - 0.5)
               & (rho_v[faces].min(axis=1) > 1e-3) & (u_px.max(axis=1) <= width - 0.5))
     face_frame[~inside] = -1
-    centroids = vertices[faces].mean(axis=1)
+    centroids = face_centroids(vertices, faces)
     to_axis = centre - centroids
     cos = np.einsum("ij,ij->i", normals, to_axis) / np.maximum(
         np.linalg.norm(to_axis, axis=1), 1e-12)

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from scanpipe.texturing.frames import FrameSet
 from scanpipe.texturing.photometric import nan_median
-from scanpipe.texturing.visibility import MeshOcclusion
+from scanpipe.texturing.visibility import MeshOcclusion, face_centroids
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -56,7 +56,8 @@ def partial_candidates(vertices: F64, faces: I64, normals: F64, face_ids: I64,
     if n == 0:
         return np.full((0, min(count, len(frames))), -1, dtype=np.int64)
     corners = vertices[faces[face_ids]].reshape(-1, 3)
-    centroid = vertices[faces[face_ids]].mean(axis=1)
+    centroid = face_centroids(vertices, faces[face_ids])
+    normals_of = normals[face_ids]
     ids = np.asarray(frames.camera_ids)
     per_camera = max(1, MAX_PARTIAL_FRAMES // max(1, len(set(frames.camera_ids))))
     looked = []
@@ -68,7 +69,7 @@ def partial_candidates(vertices: F64, faces: I64, normals: F64, face_ids: I64,
         _, _, valid = project_valid(corners, cam, float(frames.beta_deg[i]), 0.0)
         inside = valid.reshape(n, 3).sum(axis=1)
         to_cam = frames.centre(i) - centroid
-        cos = np.einsum("ij,ij->i", normals[face_ids], to_cam) / np.maximum(
+        cos = np.einsum("ij,ij->i", normals_of, to_cam) / np.maximum(
             np.linalg.norm(to_cam, axis=1), 1e-12)
         ok = (inside > 0) & (cos >= min_cos)
         score[i, ok] = cos[ok] * inside[ok] / 3 * weights[i]
@@ -115,25 +116,28 @@ def bake_patches(vertices: F64, faces: I64, face_ids: I64, candidates: I64, fram
             rows = np.flatnonzero(frame_of == i)
             face_of = np.repeat(rows, p * p)
             texel = np.tile(np.arange(p * p), len(rows))
-            where = points[face_of, texel]
+            where = points[rows].reshape(-1, 3)  # = points[face_of, texel], one gather
             cam = frames.cameras[int(i)]
             uv, _, valid = project_valid(where, cam, float(frames.beta_deg[i]), 0.5)
-            centre = np.broadcast_to(frames.centre(int(i)), where[valid].shape)
             seen = valid.copy()
-            seen[valid] = occlusion.unobstructed(centre, where[valid])
+            seen[valid] = occlusion.unobstructed(frames.centre(int(i)), where[valid])
             face_of, texel, uv = face_of[seen], texel[seen], uv[seen]
             if len(face_of) == 0:
                 continue
             sampled = remap_points(frames.image(int(i)), uv)
             samples[face_of, texel, slot] = sampled * gains[i]
-            np.add.at(votes[:, int(i)], face_of, 1)
-    filled = np.isfinite(samples[:, :, :, 0]).any(axis=2)
+            votes[:, int(i)] += np.bincount(face_of, minlength=n)
+    seen_in = np.isfinite(samples[:, :, :, 0])
+    filled = seen_in.any(axis=2)
     # a texel seen in three or more frames takes their median: one frame with a passer-by
-    # in it does not decide; with fewer, the best frame's colour
-    count = np.isfinite(samples[:, :, :, 0]).sum(axis=2)
-    first = np.argmax(np.isfinite(samples[:, :, :, 0]), axis=2)
-    best = np.take_along_axis(samples, first[:, :, None, None], axis=2)[:, :, 0]
-    colour = np.where((count >= 3)[:, :, None], nan_median(samples, axis=2)[:, :, 0], best)
+    # in it does not decide; with fewer, the best frame's colour (the median only where used)
+    count = seen_in.sum(axis=2)
+    first = np.argmax(seen_in, axis=2)
+    colour = np.take_along_axis(samples, first[:, :, None, None], axis=2)[:, :, 0]
+    many = count >= 3
+    if many.any():
+        # each texel's samples of a channel contiguous: the row sorts are several times faster
+        colour[many] = nan_median(samples[many].transpose(0, 2, 1).copy(), axis=2)[:, :, 0]
     share = (filled & inside).sum(axis=1) / max(1, int(inside.sum()))
     keep = share >= MIN_FILLED
     colour = np.where(filled[:, :, None], colour, 0.0)

@@ -22,8 +22,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from scanpipe.texturing.exposure import sample_mean_colour, shared_edges
+from scanpipe.texturing.exposure import sample_mean_colour
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet
+from scanpipe.texturing.visibility import mesh_edges
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -47,10 +48,14 @@ def seam_corrections(vertices: NDArray[np.floating], faces: NDArray[np.integer],
                      labels: I64, frames: FrameSet, gains: F64, max_levels: float = 60.0,
                      edges: tuple[I64, I64] | None = None) -> SeamCorrections:
     """The corrections at the seam points of every frame (see the module docstring);
-    ``edges`` from :func:`~scanpipe.texturing.exposure.shared_edges` when already known."""
+    ``edges`` (face pairs, edge vertices) from the mesh's
+    :class:`~scanpipe.texturing.visibility.MeshEdges` when already known."""
     from scanpipe.texturing.projective import project_valid
 
-    pairs, edge_vertices = edges if edges is not None else shared_edges(faces)
+    if edges is None:
+        found = mesh_edges(faces)
+        edges = found.pairs(), found.vertices(faces)
+    pairs, edge_vertices = edges
     la, lb = labels[pairs[:, 0]], labels[pairs[:, 1]]
     seam = (la >= 0) & (lb >= 0) & (la != lb)
     la, lb, edge_vertices = la[seam], lb[seam], edge_vertices[seam]

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,6 +24,8 @@ from scanpipe.errors import StageError
 from scanpipe.texturing.frames import worker_count
 
 F64 = NDArray[np.float64]
+I32 = NDArray[np.int32]
+I64 = NDArray[np.int64]
 #: Where the corner samples sit between the centroid (0) and the corner (1).
 CORNER_INSET = 0.95
 #: Faces with an edge longer than this (m) are tested at 13 points, others at 7.
@@ -31,6 +34,10 @@ DENSE_EDGE_M = 0.05
 BASE_SAMPLES = np.array([0, 1, 2, 3, 7, 8, 9])
 #: Of :meth:`MeshOcclusion.face_samples`, the six more tested on faces with long edges.
 DENSE_SAMPLES = np.array([4, 5, 6, 10, 11, 12])
+#: Face slots whose edge keys :func:`mesh_edges` compares at once.
+EDGE_BLOCK_SLOTS = 1 << 21
+#: Faces whose neighbours :meth:`MeshEdges.neighbours` finds at once.
+NEIGHBOUR_BLOCK_FACES = 1 << 20
 #: Faces whose rays :meth:`MeshOcclusion.faces_visible` casts at once (≤ 3.4 M rays).
 FACES_PER_CAST = 1 << 18
 
@@ -50,16 +57,139 @@ BASE_WEIGHTS = SAMPLE_WEIGHTS[BASE_SAMPLES]
 DENSE_WEIGHTS = SAMPLE_WEIGHTS[DENSE_SAMPLES]
 
 
+@dataclass
+class MeshEdges:
+    """The undirected edges of a triangle mesh, found once for the occlusion test, the face
+    neighbours of the seam step and the seam strip.
+
+    ``ids`` ``(faces, 3)``: an id per edge (numbered in the order of ``lo · V + hi`` of its
+    vertices), the edge from corner k to k + 1; ``count`` edges. ``pair_slots`` ``(E, 2)``: per
+    edge used by exactly two faces (non-manifold edges left out), in edge-id order, the two
+    face slots ``k · faces + face`` that use it, the lower first.
+    """
+
+    ids: I32
+    count: int
+    pair_slots: I64
+    _slot_pair: I32 | None = field(default=None, repr=False)  # per face slot, its pair or −1
+
+    def pairs(self) -> I64:
+        """``(E, 2)`` the faces sharing each two-face edge; the pairs of
+        :func:`scanpipe.texturing.exposure.shared_edges`, in its order."""
+        return np.asarray(self.pair_slots % max(len(self.ids), 1))
+
+    def vertices(self, faces: NDArray[np.integer]) -> I64:
+        """``(E, 2)`` the vertices of each two-face edge, lower first (as ``shared_edges``)."""
+        n = len(self.ids)
+        slot = self.pair_slots[:, 0]
+        face, corner = slot % max(n, 1), slot // max(n, 1)
+        a = faces[face, corner].astype(np.int64)
+        b = faces[face, (corner + 1) % 3].astype(np.int64)
+        return np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1)
+
+    def neighbours(self, rows: NDArray[np.integer] | None = None) -> I64:
+        """``(faces, 3)`` the faces sharing a two-face edge with each face (or each face in
+        ``rows``), −1 padded: first the pairs the face is first in, then those it is second
+        in, each in edge order (the order a stable sort of both directions of :meth:`pairs`
+        by face gives), without a sort."""
+        n = len(self.ids)
+        if self._slot_pair is None:
+            slot_pair = np.full(3 * n, -1, dtype=np.int32)
+            for side in (0, 1):
+                slot_pair[self.pair_slots[:, side]] = np.arange(len(self.pair_slots),
+                                                                dtype=np.int32)
+            self._slot_pair = slot_pair
+        pairs_by_corner = self._slot_pair.reshape(3, n).T  # (faces, 3) by corner k
+        faces = np.arange(n) if rows is None else np.asarray(rows, dtype=np.int64)
+        if len(self.pair_slots) == 0:  # no face shares an edge
+            return np.full((len(faces), 3), -1, dtype=np.int64)
+        result = np.empty((len(faces), 3), dtype=np.int64)
+        big = 2 * len(self.pair_slots) + 2
+        # in blocks of faces: the temporaries of the whole mesh at once were ~0.6 GB at lab scale
+        for start in range(0, len(faces), NEIGHBOUR_BLOCK_FACES):
+            block = faces[start:start + NEIGHBOUR_BLOCK_FACES]
+            pair = pairs_by_corner[block]
+            has = pair >= 0
+            safe = np.maximum(pair, 0)
+            first_slot, second_slot = self.pair_slots[safe, 0], self.pair_slots[safe, 1]
+            second = second_slot == block[:, None] + n * np.arange(3)
+            # the other face of the pair: its slot modulo the face count
+            other = np.where(second, first_slot, second_slot) % max(n, 1)
+            other[~has] = -1
+            # a face's edges in order: first-owned before second-owned, then by edge order,
+            # the unpaired last (by corner): distinct keys within a face, ranks 0, 1, 2
+            key = np.where(has, second * (len(self.pair_slots) + 1) + pair,
+                           big + np.arange(3, dtype=np.int64))
+            rank = (key[:, :, None] > key[:, None, :]).sum(axis=2)
+            np.put_along_axis(result[start:start + len(block)], rank, other, axis=1)
+        return result
+
+    def seam_faces(self, labels: I64) -> tuple[I64, int]:
+        """The faces (ascending) on an edge between two labelled faces (label ≥ 0) of
+        different labels, and the number of such edges; in blocks of edges."""
+        n = len(self.ids)
+        on_seam = np.zeros(n, dtype=bool)
+        count = 0
+        for start in range(0, len(self.pair_slots), NEIGHBOUR_BLOCK_FACES):
+            slots = self.pair_slots[start:start + NEIGHBOUR_BLOCK_FACES]
+            a, b = slots[:, 0] % max(n, 1), slots[:, 1] % max(n, 1)
+            la, lb = labels[a], labels[b]
+            seam = (la >= 0) & (lb >= 0) & (la != lb)
+            count += int(seam.sum())
+            on_seam[a[seam]] = True
+            on_seam[b[seam]] = True
+        return np.flatnonzero(on_seam), count
+
+def mesh_edges(faces: NDArray[np.integer], n_vertices: int | None = None) -> MeshEdges:
+    """The :class:`MeshEdges` of ``faces`` (one sort of the face slots' edge keys)."""
+    faces = np.asarray(faces)
+    n = len(faces)
+    if n_vertices is None:
+        n_vertices = int(faces.max(initial=-1)) + 1
+    key = np.empty((3, n), dtype=np.int64)  # edge-major: slot k · n + face
+    for k in range(3):
+        a, b = faces[:, k].astype(np.int64), faces[:, (k + 1) % 3].astype(np.int64)
+        np.minimum(a, b, out=key[k])
+        key[k] *= max(n_vertices, 1)
+        key[k] += np.maximum(a, b)
+    flat = key.reshape(-1)
+    order = np.argsort(flat, kind="stable")
+    # where the sorted keys change, in blocks (no sorted copy of all keys beside them)
+    new = np.empty(len(order), dtype=bool)
+    for start in range(0, len(order), EDGE_BLOCK_SLOTS):
+        block = flat[order[start:start + EDGE_BLOCK_SLOTS]]
+        new[start] = start == 0 or bool(block[0] != flat[order[start - 1]])
+        np.not_equal(block[1:], block[:-1], out=new[start + 1:start + len(block)])
+    del key, flat
+    starts = np.flatnonzero(new)
+    ids = np.empty(3 * n, dtype=np.int32)
+    number = np.cumsum(new, dtype=np.int32)
+    number -= 1
+    ids[order] = number
+    del new, number
+    count = len(starts)
+    first = starts[np.diff(starts, append=3 * n) == 2]  # edges of exactly two face slots
+    del starts
+    pair_slots = np.empty((len(first), 2), dtype=np.int64)
+    pair_slots[:, 0] = order[first]
+    first += 1
+    pair_slots[:, 1] = order[first]
+    del order, first
+    by_face = np.ascontiguousarray(ids.reshape(3, n).T)
+    return MeshEdges(by_face, count, pair_slots)
+
+
 class MeshOcclusion:
     """Occlusion tests against one triangle mesh."""
 
-    def __init__(self, vertices: NDArray[np.floating], faces: NDArray[np.integer]) -> None:
+    def __init__(self, vertices: NDArray[np.floating], faces: NDArray[np.integer],
+                 edges: MeshEdges | None = None) -> None:
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float32)
         self.faces = np.ascontiguousarray(faces, dtype=np.uint32)
         #: Rays cast so far.
         self.rays_cast = 0
-        self._edge_ids: NDArray[np.int64] | None = None
-        self._edge_count = 0
+        self._edges = edges
+        self._dense: NDArray[np.bool_] | None = None
         # per thread: scratch for sharing points between the faces of a block (_visible_from)
         self._scratch = threading.local()
         self._lock = threading.Lock()
@@ -71,9 +201,20 @@ class MeshOcclusion:
             try:
                 self._scene.add_triangles(o3d.core.Tensor.from_numpy(self.vertices),
                                           o3d.core.Tensor.from_numpy(self.faces))
+                # Embree builds its tree at the first query: here, so that the time and the
+                # memory show where the scene is made
+                probe = np.zeros((1, 6), np.float32)
+                self._scene.test_occlusions(o3d.core.Tensor.from_numpy(probe))
             except RuntimeError as err:
                 raise StageError(f"mesh: Open3D could not build a ray-casting scene ({err})"
                                  ) from err
+
+    @property
+    def edges(self) -> MeshEdges:
+        """The mesh's :class:`MeshEdges` (found at the first use)."""
+        if self._edges is None:
+            self._edges = mesh_edges(self.faces, len(self.vertices))
+        return self._edges
 
     def face_samples(self, face_ids: NDArray[np.integer]) -> NDArray[np.float32]:
         """``(len(face_ids), 13, 3)``: centroid, inset corners, inset points at ¼, ½ and ¾ of
@@ -146,65 +287,70 @@ class MeshOcclusion:
         blocks = [order[start:min(b, start + FACES_PER_CAST)]
                   for a, b in zip(starts[:-1].tolist(), starts[1:].tolist(), strict=True)
                   for start in range(a, b, FACES_PER_CAST)]
-        self._face_edges()
+        edge_ids = self.edges.ids
+        self.dense_faces()  # found once, before the threads
 
         def test(rows: NDArray[np.int64]) -> None:
-            result[rows] = self._visible_from(origins[views[rows[0]]], ids[rows], abs_tol_m,
-                                              rel_tol)
+            result[rows] = self._visible_from(origins[views[rows[0]]], ids[rows], edge_ids,
+                                              abs_tol_m, rel_tol)
 
         # blocks on a thread per core: Open3D casts on all cores, the numpy around it on one
         with ThreadPoolExecutor(max_workers=worker_count(len(blocks))) as pool:
             list(pool.map(test, blocks))
         return result
 
-    def _face_edges(self) -> NDArray[np.int64]:
-        """``(faces, 3)`` an id per undirected edge, the edge from corner k to k + 1."""
-        if self._edge_ids is None:
-            faces = self.faces.astype(np.int64)
-            lo = np.minimum(faces, np.roll(faces, -1, axis=1))
-            hi = np.maximum(faces, np.roll(faces, -1, axis=1))
-            key = (lo * len(self.vertices) + hi).ravel()
-            order = np.argsort(key)
-            ordered = key[order]
-            ids = np.empty(len(key), dtype=np.int64)
-            ids[order] = np.cumsum(np.r_[False, ordered[1:] != ordered[:-1]])
-            self._edge_ids = ids.reshape(-1, 3)
-            self._edge_count = int(ids.max(initial=-1)) + 1
-        return self._edge_ids
+    def dense_faces(self) -> NDArray[np.bool_]:
+        """Per face: an edge longer than :data:`DENSE_EDGE_M` (tested at 13 points, not 7);
+        found once, in blocks of faces."""
+        with self._lock:
+            if self._dense is None:
+                dense = np.empty(len(self.faces), dtype=bool)
+                for start in range(0, len(self.faces), FACES_PER_CAST):
+                    corners = self.vertices[self.faces[start:start + FACES_PER_CAST]]
+                    edge = corners[:, [1, 2, 0]] - corners
+                    longest = np.sqrt(np.einsum("fkc,fkc->fk", edge, edge).max(axis=1))
+                    dense[start:start + FACES_PER_CAST] = longest > DENSE_EDGE_M
+                self._dense = dense
+            return self._dense
 
     def _visible_from(self, origin: NDArray[np.float32], face_ids: NDArray[np.int64],
-                      abs_tol_m: float, rel_tol: float) -> NDArray[np.bool_]:
+                      edge_ids: I32, abs_tol_m: float, rel_tol: float) -> NDArray[np.bool_]:
         """:meth:`faces_visible` for faces seen from one origin: their centroids, corners and
         edge middles, each corner and edge once, and the inset points of long-edged faces."""
         n = len(face_ids)
-        tri = self.faces[face_ids].astype(np.int64)  # (n, 3)
-        corners = self.vertices[tri]  # (n, 3, 3) float32
+        tri = self.faces[face_ids]  # (n, 3)
         slots = np.arange(3 * n, dtype=np.int32)
         if not hasattr(self._scratch, "vertex_slot"):
             self._scratch.vertex_slot = np.zeros(len(self.vertices), dtype=np.int32)
-            self._scratch.edge_slot = np.zeros(self._edge_count, dtype=np.int32)
+            self._scratch.edge_slot = np.zeros(self.edges.count, dtype=np.int32)
         # a corner or an edge shared by faces of this block is one point: the last slot that
         # names it (a scatter into a per-vertex / per-edge scratch array, no sort)
         shared = []
-        edge_ids = self._face_edges()[face_ids].ravel()
-        for ids, scratch in ((tri.ravel(), self._scratch.vertex_slot),
-                             (edge_ids, self._scratch.edge_slot)):
+        for ids, scratch in ((tri.reshape(-1), self._scratch.vertex_slot),
+                             (edge_ids[face_ids].reshape(-1), self._scratch.edge_slot)):
             scratch[ids] = slots
             owner_slot = scratch[ids]
-            first = np.flatnonzero(owner_slot == slots)
-            compact = np.empty(3 * n, dtype=np.int64)
-            compact[first] = np.arange(len(first))
+            is_first = owner_slot == slots
+            first = np.flatnonzero(is_first)
+            compact = np.cumsum(is_first, dtype=np.int32)
+            compact -= 1
             shared.append((first, compact[owner_slot]))
         (vertex_first, vertex_point), (edge_first, edge_point) = shared
-        following = np.roll(corners, -1, axis=1).reshape(-1, 3)
-        flat = corners.reshape(-1, 3)
-        edge = corners - np.roll(corners, -1, axis=1)
-        longest = np.sqrt(np.einsum("fkc,fkc->fk", edge, edge).max(axis=1))
-        dense = np.flatnonzero(longest > DENSE_EDGE_M)
-        points = [corners.mean(axis=1), flat[vertex_first],
-                  0.5 * (flat[edge_first] + following[edge_first])]
+        # the points from the vertices (no (n, 3, 3) corner array): centroids (as a mean
+        # over the corners), the shared corners, the shared edges' middles (slot k of a face
+        # runs from its corner k to k + 1)
+        flat = tri.reshape(-1)
+        vertices = self.vertices
+        centroid = vertices[tri[:, 0]] + vertices[tri[:, 1]]
+        centroid += vertices[tri[:, 2]]
+        centroid /= 3
+        following = edge_first - edge_first % 3 + (edge_first % 3 + 1) % 3
+        middle = vertices[flat[edge_first]] + vertices[flat[following]]
+        middle *= np.float32(0.5)
+        points = [centroid, vertices[flat[vertex_first]], middle]
+        dense = np.flatnonzero(self.dense_faces()[face_ids])
         if len(dense):
-            points.append(np.matmul(DENSE_WEIGHTS, corners[dense]).reshape(-1, 3))
+            points.append(np.matmul(DENSE_WEIGHTS, vertices[tri[dense]]).reshape(-1, 3))
         ok = self.unobstructed(origin, np.concatenate(points), abs_tol_m, rel_tol)
         vertex_base, edge_base = n, n + len(vertex_first)
         visible = ok[:n].copy()
