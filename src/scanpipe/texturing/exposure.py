@@ -14,6 +14,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from scanpipe.texturing.visibility import mesh_edges
+
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
@@ -21,23 +23,12 @@ I64 = NDArray[np.int64]
 def shared_edges(faces: NDArray[np.integer]) -> tuple[I64, I64]:
     """Pairs of faces sharing an edge: ``(face_pairs (E, 2), edge_vertices (E, 2))``.
 
-    Edges used by more than two faces (non-manifold) are left out.
+    Edges used by more than two faces (non-manifold) are left out. (The texture stage takes
+    both from its one :class:`~scanpipe.texturing.visibility.MeshEdges`.)
     """
     faces = np.asarray(faces, dtype=np.int64)
-    n = len(faces)
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    edges.sort(axis=1)
-    key = edges[:, 0] * (int(faces.max(initial=0)) + 1) + edges[:, 1]  # 1-D: fast to sort
-    # one stable sort; an edge used by exactly two faces is a run of two equal keys
-    order = np.argsort(key, kind="stable")
-    ordered = key[order]
-    same = ordered[1:] == ordered[:-1]  # position i equals i + 1
-    before = np.r_[False, same[:-1]] if len(same) else same
-    after = np.r_[same[1:], False] if len(same) else same
-    first = np.flatnonzero(same & ~before & ~after)
-    owners = np.stack([order[first] % n, order[first + 1] % n], axis=1) if n else np.zeros(
-        (0, 2), np.int64)
-    return owners, edges[order[first]]
+    edges = mesh_edges(faces)
+    return edges.pairs(), edges.vertices(faces)
 
 
 def shrink(image: NDArray[np.uint8], factor: int) -> NDArray[np.uint8]:
