@@ -37,7 +37,11 @@ Why frames outside the scan matter for δ: while the platform turns at a steady 
 offset δ looks exactly like a turn of the camera about the axis by ω·δ. Frames while the platform
 stands still (before the scan starts, after it ends) separate the two; the video should run a few
 seconds before and after the scan. Without them a warning says δ is found only together with
-the camera's turn (``still_frames`` False). See docs/calibration.md ("Cameras").
+the camera's turn (``still_frames`` False). A stepping platform repeats itself every step: a δ
+one step period off looks like a turn by one step in every frame of the scan, and only the
+frames where the motion starts and stops tell them apart (:func:`frame_rows` takes some). Once δ
+is chosen the mount is fitted afresh at it, every view weighing alike. See docs/calibration.md
+("Cameras").
 """
 
 from __future__ import annotations
