@@ -9,7 +9,9 @@ Three cases per seed:
   fit), its mount turned and moved alike;
 - **video**: a phone video of cam0 that runs from 4 s before the scan to 4 s after it, its frames
   stamped 0.5 s late (the rough ``import-video --offset``); the mount and the clock offset are
-  fitted together.
+  fitted together. Of the video, ``--frames`` frames spread over it and every 30 fps frame
+  within 1.6 s of the platform's start and stop are rendered (a phone has them all; the fit
+  takes some of each, :func:`scanpipe.camera_selfcal.frame_rows`).
 
 Reported: the rotation error (the angle between the fitted and the true camera rotation, and as
 a rotation vector in the platform frame: which axis), the translation and focal errors (as
@@ -49,7 +51,7 @@ from harness import save, table
 from scanpipe.camera_selfcal import calibrate_cameras, camera_with
 from scanpipe.geometry import camera_to_platform
 from scanpipe.images import encode_jpeg_rgb
-from scanpipe.rig import CameraConfig, Rig
+from scanpipe.rig import CameraConfig, Pose, Rig
 from scanpipe.sim.camera import render_rgb
 from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
@@ -62,6 +64,10 @@ ANGLE_TOL_DEG, TIME_TOL_S = 0.1, 0.020
 MEDIAN_TOL_PX, WITHIN_MIN = 1.5, 0.70
 VIDEO_ERROR_S = 0.5
 VIDEO_MARGIN_S = 4.0
+#: The video's rate and how long either side of the platform's start and stop its every frame
+#: is offered to the fit (the clock's search window, ±1 s, and the 0.5 s error, with room).
+VIDEO_FPS = 30.0
+VIDEO_DENSE_S = 1.6
 
 
 def perturbed(camera: CameraConfig, seed: int, angle_deg: float = 2.0,
@@ -93,7 +99,8 @@ ERROR_NAMES = ("rot_x_deg", "rot_y_deg", "rot_z_deg", "tx_m", "ty_m", "tz_m", "f
 
 
 def error_statistics(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Mean, spread (1σ over seeds) and correlation matrix of the error vectors."""
+    """Mean, spread (1σ over seeds), covariance and correlation matrix of the error
+    vectors."""
     values = np.array([r["error_vector"] for r in runs])
     if len(values) < 2:
         return {"runs": len(values)}
@@ -102,6 +109,7 @@ def error_statistics(runs: list[dict[str, Any]]) -> dict[str, Any]:
         corr = np.corrcoef(values, rowvar=False)
     return {"runs": len(values), "names": list(ERROR_NAMES),
             "mean": values.mean(axis=0).tolist(), "spread": spread.tolist(),
+            "covariance": np.cov(values, rowvar=False).tolist(),
             "correlation": np.nan_to_num(corr).round(3).tolist()}
 
 
@@ -147,18 +155,22 @@ def simulate(folder: Path, options: SimOptions, cache: Path | None = None
 
 def video_frames(options: SimOptions, camera: CameraConfig, count: int,
                  late_s: float) -> pa.Table:
-    """A ``frames`` table of ``count`` frames of a video of ``camera`` from
-    :data:`VIDEO_MARGIN_S` before the session to as long after it, stamped ``late_s`` late."""
+    """A ``frames`` table of a video of ``camera`` from :data:`VIDEO_MARGIN_S` before the
+    session to as long after it, stamped ``late_s`` late: ``count`` frames spread over it and,
+    as a phone records them, every frame at :data:`VIDEO_FPS` within
+    :data:`VIDEO_DENSE_S` of the platform's start and stop (the fit chooses among them)."""
     true_rig = options.true_rig()
     session = plan_session(options, true_rig)
     scene = resolve_scene(options.scene, options.scene_pose, options.scene_up)
     # a real video has many frames before and after the scan: 30 fps; a quarter of ``count``
     # each here, the rest spread over the scan
     still = max(1, count // 4)
-    times = np.concatenate([np.linspace(-VIDEO_MARGIN_S, -0.1, still),
-                            np.linspace(0.0, session.end_s, count - 2 * still),
-                            np.linspace(session.end_s + 0.1, session.end_s + VIDEO_MARGIN_S,
-                                        still)])
+    dense = np.arange(-VIDEO_DENSE_S, VIDEO_DENSE_S, 1.0 / VIDEO_FPS)
+    times = np.unique(np.concatenate([
+        np.linspace(-VIDEO_MARGIN_S, -0.1, still),
+        np.linspace(0.0, session.end_s, count - 2 * still),
+        np.linspace(session.end_s + 0.1, session.end_s + VIDEO_MARGIN_S, still),
+        dense, session.end_s + dense]))
     pulse = options.rig.motor.pulse_step_deg
     betas = session.timeline.steps_at(np.clip(times, 0.0, session.end_s)) * pulse \
         + true_rig.motor.beta_offset_deg
@@ -166,9 +178,9 @@ def video_frames(options: SimOptions, camera: CameraConfig, count: int,
     data = [encode_jpeg_rgb(render_rgb(scene, camera, float(b), options.camera_model(), rng),
                             options.jpeg_quality) for b in betas]
     stamps = [options.start_time_ns + round((t + late_s) * 1e9) for t in times]
-    return pa.table({"camera_id": pa.array([camera.id] * count, pa.string()),
+    return pa.table({"camera_id": pa.array([camera.id] * len(times), pa.string()),
                      "log_time_ns": pa.array(stamps, pa.int64()),
-                     "sequence": pa.array(range(count), pa.int64()),
+                     "sequence": pa.array(range(len(times)), pa.int64()),
                      "data": pa.array(data, pa.binary())})
 
 
@@ -200,11 +212,24 @@ def write_video(options: SimOptions, camera: CameraConfig, path: Path, fps: floa
 CASES = ("mount", "video", "mount360")
 
 
+def room_phase_deg(seed: int, motor_step: float) -> float:
+    """A turn of the room about the axis within one motor step, drawn per seed: without it
+    every seed samples the room's silhouettes at the same platform angles, and their
+    placement errors (each to ± half a cell, the same in every frame) are one draw shared by
+    all seeds — a common bias over the seeds that is the scan's, not the method's."""
+    return float(np.random.default_rng([seed, 31]).uniform(0.0, motor_step))
+
+
 def one(seed: int, motor_step: float, beam_step: float, camera_scale: float, frames: int,
-        folder: Path, cases: tuple[str, ...] = CASES, cache: Path | None = None
-        ) -> list[dict[str, Any]]:
+        folder: Path, cases: tuple[str, ...] = CASES, cache: Path | None = None,
+        random_phase: bool = False) -> list[dict[str, Any]]:
+    scene_pose = None
+    if random_phase:
+        scene_pose = Pose(translation_m=(0.0, 0.0, 0.0),
+                          rotation_deg=(0.0, room_phase_deg(seed, motor_step), 0.0))
     options = SimOptions(motor_step_deg=motor_step, beam_step_deg=beam_step,
-                         camera_scale=camera_scale, camera_fps=0.5, seed=seed)
+                         camera_scale=camera_scale, camera_fps=0.5, seed=seed,
+                         scene_pose=scene_pose)
     tables = simulate(folder, options, cache)
     true_rig = options.true_rig()
     runs = []
@@ -224,6 +249,7 @@ def one(seed: int, motor_step: float, beam_step: float, camera_scale: float, fra
         after, before = result.alignment_after.as_dict(), result.alignment_before.as_dict()
         run: dict[str, Any] = {
             "seed": seed, "case": case, "seconds": seconds, "cpu_seconds": cpu_seconds,
+            "room_phase_deg": scene_pose.rotation_deg[1] if scene_pose is not None else 0.0,
             "camera_id": camera_id,
             "rotation_error_before_deg": rotation_error_deg(wrong_rig.camera(camera_id),
                                                             true_cam),
@@ -258,6 +284,11 @@ def main() -> None:
                         help=f"comma-separated, of {', '.join(CASES)}")
     parser.add_argument("--sim-cache", type=Path, default=None,
                         help="keep the simulated tables here and reuse them (same options)")
+    parser.add_argument("--random-phase", action="store_true",
+                        help="turn the room by a random fraction of a motor step per seed (the "
+                             "seeds then also draw where the scan samples its silhouettes)")
+    parser.add_argument("--label", default="",
+                        help="appended to the result file's name (runs of one day kept apart)")
     parser.add_argument("--merge", type=Path, nargs="+", default=None,
                         help="no fits: merge these result files (runs split over processes) "
                              "into one, with the statistics over all their seeds")
@@ -274,7 +305,7 @@ def main() -> None:
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         with tempfile.TemporaryDirectory() as tmp:
             runs += one(seed, args.motor_step, args.beam_step, args.camera_scale, args.frames,
-                        Path(tmp), cases, args.sim_cache)
+                        Path(tmp), cases, args.sim_cache, args.random_phase)
         for r in runs[-len(cases):]:
             time_error = "" if r["time_error_s"] is None else \
                 f" clock {r['time_error_s'] * 1000:+.1f} ms"
@@ -284,12 +315,16 @@ def main() -> None:
                   f"{r['alignment_after']['edge_median_px']:.2f} px, within 2 px "
                   f"{r['alignment_after']['edge_within_2px'] * 100:.0f} % "
                   f"({r['seconds']:.1f} s, cpu {r['cpu_seconds']:.1f} s)", flush=True)
-    summarise(runs, cases, vars(args), stem_for(args.motor_step, args.first_seed, cases))
+    summarise(runs, cases, vars(args), stem_for(args.motor_step, args.first_seed, cases,
+                                                args.label))
 
 
-def stem_for(motor_step: float, first_seed: int, cases: tuple[str, ...] = CASES) -> str:
+def stem_for(motor_step: float, first_seed: int, cases: tuple[str, ...] = CASES,
+             label: str = "") -> str:
     """The result file's name."""
     stem = f"camcal-{dt.date.today().isoformat()}-step-{motor_step:g}"
+    if label:
+        stem += f"-{label}"
     if cases != CASES:
         stem += "-" + "-".join(cases)
     return stem + (f"-from-seed-{first_seed}" if first_seed else "")
@@ -304,7 +339,8 @@ def merge(paths: list[Path]) -> None:
     cases = tuple(c for c in CASES if any(r["case"] == c for r in runs))
     args = {**loaded[0]["args"], "merged": [str(p) for p in paths],
             "seeds": len({r["seed"] for r in runs}), "first_seed": min(r["seed"] for r in runs)}
-    summarise(runs, cases, args, stem_for(args["motor_step"], 0) + "-merged")
+    summarise(runs, cases, args, stem_for(args["motor_step"], 0, CASES,
+                                          args.get("label") or "") + "-merged")
 
 
 def summarise(runs: list[dict[str, Any]], cases: tuple[str, ...], args: dict[str, Any],

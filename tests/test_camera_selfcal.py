@@ -134,6 +134,27 @@ def test_image_edges_are_placed_to_a_fraction_of_a_pixel() -> None:
     assert np.allclose(rows[(rows > 0)], 20.5, atol=0.1)
 
 
+def test_the_distance_map_is_centred_on_the_edge_not_on_cannys_side() -> None:
+    """Canny marks the pixel before a step on both axes; a distance map of its pixels put
+    every straight edge half a pixel up and to the left (a turn of the camera the coarse
+    passes then made). The map's zero now straddles the sub-pixel edge."""
+    from scipy.ndimage import gaussian_filter
+
+    for step in ("vertical", "horizontal"):
+        image = np.zeros((64, 64), np.uint8)
+        if step == "vertical":
+            image[:, 32:] = 200  # the step lies at u = 31.5
+        else:
+            image[32:] = 200
+        found = image_edges(image)
+        profile = found.distance[32, 26:38] if step == "vertical" else found.distance[26:38, 32]
+        assert profile.tolist() == profile[::-1].tolist(), step  # symmetric about 31.5
+        assert profile[5] == profile[6] == 0.0
+        blurred = gaussian_filter(found.distance, 1.0)
+        line = blurred[32, 26:38] if step == "vertical" else blurred[26:38, 32]
+        assert np.allclose(line, line[::-1], atol=1e-5), step
+
+
 def test_depth_edges_find_a_crease() -> None:
     alpha = np.arange(30.0, 150.0, 0.5)
     beta = np.arange(0.0, 10.0, 0.5)
@@ -195,6 +216,12 @@ def test_frame_rows_take_still_frames_first_when_asked() -> None:
     assert even.tolist() == np.round(np.linspace(0, 99, 8)).astype(int).tolist()
     rows = frame_rows(table, "c", 8, (times[10], times[90]))
     assert sum(r < 10 for r in rows) == 2 and sum(r > 90 for r in rows) == 2 and len(rows) == 8
+    # with the clock's window: also frames where the platform starts and stops (a stepping
+    # platform repeats itself every step; only those tell a clock one step off from a turn)
+    rows = frame_rows(table, "c", 16, (times[10], times[90]), 3_000_000_000)
+    assert len(rows) == 16 and len(set(rows.tolist())) == 16
+    assert sum(r < 7 for r in rows) == 2 and sum(r > 93 for r in rows) == 2
+    assert sum(7 <= r <= 13 for r in rows) == 2 and sum(87 <= r <= 93 for r in rows) == 2
 
 
 # -- on the virtual rig ----------------------------------------------------------------------
@@ -364,6 +391,12 @@ def test_eval_reports_the_edge_figures(scan: dict[str, Any]) -> None:
     assert figures["edge_points"] > 100
     assert figures["edge_median_px"] is not None and figures["edge_median_px"] < 2.0
     assert figures["edge_within_2px"] is not None and figures["edge_within_2px"] > 0.5
+    # every camera is measured, the 360° one too, each on its own
+    cameras = figures["edge_cameras"]
+    assert set(cameras) == {"cam0", "cam1", "cam360"}
+    assert cameras["cam360"]["edge_points"] > 100
+    assert cameras["cam360"]["edge_median_px"] < 2.0
+    assert sum(c["edge_points"] for c in cameras.values()) == figures["edge_points"]
 
 
 def test_calibrate_cameras_refuses_bad_input_and_keeps_files(

@@ -37,7 +37,11 @@ Why frames outside the scan matter for δ: while the platform turns at a steady 
 offset δ looks exactly like a turn of the camera about the axis by ω·δ. Frames while the platform
 stands still (before the scan starts, after it ends) separate the two; the video should run a few
 seconds before and after the scan. Without them a warning says δ is found only together with
-the camera's turn (``still_frames`` False). See docs/calibration.md ("Cameras").
+the camera's turn (``still_frames`` False). A stepping platform repeats itself every step: a δ
+one step period off looks like a turn by one step in every frame of the scan, and only the
+frames where the motion starts and stops tell them apart (:func:`frame_rows` takes some). Once δ
+is chosen the mount is fitted afresh at it, every view weighing alike. See docs/calibration.md
+("Cameras").
 """
 
 from __future__ import annotations
@@ -77,9 +81,12 @@ _UNITS = np.array([0.05, 0.05, 0.05, 0.005, 0.005, 0.005, 0.001, 0.01])
 #: never: an undetermined offset keeps the start value).
 SIGNIFICANT_SIGMAS = 2.0
 #: Above these 1σ a value counts as unobservable (kept at the rig's value unless it moved
-#: :data:`SIGNIFICANT_SIGMAS`).
+#: :data:`SIGNIFICANT_SIGMAS`). The clock's: a stepping platform's cost has a basin every step
+#: period (0.4 s at the benchmark's 0.25° steps), so a clock is trusted only when its 1σ
+#: puts the next step's basin 8σ away (benchmark seed 5 once reported a clock 342 ms off,
+#: one step, as determined with a 1σ of 73 ms).
 SIGMA_LIMITS = {"rot_x_deg": 0.2, "rot_y_deg": 0.2, "rot_z_deg": 0.2, "tx_m": 0.02,
-                "ty_m": 0.02, "tz_m": 0.02, "focal_scale": 0.01, "time_offset_s": 0.1}
+                "ty_m": 0.02, "tz_m": 0.02, "focal_scale": 0.01, "time_offset_s": 0.05}
 #: The share of edge points within this many pixels is the alignment's second figure.
 WITHIN_PX = 2.0
 #: A depth edge counts in the alignment figures when an image edge lies within this many
@@ -351,8 +358,6 @@ def image_edges(image: U8, low: float = 40.0, high: float = 120.0) -> ImageEdges
     if not edges.any():
         return ImageEdges(np.full(image.shape[:2], np.float32(max(image.shape[:2])),
                                   dtype=np.float32), np.zeros((0, 2)), np.zeros((0, 2)))
-    distance = np.asarray(cv2.distanceTransform(np.where(edges > 0, 0, 255).astype(np.uint8),
-                                                cv2.DIST_L2, cv2.DIST_MASK_PRECISE), np.float32)
     rows, cols = np.nonzero(edges)
     gxs, gys = gx[rows, cols].astype(np.float64), gy[rows, cols].astype(np.float64)
     norm = np.hypot(gxs, gys)
@@ -368,7 +373,30 @@ def image_edges(image: U8, low: float = 40.0, high: float = 120.0) -> ImageEdges
         shift = np.where(curvature < 0, 0.5 * (around[0] - around[1]) / curvature, 0.0)
     shift = np.clip(np.nan_to_num(shift), -0.5, 0.5)
     uv = np.stack([cols + shift * normal[:, 0], rows + shift * normal[:, 1]], axis=1)
-    return ImageEdges(distance, uv, normal)
+    return ImageEdges(_distance_to(uv, image.shape[:2]), uv, normal)
+
+
+def _distance_to(uv: F64, shape: tuple[int, ...]) -> F32:
+    """Distance (px) from every pixel to the nearest of the sub-pixel edge points ``uv``, on
+    the pixel grid: each point marks the pixels within half a pixel of it along each axis
+    (one, or the two either side of a point halfway between them).
+
+    Canny marks the pixel before a step on both axes (a step between columns 31 and 32 at
+    column 31): a distance map of its pixels puts every straight edge half a pixel up and to
+    the left, the same in every frame, and the coarse passes then turn the camera by half a
+    pixel for the last pass to undo. Marked symmetrically about the sub-pixel point, the
+    map's zero is centred on the edge.
+    """
+    height, width = int(shape[0]), int(shape[1])
+    mask = np.full((height, width), 255, np.uint8)
+    low = np.ceil(uv - 0.5).astype(np.int64)
+    high = np.floor(uv + 0.5).astype(np.int64)
+    for col in (low[:, 0], high[:, 0]):
+        for row in (low[:, 1], high[:, 1]):
+            ok = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+            mask[row[ok], col[ok]] = 0
+    return np.asarray(cv2.distanceTransform(mask, cv2.DIST_L2, cv2.DIST_MASK_PRECISE),
+                      np.float32)
 
 
 def edge_distance_map(image: U8, low: float = 40.0, high: float = 120.0) -> F32:
@@ -904,6 +932,21 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
     # and the clock stays with the finest distance map (see docs/calibration.md, "Cameras")
     gate = LINE_GATE_PX * max(1.0, camera.px_per_rad / 1000.0)
     lines = not fit_time_offset
+    if fit_time_offset:
+        # the basin is chosen: from here every VIEW counts alike. The still frames and those
+        # where the platform starts and stops show two views (β at the start and at the end)
+        # in half the frames, and each view's scan edges carry the same placement errors in
+        # all its frames: weighted so, the mount slid along the valleys one view leaves open
+        # (tilt against height, dolly against zoom: benchmark seed 1, 0.33° and 6 cm off
+        # with its clock right)
+        _weigh_views_alike(fit, fit.full(x))
+        # and the mount fitted afresh from the rig's at that clock, as without one (the
+        # joint passes from the still frames' turn can end far along those valleys: seed 3,
+        # 1.8° and 28 cm off with its clock within 13 ms); then everything together below
+        clock = np.array([n == "time_offset_s" for n in names])
+        x = np.where(clock, x, 0.0)
+        rotation = np.array([n.startswith("rot_") for n in names])
+        x = _descend(fit, x, levels, 0, rotation, True, rest=~clock)
     x, result = _final_fit(fit, x, gate, levels[-1], lines)
     if fit_time_offset:
         x = _mount_on_lines(fit, x, gate, levels[-1], names)
@@ -1043,6 +1086,21 @@ def _still_mask(fit: CameraFit, window_s: float) -> B:
     return np.asarray((times < first - margin) | (times > last + margin), dtype=bool)
 
 
+#: Frames whose platform angles lie within this of each other show one view.
+VIEW_BIN_DEG = 5.0
+
+
+def _weigh_views_alike(fit: CameraFit, x: F64) -> None:
+    """Weigh each frame by one over the number of frames that show its view (the platform
+    angle at the clock of ``x`` within :data:`VIEW_BIN_DEG`), the mean weight one."""
+    views = np.floor(fit.betas(x) / VIEW_BIN_DEG).astype(np.int64)
+    _, inverse, counts = np.unique(views, return_inverse=True, return_counts=True)
+    weights = 1.0 / counts[inverse]
+    weights *= len(weights) / float(np.sum(weights))
+    for frame, weight in zip(fit.frames, weights, strict=True):
+        frame.weight = float(weight)
+
+
 def _weigh_still_frames(fit: CameraFit, window_s: float) -> None:
     """Give the still frames together the weight of all the others: only they hold the
     camera's turn about the axis apart from the clock offset."""
@@ -1153,16 +1211,17 @@ def _pick_basin(offsets_s: F64, scores: F64) -> tuple[int, NDArray[np.int64]]:
 
 
 def _descend(fit: CameraFit, x: F64, levels: list[tuple[float, float]], first_level: int,
-             rotation_and_time: B, select_first: bool) -> F64:
+             rotation_and_time: B, select_first: bool, rest: B | None = None) -> F64:
     """The coarse-to-fine passes on the distance maps from ``first_level`` on (``select_first``:
-    what the frames see chosen at ``x`` first)."""
+    what the frames see chosen at ``x`` first): the coarsest moves the parameters of the mask
+    ``rotation_and_time``, the others those of ``rest`` (None: all)."""
     if select_first:
         fit.select_visible(fit.full(x), gate_px=levels[first_level][1])
     for level in range(first_level, len(levels)):
         sigma, truncate = levels[level]
         # the coarsest pass turns the camera (and shifts its clock) only: the rest would
         # wander along the flat valleys of a blurred cost
-        x, _ = fit.solve(x, sigma, truncate, only=rotation_and_time if level == 0 else None)
+        x, _ = fit.solve(x, sigma, truncate, only=rotation_and_time if level == 0 else rest)
         if level < len(levels) - 1:  # what each frame sees moves with a changed pose
             fit.select_visible(fit.full(x), gate_px=levels[level + 1][1])
     return x
@@ -1272,12 +1331,19 @@ def _has_still_frames(fit: CameraFit, x: F64) -> bool:
 
 
 def frame_rows(frames: pa.Table, camera_id: str, max_frames: int,
-               still_ns: tuple[int, int] | None = None) -> NDArray[np.int64]:
+               still_ns: tuple[int, int] | None = None, window_ns: int = 0
+               ) -> NDArray[np.int64]:
     """Rows of ``camera_id``'s frames, at most ``max_frames`` spread evenly over its time.
 
-    With ``still_ns`` (the host times the platform starts and stops turning), up to a quarter
-    of the frames each come from before the start and after the stop: only those separate a
-    clock offset from a turn of the camera about the axis, and a video has few of them.
+    With ``still_ns`` (the host times the platform starts and stops turning, in the frames'
+    rough clock), a quarter of the frames each come from before the start and after the stop:
+    only those separate a clock offset from a turn of the camera about the axis, and a video
+    has few of them. With ``window_ns`` (the clock's search window) too, an eighth each from
+    before and after, and an eighth each from within the window around the start and around
+    the stop, half the frames spread over the scan (the mount needs its views): a stepping
+    platform repeats itself every step, so a clock one step off looks like a turn of the
+    camera by one step in every frame of the scan, and only frames where the motion starts or
+    stops (the recording has them at the video's rate) tell the steps apart.
     """
     ids = np.asarray(frames.column("camera_id").to_pylist(), dtype=object)
     rows = np.flatnonzero(ids == camera_id)
@@ -1291,11 +1357,16 @@ def frame_rows(frames: pa.Table, camera_id: str, max_frames: int,
     if still_ns is None:
         return rows[np.round(np.linspace(0, rows.size - 1, max_frames)).astype(np.int64)
                     ].astype(np.int64)
-    parts = [times < still_ns[0], times > still_ns[1]]
-    parts.insert(1, ~(parts[0] | parts[1]))
-    quota = [max_frames // 4, 0, max_frames // 4]
+    first, last = still_ns
+    w = max(0, int(window_ns))
+    # before, around the start, during, around the stop, after
+    parts = [times < first - w, (times >= first - w) & (times <= first + w),
+             (times > first + w) & (times < last - w),
+             (times >= last - w) & (times <= last + w), times > last + w]
+    share = max_frames // 8 if w else max_frames // 4
+    quota = [share, share if w else 0, 0, share if w else 0, share]
     quota = [min(q, int(p.sum())) for q, p in zip(quota, parts, strict=True)]
-    quota[1] = max_frames - quota[0] - quota[2]
+    quota[2] = max_frames - sum(quota)
     chosen = []
     for mask, count in zip(parts, quota, strict=True):
         part = rows[mask]
@@ -1346,7 +1417,8 @@ def calibrate_cameras(points: pa.Table, frames: pa.Table, motor: pa.Table, rig: 
             first, last = track.moving_span_ns()
             shift = round(start * 1e9)
             still = (first - shift, last - shift)
-        rows = frame_rows(frames, camera_id, max_frames, still)
+        rows = frame_rows(frames, camera_id, max_frames, still,
+                          round(time_window_s * 1e9) if fit_time_offset else 0)
         if rows.size == 0:
             raise StageError(f"frames: camera {camera_id!r} has no frames")
         results.append(calibrate_camera(edges, observations(frames, rows, camera), track,

@@ -230,8 +230,10 @@ def edge_alignment(distances_px: NDArray[np.floating]) -> dict[str, float | int 
 
 
 def edge_metrics(result: Path, max_frames: int = 12) -> dict[str, Any]:
-    """The edge figures of a workdir (assembled points, frames, motor, rig), every camera
-    together: None when something is missing (a cloud without a grid, no frames)."""
+    """The edge figures of a workdir (assembled points, frames, motor, rig): every camera
+    together, pinhole and 360° (equirect) alike, and each camera's own under
+    ``edge_cameras`` (a 360° frame's pixel spans more angle than a phone's: compare a camera
+    with itself); None when something is missing (a cloud without a grid, no frames)."""
     from scanpipe.artifacts import read_artifact
     from scanpipe.camera_selfcal import (
         CameraFit,
@@ -245,7 +247,7 @@ def edge_metrics(result: Path, max_frames: int = 12) -> dict[str, Any]:
     from scanpipe.rig import rig_from_table
 
     empty: dict[str, Any] = {"edge_median_px": None, "edge_within_2px": None,
-                             "edge_points": 0}
+                             "edge_points": 0, "edge_cameras": {}}
     # the assembled grid (the filter's may have lost edge points) and the rig the chain
     # textured with (the calibrate stage's when it ran)
     preferred = {"points": result / "assemble" / "points.parquet",
@@ -261,20 +263,20 @@ def edge_metrics(result: Path, max_frames: int = 12) -> dict[str, Any]:
         rig = rig_from_table(tables["rig"])
         edges = depth_edges(tables["points"])
         track = MotorTrack(tables["motor"], rig)
-        distances = []
+        distances: dict[str, NDArray[np.float64]] = {}
         for camera in rig.cameras:
-            if camera.model != "pinhole":  # the edge fit models pinhole cameras only
-                continue
             rows = frame_rows(tables["frames"], camera.id, max_frames)
             if rows.size == 0:
                 continue
             fit = CameraFit(edges, observations(tables["frames"], rows, camera), track, ())
             x = fit.full(np.zeros(0))
             fit.select_visible(x)
-            distances.append(fit.alignment(x).distances_px)
+            distances[camera.id] = fit.alignment(x).distances_px
     except ScanpipeError:
         return empty
-    return edge_alignment(np.concatenate(distances) if distances else np.zeros(0))
+    figures = edge_alignment(np.concatenate(list(distances.values())) if distances
+                             else np.zeros(0))
+    return {**figures, "edge_cameras": {k: edge_alignment(v) for k, v in distances.items()}}
 
 
 def stage_times(result: Path) -> dict[str, float]:
@@ -333,6 +335,7 @@ def evaluate_result(result: Path, truth: Path, tau_m: float = 0.02, samples: int
         "mesh_mean_m": None, "mesh_rms_m": None, "mesh_p95_m": None, "completeness": None,
         "precision": None, "fscore": None, "texture_psnr_db": None, "texture_pixels": 0,
         "texture_views": 0, "edge_median_px": None, "edge_within_2px": None, "edge_points": 0,
+        "edge_cameras": {},
         "texture_psnr_visible_db": None, "texture_visible_pixels": 0,
         "texture_unseen_share": None,
     }
@@ -381,6 +384,11 @@ def format_evaluation(report: dict[str, Any]) -> str:
         lines.append(f"edges    median {show(report['edge_median_px'], ' px')} from the image "
                      f"edges, {show(report['edge_within_2px'], ' %', 100, 1)} within 2 px "
                      f"({report['edge_points']} depth-edge points)")
+        cameras = report.get("edge_cameras") or {}
+        if len(cameras) > 1:
+            lines.append("         " + "   ".join(
+                f"{k} {show(v['edge_median_px'], ' px')} / "
+                f"{show(v['edge_within_2px'], ' %', 100, 1)}" for k, v in cameras.items()))
     times = report.get("stage_seconds") or {}
     if times:
         lines.append("stages   " + "   ".join(f"{k} {v:.2f} s" for k, v in times.items()))

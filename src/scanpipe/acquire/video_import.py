@@ -121,10 +121,12 @@ def _frame_offset_ns(capture: Any, index: int, fps: float, video: Path) -> int:
 
 
 def sample_video(video: Path, start_ns: int, count: int,
-                 still_ns: tuple[int, int] | None = None) -> list[tuple[int, Any]]:
+                 still_ns: tuple[int, int] | None = None,
+                 window_ns: int = 0) -> list[tuple[int, Any]]:
     """``(time_ns, BGR image)`` of up to ``count`` frames spread over the video; with
-    ``still_ns``, as :func:`scanpipe.camera_selfcal.frame_rows` chooses them (a share from
-    before and after the platform turns)."""
+    ``still_ns`` (and ``window_ns``), as :func:`scanpipe.camera_selfcal.frame_rows` chooses
+    them (a share from before and after the platform turns, and from where it starts and
+    stops)."""
     capture = open_video(video)
     try:
         total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
@@ -138,7 +140,7 @@ def sample_video(video: Path, start_ns: int, count: int,
             rate = fps if fps > 0 else 30.0
             guess = pa.table({"camera_id": ["video"] * total, "log_time_ns": [
                 start_ns + round(i / rate * 1e9) for i in range(total)]})
-            wanted = set(frame_rows(guess, "video", count, still_ns).tolist())
+            wanted = set(frame_rows(guess, "video", count, still_ns, window_ns).tolist())
         chosen: list[tuple[int, Any]] = []
         index = 0
         while capture.grab():
@@ -167,7 +169,7 @@ _NO_STILL_FRAMES = (
 
 
 def refine_offset(video: Path, recording: Path, start_ns: int, camera_id: str,
-                  window_s: float = 1.0, frames: int = 24) -> dict[str, Any]:
+                  window_s: float = 1.0, frames: int = 48) -> dict[str, Any]:
     """The video's clock offset found from the data: ``start_ns`` is the rough start (within
     ``window_s``); the scan in ``recording`` is decoded and assembled in memory, ``frames``
     video frames are aligned with its depth edges. A report with ``offset_s`` (to add to
@@ -183,8 +185,8 @@ def refine_offset(video: Path, recording: Path, start_ns: int, camera_id: str,
     points = ASSEMBLE.run({n: decoded[n] for n in ("profiles", "motor", "rig")}).tables["points"]
     track = MotorTrack(decoded["motor"], rig)
     first, last = track.moving_span_ns()
-    sampled = sample_video(video, start_ns, frames, (first, last))
     margin = round(window_s * 1e9)
+    sampled = sample_video(video, start_ns, frames, (first, last), margin)
     if not any(t < first - margin or t > last + margin for t, _ in sampled):
         raise StageError(_NO_STILL_FRAMES.format(video=video))
     height, width = sampled[0][1].shape[:2]
