@@ -148,6 +148,33 @@ def test_resampling_keeps_depth_jumps_and_leaves_no_sample_made_up() -> None:
     assert list(short[1].intensities[:5]) == [0, 1, 2, 3, 4]
 
 
+def test_a_scan_with_a_wider_step_keeps_every_beam_between_its_samples() -> None:
+    # The review's case: a scan 4 % coarser than the median lost a comb of beams (NaN where a
+    # grid beam fell mid-way between two good samples, more than half the median step away).
+    from scanpipe.bagio import on_one_beam_grid
+    from scanpipe.recording import schemas
+
+    scans = [(0, schemas.Profile(device_time_ns=0, device_end_time_ns=0, frame=k,
+                                 start_angle_deg=0.0, step_deg=step, ranges_m=[2.0] * 200))
+             for k, step in enumerate((1.0, 1.0, 1.04))]
+    on_one_beam_grid(scans)
+    coarse = np.asarray(scans[2][1].ranges_m)
+    inside = np.arange(200) <= 199 * 1.04  # every grid beam within the scan's samples
+    assert np.isfinite(coarse[inside]).all(), np.flatnonzero(~np.isfinite(coarse[inside]))
+
+
+def test_a_later_non_finite_angle_increment_is_one_line(tmp_path: Path, cli: Any) -> None:
+    def messages(ts: Any) -> list[tuple[str, str, float, Any]]:
+        out = ldrobot_driver_messages(0.01)(ts)
+        scans = [m for m in out if m[1].endswith("LaserScan")]
+        scans[3][3].angle_increment = float("nan")
+        return out
+    bag = write_bag(tmp_path, "ros1", messages)
+    result = cli("import-bag", bag, "--out", tmp_path / "rec.mcap")
+    assert result.code == 1 and result.err.count("\n") == 1, result.err
+    assert "angle_increment nan°: only scans with a positive angle_increment" in result.err
+
+
 def test_two_beam_steps_in_one_bag_are_refused(tmp_path: Path, cli: Any) -> None:
     bag = write_bag(tmp_path, "ros1", ldrobot_driver_messages(0.2))
     out = tmp_path / "rec.mcap"

@@ -217,8 +217,9 @@ def on_one_beam_grid(profiles: Sequence[tuple[int, Any]], label: str = "") -> st
     ``angle_min`` to the first sample's angle) onto one grid: the median step from the median
     start, over the median span, in place. A grid beam gets the range between its two nearest
     samples by :func:`~scanpipe.protocol.profile.ranges_between` (as the LDRobot dialect's
-    revolutions), the nearer sample's echo, NaN farther than half a step from every sample; the
-    device times move to the grid's first and last beams. Returns the warning to give."""
+    revolutions), the nearer sample's echo, NaN farther than half a step (the scan's own when
+    wider) from every sample; the device times move to the grid's first and last beams.
+    Returns the warning to give."""
     starts = np.array([p.start_angle_deg for _, p in profiles], np.float64)
     steps = np.array([p.step_deg for _, p in profiles], np.float64)
     counts = np.array([len(p.ranges_m) for _, p in profiles], np.int64)
@@ -240,7 +241,8 @@ def on_one_beam_grid(profiles: Sequence[tuple[int, Any]], label: str = "") -> st
         fraction = np.clip((grid - angles[left]) / gap, 0.0, 1.0).astype(np.float32)
         out = ranges_between(ranges[left], ranges[right], fraction)
         nearer = np.where(fraction > 0.5, right, left)
-        out[np.abs(grid - angles[nearer]) > 0.5 * step] = np.nan
+        # Measured: within half a step (the scan's own when it is wider) of a sample.
+        out[np.abs(grid - angles[nearer]) > 0.5 * max(step, profile.step_deg)] = np.nan
         if n > 1 and profile.device_end_time_ns:
             per_deg = (profile.device_end_time_ns - profile.device_time_ns) / (angles[-1]
                                                                               - angles[0])
@@ -551,8 +553,9 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
         content.profiles.append((log_ns, profile))
     if not content.profiles:
         raise BagError(f"{bag}: {scan}: no messages")
-    if facts["step_deg"] <= 0 or not math.isfinite(facts["step_deg"]):
-        raise BagError(f"{bag}: {scan.name}: angle_increment {facts['step_deg']:g}°: only "
+    bad_steps = [s for s in steps_seen if not (math.isfinite(s) and s > 0)]
+    if bad_steps:
+        raise BagError(f"{bag}: {scan.name}: angle_increment {bad_steps[0]:g}°: only "
                        "scans with a positive angle_increment are taken")
     if len(steps_seen) > 1:
         low, high = min(steps_seen), max(steps_seen)
