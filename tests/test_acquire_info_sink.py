@@ -149,7 +149,17 @@ def test_every_part_but_the_last_says_where_the_scan_continues(
     # … and decode, so that `scanpipe run` on one part says so.
     decoded = get_stage("decode").run({"recording": sink.paths[0]}).report["warnings"]
     assert any("continues in scan-001.mcap" in w for w in decoded)
-    # An unsplit recording has no such warning.
+    # An unsplit recording has no such warning, nor one recorded with a split limit that the
+    # scan never reached (it is part 0 with no next part: the whole scan).
     whole = tmp_path / "whole.mcap"
     _write(whole)
     assert json.loads(cli("info", whole, "--json").out)["warnings"] == []  # type: ignore
+    now[0] = T0
+    single = RecordingSink(tmp_path / "single.mcap", rig_with_cameras(), {"mode": "step"},
+                           lambda p, r, s: RecordingWriter(p, r, s), split_s=1000.0,
+                           clock_ns=lambda: now[0])
+    single.write_stream("motor", b"POS 0 0 0 0\n", 0, now[0])
+    single.close()
+    assert single.paths == [tmp_path / "single.mcap"]
+    assert read_recording(single.paths[0]).session.get("part") is not None
+    assert read_recording(single.paths[0]).partial_scan_warnings() == []

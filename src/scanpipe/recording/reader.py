@@ -230,23 +230,24 @@ class Recording:
         (``record --split-*``), or a scan the recorder ended before its sweep was done
         (Ctrl-C, a lost device, a failure)."""
         warnings = []
-        if "part" in self.session:
-            part = self.session["part"]
-            following = [e for e in self.events if e.kind == PART_CONTINUES_EVENT]
-            if following:
-                warnings.append(
-                    f"part {part} of a split recording: the scan continues in "
-                    f"{following[-1].data.get('next_file', 'the next part')}; this file alone "
-                    "holds only part of it")
-            else:
-                warnings.append(f"part {part} of a split recording (the last one if its "
-                                "recorder finished); the scan's other parts are separate files")
+        # A foreign or damaged file may hold other JSON than an object in an event's data.
+        events = [e for e in self.events if isinstance(e.data, dict)]
+        part = self.session.get("part")
+        following = [e for e in events if e.kind == PART_CONTINUES_EVENT]
+        if following:
+            warnings.append(
+                f"part {part} of a split recording: the scan continues in "
+                f"{following[-1].data.get('next_file', 'the next part')}; this file alone "
+                "holds only part of it")
+        elif part not in (None, "0"):  # part 0 without a next part is the whole scan
+            warnings.append(f"part {part} of a split recording (the last one if its "
+                            "recorder finished); the scan's other parts are separate files")
         # The scan's end says whether the sweep was done (the way back that follows may still
         # fail); a recording cut before it only has the recording's end.
-        ends = [e for e in self.events if e.kind in (SCAN_END_EVENT, RECORDING_END_EVENT)]
+        ends = [e for e in events if e.kind in (SCAN_END_EVENT, RECORDING_END_EVENT)]
         status = ends[0].data.get("status") if ends else None
         if status not in (None, "complete"):
-            reasons = [e.data.get("reason") for e in self.events
+            reasons = [e.data.get("reason") for e in events
                        if e.kind == RECORDING_END_EVENT and e.data.get("reason")]
             why = f" ({reasons[0]})" if reasons else ""
             warnings.append(f"the scan ended {status}{why} before its sweep was done: the "
