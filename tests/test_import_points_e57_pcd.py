@@ -175,6 +175,18 @@ def test_binary_organised_pcd_keeps_its_grid_and_viewpoint(tmp_path: Path) -> No
     assert report["grid"] == {"profiles": height, "samples": width}
 
 
+def test_a_default_pcd_viewpoint_leaves_the_given_origin(tmp_path: Path) -> None:
+    # The review's case: PCL writes VIEWPOINT 0 0 0 1 0 0 0 for every cloud, and --origin was
+    # silently dropped for every PCD file (ranges and angles taken from 0,0,0).
+    points = RNG.uniform(-2.0, 2.0, (20, 3)).astype(np.float32)
+    path = tmp_path / "plain.pcd"
+    path.write_bytes(pcd_header("x y z", "4 4 4", "F F F", 20, 1, "ascii")
+                     + "".join(f"{x} {y} {z}\n" for x, y, z in points).encode())
+    table, _ = import_points(path, ImportParams(up="y", origin_m=(0.3, 1.2, -0.4)))
+    np.testing.assert_allclose(table.column("origin_x").to_numpy(), 0.3)
+    np.testing.assert_allclose(table.column("origin_y").to_numpy(), 1.2)
+
+
 def test_open3d_binary_compressed_pcd(tmp_path: Path) -> None:
     points = RNG.uniform(-2.0, 2.0, (200, 3))
     colours = RNG.integers(0, 256, (200, 3))

@@ -1360,7 +1360,10 @@ def _read_pcd(path: Path, warnings_out: list[str]) -> _FileCloud:
     if header.height > 1 and header.width * header.height == len(points):
         index = np.arange(len(points), dtype=np.int32)
         grid = (index // header.width, index % header.width)
-    origins = np.broadcast_to(np.asarray(header.viewpoint[:3], np.float64), points.shape).copy()
+    # PCL writes VIEWPOINT 0 0 0 1 0 0 0 whatever the sensor was: only a position stated
+    # elsewhere is the sensor's; at the origin the user's --origin applies.
+    origins = (np.broadcast_to(np.asarray(header.viewpoint[:3], np.float64), points.shape).copy()
+               if any(header.viewpoint[:3]) else None)
     return _FileCloud(points, colours, echo, origins, grid)
 
 
