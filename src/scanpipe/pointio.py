@@ -1317,7 +1317,8 @@ def _read_pcd(path: Path, warnings_out: list[str]) -> _FileCloud:
     """A PCD file (ascii, binary; binary_compressed through Open3D): x y z, ``rgb``/``rgba``
     (packed; PCL writes it as an unsigned integer in ASCII files although its TYPE is F —
     Open3D's reader then makes wrong colours, so ASCII is read here), ``intensity``, the grid
-    of an organised cloud (HEIGHT > 1) and the VIEWPOINT's position as the sensor origin."""
+    of an organised cloud (HEIGHT > 1) and the VIEWPOINT's position, unless 0 0 0, as the
+    sensor origin."""
     header = _pcd_header(path)
     if not {"x", "y", "z"} <= set(header.fields):
         raise ArtifactError(f"{path}: PCD FIELDS has no x, y, z ({' '.join(header.fields)})")
