@@ -141,9 +141,7 @@ class RecordingSink:
             data = {"part": len(self.paths) - 1, "next_part": len(self.paths),
                     "next_file": following.name}
             message = f"the recording continues in {following.name}"
-            self.stats.events[PART_CONTINUES_EVENT] += 1
-            self.stats.event_log.append({"time_ns": now_ns, "kind": PART_CONTINUES_EVENT,
-                                         "message": message, "data": data})
+            self._keep_event(now_ns, PART_CONTINUES_EVENT, message, data)
             self._writer.write_event(now_ns, PART_CONTINUES_EVENT, message, data)
             self._writer.close()
             self._open_part(len(self.paths))
@@ -192,14 +190,19 @@ class RecordingSink:
         """Record a notable event on ``/events`` and keep it for the summary."""
         when = self._clock_ns() if log_time_ns is None else log_time_ns
         with self._lock:
-            self.stats.events[kind] += 1
-            self.stats.event_log.append(
-                {"time_ns": when, "kind": kind, "message": message, "data": dict(data or {})})
-            for tap in self.taps:
-                tap.on_event(kind, message, dict(data or {}), when)
+            self._keep_event(when, kind, message, data)
             if not self._closed:
                 with self._failing():
                     self._writer.write_event(when, kind, message, dict(data or {}))
+
+    def _keep_event(self, when_ns: int, kind: str, message: str,
+                    data: Mapping[str, Any] | None) -> None:
+        """An event into the summary and to the taps (the lock held; the caller writes it)."""
+        self.stats.events[kind] += 1
+        self.stats.event_log.append(
+            {"time_ns": when_ns, "kind": kind, "message": message, "data": dict(data or {})})
+        for tap in self.taps:
+            tap.on_event(kind, message, dict(data or {}), when_ns)
 
     def flush(self) -> None:
         """Flush and fsync the current part now."""
