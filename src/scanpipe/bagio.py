@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import RecordingError, UsageError
 from scanpipe.images import encode_png
-from scanpipe.protocol.profile import ranges_between
+from scanpipe.protocol.profile import ECHO_FULL_SCALE, are_fractions, ranges_between
 from scanpipe.recording import schemas
 from scanpipe.recording.writer import RecordingWriter
 from scanpipe.rig import CameraConfig, Rig, default_rig, rig_from_dict, rig_to_dict
@@ -94,7 +94,6 @@ class Topic:
 
 
 #: The echo's (u16) full scale: intensities normalised to 0…1 are fractions of it.
-ECHO_FULL_SCALE = 65535.0
 #: Beam steps that differ by up to this share from scan to scan are one step that follows the
 #: head's measured speed (LDRobot's ldlidar ROS drivers): resampled onto one grid. More is two
 #: settings in one bag, refused.
@@ -266,9 +265,7 @@ def _scale_fraction_intensities(content: BagContent) -> None:
     """Intensities a driver normalised to 0…1 become fractions of the echo's 0…65535 (decode
     rounds the echo to whole numbers: they would all be 0 or 1); warned."""
     values = [np.asarray(p.intensities, np.float64) for _, p in content.profiles]
-    every = np.concatenate(values) if values else np.zeros(0)
-    every = every[np.isfinite(every)]
-    if every.size == 0 or every.min() < 0 or every.max() > 1 or np.all(every == np.round(every)):
+    if not are_fractions(np.concatenate(values) if values else np.zeros(0)):
         return
     for (_, profile), value in zip(content.profiles, values, strict=True):
         if value.size:

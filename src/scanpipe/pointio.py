@@ -51,6 +51,7 @@ from pydantic import Field
 
 from scanpipe.errors import ArtifactError, UsageError
 from scanpipe.params import Params
+from scanpipe.protocol.profile import ECHO_FULL_SCALE, are_fractions
 from scanpipe.schema import ORIGIN, RGB
 
 F64 = NDArray[np.float64]
@@ -853,16 +854,17 @@ def _intensity_to_echo(path: Path, values: F64, fmt: str, warnings_out: list[str
     low, high = float(finite.min()), float(finite.max())
     if fmt == "pts" and -PTS_INTENSITY_SHIFT <= low < 0 and high < PTS_INTENSITY_SHIFT:
         values = values + PTS_INTENSITY_SHIFT
-    elif low >= 0.0 and high <= 1.0 and np.any(finite != np.round(finite)):
-        values = values * 65535.0
+    elif are_fractions(finite):
+        values = values * ECHO_FULL_SCALE
         warnings_out.append(f"{path}: intensity in 0…1 (fractions): scaled to the echo's "
-                            "0…65535")
+                            f"0…{ECHO_FULL_SCALE:g}")
     else:
-        clipped = int(np.count_nonzero((finite < -0.5) | (finite > 65535.5)))
+        clipped = int(np.count_nonzero((finite < -0.5) | (finite > ECHO_FULL_SCALE + 0.5)))
         if clipped:
-            warnings_out.append(f"{path}: {clipped} intensities outside the echo's 0…65535 "
-                                f"(negative or too large; {low:g}…{high:g}) clipped to it")
-    return np.clip(np.rint(np.nan_to_num(values)), 0, 65535).astype(np.uint16)
+            warnings_out.append(f"{path}: {clipped} intensities outside the echo's "
+                                f"0…{ECHO_FULL_SCALE:g} (negative or too large; "
+                                f"{low:g}…{high:g}) clipped to it")
+    return np.clip(np.rint(np.nan_to_num(values)), 0, ECHO_FULL_SCALE).astype(np.uint16)
 
 
 def read_pose(path: Path) -> F64:
@@ -1215,13 +1217,15 @@ def _e57_scan(path: Path, reader: object, index: int, warnings_out: list[str]) -
         values = np.asarray(data["intensity"], np.float64)[valid]
         limits = _e57_limits(header, "intensityLimits", "intensityMinimum", "intensityMaximum")
         whole = values.size == 0 or bool(np.all(values == np.round(values))
-                                         and values.min() >= 0 and values.max() <= 65535)
+                                         and values.min() >= 0
+                                         and values.max() <= ECHO_FULL_SCALE)
         if not whole and limits is not None and limits[1] > limits[0]:
             values = (values - limits[0]) / (limits[1] - limits[0])
             warnings_out.append(f"{where}: intensity scaled from its intensityLimits "
-                                f"{limits[0]:g}…{limits[1]:g} to the echo's 0…65535")
-            values = values * 65535.0
-            echo = np.clip(np.rint(values), 0, 65535).astype(np.uint16)
+                                f"{limits[0]:g}…{limits[1]:g} to the echo's "
+                                f"0…{ECHO_FULL_SCALE:g}")
+            values = values * ECHO_FULL_SCALE
+            echo = np.clip(np.rint(values), 0, ECHO_FULL_SCALE).astype(np.uint16)
         else:
             echo = _intensity_to_echo(Path(where), values, "e57", warnings_out)
     colours = None

@@ -27,13 +27,14 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import ExportError
 from scanpipe.exporters.model import CloudModel, rig_to_z_up
+from scanpipe.protocol.profile import ECHO_FULL_SCALE
 
 #: The pixel pitch written as ``pixelWidth`` (metres). E57 stores the focal length in metres
 #: and the pixel size; only their ratio (the focal length in pixels) is known from a
 #: calibration, so the pitch is nominal and ``focalLength = fx · pitch``.
 NOMINAL_PIXEL_M = 1e-6
 #: The echo's (u16) largest value: the intensity limit written.
-ECHO_MAX = 65535
+ECHO_MAX = int(ECHO_FULL_SCALE)
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,8 @@ DEVICE_TIME_WRAP_MS = 1 << 16
 TICKS_PER_TURN = 5760
 #: A 2-D scanner sees one turn: no start angle, step or sector span exceeds it.
 FULL_TURN_DEG = 360.0
+#: The echo (intensity) of a sample is a u16: this is its full scale.
+ECHO_FULL_SCALE = 65535.0
 #: Two neighbouring samples lie on one surface when their ranges differ by less than this share
 #: of the nearer, plus the absolute part below (a wall seen at 80° incidence changes by ~8 % per
 #: 0.8° step).
@@ -108,6 +110,14 @@ def angle_to_wire(angle_deg: float) -> int:
     if not 0 <= value <= 0xFFFF:
         raise ProtocolError(f"angle {angle_deg!r}°: outside 0…4095.9375° (u16 in 1/16°)")
     return value
+
+
+def are_fractions(values: NDArray[np.floating]) -> bool:
+    """Whether intensities were normalised to 0…1 by their writer (all finite ones within it,
+    some not whole): they are to be scaled to the echo's full scale, not rounded to 0 or 1."""
+    finite = values[np.isfinite(values)]
+    return bool(finite.size and finite.min() >= 0.0 and finite.max() <= 1.0
+                and np.any(finite != np.round(finite)))
 
 
 def ranges_between(left_m: NDArray[np.float32], right_m: NDArray[np.float32],
