@@ -17,7 +17,8 @@ Formats, by file extension or ``format``:
 - ``pts`` (Leica PTS): an optional point-count line, then x y z [intensity] [r g b].
 
 Coordinates are stored as float32: an axis beyond ±2048 m (a georeferenced file) is shifted
-by whole metres (:func:`float32_safe_offset`, the report's ``offset_m``, warned).
+by whole kilometres (:func:`float32_safe_offset`), or by the user's ``offset_m``; the shift is
+carried with the points (:data:`scanpipe.schema.OFFSET_KEY`) and exporters add it back.
 
 No header is trusted: every count a header states is checked against the file's size before
 anything is allocated (a binary PLY needs count × record size bytes, an ASCII value at least two
@@ -52,7 +53,14 @@ from pydantic import Field
 from scanpipe.errors import ArtifactError, UsageError
 from scanpipe.params import Params
 from scanpipe.protocol.profile import ECHO_FULL_SCALE, are_fractions
-from scanpipe.schema import ORIGIN, RGB
+from scanpipe.schema import (
+    ORIGIN,
+    RGB,
+    format_offset,
+    offset_from_z_up,
+    offset_z_up,
+    with_offset,
+)
 
 F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
@@ -90,6 +98,10 @@ class ImportParams(Params):
                           "sample = column)")
     max_range_m: float | None = Field(
         None, gt=0, description="ranges at or above this are no-returns (dropped, counted)")
+    offset_m: tuple[float, float, float] | None = Field(
+        None, description="georeference offset subtracted from every point (x, y, z in metres "
+                          "in the z-up frame of LAS/E57 exports: a z-up file's own x, y, z; "
+                          "after --units); None = chosen per cloud (float32_safe_offset)")
     extra_files: tuple[str, ...] = Field((), description="more point files merged in")
     poses: tuple[str, ...] = Field(
         (), description="one pose file per file (first, then extra_files); '' = none")
@@ -629,6 +641,10 @@ MIN_PLAUSIBLE_EXTENT_M = 0.05
 #: Artifacts hold float32 coordinates: an axis whose values would be rounded by more than this
 #: (beyond ±2048 m) is shifted (georeferenced files: UTM eastings are ~10⁵–10⁶ m).
 MAX_FLOAT32_ERROR_M = 1e-4
+#: The grid an automatic georeference offset is rounded to: files of one site (positions
+#: within a few hundred metres) mostly get the same offset (a site whose files straddle a
+#: kilometre line gets two, which register refuses to merge: give --offset).
+OFFSET_GRID_M = 1000.0
 #: Fewer points than this cannot tell z-up from y-up.
 MIN_POINTS_FOR_UP = 200
 
@@ -940,14 +956,32 @@ def float32_error_m(coordinate_m: float) -> float:
 
 
 def float32_safe_offset(points: F64) -> F64:
-    """Whole metres to subtract per axis so float32 keeps ``MAX_FLOAT32_ERROR_M``: the centre
-    of the bounds, rounded, on each axis that needs it; zero elsewhere."""
+    """What to subtract per axis so float32 keeps ``MAX_FLOAT32_ERROR_M``: zero on an axis
+    that needs nothing; else the centre of the bounds rounded to :data:`OFFSET_GRID_M` (so
+    nearby files share it), or to whole metres when the cloud is too large for that."""
     if len(points) == 0:
         return np.zeros(3)
     low, high = points.min(axis=0), points.max(axis=0)
-    far = np.maximum(np.abs(low), np.abs(high))
-    needed = np.array([float32_error_m(v) > MAX_FLOAT32_ERROR_M for v in far])
-    return np.where(needed, np.round((low + high) / 2.0), 0.0)
+    offset = np.zeros(3)
+    for axis in range(3):
+        if not _float32_loses(low[axis], high[axis]):
+            continue
+        centre = (low[axis] + high[axis]) / 2.0
+        coarse = float(np.round(centre / OFFSET_GRID_M) * OFFSET_GRID_M)
+        offset[axis] = (coarse if not _float32_loses(low[axis] - coarse, high[axis] - coarse)
+                        else float(np.round(centre)))
+    return offset
+
+
+def _rig_centre(points: F64) -> F64:
+    """The centre of a rig-frame cloud's bounds, in whole metres."""
+    return np.asarray(np.round((points.min(axis=0) + points.max(axis=0)) / 2.0), np.float64)
+
+
+def _float32_loses(low: float, high: float) -> bool:
+    """Whether float32 rounds coordinates in ``[low, high]`` by more than
+    ``MAX_FLOAT32_ERROR_M``."""
+    return float32_error_m(max(abs(float(low)), abs(float(high)))) > MAX_FLOAT32_ERROR_M
 
 
 def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str, object]]:
@@ -1012,19 +1046,32 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
     points = points @ axes.T
     origin_rig = np.where(own[:, None], origin_file @ axes.T,
                           np.asarray(params.origin_m, np.float64))
-    offset = float32_safe_offset(points)
+    if params.offset_m is not None:
+        # given in the z-up frame of LAS/E57 (a z-up file's own): to the rig frame
+        given = np.asarray(params.offset_m, np.float64)
+        offset = np.asarray(offset_from_z_up(given), np.float64)
+        low, high = (points - offset).min(axis=0), (points - offset).max(axis=0)
+        if any(_float32_loses(a, b) for a, b in zip(low, high, strict=True)):
+            far = float(np.max(np.maximum(np.abs(low), np.abs(high))))
+            raise UsageError(
+                f"--offset {','.join(f'{v:g}' for v in given)}: leaves points up to {far:.6g} m "
+                f"from the origin, which float32 rounds by up to "
+                f"{float32_error_m(far) * 1000:.2g} mm; give an offset within 2048 m of every "
+                f"point (the cloud's centre is {format_offset(_rig_centre(points))}, z-up)")
+    else:
+        offset = float32_safe_offset(points)
     if offset.any():
-        far = float(np.abs(points).max())
         points, origin_rig = points - offset, origin_rig - offset
-        notes.append(f"coordinates up to {far:.6g} m from the origin would lose up to "
-                     f"{float32_error_m(far) * 1000:.2g} mm as float32: shifted by "
-                     f"−({', '.join(f'{v:g}' for v in offset)}) m (rig frame; offset_m in the "
-                     "report): add it back for georeferenced output")
+        how = "as given (--offset)" if params.offset_m is not None else (
+            "chosen for this cloud; give --offset with it to every file of the same site")
+        notes.append(f"georeferenced coordinates: shifted by −{format_offset(offset)} m (x,y,z "
+                     f"z-up; {how}) so float32 keeps 0.1 mm; the points carry the offset and "
+                     "exports add it back (LAS/LAZ/COPC/E57/PLY) or record it (OBJ, GLB)")
     colours = (np.concatenate([s.colours for s in scans if s.colours is not None])
                if all(s.colours is not None for s in scans) else None)
     echo = (np.concatenate([s.echo for s in scans if s.echo is not None])
             if all(s.echo is not None for s in scans) else None)
-    table = points_table(points, colours, origin_rig, echo)
+    table = with_offset(points_table(points, colours, origin_rig, echo), offset)
     grid = None
     if len(scans) == 1 and scans[0].grid is not None and len(scans[0].grid[0]):
         profile, sample = scans[0].grid
@@ -1061,6 +1108,7 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
         "bounds_min": points.min(axis=0).tolist() if len(points) else None,
         "bounds_max": points.max(axis=0).tolist() if len(points) else None,
         "offset_m": offset.tolist(),
+        "offset_z_up_m": list(offset_z_up(offset)),
         "warnings": notes,
     }
     return table, report

@@ -10,7 +10,9 @@ and read it; docs/artifacts.md describes each artifact for people.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+import json
+import math
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import pyarrow as pa
@@ -233,6 +235,79 @@ POSES = ArtifactSchema(
 ARTIFACTS: dict[str, ArtifactSchema] = {s.name: s for s in (
     RIG, CALIBRATION, PROFILES, MOTOR, FRAMES, POINTS, MESH_VERTICES, MESH_FACES, TEXTURED_FACES,
     TEXTURE_PAGES, EXPORT_MANIFEST, POSES)}
+
+
+#: Table metadata key of the georeference offset: whole metres (rig frame, x y z) that were
+#: subtracted from a georeferenced cloud so float32 keeps 0.1 mm (``import-points``). The
+#: coordinates a surveyor's tools expect are the artifact's plus this offset; exporters add it
+#: back (docs/export.md "Georeferenced output"). Every stage passes it from its inputs to its
+#: outputs (:meth:`scanpipe.stage.Stage.call`); a table without it has offset 0.
+OFFSET_KEY = b"scanpipe.offset_m"
+Offset = tuple[float, float, float]
+ZERO_OFFSET: Offset = (0.0, 0.0, 0.0)
+
+
+def offset_of(table: pa.Table) -> Offset:
+    """The georeference offset a table carries (:data:`OFFSET_KEY`), (0, 0, 0) without one."""
+    raw = (table.schema.metadata or {}).get(OFFSET_KEY)
+    if raw is None:
+        return ZERO_OFFSET
+    try:
+        values = [float(v) for v in json.loads(raw)]
+    except (ValueError, TypeError):
+        values = []
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ArtifactError(f"table metadata {OFFSET_KEY.decode()!r} is {raw[:80]!r}; expected "
+                            "a JSON list of three finite numbers (metres)")
+    return values[0], values[1], values[2]
+
+
+def with_offset(table: pa.Table, offset: Iterable[float]) -> pa.Table:
+    """``table`` carrying ``offset`` (:data:`OFFSET_KEY`); a zero offset is not written, so
+    tables of clouds that were never shifted stay as they were."""
+    values = tuple(float(v) for v in offset)
+    metadata = dict(table.schema.metadata or {})
+    metadata.pop(OFFSET_KEY, None)
+    if any(values):
+        metadata[OFFSET_KEY] = json.dumps(list(values)).encode()
+    return table.replace_schema_metadata(metadata or None)
+
+
+def offset_z_up(offset: Iterable[float]) -> Offset:
+    """A rig-frame offset in the z-up frame of LAS/E57 exports, ``(x, −z, y)`` (as
+    :func:`scanpipe.exporters.model.rig_to_z_up` maps points): what ``import-points --offset``
+    takes (for a z-up file, its own x, y, z)."""
+    x, y, z = (float(v) for v in offset)
+    return x + 0.0, -z + 0.0, y + 0.0  # + 0.0: no −0
+
+
+def offset_from_z_up(offset: Iterable[float]) -> Offset:
+    """The inverse of :func:`offset_z_up`: a z-up offset in the rig frame, ``(x, z, −y)``."""
+    x, y, z = (float(v) for v in offset)
+    return x + 0.0, z + 0.0, -y + 0.0
+
+
+def format_offset(offset: Iterable[float]) -> str:
+    """A rig-frame offset as ``x,y,z`` in the z-up frame (:func:`offset_z_up`; ``%.17g``):
+    the form ``import-points --offset`` takes."""
+    return ",".join(f"{v:.17g}" for v in offset_z_up(offset))
+
+
+def common_offset(named: Sequence[tuple[str, pa.Table]], what: str) -> Offset:
+    """The one offset all ``(name, table)`` share; :class:`ArtifactError` naming the first two
+    that differ (their relative positions would be wrong by the difference)."""
+    if not named:
+        return ZERO_OFFSET
+    first_name, first = named[0][0], offset_of(named[0][1])
+    for name, table in named[1:]:
+        other = offset_of(table)
+        if other != first:
+            raise ArtifactError(
+                f"{what}: {first_name} is shifted by offset {format_offset(first)} m and {name} "
+                f"by {format_offset(other)} m (x,y,z z-up): merged they would be off by the "
+                "difference; import every file of one site with one "
+                f"`import-points --offset {format_offset(first)}`")
+    return first
 
 
 def artifact_schema(name: str) -> ArtifactSchema:

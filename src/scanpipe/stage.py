@@ -18,7 +18,14 @@ from scanpipe.artifacts import FileData, file_digest, files_manifest
 from scanpipe.errors import ArtifactError
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
-from scanpipe.schema import ARTIFACTS, ArtifactSchema, artifact_schema
+from scanpipe.schema import (
+    ARTIFACTS,
+    OFFSET_KEY,
+    ArtifactSchema,
+    artifact_schema,
+    common_offset,
+    with_offset,
+)
 
 #: Inputs that are raw files, not Parquet artifacts: passed as paths, keyed by their bytes.
 RAW_INPUTS = frozenset({"recording", "point_file", "profile_file"})
@@ -46,6 +53,21 @@ def complete_manifest(result: StageResult) -> None:
     if result.manifest is not None and result.manifest not in result.tables:
         result.tables[result.manifest] = files_manifest(
             {name: file_digest(data) for name, data in result.files.items()})
+
+
+def carry_offset(stage: Stage, inputs: Mapping[str, Any], result: StageResult) -> None:
+    """Pass the inputs' georeference offset (:data:`scanpipe.schema.OFFSET_KEY`) on to every
+    output table that does not set its own, so no stage drops it; inputs with different
+    offsets are refused (one line naming both)."""
+    tables = [(f"input {n}", t) for n, t in inputs.items()
+              if n not in RAW_INPUTS and isinstance(t, pa.Table)
+              and OFFSET_KEY in (t.schema.metadata or {})]
+    if not tables:
+        return
+    offset = common_offset(tables, f"stage {stage.name!r}")
+    for name, table in result.tables.items():
+        if OFFSET_KEY not in (table.schema.metadata or {}):
+            result.tables[name] = with_offset(table, offset)
 
 
 StageFn = Callable[[Mapping[str, Any], Any, ProgressFn], StageResult]
@@ -117,6 +139,7 @@ class Stage:
         self.check_inputs(inputs)
         result = self.func(inputs, params, progress)
         self.check_result(result)
+        carry_offset(self, inputs, result)
         if not write_manifest:
             complete_manifest(result)
         return result

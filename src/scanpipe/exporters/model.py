@@ -3,7 +3,9 @@
 A :class:`MeshModel` is the ``mesh_vertices`` + ``mesh_faces`` artifacts, optionally with the
 texture stage's ``textured_faces`` (per-corner UVs, glTF convention: v = 0 at the image top)
 and ``texture_pages`` (PNG). A :class:`CloudModel` is a ``points`` artifact. Both are in the
-rig frame (y up); :func:`rig_to_z_up` gives the (x, −z, y) frame of LAS and E57.
+rig frame (y up); :func:`rig_to_z_up` gives the (x, −z, y) frame of LAS and E57. Both carry
+the artifact's georeference offset (``offset_m``, rig frame, :data:`scanpipe.schema.OFFSET_KEY`):
+the coordinates other tools expect are ``xyz + offset_m`` (:func:`geo_z_up`).
 """
 
 from __future__ import annotations
@@ -29,6 +31,9 @@ from scanpipe.schema import (
     TEXTURE_PAGES,
     TEXTURED_FACES,
     XYZ,
+    ZERO_OFFSET,
+    Offset,
+    offset_of,
 )
 
 F32 = NDArray[np.float32]
@@ -52,6 +57,8 @@ class MeshModel:
     face_pages: NDArray[np.int16] | None = None
     face_uvs: F32 | None = None
     pages: dict[int, bytes] = field(default_factory=dict)
+    #: Whole metres subtracted on import (rig frame): add them for georeferenced output.
+    offset_m: Offset = ZERO_OFFSET
 
     @property
     def textured(self) -> bool:
@@ -94,6 +101,8 @@ class CloudModel:
     beta_deg: NDArray[np.float64] | None = None
     alpha_deg: NDArray[np.float64] | None = None
     sample: NDArray[np.int32] | None = None
+    #: Whole metres subtracted on import (rig frame): add them for georeferenced output.
+    offset_m: Offset = ZERO_OFFSET
 
 
 #: How text formats (OBJ, MTL, PLY) mark their provenance comment: ``<tag> {json}``.
@@ -110,6 +119,15 @@ def rig_to_z_up(xyz: NDArray[np.floating]) -> NDArray[np.float64]:
     """Rig frame (y up) to the z-up right-handed frame of LAS and E57: (x, −z, y)."""
     p = np.asarray(xyz, dtype=np.float64)
     return np.stack([p[:, 0], -p[:, 2], p[:, 1]], axis=1)
+
+
+def geo_z_up(xyz: NDArray[np.floating], offset_m: Offset) -> NDArray[np.float64]:
+    """Rig-frame coordinates plus their georeference offset, in the z-up frame of LAS and
+    E57, as float64 (exact: the offset is whole metres, the local values float32)."""
+    z_up = rig_to_z_up(xyz)
+    if any(offset_m):
+        z_up += rig_to_z_up(np.asarray([offset_m], np.float64))
+    return z_up
 
 
 def _xyz(table: pa.Table, names: tuple[str, str, str]) -> F32:
@@ -165,7 +183,8 @@ def mesh_from_tables(
                                 f"(has {sorted(pages)})")
         if not np.isfinite(face_uvs).all():  # one pass; nan_to_num alone takes five
             face_uvs = np.nan_to_num(face_uvs, nan=0.0)
-    return MeshModel(xyz, tri, normals, _colors(vertices), face_pages, face_uvs, pages)
+    return MeshModel(xyz, tri, normals, _colors(vertices), face_pages, face_uvs, pages,
+                     offset_of(vertices))
 
 
 def cloud_from_table(points: pa.Table) -> CloudModel:
@@ -194,6 +213,7 @@ def cloud_from_table(points: pa.Table) -> CloudModel:
         beta_deg=optional("beta_deg", np.float64),  # type: ignore[arg-type]
         alpha_deg=optional("alpha_deg", np.float64),  # type: ignore[arg-type]
         sample=optional("sample", np.int32),  # type: ignore[arg-type]
+        offset_m=offset_of(points),
     )
 
 
