@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import pyarrow as pa
 
-from scanpipe.errors import ArtifactError
+from scanpipe.errors import ArtifactError, ScanpipeError
 
 
 @dataclass(frozen=True)
@@ -293,16 +293,17 @@ def format_offset(offset: Iterable[float]) -> str:
     return ",".join(f"{v:.17g}" for v in offset_z_up(offset))
 
 
-def common_offset(named: Sequence[tuple[str, pa.Table]], what: str) -> Offset:
-    """The one offset all ``(name, table)`` share; :class:`ArtifactError` naming the first two
-    that differ (their relative positions would be wrong by the difference)."""
+def common_offset(named: Sequence[tuple[str, pa.Table]], what: str,
+                  error: type[ScanpipeError] = ArtifactError) -> Offset:
+    """The one offset all ``(name, table)`` share; ``error`` naming the first two that differ
+    (their relative positions would be wrong by the difference)."""
     if not named:
         return ZERO_OFFSET
     first_name, first = named[0][0], offset_of(named[0][1])
     for name, table in named[1:]:
         other = offset_of(table)
         if other != first:
-            raise ArtifactError(
+            raise error(
                 f"{what}: {first_name} is shifted by offset {format_offset(first)} m and {name} "
                 f"by {format_offset(other)} m (x,y,z z-up): merged they would be off by the "
                 "difference; import every file of one site with one "

@@ -283,7 +283,7 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
     loaded = [scan_points(w) for w in workdirs]
     # georeferenced imports: one offset for all, else their frames differ by whole metres
     offset = common_offset([(str(w), t) for w, (t, _) in zip(workdirs, loaded, strict=True)],
-                           "register")
+                           "register", UsageError)
     prior = read_prior(prior_path, names) if prior_path is not None else None
     truth = read_true_poses(truth_path) if truth_path is not None else None
     prepared = [registration_cloud(n, w, t, params)

@@ -377,7 +377,8 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
         scan = load_scan(workdir, name, poses[matched[name]])
         # georeferenced imports: one offset for all (the site frame is one scan's)
         first = first or (str(workdir), scan.tables["points"])
-        offset = common_offset([first, (str(workdir), scan.tables["points"])], "site-model")
+        offset = common_offset([first, (str(workdir), scan.tables["points"])], "site-model",
+                               UsageError)
         if "texture_pages" not in scan.tables:
             warnings.append(f"{scan.name}: no texture artifacts; its part of the model is "
                             "untextured")
