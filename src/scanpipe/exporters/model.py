@@ -169,11 +169,15 @@ def mesh_from_tables(
             raise ArtifactError("textured_faces: face index out of range "
                                 f"0..{len(tri) - 1}")
         face_pages = np.full(len(tri), -1, dtype=np.int16)
-        face_uvs = np.zeros((len(tri), 3, 2), dtype=np.float32)
         face_pages[face_index] = textured_faces.column("page").to_numpy()
-        uv = np.stack([textured_faces.column(n).to_numpy(zero_copy_only=False)
-                       for n in UV_COLUMNS], 1)
-        face_uvs[face_index] = uv.reshape(-1, 3, 2)
+        uv_columns = [textured_faces.column(n).to_numpy(zero_copy_only=False)
+                      for n in UV_COLUMNS]
+        face_uvs = np.zeros((len(tri), 3, 2), dtype=np.float32)
+        if np.array_equal(face_index, np.arange(len(tri))):
+            # every face in order (the texture stage's output): stacked in place, no scatter
+            np.stack(uv_columns, 1, out=face_uvs.reshape(-1, 6))
+        else:
+            face_uvs[face_index] = np.stack(uv_columns, 1).reshape(-1, 3, 2)
         page_ids = texture_pages.column("page").to_pylist()
         pngs = texture_pages.column("png").to_pylist()
         pages = {int(p): bytes(b) for p, b in zip(page_ids, pngs, strict=True)}
