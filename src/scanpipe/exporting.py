@@ -25,6 +25,7 @@ from scanpipe.outpaths import (
     folder_inputs,
 )
 from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.stage import refuse_uncarried_offset
 from scanpipe.stages.export import (
     CAMERA_ARTIFACTS,
     INPUT_ARTIFACTS,
@@ -111,7 +112,10 @@ def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
         wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)
     elif fmt == "ply":
         wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points")
-    return {name: read_artifact(path)[0] for name, path in found.items() if name in wanted}
+    tables = {name: read_artifact(path)[0] for name, path in found.items() if name in wanted}
+    for name, table in tables.items():
+        refuse_uncarried_offset(str(found[name]), table)
+    return tables
 
 
 def export_folder(folder: Path, fmt: str, out: Path, force: bool = False,

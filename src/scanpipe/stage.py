@@ -8,13 +8,14 @@ another tool) reach a stage as paths and are named in :data:`RAW_INPUTS`.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import pyarrow as pa
 
-from scanpipe.artifacts import FileData, file_digest, files_manifest
+from scanpipe.artifacts import PROVENANCE_KEY, FileData, file_digest, files_manifest
 from scanpipe.errors import ArtifactError
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
@@ -59,15 +60,38 @@ def carry_offset(stage: Stage, inputs: Mapping[str, Any], result: StageResult) -
     """Pass the inputs' georeference offset (:data:`scanpipe.schema.OFFSET_KEY`) on to every
     output table that does not set its own, so no stage drops it; inputs with different
     offsets are refused (one line naming both)."""
-    tables = [(f"input {n}", t) for n, t in inputs.items()
-              if n not in RAW_INPUTS and isinstance(t, pa.Table)
-              and OFFSET_KEY in (t.schema.metadata or {})]
+    given = [(n, t) for n, t in inputs.items() if n not in RAW_INPUTS and isinstance(t, pa.Table)]
+    for name, table in given:
+        refuse_uncarried_offset(f"stage {stage.name!r}: input {name}", table)
+    tables = [(f"input {n}", t) for n, t in given if OFFSET_KEY in (t.schema.metadata or {})]
     if not tables:
         return
     offset = common_offset(tables, f"stage {stage.name!r}")
     for name, table in result.tables.items():
         if OFFSET_KEY not in (table.schema.metadata or {}):
             result.tables[name] = with_offset(table, offset)
+
+
+def refuse_uncarried_offset(where: str, table: pa.Table) -> None:
+    """Refuse points that ``import-points`` shifted before the offset travelled with them
+    (its report names an ``offset_m``, the table carries none): everything made from them
+    would land at the shifted coordinates."""
+    if OFFSET_KEY in (table.schema.metadata or {}):
+        return
+    raw = (table.schema.metadata or {}).get(PROVENANCE_KEY)
+    try:
+        record = json.loads(raw) if raw is not None else {}
+    except ValueError:
+        return
+    if not isinstance(record, dict):
+        return
+    report = record.get("report")
+    offset = report.get("offset_m") if isinstance(report, dict) else None
+    if record.get("stage") == "import-points" and isinstance(offset, list) and any(offset):
+        raise ArtifactError(f"{where}: imported by an older scanpipe that shifted it by "
+                            f"offset_m {offset} (rig frame) without carrying the offset; what "
+                            "is made from it would land at the shifted coordinates: re-run "
+                            "import-points, then the later stages")
 
 
 StageFn = Callable[[Mapping[str, Any], Any, ProgressFn], StageResult]

@@ -66,8 +66,8 @@ def _parse_triple(text: str, option: str, meaning: str) -> tuple[float, float, f
     except ValueError:
         values = ()
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise UsageError(f"{option} {text!r}: expected three finite numbers x,y,z in metres "
-                         f"({meaning})")
+        raise UsageError(f"{option} {text!r}: expected three numbers x,y,z in metres "
+                         f"({meaning}; finite)")
     return values[0], values[1], values[2]
 
 
