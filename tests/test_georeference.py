@@ -91,6 +91,8 @@ def test_autzen_las_comes_back_at_its_own_coordinates(tmp_path: Path, cli: Cli) 
     assert result.code == 0, result.err
     report = json.loads(result.out)
     assert report["offset_z_up_m"] == [194000.0, 259000.0, 0.0]
+    # its CRS is in feet; the exports are in metres: not claimed
+    assert report["crs_carried"] is False
     table, _ = read_artifact(tmp_path / "pts" / "points.parquet")
     assert offset_of(table) == (194000.0, 0.0, -259000.0)  # rig frame: (x, z, −y)
     local = float(np.max(np.abs(truth - [194000.0, 259000.0, 0.0])))
@@ -356,3 +358,59 @@ def test_points_shifted_by_an_older_import_are_refused(tmp_path: Path, cli: Cli)
         assert "re-run import-points" in result.err and "194000" in result.err
     assert not (tmp_path / "c.las").exists() and not (tmp_path / "flt" / "points.parquet").exists()
     assert path.read_bytes() == before
+
+
+#: WGS 84 / UTM zone 32N (EPSG:32632), metres, as a LAS WKT VLR holds it.
+UTM32_WKT = (
+    'PROJCS["WGS 84 / UTM zone 32N",GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",'
+    '6378137,298.257223563]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],'
+    'PROJECTION["Transverse_Mercator"],PARAMETER["latitude_of_origin",0],'
+    'PARAMETER["central_meridian",9],PARAMETER["scale_factor",0.9996],'
+    'PARAMETER["false_easting",500000],PARAMETER["false_northing",0],UNIT["metre",1],'
+    'AXIS["Easting",EAST],AXIS["Northing",NORTH],AUTHORITY["EPSG","32632"]]')
+
+
+def write_utm_las(path: Path, low: np.ndarray) -> np.ndarray:
+    """A LAS 1.4 with its CRS as a WKT VLR (UTM 32N, metres) near ``low``."""
+    points = low + RNG.uniform(0, [30.0, 30.0, 5.0], (500, 3))
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = np.array([0.001, 0.001, 0.001])
+    header.offsets = np.floor(low)
+    header.global_encoding.wkt = True
+    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(UTM32_WKT))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = points[:, 0], points[:, 1], points[:, 2]
+    las.write(str(path))
+    return las_xyz(path)
+
+
+def test_a_metre_crs_is_carried_to_the_las_exports(tmp_path: Path, cli: Cli) -> None:
+    truth = write_utm_las(tmp_path / "utm.las", np.array([512_345.0, 5_401_234.0, 230.0]))
+    result = cli("import-points", tmp_path / "utm.las", "--out", tmp_path / "pts", "--json")
+    assert result.code == 0, result.err
+    assert json.loads(result.out)["crs_carried"] is True
+    assert cli("filter", tmp_path / "pts", "--out", tmp_path / "flt", "-q",
+               "--set", "range_gate.enabled=false").code == 0
+    for name in ("c.las", "c.copc.laz"):
+        fmt = "copc" if name.endswith("copc.laz") else "las"
+        assert cli("export", tmp_path / "flt", "-f", fmt, "-o", tmp_path / name).code == 0
+        header = laspy.read(str(tmp_path / name)).header
+        wkt = next(v for v in header.vlrs if v.record_id == 2112)
+        assert wkt.string.rstrip("\0") == UTM32_WKT, name
+        pipeline = json.loads((tmp_path / f"{name}.pipeline.json").read_text())
+        assert pipeline["pipeline"][0]["default_srs"] == UTM32_WKT
+    back = las_xyz(tmp_path / "c.las")
+    assert len(back) > 0.9 * len(truth) and cKDTree(truth).query(back)[0].max() <= 1e-4
+    # out of its axes (--up y) or out of its unit (--units ft): the CRS is not claimed
+    for extra, why in ((("--up", "y"), "moved the points"), (("--units", "ft"), "not the metre")):
+        moved = cli("import-points", tmp_path / "utm.las", "--out", tmp_path / "other",
+                    "--force", "--json", *extra)
+        assert moved.code == 0, moved.err
+        report = json.loads(moved.out)
+        assert report["crs_carried"] is False
+        assert any(why in w and "not carried" in w for w in report["warnings"])
+        assert cli("export", tmp_path / "other", "-f", "las", "-o", tmp_path / "o.las",
+                   "--force").code == 0
+        wkt = next(v for v in laspy.read(str(tmp_path / "o.las")).header.vlrs
+                   if v.record_id == 2112)
+        assert "UTM" not in wkt.string

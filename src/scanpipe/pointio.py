@@ -59,6 +59,7 @@ from scanpipe.schema import (
     format_offset,
     offset_from_z_up,
     offset_z_up,
+    with_crs,
     with_offset,
 )
 
@@ -123,7 +124,7 @@ def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:
         points, colours, _ = _read_ply(path)
         return points, colours, False
     if suffix in (".las", ".laz"):
-        points, colours, _, _ = _read_las(path)
+        points, colours, _, _, _ = _read_las(path)
         return points, colours, True
     fmt = "pts" if suffix == ".pts" else "xyz"
     table = _read_text(path, fmt)
@@ -350,9 +351,10 @@ def _check_las_header(path: Path) -> int:
 
 
 def _read_las(path: Path, warnings_out: list[str] | None = None
-              ) -> tuple[F64, U8 | None, NDArray[np.uint16], tuple[str, str, str] | None]:
-    """Points, 8-bit colours (or None), the intensity (u16, LAS's own type) and the length
-    units its coordinate system states (:func:`las_units`), or None."""
+              ) -> tuple[F64, U8 | None, NDArray[np.uint16], tuple[str, str, str] | None,
+                         str | None]:
+    """Points, 8-bit colours (or None), the intensity (u16, LAS's own type), the length
+    units its coordinate system states (:func:`las_units`), or None, and its WKT (or None)."""
     import laspy
 
     count = _check_las_header(path)
@@ -370,6 +372,7 @@ def _read_las(path: Path, warnings_out: list[str] | None = None
                         axis=1) if {"red", "green", "blue"} <= names else None)
         intensity = np.asarray(las.intensity, np.uint16)
         crs_units = las_units(path, las.header, [] if warnings_out is None else warnings_out)
+        wkt = las_wkt(las.header)
     except (laspy.LaspyException, OSError, ValueError, struct.error, EOFError, IndexError,
             KeyError, OverflowError, TypeError, *lazrs_errors) as err:
         raise ArtifactError(f"{path}: not a readable LAS/LAZ file "
@@ -381,7 +384,7 @@ def _read_las(path: Path, warnings_out: list[str] | None = None
     if rgb is not None:
         # LAS stores 16-bit colour; some writers put 8-bit values there anyway.
         colours = (rgb >> 8 if rgb.max(initial=0) > 255 else rgb).astype(np.uint8)
-    return points.astype(np.float64), colours, intensity, crs_units
+    return points.astype(np.float64), colours, intensity, crs_units, wkt
 
 
 #: EPSG length units of GeoTIFF's ProjLinearUnitsGeoKey (3076) / VerticalUnitsGeoKey (4099).
@@ -433,18 +436,26 @@ def _wkt_unit_key(path: Path, unit: tuple[str, float], warnings_out: list[str]
     return name, factor, by_factor
 
 
-def las_units(path: Path, header: object, warnings_out: list[str]) -> tuple[str, str, str] | None:
-    """The horizontal and vertical length units (``UNIT_SCALE`` keys) a LAS header's CRS
-    states and where it says so: its WKT (``LASF_Projection``/``liblas`` 2112; a ``VERT_CS``
-    or ``VERTCRS`` part gives the vertical unit) or else its GeoTIFF keys 3076 / 4099. None
-    when it states none; a unit scanpipe does not know is warned about and read as metres."""
-    wkt, keys = None, {}
+def las_wkt(header: object) -> str | None:
+    """The WKT of a LAS header's coordinate system (``LASF_Projection``/``liblas`` 2112; the
+    last one), or None."""
+    wkt = None
     for vlr in getattr(header, "vlrs", []):
         if getattr(vlr, "record_id", None) == 2112:
             data = getattr(vlr, "record_data", None)
             text = getattr(vlr, "string", None) or (bytes(data).decode("utf-8", "replace")
                                                     if data is not None else "")
             wkt = text.rstrip("\0") or wkt
+    return wkt
+
+
+def las_units(path: Path, header: object, warnings_out: list[str]) -> tuple[str, str, str] | None:
+    """The horizontal and vertical length units (``UNIT_SCALE`` keys) a LAS header's CRS
+    states and where it says so: its WKT (``LASF_Projection``/``liblas`` 2112; a ``VERT_CS``
+    or ``VERTCRS`` part gives the vertical unit) or else its GeoTIFF keys 3076 / 4099. None
+    when it states none; a unit scanpipe does not know is warned about and read as metres."""
+    wkt, keys = las_wkt(header), {}
+    for vlr in getattr(header, "vlrs", []):
         for key in getattr(vlr, "geo_keys", []) or []:
             if key.tiff_tag_location == 0:
                 keys[int(key.id)] = int(key.value_offset)
@@ -667,6 +678,8 @@ class _Scan:
     vertical_units: str | None = None
     #: The file itself states its unit (a LAS CRS): no plausibility guess about it.
     units_stated: bool = False
+    #: The WKT of the file's coordinate system (LAS/LAZ), when it has one.
+    crs_wkt: str | None = None
 
 
 def _format_of(path: Path, params: ImportParams) -> str:
@@ -707,6 +720,7 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
     units_stated = False
     left = params.left_handed if params.left_handed is not None else fmt == "3d"
     echo = None
+    crs_wkt: str | None = None
     origins: F64 | None = None
     file_grid: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None
     no_return_file = 0
@@ -718,7 +732,7 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
             if intensity is not None:
                 echo = _intensity_to_echo(path, intensity, fmt, warnings_out)
         elif fmt == "las":
-            raw, colours, echo, crs = _read_las(path, warnings_out)
+            raw, colours, echo, crs, crs_wkt = _read_las(path, warnings_out)
             units, vertical_units = _las_file_units(path, params, crs, units, warnings_out)
             units_stated = crs is not None and params.units == "auto"
         else:
@@ -757,7 +771,8 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
                  None if echo is None else echo[keep],
                  None if grid is None else (grid[0][keep], grid[1][keep]), z_up, units, left,
                  int(np.count_nonzero(no_return)) + no_return_file,
-                 None if origins is None else origins[keep], vertical_units, units_stated)
+                 None if origins is None else origins[keep], vertical_units, units_stated,
+                 crs_wkt)
 
 
 def _las_file_units(path: Path, params: ImportParams, crs: tuple[str, str, str] | None,
@@ -973,6 +988,30 @@ def float32_safe_offset(points: F64) -> F64:
     return offset
 
 
+def _carried_crs(scans: list[_Scan], params: ImportParams, axes: F64
+                 ) -> tuple[str | None, str | None]:
+    """The coordinate system (WKT) the points keep for the exports, and a note when a file's
+    is dropped: kept only when every file states the same one, in metres on every axis (so
+    no unit was converted), and the points keep the file's own axes (z-up, no pose, no
+    mirror): the exported LAS then holds the file's own coordinates in its own CRS."""
+    wkts = {s.crs_wkt for s in scans}
+    if wkts == {None}:
+        return None, None
+    why = None
+    if len(wkts) > 1:
+        why = "the files state different coordinate systems (or some none)"
+    elif not all(s.units_stated and s.units == "m" and (s.vertical_units or "m") == "m"
+                 for s in scans):
+        why = "its unit is not the metre (the exports are in metres)"
+    elif any(params.poses) or any(s.left_handed for s in scans) or not np.array_equal(
+            axes, parse_axes(Z_UP_AXES)):
+        why = "--pose/--axes/--up/--left-handed moved the points out of its axes"
+    if why is None:
+        return next(iter(wkts)), None
+    return None, (f"the file's coordinate system is not carried to the exports ({why}): "
+                  "LAS/LAZ/COPC say 'imported coordinates in metres'; assign the CRS there")
+
+
 def _rig_centre(points: F64) -> F64:
     """The centre of a rig-frame cloud's bounds, in whole metres."""
     return np.asarray(np.round((points.min(axis=0) + points.max(axis=0)) / 2.0), np.float64)
@@ -1071,7 +1110,10 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
                if all(s.colours is not None for s in scans) else None)
     echo = (np.concatenate([s.echo for s in scans if s.echo is not None])
             if all(s.echo is not None for s in scans) else None)
-    table = with_offset(points_table(points, colours, origin_rig, echo), offset)
+    crs, crs_note = _carried_crs(scans, params, axes)
+    if crs_note:
+        notes.append(crs_note)
+    table = with_crs(with_offset(points_table(points, colours, origin_rig, echo), offset), crs)
     grid = None
     if len(scans) == 1 and scans[0].grid is not None and len(scans[0].grid[0]):
         profile, sample = scans[0].grid
@@ -1109,6 +1151,7 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
         "bounds_max": points.max(axis=0).tolist() if len(points) else None,
         "offset_m": offset.tolist(),
         "offset_z_up_m": list(offset_z_up(offset)),
+        "crs_carried": crs is not None,
         "warnings": notes,
     }
     return table, report

@@ -247,6 +247,46 @@ Offset = tuple[float, float, float]
 ZERO_OFFSET: Offset = (0.0, 0.0, 0.0)
 
 
+#: Table metadata key of the coordinate system (WKT) of a georeferenced import whose
+#: coordinates are in metres on every axis and in the file's own axes: LAS/LAZ/COPC exports
+#: write it instead of a local frame, so GIS tools place them without being told. Passed on
+#: like :data:`OFFSET_KEY`.
+CRS_KEY = b"scanpipe.crs_wkt"
+
+
+def crs_of(table: pa.Table) -> str | None:
+    """The coordinate system (WKT) a table carries (:data:`CRS_KEY`), None without one."""
+    raw = (table.schema.metadata or {}).get(CRS_KEY)
+    return None if raw is None else raw.decode("utf-8", "replace")
+
+
+def with_crs(table: pa.Table, wkt: str | None) -> pa.Table:
+    """``table`` carrying the coordinate system ``wkt`` (None: none)."""
+    metadata = dict(table.schema.metadata or {})
+    metadata.pop(CRS_KEY, None)
+    if wkt:
+        metadata[CRS_KEY] = wkt.encode()
+    return table.replace_schema_metadata(metadata or None)
+
+
+def common_crs(named: Sequence[tuple[str, pa.Table]], what: str,
+               error: type[ScanpipeError] = ArtifactError) -> str | None:
+    """The one coordinate system all ``(name, table)`` share (None: none of them has one);
+    ``error`` naming two that differ, or one with and one without."""
+    if not named:
+        return None
+    first_name, first = named[0][0], crs_of(named[0][1])
+    for name, table in named[1:]:
+        other = crs_of(table)
+        if other != first:
+            def label(wkt: str | None) -> str:
+                return "none" if wkt is None else repr(wkt[:60] + ("…" if len(wkt) > 60 else ""))
+            raise error(f"{what}: {first_name} has the coordinate system {label(first)} and "
+                        f"{name} {label(other)}: import every file of one site from files in "
+                        "one coordinate system")
+    return first
+
+
 def offset_of(table: pa.Table) -> Offset:
     """The georeference offset a table carries (:data:`OFFSET_KEY`), (0, 0, 0) without one."""
     raw = (table.schema.metadata or {}).get(OFFSET_KEY)

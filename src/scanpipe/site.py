@@ -43,8 +43,10 @@ from scanpipe.schema import (
     POINTS,
     POSES,
     XYZ,
+    common_crs,
     common_offset,
     offset_z_up,
+    with_crs,
     with_offset,
 )
 from scanpipe.workdir import find_artifact
@@ -282,8 +284,9 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
     check_output_files([out / POSES_FILE, out / POINTS_FILE], "--out", force, workdirs)
     loaded = [scan_points(w) for w in workdirs]
     # georeferenced imports: one offset for all, else their frames differ by whole metres
-    offset = common_offset([(str(w), t) for w, (t, _) in zip(workdirs, loaded, strict=True)],
-                           "register", UsageError)
+    named = [(str(w), t) for w, (t, _) in zip(workdirs, loaded, strict=True)]
+    offset = common_offset(named, "register", UsageError)
+    crs = common_crs(named, "register", UsageError)
     prior = read_prior(prior_path, names) if prior_path is not None else None
     truth = read_true_poses(truth_path) if truth_path is not None else None
     prepared = [registration_cloud(n, w, t, params)
@@ -312,7 +315,7 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
     merged, merge_report = merge_scans([loaded[k][0] for k in done],
                                        [poses[k] for k in done])  # type: ignore[misc]
     write_artifact(out / POSES_FILE, table, provenance)
-    merged = with_offset(merged, offset)
+    merged = with_crs(with_offset(merged, offset), crs)
     write_artifact(out / POINTS_FILE, merged, {**provenance, "stage": "merge",
                                                "report": merge_report})
     report["merge"] = merge_report

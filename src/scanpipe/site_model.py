@@ -61,8 +61,10 @@ from scanpipe.schema import (
     TEXTURE_PAGES,
     TEXTURED_FACES,
     ZERO_OFFSET,
+    common_crs,
     common_offset,
     offset_z_up,
+    with_crs,
     with_offset,
 )
 from scanpipe.site import (
@@ -372,6 +374,7 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
     e57_pictures: list[E57Image] = []
     first: tuple[str, pa.Table] | None = None
     offset = ZERO_OFFSET
+    crs: str | None = None
     for done, (workdir, name) in enumerate(chosen):
         progress("site-model", done, steps)
         scan = load_scan(workdir, name, poses[matched[name]])
@@ -379,6 +382,8 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
         first = first or (str(workdir), scan.tables["points"])
         offset = common_offset([first, (str(workdir), scan.tables["points"])], "site-model",
                                UsageError)
+        crs = common_crs([first, (str(workdir), scan.tables["points"])], "site-model",
+                         UsageError)
         if "texture_pages" not in scan.tables:
             warnings.append(f"{scan.name}: no texture artifacts; its part of the model is "
                             "untextured")
@@ -414,8 +419,8 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
     provenance = {"stage": "site-model", "key": key, "params": params.model_dump(mode="json"),
                   "inputs": {n: w for n, _, w in keys}, "report": report}
     tables = {"poses": used_poses, "points": merged, **mesh_tables(mesh, camera, frame)}
-    tables = {n: with_offset(t.replace_schema_metadata({PROVENANCE_KEY: json.dumps(
-        {**provenance, "stage": f"site-model/{n}"})}), offset) for n, t in tables.items()}
+    tables = {n: with_crs(with_offset(t.replace_schema_metadata({PROVENANCE_KEY: json.dumps(
+        {**provenance, "stage": f"site-model/{n}"})}), offset), crs) for n, t in tables.items()}
     files: dict[str, FileData] = {}
     files.update(export_files(tables, "las", MODEL_STEM, params.las_version))
     files.update(export_files(tables, "glb", MODEL_STEM))

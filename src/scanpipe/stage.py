@@ -21,10 +21,13 @@ from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.schema import (
     ARTIFACTS,
+    CRS_KEY,
     OFFSET_KEY,
     ArtifactSchema,
     artifact_schema,
+    common_crs,
     common_offset,
+    with_crs,
     with_offset,
 )
 
@@ -57,19 +60,26 @@ def complete_manifest(result: StageResult) -> None:
 
 
 def carry_offset(stage: Stage, inputs: Mapping[str, Any], result: StageResult) -> None:
-    """Pass the inputs' georeference offset (:data:`scanpipe.schema.OFFSET_KEY`) on to every
-    output table that does not set its own, so no stage drops it; inputs with different
-    offsets are refused (one line naming both)."""
+    """Pass the inputs' georeference offset (:data:`scanpipe.schema.OFFSET_KEY`) and
+    coordinate system (:data:`~scanpipe.schema.CRS_KEY`) on to every output table that does
+    not set its own, so no stage drops them; inputs that differ are refused (one line naming
+    both)."""
     given = [(n, t) for n, t in inputs.items() if n not in RAW_INPUTS and isinstance(t, pa.Table)]
     for name, table in given:
         refuse_uncarried_offset(f"stage {stage.name!r}: input {name}", table)
-    tables = [(f"input {n}", t) for n, t in given if OFFSET_KEY in (t.schema.metadata or {})]
-    if not tables:
-        return
-    offset = common_offset(tables, f"stage {stage.name!r}")
-    for name, table in result.tables.items():
-        if OFFSET_KEY not in (table.schema.metadata or {}):
-            result.tables[name] = with_offset(table, offset)
+    where = f"stage {stage.name!r}"
+    with_key = [(f"input {n}", t) for n, t in given if OFFSET_KEY in (t.schema.metadata or {})]
+    if with_key:
+        offset = common_offset(with_key, where)
+        for name, table in result.tables.items():
+            if OFFSET_KEY not in (table.schema.metadata or {}):
+                result.tables[name] = with_offset(table, offset)
+    with_key = [(f"input {n}", t) for n, t in given if CRS_KEY in (t.schema.metadata or {})]
+    if with_key:
+        crs = common_crs(with_key, where)
+        for name, table in result.tables.items():
+            if CRS_KEY not in (table.schema.metadata or {}):
+                result.tables[name] = with_crs(table, crs)
 
 
 def refuse_uncarried_offset(where: str, table: pa.Table) -> None:

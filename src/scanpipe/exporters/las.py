@@ -16,7 +16,8 @@
   imported file's coordinates (in metres) to the 0.1 mm scale; the header offsets are whole
   metres below the bounds.
 - VLRs: a WKT ``LOCAL_CS`` (LASF_Projection 2112: the rig's local frame in metres, no
-  geo-reference; :data:`GEO_WKT` for a georeferenced cloud) and a provenance record (user
+  geo-reference; the imported file's own WKT when the points keep it, else :data:`GEO_WKT`
+  for a georeferenced cloud) and a provenance record (user
   ``scanpipe``, record 1: JSON with the scanpipe
   version, the artifact's key, stage and parameters).
 """
@@ -54,8 +55,11 @@ PROVENANCE_RECORD_ID = 1
 
 
 def frame_wkt(cloud: CloudModel) -> str:
-    """The WKT of the frame a cloud is written in: the rig's, or (with a georeference offset)
-    the imported file's coordinates."""
+    """The WKT of the frame a cloud is written in: the imported file's coordinate system when
+    the points keep it, else (with a georeference offset) the imported file's coordinates in
+    metres, else the rig's."""
+    if cloud.crs_wkt:
+        return cloud.crs_wkt
     return GEO_WKT if any(cloud.offset_m) else LOCAL_WKT
 
 
@@ -140,16 +144,17 @@ def fill_points(las: Any, cloud: CloudModel, xyz: NDArray[np.float64], version: 
             las.scan_angle = np.clip(np.rint(angle / 0.006), -30000, 30000).astype(np.int16)
 
 
-def pdal_pipeline_bytes(las_name: str, reader: str = "readers.las") -> bytes:
+def pdal_pipeline_bytes(las_name: str, reader: str = "readers.las", srs: str = LOCAL_WKT
+                        ) -> bytes:
     """A PDAL pipeline beside a LAS/LAZ export that reads it back (``pdal pipeline
     NAME.pipeline.json`` or ``pdal info``): ``reader`` (``readers.las``, or ``readers.copc``
     for COPC) on the file, next to it, with the
-    file's own SRS (the local WKT VLR) and ``default_srs`` set to the same, so a PDAL built
-    without that VLR's support still labels the points in the rig frame."""
+    file's own SRS (its WKT VLR, ``srs``: :func:`frame_wkt`) and ``default_srs`` set to the
+    same, so a PDAL built without that VLR's support still labels the points rightly."""
     pipeline = {"pipeline": [{
         "type": reader,
         "filename": las_name,
-        "default_srs": LOCAL_WKT,
+        "default_srs": srs,
         "tag": "scanpipe_points",
     }]}
     return (json.dumps(pipeline, indent=2) + "\n").encode()

@@ -33,6 +33,7 @@ from scanpipe.schema import (
     XYZ,
     ZERO_OFFSET,
     Offset,
+    crs_of,
     offset_of,
 )
 
@@ -103,6 +104,8 @@ class CloudModel:
     sample: NDArray[np.int32] | None = None
     #: Whole metres subtracted on import (rig frame): add them for georeferenced output.
     offset_m: Offset = ZERO_OFFSET
+    #: The imported file's coordinate system (WKT), when the points keep it.
+    crs_wkt: str | None = None
 
 
 #: How text formats (OBJ, MTL, PLY) mark their provenance comment: ``<tag> {json}``.
@@ -218,6 +221,7 @@ def cloud_from_table(points: pa.Table) -> CloudModel:
         alpha_deg=optional("alpha_deg", np.float64),  # type: ignore[arg-type]
         sample=optional("sample", np.int32),  # type: ignore[arg-type]
         offset_m=offset_of(points),
+        crs_wkt=crs_of(points),
     )
 
 

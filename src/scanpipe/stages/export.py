@@ -33,7 +33,7 @@ from scanpipe.artifacts import PROVENANCE_KEY, FileData
 from scanpipe.errors import ArtifactError, ExportError, UsageError
 from scanpipe.exporters.e57 import E57Image, e57_bytes
 from scanpipe.exporters.glb import glb_pieces
-from scanpipe.exporters.las import LAS_VERSIONS, las_bytes, pdal_pipeline_bytes
+from scanpipe.exporters.las import LAS_VERSIONS, frame_wkt, las_bytes, pdal_pipeline_bytes
 from scanpipe.exporters.mcap_foxglove import camera_views_from_tables, foxglove_export_files
 from scanpipe.exporters.model import (
     CloudModel,
@@ -172,13 +172,14 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
     if fmt in ("las", "laz"):
         return {f"{stem}.{fmt}": las_bytes(cloud, compressed=fmt == "laz", version=las_version,
                                            provenance=provenance),
-                f"{stem}.{fmt}.pipeline.json": pdal_pipeline_bytes(f"{stem}.{fmt}")}
+                f"{stem}.{fmt}.pipeline.json": pdal_pipeline_bytes(f"{stem}.{fmt}",
+                                                                   srs=frame_wkt(cloud))}
     if fmt == "copc":
         from scanpipe.exporters.copc import copc_bytes
 
         return {f"{stem}.copc.laz": copc_bytes(cloud, provenance),
-                f"{stem}.copc.laz.pipeline.json": pdal_pipeline_bytes(f"{stem}.copc.laz",
-                                                                       "readers.copc")}
+                f"{stem}.copc.laz.pipeline.json": pdal_pipeline_bytes(
+                    f"{stem}.copc.laz", "readers.copc", frame_wkt(cloud))}
     return {f"{stem}.e57": e57_bytes(cloud, stem, provenance_bytes(provenance).decode(),
                                      e57_images(tables, cloud.offset_m))}
 
