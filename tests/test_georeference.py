@@ -119,6 +119,15 @@ def test_autzen_las_comes_back_at_its_own_coordinates(tmp_path: Path, cli: Cli) 
         error = np.abs(back - truth).max()
         assert error <= bound, (fmt, error)
         assert error <= 1e-4, (fmt, error)  # the bar: within 0.1 mm
+    # the E57 read back by scanpipe (its pose applied): the same cloud, the same offset
+    again = cli("import-points", tmp_path / "c.e57", "--out", tmp_path / "again", "--json")
+    assert again.code == 0, again.err
+    assert json.loads(again.out)["offset_z_up_m"] == [194000.0, 259000.0, 0.0]
+    back_table, _ = read_artifact(tmp_path / "again" / "points.parquet")
+    first_table, _ = read_artifact(tmp_path / "pts" / "points.parquet")
+    for axis in "xyz":
+        np.testing.assert_allclose(back_table.column(axis).to_numpy(),
+                                   first_table.column(axis).to_numpy(), atol=1e-4, rtol=0)
     header = laspy.read(str(tmp_path / "c.las")).header
     wkt = next(v for v in header.vlrs if v.record_id == 2112)
     assert wkt.string == GEO_WKT  # not the rig frame's LOCAL_CS
