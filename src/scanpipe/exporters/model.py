@@ -247,21 +247,26 @@ def split_by_uv(corner_vertex: NDArray[np.integer], corner_uv: NDArray[np.floati
     # compare (u, v) float32 pairs as one 64-bit word each: exact equality, half the work
     uv = np.ascontiguousarray(corner_uv, dtype=np.float32).reshape(-1, 2)
     packed = uv.view(np.uint64).ravel()
-    # slice by slice: the per-corner temporaries (first corner, its uv) stay slice-sized
+    # slice by slice: the per-corner temporaries (first corner, its uv) stay slice-sized.
+    # A corner's first corner is never after it, so the running count of own vertices there
+    # is known by the time the corner is reached: one pass makes both.
     own = np.empty(n, dtype=np.bool_)
+    own_index = np.empty(n, dtype=np.uint32)
+    index = np.empty(n, dtype=np.uint32)
+    count = np.uint32(0)
     for start in range(0, n, SPLIT_SLICE):
         stop = min(n, start + SPLIT_SLICE)
         first_of_corner = first[corner_vertex[start:stop]]
-        own[start:stop] = ((first_of_corner == np.arange(start, stop, dtype=np.uint32))
-                           | (packed[start:stop] != packed[first_of_corner]))
-    # the first corner is its vertex's first: the count is ≥ 1 before the − 1
-    own_index = np.cumsum(own, dtype=np.uint32)
-    own_index -= np.uint32(1)
-    index = np.empty(n, dtype=np.uint32)
-    for start in range(0, n, SPLIT_SLICE):
-        stop = min(n, start + SPLIT_SLICE)
-        index[start:stop] = np.where(own[start:stop], own_index[start:stop],
-                                     own_index[first[corner_vertex[start:stop]]])
+        own_slice = own[start:stop]
+        np.not_equal(packed[start:stop], packed[first_of_corner], out=own_slice)
+        own_slice |= first_of_corner == np.arange(start, stop, dtype=np.uint32)
+        # the first corner is its vertex's first: the count is ≥ 1 before the − 1
+        np.cumsum(own_slice, dtype=np.uint32, out=own_index[start:stop])
+        own_index[start:stop] += count
+        own_index[start:stop] -= np.uint32(1)
+        count = own_index[stop - 1] + np.uint32(1)
+        index[start:stop] = np.where(own_slice, own_index[start:stop],
+                                     own_index[first_of_corner])
     return np.asarray(corner_vertex[own], dtype=np.int64), uv[own], index
 
 
