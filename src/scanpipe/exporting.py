@@ -12,6 +12,7 @@ import os
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import pyarrow as pa
 
@@ -24,6 +25,7 @@ from scanpipe.outpaths import (
     folder_inputs,
 )
 from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.stage import refuse_uncarried_offset
 from scanpipe.stages.export import (
     CAMERA_ARTIFACTS,
     INPUT_ARTIFACTS,
@@ -34,6 +36,8 @@ from scanpipe.stages.export import (
     check_format,
     check_las_version,
     export_files,
+    georeference_report,
+    models_from_tables,
     prepare_tables,
 )
 from scanpipe.workdir import find_artifacts
@@ -108,19 +112,24 @@ def load_tables(folder: Path, fmt: str) -> dict[str, pa.Table]:
         wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS)
     elif fmt == "ply":
         wanted = (*MESH_ARTIFACTS, *TEXTURE_ARTIFACTS, "points")
-    return {name: read_artifact(path)[0] for name, path in found.items() if name in wanted}
+    tables = {name: read_artifact(path)[0] for name, path in found.items() if name in wanted}
+    for name, table in tables.items():
+        refuse_uncarried_offset(str(found[name]), table)
+    return tables
 
 
 def export_folder(folder: Path, fmt: str, out: Path, force: bool = False,
                   las_version: str = "1.2", progress: ProgressFn = no_progress,
-                  draco: bool = False) -> list[Path]:
+                  draco: bool = False, report: dict[str, Any] | None = None) -> list[Path]:
     """``scanpipe export``: read the artifacts in ``folder`` and write ``fmt`` to ``out``.
 
     The points are coloured from the camera frames as ``scanpipe run`` does (one code path:
     :func:`scanpipe.stages.export.prepare_tables`).
 
     No existing file is replaced without ``force``, and none may be one of the inputs (an
-    artifact, or the recording a workdir was made from), even with it.
+    artifact, or the recording a workdir was made from), even with it. ``report``, when
+    given, receives what the export stage reports of a georeferenced model (its offset and
+    warnings: :func:`scanpipe.stages.export.georeference_report`).
     """
     fmt = check_format(fmt)
     check_las_version(las_version)
@@ -135,6 +144,13 @@ def export_folder(folder: Path, fmt: str, out: Path, force: bool = False,
     if fmt != "colmap":
         check_output_files([main], "--out", force, inputs)
     tables, _ = prepare_tables(load_tables(folder, fmt), progress=progress)
-    files = export_files(tables, fmt, stem, las_version, draco)
+    models = models_from_tables(tables)
+    files = export_files(tables, fmt, stem, las_version, draco, models)
+    if report is not None:
+        mesh, cloud = models
+        report.update(georeference_report(
+            mesh if fmt in ("obj", "glb", "ply", "mcap") else None,
+            None if fmt in ("obj", "glb") or (fmt == "ply" and mesh is not None) else cloud,
+            [fmt]))
     check_output_files([out_dir / name for name in files], "--out", force, inputs)
     return write_files(files, out_dir)

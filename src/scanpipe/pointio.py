@@ -17,7 +17,8 @@ Formats, by file extension or ``format``:
 - ``pts`` (Leica PTS): an optional point-count line, then x y z [intensity] [r g b].
 
 Coordinates are stored as float32: an axis beyond ±2048 m (a georeferenced file) is shifted
-by whole metres (:func:`float32_safe_offset`, the report's ``offset_m``, warned).
+by whole kilometres (:func:`float32_safe_offset`), or by the user's ``offset_m``; the shift is
+carried with the points (:data:`scanpipe.schema.OFFSET_KEY`) and exporters add it back.
 
 No header is trusted: every count a header states is checked against the file's size before
 anything is allocated (a binary PLY needs count × record size bytes, an ASCII value at least two
@@ -52,7 +53,15 @@ from pydantic import Field
 from scanpipe.errors import ArtifactError, UsageError
 from scanpipe.params import Params
 from scanpipe.protocol.profile import ECHO_FULL_SCALE, are_fractions
-from scanpipe.schema import ORIGIN, RGB
+from scanpipe.schema import (
+    ORIGIN,
+    RGB,
+    format_offset,
+    offset_from_z_up,
+    offset_z_up,
+    with_crs,
+    with_offset,
+)
 
 F64 = NDArray[np.float64]
 U8 = NDArray[np.uint8]
@@ -90,6 +99,10 @@ class ImportParams(Params):
                           "sample = column)")
     max_range_m: float | None = Field(
         None, gt=0, description="ranges at or above this are no-returns (dropped, counted)")
+    offset_m: tuple[float, float, float] | None = Field(
+        None, description="georeference offset subtracted from every point (x, y, z in metres "
+                          "in the z-up frame of LAS/E57 exports: a z-up file's own x, y, z; "
+                          "after --units); None = chosen per cloud (float32_safe_offset)")
     extra_files: tuple[str, ...] = Field((), description="more point files merged in")
     poses: tuple[str, ...] = Field(
         (), description="one pose file per file (first, then extra_files); '' = none")
@@ -111,7 +124,7 @@ def read_point_file(path: Path) -> tuple[F64, U8 | None, bool]:
         points, colours, _ = _read_ply(path)
         return points, colours, False
     if suffix in (".las", ".laz"):
-        points, colours, _, _ = _read_las(path)
+        points, colours, _, _, _ = _read_las(path)
         return points, colours, True
     fmt = "pts" if suffix == ".pts" else "xyz"
     table = _read_text(path, fmt)
@@ -338,9 +351,10 @@ def _check_las_header(path: Path) -> int:
 
 
 def _read_las(path: Path, warnings_out: list[str] | None = None
-              ) -> tuple[F64, U8 | None, NDArray[np.uint16], tuple[str, str, str] | None]:
-    """Points, 8-bit colours (or None), the intensity (u16, LAS's own type) and the length
-    units its coordinate system states (:func:`las_units`), or None."""
+              ) -> tuple[F64, U8 | None, NDArray[np.uint16], tuple[str, str, str] | None,
+                         str | None]:
+    """Points, 8-bit colours (or None), the intensity (u16, LAS's own type), the length
+    units its coordinate system states (:func:`las_units`), or None, and its WKT (or None)."""
     import laspy
 
     count = _check_las_header(path)
@@ -358,6 +372,7 @@ def _read_las(path: Path, warnings_out: list[str] | None = None
                         axis=1) if {"red", "green", "blue"} <= names else None)
         intensity = np.asarray(las.intensity, np.uint16)
         crs_units = las_units(path, las.header, [] if warnings_out is None else warnings_out)
+        wkt = las_wkt(las.header)
     except (laspy.LaspyException, OSError, ValueError, struct.error, EOFError, IndexError,
             KeyError, OverflowError, TypeError, *lazrs_errors) as err:
         raise ArtifactError(f"{path}: not a readable LAS/LAZ file "
@@ -369,7 +384,7 @@ def _read_las(path: Path, warnings_out: list[str] | None = None
     if rgb is not None:
         # LAS stores 16-bit colour; some writers put 8-bit values there anyway.
         colours = (rgb >> 8 if rgb.max(initial=0) > 255 else rgb).astype(np.uint8)
-    return points.astype(np.float64), colours, intensity, crs_units
+    return points.astype(np.float64), colours, intensity, crs_units, wkt
 
 
 #: EPSG length units of GeoTIFF's ProjLinearUnitsGeoKey (3076) / VerticalUnitsGeoKey (4099).
@@ -421,18 +436,26 @@ def _wkt_unit_key(path: Path, unit: tuple[str, float], warnings_out: list[str]
     return name, factor, by_factor
 
 
-def las_units(path: Path, header: object, warnings_out: list[str]) -> tuple[str, str, str] | None:
-    """The horizontal and vertical length units (``UNIT_SCALE`` keys) a LAS header's CRS
-    states and where it says so: its WKT (``LASF_Projection``/``liblas`` 2112; a ``VERT_CS``
-    or ``VERTCRS`` part gives the vertical unit) or else its GeoTIFF keys 3076 / 4099. None
-    when it states none; a unit scanpipe does not know is warned about and read as metres."""
-    wkt, keys = None, {}
+def las_wkt(header: object) -> str | None:
+    """The WKT of a LAS header's coordinate system (``LASF_Projection``/``liblas`` 2112; the
+    last one), or None."""
+    wkt = None
     for vlr in getattr(header, "vlrs", []):
         if getattr(vlr, "record_id", None) == 2112:
             data = getattr(vlr, "record_data", None)
             text = getattr(vlr, "string", None) or (bytes(data).decode("utf-8", "replace")
                                                     if data is not None else "")
             wkt = text.rstrip("\0") or wkt
+    return wkt
+
+
+def las_units(path: Path, header: object, warnings_out: list[str]) -> tuple[str, str, str] | None:
+    """The horizontal and vertical length units (``UNIT_SCALE`` keys) a LAS header's CRS
+    states and where it says so: its WKT (``LASF_Projection``/``liblas`` 2112; a ``VERT_CS``
+    or ``VERTCRS`` part gives the vertical unit) or else its GeoTIFF keys 3076 / 4099. None
+    when it states none; a unit scanpipe does not know is warned about and read as metres."""
+    wkt, keys = las_wkt(header), {}
+    for vlr in getattr(header, "vlrs", []):
         for key in getattr(vlr, "geo_keys", []) or []:
             if key.tiff_tag_location == 0:
                 keys[int(key.id)] = int(key.value_offset)
@@ -629,6 +652,10 @@ MIN_PLAUSIBLE_EXTENT_M = 0.05
 #: Artifacts hold float32 coordinates: an axis whose values would be rounded by more than this
 #: (beyond ±2048 m) is shifted (georeferenced files: UTM eastings are ~10⁵–10⁶ m).
 MAX_FLOAT32_ERROR_M = 1e-4
+#: The grid an automatic georeference offset is rounded to: files of one site (positions
+#: within a few hundred metres) mostly get the same offset (a site whose files straddle a
+#: kilometre line gets two, which register refuses to merge: give --offset).
+OFFSET_GRID_M = 1000.0
 #: Fewer points than this cannot tell z-up from y-up.
 MIN_POINTS_FOR_UP = 200
 
@@ -651,6 +678,8 @@ class _Scan:
     vertical_units: str | None = None
     #: The file itself states its unit (a LAS CRS): no plausibility guess about it.
     units_stated: bool = False
+    #: The WKT of the file's coordinate system (LAS/LAZ), when it has one.
+    crs_wkt: str | None = None
 
 
 def _format_of(path: Path, params: ImportParams) -> str:
@@ -691,6 +720,7 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
     units_stated = False
     left = params.left_handed if params.left_handed is not None else fmt == "3d"
     echo = None
+    crs_wkt: str | None = None
     origins: F64 | None = None
     file_grid: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None
     no_return_file = 0
@@ -702,7 +732,7 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
             if intensity is not None:
                 echo = _intensity_to_echo(path, intensity, fmt, warnings_out)
         elif fmt == "las":
-            raw, colours, echo, crs = _read_las(path, warnings_out)
+            raw, colours, echo, crs, crs_wkt = _read_las(path, warnings_out)
             units, vertical_units = _las_file_units(path, params, crs, units, warnings_out)
             units_stated = crs is not None and params.units == "auto"
         else:
@@ -741,7 +771,8 @@ def _read_scan(path: Path, params: ImportParams, warnings_out: list[str]) -> _Sc
                  None if echo is None else echo[keep],
                  None if grid is None else (grid[0][keep], grid[1][keep]), z_up, units, left,
                  int(np.count_nonzero(no_return)) + no_return_file,
-                 None if origins is None else origins[keep], vertical_units, units_stated)
+                 None if origins is None else origins[keep], vertical_units, units_stated,
+                 crs_wkt)
 
 
 def _las_file_units(path: Path, params: ImportParams, crs: tuple[str, str, str] | None,
@@ -940,14 +971,56 @@ def float32_error_m(coordinate_m: float) -> float:
 
 
 def float32_safe_offset(points: F64) -> F64:
-    """Whole metres to subtract per axis so float32 keeps ``MAX_FLOAT32_ERROR_M``: the centre
-    of the bounds, rounded, on each axis that needs it; zero elsewhere."""
+    """What to subtract per axis so float32 keeps ``MAX_FLOAT32_ERROR_M``: zero on an axis
+    that needs nothing; else the centre of the bounds rounded to :data:`OFFSET_GRID_M` (so
+    nearby files share it), or to whole metres when the cloud is too large for that."""
     if len(points) == 0:
         return np.zeros(3)
     low, high = points.min(axis=0), points.max(axis=0)
-    far = np.maximum(np.abs(low), np.abs(high))
-    needed = np.array([float32_error_m(v) > MAX_FLOAT32_ERROR_M for v in far])
-    return np.where(needed, np.round((low + high) / 2.0), 0.0)
+    offset = np.zeros(3)
+    for axis in range(3):
+        if not _float32_loses(low[axis], high[axis]):
+            continue
+        centre = (low[axis] + high[axis]) / 2.0
+        coarse = float(np.round(centre / OFFSET_GRID_M) * OFFSET_GRID_M)
+        offset[axis] = (coarse if not _float32_loses(low[axis] - coarse, high[axis] - coarse)
+                        else float(np.round(centre)))
+    return offset
+
+
+def _carried_crs(scans: list[_Scan], params: ImportParams, axes: F64
+                 ) -> tuple[str | None, str | None]:
+    """The coordinate system (WKT) the points keep for the exports, and a note when a file's
+    is dropped: kept only when every file states the same one, in metres on every axis (so
+    no unit was converted), and the points keep the file's own axes (z-up, no pose, no
+    mirror): the exported LAS then holds the file's own coordinates in its own CRS."""
+    wkts = {s.crs_wkt for s in scans}
+    if wkts == {None}:
+        return None, None
+    why = None
+    if len(wkts) > 1:
+        why = "the files state different coordinate systems (or some none)"
+    elif not all(s.units_stated and s.units == "m" and (s.vertical_units or "m") == "m"
+                 for s in scans):
+        why = "its unit is not the metre (the exports are in metres)"
+    elif any(params.poses) or any(s.left_handed for s in scans) or not np.array_equal(
+            axes, parse_axes(Z_UP_AXES)):
+        why = "--pose/--axes/--up/--left-handed moved the points out of its axes"
+    if why is None:
+        return next(iter(wkts)), None
+    return None, (f"the file's coordinate system is not carried to the exports ({why}): "
+                  "LAS/LAZ/COPC say 'imported coordinates in metres'; assign the CRS there")
+
+
+def _rig_centre(points: F64) -> F64:
+    """The centre of a rig-frame cloud's bounds, in whole metres."""
+    return np.asarray(np.round((points.min(axis=0) + points.max(axis=0)) / 2.0), np.float64)
+
+
+def _float32_loses(low: float, high: float) -> bool:
+    """Whether float32 rounds coordinates in ``[low, high]`` by more than
+    ``MAX_FLOAT32_ERROR_M``."""
+    return float32_error_m(max(abs(float(low)), abs(float(high)))) > MAX_FLOAT32_ERROR_M
 
 
 def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str, object]]:
@@ -1012,19 +1085,35 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
     points = points @ axes.T
     origin_rig = np.where(own[:, None], origin_file @ axes.T,
                           np.asarray(params.origin_m, np.float64))
-    offset = float32_safe_offset(points)
+    if params.offset_m is not None:
+        # given in the z-up frame of LAS/E57 (a z-up file's own): to the rig frame
+        given = np.asarray(params.offset_m, np.float64)
+        offset = np.asarray(offset_from_z_up(given), np.float64)
+        low, high = (points - offset).min(axis=0), (points - offset).max(axis=0)
+        if any(_float32_loses(a, b) for a, b in zip(low, high, strict=True)):
+            far = float(np.max(np.maximum(np.abs(low), np.abs(high))))
+            raise UsageError(
+                f"--offset {','.join(f'{v:g}' for v in given)}: leaves points up to {far:.6g} m "
+                f"from the origin, which float32 rounds by up to "
+                f"{float32_error_m(far) * 1000:.2g} mm; give an offset within 2048 m of every "
+                f"point (the cloud's centre is {format_offset(_rig_centre(points))}, z-up)")
+    else:
+        offset = float32_safe_offset(points)
     if offset.any():
-        far = float(np.abs(points).max())
         points, origin_rig = points - offset, origin_rig - offset
-        notes.append(f"coordinates up to {far:.6g} m from the origin would lose up to "
-                     f"{float32_error_m(far) * 1000:.2g} mm as float32: shifted by "
-                     f"−({', '.join(f'{v:g}' for v in offset)}) m (rig frame; offset_m in the "
-                     "report): add it back for georeferenced output")
+        how = "as given (--offset)" if params.offset_m is not None else (
+            "chosen for this cloud; give --offset with it to every file of the same site")
+        notes.append(f"georeferenced coordinates: shifted by −{format_offset(offset)} m (x,y,z "
+                     f"z-up; {how}) so float32 keeps 0.1 mm; the points carry the offset and "
+                     "exports add it back (LAS/LAZ/COPC/E57/PLY) or record it (OBJ, GLB)")
     colours = (np.concatenate([s.colours for s in scans if s.colours is not None])
                if all(s.colours is not None for s in scans) else None)
     echo = (np.concatenate([s.echo for s in scans if s.echo is not None])
             if all(s.echo is not None for s in scans) else None)
-    table = points_table(points, colours, origin_rig, echo)
+    crs, crs_note = _carried_crs(scans, params, axes)
+    if crs_note:
+        notes.append(crs_note)
+    table = with_crs(with_offset(points_table(points, colours, origin_rig, echo), offset), crs)
     grid = None
     if len(scans) == 1 and scans[0].grid is not None and len(scans[0].grid[0]):
         profile, sample = scans[0].grid
@@ -1061,6 +1150,8 @@ def import_points(path: Path, params: ImportParams) -> tuple[pa.Table, dict[str,
         "bounds_min": points.min(axis=0).tolist() if len(points) else None,
         "bounds_max": points.max(axis=0).tolist() if len(points) else None,
         "offset_m": offset.tolist(),
+        "offset_z_up_m": list(offset_z_up(offset)),
+        "crs_carried": crs is not None,
         "warnings": notes,
     }
     return table, report

@@ -10,12 +10,14 @@ and read it; docs/artifacts.md describes each artifact for people.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+import json
+import math
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import pyarrow as pa
 
-from scanpipe.errors import ArtifactError
+from scanpipe.errors import ArtifactError, ScanpipeError
 
 
 @dataclass(frozen=True)
@@ -233,6 +235,120 @@ POSES = ArtifactSchema(
 ARTIFACTS: dict[str, ArtifactSchema] = {s.name: s for s in (
     RIG, CALIBRATION, PROFILES, MOTOR, FRAMES, POINTS, MESH_VERTICES, MESH_FACES, TEXTURED_FACES,
     TEXTURE_PAGES, EXPORT_MANIFEST, POSES)}
+
+
+#: Table metadata key of the georeference offset: whole metres (rig frame, x y z) that were
+#: subtracted from a georeferenced cloud so float32 keeps 0.1 mm (``import-points``). The
+#: coordinates a surveyor's tools expect are the artifact's plus this offset; exporters add it
+#: back (docs/export.md "Georeferenced output"). Every stage passes it from its inputs to its
+#: outputs (:meth:`scanpipe.stage.Stage.call`); a table without it has offset 0.
+OFFSET_KEY = b"scanpipe.offset_m"
+Offset = tuple[float, float, float]
+ZERO_OFFSET: Offset = (0.0, 0.0, 0.0)
+
+
+#: Table metadata key of the coordinate system (WKT) of a georeferenced import whose
+#: coordinates are in metres on every axis and in the file's own axes: LAS/LAZ/COPC exports
+#: write it instead of a local frame, so GIS tools place them without being told. Passed on
+#: like :data:`OFFSET_KEY`.
+CRS_KEY = b"scanpipe.crs_wkt"
+
+
+def crs_of(table: pa.Table) -> str | None:
+    """The coordinate system (WKT) a table carries (:data:`CRS_KEY`), None without one."""
+    raw = (table.schema.metadata or {}).get(CRS_KEY)
+    return None if raw is None else raw.decode("utf-8", "replace")
+
+
+def with_crs(table: pa.Table, wkt: str | None) -> pa.Table:
+    """``table`` carrying the coordinate system ``wkt`` (None: none)."""
+    metadata = dict(table.schema.metadata or {})
+    metadata.pop(CRS_KEY, None)
+    if wkt:
+        metadata[CRS_KEY] = wkt.encode()
+    return table.replace_schema_metadata(metadata or None)
+
+
+def common_crs(named: Sequence[tuple[str, pa.Table]], what: str,
+               error: type[ScanpipeError] = ArtifactError) -> str | None:
+    """The one coordinate system all ``(name, table)`` share (None: none of them has one);
+    ``error`` naming two that differ, or one with and one without."""
+    if not named:
+        return None
+    first_name, first = named[0][0], crs_of(named[0][1])
+    for name, table in named[1:]:
+        other = crs_of(table)
+        if other != first:
+            def label(wkt: str | None) -> str:
+                return "none" if wkt is None else repr(wkt[:60] + ("…" if len(wkt) > 60 else ""))
+            raise error(f"{what}: {first_name} has the coordinate system {label(first)} and "
+                        f"{name} {label(other)}: import every file of one site from files in "
+                        "one coordinate system")
+    return first
+
+
+def offset_of(table: pa.Table) -> Offset:
+    """The georeference offset a table carries (:data:`OFFSET_KEY`), (0, 0, 0) without one."""
+    raw = (table.schema.metadata or {}).get(OFFSET_KEY)
+    if raw is None:
+        return ZERO_OFFSET
+    try:
+        values = [float(v) for v in json.loads(raw)]
+    except (ValueError, TypeError):
+        values = []
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ArtifactError(f"table metadata {OFFSET_KEY.decode()!r} is {raw[:80]!r}; expected "
+                            "a JSON list of three finite numbers (metres)")
+    return values[0], values[1], values[2]
+
+
+def with_offset(table: pa.Table, offset: Iterable[float]) -> pa.Table:
+    """``table`` carrying ``offset`` (:data:`OFFSET_KEY`); a zero offset is not written, so
+    tables of clouds that were never shifted stay as they were."""
+    values = tuple(float(v) for v in offset)
+    metadata = dict(table.schema.metadata or {})
+    metadata.pop(OFFSET_KEY, None)
+    if any(values):
+        metadata[OFFSET_KEY] = json.dumps(list(values)).encode()
+    return table.replace_schema_metadata(metadata or None)
+
+
+def offset_z_up(offset: Iterable[float]) -> Offset:
+    """A rig-frame offset in the z-up frame of LAS/E57 exports, ``(x, −z, y)`` (as
+    :func:`scanpipe.exporters.model.rig_to_z_up` maps points): what ``import-points --offset``
+    takes (for a z-up file, its own x, y, z)."""
+    x, y, z = (float(v) for v in offset)
+    return x + 0.0, -z + 0.0, y + 0.0  # + 0.0: no −0
+
+
+def offset_from_z_up(offset: Iterable[float]) -> Offset:
+    """The inverse of :func:`offset_z_up`: a z-up offset in the rig frame, ``(x, z, −y)``."""
+    x, y, z = (float(v) for v in offset)
+    return x + 0.0, z + 0.0, -y + 0.0
+
+
+def format_offset(offset: Iterable[float]) -> str:
+    """A rig-frame offset as ``x,y,z`` in the z-up frame (:func:`offset_z_up`; ``%.17g``):
+    the form ``import-points --offset`` takes."""
+    return ",".join(f"{v:.17g}" for v in offset_z_up(offset))
+
+
+def common_offset(named: Sequence[tuple[str, pa.Table]], what: str,
+                  error: type[ScanpipeError] = ArtifactError) -> Offset:
+    """The one offset all ``(name, table)`` share; ``error`` naming the first two that differ
+    (their relative positions would be wrong by the difference)."""
+    if not named:
+        return ZERO_OFFSET
+    first_name, first = named[0][0], offset_of(named[0][1])
+    for name, table in named[1:]:
+        other = offset_of(table)
+        if other != first:
+            raise error(
+                f"{what}: {first_name} is shifted by offset {format_offset(first)} m and {name} "
+                f"by {format_offset(other)} m (x,y,z z-up): merged they would be off by the "
+                "difference; import every file of one site with one "
+                f"`import-points --offset {format_offset(first)}`")
+    return first
 
 
 def artifact_schema(name: str) -> ArtifactSchema:

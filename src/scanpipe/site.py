@@ -9,6 +9,10 @@ SITE_DIR/site.e57          one scan per position with its pose (each in its own 
 SITE_DIR/site.las, site.glb, site.obj (+ .mtl)
 ```
 
+Scans imported from georeferenced files (``import-points``, shifted by a georeference offset)
+must share one offset (``import-points --offset``): scans with different offsets are refused
+in one line naming both; the merged points carry the shared offset, so the exports add it back.
+
 Double coverage between scans is resolved like the filter's ``best`` view within one scan: in
 each voxel of ``merge_voxel_m`` seen by several scans, only the scan whose beams meet the surface
 closest to head-on (ties: the nearer scanner) keeps its points.
@@ -34,7 +38,17 @@ from scanpipe.registration import (
     prepare_scan,
     register_scans,
 )
-from scanpipe.schema import ORIGIN, POINTS, POSES, XYZ
+from scanpipe.schema import (
+    ORIGIN,
+    POINTS,
+    POSES,
+    XYZ,
+    common_crs,
+    common_offset,
+    offset_z_up,
+    with_crs,
+    with_offset,
+)
 from scanpipe.workdir import find_artifact
 
 F64 = NDArray[np.float64]
@@ -269,6 +283,10 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
     check_output_folder(out, "--out", workdirs)
     check_output_files([out / POSES_FILE, out / POINTS_FILE], "--out", force, workdirs)
     loaded = [scan_points(w) for w in workdirs]
+    # georeferenced imports: one offset for all, else their frames differ by whole metres
+    named = [(str(w), t) for w, (t, _) in zip(workdirs, loaded, strict=True)]
+    offset = common_offset(named, "register", UsageError)
+    crs = common_crs(named, "register", UsageError)
     prior = read_prior(prior_path, names) if prior_path is not None else None
     truth = read_true_poses(truth_path) if truth_path is not None else None
     prepared = [registration_cloud(n, w, t, params)
@@ -276,6 +294,8 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
     clouds = [cloud for cloud, _ in prepared]
     poses, covs, report = register_scans(clouds, params, prior, progress)
     report["warnings"] = [w for _, w in prepared if w is not None] + report["warnings"]
+    if any(offset):
+        report["offset_z_up_m"] = list(offset_z_up(offset))
     done = [k for k, p in enumerate(poses) if p is not None]
     if len(done) < 2:
         shown = "; ".join(f"{p['target']}–{p['source']}: {p['reason']}"
@@ -295,6 +315,7 @@ def register_site(workdirs: list[Path], out: Path, params: RegisterParams,
     merged, merge_report = merge_scans([loaded[k][0] for k in done],
                                        [poses[k] for k in done])  # type: ignore[misc]
     write_artifact(out / POSES_FILE, table, provenance)
+    merged = with_crs(with_offset(merged, offset), crs)
     write_artifact(out / POINTS_FILE, merged, {**provenance, "stage": "merge",
                                                "report": merge_report})
     report["merge"] = merge_report

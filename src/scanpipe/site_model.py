@@ -56,7 +56,17 @@ from scanpipe.exporters.model import MeshModel, cloud_from_table, mesh_from_tabl
 from scanpipe.params import Params
 from scanpipe.poses import poses_from_table, poses_table, quaternion_from_rotation
 from scanpipe.progress import ProgressFn, no_progress
-from scanpipe.schema import ORIGIN, TEXTURE_PAGES, TEXTURED_FACES
+from scanpipe.schema import (
+    ORIGIN,
+    TEXTURE_PAGES,
+    TEXTURED_FACES,
+    ZERO_OFFSET,
+    common_crs,
+    common_offset,
+    offset_z_up,
+    with_crs,
+    with_offset,
+)
 from scanpipe.site import (
     MERGE_VOXEL_M,
     POSES_FILE,
@@ -286,12 +296,19 @@ def _compose(pose_zup: tuple[tuple[float, ...], tuple[float, ...]], image: E57Im
 def scan_e57(scan: SiteScan, points: pa.Table, images: bool
              ) -> tuple[E57Scan, list[E57Image]]:
     """One position's E57 scan (its own frame, its pose, the provenance of its points) and,
-    with ``images``, its camera frames posed in the file's (site's) frame."""
+    with ``images``, its camera frames posed in the file's (site's) frame. The scans' shared
+    georeference offset is in the site frame: it is added to the pose's translation."""
+    from dataclasses import replace
+
     from scanpipe.stages.export import e57_images, provenance_of
 
-    pose = z_up_pose(scan.pose)
+    rotation, translation = z_up_pose(scan.pose)
+    cloud = cloud_from_table(points)
+    shift = offset_z_up(cloud.offset_m)
+    pose = (rotation, (translation[0] + shift[0], translation[1] + shift[1],
+                       translation[2] + shift[2]))
     record = canonical_json(provenance_of({"points": points}))  # as the one-scan E57 has it
-    entry = E57Scan(cloud_from_table(points), scan.name, pose[0], pose[1], record)
+    entry = E57Scan(replace(cloud, offset_m=ZERO_OFFSET), scan.name, pose[0], pose[1], record)
     pictures = ([_compose(pose, image, scan.name)
                  for image in e57_images({**scan.tables, "points": points})] if images else [])
     return entry, pictures
@@ -355,9 +372,18 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
     names_kept, poses_kept, keys, coloured, placed, positions = [], [], [], [], [], []
     e57_scans: list[E57Scan] = []
     e57_pictures: list[E57Image] = []
+    first: tuple[str, pa.Table] | None = None
+    offset = ZERO_OFFSET
+    crs: str | None = None
     for done, (workdir, name) in enumerate(chosen):
         progress("site-model", done, steps)
         scan = load_scan(workdir, name, poses[matched[name]])
+        # georeferenced imports: one offset for all (the site frame is one scan's)
+        first = first or (str(workdir), scan.tables["points"])
+        offset = common_offset([first, (str(workdir), scan.tables["points"])], "site-model",
+                               UsageError)
+        crs = common_crs([first, (str(workdir), scan.tables["points"])], "site-model",
+                         UsageError)
         if "texture_pages" not in scan.tables:
             warnings.append(f"{scan.name}: no texture artifacts; its part of the model is "
                             "untextured")
@@ -387,12 +413,14 @@ def build_site_model(workdirs: list[Path], out: Path, params: SiteModelParams,
                                      ).hexdigest()[:24]
     key = artifact_key("site-model", MODEL_VERSION, params.model_dump(mode="json"), inputs, {})
     report: dict[str, Any] = {"scans": names_kept, "merge": merge_report,
-                              "fuse": fuse_report, "poses": str(poses_path)}
+                              "fuse": fuse_report, "poses": str(poses_path),
+                              **({"offset_z_up_m": list(offset_z_up(offset))}
+                                 if any(offset) else {})}
     provenance = {"stage": "site-model", "key": key, "params": params.model_dump(mode="json"),
                   "inputs": {n: w for n, _, w in keys}, "report": report}
     tables = {"poses": used_poses, "points": merged, **mesh_tables(mesh, camera, frame)}
-    tables = {n: t.replace_schema_metadata({PROVENANCE_KEY: json.dumps(
-        {**provenance, "stage": f"site-model/{n}"})}) for n, t in tables.items()}
+    tables = {n: with_crs(with_offset(t.replace_schema_metadata({PROVENANCE_KEY: json.dumps(
+        {**provenance, "stage": f"site-model/{n}"})}), offset), crs) for n, t in tables.items()}
     files: dict[str, FileData] = {}
     files.update(export_files(tables, "las", MODEL_STEM, params.las_version))
     files.update(export_files(tables, "glb", MODEL_STEM))

@@ -8,17 +8,28 @@ another tool) reach a stage as paths and are named in :data:`RAW_INPUTS`.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import pyarrow as pa
 
-from scanpipe.artifacts import FileData, file_digest, files_manifest
+from scanpipe.artifacts import PROVENANCE_KEY, FileData, file_digest, files_manifest
 from scanpipe.errors import ArtifactError
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
-from scanpipe.schema import ARTIFACTS, ArtifactSchema, artifact_schema
+from scanpipe.schema import (
+    ARTIFACTS,
+    CRS_KEY,
+    OFFSET_KEY,
+    ArtifactSchema,
+    artifact_schema,
+    common_crs,
+    common_offset,
+    with_crs,
+    with_offset,
+)
 
 #: Inputs that are raw files, not Parquet artifacts: passed as paths, keyed by their bytes.
 RAW_INPUTS = frozenset({"recording", "point_file", "profile_file"})
@@ -46,6 +57,51 @@ def complete_manifest(result: StageResult) -> None:
     if result.manifest is not None and result.manifest not in result.tables:
         result.tables[result.manifest] = files_manifest(
             {name: file_digest(data) for name, data in result.files.items()})
+
+
+def carry_offset(stage: Stage, inputs: Mapping[str, Any], result: StageResult) -> None:
+    """Pass the inputs' georeference offset (:data:`scanpipe.schema.OFFSET_KEY`) and
+    coordinate system (:data:`~scanpipe.schema.CRS_KEY`) on to every output table that does
+    not set its own, so no stage drops them; inputs that differ are refused (one line naming
+    both)."""
+    given = [(n, t) for n, t in inputs.items() if n not in RAW_INPUTS and isinstance(t, pa.Table)]
+    for name, table in given:
+        refuse_uncarried_offset(f"stage {stage.name!r}: input {name}", table)
+    where = f"stage {stage.name!r}"
+    with_key = [(f"input {n}", t) for n, t in given if OFFSET_KEY in (t.schema.metadata or {})]
+    if with_key:
+        offset = common_offset(with_key, where)
+        for name, table in result.tables.items():
+            if OFFSET_KEY not in (table.schema.metadata or {}):
+                result.tables[name] = with_offset(table, offset)
+    with_key = [(f"input {n}", t) for n, t in given if CRS_KEY in (t.schema.metadata or {})]
+    if with_key:
+        crs = common_crs(with_key, where)
+        for name, table in result.tables.items():
+            if CRS_KEY not in (table.schema.metadata or {}):
+                result.tables[name] = with_crs(table, crs)
+
+
+def refuse_uncarried_offset(where: str, table: pa.Table) -> None:
+    """Refuse points that ``import-points`` shifted before the offset travelled with them
+    (its report names an ``offset_m``, the table carries none): everything made from them
+    would land at the shifted coordinates."""
+    if OFFSET_KEY in (table.schema.metadata or {}):
+        return
+    raw = (table.schema.metadata or {}).get(PROVENANCE_KEY)
+    try:
+        record = json.loads(raw) if raw is not None else {}
+    except ValueError:
+        return
+    if not isinstance(record, dict):
+        return
+    report = record.get("report")
+    offset = report.get("offset_m") if isinstance(report, dict) else None
+    if record.get("stage") == "import-points" and isinstance(offset, list) and any(offset):
+        raise ArtifactError(f"{where}: imported by an older scanpipe that shifted it by "
+                            f"offset_m {offset} (rig frame) without carrying the offset; what "
+                            "is made from it would land at the shifted coordinates: re-run "
+                            "import-points, then the later stages")
 
 
 StageFn = Callable[[Mapping[str, Any], Any, ProgressFn], StageResult]
@@ -117,6 +173,7 @@ class Stage:
         self.check_inputs(inputs)
         result = self.func(inputs, params, progress)
         self.check_result(result)
+        carry_offset(self, inputs, result)
         if not write_manifest:
             complete_manifest(result)
         return result

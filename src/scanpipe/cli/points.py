@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import typer
@@ -59,13 +60,14 @@ def filter_command(
     print_json(report)
 
 
-def _parse_origin(text: str) -> tuple[float, float, float]:
+def _parse_triple(text: str, option: str, meaning: str) -> tuple[float, float, float]:
     try:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
         values = ()
-    if len(values) != 3:
-        raise UsageError(f"--origin {text!r}: expected three numbers x,y,z in metres")
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise UsageError(f"{option} {text!r}: expected three numbers x,y,z in metres "
+                         f"({meaning}; finite)")
     return values[0], values[1], values[2]
 
 
@@ -91,6 +93,11 @@ def import_points_command(
                                          help="ROWSxCOLS: keep the grid (profile = row)."),
     max_range: float | None = typer.Option(None, "--max-range",
                                            help="Ranges at/above this (metres) are no-returns."),
+    offset: str | None = typer.Option(None, "--offset",
+                                      help="Georeference offset X,Y,Z (metres, z-up: a LAS "
+                                           "file's x,y,z) subtracted from every point and "
+                                           "added back by exports; give one to every file "
+                                           "of a site (default: chosen per cloud)."),
     pose: list[Path] | None = typer.Option(None, "--pose",
                                            help="Pose file per input, in order: 4x4 matrix or "
                                                 "3DTK .pose."),
@@ -109,7 +116,10 @@ def import_points_command(
     check_output_folder(out, "--out", [*files, *(pose or [])])
     check_output_file(target, "--out", (".parquet",), force, [*files, *(pose or [])])
     base: dict[str, object] = {
-        "origin_m": _parse_origin(origin), "up": up, "format": file_format, "columns": columns,
+        "origin_m": _parse_triple(origin, "--origin", "the sensor origin, rig frame"),
+        "offset_m": None if offset is None else _parse_triple(
+            offset, "--offset", "the georeference offset, z-up"),
+        "up": up, "format": file_format, "columns": columns,
         "units": units, "axes": axes, "left_handed": left_handed, "organised": organised,
         "max_range_m": max_range, "extra_files": [str(f) for f in files[1:]],
         "poses": [str(p) for p in (pose or [])],

@@ -42,10 +42,20 @@ def export(
 ) -> None:
     """Write the mesh (OBJ/GLB/PLY), the points (LAS/LAZ/E57/PLY), both (MCAP, Foxglove) or
     the frames with their poses and the points (COLMAP)."""
+    from scanpipe.cli.common import print_warnings
     from scanpipe.exporting import export_folder
 
-    written = export_folder(folder, fmt, out, force, las_version, draco=draco)
-    _report_written(written, quiet, as_json, {"format": fmt.lower().lstrip(".")})
+    report: dict[str, Any] = {}
+    written = export_folder(folder, fmt, out, force, las_version, draco=draco, report=report)
+    print_warnings("export", report)
+    offsets = report.get("offset_z_up_m", {})
+    if offsets and not (quiet or as_json):
+        sys.stderr.write("georeferenced: import offset (x,y,z z-up, m) "
+                         + "; ".join(f"{k} {','.join(f'{v:.17g}' for v in o)}"
+                                     for k, o in offsets.items())
+                         + ", added back or recorded (docs/export.md)\n")
+    _report_written(written, quiet, as_json, {"format": fmt.lower().lstrip("."),
+                                              **({"offset_z_up_m": offsets} if offsets else {})})
 
 
 def render(

@@ -26,13 +26,13 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import ExportError
 from scanpipe.exporters.las import (
-    LOCAL_WKT,
     PROVENANCE_RECORD_ID,
     PROVENANCE_USER_ID,
     SCALE_M,
     fill_points,
+    frame_wkt,
 )
-from scanpipe.exporters.model import CloudModel, provenance_bytes, rig_to_z_up
+from scanpipe.exporters.model import CloudModel, geo_z_up, provenance_bytes
 
 #: Cells per node edge at which a depth keeps one point each.
 GRID_CELLS = 64
@@ -88,7 +88,7 @@ def copc_bytes(cloud: CloudModel, provenance: Mapping[str, Any] | None = None) -
 
     if len(cloud.xyz) == 0:
         raise ExportError("points: no points to write")
-    xyz = rig_to_z_up(cloud.xyz)
+    xyz = geo_z_up(cloud.xyz, cloud.offset_m)  # georeferenced: as LAS, the offset added back
     point_format = 7 if cloud.colors is not None else 6
     header = laspy.LasHeader(point_format=point_format, version="1.4")
     header.scales = np.array([SCALE_M] * 3)
@@ -111,7 +111,8 @@ def copc_bytes(cloud: CloudModel, provenance: Mapping[str, Any] | None = None) -
     provenance_record = provenance_bytes(provenance or {})
     vlrs_after_info = (_vlr("laszip encoded", 22204, "lazrs variable chunks",
                             bytes(laz_vlr.record_data()))
-                       + _vlr("LASF_Projection", 2112, "local WKT", LOCAL_WKT.encode() + b"\0")
+                       + _vlr("LASF_Projection", 2112, "local WKT",
+                              frame_wkt(cloud).encode() + b"\0")
                        + _vlr(PROVENANCE_USER_ID, PROVENANCE_RECORD_ID,
                               "scanpipe provenance (JSON)", provenance_record))
     point_start = HEADER_SIZE + VLR_HEADER + COPC_INFO_SIZE + len(vlrs_after_info)

@@ -6,6 +6,11 @@ sample) where the cloud has a grid, ``intensity`` (the echo value, limits 0..655
 8-bit colour. The provenance record (JSON) is the scan's ``sensorModel`` string (pye57 fixes
 ``description``), ``sensorVendor`` is ``scanpipe`` and ``sensorSoftwareVersion`` its version.
 
+A georeferenced cloud (``offset_m``, an import shifted so float32 keeps 0.1 mm) keeps its
+local coordinates; the offset goes into its scan's pose translation (doubles), so readers that
+apply the pose (CloudCompare, PDAL, pye57's ``transform``, scanpipe's import) get the imported
+file's coordinates.
+
 One ``images2D`` entry per :class:`E57Image` (a camera frame): the recorded JPEG/PNG bytes in a
 ``pinholeRepresentation`` and the camera's ``pose`` (camera frame → the file's frame, the frame
 the points are written in). The camera frame follows CloudCompare's E57 reader (the
@@ -93,6 +98,18 @@ def _scan_data(cloud: CloudModel) -> dict[str, NDArray[Any]]:
     return data
 
 
+def scan_translation(scan: E57Scan) -> NDArray[np.float64]:
+    """The pose translation written for ``scan``: its own, plus its cloud's georeference offset
+    turned into the file's frame (``p_file = R (p + offset) + t``)."""
+    from scanpipe.poses import rotation_from_quaternion
+
+    translation = np.asarray(scan.translation_m, np.float64)
+    if any(scan.cloud.offset_m):
+        offset = rig_to_z_up(np.asarray([scan.cloud.offset_m], np.float64))[0]
+        translation = translation + rotation_from_quaternion(scan.rotation_wxyz) @ offset
+    return translation
+
+
 def _header_limits(data: dict[str, NDArray[Any]]) -> SimpleNamespace:
     """What pye57 takes from a ``scan_header``: ``intensityLimits`` 0…65535 (the echo's range;
     pye57 would write the data's extremes, and readers that rescale by the limits, such as
@@ -127,7 +144,7 @@ def write_e57(path: Path, scans: Sequence[E57Scan], images: Sequence[E57Image] =
                 data = _scan_data(scan.cloud)
                 writer.write_scan_raw(data, name=scan.name,
                                       rotation=np.asarray(scan.rotation_wxyz, np.float64),
-                                      translation=np.asarray(scan.translation_m, np.float64),
+                                      translation=scan_translation(scan),
                                       scan_header=_header_limits(data))
                 _describe(writer, len(writer.data3d) - 1, scan)
             for image in images:

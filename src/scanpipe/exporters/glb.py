@@ -12,6 +12,11 @@ extent (0.15 mm over a 10 m room, far below a scanner's noise), texture coordina
 (a quarter texel of a 4096-pixel page), normals to 10 bits. The accessors then carry counts and
 bounds of the *decoded* data, read back from the bitstream (Draco may reorder and, at
 non-manifold edges, duplicate vertices).
+
+A georeferenced mesh (``offset_m``, an import shifted so float32 keeps 0.1 mm) keeps its local
+float32 positions; its node's ``translation`` is the offset (JSON numbers: doubles, exact), so
+a glTF viewer or Blender places the model at the imported coordinates while the vertices keep
+their precision; ``asset.extras.scanpipe_offset_m`` names it too.
 """
 
 from __future__ import annotations
@@ -243,12 +248,17 @@ def glb_pieces(mesh: MeshModel, name: str = "scan",
         add_primitive(plain_source.astype(np.int64), plain_index.ravel(), None,
                       len(materials) - 1)
 
+    node: dict[str, Any] = {"name": name, "mesh": 0}
+    extras: dict[str, Any] = {"scanpipe": dict(provenance or {})}
+    if any(mesh.offset_m):  # glTF is y up, as the rig frame: the offset as it is
+        node["translation"] = [float(v) for v in mesh.offset_m]
+        extras["scanpipe_offset_m"] = node["translation"]
     document: dict[str, Any] = {
         "asset": {"version": "2.0", "generator": f"scanpipe {__version__}",
-                  "extras": {"scanpipe": dict(provenance or {})}},
+                  "extras": extras},
         "scene": 0,
         "scenes": [{"name": name, "nodes": [0]}],
-        "nodes": [{"name": name, "mesh": 0}],
+        "nodes": [node],
         "meshes": [{"name": name, "primitives": primitives}],
         "materials": materials,
         "accessors": builder.accessors,

@@ -11,8 +11,14 @@
 - Scan angle: the beam angle α measured from nadir (α = 180° points down), signed, in −180..180.
   LAS 1.2's ``scan_angle_rank`` holds only whole degrees in −90..90 (clipped); 1.4 holds it
   to 0.006°.
+- Georeferenced clouds (``import-points`` of UTM/state-plane files, shifted by ``offset_m``):
+  the offset is added back in float64 before the points are scaled to ints, so x, y, z are the
+  imported file's coordinates (in metres) to the 0.1 mm scale; the header offsets are whole
+  metres below the bounds.
 - VLRs: a WKT ``LOCAL_CS`` (LASF_Projection 2112: the rig's local frame in metres, no
-  geo-reference) and a provenance record (user ``scanpipe``, record 1: JSON with the scanpipe
+  geo-reference; the imported file's own WKT when the points keep it, else :data:`GEO_WKT`
+  for a georeferenced cloud) and a provenance record (user
+  ``scanpipe``, record 1: JSON with the scanpipe
   version, the artifact's key, stage and parameters).
 """
 
@@ -27,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from scanpipe.errors import ExportError
-from scanpipe.exporters.model import CloudModel, provenance_bytes, rig_to_z_up
+from scanpipe.exporters.model import CloudModel, geo_z_up, provenance_bytes
 
 #: Coordinate resolution: 0.1 mm, well below the scanner's 3.9 mm range step.
 SCALE_M = 0.0001
@@ -39,8 +45,22 @@ GPS_LEAP_S = 18
 #: The rig frame as a WKT 1 local coordinate system (no geo-reference).
 LOCAL_WKT = ('LOCAL_CS["scanpipe rig frame (z up)",LOCAL_DATUM["scanpipe turntable",0],'
              'UNIT["metre",1],AXIS["X",EAST],AXIS["Y",NORTH],AXIS["Z",UP]]')
+#: The frame of a georeferenced cloud (an import shifted by ``offset_m``, added back here):
+#: the imported file's own coordinates in metres; its CRS is not carried (assign it).
+GEO_WKT = ('LOCAL_CS["imported coordinates in metres (scanpipe added the import offset '
+           'back; assign the source CRS)",LOCAL_DATUM["unknown",0],UNIT["metre",1],'
+           'AXIS["X",EAST],AXIS["Y",NORTH],AXIS["Z",UP]]')
 PROVENANCE_USER_ID = "scanpipe"
 PROVENANCE_RECORD_ID = 1
+
+
+def frame_wkt(cloud: CloudModel) -> str:
+    """The WKT of the frame a cloud is written in: the imported file's coordinate system when
+    the points keep it, else (with a georeference offset) the imported file's coordinates in
+    metres, else the rig's."""
+    if cloud.crs_wkt:
+        return cloud.crs_wkt
+    return GEO_WKT if any(cloud.offset_m) else LOCAL_WKT
 
 
 def adjusted_gps_time_s(time_ns: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -70,7 +90,7 @@ def las_bytes(cloud: CloudModel, compressed: bool = False, version: str = "1.2",
         raise ExportError(f"--las-version {version!r}: allowed: {', '.join(LAS_VERSIONS)}")
     if len(cloud.xyz) == 0:
         raise ExportError("points: no points to write")
-    xyz = rig_to_z_up(cloud.xyz)
+    xyz = geo_z_up(cloud.xyz, cloud.offset_m)
     has_time = cloud.time_ns is not None
     coloured = cloud.colors is not None
     if version == "1.2":
@@ -85,7 +105,7 @@ def las_bytes(cloud: CloudModel, compressed: bool = False, version: str = "1.2",
     header.global_encoding.gps_time_type = laspy.header.GpsTimeType.STANDARD
     if version == "1.4":
         header.global_encoding.wkt = True
-    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(LOCAL_WKT))
+    header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(frame_wkt(cloud)))
     record = provenance_bytes(provenance or {})
     if len(record) > 65535:
         raise ExportError(f"provenance record of {len(record)} bytes: a VLR holds 65535")
@@ -124,16 +144,17 @@ def fill_points(las: Any, cloud: CloudModel, xyz: NDArray[np.float64], version: 
             las.scan_angle = np.clip(np.rint(angle / 0.006), -30000, 30000).astype(np.int16)
 
 
-def pdal_pipeline_bytes(las_name: str, reader: str = "readers.las") -> bytes:
+def pdal_pipeline_bytes(las_name: str, reader: str = "readers.las", srs: str = LOCAL_WKT
+                        ) -> bytes:
     """A PDAL pipeline beside a LAS/LAZ export that reads it back (``pdal pipeline
     NAME.pipeline.json`` or ``pdal info``): ``reader`` (``readers.las``, or ``readers.copc``
     for COPC) on the file, next to it, with the
-    file's own SRS (the local WKT VLR) and ``default_srs`` set to the same, so a PDAL built
-    without that VLR's support still labels the points in the rig frame."""
+    file's own SRS (its WKT VLR, ``srs``: :func:`frame_wkt`) and ``default_srs`` set to the
+    same, so a PDAL built without that VLR's support still labels the points rightly."""
     pipeline = {"pipeline": [{
         "type": reader,
         "filename": las_name,
-        "default_srs": LOCAL_WKT,
+        "default_srs": srs,
         "tag": "scanpipe_points",
     }]}
     return (json.dumps(pipeline, indent=2) + "\n").encode()

@@ -3,7 +3,9 @@
 A :class:`MeshModel` is the ``mesh_vertices`` + ``mesh_faces`` artifacts, optionally with the
 texture stage's ``textured_faces`` (per-corner UVs, glTF convention: v = 0 at the image top)
 and ``texture_pages`` (PNG). A :class:`CloudModel` is a ``points`` artifact. Both are in the
-rig frame (y up); :func:`rig_to_z_up` gives the (x, −z, y) frame of LAS and E57.
+rig frame (y up); :func:`rig_to_z_up` gives the (x, −z, y) frame of LAS and E57. Both carry
+the artifact's georeference offset (``offset_m``, rig frame, :data:`scanpipe.schema.OFFSET_KEY`):
+the coordinates other tools expect are ``xyz + offset_m`` (:func:`geo_z_up`).
 """
 
 from __future__ import annotations
@@ -29,6 +31,10 @@ from scanpipe.schema import (
     TEXTURE_PAGES,
     TEXTURED_FACES,
     XYZ,
+    ZERO_OFFSET,
+    Offset,
+    crs_of,
+    offset_of,
 )
 
 F32 = NDArray[np.float32]
@@ -52,6 +58,8 @@ class MeshModel:
     face_pages: NDArray[np.int16] | None = None
     face_uvs: F32 | None = None
     pages: dict[int, bytes] = field(default_factory=dict)
+    #: Whole metres subtracted on import (rig frame): add them for georeferenced output.
+    offset_m: Offset = ZERO_OFFSET
 
     @property
     def textured(self) -> bool:
@@ -94,6 +102,10 @@ class CloudModel:
     beta_deg: NDArray[np.float64] | None = None
     alpha_deg: NDArray[np.float64] | None = None
     sample: NDArray[np.int32] | None = None
+    #: Whole metres subtracted on import (rig frame): add them for georeferenced output.
+    offset_m: Offset = ZERO_OFFSET
+    #: The imported file's coordinate system (WKT), when the points keep it.
+    crs_wkt: str | None = None
 
 
 #: How text formats (OBJ, MTL, PLY) mark their provenance comment: ``<tag> {json}``.
@@ -110,6 +122,15 @@ def rig_to_z_up(xyz: NDArray[np.floating]) -> NDArray[np.float64]:
     """Rig frame (y up) to the z-up right-handed frame of LAS and E57: (x, −z, y)."""
     p = np.asarray(xyz, dtype=np.float64)
     return np.stack([p[:, 0], -p[:, 2], p[:, 1]], axis=1)
+
+
+def geo_z_up(xyz: NDArray[np.floating], offset_m: Offset) -> NDArray[np.float64]:
+    """Rig-frame coordinates plus their georeference offset, in the z-up frame of LAS and
+    E57, as float64 (exact: the offset is whole metres, the local values float32)."""
+    z_up = rig_to_z_up(xyz)
+    if any(offset_m):
+        z_up += rig_to_z_up(np.asarray([offset_m], np.float64))
+    return z_up
 
 
 def _xyz(table: pa.Table, names: tuple[str, str, str]) -> F32:
@@ -151,11 +172,15 @@ def mesh_from_tables(
             raise ArtifactError("textured_faces: face index out of range "
                                 f"0..{len(tri) - 1}")
         face_pages = np.full(len(tri), -1, dtype=np.int16)
-        face_uvs = np.zeros((len(tri), 3, 2), dtype=np.float32)
         face_pages[face_index] = textured_faces.column("page").to_numpy()
-        uv = np.stack([textured_faces.column(n).to_numpy(zero_copy_only=False)
-                       for n in UV_COLUMNS], 1)
-        face_uvs[face_index] = uv.reshape(-1, 3, 2)
+        uv_columns = [textured_faces.column(n).to_numpy(zero_copy_only=False)
+                      for n in UV_COLUMNS]
+        face_uvs = np.zeros((len(tri), 3, 2), dtype=np.float32)
+        if np.array_equal(face_index, np.arange(len(tri))):
+            # every face in order (the texture stage's output): stacked in place, no scatter
+            np.stack(uv_columns, 1, out=face_uvs.reshape(-1, 6))
+        else:
+            face_uvs[face_index] = np.stack(uv_columns, 1).reshape(-1, 3, 2)
         page_ids = texture_pages.column("page").to_pylist()
         pngs = texture_pages.column("png").to_pylist()
         pages = {int(p): bytes(b) for p, b in zip(page_ids, pngs, strict=True)}
@@ -165,7 +190,8 @@ def mesh_from_tables(
                                 f"(has {sorted(pages)})")
         if not np.isfinite(face_uvs).all():  # one pass; nan_to_num alone takes five
             face_uvs = np.nan_to_num(face_uvs, nan=0.0)
-    return MeshModel(xyz, tri, normals, _colors(vertices), face_pages, face_uvs, pages)
+    return MeshModel(xyz, tri, normals, _colors(vertices), face_pages, face_uvs, pages,
+                     offset_of(vertices))
 
 
 def cloud_from_table(points: pa.Table) -> CloudModel:
@@ -194,6 +220,8 @@ def cloud_from_table(points: pa.Table) -> CloudModel:
         beta_deg=optional("beta_deg", np.float64),  # type: ignore[arg-type]
         alpha_deg=optional("alpha_deg", np.float64),  # type: ignore[arg-type]
         sample=optional("sample", np.int32),  # type: ignore[arg-type]
+        offset_m=offset_of(points),
+        crs_wkt=crs_of(points),
     )
 
 
@@ -219,21 +247,26 @@ def split_by_uv(corner_vertex: NDArray[np.integer], corner_uv: NDArray[np.floati
     # compare (u, v) float32 pairs as one 64-bit word each: exact equality, half the work
     uv = np.ascontiguousarray(corner_uv, dtype=np.float32).reshape(-1, 2)
     packed = uv.view(np.uint64).ravel()
-    # slice by slice: the per-corner temporaries (first corner, its uv) stay slice-sized
+    # slice by slice: the per-corner temporaries (first corner, its uv) stay slice-sized.
+    # A corner's first corner is never after it, so the running count of own vertices there
+    # is known by the time the corner is reached: one pass makes both.
     own = np.empty(n, dtype=np.bool_)
+    own_index = np.empty(n, dtype=np.uint32)
+    index = np.empty(n, dtype=np.uint32)
+    count = np.uint32(0)
     for start in range(0, n, SPLIT_SLICE):
         stop = min(n, start + SPLIT_SLICE)
         first_of_corner = first[corner_vertex[start:stop]]
-        own[start:stop] = ((first_of_corner == np.arange(start, stop, dtype=np.uint32))
-                           | (packed[start:stop] != packed[first_of_corner]))
-    # the first corner is its vertex's first: the count is ≥ 1 before the − 1
-    own_index = np.cumsum(own, dtype=np.uint32)
-    own_index -= np.uint32(1)
-    index = np.empty(n, dtype=np.uint32)
-    for start in range(0, n, SPLIT_SLICE):
-        stop = min(n, start + SPLIT_SLICE)
-        index[start:stop] = np.where(own[start:stop], own_index[start:stop],
-                                     own_index[first[corner_vertex[start:stop]]])
+        own_slice = own[start:stop]
+        np.not_equal(packed[start:stop], packed[first_of_corner], out=own_slice)
+        own_slice |= first_of_corner == np.arange(start, stop, dtype=np.uint32)
+        # the first corner is its vertex's first: the count is ≥ 1 before the − 1
+        np.cumsum(own_slice, dtype=np.uint32, out=own_index[start:stop])
+        own_index[start:stop] += count
+        own_index[start:stop] -= np.uint32(1)
+        count = own_index[stop - 1] + np.uint32(1)
+        index[start:stop] = np.where(own_slice, own_index[start:stop],
+                                     own_index[first_of_corner])
     return np.asarray(corner_vertex[own], dtype=np.int64), uv[own], index
 
 

@@ -6,6 +6,11 @@
   Kd, so anything but white would tint it); faces are grouped per page under ``usemtl``.
 - Every file name derives from the output stem (``room.obj``, ``room.mtl``,
   ``room_page0.png``), with relative paths, so two exports into one folder never collide.
+- A georeferenced mesh (``offset_m``, an import shifted so float32 keeps 0.1 mm) keeps its
+  local vertices (Blender, MeshLab and most OBJ readers hold float32: the imported coordinates
+  would be rounded to centimetres and lie kilometres from the origin); the offset, in the OBJ's
+  own frame (y up), is a ``# scanpipe-offset-m X Y Z`` comment and the sidecar
+  ``<stem>_offset.xyz`` (one line ``X Y Z``: add it to every ``v``).
 - Lines are formatted column-wise with numpy (:mod:`scanpipe.exporters.textfmt`), block by
   block while the file is written (:class:`~scanpipe.artifacts.Stream`): the text is never
   held whole (≈ 500 MB for the lab scan's 4.8 M faces), and its digest is taken on the way.
@@ -35,6 +40,15 @@ from scanpipe.images import encode_png
 #: Untextured faces get a 2×2 map of this grey (0.7 of full scale): readers such as Open3D
 #: treat a mesh as textured only when every material has an image.
 UNTEXTURED_GREY = 179
+
+
+#: The comment that names a georeferenced OBJ's offset (its own frame: y up, metres).
+OFFSET_TAG = "scanpipe-offset-m"
+
+
+def offset_file_name(stem: str) -> str:
+    """The sidecar holding a georeferenced export's offset (``X Y Z``, the OBJ's frame)."""
+    return f"{safe_stem(stem)}_offset.xyz"
 
 
 def safe_stem(stem: str) -> str:
@@ -97,8 +111,14 @@ def obj_files(mesh: MeshModel, stem: str,
     obj_name, mtl_name = f"{stem}.obj", f"{base}.mtl"
     record = f"{PROVENANCE_TAG} {provenance_bytes(provenance or {}).decode()}"
     head = f"# scanpipe {__version__} OBJ export; y up, metres\n# {record}\n"
+    sidecar: dict[str, FileData] = {}
+    if any(mesh.offset_m):
+        text = " ".join(f"{float(v):.17g}" for v in mesh.offset_m)
+        head += (f"# {OFFSET_TAG} {text}\n# georeferenced: add the offset above to every v for "
+                 f"the imported coordinates (also in {offset_file_name(stem)})\n")
+        sidecar[offset_file_name(stem)] = f"{text}\n".encode()
     if not mesh.textured:
-        return {obj_name: Stream(lambda: _plain_obj(mesh, head))}
+        return {obj_name: Stream(lambda: _plain_obj(mesh, head)), **sidecar}
     assert mesh.face_pages is not None
     # the pages in use (−1: untextured faces), in the order their faces are written
     used = np.flatnonzero(np.bincount(mesh.face_pages.astype(np.int64) + 1)) - 1
@@ -112,7 +132,7 @@ def obj_files(mesh: MeshModel, stem: str,
         files[image] = (encode_png(np.full((2, 2, 3), UNTEXTURED_GREY, np.uint8)) if page < 0
                         else mesh.pages[page])
     return {obj_name: Stream(lambda: _textured_obj(mesh, head + f"mtllib {mtl_name}\n", base)),
-            mtl_name: ("\n".join(mtl) + "\n").encode(), **files}
+            mtl_name: ("\n".join(mtl) + "\n").encode(), **files, **sidecar}
 
 
 def _plain_obj(mesh: MeshModel, head: str) -> Iterator[bytes]:

@@ -2,6 +2,10 @@
 
 A textured mesh without vertex colours gets them from its texture (the mean of the texels at
 the vertex's corners), so the PLY shows the same colours a textured viewer would.
+
+A georeferenced model (``offset_m``, an import shifted so float32 keeps 0.1 mm) is written with
+``double`` x, y, z holding the imported coordinates (local + offset; float32 would round them
+to centimetres), and a ``comment scanpipe-offset-m X Y Z`` line naming the offset added.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from scanpipe.exporters.model import (
     unit_normals,
 )
 from scanpipe.images import MAX_TEXTURE_PX, probe_image
+from scanpipe.schema import Offset
 
 
 def decode_png(data: bytes, where: str) -> NDArray[np.uint8]:
@@ -75,18 +80,37 @@ PLY_COMMENT_CHARS = 200
 
 
 def _header(comment: str, vertex_count: int, properties: list[str],
-            face_count: int | None, provenance: Mapping[str, Any] | None) -> bytes:
+            face_count: int | None, provenance: Mapping[str, Any] | None,
+            extra_comments: list[str] | None = None) -> bytes:
     record = provenance_bytes(provenance or {}).decode()
     # PLY readers keep header lines short (rply, Open3D's reader, aborts past 1024 bytes): the
     # record goes over as many comment lines as it needs, to be joined back in order.
     chunks = [record[i:i + PLY_COMMENT_CHARS] for i in range(0, len(record), PLY_COMMENT_CHARS)]
     lines = ["ply", "format binary_little_endian 1.0", f"comment {comment}",
+             *(f"comment {extra}" for extra in extra_comments or ()),
              *(f"comment {PROVENANCE_TAG} {chunk}" for chunk in chunks),
              f"element vertex {vertex_count}", *properties]
     if face_count is not None:
         lines += [f"element face {face_count}", "property list uchar int vertex_indices"]
     lines.append("end_header")
     return ("\n".join(lines) + "\n").encode()
+
+
+#: The header comment that names a georeferenced file's offset (rig frame, y up, metres).
+OFFSET_TAG = "scanpipe-offset-m"
+
+
+def _positions(xyz: NDArray[np.float32], offset_m: Offset
+               ) -> tuple[list[tuple[str, str]], list[str], NDArray[Any], list[str]]:
+    """The x, y, z fields, properties and values, and the comment lines: float32 as they are,
+    or float64 with the georeference offset added."""
+    names = ("x", "y", "z")
+    if not any(offset_m):
+        return [(n, "<f4") for n in names], [f"property float {n}" for n in names], xyz, []
+    values = xyz.astype(np.float64) + np.asarray(offset_m, np.float64)
+    comment = f"{OFFSET_TAG} " + " ".join(f"{float(v):.17g}" for v in offset_m)
+    return ([(n, "<f8") for n in names], [f"property double {n}" for n in names], values,
+            [comment])
 
 
 def _raw(records: NDArray[Any]) -> memoryview:
@@ -104,15 +128,16 @@ def ply_mesh_pieces(mesh: MeshModel, provenance: Mapping[str, Any] | None = None
     """A binary PLY of the mesh with normals and vertex colours (from the texture if needed),
     the ``provenance`` record in a header comment."""
     colors = mesh.colors if mesh.colors is not None else vertex_colors_from_texture(mesh)
-    fields = [(n, "<f4") for n in ("x", "y", "z", "nx", "ny", "nz")]
-    properties = [f"property float {n}" for n, _ in fields]
+    fields, properties, positions, comments = _positions(mesh.vertices, mesh.offset_m)
+    fields += [(n, "<f4") for n in ("nx", "ny", "nz")]
+    properties += [f"property float {n}" for n in ("nx", "ny", "nz")]
     if colors is not None:
         fields += [(n, "u1") for n in ("red", "green", "blue")]
         properties += [f"property uchar {n}" for n in ("red", "green", "blue")]
     vertices = np.empty(len(mesh.vertices), dtype=fields)
     normals = unit_normals(mesh)
     for j, n in enumerate(("x", "y", "z")):
-        vertices[n] = mesh.vertices[:, j]
+        vertices[n] = positions[:, j]
         vertices["n" + n] = normals[:, j]
     if colors is not None:
         for j, n in enumerate(("red", "green", "blue")):
@@ -121,7 +146,7 @@ def ply_mesh_pieces(mesh: MeshModel, provenance: Mapping[str, Any] | None = None
     faces["n"] = 3
     faces["i"] = mesh.faces
     header = _header(f"scanpipe {__version__} mesh; y up, metres", len(vertices), properties,
-                     len(faces), provenance)
+                     len(faces), provenance, comments)
     return Pieces((header, _raw(vertices), _raw(faces)))
 
 
@@ -134,8 +159,7 @@ def ply_cloud_pieces(cloud: CloudModel, provenance: Mapping[str, Any] | None = N
                      ) -> Pieces:
     """A binary PLY of the points with intensity (echo) and colour when present, the
     ``provenance`` record in a header comment."""
-    fields: list[tuple[str, str]] = [(n, "<f4") for n in ("x", "y", "z")]
-    properties = [f"property float {n}" for n in ("x", "y", "z")]
+    fields, properties, positions, comments = _positions(cloud.xyz, cloud.offset_m)
     if cloud.intensity is not None:
         fields.append(("intensity", "<u2"))
         properties.append("property ushort intensity")
@@ -144,12 +168,12 @@ def ply_cloud_pieces(cloud: CloudModel, provenance: Mapping[str, Any] | None = N
         properties += [f"property uchar {n}" for n in ("red", "green", "blue")]
     vertices = np.empty(len(cloud.xyz), dtype=fields)
     for j, n in enumerate(("x", "y", "z")):
-        vertices[n] = cloud.xyz[:, j]
+        vertices[n] = positions[:, j]
     if cloud.intensity is not None:
         vertices["intensity"] = cloud.intensity
     if cloud.colors is not None:
         for j, n in enumerate(("red", "green", "blue")):
             vertices[n] = cloud.colors[:, j]
     header = _header(f"scanpipe {__version__} points; y up, metres", len(vertices),
-                     properties, None, provenance)
+                     properties, None, provenance, comments)
     return Pieces((header, _raw(vertices)))

@@ -33,12 +33,13 @@ from scanpipe.artifacts import PROVENANCE_KEY, FileData
 from scanpipe.errors import ArtifactError, ExportError, UsageError
 from scanpipe.exporters.e57 import E57Image, e57_bytes
 from scanpipe.exporters.glb import glb_pieces
-from scanpipe.exporters.las import LAS_VERSIONS, las_bytes, pdal_pipeline_bytes
+from scanpipe.exporters.las import LAS_VERSIONS, frame_wkt, las_bytes, pdal_pipeline_bytes
 from scanpipe.exporters.mcap_foxglove import camera_views_from_tables, foxglove_export_files
 from scanpipe.exporters.model import (
     CloudModel,
     MeshModel,
     cloud_from_table,
+    geo_z_up,
     mesh_from_tables,
     provenance_bytes,
     rig_to_z_up,
@@ -47,6 +48,7 @@ from scanpipe.exporters.obj import obj_files
 from scanpipe.exporters.ply import ply_cloud_pieces, ply_mesh_pieces
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
+from scanpipe.schema import ZERO_OFFSET, Offset, format_offset, offset_z_up
 from scanpipe.stage import Stage, StageResult
 
 if TYPE_CHECKING:
@@ -170,15 +172,16 @@ def export_files(tables: Mapping[str, pa.Table], fmt: str, stem: str,
     if fmt in ("las", "laz"):
         return {f"{stem}.{fmt}": las_bytes(cloud, compressed=fmt == "laz", version=las_version,
                                            provenance=provenance),
-                f"{stem}.{fmt}.pipeline.json": pdal_pipeline_bytes(f"{stem}.{fmt}")}
+                f"{stem}.{fmt}.pipeline.json": pdal_pipeline_bytes(f"{stem}.{fmt}",
+                                                                   srs=frame_wkt(cloud))}
     if fmt == "copc":
         from scanpipe.exporters.copc import copc_bytes
 
         return {f"{stem}.copc.laz": copc_bytes(cloud, provenance),
-                f"{stem}.copc.laz.pipeline.json": pdal_pipeline_bytes(f"{stem}.copc.laz",
-                                                                       "readers.copc")}
+                f"{stem}.copc.laz.pipeline.json": pdal_pipeline_bytes(
+                    f"{stem}.copc.laz", "readers.copc", frame_wkt(cloud))}
     return {f"{stem}.e57": e57_bytes(cloud, stem, provenance_bytes(provenance).decode(),
-                                     e57_images(tables))}
+                                     e57_images(tables, cloud.offset_m))}
 
 
 def _chosen_frames(tables: Mapping[str, pa.Table]) -> tuple[
@@ -247,9 +250,11 @@ def pinhole_image(data: bytes, kind: str, cam: CameraConfig) -> bytes:
     return encode_png(flat) if kind == "png" else encode_jpeg(flat, quality=95)
 
 
-def e57_images(tables: Mapping[str, pa.Table]) -> list[E57Image]:
+def e57_images(tables: Mapping[str, pa.Table], offset_m: Offset = ZERO_OFFSET
+               ) -> list[E57Image]:
     """The camera frames as E57 images (none without frames), posed in the file's z-up frame
-    (the frame the points are written in: :func:`rig_to_z_up`) with CloudCompare's camera axes
+    (the frame the points are written in: :func:`rig_to_z_up`, plus the points' georeference
+    offset ``offset_m``, rig frame) with CloudCompare's camera axes
     (:data:`E57_CAMERA_FROM_OPENCV`), undistorted when the lens has distortion."""
     if not all(n in tables for n in CAMERA_ARTIFACTS) or tables["frames"].num_rows == 0:
         return []
@@ -261,7 +266,7 @@ def e57_images(tables: Mapping[str, pa.Table]) -> list[E57Image]:
         # camera (E57 axes) → OpenCV axes → rig → file: M @ R @ E
         to_file = rig_to_z_up((np.asarray(rotation) @ E57_CAMERA_FROM_OPENCV).T).T
         q = quaternion_wxyz(to_file)
-        t = rig_to_z_up(np.asarray(translation)[None, :])[0]
+        t = geo_z_up(np.asarray(translation)[None, :], offset_m)[0]
         note = ("" if not any(cam.distortion) else
                 "undistorted from OpenCV k1 k2 p1 p2 k3 = "
                 + " ".join(f"{float(v):.17g}" for v in cam.distortion))
@@ -326,9 +331,30 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
         files.update(export_files(job_tables, fmt, stem, params.las_version, params.glb_draco,
                                   models))
     progress("export", len(jobs), len(jobs))
+    report: dict[str, Any] = {"files": list(files), "cloud_coloured": coloured,
+                              **georeference_report(mesh, cloud, [j[0] for j in jobs])}
     # the manifest (sizes, digests) is made as the files are written: the OBJ is streamed
-    return StageResult({}, {"files": list(files), "cloud_coloured": coloured}, files,
-                       manifest="export_manifest")
+    return StageResult({}, report, files, manifest="export_manifest")
+
+
+#: Formats that write the model in the local (shifted) frame and do not record the offset.
+LOCAL_ONLY_FORMATS = ("mcap", "colmap")
+
+
+def georeference_report(mesh: MeshModel | None, cloud: CloudModel | None,
+                        formats: list[str]) -> dict[str, Any]:
+    """What an export of a georeferenced model says: the offset of its mesh and of its cloud
+    (z-up, as LAS/E57 have it) that the files add back or record, and a warning for each
+    format written in the local frame only; {} for a model that was never shifted."""
+    named = {k: m.offset_m for k, m in (("mesh", mesh), ("cloud", cloud))
+             if m is not None and any(m.offset_m)}
+    if not named:
+        return {}
+    shown = ", ".join(sorted({format_offset(o) for o in named.values()}))
+    local = sorted({f for f in formats if f in LOCAL_ONLY_FORMATS})
+    return {"offset_z_up_m": {k: list(offset_z_up(o)) for k, o in named.items()},
+            "warnings": [f"{fmt}: written in the local frame (the import's offset {shown} m "
+                         "is not added back: the format has no place for it)" for fmt in local]}
 
 
 STAGE = Stage(

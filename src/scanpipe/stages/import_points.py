@@ -30,7 +30,8 @@ def import_points_stage(inputs: Mapping[str, Any], params: ImportParams,
 
 STAGE = Stage(
     name="import-points",
-    version=3,
+    version=4,  # 4: the georeference offset travels with the points (schema.OFFSET_KEY),
+    # rounded to whole kilometres (nearby files share it) or given (offset_m)
     params=ImportParams,
     inputs=("point_file",),
     outputs=("points",),
