@@ -198,3 +198,29 @@ def test_angles_on_another_clock_than_the_scans_are_refused(tmp_path: Path, cli:
     assert result.err.count("\n") == 1, result.err
     assert "no scan lies within the platform angle reports" in result.err
     assert not out.exists()
+
+
+def test_two_scanners_on_one_topic_are_refused(tmp_path: Path, cli: Any) -> None:
+    """Two lasers publishing on one topic (told apart by header.frame_id only) interleave two
+    scans of different geometry: imported as one, every other profile would be misplaced."""
+    import copy
+
+    from test_bag_import import _header
+
+    def two_frames(ts: Any) -> list[tuple[str, str, float, Any]]:
+        out = []
+        for topic, msgtype, t, msg in turntable_messages(ts, "joint"):
+            out.append((topic, msgtype, t, msg))
+            if msgtype.endswith("LaserScan"):
+                rear = copy.deepcopy(msg)
+                rear.header = _header(ts, t + 0.001, "laser_rear")
+                out.append((topic, msgtype, t + 0.001, rear))
+        return out
+
+    bag = write_bag(tmp_path, "sqlite3", two_frames)
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", bag, "--out", out)
+    assert result.code == 1
+    assert result.err.count("\n") == 1, result.err
+    assert "/scan: scans from 2 frames (laser: 60, laser_rear: 60)" in result.err
+    assert not out.exists()

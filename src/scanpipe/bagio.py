@@ -679,6 +679,10 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
         content.profiles.append((log_ns, profile))
     if not content.profiles:
         raise BagError(f"{bag}: {scan}: no messages")
+    if len(frame_ids) > 1:
+        frames = ", ".join(f"{name or '(empty)'}: {n}" for name, n in sorted(frame_ids.items()))
+        raise BagError(f"{bag}: {scan.name}: scans from {len(frame_ids)} frames ({frames}): "
+                       "several scanners on one topic; a recording holds one scanner's scans")
     bad_steps = [s for s in steps_seen if not (math.isfinite(s) and s > 0)]
     if bad_steps:
         raise BagError(f"{bag}: {scan.name}: angle_increment {bad_steps[0]:g}°: only "
