@@ -224,3 +224,95 @@ def test_two_scanners_on_one_topic_are_refused(tmp_path: Path, cli: Any) -> None
     assert result.err.count("\n") == 1, result.err
     assert "/scan: scans from 2 frames (laser: 60, laser_rear: 60)" in result.err
     assert not out.exists()
+
+
+TILT_IDL = """// generated from rosidl_adapter/resource/msg.idl.em
+// with input from rig_msgs/msg/Tilt.msg
+// generated code does not contain a copyright notice
+
+#include "std_msgs/msg/Header.idl"
+
+module rig_msgs {
+  module msg {
+    @verbatim (language="comment", text=
+      "The platform's tilt")
+    struct Tilt {
+      std_msgs::msg::Header header;
+
+      @verbatim (language="comment", text=
+        "radians")
+      double angle;
+    };
+  };
+};
+"""
+HEADER_IDL = """#include "builtin_interfaces/msg/Time.idl"
+
+module std_msgs {
+  module msg {
+    struct Header {
+      builtin_interfaces::msg::Time stamp;
+      string frame_id;
+    };
+  };
+};
+"""
+TIME_IDL = """module builtin_interfaces {
+  module msg {
+    struct Time {
+      int32 sec;
+      uint32 nanosec;
+    };
+  };
+};
+"""
+
+
+def _idl(*parts: tuple[str, str]) -> bytes:
+    """A ros2idl schema as rosbag2 writes it: every .idl after a two-line delimiter."""
+    return "".join(f"{'=' * 80}\nIDL: {name}\n{text}" for name, text in parts).encode()
+
+
+@pytest.mark.parametrize("extra", ["ros2idl", "broken_ros2msg"])
+def test_a_topic_whose_definition_rosbags_cannot_parse_does_not_sink_the_bag(
+        tmp_path: Path, cli: Any, extra: str) -> None:
+    """A standalone MCAP as ``ros2 bag record -s mcap`` writes it (ros2msg schemas) with one
+    more topic: a type defined in IDL (its schema holds rosidl's ``#include`` lines, which
+    rosbags' IDL parser rejects), or a definition rosbags cannot parse at all."""
+    from mcap.writer import Writer
+    from rosbags.typesys import Stores, get_typestore
+    from test_bag_import import T0
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    path = tmp_path / "scan.mcap"
+    with path.open("wb") as handle:
+        writer = Writer(handle)
+        writer.start(profile="ros2", library="rosbag2 (as written by ros2 bag record)")
+        channels: dict[str, int] = {}
+        for topic, msgtype, t, msg in turntable_messages(ts, "joint"):
+            if topic not in channels:
+                schema = writer.register_schema(msgtype, "ros2msg",
+                                                ts.generate_msgdef(msgtype, 2)[0].encode())
+                channels[topic] = writer.register_channel(topic, "cdr", schema)
+            stamp = T0 + round(t * 1e9)
+            writer.add_message(channels[topic], stamp, bytes(ts.serialize_cdr(msg, msgtype)),
+                               stamp)
+        if extra == "ros2idl":
+            schema = writer.register_schema("rig_msgs/msg/Tilt", "ros2idl", _idl(
+                ("rig_msgs/msg/Tilt", TILT_IDL), ("std_msgs/msg/Header", HEADER_IDL),
+                ("builtin_interfaces/msg/Time", TIME_IDL)))
+        else:
+            schema = writer.register_schema("rig_msgs/msg/Tilt", "ros2msg",
+                                            b"std_msgs/Header header\nfloat64<> angle\n")
+        tilt = writer.register_channel("/tilt", "cdr", schema)
+        writer.add_message(tilt, T0, b"\x00\x01\x00\x00" + bytes(24), T0)
+        writer.finish()
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", path, "--out", out)
+    assert result.code == 0, result.err
+    assert "60 profiles × 541 samples" in result.out
+    if extra == "broken_ros2msg":
+        assert "/tilt (rig_msgs/msg/Tilt): its message definition cannot be parsed" in result.err
+    assert cli("run", out, "--workdir", tmp_path / "w", "--to", "assemble", "-q").code == 0
+    _, truth, _ = ros_scan(DEFAULT_R_PL, np.zeros(3), 0.0)
+    check_against_truth(assembled(tmp_path / "w"), truth)

@@ -204,20 +204,83 @@ def _recovered_mcap(file: Path, scratch: Path, warnings: list[str]) -> Path:
     return out
 
 
+_IDL_SEPARATOR = "=" * 80 + "\n"
+
+
+def _definition_types(connection: Any) -> dict[str, Any]:
+    """The types one connection's own message definition declares (rosbags' parsers).
+
+    rosbag2 stores a type defined in IDL as its .idl files verbatim, ``#include`` lines and
+    all, which rosbags' IDL parser rejects: they are dropped (the included types come as their
+    own parts of the definition)."""
+    from rosbags.interfaces import MessageDefinitionFormat
+    from rosbags.typesys import get_types_from_idl, get_types_from_msg
+
+    definition = connection.msgdef
+    if definition.format == MessageDefinitionFormat.MSG:
+        return dict(get_types_from_msg(definition.data, connection.msgtype))
+    text = str(definition.data)
+    parts = ([part.split("\n", 1)[1] for part in text.split(_IDL_SEPARATOR)[1:]]
+             if text.startswith(f"{_IDL_SEPARATOR}IDL: ") else [text])
+    types: dict[str, Any] = {}
+    for part in parts:
+        types.update(get_types_from_idl(re.sub(r"(?m)^[ \t]*#[ \t]*include\b.*$", "", part)))
+    return types
+
+
+def _tolerant_reader(paths: Sequence[Path], warnings: list[str]) -> Any:
+    """A rosbags AnyReader that parses each connection's message definition on its own.
+
+    AnyReader parses every topic's definition when it opens and refuses the whole bag when one
+    fails (a custom type defined in IDL, a definition its parser does not know) or when a
+    stored type hash differs from its own: a bag with an unrelated odd topic could not be
+    imported. Here a definition that fails is reported and its topic left to ROS 2 Humble's
+    types (ROS 2) or unreadable; the bag's own definitions override Humble's."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import MessageDefinitionFormat
+    from rosbags.typesys import Stores, get_typestore
+
+    humble = get_typestore(Stores.ROS2_HUMBLE)
+
+    class TolerantReader(AnyReader):  # type: ignore[misc]
+        def _open(self) -> None:
+            assert self.stack
+            for reader in self.readers:
+                self.stack.enter_context(reader)
+            connections = [c for reader in self.readers for c in reader.connections]
+            types: dict[str, Any] = dict(humble.fielddefs) if self.is2 else {}
+            failed: dict[str, str] = {}
+            for connection in connections:
+                if connection.msgdef.format == MessageDefinitionFormat.NONE:
+                    continue
+                try:
+                    types.update(_definition_types(connection))
+                except Exception:  # rosbags' parsers raise several types
+                    failed[connection.topic] = connection.msgtype
+            typestore = get_typestore(Stores.EMPTY)
+            typestore.register(types)
+            for topic, msgtype in sorted(failed.items()):
+                fallback = ("read with ROS 2 Humble's definition" if msgtype in types
+                            else "its messages cannot be read")
+                warnings.append(f"{topic} ({msgtype}): its message definition cannot be "
+                                f"parsed: {fallback}")
+            self.connections = connections
+            self.typestore = typestore
+
+    return TolerantReader(paths)
+
+
 def open_bag(path: Path, scratch: Path, warnings: list[str]) -> Any:
     """An opened ``rosbags`` AnyReader; every failure is one :class:`BagError` line.
 
     ``scratch`` is an empty folder that outlives the reader (links and recovered copies go
     there); what was done to read a damaged bag goes into ``warnings``.
     """
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
     if not path.exists():
         raise BagError(f"{path}: not found")
     try:
         paths = _storage_paths(path, scratch, warnings)
-        reader = AnyReader(paths, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader = _tolerant_reader(paths, warnings)
         reader.open()
     except BagError:
         raise
