@@ -468,6 +468,9 @@ class Recorder:
                     self.sink.flush()
                 except (OSError, ScanpipeError) as err:
                     self.request_stop(f"cannot write the recording: {err}", status="failed")
+            if not self.stop_event.is_set():
+                for camera in self.cameras:
+                    camera.watchdog()
             self._note_rate()
 
     # -- procedures ------------------------------------------------------------------------
