@@ -456,6 +456,12 @@ class Recorder:
         # With the stream and the cameras stopped, no profile or frame is taken on the way back.
         self._return_to_start()
         if self.motor is not None:
+            if self.motor.rejected_reports:
+                self.sink.event("motor_reports_rejected",
+                                f"motor: {self.motor.rejected_reports} position report(s) "
+                                "rejected as implausible (a count or target that line noise "
+                                "changed): not recorded as motor states",
+                                {"count": self.motor.rejected_reports})
             self.motor.close()
         self.phase = "done"
 
@@ -592,6 +598,13 @@ class Recorder:
         if lost.is_set():
             return  # the procedure reconnects and comes back to this target
         if reached is None:
+            # The report of the arrival may have been lost on the link (noise): ask.
+            for _ in range(3):
+                with contextlib.suppress(DeviceError):
+                    asked = self.motor.query_position()
+                    if not asked.moving and asked.step_count == target:
+                        return
+                    break
             last = self.motor.state
             self.sink.event("motor_timeout",
                             f"motor: target {target} not reached within {timeout:.1f} s "
