@@ -316,3 +316,33 @@ def test_a_topic_whose_definition_rosbags_cannot_parse_does_not_sink_the_bag(
     assert cli("run", out, "--workdir", tmp_path / "w", "--to", "assemble", "-q").code == 0
     _, truth, _ = ros_scan(DEFAULT_R_PL, np.zeros(3), 0.0)
     check_against_truth(assembled(tmp_path / "w"), truth)
+
+
+def test_a_continuous_joint_reported_wrapped_to_pi_is_unwrapped(
+        tmp_path: Path, cli: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A continuous joint whose driver reports its position wrapped into (−π, π]: across the
+    wrap the angle between two reports must not swing back through a whole turn."""
+    import math
+
+    import test_bag_import
+
+    yaw0 = 0.91 * math.pi  # from 163.8°: the position wraps at 0.27 s, within a scan
+    scan = test_bag_import.ros_scan
+    monkeypatch.setattr(test_bag_import, "ros_scan",
+                        lambda r, t, yaw: scan(r, t, yaw + yaw0))
+
+    def wrapped(ts: Any) -> list[tuple[str, str, float, Any]]:
+        out = []
+        for topic, msgtype, t, msg in turntable_messages(ts, "joint"):
+            if topic == "/joint_states":
+                psi = yaw0 + msg.position[0]
+                msg.position[0] = (psi + math.pi) % (2 * math.pi) - math.pi
+            out.append((topic, msgtype, t, msg))
+        return out
+
+    bag = write_bag(tmp_path, "mcap", wrapped)
+    out = tmp_path / "rec.mcap"
+    assert cli("import-bag", bag, "--out", out).code == 0
+    assert cli("run", out, "--workdir", tmp_path / "w", "--to", "assemble", "-q").code == 0
+    _, truth, _ = scan(DEFAULT_R_PL, np.zeros(3), yaw0)
+    check_against_truth(assembled(tmp_path / "w"), truth)

@@ -595,7 +595,11 @@ def joint_angles(path: Path, reader: Any, topics: Sequence[Topic], joint: str | 
                            f"--tf PARENT:CHILD; found: {_listing(topics)}")
         key = moving[0]
     values = sorted(positions[key])
-    return [(t, -math.degrees(p)) for t, p in values], key[1], key[0]
+    # A continuous joint's driver may wrap its position into (−π, π]: a platform cannot turn
+    # half a turn between two reports, so a jump of more than π is the wrap (as TF's yaw).
+    unwrapped = np.unwrap(np.array([p for _, p in values], np.float64))
+    return ([(t, -math.degrees(float(p))) for (t, _), p in zip(values, unwrapped, strict=True)],
+            key[1], key[0])
 
 
 def _camera_id(topic: str) -> str:
