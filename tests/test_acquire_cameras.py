@@ -138,3 +138,5 @@ def test_a_read_that_never_returns_is_reported_lost(tmp_path: Path) -> None:
     lost = [e for e in recording.events if e.kind == "camera_lost"]
     assert len(lost) == 1 and "cam0" in lost[0].message and "did not return" in lost[0].message
     assert len(recording.images) == 3
+    # decode, info and run say it: the camera's texture covers only what it saw before
+    assert any(w.startswith("camera cam0 was lost") for w in recording.partial_scan_warnings())
