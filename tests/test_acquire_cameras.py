@@ -89,3 +89,54 @@ def test_unopenable_source_is_a_device_error(tmp_path: Path) -> None:
     cam = small_camera(source=str(tmp_path / "missing.avi"))
     with pytest.raises(DeviceError, match="cannot open source"):
         open_capture(cam)
+
+
+class _Hanging:
+    """A live source whose reads block after ``good`` frames (a USB or RTSP driver that hangs:
+    ``read`` never returns), until ``release``."""
+
+    is_live = True
+
+    def __init__(self, good: int) -> None:
+        self.good = good
+        self.reads = 0
+        self.released = threading.Event()
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        self.reads += 1
+        if self.reads > self.good:
+            self.released.wait(30)
+            return True, np.zeros((8, 8, 3), np.uint8)  # a late frame after the end
+        return True, np.zeros((8, 8, 3), np.uint8)
+
+    def release(self) -> None:
+        self.released.set()
+
+
+def test_a_read_that_never_returns_is_reported_lost(tmp_path: Path) -> None:
+    cam = small_camera()
+    rig = rig_with_cameras(cam)
+    sink = _sink(tmp_path / "rec.mcap", rig)
+    stop = threading.Event()
+    source = _Hanging(good=3)
+    thread = CameraThread(cam.id, source, sink, stop, period_s=0.01, pace=True,
+                          lost_after_s=0.3)
+    thread.start()
+    deadline = time.monotonic() + 5.0
+    while not thread.stats.lost and time.monotonic() < deadline:
+        thread.watchdog()  # the recorder's flusher calls it
+        time.sleep(0.05)
+    assert thread.stats.lost and thread.stats.frames == 3
+    stop.set()
+    thread.join(timeout=0.5)
+    assert thread.is_alive()  # still stuck in the driver
+    sink.close()
+    source.release()  # the driver returns a frame after the recording was closed
+    thread.join(timeout=5)
+    assert not thread.is_alive() and thread.stats.frames == 3  # not written
+    recording = read_recording(tmp_path / "rec.mcap")
+    lost = [e for e in recording.events if e.kind == "camera_lost"]
+    assert len(lost) == 1 and "cam0" in lost[0].message and "did not return" in lost[0].message
+    assert len(recording.images) == 3
+    # decode, info and run say it: the camera's texture covers only what it saw before
+    assert any(w.startswith("camera cam0 was lost") for w in recording.partial_scan_warnings())

@@ -309,11 +309,15 @@ def _check_colmap(folder: Path, work: Path) -> None:
         cam = cams[name.rsplit("_", 1)[0]]
         assert model == "OPENCV" and len(params) == 8 and cam.id == chosen.cameras[k].id
         assert (width, height) == (cam.width, cam.height)
-        np.testing.assert_allclose(params[:4], intrinsic_matrix(cam)[[0, 1, 0, 1], [0, 1, 2, 2]])
+        # COLMAP puts the centre of the top-left pixel at (0.5, 0.5) (its docs, "Cameras";
+        # its feature detector), scanpipe (as OpenCV and ROS) at (0, 0): cx, cy move by half
+        # a pixel.
+        np.testing.assert_allclose(params[:4], intrinsic_matrix(cam)[[0, 1, 0, 1], [0, 1, 2, 2]]
+                                   + [0, 0, 0.5, 0.5])
         # COLMAP's world→camera pose and pinhole put every point where scanpipe projects it
         cam_xyz = points[:, 1:4] @ _rotation(q).T + t
         front = cam_xyz[:, 2] > 0.1
-        uv = cam_xyz[front, :2] / cam_xyz[front, 2:] * params[:2] + params[2:4]
+        uv = cam_xyz[front, :2] / cam_xyz[front, 2:] * params[:2] + params[2:4] - 0.5
         ours, depth = project_points(points[front, 1:4], cam, float(chosen.beta_deg[k]))
         np.testing.assert_allclose(ours, uv, atol=1e-3)
         np.testing.assert_allclose(depth, cam_xyz[front, 2], atol=1e-6)

@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import tempfile
 from collections import Counter, defaultdict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -119,18 +120,176 @@ def _frame(name: str) -> str:
     return name.lstrip("/")
 
 
-def open_bag(path: Path) -> Any:
-    """An opened ``rosbags`` AnyReader; every failure is one :class:`BagError` line."""
+#: A bag's kind by its first bytes: rosbags chooses its reader by the name's suffix.
+_MAGIC = ((b"#ROSBAG V2.0\n", ".bag"), (b"\x89MCAP0\r\n", ".mcap"),
+          (b"SQLite format 3\x00", ".db3"))
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def _kind(path: Path) -> str | None:
+    """``.bag``, ``.mcap`` or ``.db3`` by the file's first bytes; None for anything else."""
+    with path.open("rb") as handle:
+        head = handle.read(16)
+    return next((suffix for magic, suffix in _MAGIC if head.startswith(magic)), None)
+
+
+def _split_index(path: Path) -> tuple[int, str]:
+    """rosbag2 names a split bag's files NAME_0, NAME_1 …: their order."""
+    match = re.search(r"_(\d+)$", path.stem)
+    return (int(match.group(1)) if match else -1, path.name)
+
+
+def _mcap_complete(path: Path) -> bool:
+    """An MCAP file that ends in its magic (a recorder killed mid-write leaves none)."""
+    size = path.stat().st_size
+    with path.open("rb") as handle:
+        handle.seek(max(size - len(_MCAP_MAGIC), 0))
+        return size > 2 * len(_MCAP_MAGIC) and handle.read() == _MCAP_MAGIC
+
+
+def _storage_paths(path: Path, scratch: Path, warnings: list[str]) -> list[Path]:
+    """What to hand rosbags for ``path``: the bag folder itself when it is whole, else its
+    storage files, each under a name rosbags reads (its suffix) and each MCAP cut before its
+    end recovered into ``scratch`` (the bag is never changed). Warnings say what was done."""
+    if path.is_dir():
+        files = sorted((p for p in path.iterdir() if p.is_file() and _kind(p) in (".db3", ".mcap")),
+                       key=_split_index)
+        has_metadata = (path / "metadata.yaml").is_file()
+        if has_metadata and all(_mcap_complete(f) for f in files if _kind(f) == ".mcap"):
+            return [path]
+        if not files:
+            raise BagError(f"{path}: a folder with no metadata.yaml and no .db3 or .mcap file; "
+                           "expected a ROS 2 bag folder (metadata.yaml and its storage files)")
+        if not has_metadata:
+            warnings.append(f"{path}: no metadata.yaml (its recorder was stopped before writing "
+                            f"it?): read from its storage files {', '.join(f.name for f in files)}")
+    else:
+        files = [path]
+    kinds = {f: _kind(f) for f in files}
+    if None in kinds.values():
+        raise BagError(f"{path}: not a readable ROS bag (it starts with neither '#ROSBAG "
+                       "V2.0' (ROS 1), 'SQLite format 3' (a ROS 2 .db3) nor the MCAP magic "
+                       "(a ROS 2 .mcap))")
+    if len(set(kinds.values())) > 1:
+        raise BagError(f"{path}: storage files of different kinds "
+                       f"({', '.join(f'{f.name}: {k}' for f, k in kinds.items())}); "
+                       "one bag has one")
+    paths = []
+    for file, kind in kinds.items():
+        if kind == ".mcap" and not _mcap_complete(file):
+            paths.append(_recovered_mcap(file, scratch, warnings))
+        elif file.suffix != kind:
+            link = scratch / f"{file.name}{kind}"
+            link.symlink_to(file.resolve())
+            paths.append(link)
+        else:
+            paths.append(file)
+    return paths
+
+
+def _recovered_mcap(file: Path, scratch: Path, warnings: list[str]) -> Path:
+    """The complete chunks of an MCAP bag cut before its end, copied into ``scratch``."""
+    from scanpipe.recording.catalogue import recover_mcap
+
+    out = scratch / f"{file.stem}-{len(list(scratch.iterdir()))}.mcap"
+    try:
+        report = recover_mcap(file, out)
+    except RecordingError as err:
+        raise BagError(f"{file}: an MCAP bag cut before its end with nothing readable in it "
+                       f"({err})") from err
+    lost = report["loss"]
+    warnings.append(f"{file.name}: cut before its end (no summary: its recorder was stopped "
+                    f"mid-write): {report['messages']} messages of its complete chunks read, "
+                    f"about {lost['bytes']} bytes lost at the cut")
+    return out
+
+
+_IDL_SEPARATOR = "=" * 80 + "\n"
+
+
+def _definition_types(connection: Any) -> dict[str, Any]:
+    """The types one connection's own message definition declares (rosbags' parsers).
+
+    rosbag2 stores a type defined in IDL as its .idl files verbatim, ``#include`` lines and
+    all, which rosbags' IDL parser rejects: they are dropped (the included types come as their
+    own parts of the definition)."""
+    from rosbags.interfaces import MessageDefinitionFormat
+    from rosbags.typesys import get_types_from_idl, get_types_from_msg
+
+    definition = connection.msgdef
+    if definition.format == MessageDefinitionFormat.MSG:
+        return dict(get_types_from_msg(definition.data, connection.msgtype))
+    text = str(definition.data)
+    parts = ([part.split("\n", 1)[1] for part in text.split(_IDL_SEPARATOR)[1:]]
+             if text.startswith(f"{_IDL_SEPARATOR}IDL: ") else [text])
+    types: dict[str, Any] = {}
+    for part in parts:
+        types.update(get_types_from_idl(re.sub(r"(?m)^[ \t]*#[ \t]*include\b.*$", "", part)))
+    return types
+
+
+def _tolerant_reader(paths: Sequence[Path], warnings: list[str]) -> Any:
+    """A rosbags AnyReader that parses each connection's message definition on its own.
+
+    AnyReader parses every topic's definition when it opens and refuses the whole bag when one
+    fails (a custom type defined in IDL, a definition its parser does not know) or when a
+    stored type hash differs from its own: a bag with an unrelated odd topic could not be
+    imported. Here a definition that fails is reported and its topic left to ROS 2 Humble's
+    types (ROS 2) or unreadable; the bag's own definitions override Humble's."""
     from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import MessageDefinitionFormat
     from rosbags.typesys import Stores, get_typestore
 
+    humble = get_typestore(Stores.ROS2_HUMBLE)
+
+    class TolerantReader(AnyReader):  # type: ignore[misc]
+        def _open(self) -> None:
+            assert self.stack
+            for reader in self.readers:
+                self.stack.enter_context(reader)
+            connections = [c for reader in self.readers for c in reader.connections]
+            types: dict[str, Any] = dict(humble.fielddefs) if self.is2 else {}
+            failed: dict[str, str] = {}
+            for connection in connections:
+                if connection.msgdef.format == MessageDefinitionFormat.NONE:
+                    continue
+                try:
+                    types.update(_definition_types(connection))
+                except Exception:  # rosbags' parsers raise several types
+                    failed[connection.topic] = connection.msgtype
+            typestore = get_typestore(Stores.EMPTY)
+            typestore.register(types)
+            for topic, msgtype in sorted(failed.items()):
+                fallback = ("read with ROS 2 Humble's definition" if msgtype in types
+                            else "its messages cannot be read")
+                warnings.append(f"{topic} ({msgtype}): its message definition cannot be "
+                                f"parsed: {fallback}")
+            self.connections = connections
+            self.typestore = typestore
+
+    return TolerantReader(paths)
+
+
+def open_bag(path: Path, scratch: Path, warnings: list[str]) -> Any:
+    """An opened ``rosbags`` AnyReader; every failure is one :class:`BagError` line.
+
+    ``scratch`` is an empty folder that outlives the reader (links and recovered copies go
+    there); what was done to read a damaged bag goes into ``warnings``.
+    """
     if not path.exists():
         raise BagError(f"{path}: not found")
-    reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
     try:
+        paths = _storage_paths(path, scratch, warnings)
+        reader = _tolerant_reader(paths, warnings)
         reader.open()
+    except BagError:
+        raise
     except Exception as err:  # rosbags raises many types for damaged files
         reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        if "not indexed" in reason:
+            raise BagError(f"{path}: a ROS 1 bag without its index (its recorder was stopped "
+                           "before closing it, as NAME.bag.active is): run `rosbag reindex` on "
+                           "it and import the result") from err
         raise BagError(f"{path}: not a readable ROS bag ({reason}); expected a ROS 1 .bag or "
                        "a ROS 2 bag (a folder with metadata.yaml, or its .db3/.mcap)") from err
     return reader
@@ -275,6 +434,36 @@ def _scale_fraction_intensities(content: BagContent) -> None:
                             f"echo's 0…{ECHO_FULL_SCALE:g}")
 
 
+def _keep_scans_within_angles(bag: Path, content: BagContent, scan_time_s: float) -> None:
+    """Drop the scans not wholly within the platform angle reports' time span, warned: assemble
+    holds the nearest angle outside it, which smears a turning platform's scan (a publisher
+    that starts late or stops early, a bag cut). None within it: refused (two clocks)."""
+    times = np.array([t for t, _ in content.angles], np.int64)
+    first, last = int(times.min()), int(times.max())
+    span_ns = round(scan_time_s * 1e9) if math.isfinite(scan_time_s) and scan_time_s > 0 else 0
+    starts = np.array([p.device_time_ns for _, p in content.profiles], np.int64)
+    ends = np.array([p.device_end_time_ns or p.device_time_ns + span_ns
+                     for _, p in content.profiles], np.int64)
+    inside = (starts >= first) & (ends <= last)
+    if inside.all():
+        return
+    t0 = int(min(starts.min(), first))
+
+    def s(t: int) -> str:
+        return f"{(t - t0) / 1e9:.6g}"
+
+    what = (f"(scans {s(int(starts.min()))} … {s(int(ends.max()))} s, angle reports "
+            f"{s(first)} … {s(last)} s after {t0} ns)")
+    if not inside.any():
+        raise BagError(f"{bag}: no scan lies within the platform angle reports {what}: are the "
+                       "scans and the angles stamped by different clocks?")
+    dropped = int(np.count_nonzero(~inside))
+    content.profiles[:] = [p for p, keep in zip(content.profiles, inside, strict=True) if keep]
+    content.warnings.append(f"{dropped} scans outside the platform angle reports "
+                            f"({s(first)} … {s(last)} s; scans {s(int(starts.min()))} … "
+                            f"{s(int(ends.max()))} s) dropped: their platform angle is unknown")
+
+
 def quaternion_matrix(x: float, y: float, z: float, w: float) -> F64:
     """Rotation matrix of a (not necessarily unit) quaternion."""
     q = np.array([w, x, y, z], np.float64)
@@ -406,7 +595,11 @@ def joint_angles(path: Path, reader: Any, topics: Sequence[Topic], joint: str | 
                            f"--tf PARENT:CHILD; found: {_listing(topics)}")
         key = moving[0]
     values = sorted(positions[key])
-    return [(t, -math.degrees(p)) for t, p in values], key[1], key[0]
+    # A continuous joint's driver may wrap its position into (−π, π]: a platform cannot turn
+    # half a turn between two reports, so a jump of more than π is the wrap (as TF's yaw).
+    unwrapped = np.unwrap(np.array([p for _, p in values], np.float64))
+    return ([(t, -math.degrees(float(p))) for (t, _), p in zip(values, unwrapped, strict=True)],
+            key[1], key[0])
 
 
 def _camera_id(topic: str) -> str:
@@ -516,20 +709,23 @@ def import_bag(bag: Path, out: Path, scan_topic: str | None = None, joint: str |
         raise UsageError("--joint and --tf both give the platform angle; pass one")
     if tf is not None and (tf.count(":") != 1 or not all(tf.split(":"))):
         raise UsageError(f"--tf {tf!r}: expected PARENT:CHILD (two TF frame names)")
-    reader = open_bag(bag)
-    try:
-        return _import(reader, bag, out, scan_topic, joint, tf, image_topics, rig)
-    except (BagError, UsageError):
-        raise
-    except Exception as err:  # a damaged message deep in a bag
-        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
-        raise BagError(f"{bag}: cannot be read ({type(err).__name__}: {reason})") from err
-    finally:
-        reader.close()
+    warnings: list[str] = []
+    with tempfile.TemporaryDirectory(prefix="scanpipe-bag-") as scratch:
+        reader = open_bag(bag, Path(scratch), warnings)
+        try:
+            return _import(reader, bag, out, scan_topic, joint, tf, image_topics, rig, warnings)
+        except (BagError, UsageError):
+            raise
+        except Exception as err:  # a damaged message deep in a bag
+            reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+            raise BagError(f"{bag}: cannot be read ({type(err).__name__}: {reason})") from err
+        finally:
+            reader.close()
 
 
 def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: str | None,
-            tf: str | None, image_topics: Sequence[str], given: Rig | None) -> dict[str, Any]:
+            tf: str | None, image_topics: Sequence[str], given: Rig | None,
+            warnings: Sequence[str] = ()) -> dict[str, Any]:
     topics = bag_topics(reader)
     scan = choose_scan_topic(bag, topics, scan_topic)
     for name in image_topics:
@@ -538,7 +734,7 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
             images = [t for t in topics if t.msgtype in IMAGE_TYPES]
             raise BagError(f"{bag}: --image {name}: not an image topic; image topics: "
                            f"{_listing(images)}")
-    content = BagContent()
+    content = BagContent(warnings=list(warnings))
     facts: dict[str, float] = {}
     frame_ids: Counter[str] = Counter()
     steps_seen: set[float] = set()
@@ -550,6 +746,10 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
         content.profiles.append((log_ns, profile))
     if not content.profiles:
         raise BagError(f"{bag}: {scan}: no messages")
+    if len(frame_ids) > 1:
+        frames = ", ".join(f"{name or '(empty)'}: {n}" for name, n in sorted(frame_ids.items()))
+        raise BagError(f"{bag}: {scan.name}: scans from {len(frame_ids)} frames ({frames}): "
+                       "several scanners on one topic; a recording holds one scanner's scans")
     bad_steps = [s for s in steps_seen if not (math.isfinite(s) and s > 0)]
     if bad_steps:
         raise BagError(f"{bag}: {scan.name}: angle_increment {bad_steps[0]:g}°: only "
@@ -594,6 +794,7 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
     if len(content.angles) < 2:
         raise BagError(f"{bag}: {len(content.angles)} platform angle reports; need at least "
                        "2 to interpolate the angle over the scan")
+    _keep_scans_within_angles(bag, content, facts["scan_time_s"])
 
     cameras: list[CameraConfig] = []
     skipped: Counter[str] = Counter()

@@ -4,7 +4,8 @@ Each camera runs in its own thread for the whole recording. A frame is stamped w
 clock at the moment the driver hands it over (between ``grab`` and ``retrieve`` when the source
 has them, so JPEG decoding and encoding never delay the stamp), encoded as JPEG with OpenCV and
 written to ``/camera/<id>/image``. Failed reads and gaps longer than 1.5 frame periods count as
-dropped frames and go to ``/events``; a source that stays silent is reported lost.
+dropped frames and go to ``/events``; a source that stays silent is reported lost, and so is
+one whose read does not return (:meth:`CameraThread.watchdog`, called by the recorder).
 """
 
 from __future__ import annotations
@@ -114,6 +115,7 @@ class CameraThread(threading.Thread):
         pace: bool,
         jpeg_quality: int = 90,
         clock_ns: Callable[[], int] = time.time_ns,
+        lost_after_s: float = LOST_AFTER_S,
     ) -> None:
         super().__init__(name=f"camera-{camera_id}", daemon=True)
         self.camera_id = camera_id
@@ -125,8 +127,31 @@ class CameraThread(threading.Thread):
         self.jpeg_quality = jpeg_quality
         self.clock_ns = clock_ns
         self.stats = CameraStats()
+        self.lost_after_s = lost_after_s
         self._pending_drops = 0
         self._last_drop_event_ns = 0
+        self._lost_lock = threading.Lock()
+        self._reading_since: float | None = None  # monotonic time a read began (None: idle)
+
+    def _report_lost(self, message: str) -> bool:
+        """Say once that the camera is lost; False when it was said already."""
+        with self._lost_lock:
+            if self.stats.lost:
+                return False
+            self.stats.lost = True
+        self.sink.event("camera_lost", f"camera {self.camera_id}: {message}",
+                        {"camera_id": self.camera_id}, self.clock_ns())
+        return True
+
+    def watchdog(self) -> None:
+        """Called now and then from another thread (the recorder's flusher): a read that has
+        not returned for ``lost_after_s`` (a driver that hangs: the capture loop cannot see
+        it) is reported as a lost camera; a frame it delivers later is not written."""
+        since = self._reading_since
+        if since is not None and self.is_alive() and \
+                time.monotonic() - since > self.lost_after_s:
+            self._report_lost(f"a read did not return for {self.lost_after_s:g} s (the driver "
+                              "hangs); no frame is taken from it any more")
 
     def _capture(self) -> tuple[bool, Any, int]:
         """One frame and its capture stamp."""
@@ -167,6 +192,7 @@ class CameraThread(threading.Thread):
                     if wait > 0 and self.stop_event.wait(wait):
                         break
                     next_due = max(next_due + self.period_s, time.monotonic() - self.period_s)
+                self._reading_since = time.monotonic()
                 try:
                     ok, image, stamp = self._capture()
                 except cv2.error as err:
@@ -174,6 +200,10 @@ class CameraThread(threading.Thread):
                     self.stats.failures += 1
                     self.sink.event("camera_error", f"camera {self.camera_id}: {err}",
                                     {"camera_id": self.camera_id}, stamp)
+                finally:
+                    self._reading_since = None
+                if self.stats.lost or self.stop_event.is_set():
+                    break  # reported lost by the watchdog, or the recording has ended
                 if not ok or image is None:
                     if not live and self.stats.frames > 0:
                         self.stats.ended = True
@@ -181,12 +211,9 @@ class CameraThread(threading.Thread):
                                         {"camera_id": self.camera_id}, stamp)
                         break
                     self._drops(1, stamp, "read failed")
-                    if time.monotonic() - last_success > LOST_AFTER_S:
-                        self.stats.lost = True
-                        self.sink.event("camera_lost",
-                                        f"camera {self.camera_id}: no frame for "
-                                        f"{LOST_AFTER_S:g} s; stopped capturing it",
-                                        {"camera_id": self.camera_id}, self.clock_ns())
+                    if time.monotonic() - last_success > self.lost_after_s:
+                        self._report_lost(f"no frame for {self.lost_after_s:g} s; stopped "
+                                          "capturing it")
                         break
                     self.stop_event.wait(min(self.period_s, 0.1))
                     continue

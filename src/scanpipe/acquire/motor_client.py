@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import queue
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -29,6 +30,17 @@ from scanpipe.rig import MotorConfig
 
 RX, TX = 0, 1
 POLL_S = 0.05
+#: The reply heads of the controller: a line whose first word is none of them is searched for
+#: one (line noise before a reply on the serial link).
+_HEADS = re.compile(r"(?<![A-Za-z])(OK|ERR|ID|TRAVEL|POS)(?= |$)")
+#: Commands that may be sent again when their reply was lost (the same effect twice).
+_IDEMPOTENT = ("ID?", "TRAVEL?", "POS?", "ZERO", "RATE", "ACCEL", "STOP")
+#: Reports believed as they come after a MOVE, ZERO or STOP (or at the start).
+_ANCHOR_REPORTS = 2
+#: Consecutive implausible position reports after which the newest is believed (re-anchor).
+_REANCHOR_AFTER = 3
+#: A line longer than this without a newline is noise: only its tail is kept.
+_MAX_LINE = 4096
 
 
 class MotorSink(Protocol):
@@ -147,6 +159,15 @@ class MotorClient:
         self.ident = ""
         self._travel_line: list[str] | None = None
         self._travel: Travel | None = None
+        # Plausibility of position reports (the link has no checksum: line noise can change a
+        # digit): the rate the controller may turn at, and whether a command may have moved the
+        # count or the target since the last report.
+        self._rate_hz = float(motor.pulse_rate_hz)
+        self._anchor_reports = _ANCHOR_REPORTS
+        self._implausible_run = 0
+        self._velocity: float | None = None  # pulses per second between the last two reports
+        self._zeroed = False  # ZERO sent: the next report restarts the count
+        self.rejected_reports = 0
 
     # -- connection ------------------------------------------------------------------------
 
@@ -204,17 +225,28 @@ class MotorClient:
     # -- commands --------------------------------------------------------------------------
 
     def command(self, line: str, timeout_s: float | None = None) -> Reply:
-        """Send one command line and wait for its OK / ERR."""
+        """Send one command line and wait for its OK / ERR. A command whose effect does not
+        change when it is repeated (queries, ZERO, RATE, ACCEL, STOP) is sent once more when
+        its reply was lost (line noise)."""
+        tries = 2 if line.split(" ", 1)[0] in _IDEMPOTENT else 1
         with self._command_lock:
-            while not self._replies.empty():  # drop stale replies of timed-out commands
-                self._replies.get_nowait()
-            self._write((line + "\n").encode("ascii"))
-            try:
-                return self._replies.get(
-                    timeout=self.reply_timeout_s if timeout_s is None else timeout_s)
-            except queue.Empty:
-                raise DeviceError(f"motor controller: no reply to {line!r} within "
-                                  f"{self.reply_timeout_s:g} s") from None
+            for attempt in range(tries):
+                while not self._replies.empty():  # drop stale replies of timed-out commands
+                    self._replies.get_nowait()
+                self._zeroed = self._zeroed or line == "ZERO"
+                if line.startswith(("MOVE", "ZERO", "STOP")):
+                    # The count or the target may jump now, and reports in flight still show
+                    # the old ones: the next few are believed as they come.
+                    self._anchor_reports = _ANCHOR_REPORTS
+                self._write((line + "\n").encode("ascii"))
+                try:
+                    return self._replies.get(
+                        timeout=self.reply_timeout_s if timeout_s is None else timeout_s)
+                except queue.Empty:
+                    if attempt + 1 == tries:
+                        raise DeviceError(f"motor controller: no reply to {line!r} within "
+                                          f"{self.reply_timeout_s:g} s") from None
+        raise AssertionError("unreachable")
 
     def _checked(self, line: str) -> Reply:
         reply = self.command(line)
@@ -289,7 +321,17 @@ class MotorClient:
         """
         state = self._state or self.query_position()
         self.check_move(pulses, state.step_count)
-        self._checked(f"MOVE {pulses:+d}")
+        try:
+            self._checked(f"MOVE {pulses:+d}")
+        except DeviceError as err:
+            if "no reply" not in str(err):
+                raise
+            # The reply was lost (line noise), or the command: a relative move must not be
+            # sent twice, so ask where the controller is heading.
+            now = self.query_position()
+            if now.target_step_count != state.step_count + pulses:
+                self.check_move(pulses, now.step_count)
+                self._checked(f"MOVE {state.step_count + pulses - now.step_count:+d}")
 
     def identify(self) -> tuple[str, int | None]:
         """``ID?``: the firmware's name and its pulse limit (None if it does not say)."""
@@ -307,6 +349,7 @@ class MotorClient:
     def set_rate(self, rate_hz: float) -> None:
         """Set the cruising pulse rate of the next moves (RATE)."""
         self._checked(f"RATE {rate_hz:g}")
+        self._rate_hz = max(float(rate_hz), 1.0)
 
     def stop(self) -> None:
         """Stop any move at once (STOP); the controller keeps the count it reached."""
@@ -348,14 +391,68 @@ class MotorClient:
             now = self.clock_ns()
             self.sink.write_stream("motor", bytes(data), RX, now)
             self._line += data
+            if b"\n" not in self._line and len(self._line) > _MAX_LINE:
+                del self._line[:-_MAX_LINE]
             while b"\n" in self._line:
                 raw, _, rest = self._line.partition(b"\n")
                 self._line = bytearray(rest)
                 self._handle(raw.decode("ascii", "replace").strip(), now)
 
+    def _plausible(self, state: MotorState) -> bool:
+        """Whether a position report can be believed: since the last one, with no MOVE, ZERO
+        or STOP sent, the target is the same and the count moved towards it by no more than
+        the pulse rate allows (×1.25 + 2 pulses) in the controller's elapsed time (the first
+        :data:`_ANCHOR_REPORTS` after such a command are held to the rate alone, the first after
+        ZERO is believed). The link
+        has no checksum: a digit changed by line noise would otherwise place profiles at a
+        wrong platform angle without a word. Rejected reports are counted (``rejected
+        reports``); after :data:`_REANCHOR_AFTER` in a row the newest is believed."""
+        previous = self._state
+        if previous is None or self._zeroed:
+            self._zeroed = False
+            self._anchor_reports = max(self._anchor_reports - 1, 0)
+            self._implausible_run = 0
+            self._velocity = None
+            return True
+        anchoring = self._anchor_reports > 0
+        self._anchor_reports = max(self._anchor_reports - 1, 0)
+        elapsed_s = (state.device_time_us - previous.device_time_us) / 1e6
+        if elapsed_s <= 0:  # the controller's clock cannot tell: the host's receive times
+            elapsed_s = max((state.log_time_ns - previous.log_time_ns) / 1e9, 0.0)
+        step = state.step_count - previous.step_count
+        towards = previous.target_step_count - previous.step_count
+        ok = abs(step) <= self._rate_hz * elapsed_s * 1.25 + 2 and (anchoring or (
+            state.target_step_count == previous.target_step_count
+            and step * towards >= 0 and abs(step) <= abs(towards)))
+        if ok and not anchoring and self._velocity is not None:
+            # On from the last speed: the ramp can change it by at most accel · t (twice the
+            # rig's acceleration allowed) plus 2 pulses of rounding.
+            lo, hi = sorted((previous.step_count, previous.target_step_count))
+            expected = min(max(previous.step_count + self._velocity * elapsed_s, lo), hi)
+            accel = 2.0 * float(self.motor.accel_hz_per_s)
+            ok = abs(state.step_count - expected) <= accel * elapsed_s ** 2 + 2 + \
+                0.01 * abs(step)
+        if ok:
+            self._implausible_run = 0
+            self._velocity = step / elapsed_s if elapsed_s > 0 else None
+            return True
+        self.rejected_reports += 1
+        self._implausible_run += 1
+        if self._implausible_run >= _REANCHOR_AFTER:
+            self._implausible_run = 0
+            self._velocity = None
+            return True
+        return False
+
     def _handle(self, line: str, now_ns: int) -> None:
         if not line:
             return
+        head = line.split(maxsplit=1)[0]
+        if head not in ("OK", "ERR", "ID", "TRAVEL", "POS"):
+            found = list(_HEADS.finditer(line))  # noise before the reply: read from its head
+            if not found:
+                return
+            line = line[found[-1].start():]
         head, *fields = line.split()
         if head == "OK":
             self._replies.put(Reply(True, " ".join(fields)))
@@ -371,6 +468,8 @@ class MotorClient:
             except (ValueError, IndexError):
                 return
             state = MotorState(count, target, moving, time_us, now_ns)
+            if not self._plausible(state):
+                return
             self.sink.write_motor_state(now_ns, count, target, moving, time_us)
             with self._state_changed:
                 self._state = state

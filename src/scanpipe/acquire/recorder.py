@@ -37,6 +37,7 @@ import signal
 import socket
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -48,7 +49,7 @@ from pydantic import Field
 from scanpipe import __version__
 from scanpipe.acquire.cameras import CameraThread, FrameSource, is_device_index, open_capture
 from scanpipe.acquire.display import RecorderStatus
-from scanpipe.acquire.motor_client import MotorClient, TravelLimit
+from scanpipe.acquire.motor_client import MotorClient, MotorState, TravelLimit
 from scanpipe.acquire.scanner_client import ScannerClient
 from scanpipe.acquire.sink import RecordingSink, SinkTap
 from scanpipe.errors import DeviceError, ScanpipeError
@@ -59,6 +60,10 @@ from scanpipe.recording.writer import RECORDING_END_EVENT, SCAN_END_EVENT
 from scanpipe.rig import Rig
 
 CameraOpener = Callable[[Any], FrameSource]
+#: During the continuous turn, a link up but silent for this many head turns (and at least
+#: STALL_MIN_S of host time, so a loaded host is not taken for a stall) counts as lost.
+STALL_TURNS = 5
+STALL_MIN_S = 1.0
 
 
 class RecordOptions(Params):
@@ -137,6 +142,10 @@ class Recorder:
         self._abort_return = threading.Event()  # a second signal while the platform returns
         self.travel_limit: TravelLimit | None = None
         self._start_count: int | None = None  # the controller's count at the scan start
+        # Continuous turn: recent (time, count) motor reports, and since when the stream is
+        # expected to deliver (the turn's start, a reconnect): for a stall and a resume.
+        self._turn_counts: deque[tuple[int, int]] = deque(maxlen=4096)
+        self._stream_since_ns = 0
         self._end_count: int | None = None  # … and at the end of the sweep
         self._returned: bool | None = None
         choice = choose_steps(self.options.motor_step_deg, rig.motor.pulse_step_deg,
@@ -382,11 +391,12 @@ class Recorder:
             thread.start()
             self.cameras.append(thread)
 
-    def _scanner_dropped(self, reason: str) -> None:
-        """Called by the scanner's reader thread: stop the motor first, then tell the procedure."""
+    def _scanner_dropped(self, reason: str, kind: str = "scanner_disconnected") -> None:
+        """Called by the scanner's reader thread (or the stall watch): stop the motor first,
+        then tell the procedure."""
         assert self.sink is not None
         self._scanner_lost.set()
-        self.sink.event("scanner_disconnected", f"scanner: {reason}")
+        self.sink.event(kind, f"scanner: {reason}")
         if self.motor is not None:
             try:
                 self.motor.stop()
@@ -446,6 +456,12 @@ class Recorder:
         # With the stream and the cameras stopped, no profile or frame is taken on the way back.
         self._return_to_start()
         if self.motor is not None:
+            if self.motor.rejected_reports:
+                self.sink.event("motor_reports_rejected",
+                                f"motor: {self.motor.rejected_reports} position report(s) "
+                                "rejected as implausible (a count or target that line noise "
+                                "changed): not recorded as motor states",
+                                {"count": self.motor.rejected_reports})
             self.motor.close()
         self.phase = "done"
 
@@ -458,6 +474,9 @@ class Recorder:
                     self.sink.flush()
                 except (OSError, ScanpipeError) as err:
                     self.request_stop(f"cannot write the recording: {err}", status="failed")
+            if not self.stop_event.is_set():
+                for camera in self.cameras:
+                    camera.watchdog()
             self._note_rate()
 
     # -- procedures ------------------------------------------------------------------------
@@ -470,12 +489,79 @@ class Recorder:
         assert self._end_count is not None
         return list(range(start, self._end_count + 1, self.step_count))
 
+    def _stream_stalled(self) -> float | None:
+        """Seconds without a profile while the link is up, when more than
+        :data:`STALL_TURNS` head turns (at least :data:`STALL_MIN_S`): a stalled link (TCP
+        open, nothing arriving). None otherwise."""
+        if self.scanner is None or not self.scanner.connected:
+            return None
+        since = max(self.scanner.stats.last_profile_ns, self._stream_since_ns)
+        silent_s = (self.clock_ns() - since) / 1e9
+        limit_s = max(self._device_s(STALL_TURNS / self.rig.scanner.scan_hz), STALL_MIN_S)
+        return silent_s if since > 0 and silent_s > limit_s else None
+
+    def _scanner_stalled(self, silent_s: float) -> None:
+        """A stalled link is a lost one: stop the motor, close the link (reconnect follows)."""
+        assert self.scanner is not None
+        self._scanner_dropped(f"no profile for {silent_s:.1f} s while the platform turned "
+                              "(the link stalled): closing it to reconnect",
+                              kind="scanner_stalled")
+        self.scanner.close(cancel=False)
+
+    def _count_at(self, time_ns: int) -> int | None:
+        """The platform's count at a host time during the turn (from the motor reports)."""
+        reports = [(t, c) for t, c in self._turn_counts if t <= time_ns]
+        later = [(t, c) for t, c in self._turn_counts if t > time_ns]
+        if not reports:
+            return None
+        (t0, c0) = reports[-1]
+        if not later:
+            return c0
+        t1, c1 = later[0]
+        return round(c0 + (c1 - c0) * (time_ns - t0) / max(t1 - t0, 1))
+
+    def _resume_turn(self, rate_hz: float) -> None:
+        """After the scanner was lost during the continuous turn: with the link closed (no
+        profile taken on the way), bring the platform back to where it stood when the last
+        profile arrived, reconnect, wait for the stream, and carry on: the turn resumes where
+        its profiles stopped, as after a pause, instead of leaving the sector turned blind
+        without profiles (a hole in the scan)."""
+        assert self.scanner is not None and self.motor is not None and self.sink is not None
+        self.scanner.close(cancel=False)
+        last_ns = self.scanner.stats.last_profile_ns
+        back_to = self._count_at(last_ns) if last_ns else None
+        state = self.motor.state or self.motor.query_position()
+        if back_to is not None and self._start_count is not None:
+            back_to = max(back_to, self._start_count)
+        if back_to is not None and back_to < state.step_count:
+            self.motor.set_rate(self.rig.motor.pulse_rate_hz)
+            self._move_to(back_to, self.rig.motor.pulse_rate_hz, watch_scanner=False,
+                          phase=f"back to {back_to}, where the profiles stopped")
+            self.motor.set_rate(rate_hz)
+        self._reconnect_scanner()
+        self._stream_since_ns = self.clock_ns()
+        self.phase = "waiting for the scanner"
+        if not self.scanner.wait_for_profiles(self.clock_ns(), 1,
+                                              self._device_s(3.0 / self.rig.scanner.scan_hz)
+                                              + self.options.reply_timeout_s, self.stop_event):
+            self._check_stop()
+            raise DeviceError("scanner: no profiles after reconnecting")
+        turned_blind = state.step_count - (back_to if back_to is not None else state.step_count)
+        self.sink.event("scan_resumed",
+                        f"scan resumed at count {back_to if back_to is not None else '?'} "
+                        f"(the last profile before the loss; {turned_blind} pulses turned "
+                        "without profiles are scanned again)",
+                        {"count": back_to, "from_count": state.step_count})
+
     def _move_to(self, target: int, rate_hz: float, stop: threading.Event | None = None,
-                 watch_scanner: bool = True, phase: str | None = None) -> None:
+                 watch_scanner: bool = True, phase: str | None = None,
+                 watch_stall: bool = False) -> None:
         """Move to the count ``target`` and wait for the controller to report it reached,
         stopped. ``stop`` (default: the recording's stop) ends the wait with
         :class:`RecordingStopped`; ``watch_scanner``: a lost scanner ends it too; ``phase``
-        names the move in the live status (default "moving to TARGET")."""
+        names the move in the live status (default "moving to TARGET"); ``watch_stall``: a
+        stream silent for longer than :meth:`_stream_stalled` allows is a lost scanner too
+        (the continuous turn, where the motor would otherwise turn on without profiles)."""
         stop = self.stop_event if stop is None else stop
         assert self.motor is not None and self.sink is not None
         state = self.motor.state or self.motor.query_position()
@@ -492,14 +578,33 @@ class Recorder:
         timeout = self._device_s(expected * 1.5 + 1.0) + self.options.reply_timeout_s
         # A lost scanner stops the motor on purpose: stop waiting then, too.
         lost = self._scanner_lost if watch_scanner else threading.Event()
-        reached = self.motor.wait_for_state(
-            lambda s: (not s.moving and s.step_count == target) or lost.is_set(),
-            timeout, stop)
+        stalled: list[float] = []
+
+        def done(state: MotorState) -> bool:
+            if watch_stall:  # (under the motor client's lock: no I/O here)
+                if not self._turn_counts or self._turn_counts[-1][0] != state.log_time_ns:
+                    self._turn_counts.append((state.log_time_ns, state.step_count))
+                silent_s = self._stream_stalled()
+                if silent_s is not None:
+                    stalled.append(silent_s)
+                    return True
+            return (not state.moving and state.step_count == target) or lost.is_set()
+
+        reached = self.motor.wait_for_state(done, timeout, stop)
         if stop.is_set():
             raise RecordingStopped
+        if stalled and not lost.is_set():
+            self._scanner_stalled(stalled[0])
         if lost.is_set():
             return  # the procedure reconnects and comes back to this target
         if reached is None:
+            # The report of the arrival may have been lost on the link (noise): ask.
+            for _ in range(3):
+                with contextlib.suppress(DeviceError):
+                    asked = self.motor.query_position()
+                    if not asked.moving and asked.step_count == target:
+                        return
+                    break
             last = self.motor.state
             self.sink.event("motor_timeout",
                             f"motor: target {target} not reached within {timeout:.1f} s "
@@ -567,15 +672,16 @@ class Recorder:
                                               + self.options.reply_timeout_s, self.stop_event):
             self._check_stop()
             raise DeviceError("scanner: no profiles before the continuous turn")
+        self._stream_since_ns = self.clock_ns()
         while True:
             self._check_stop()
             if self._scanner_lost.is_set():
-                self._reconnect_scanner()
+                self._resume_turn(rate)
             self.phase = f"turning at {rate:g} pulses/s"
             state = self.motor.state or self.motor.query_position()
             remaining = end - state.step_count
             self._continuous_end = (time.monotonic() + self._device_s(remaining / rate), end)
-            self._move_to(end, rate)
+            self._move_to(end, rate, watch_stall=True)
             if not self._scanner_lost.is_set():
                 break
         self.positions_done = self.positions_total

@@ -11,7 +11,9 @@ Layout (COLMAP's own, so ``colmap`` / ``pycolmap`` / nerfstudio open the folder 
 
 World frame: the rig frame (metres, y up). A pose is world → camera (COLMAP's convention:
 ``x_cam = R · x_world + t``, camera axes as OpenCV: x right, y down, z forward). Cameras use the
-``OPENCV`` model (fx fy cx cy k1 k2 p1 p2), or ``FULL_OPENCV`` when k3 ≠ 0.
+``OPENCV`` model (fx fy cx cy k1 k2 p1 p2), or ``FULL_OPENCV`` when k3 ≠ 0. COLMAP's image
+coordinates put the centre of the top-left pixel at (0.5, 0.5), scanpipe's (as OpenCV's and
+ROS CameraInfo's) at (0, 0): the principal point is written as ``(cx + 0.5, cy + 0.5)``.
 """
 
 from __future__ import annotations
@@ -53,7 +55,8 @@ def quaternion_wxyz(rotation: F64) -> F64:
 
 def _camera_line(camera_id: int, cam: CameraConfig) -> str:
     k1, k2, p1, p2, k3 = (float(v) for v in cam.distortion)
-    params = [cam.fx, cam.fy, cam.cx, cam.cy, k1, k2, p1, p2]
+    # COLMAP puts the centre of the top-left pixel at (0.5, 0.5), scanpipe (OpenCV, ROS) at 0.
+    params = [cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5, k1, k2, p1, p2]
     model = "OPENCV"
     if k3 != 0.0:
         model, params = "FULL_OPENCV", [*params, k3, 0.0, 0.0, 0.0]

@@ -227,8 +227,8 @@ class Recording:
 
     def partial_scan_warnings(self) -> list[str]:
         """Why this file may hold only part of a scan: a part of a split recording
-        (``record --split-*``), or a scan the recorder ended before its sweep was done
-        (Ctrl-C, a lost device, a failure)."""
+        (``record --split-*``), a scan the recorder ended before its sweep was done
+        (Ctrl-C, a lost device, a failure), or a camera lost during it."""
         warnings = []
         # A foreign or damaged file may hold other JSON than an object in an event's data.
         events = [e for e in self.events if isinstance(e.data, dict)]
@@ -253,6 +253,14 @@ class Recording:
             warnings.append(f"the scan ended {status}{why} before its sweep was done: the "
                             "recording holds only part of the scan, so the model will be "
                             "partial")
+        # A camera lost during the scan: its frames cover only the platform angles before.
+        start = events[0].log_time_ns if events else 0
+        for event in events:
+            if event.kind == "camera_lost":
+                warnings.append(f"camera {event.data.get('camera_id', '?')} was lost "
+                                f"{(event.log_time_ns - start) / 1e9:.1f} s into the recording "
+                                f"({event.message}): its frames stop there, so its texture "
+                                "covers only what it saw before")
         return warnings
 
     def stream(self, link: str, direction: int = schemas.RX) -> StreamData:
