@@ -67,3 +67,20 @@ def test_calibration_is_applied(tmp_path: Path) -> None:
     uncalibrated = rms_to_surface(nominal_points, truth)
     assert calibrated <= 1.1 * SIGMA_M
     assert uncalibrated > 2.0 * calibrated and uncalibrated > 2.0 * SIGMA_M
+
+
+def test_profiles_beyond_an_early_ended_motor_log_are_dropped_not_held(tmp_path: Path) -> None:
+    """A continuous scan whose motor log ends mid-turn (a lost controller): the profiles after
+    it would get the last state's angle (held) and pile up on one plane; they are dropped with
+    a warning instead, and what is kept lies on the room."""
+    tables, truth = simulate(tmp_path, mode="continuous")
+    _, complete = assemble(tables)
+    assert "beyond_motor_log" not in complete["profiles_dropped"]  # no false alarm
+    motor = tables["motor"].sort_by("log_time_ns")
+    moving = np.flatnonzero(motor.column("moving").to_numpy(zero_copy_only=False))
+    cut = motor.slice(0, int(moving[len(moving) // 2]))  # ends while the platform turns
+    points, report = assemble({**tables, "motor": cut})
+    dropped = report["profiles_dropped"]["beyond_motor_log"]
+    assert dropped > 0.3 * report["profiles_in"]
+    assert any("beyond the motor log" in w for w in report["warnings"])
+    assert rms_to_surface(points, truth) <= 1.1 * SIGMA_M

@@ -39,6 +39,41 @@ def beta_deg_at(times_ns: NDArray[np.int64], motor_table: pa.Table,
     return beta_deg_from_steps(interpolated, motor)
 
 
+#: A time is beyond the motor log when it lies more than this many of the log's typical report
+#: intervals before its first or after its last state.
+BEYOND_LOG_INTERVALS = 2.0
+#: ... and at least this much (a log of very frequent reports still jitters by a few ms).
+BEYOND_LOG_MIN_NS = 50_000_000
+
+
+def beyond_motor_log(start_ns: NDArray[np.int64], end_ns: NDArray[np.int64],
+                     motor_table: pa.Table) -> NDArray[np.bool_]:
+    """True for each time span reaching beyond the motor log at an end where the platform
+    was turning: :func:`beta_deg_at` holds the angle there, which is right for a platform
+    at rest and wrong (silently misplaced points) for one that was still moving — a motor
+    log that ended early (a lost controller) or started late.
+
+    "Moving" at an end is the end state's ``moving`` flag, or, where it is null, a step
+    count that differs from its neighbour's.
+    """
+    start = np.asarray(start_ns, np.int64)
+    end = np.asarray(end_ns, np.int64)
+    if motor_table.num_rows < 2:
+        return np.zeros(start.shape, bool)
+    t = motor_times_ns(motor_table)
+    order = np.argsort(t, kind="stable")
+    t = t[order]
+    steps = motor_table.column("step_count").to_numpy().astype(np.int64)[order]
+    flags = motor_table.column("moving").to_pylist()
+    first_flag, last_flag = flags[order[0]], flags[order[-1]]
+    moving_at_start = bool(first_flag) if first_flag is not None else steps[0] != steps[1]
+    moving_at_end = bool(last_flag) if last_flag is not None else steps[-1] != steps[-2]
+    tolerance_ns = max(BEYOND_LOG_INTERVALS * float(np.median(np.diff(t))), BEYOND_LOG_MIN_NS)
+    before = (start < t[0] - tolerance_ns) if moving_at_start else np.zeros(start.shape, bool)
+    after = (end > t[-1] + tolerance_ns) if moving_at_end else np.zeros(end.shape, bool)
+    return np.asarray(before | after, bool)
+
+
 def motor_clock(motor_table: pa.Table) -> ClockModel | None:
     """The controller's own clock fitted to the states' receive times; None when unusable.
 

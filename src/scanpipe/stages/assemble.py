@@ -45,7 +45,13 @@ from pydantic import Field
 from scanpipe.clock import ClockModel, fit_clock
 from scanpipe.errors import StageError
 from scanpipe.geometry import rotation_matrix_deg, scan_plane_direction
-from scanpipe.motion import beta_deg_at, beta_deg_from_steps, motor_clock, motor_times_ns
+from scanpipe.motion import (
+    beta_deg_at,
+    beta_deg_from_steps,
+    beyond_motor_log,
+    motor_clock,
+    motor_times_ns,
+)
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn
 from scanpipe.rig import Rig, rig_from_table
@@ -466,7 +472,9 @@ def assemble_stage(inputs: Mapping[str, Any], params: AssembleParams,
         used_positions, profile_of_row = np.unique(runs[rows], return_inverse=True)
         positions_without = int(intervals.first_ns.size - used_positions.size)
     else:
-        rows = np.flatnonzero(lines.usable)
+        beyond = lines.usable & beyond_motor_log(lines.start_ns, lines.end_ns, motor)
+        dropped["beyond_motor_log"] = int(np.count_nonzero(beyond))
+        rows = np.flatnonzero(lines.usable & ~beyond)
         frames = lines.frame[rows]
         new_turn = np.concatenate([[True], frames[1:] != frames[:-1]])
         profile_of_row = np.cumsum(new_turn) - 1
@@ -535,7 +543,11 @@ def assemble_stage(inputs: Mapping[str, Any], params: AssembleParams,
         "not_measured": int(np.count_nonzero(~measured)),
         "beta_deg_range": [float(np.min(beta_column)), float(np.max(beta_column))],
         "warnings": [*([] if lines.clock is None else lines.clock.problems()),
-                     *([] if motor_clock_model is None else motor_clock_model.problems())],
+                     *([] if motor_clock_model is None else motor_clock_model.problems()),
+                     *([f"{dropped['beyond_motor_log']} profiles lie beyond the motor log while "
+                        "the platform was turning (the log ended early or began late: a lost "
+                        "motor controller?); their platform angle is unknown, so they were "
+                        "dropped"] if dropped.get("beyond_motor_log") else [])],
     }
     progress("assemble", 4, 4)
     # The filter's range gate defaults to the scanner's own limits, carried with the points.
@@ -550,7 +562,7 @@ def assemble_stage(inputs: Mapping[str, Any], params: AssembleParams,
 
 STAGE = Stage(
     name="assemble",
-    version=4,
+    version=5,
     params=AssembleParams,
     inputs=("profiles", "motor", "rig"),
     outputs=("points",),
