@@ -23,7 +23,7 @@ from typing import Any, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from scanpipe.texturing.exposure import sample_pixels
+from scanpipe.texturing.exposure import sample_pixels_at
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet, worker_count
 
 F32 = NDArray[np.float32]
@@ -64,10 +64,12 @@ def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> F32:
     each frame's faces are sampled in pieces of :data:`SAMPLE_CHUNK` on a thread per core
     (a 360° frame holds millions: whole, its projection's temporaries were ~0.5 GB a thread).
     """
-    from scanpipe.texturing.projective import project_valid
+    from scanpipe.texturing.projective import project_valid_columns
 
     n_faces, k = frame.shape
     colour = np.full((n_faces, k, 3), np.nan, dtype=np.float32)
+    # float32 columns: projected into up to K frames each (scanpipe.camera.project_columns)
+    columns = [np.ascontiguousarray(points[:, c], dtype=np.float32) for c in range(3)]
     with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
         for slot in range(k):
             column = frame[:, slot]
@@ -82,10 +84,11 @@ def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> F32:
                        ) -> None:
                 i, start, stop = piece
                 face = order[start:stop]
-                uv, _, valid = project_valid(points[face], frames.cameras[i],
-                                             float(frames.beta_deg[i]), 0.0)
-                colour[face[valid], slot] = sample_pixels(frames.reduced(i), uv[valid],
-                                                          REDUCED_FACTOR)
+                x, y, z = (column[face] for column in columns)
+                u, v, _, valid = project_valid_columns(x, y, z, frames.cameras[i],
+                                                       float(frames.beta_deg[i]), 0.0)
+                colour[face[valid], slot] = sample_pixels_at(frames.reduced(i), u[valid],
+                                                             v[valid], REDUCED_FACTOR)
 
             list(pool.map(sample, [(i, start, min(start + SAMPLE_CHUNK, int(bounds[i + 1])))
                                    for i in range(len(frames))
