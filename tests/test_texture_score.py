@@ -91,6 +91,22 @@ def test_kept_frames_are_the_plain_dense_best(scene) -> None:
     np.testing.assert_array_equal(kept.frame[~near_tie], expected[~near_tie])
 
 
+def test_faces_in_view_gathered_or_sliced_score_the_same(scene, monkeypatch) -> None:
+    """A pinhole frame's faces gathered from its vertices in view, or its whole azimuth
+    window in slices: the same kept frames and scores, bit for bit."""
+    from scanpipe.texturing import projective
+
+    vertices, faces, normals, frames = scene
+    results = []
+    for share in (0.0, 1e9):  # never gathered, always gathered
+        monkeypatch.setattr(projective, "IN_VIEW_SHARE", share)
+        results.append(face_scores(vertices, faces, normals, frames, keep=5))
+    sliced, gathered = results
+    assert (sliced.frame >= 0).sum() > 1000
+    np.testing.assert_array_equal(gathered.frame, sliced.frame)
+    np.testing.assert_array_equal(gathered.score, sliced.score)
+
+
 def test_views_are_the_plain_per_sample_pixels(scene) -> None:
     vertices, faces, normals, frames = scene
     centroids = face_centroids(vertices, faces)
