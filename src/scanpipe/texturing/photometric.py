@@ -78,7 +78,9 @@ def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> F32:
             # frame numbers are small: a stable sort of int16 is a radix sort
             order = np.argsort(column.astype(np.int16) if len(frames) < 2 ** 15 else column,
                                kind="stable")
-            bounds = np.searchsorted(column[order], np.arange(len(frames) + 1))
+            # where each frame's faces start in ``order`` (after those with none, −1): counted
+            # (a searchsorted of int64 frame numbers cast the whole column every slot)
+            bounds = np.cumsum(np.bincount(column + 1, minlength=len(frames) + 1))
             # each frame decoded once (kept), before its pieces are spread over the threads
             list(pool.map(frames.reduced, np.flatnonzero(np.diff(bounds)).tolist()))
 
