@@ -370,11 +370,14 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     frames are scored on threads, a frame each, and offered to :class:`BestFrames` in frame
     order on this thread (the result does not depend on the threads).
 
-    Per frame only the vertices and faces within the camera's azimuth window (plus those near
-    the axis, where the camera's offset from the axis matters) are looked at. Vertices and
-    faces are renumbered by azimuth once, so that a window is a few contiguous slices of
-    every per-face array, and the kept frames are gathered in that order too (a frame's faces
-    then fill contiguous rows); they are put back in face order at the end.
+    Per frame only the vertices within the camera's azimuth window (plus those near the axis,
+    where the camera's offset from the axis matters) are projected, and only the faces whose
+    first corner is one of them are looked at (a face in view has every corner in view).
+    Vertices are renumbered by azimuth once and faces by their first corner, so that a window
+    is a few contiguous slices of every per-vertex and per-face array (a phone's faces are
+    gathered from its vertices in view instead: most of its window is out of its view), and
+    the kept frames are gathered in that order too (a frame's faces then fill contiguous
+    rows); they are put back in face order at the end.
     """
     # the per-face arrays of the loop are gone before the kept frames are put back in face
     # order (a copy)
@@ -398,12 +401,12 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
     if centroids is None:
         centroids = face_centroids(vertices, faces)
     vertex_index = AzimuthIndex(vertices, near_m)
-    face_index = AzimuthIndex(centroids, near_m)
     # everything below in azimuth order: vertex k is vertices[vertex_index.order[k]], face
-    # position k is face face_ids[k]
+    # position k is face face_ids[k], the faces ordered by their first corner's position:
+    # the faces whose first corner lies in a range of vertices are a range of faces
     position = np.empty(len(vertices), dtype=np.int64)
     position[vertex_index.order] = np.arange(len(vertices))
-    face_ids = face_index.order
+    face_ids = np.argsort(position[faces[:, 0]], kind="stable")
     # float32 and int32 columns per face and vertex: the loop below streams them for every
     # frame (column arithmetic: an (n, 3) @ (3,) product is ~7× slower than three columns)
     corners = [np.ascontiguousarray(position[faces[face_ids, k]], dtype=np.int32)
@@ -423,19 +426,19 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
     kept = BestFrames(len(faces), keep, small=len(frames) < 2 ** 15)
     scratch = threading.local()  # per thread: u, v and valid of every vertex (azimuth order)
 
-    # faces by their first corner, for the faces of a pinhole frame's vertices in view
-    # (faces_in_view): most of its azimuth window is floor and ceiling out of its view
-    by_first = np.argsort(corners[0], kind="stable").astype(np.int32)
-    first_of = np.searchsorted(corners[0][by_first], np.arange(len(vertices) + 1))
+    # where the faces of each vertex position (as first corner) start: a frame's faces are
+    # those of its window's vertices (a face wholly in view has its first corner in view)
+    first_of = np.searchsorted(corners[0], np.arange(len(vertices) + 1))
 
     def faces_in_view(seen: I64) -> I64:
         """Positions of the faces whose first corner is one of the vertex positions ``seen``
-        (ascending): every face with all its corners in view, and others."""
+        (ascending, as ``seen``): every face with all its corners in view, and others. (Most
+        of a phone's azimuth window is floor and ceiling outside its view.)"""
         start = first_of[seen]
         count = first_of[seen + 1] - start
         ragged = np.repeat(start - (np.cumsum(count) - count), count)
         ragged += np.arange(len(ragged))
-        return np.sort(by_first[ragged]).astype(np.int64)
+        return ragged
 
     def cosines(select: slice | I64, centre: F32) -> F32:
         """cos θ of the faces at positions ``select`` (a slice, or gathered) seen from
@@ -478,7 +481,7 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
         else:
             window = (window[0], window[1] + parallax_deg)
             vertex_ranges = vertex_index.ranges(*window)
-            face_ranges = face_index.ranges(*window)
+            face_ranges = [(int(first_of[a]), int(first_of[b])) for a, b in vertex_ranges]
             valid[:] = False
         for a, b in _pieces(vertex_ranges):
             x, y, z = (column[a:b] for column in point_of)
