@@ -23,7 +23,9 @@ saves JSON into ``benchmarks/results/``.
 ``benchmarks/cache/lab-…/runs/default``, read only: the mesh, the decoded frames and motor, the
 calibrated rig) with the default parameters, once, and reports the stage's wall and CPU seconds,
 per phase with each phase's peak RSS, and its coverage and counts
-(``results/texture-lab-<date>.json``): the lab-scale figures of the texture phases.
+(``results/texture-lab-<date>.json``): the lab-scale figures of the texture phases; also a
+digest of the ``textured_faces`` table and the frames it uses, so that two versions of the
+code can be shown to texture alike.
 """
 
 from __future__ import annotations
@@ -246,6 +248,28 @@ LAB_INPUTS = {"mesh_vertices": "mesh/mesh_vertices.parquet",
               "motor": "decode/motor.parquet", "rig": "calibrate/rig.parquet"}
 
 
+def textured_faces_digest(table: pa.Table) -> dict[str, Any]:
+    """Digests of a ``textured_faces`` table, to tell runs of the same inputs apart: the
+    whole table (faces, pages, UVs, cameras, frames) and the set of frames it uses."""
+    import hashlib
+
+    import pyarrow.compute as pc
+
+    whole = hashlib.sha256()
+    for name in table.column_names:
+        column = table.column(name).combine_chunks()
+        if pa.types.is_string(column.type):
+            encoded = pc.dictionary_encode(column)
+            whole.update(repr(encoded.dictionary.to_pylist()).encode())
+            column = encoded.indices
+        whole.update(name.encode())
+        whole.update(np.asarray(column.to_numpy(zero_copy_only=False)).tobytes())
+    pairs = sorted({f"{cam}:{frame}" for cam, frame in zip(
+        table.column("camera_id").to_pylist(), table.column("frame").to_pylist(), strict=True)
+        if cam is not None})
+    return {"textured_faces_sha256": whole.hexdigest()[:16], "frames_used_list": pairs}
+
+
 def run_lab(run_dir: Path) -> dict[str, Any]:
     """Texture a finished chain's mesh from its frames once (the default parameters): wall,
     CPU and peak RSS in all and per phase, and the report's coverage and counts."""
@@ -272,6 +296,7 @@ def run_lab(run_dir: Path) -> dict[str, Any]:
         "process_peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
         "phase_s": report.get("phase_s", {}), "phase_cpu_s": report.get("phase_cpu_s", {}),
         "phase_peak_rss_mb": peaks, **{k: report[k] for k in kept if k in report},
+        **textured_faces_digest(result.tables["textured_faces"]),
         "load_average": os.getloadavg()}
     print(f"texture of {run_dir}: {wall_s:.1f} s wall, {cpu_s:.1f} s CPU, process peak RSS "
           f"{figures['process_peak_rss_mb']} MB (inputs held: {rss_before:.0f} MB), coverage "

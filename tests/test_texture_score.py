@@ -16,7 +16,12 @@ from scanpipe.rig import Pose, Rig, default_rig
 from scanpipe.sim.camera import scaled_camera
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet, choose_frames, worker_count
 from scanpipe.texturing.photometric import sample_views
-from scanpipe.texturing.projective import face_scores, project_valid, resolution_weights
+from scanpipe.texturing.projective import (
+    face_scores,
+    project_valid,
+    project_valid_columns,
+    resolution_weights,
+)
 from scanpipe.texturing.visibility import face_centroids, face_normals
 from scanpipe.threads import omp_threads
 
@@ -86,6 +91,22 @@ def test_kept_frames_are_the_plain_dense_best(scene) -> None:
     np.testing.assert_array_equal(kept.frame[~near_tie], expected[~near_tie])
 
 
+def test_faces_in_view_gathered_or_sliced_score_the_same(scene, monkeypatch) -> None:
+    """A pinhole frame's faces gathered from its vertices in view, or its whole azimuth
+    window in slices: the same kept frames and scores, bit for bit."""
+    from scanpipe.texturing import projective
+
+    vertices, faces, normals, frames = scene
+    results = []
+    for share in (0.0, 1e9):  # never gathered, always gathered
+        monkeypatch.setattr(projective, "IN_VIEW_SHARE", share)
+        results.append(face_scores(vertices, faces, normals, frames, keep=5))
+    sliced, gathered = results
+    assert (sliced.frame >= 0).sum() > 1000
+    np.testing.assert_array_equal(gathered.frame, sliced.frame)
+    np.testing.assert_array_equal(gathered.score, sliced.score)
+
+
 def test_views_are_the_plain_per_sample_pixels(scene) -> None:
     vertices, faces, normals, frames = scene
     centroids = face_centroids(vertices, faces)
@@ -98,13 +119,15 @@ def test_views_are_the_plain_per_sample_pixels(scene) -> None:
     for row, face in enumerate(faces_checked):
         for slot in np.flatnonzero(candidates[face] >= 0):
             i = int(candidates[face, slot])
-            uv, _, valid = project_valid(centroids[face:face + 1], frames.cameras[i],
-                                         float(frames.beta_deg[i]), 0.0)
+            # float32 as sample_views projects (its precision: test_camera_float32)
+            u, v, _, valid = project_valid_columns(
+                *(centroids[face:face + 1, k].astype(np.float32) for k in range(3)),
+                frames.cameras[i], float(frames.beta_deg[i]), 0.0)
             if valid[0]:
                 small = frames.reduced(i)
-                col = min(max(math.floor((uv[0, 0] + 0.5) / REDUCED_FACTOR), 0),
+                col = min(max(math.floor((float(u[0]) + 0.5) / REDUCED_FACTOR), 0),
                           small.shape[1] - 1)
-                row_px = min(max(math.floor((uv[0, 1] + 0.5) / REDUCED_FACTOR), 0),
+                row_px = min(max(math.floor((float(v[0]) + 0.5) / REDUCED_FACTOR), 0),
                              small.shape[0] - 1)
                 expected[row, slot] = small[row_px, col]
     assert np.isfinite(expected[:, :, 0]).sum() > 500

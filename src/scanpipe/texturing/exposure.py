@@ -46,9 +46,16 @@ def sample_mean_colour(small: NDArray[np.uint8], uv: F64, factor: int) -> F64:
 def sample_pixels(small: NDArray[np.uint8], uv: F64, factor: int) -> NDArray[np.uint8]:
     """:func:`sample_mean_colour` as the image's own uint8 pixels, ``(n, channels)`` (``(n,)``
     from a one-channel image): one flat look-up per point."""
+    return sample_pixels_at(small, uv[:, 0], uv[:, 1], factor)
+
+
+def sample_pixels_at(small: NDArray[np.uint8], u: NDArray[np.floating], v: NDArray[np.floating],
+                     factor: int) -> NDArray[np.uint8]:
+    """:func:`sample_pixels` at full-size pixel columns ``u``, ``v`` (float32 or float64)."""
     h, w = small.shape[:2]
-    col = np.clip(np.floor((uv[:, 0] + 0.5) / factor), 0, w - 1).astype(np.int64)
-    row = np.clip(np.floor((uv[:, 1] + 0.5) / factor), 0, h - 1).astype(np.int64)
+    # clipped to the image first, so that truncation is the floor
+    col = np.clip((u + 0.5) / factor, 0, w - 1).astype(np.int64)
+    row = np.clip((v + 0.5) / factor, 0, h - 1).astype(np.int64)
     row *= w
     row += col
     return np.asarray(small.reshape(h * w, *small.shape[2:])[row])

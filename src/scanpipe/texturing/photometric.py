@@ -23,7 +23,7 @@ from typing import Any, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
-from scanpipe.texturing.exposure import sample_pixels
+from scanpipe.texturing.exposure import sample_pixels_at
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet, worker_count
 
 F32 = NDArray[np.float32]
@@ -39,6 +39,8 @@ USABLE_LEVELS = (4.0, 251.0)
 SAMPLE_CHUNK = 1 << 18
 #: Faces judged at once by :func:`photometric_outliers` (cache-sized blocks).
 OUTLIER_CHUNK = 1 << 16
+#: Candidates per face up to which :func:`sort_small_axis0` uses a sorting network.
+NETWORK_SLOTS = 8
 
 
 @dataclass
@@ -64,17 +66,21 @@ def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> F32:
     each frame's faces are sampled in pieces of :data:`SAMPLE_CHUNK` on a thread per core
     (a 360° frame holds millions: whole, its projection's temporaries were ~0.5 GB a thread).
     """
-    from scanpipe.texturing.projective import project_valid
+    from scanpipe.texturing.projective import project_valid_columns
 
     n_faces, k = frame.shape
     colour = np.full((n_faces, k, 3), np.nan, dtype=np.float32)
+    # float32 columns: projected into up to K frames each (scanpipe.camera.project_columns)
+    columns = [np.ascontiguousarray(points[:, c], dtype=np.float32) for c in range(3)]
     with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
         for slot in range(k):
             column = frame[:, slot]
             # frame numbers are small: a stable sort of int16 is a radix sort
             order = np.argsort(column.astype(np.int16) if len(frames) < 2 ** 15 else column,
                                kind="stable")
-            bounds = np.searchsorted(column[order], np.arange(len(frames) + 1))
+            # where each frame's faces start in ``order`` (after those with none, −1): counted
+            # (a searchsorted of int64 frame numbers cast the whole column every slot)
+            bounds = np.cumsum(np.bincount(column + 1, minlength=len(frames) + 1))
             # each frame decoded once (kept), before its pieces are spread over the threads
             list(pool.map(frames.reduced, np.flatnonzero(np.diff(bounds)).tolist()))
 
@@ -82,10 +88,11 @@ def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> F32:
                        ) -> None:
                 i, start, stop = piece
                 face = order[start:stop]
-                uv, _, valid = project_valid(points[face], frames.cameras[i],
-                                             float(frames.beta_deg[i]), 0.0)
-                colour[face[valid], slot] = sample_pixels(frames.reduced(i), uv[valid],
-                                                          REDUCED_FACTOR)
+                x, y, z = (column[face] for column in columns)
+                u, v, _, valid = project_valid_columns(x, y, z, frames.cameras[i],
+                                                       float(frames.beta_deg[i]), 0.0)
+                colour[face[valid], slot] = sample_pixels_at(frames.reduced(i), u[valid],
+                                                             v[valid], REDUCED_FACTOR)
 
             list(pool.map(sample, [(i, start, min(start + SAMPLE_CHUNK, int(bounds[i + 1])))
                                    for i in range(len(frames))
@@ -127,6 +134,24 @@ def nan_median(values: NDArray[FloatT], axis: int) -> NDArray[FloatT]:
     return np.asarray(np.where(count > 0, 0.5 * (lower + upper), np.nan), dtype=values.dtype)
 
 
+def sort_small_axis0(values: NDArray[FloatT]) -> NDArray[FloatT]:
+    """``values`` sorted along a short first axis, in place (no NaN: they do not order):
+    for up to :data:`NETWORK_SLOTS` an odd-even transposition network of elementwise
+    minima and maxima over whole slices, 4× faster than ``np.sort`` of millions of short
+    rows; else ``np.sort``."""
+    count = values.shape[0]
+    if count > NETWORK_SLOTS:
+        values.sort(axis=0)
+        return values
+    low = np.empty_like(values[0])
+    for round_ in range(count):
+        for j in range(round_ % 2, count - 1, 2):
+            np.minimum(values[j], values[j + 1], out=low)
+            np.maximum(values[j], values[j + 1], out=values[j + 1])
+            values[j] = low
+    return values
+
+
 def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
                          ) -> NDArray[np.bool_]:
     """``(faces, K)`` True where a candidate's levelled colour disagrees with the others.
@@ -143,27 +168,34 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
     if len(judged) == 0:
         return outlier
 
+    slots = frame.shape[1]
+
     def judge(start: int) -> None:
         faces = judged[start:start + OUTLIER_CHUNK]
-        # (faces, channel, candidate) float32: the medians sort short contiguous rows
-        sub = np.ascontiguousarray((views.colour[faces] * gains[np.maximum(frame[faces], 0)])
-                                   .astype(np.float32).transpose(0, 2, 1))
-        # nan_median with the count known (every face here has ≥ 3 samples, in all channels):
-        # the middle of the sorted finite values, NaNs sorted last
+        # (candidate, face, channel) float32: each candidate a contiguous block for the
+        # sorting network; not sampled: +inf, which sorts last as NaN would
+        level = np.empty((slots, len(faces), 3), np.float32)
+        frame_of, colour = frame[faces], views.colour[faces]
+        for slot in range(slots):
+            np.multiply(colour[:, slot], gains[np.maximum(frame_of[:, slot], 0)],
+                        out=level[slot], casting="same_kind")
+        missing = np.isnan(level[:, :, 0])
+        level[missing] = np.inf
+        # the median with the count known (every face here has ≥ 3 samples, in all
+        # channels): the middle of the sorted finite values
         rows = np.arange(len(faces))
         lower, upper = (sampled[faces] - 1) // 2, sampled[faces] // 2
-        ordered = np.sort(sub, axis=2)
-        median = 0.5 * (ordered[rows, :, lower] + ordered[rows, :, upper])  # (faces, channel)
-        # the largest channel's deviation, NaN where not sampled
-        deviation = np.abs(sub[:, 0] - median[:, :1])
-        for channel in range(1, sub.shape[1]):
-            np.maximum(deviation, np.abs(sub[:, channel] - median[:, channel:channel + 1]),
+        ordered = sort_small_axis0(level.copy())
+        median = 0.5 * (ordered[lower, rows] + ordered[upper, rows])  # (faces, channel)
+        # the largest channel's deviation, +inf where not sampled
+        deviation = np.abs(level[:, :, 0] - median[:, 0])
+        for channel in range(1, 3):
+            np.maximum(deviation, np.abs(level[:, :, channel] - median[:, channel]),
                        out=deviation)
-        ordered = np.sort(deviation, axis=1)
-        mad = 0.5 * (ordered[rows, lower] + ordered[rows, upper]) * 1.4826
+        ordered = sort_small_axis0(deviation.copy())
+        mad = 0.5 * (ordered[lower, rows] + ordered[upper, rows]) * 1.4826
         limit = np.maximum(outlier_levels, 3 * mad)
-        with np.errstate(invalid="ignore"):
-            outlier[faces] = deviation > limit[:, None]
+        outlier[faces] = ((deviation > limit) & ~missing).T
 
     # blocks of faces on a thread per core (numpy releases the GIL; each writes its own rows)
     with ThreadPoolExecutor(max_workers=worker_count(-(-len(judged) // OUTLIER_CHUNK))) as pool:
