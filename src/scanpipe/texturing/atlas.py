@@ -92,11 +92,17 @@ def vertex_regions(vertex_uv: F64, corner: NDArray[np.integer], width: int, heig
             np.clip(hi[:, axis], lo[:, axis] + 1, size, out=hi[:, axis])
         return lo, hi
 
-    blocks = [slice(start, start + REGION_BLOCK_FACES) for start in range(0, k, REGION_BLOCK_FACES)]
-    # each face's box of cells as +1/−1 at its corners of a difference grid (bincounts)
+    # one pass over the faces, in blocks: each face's box of cells as +1/−1 at its corners
+    # of a difference grid (bincounts), the cell of its box's first corner (which decides its
+    # region), and per such cell the box around its faces (min and max: any order)
     cells = (gh + 1) * (gw + 1)
     diff = np.zeros(cells, dtype=np.int64)
-    for rows in blocks:
+    face_cell = np.empty(k, dtype=np.int32)
+    cell_box = np.empty((4, gh * gw), dtype=np.int64)
+    cell_box[:2] = np.iinfo(np.int64).max
+    cell_box[2:] = np.iinfo(np.int64).min
+    for start in range(0, k, REGION_BLOCK_FACES):
+        rows = slice(start, start + REGION_BLOCK_FACES)
         lo, hi = face_boxes(rows)
         c0, c1 = lo // cell_px, (hi - 1) // cell_px + 1
         row0, col0, row1, col1 = c0[:, 1] * (gw + 1), c0[:, 0], c1[:, 1] * (gw + 1), c1[:, 0]
@@ -104,6 +110,12 @@ def vertex_regions(vertex_uv: F64, corner: NDArray[np.integer], width: int, heig
                  - np.bincount(row0 + col1, minlength=cells)
                  - np.bincount(row1 + col0, minlength=cells)
                  + np.bincount(row1 + col1, minlength=cells))
+        cell = c0[:, 1] * gw + c0[:, 0]
+        face_cell[rows] = cell
+        np.minimum.at(cell_box[0], cell, lo[:, 0])
+        np.minimum.at(cell_box[1], cell, lo[:, 1])
+        np.maximum.at(cell_box[2], cell, hi[:, 0])
+        np.maximum.at(cell_box[3], cell, hi[:, 1])
     covered = (diff.reshape(gh + 1, gw + 1).cumsum(0).cumsum(1)[:gh, :gw] > 0).astype(np.uint8)
     _, labels, stats, _ = cv2.connectedComponentsWithStats(covered, connectivity=8)
     # a sparse region (a diagonal band, an L) is cut into tiles of SPLIT_CELLS cells (by the
@@ -112,30 +124,25 @@ def vertex_regions(vertex_uv: F64, corner: NDArray[np.integer], width: int, heig
     sparse = (stats[:, cv2.CC_STAT_AREA] < SPLIT_FILL * box_cells) & (
         np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]) > SPLIT_CELLS)
     tiles_w = -(-gw // SPLIT_CELLS)
-    labels_in_all = len(stats) * (tiles_w * (-(-gh // SPLIT_CELLS)) + 1)
-    face_label = np.empty(k, dtype=np.int64)
-    # boxes per label (then per label in use): min and max are the same in any order
-    label_boxes = np.empty((labels_in_all, 4), dtype=np.int64)
-    label_boxes[:, :2] = np.iinfo(np.int64).max
-    label_boxes[:, 2:] = np.iinfo(np.int64).min
-    for rows in blocks:
-        lo, hi = face_boxes(rows)
-        c0 = lo // cell_px
-        component = labels[c0[:, 1], c0[:, 0]].astype(np.int64)
-        tile = (c0[:, 1] // SPLIT_CELLS) * tiles_w + c0[:, 0] // SPLIT_CELLS + 1
-        label = component * (tiles_w * (-(-gh // SPLIT_CELLS)) + 1) + np.where(
-            sparse[component], tile, 0)
-        face_label[rows] = label
-        np.minimum.at(label_boxes[:, 0], label, lo[:, 0])
-        np.minimum.at(label_boxes[:, 1], label, lo[:, 1])
-        np.maximum.at(label_boxes[:, 2], label, hi[:, 0])
-        np.maximum.at(label_boxes[:, 3], label, hi[:, 1])
-    # the labels in use, numbered in order (np.unique without its sort: labels are small)
-    present = np.zeros(labels_in_all, dtype=bool)
-    present[face_label] = True
+    tiles = tiles_w * (-(-gh // SPLIT_CELLS)) + 1
+    cell_row, cell_col = np.divmod(np.arange(gh * gw), gw)
+    component = labels.reshape(-1).astype(np.int64)
+    tile = (cell_row // SPLIT_CELLS) * tiles_w + cell_col // SPLIT_CELLS + 1
+    cell_label = component * tiles + np.where(sparse[component], tile, 0)
+    # the labels in use (of cells that are some face's first), numbered in order
+    has_face = cell_box[0] != np.iinfo(np.int64).max
+    present = np.zeros(len(stats) * tiles, dtype=bool)
+    present[cell_label[has_face]] = True
     used = np.flatnonzero(present)
-    region = (np.cumsum(present) - 1)[face_label]
-    return region.reshape(-1), label_boxes[used]
+    number = np.cumsum(present) - 1
+    boxes = np.empty((len(used), 4), dtype=np.int64)
+    boxes[:, :2] = np.iinfo(np.int64).max
+    boxes[:, 2:] = np.iinfo(np.int64).min
+    cell_region = number[cell_label[has_face]]
+    for j, reduce in enumerate((np.minimum, np.minimum, np.maximum, np.maximum)):
+        reduce.at(boxes[:, j], cell_region, cell_box[j][has_face])
+    region = number[cell_label][face_cell]
+    return region, boxes
 
 
 def pack_shelves(sizes: I64, page_px: int, first: tuple[int, int] | None = None
@@ -303,19 +310,30 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     face_uv[:, :, 1] = (NEUTRAL_PX / 2) / sizes[0][1]
     page_width = np.array([s[0] for s in sizes], dtype=np.float64)
     page_height = np.array([s[1] for s in sizes], dtype=np.float64)
+    # per region: its page position, box corner, scale and page size, as float64 (exact for
+    # these integers: the same arithmetic as on the integer arrays), gathered once per face
+    placed = np.stack([ox[:n_regions], boxes[:, 0], dst[:n_regions, 0] / src_w,
+                       page_width[page[:n_regions]], oy[:n_regions], boxes[:, 1],
+                       dst[:n_regions, 1] / src_h, page_height[page[:n_regions]]], axis=1)
+    region_page = page[:n_regions].astype(np.int16)
     # per frame, in blocks of faces: the whole mesh's float64 temporaries at once were ~1 GB
     for idx, vertex_uv, corner, region in charts:
         for start in range(0, len(idx), UV_BLOCK_FACES):
-            done = idx[start:start + UV_BLOCK_FACES]
             reg = region[start:start + UV_BLOCK_FACES]
             uv = vertex_uv[corner[start:start + UV_BLOCK_FACES]]
-            sx, sy = dst[reg, 0] / src_w[reg], dst[reg, 1] / src_h[reg]
-            page_w, page_h = page_width[page[reg]], page_height[page[reg]]
-            face_uv[done, :, 0] = (ox[reg, None] + (uv[:, :, 0] - boxes[reg, 0, None] + 0.5)
-                                   * sx[:, None]) / page_w[:, None]
-            face_uv[done, :, 1] = (oy[reg, None] + (uv[:, :, 1] - boxes[reg, 1, None] + 0.5)
-                                   * sy[:, None]) / page_h[:, None]
-            face_page[done] = page[reg]
+            at = placed[reg][:, :, None]
+            uv[:, :, 0] -= at[:, 1]
+            uv[:, :, 1] -= at[:, 5]
+            uv += 0.5
+            uv[:, :, 0] *= at[:, 2]
+            uv[:, :, 1] *= at[:, 6]
+            uv[:, :, 0] += at[:, 0]
+            uv[:, :, 1] += at[:, 4]
+            uv[:, :, 0] /= at[:, 3]
+            uv[:, :, 1] /= at[:, 7]
+            done = idx[start:start + UV_BLOCK_FACES]
+            face_uv[done] = uv
+            face_page[done] = region_page[reg]
     del charts
     if patches is not None and len(patches.face):
         texels = float(patches.texels.shape[1])

@@ -249,11 +249,16 @@ class MeshOcclusion:
         # float32 throughout (what Open3D casts in; µm at room scale): this runs on millions
         rays = np.empty((len(points), 6), dtype=np.float32)
         rays[:, :3] = origins
-        delta = np.asarray(points, np.float32) - rays[:, :3]
-        distance = np.sqrt(np.einsum("ij,ij->i", delta, delta))
-        limit = distance * (1 - rel_tol) - abs_tol_m
+        # in place where it can be (the same float32 numbers; ~25 % less time on the rays)
+        delta = np.subtract(points, rays[:, :3], dtype=np.float32)
+        distance = np.einsum("ij,ij->i", delta, delta)
+        np.sqrt(distance, out=distance)
+        limit = distance * np.float32(1 - rel_tol)
+        limit -= np.float32(abs_tol_m)
         # the direction spans the segment up to the limit: t in [0, 1] for every ray
-        rays[:, 3:] = delta * (np.maximum(limit, 0.0) / np.maximum(distance, 1e-12))[:, None]
+        scale = np.maximum(limit, 0.0)
+        scale /= np.maximum(distance, 1e-12)
+        np.multiply(delta, scale[:, None], out=rays[:, 3:])
         with self._lock:
             self.rays_cast += len(points)
         occluded = self._scene.test_occlusions(self._o3d.core.Tensor.from_numpy(rays),
@@ -358,23 +363,33 @@ class MeshOcclusion:
         # runs from its corner k to k + 1)
         flat = tri.reshape(-1)
         vertices = self.vertices
-        centroid = vertices[tri[:, 0]] + vertices[tri[:, 1]]
+        dense = np.flatnonzero(self.dense_faces()[face_ids])
+        n_vertex, n_edge = len(vertex_first), len(edge_first)
+        vertex_base, edge_base = n, n + n_vertex
+        dense_base = edge_base + n_edge
+        # written in place into one array of points (no pieces to concatenate)
+        points = np.empty((dense_base + len(dense) * len(DENSE_WEIGHTS), 3), dtype=np.float32)
+        centroid = points[:n]
+        np.add(vertices[tri[:, 0]], vertices[tri[:, 1]], out=centroid)
         centroid += vertices[tri[:, 2]]
         centroid /= 3
+        np.take(vertices, flat[vertex_first], axis=0, out=points[vertex_base:edge_base])
         following = edge_first - edge_first % 3 + (edge_first % 3 + 1) % 3
-        middle = vertices[flat[edge_first]] + vertices[flat[following]]
+        middle = points[edge_base:dense_base]
+        np.add(vertices[flat[edge_first]], vertices[flat[following]], out=middle)
         middle *= np.float32(0.5)
-        points = [centroid, vertices[flat[vertex_first]], middle]
-        dense = np.flatnonzero(self.dense_faces()[face_ids])
         if len(dense):
-            points.append(np.matmul(DENSE_WEIGHTS, vertices[tri[dense]]).reshape(-1, 3))
-        ok = self.unobstructed(origin, np.concatenate(points), abs_tol_m, rel_tol)
-        vertex_base, edge_base = n, n + len(vertex_first)
+            points[dense_base:] = np.matmul(DENSE_WEIGHTS, vertices[tri[dense]]).reshape(-1, 3)
+        ok = self.unobstructed(origin, points, abs_tol_m, rel_tol)
+        # all of a face's points seen: its columns and-ed (a reduction over rows of three is
+        # several times slower)
         visible = ok[:n].copy()
-        visible &= ok[vertex_base + vertex_point].reshape(n, 3).all(axis=1)
-        visible &= ok[edge_base + edge_point].reshape(n, 3).all(axis=1)
+        for base, point in ((vertex_base, vertex_point), (edge_base, edge_point)):
+            seen = ok[base + point].reshape(n, 3)
+            for k in range(3):
+                visible &= seen[:, k]
         if len(dense):
-            extra = ok[edge_base + len(edge_first):].reshape(len(dense), -1).all(axis=1)
+            extra = ok[dense_base:].reshape(len(dense), -1).all(axis=1)
             visible[dense] &= extra
         return visible
 
