@@ -325,7 +325,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     # cut to what the steps below read (int32 corners, shared with the scene; the normals of
     # the faces no frame holds whole, for the multi-view patches), and the edges' sort is done
     del vertex_normals
-    faces = faces.astype(np.int32)
+    faces = np.ascontiguousarray(faces, dtype=np.int32)
     partial_pool = np.flatnonzero(~whole)
     partial_normals = normals[partial_pool]
     del normals, whole
