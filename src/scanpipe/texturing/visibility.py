@@ -73,7 +73,7 @@ class MeshEdges:
     ids: I32
     count: int
     pair_slots: NDArray[np.signedinteger[Any]]
-    _slot_pair: I32 | None = field(default=None, repr=False)  # per face slot, its pair or −1
+    _edge_pair: I32 | None = field(default=None, repr=False)  # per edge, its pair or −1
 
     def pairs(self) -> I64:
         """``(E, 2)`` the faces sharing each two-face edge; the pairs of
@@ -97,13 +97,14 @@ class MeshEdges:
         in, each in edge order (the order a stable sort of both directions of :meth:`pairs`
         by face gives), without a sort."""
         n = len(self.ids)
-        if self._slot_pair is None:
-            slot_pair = np.full(3 * n, -1, dtype=np.int32)
-            for side in (0, 1):
-                slot_pair[self.pair_slots[:, side]] = np.arange(len(self.pair_slots),
-                                                                dtype=np.int32)
-            self._slot_pair = slot_pair
-        pairs_by_corner = self._slot_pair.reshape(3, n).T  # (faces, 3) by corner k
+        if self._edge_pair is None:
+            # per edge (not per face slot: half the memory) its pair, −1 for an edge of one
+            # face or of three and more
+            edge_pair = np.full(self.count, -1, dtype=np.int32)
+            slot = self.pair_slots[:, 0]
+            edge_pair[self.ids[slot % max(n, 1), slot // max(n, 1)]] = np.arange(
+                len(self.pair_slots), dtype=np.int32)
+            self._edge_pair = edge_pair
         faces = np.arange(n) if rows is None else np.asarray(rows, dtype=np.int64)
         if len(self.pair_slots) == 0:  # no face shares an edge
             return np.full((len(faces), 3), -1, dtype=np.int64)
@@ -112,7 +113,7 @@ class MeshEdges:
         # in blocks of faces: the temporaries of the whole mesh at once were ~0.6 GB at lab scale
         for start in range(0, len(faces), NEIGHBOUR_BLOCK_FACES):
             block = faces[start:start + NEIGHBOUR_BLOCK_FACES]
-            pair = pairs_by_corner[block]
+            pair = self._edge_pair[self.ids[block]]  # (faces, 3) by corner k
             has = pair >= 0
             safe = np.maximum(pair, 0)
             first_slot, second_slot = self.pair_slots[safe, 0], self.pair_slots[safe, 1]
