@@ -22,7 +22,8 @@ saves JSON into ``benchmarks/results/``.
 ``--lab RUN`` instead textures a finished chain's artifacts (``RUN``: a workdir such as
 ``benchmarks/cache/lab-…/runs/default``, read only: the mesh, the decoded frames and motor, the
 calibrated rig) with the default parameters, once, and reports the stage's wall and CPU seconds,
-per phase with each phase's peak RSS, and its coverage and counts
+per phase with each phase's peak RSS and its rise over the RSS the phase started with
+(``phase_rise_rss_mb``), and its coverage and counts
 (``results/texture-lab-<date>.json``): the lab-scale figures of the texture phases; also a
 digest of the ``textured_faces`` table and the frames it uses, so that two versions of the
 code can be shown to texture alike.
@@ -142,10 +143,13 @@ def _rss_mb() -> float:
 
 
 @contextmanager
-def phase_peaks(interval_s: float = 0.003) -> Iterator[dict[str, float]]:
+def phase_peaks(interval_s: float = 0.003, rises: dict[str, float] | None = None
+                ) -> Iterator[dict[str, float]]:
     """Each texture phase's peak RSS (MB) while the block runs, by phase name: a thread samples
     the RSS and the stage's :class:`~scanpipe.stages.texture.PhaseClock` laps close a phase
-    (empty where /proc is missing)."""
+    (empty where /proc is missing). ``rises``, when given, gets each phase's peak less the RSS
+    it started with (what the phase itself adds: the absolute RSS of the same input moves by
+    a few hundred MB between runs, with what the allocators keep)."""
     peaks: dict[str, float] = {}
     if not os.path.exists("/proc/self/statm"):
         yield peaks
@@ -161,12 +165,16 @@ def phase_peaks(interval_s: float = 0.003) -> Iterator[dict[str, float]]:
 
     lap: Callable[[Any, str], None] = texture_module.PhaseClock.lap
 
+    started = [current[0]]
+
     def lap_with_peak(clock: Any, phase: str) -> None:
         lap(clock, phase)
         with lock:
             now = _rss_mb()
             peaks[phase] = round(max(peaks.get(phase, 0.0), current[0], now))
-            current[0] = now
+            if rises is not None:
+                rises[phase] = round(max(rises.get(phase, 0.0), peaks[phase] - started[0]))
+            current[0] = started[0] = now
 
     sampler = threading.Thread(target=sample, daemon=True)
     sampler.start()
@@ -282,7 +290,8 @@ def run_lab(run_dir: Path) -> dict[str, Any]:
     inputs = {key: pq.read_table(run_dir / name) for key, name in LAB_INPUTS.items()}
     rss_before = _rss_mb()
     wall0, cpu0 = time.perf_counter(), time.process_time()
-    with phase_peaks() as peaks:
+    rises: dict[str, float] = {}
+    with phase_peaks(rises=rises) as peaks:
         result = STAGE.run(inputs, TextureParams())
     wall_s, cpu_s = time.perf_counter() - wall0, time.process_time() - cpu0
     report = result.report
@@ -295,16 +304,17 @@ def run_lab(run_dir: Path) -> dict[str, Any]:
         "rss_before_mb": round(rss_before),
         "process_peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024),
         "phase_s": report.get("phase_s", {}), "phase_cpu_s": report.get("phase_cpu_s", {}),
-        "phase_peak_rss_mb": peaks, **{k: report[k] for k in kept if k in report},
+        "phase_peak_rss_mb": peaks, "phase_rise_rss_mb": rises,
+        **{k: report[k] for k in kept if k in report},
         **textured_faces_digest(result.tables["textured_faces"]),
         "load_average": os.getloadavg()}
     print(f"texture of {run_dir}: {wall_s:.1f} s wall, {cpu_s:.1f} s CPU, process peak RSS "
           f"{figures['process_peak_rss_mb']} MB (inputs held: {rss_before:.0f} MB), coverage "
           f"{report.get('coverage')}")
     print(table([(name, f"{figures['phase_s'][name]:.2f} s", f"{cpu:.2f} s",
-                  f"{peaks.get(name, 0):.0f} MB")
+                  f"{peaks.get(name, 0):.0f} MB", f"{rises.get(name, 0):+.0f} MB")
                  for name, cpu in figures["phase_cpu_s"].items()],
-                ("phase", "wall", "CPU", "peak RSS")))
+                ("phase", "wall", "CPU", "peak RSS", "rise over its start")))
     return figures
 
 

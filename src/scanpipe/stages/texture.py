@@ -64,7 +64,12 @@ from scanpipe.texturing.projective import (
     select_frames_per_face,
 )
 from scanpipe.texturing.seams import seam_corrections
-from scanpipe.texturing.visibility import MeshOcclusion, face_centroids, face_normals
+from scanpipe.texturing.visibility import (
+    MeshOcclusion,
+    face_centroids,
+    face_normals,
+    mesh_edges,
+)
 
 __all__ = ["STAGE", "TextureParams", "colorize_points", "texture_stage"]
 
@@ -316,12 +321,20 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         outliers = len(face_of)
     del views
     clock.lap("photometric")
-    occlusion = MeshOcclusion(vertices, faces)  # its tree is built here, not at the first ray
+    # the stage's peak is the ray scene and the rays beside it: before it is built, the mesh is
+    # cut to what the steps below read (int32 corners, shared with the scene; the normals of
+    # the faces no frame holds whole, for the multi-view patches), and the edges' sort is done
+    del vertex_normals
+    faces = np.ascontiguousarray(faces, dtype=np.int32)
+    partial_pool = np.flatnonzero(~whole)
+    partial_normals = normals[partial_pool]
+    del normals, whole
+    edges = mesh_edges(faces, len(vertices))  # once: rays, seam step, seam strip
+    occlusion = MeshOcclusion(vertices, faces, edges)  # the tree is built here, not at a ray
     clock.lap("ray_scene")
     selection = select_frames_per_face(scores, frames, occlusion, progress)
     del candidates
     clock.lap("visibility")
-    edges = occlusion.edges  # found once for the rays, the seam step and the seam strip
     smoothing = smooth_labels(scores, selection.frame, edges, frames,
                               occlusion, params.seam_weight, params.seam_rounds,
                               progress=progress)
@@ -330,21 +343,21 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     clock.lap("icm")
     patches = None
     if params.patch_texels > 0:
-        straddling = np.flatnonzero((labels < 0) & ~whole)
+        untextured = labels[partial_pool] < 0  # a face no frame holds whole, still without one
+        straddling = partial_pool[untextured]
         partial = partial_candidates(
-            vertices, faces, normals, straddling, frames,
+            vertices, faces, partial_normals[untextured], straddling, frames,
             frames.relative_sharpness() ** params.sharpness_weight
             * resolution_weights(frames.cameras), params.min_cos)
         straddling, partial = straddling[partial[:, 0] >= 0], partial[partial[:, 0] >= 0]
         patches = bake_patches(vertices, faces, straddling, partial, frames, gains, occlusion,
                                params.patch_texels)
     rays_cast = occlusion.rays_cast
-    del occlusion, normals  # the ray scene is ~1 GB at lab scale: not held through the atlas
+    del occlusion, partial_normals  # the ray scene (~0.4 GB at lab scale): not in the atlas
     clock.lap("patches")
     seams = None
     if params.seam_strip_px > 0:
-        seams = seam_corrections(vertices, faces, labels, frames, gains,
-                                 edges=(edges.pairs(), edges.vertices(faces)))
+        seams = seam_corrections(vertices, faces, labels, frames, gains, edges=edges)
     del edges
     clock.lap("seam_strip")
     red, green, blue = params.neutral_rgb

@@ -35,6 +35,10 @@ U8 = NDArray[np.uint8]
 NEUTRAL_PX = 8
 #: Faces whose atlas UVs are computed at once.
 UV_BLOCK_FACES = 1 << 18
+#: Faces whose pixel boxes :func:`vertex_regions` finds at once.
+REGION_BLOCK_FACES = 1 << 18
+#: Vertices a frame's projection takes at once (bounded float64 temporaries).
+PROJECT_BLOCK_VERTICES = 1 << 18
 #: A region whose cells fill less than this share of its box is cut into tiles ...
 SPLIT_FILL = 0.7
 #: ... of this many cells a side.
@@ -56,52 +60,89 @@ def frame_regions(corner_uv: F64, width: int, height: int, cell_px: int = 32,
     """Group faces (corner pixels ``(k, 3, 2)``) of one frame into regions.
 
     Returns ``(region_of_face (k,), boxes (R, 4))`` with boxes ``x0, y0, x1, y1`` (x1, y1
-    exclusive), clipped to the image.
+    exclusive), clipped to the image (:func:`vertex_regions` with a pixel per corner).
     """
-    # the corners' min and max as two elementwise passes (a reduction over the middle axis of
-    # a (k, 3, 2) array is several times slower)
-    low = np.minimum(np.minimum(corner_uv[:, 0], corner_uv[:, 1]), corner_uv[:, 2])
-    high = np.maximum(np.maximum(corner_uv[:, 0], corner_uv[:, 1]), corner_uv[:, 2])
-    lo = np.floor(low, out=low).astype(np.int64)
-    hi = np.ceil(high, out=high).astype(np.int64)
-    lo -= pad_px
-    hi += pad_px + 1
-    for axis, size in enumerate((width, height)):
-        np.clip(lo[:, axis], 0, size - 1, out=lo[:, axis])
-        np.clip(hi[:, axis], lo[:, axis] + 1, size, out=hi[:, axis])
+    k = len(corner_uv)
+    return vertex_regions(np.asarray(corner_uv, np.float64).reshape(-1, 2),
+                          np.arange(3 * k, dtype=np.int64).reshape(k, 3), width, height,
+                          cell_px, pad_px)
+
+
+def vertex_regions(vertex_uv: F64, corner: NDArray[np.integer], width: int, height: int,
+                   cell_px: int = 32, pad_px: int = 3) -> tuple[I64, I64]:
+    """:func:`frame_regions` of the faces whose corner ``j`` lies at pixel
+    ``vertex_uv[corner[:, j]]``; in blocks of :data:`REGION_BLOCK_FACES` faces (a 360° frame
+    holds most of a lab mesh: its whole-frame temporaries were ~0.5 GB)."""
+    k = len(corner)
     gw, gh = math.ceil(width / cell_px), math.ceil(height / cell_px)
-    c0 = lo // cell_px
-    c1 = (hi - 1) // cell_px + 1
-    # each face's box of cells as +1/−1 at its corners of a difference grid (bincounts)
-    row0, col0, row1, col1 = c0[:, 1] * (gw + 1), c0[:, 0], c1[:, 1] * (gw + 1), c1[:, 0]
+
+    def face_boxes(rows: slice) -> tuple[I64, I64]:
+        """The faces' pixel boxes ``lo``, ``hi`` (exclusive), padded and clipped."""
+        uv = vertex_uv[corner[rows]]
+        # the corners' min and max as two elementwise passes (a reduction over the middle
+        # axis of a (k, 3, 2) array is several times slower)
+        low = np.minimum(np.minimum(uv[:, 0], uv[:, 1]), uv[:, 2])
+        high = np.maximum(np.maximum(uv[:, 0], uv[:, 1]), uv[:, 2])
+        lo = np.floor(low, out=low).astype(np.int64)
+        hi = np.ceil(high, out=high).astype(np.int64)
+        lo -= pad_px
+        hi += pad_px + 1
+        for axis, size in enumerate((width, height)):
+            np.clip(lo[:, axis], 0, size - 1, out=lo[:, axis])
+            np.clip(hi[:, axis], lo[:, axis] + 1, size, out=hi[:, axis])
+        return lo, hi
+
+    # one pass over the faces, in blocks: each face's box of cells as +1/−1 at its corners
+    # of a difference grid (bincounts), the cell of its box's first corner (which decides its
+    # region), and per such cell the box around its faces (min and max: any order)
     cells = (gh + 1) * (gw + 1)
-    diff = (np.bincount(row0 + col0, minlength=cells) - np.bincount(row0 + col1, minlength=cells)
-            - np.bincount(row1 + col0, minlength=cells) + np.bincount(row1 + col1, minlength=cells))
+    diff = np.zeros(cells, dtype=np.int64)
+    face_cell = np.empty(k, dtype=np.int32)
+    cell_box = np.empty((4, gh * gw), dtype=np.int64)
+    cell_box[:2] = np.iinfo(np.int64).max
+    cell_box[2:] = np.iinfo(np.int64).min
+    for start in range(0, k, REGION_BLOCK_FACES):
+        rows = slice(start, start + REGION_BLOCK_FACES)
+        lo, hi = face_boxes(rows)
+        c0, c1 = lo // cell_px, (hi - 1) // cell_px + 1
+        row0, col0, row1, col1 = c0[:, 1] * (gw + 1), c0[:, 0], c1[:, 1] * (gw + 1), c1[:, 0]
+        diff += (np.bincount(row0 + col0, minlength=cells)
+                 - np.bincount(row0 + col1, minlength=cells)
+                 - np.bincount(row1 + col0, minlength=cells)
+                 + np.bincount(row1 + col1, minlength=cells))
+        cell = c0[:, 1] * gw + c0[:, 0]
+        face_cell[rows] = cell
+        np.minimum.at(cell_box[0], cell, lo[:, 0])
+        np.minimum.at(cell_box[1], cell, lo[:, 1])
+        np.maximum.at(cell_box[2], cell, hi[:, 0])
+        np.maximum.at(cell_box[3], cell, hi[:, 1])
     covered = (diff.reshape(gh + 1, gw + 1).cumsum(0).cumsum(1)[:gh, :gw] > 0).astype(np.uint8)
     _, labels, stats, _ = cv2.connectedComponentsWithStats(covered, connectivity=8)
-    face_label = labels[c0[:, 1], c0[:, 0]].astype(np.int64)
     # a sparse region (a diagonal band, an L) is cut into tiles of SPLIT_CELLS cells (by the
     # cell of each face's first corner): its box would be mostly image that no face uses
     box_cells = stats[:, cv2.CC_STAT_WIDTH] * stats[:, cv2.CC_STAT_HEIGHT]
     sparse = (stats[:, cv2.CC_STAT_AREA] < SPLIT_FILL * box_cells) & (
         np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]) > SPLIT_CELLS)
     tiles_w = -(-gw // SPLIT_CELLS)
-    tile = (c0[:, 1] // SPLIT_CELLS) * tiles_w + c0[:, 0] // SPLIT_CELLS + 1
-    face_label = face_label * (tiles_w * (-(-gh // SPLIT_CELLS)) + 1) + np.where(
-        sparse[face_label], tile, 0)
-    # the labels in use, numbered in order (np.unique without its sort: labels are small)
-    present = np.zeros(int(face_label.max(initial=0)) + 1, dtype=bool)
-    present[face_label] = True
+    tiles = tiles_w * (-(-gh // SPLIT_CELLS)) + 1
+    cell_row, cell_col = np.divmod(np.arange(gh * gw), gw)
+    component = labels.reshape(-1).astype(np.int64)
+    tile = (cell_row // SPLIT_CELLS) * tiles_w + cell_col // SPLIT_CELLS + 1
+    cell_label = component * tiles + np.where(sparse[component], tile, 0)
+    # the labels in use (of cells that are some face's first), numbered in order
+    has_face = cell_box[0] != np.iinfo(np.int64).max
+    present = np.zeros(len(stats) * tiles, dtype=bool)
+    present[cell_label[has_face]] = True
     used = np.flatnonzero(present)
-    region = (np.cumsum(present) - 1)[face_label]
+    number = np.cumsum(present) - 1
     boxes = np.empty((len(used), 4), dtype=np.int64)
     boxes[:, :2] = np.iinfo(np.int64).max
     boxes[:, 2:] = np.iinfo(np.int64).min
-    np.minimum.at(boxes[:, 0], region, lo[:, 0])
-    np.minimum.at(boxes[:, 1], region, lo[:, 1])
-    np.maximum.at(boxes[:, 2], region, hi[:, 0])
-    np.maximum.at(boxes[:, 3], region, hi[:, 1])
-    return region.reshape(-1), boxes
+    cell_region = number[cell_label[has_face]]
+    for j, reduce in enumerate((np.minimum, np.minimum, np.maximum, np.maximum)):
+        reduce.at(boxes[:, j], cell_region, cell_box[j][has_face])
+    region = number[cell_label][face_cell]
+    return region, boxes
 
 
 def pack_shelves(sizes: I64, page_px: int, first: tuple[int, int] | None = None
@@ -150,10 +191,12 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     ``chosen`` is −1) are packed as squares with a one-texel border.
     """
     vertices = np.asarray(vertices, np.float64)
-    faces = np.asarray(faces, np.int64)
+    faces = np.asarray(faces)  # int32 or int64 as given: no copy of the mesh's corners
     n_faces = len(faces)
-    # per used frame: its faces, their corner pixels and regions (numbered over all frames)
-    charts: list[tuple[I64, F64, I64]] = []
+    # per used frame: its faces, their vertices' pixels with each corner's row in them, and
+    # the faces' regions (numbered over all frames); not the corners' pixels (~0.3 GB at lab
+    # scale): gathered again per block of faces once the pages are packed
+    charts: list[tuple[I64, F64, NDArray[np.int32], I64]] = []
     region_frame: list[I64] = []
     region_boxes: list[I64] = []
     count = 0
@@ -164,7 +207,7 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
                                    else chosen[textured], kind="stable")]
     bounds = [*np.searchsorted(chosen[by_frame], used_frames).tolist(), len(by_frame)]
 
-    def regions_of(k: int) -> tuple[I64, F64, I64, I64]:
+    def regions_of(k: int) -> tuple[I64, F64, NDArray[np.int32], I64, I64]:
         i = int(used_frames[k])
         idx = by_frame[bounds[k]:bounds[k + 1]]
         cam = frames.cameras[i]
@@ -176,20 +219,28 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
         points = np.flatnonzero(used)
         local = np.zeros(len(vertices), dtype=np.int32)
         local[points] = np.arange(len(points), dtype=np.int32)
-        vertex_uv, _ = project_points(vertices[points], cam, float(frames.beta_deg[i]))
-        uv = vertex_uv[local[tri]]
-        return (idx, uv, *frame_regions(uv, cam.width, cam.height, cell_px, pad_px))
+        vertex_uv = np.empty((len(points), 2), dtype=np.float64)
+        for start in range(0, len(points), PROJECT_BLOCK_VERTICES):  # a point at a time
+            part = points[start:start + PROJECT_BLOCK_VERTICES]
+            vertex_uv[start:start + len(part)] = project_points(
+                vertices[part], cam, float(frames.beta_deg[i]))[0]
+        corner = local[tri]
+        del tri, used, local
+        region, boxes = vertex_regions(vertex_uv, corner, cam.width, cam.height, cell_px,
+                                       pad_px)
+        return idx, vertex_uv, corner, region.astype(np.int32), boxes
 
     # a frame per thread (numpy and OpenCV release the GIL); regions numbered in frame order,
     # each frame's faces, corner pixels and regions kept for its UVs once the pages are packed
     with ThreadPoolExecutor(max_workers=worker_count(len(used_frames))) as pool:
-        for i, (idx, uv, region, boxes) in zip(
+        for i, (idx, vertex_uv, corner, region, boxes) in zip(
                 used_frames, pool.map(regions_of, range(len(used_frames))), strict=True):
-            charts.append((idx, uv, region + count))
+            region += count
+            charts.append((idx, vertex_uv, corner, region))
             region_frame.append(np.full(len(boxes), i, dtype=np.int64))
             region_boxes.append(boxes)
             count += len(boxes)
-            del idx, uv, region
+            del idx, vertex_uv, corner, region
     frame_of = np.concatenate(region_frame) if region_frame else np.zeros(0, np.int64)
     boxes = np.concatenate(region_boxes) if region_boxes else np.zeros((0, 4), np.int64)
     src_w, src_h = boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]
@@ -259,19 +310,30 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     face_uv[:, :, 1] = (NEUTRAL_PX / 2) / sizes[0][1]
     page_width = np.array([s[0] for s in sizes], dtype=np.float64)
     page_height = np.array([s[1] for s in sizes], dtype=np.float64)
+    # per region: its page position, box corner, scale and page size, as float64 (exact for
+    # these integers: the same arithmetic as on the integer arrays), gathered once per face
+    placed = np.stack([ox[:n_regions], boxes[:, 0], dst[:n_regions, 0] / src_w,
+                       page_width[page[:n_regions]], oy[:n_regions], boxes[:, 1],
+                       dst[:n_regions, 1] / src_h, page_height[page[:n_regions]]], axis=1)
+    region_page = page[:n_regions].astype(np.int16)
     # per frame, in blocks of faces: the whole mesh's float64 temporaries at once were ~1 GB
-    for idx, corner_uv, region in charts:
+    for idx, vertex_uv, corner, region in charts:
         for start in range(0, len(idx), UV_BLOCK_FACES):
-            done = idx[start:start + UV_BLOCK_FACES]
             reg = region[start:start + UV_BLOCK_FACES]
-            uv = corner_uv[start:start + UV_BLOCK_FACES]
-            sx, sy = dst[reg, 0] / src_w[reg], dst[reg, 1] / src_h[reg]
-            page_w, page_h = page_width[page[reg]], page_height[page[reg]]
-            face_uv[done, :, 0] = (ox[reg, None] + (uv[:, :, 0] - boxes[reg, 0, None] + 0.5)
-                                   * sx[:, None]) / page_w[:, None]
-            face_uv[done, :, 1] = (oy[reg, None] + (uv[:, :, 1] - boxes[reg, 1, None] + 0.5)
-                                   * sy[:, None]) / page_h[:, None]
-            face_page[done] = page[reg]
+            uv = vertex_uv[corner[start:start + UV_BLOCK_FACES]]
+            at = placed[reg][:, :, None]
+            uv[:, :, 0] -= at[:, 1]
+            uv[:, :, 1] -= at[:, 5]
+            uv += 0.5
+            uv[:, :, 0] *= at[:, 2]
+            uv[:, :, 1] *= at[:, 6]
+            uv[:, :, 0] += at[:, 0]
+            uv[:, :, 1] += at[:, 4]
+            uv[:, :, 0] /= at[:, 3]
+            uv[:, :, 1] /= at[:, 7]
+            done = idx[start:start + UV_BLOCK_FACES]
+            face_uv[done] = uv
+            face_page[done] = region_page[reg]
     del charts
     if patches is not None and len(patches.face):
         texels = float(patches.texels.shape[1])

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from scanpipe.texturing.exposure import sample_mean_colour
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet
-from scanpipe.texturing.visibility import mesh_edges
+from scanpipe.texturing.visibility import MeshEdges, mesh_edges
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -46,19 +46,20 @@ class SeamCorrections:
 
 def seam_corrections(vertices: NDArray[np.floating], faces: NDArray[np.integer],
                      labels: I64, frames: FrameSet, gains: F64, max_levels: float = 60.0,
-                     edges: tuple[I64, I64] | None = None) -> SeamCorrections:
+                     edges: MeshEdges | None = None) -> SeamCorrections:
     """The corrections at the seam points of every frame (see the module docstring);
-    ``edges`` (face pairs, edge vertices) from the mesh's
-    :class:`~scanpipe.texturing.visibility.MeshEdges` when already known."""
+    ``edges``: the mesh's :class:`~scanpipe.texturing.visibility.MeshEdges` when already
+    known (the corners are looked up for the seam edges only)."""
     from scanpipe.texturing.projective import project_valid
 
     if edges is None:
-        found = mesh_edges(faces)
-        edges = found.pairs(), found.vertices(faces)
-    pairs, edge_vertices = edges
+        edges = mesh_edges(faces)
+    pairs = edges.pairs()
     la, lb = labels[pairs[:, 0]], labels[pairs[:, 1]]
+    del pairs
     seam = (la >= 0) & (lb >= 0) & (la != lb)
-    la, lb, edge_vertices = la[seam], lb[seam], edge_vertices[seam]
+    rows = np.flatnonzero(seam)
+    la, lb, edge_vertices = la[rows], lb[rows], edges.vertices(faces, rows)
     vertices = np.asarray(vertices, np.float64)
     ends = vertices[edge_vertices]  # (E, 2, 3)
     points = np.concatenate([ends[:, 0], ends[:, 1], ends.mean(axis=1)])
