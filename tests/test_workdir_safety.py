@@ -107,6 +107,60 @@ def test_oserror_part_way_keeps_the_previous_set(
     assert (out / "note.txt").read_text() == "scale 2.0"
 
 
+@pytest.mark.parametrize("replace_folder", [True, False])
+def test_every_staged_file_and_its_folder_are_flushed_before_the_swap(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        replace_folder: bool) -> None:
+    """The flushes run concurrently, but every one of them (each file, then the staging
+    folder's names) has finished before the set is renamed into place."""
+    out = tmp_path / "w" / "read"
+    events: list[tuple[str, str]] = []
+    real_fsync, real_rename = artifacts._fsync, artifacts.os.rename
+
+    def fsync(path: Path) -> None:
+        time.sleep(0.02)  # a slow disk: a swap that did not wait would come first
+        real_fsync(path)
+        events.append(("fsync", Path(path).name))
+
+    def rename(src: Any, dst: Any) -> None:
+        events.append(("rename", Path(src).name))
+        real_rename(src, dst)
+
+    monkeypatch.setattr(artifacts, "_fsync", fsync)
+    monkeypatch.setattr(artifacts.os, "rename", rename)
+    execute(READ, {"recording": recording}, out, ReadParams(scale=3.0),
+            replace_folder=replace_folder)
+    staged = [e for e in events if e[1].startswith("tmp-read-")]
+    first_rename = next(i for i, e in enumerate(events) if e[0] == "rename"
+                        and e[1].startswith("tmp-read-"))
+    flushed = {name for kind, name in events[:first_rename] if kind == "fsync"}
+    assert {"a.parquet", "b.parquet", "c.parquet", "note.txt"} <= flushed
+    assert staged[0][0] == "fsync"  # the staging folder itself, before it moves
+    assert _scales(out) == {3.0}
+
+
+def test_a_failed_flush_names_the_file_and_keeps_the_previous_set(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    out = tmp_path / "w" / "read"
+    execute(READ, {"recording": recording}, out, ReadParams(scale=1.0), replace_folder=True)
+    before = _snapshot(out.parent)
+    real_fsync = artifacts._fsync
+
+    def fsync(path: Path) -> None:
+        if Path(path).name == "b.parquet":
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        real_fsync(path)
+
+    monkeypatch.setattr(artifacts, "_fsync", fsync)
+    with pytest.raises(ArtifactError) as info:
+        execute(READ, {"recording": recording}, out, ReadParams(scale=2.0), force=True,
+                replace_folder=True)
+    assert str(info.value) == (f"{out / 'b.parquet'}: cannot be written (Input/output error); "
+                               "the previous read artifacts are kept")
+    assert _snapshot(out.parent) == before
+    assert _scales(out) == {1.0}
+
+
 def test_failed_swap_puts_the_old_folder_back(recording: Path, tmp_path: Path,
                                               monkeypatch: pytest.MonkeyPatch) -> None:
     work = tmp_path / "w"
