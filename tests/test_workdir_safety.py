@@ -139,6 +139,34 @@ def test_every_staged_file_and_its_folder_are_flushed_before_the_swap(
     assert _scales(out) == {3.0}
 
 
+def test_a_chain_flushes_its_workdir_after_each_swap_before_it_returns(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """In a chain the workdir's flush after each stage's swap runs in the background, but
+    every one has finished when run_chain returns (and they still come after each swap)."""
+    work = tmp_path / "w"
+    flushed: list[Path] = []
+    real_fsync = artifacts._fsync
+
+    def fsync(path: Path) -> None:
+        if Path(path) == work:
+            time.sleep(0.05)  # a slow disk: a chain that did not wait returns first
+        real_fsync(path)
+        flushed.append(Path(path))
+
+    monkeypatch.setattr(artifacts, "_fsync", fsync)
+    stages = [READ, Stage("copy", 1, ReadParams, ("a",), ("d",), _copy,  # type: ignore[arg-type]
+                          "a copy", schemas=(TOY[0], ArtifactSchema(
+                              "d", (Column("v", pa.float64()),), "a copy")))]
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, stages)
+    assert flushed.count(work) == 2  # once per stage's swap, all done
+    assert not artifacts._DEFERRED
+    assert _scales(work / "read") == {1.0}
+
+
+def _copy(inputs: Mapping[str, Any], params: ReadParams, progress: ProgressFn) -> StageResult:
+    return StageResult({"d": inputs["a"]}, {})
+
+
 def test_a_failed_flush_names_the_file_and_keeps_the_previous_set(
         recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     out = tmp_path / "w" / "read"

@@ -266,12 +266,18 @@ def _leaf_paths(field: pa.Field, prefix: str = "") -> list[str]:
     return [name]
 
 
+def with_provenance(table: pa.Table, provenance: Mapping[str, Any]) -> pa.Table:
+    """``table`` with ``provenance`` in its schema metadata, as the artifact file holds it (no
+    copy of the data): a table handed on in memory then reads as its file would."""
+    metadata = dict(table.schema.metadata or {})
+    metadata[PROVENANCE_KEY] = canonical_json(provenance).encode()
+    return table.replace_schema_metadata(metadata)
+
+
 def _write_parquet(path: Path, table: pa.Table, provenance: Mapping[str, Any]) -> None:
     """Write ``table`` to ``path`` (not atomically) with ``provenance`` in the schema metadata,
     in row groups of about :data:`ROW_GROUP_BYTES`."""
-    metadata = dict(table.schema.metadata or {})
-    metadata[PROVENANCE_KEY] = canonical_json(provenance).encode()
-    table = table.replace_schema_metadata(metadata)
+    table = with_provenance(table, provenance)
     # Dictionary encoding of float columns costs 4–5× write time for no gain.
     dictionary_columns = [
         f.name for f in table.schema if pa.types.is_string(f.type) or pa.types.is_boolean(f.type)
@@ -446,9 +452,36 @@ def _swap_folder(staging: Path, target: Path, aside: Path) -> None:
             os.rename(aside, target)
         raise
     # The swap is done; failing to flush the folder or delete the old set does not undo it.
-    with suppress(OSError):
-        _fsync(target.parent)
+    if _DEFERRED:
+        _DEFERRED[-1].start(target.parent)
+    else:
+        with suppress(OSError):
+            _fsync(target.parent)
     shutil.rmtree(aside, ignore_errors=True)
+
+
+#: The innermost :func:`deferred_folder_flushes` in effect (a stack: they may nest).
+_DEFERRED: list[_Flushes] = []
+
+
+@contextmanager
+def deferred_folder_flushes() -> Iterator[None]:
+    """While in effect, the flush of a workdir's folder after a stage's folder was swapped in
+    (:func:`write_together` with ``replace_folder``) runs in the background, overlapping the
+    next stage, instead of holding up the chain; all of them are finished when the block ends.
+    Nothing a reader sees changes: the swap itself is the same two renames (the flush makes
+    it survive a power cut; a cut before it leaves the previous set or the aside folder, which
+    :func:`recover` puts back), and the previous flushes still come before each swap. The
+    runner's chain uses it, holding the workdir's lock for the whole block."""
+    flushes = _Flushes()
+    _DEFERRED.append(flushes)
+    try:
+        yield
+    finally:
+        _DEFERRED.remove(flushes)
+        with suppress(OSError):  # as the flush in place: the swap is done either way
+            flushes.wait()
+        flushes.close()
 
 
 def _roll_forward(commit: Path, out_dir: Path) -> None:
