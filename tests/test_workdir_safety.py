@@ -154,10 +154,7 @@ def test_a_chain_flushes_its_workdir_after_each_swap_before_it_returns(
         flushed.append(Path(path))
 
     monkeypatch.setattr(artifacts, "_fsync", fsync)
-    stages = [READ, Stage("copy", 1, ReadParams, ("a",), ("d",), _copy,  # type: ignore[arg-type]
-                          "a copy", schemas=(TOY[0], ArtifactSchema(
-                              "d", (Column("v", pa.float64()),), "a copy")))]
-    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, stages)
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ, COPY])
     assert flushed.count(work) == 2  # once per stage's swap, all done
     assert not artifacts._DEFERRED
     assert _scales(work / "read") == {1.0}
@@ -165,6 +162,65 @@ def test_a_chain_flushes_its_workdir_after_each_swap_before_it_returns(
 
 def _copy(inputs: Mapping[str, Any], params: ReadParams, progress: ProgressFn) -> StageResult:
     return StageResult({"d": inputs["a"]}, {})
+
+
+COPY = Stage("copy", 1, ReadParams, ("a",), ("d",), _copy,  # type: ignore[arg-type]
+             "a copy", schemas=(TOY[0], ArtifactSchema("d", (Column("v", pa.float64()),),
+                                                       "a copy")))
+
+
+def test_the_next_stage_runs_while_the_previous_set_is_flushed_and_swapped_in(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """In a chain a stage's folder is flushed and swapped in by a background thread while the
+    next stage computes from the tables in memory; keys and files are those of a plain run."""
+    work = tmp_path / "w"
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ, COPY])
+    real_fsync = artifacts._fsync
+    seen: list[set[float]] = []
+
+    def fsync(path: Path) -> None:
+        time.sleep(0.1)  # a slow disk
+        real_fsync(path)
+
+    def copy(inputs: Mapping[str, Any], params: ReadParams, progress: ProgressFn
+             ) -> StageResult:
+        seen.append(_scales(work / "read"))  # what is on disk while this stage computes
+        return _copy(inputs, params, progress)
+
+    monkeypatch.setattr(artifacts, "_fsync", fsync)
+    slow_copy = Stage("copy", 1, ReadParams, ("a",), ("d",), copy,  # type: ignore[arg-type]
+                      "a copy", schemas=COPY.schemas)
+    records = run_chain(recording, work, {"read": ReadParams(scale=2.0)}, [READ, slow_copy])
+    assert seen == [{1.0}]  # the previous set was still in place: the commit overlapped
+    assert _scales(work / "read") == {2.0}  # and everything is in place on return
+    copied = read_provenance(work / "copy" / "d.parquet")
+    assert copied["inputs"] == {"a": read_provenance(work / "read" / "a.parquet")["key"]}
+    assert copied["inputs"] == {"a": records[0].key}
+    assert not list((work / STATE_DIR).glob("tmp-*"))
+
+
+def test_a_background_commit_that_fails_stops_the_chain_and_keeps_every_previous_set(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    work = tmp_path / "w"
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ, COPY])
+    before = _snapshot(work)
+    real = os.rename
+
+    def rename(src: Any, dst: Any) -> None:
+        if Path(src).name.startswith("tmp-read-"):  # the read stage's new folder moving in
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        real(src, dst)
+
+    monkeypatch.setattr(artifacts.os, "rename", rename)
+    with pytest.raises(ArtifactError) as info:
+        run_chain(recording, work, {"read": ReadParams(scale=2.0)}, [READ, COPY])
+    assert str(info.value) == (f"{work / 'read'}: cannot be written (Input/output error); "
+                               "the previous read artifacts are kept")
+    assert _snapshot(work) == before  # read's old set, copy's old set: nothing of the new
+    assert not list((work / STATE_DIR).glob("tmp-*"))
+    monkeypatch.undo()
+    run_chain(recording, work, {"read": ReadParams(scale=2.0)}, [READ, COPY])
+    assert _scales(work / "read") == {2.0}
 
 
 def test_a_failed_flush_names_the_file_and_keeps_the_previous_set(

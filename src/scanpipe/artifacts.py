@@ -410,6 +410,11 @@ def write_together(
             flushes.start(staging / f"{name}.parquet")
         where = out_dir
         flushes.start(staging)  # its names: every file is in it by now
+        if replace_folder and _COMMITS:  # finished in the background, in order (see there)
+            _COMMITS[-1].submit(out_dir, stage, staging, flushes,
+                                state / f"old-{stage}-{os.getpid()}")
+            flushes = _Flushes()  # the committer owns the pending ones now
+            return made
         flushes.wait()
         if replace_folder:
             _swap_folder(staging, out_dir, state / f"old-{stage}-{os.getpid()}")
@@ -460,28 +465,118 @@ def _swap_folder(staging: Path, target: Path, aside: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-#: The innermost :func:`deferred_folder_flushes` in effect (a stack: they may nest).
+#: The innermost :func:`background_commits` in effect (a stack: they may nest): where the
+#: workdir's flush after a swap goes.
 _DEFERRED: list[_Flushes] = []
+#: The innermost :func:`background_commits` in effect: where staged stage folders go.
+_COMMITS: list[_Committer] = []
+
+
+class _Committer:
+    """One thread that finishes a chain's staged stage folders in the order they were staged:
+    waits for each set's flushes, then swaps it in (:func:`_swap_folder`). After a failure the
+    later sets are dropped (their staging folders deleted) and :meth:`settle` raises it."""
+
+    def __init__(self) -> None:
+        self._pool = cf.ThreadPoolExecutor(1, thread_name_prefix="commit")
+        self._pending: list[cf.Future[None]] = []
+        self._failed: BaseException | None = None
+        #: The stage folders staged and not yet swapped in.
+        self.waiting: set[Path] = set()
+
+    def submit(self, out_dir: Path, stage: str, staging: Path, flushes: _Flushes,
+               aside: Path) -> None:
+        """Finish the set staged in ``staging`` for ``out_dir`` after those staged before."""
+        self.waiting.add(out_dir)
+
+        def commit() -> None:
+            try:
+                if self._failed is not None:
+                    shutil.rmtree(staging, ignore_errors=True)
+                    return
+                try:
+                    flushes.wait()
+                    _swap_folder(staging, out_dir, aside)
+                except OSError as err:
+                    where = (out_dir if flushes.failed is None
+                             else out_dir / flushes.failed.relative_to(staging))
+                    shutil.rmtree(staging, ignore_errors=True)
+                    self._failed = ArtifactError(
+                        f"{where}: cannot be written ({err.strerror or err}); the previous "
+                        f"{stage} artifacts are kept")
+                except BaseException as err:  # a bug: kept as it is
+                    shutil.rmtree(staging, ignore_errors=True)
+                    self._failed = err
+            finally:
+                flushes.close()
+                self.waiting.discard(out_dir)
+
+        self._pending.append(self._pool.submit(commit))
+
+    def settle(self) -> None:
+        """Wait until every set submitted is in place (or dropped); raise the first failure."""
+        pending, self._pending = self._pending, []
+        for future in pending:
+            future.result()
+        failed, self._failed = self._failed, None
+        if failed is not None:
+            raise failed
+
+    def close(self) -> None:
+        """Settle and stop the thread."""
+        try:
+            self.settle()
+        finally:
+            self._pool.shutdown(wait=True)
+
+
+def settle_commits() -> None:
+    """Wait until every stage folder staged in the innermost :func:`background_commits` is in
+    place, raising the first failure (an :class:`ArtifactError` naming the file); a no-op
+    outside one. Call it before reading a file a stage of the chain may still be committing."""
+    if _COMMITS:
+        _COMMITS[-1].settle()
+
+
+def committing(path: Path) -> bool:
+    """Whether ``path`` lies in a stage folder staged and not yet swapped in."""
+    return bool(_COMMITS) and any(path.is_relative_to(d) for d in set(_COMMITS[-1].waiting))
 
 
 @contextmanager
-def deferred_folder_flushes() -> Iterator[None]:
-    """While in effect, the flush of a workdir's folder after a stage's folder was swapped in
-    (:func:`write_together` with ``replace_folder``) runs in the background, overlapping the
-    next stage, instead of holding up the chain; all of them are finished when the block ends.
-    Nothing a reader sees changes: the swap itself is the same two renames (the flush makes
-    it survive a power cut; a cut before it leaves the previous set or the aside folder, which
-    :func:`recover` puts back), and the previous flushes still come before each swap. The
-    runner's chain uses it, holding the workdir's lock for the whole block."""
+def background_commits() -> Iterator[None]:
+    """While in effect, a stage folder staged by :func:`write_together` (``replace_folder``)
+    is flushed and swapped in by a background thread, in staging order, while the caller goes
+    on to the next stage; and the workdir's flush after each swap runs in the background too.
+    Every set is in place, and every flush done, when the block ends; a failed commit is
+    raised there (or by :func:`settle_commits`), the later sets dropped.
+
+    The disk's flushes then overlap the next stage's computation instead of idling the
+    process (in a batch worker, a core): the same flushes, each set still flushed before it is
+    swapped in, so a reader, a crash and :func:`recover` see exactly what they saw. The caller
+    holds the workdir's lock for the whole block, hands the next stage its inputs in memory
+    with their keys, and calls :func:`settle_commits` before reading a file still being
+    committed (:func:`committing`) — the runner's chain does all of this."""
     flushes = _Flushes()
+    committer = _Committer()
     _DEFERRED.append(flushes)
+    _COMMITS.append(committer)
+    failing = True
     try:
         yield
+        failing = False
     finally:
-        _DEFERRED.remove(flushes)
-        with suppress(OSError):  # as the flush in place: the swap is done either way
-            flushes.wait()
-        flushes.close()
+        _COMMITS.remove(committer)
+        try:
+            committer.close()
+        except BaseException:
+            if not failing:  # else the block's own exception goes on
+                raise
+        finally:
+            _DEFERRED.remove(flushes)
+            with suppress(OSError):  # as the flush in place: the swap is done either way
+                flushes.wait()
+            flushes.close()
 
 
 def _roll_forward(commit: Path, out_dir: Path) -> None:
@@ -509,6 +604,8 @@ def recover(owner: Path) -> None:
         entries = sorted(state.iterdir()) if state.is_dir() else []
         for entry in entries:
             kind, _, rest = entry.name.partition("-")
+            if _COMMITS and rest.rpartition("-")[2] == str(os.getpid()):
+                continue  # this live process's own set, being committed in the background
             if kind == "tmp":
                 shutil.rmtree(entry)
             elif kind == "commit":

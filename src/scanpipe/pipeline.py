@@ -25,12 +25,14 @@ import pyarrow as pa
 from scanpipe import __version__
 from scanpipe.artifacts import (
     artifact_key,
-    deferred_folder_flushes,
+    background_commits,
+    committing,
     file_key,
     library_versions,
     read_artifact,
     read_provenance,
     recover,
+    settle_commits,
     with_provenance,
     write_artifact,
     write_together,
@@ -252,7 +254,7 @@ def run_chain(
         from scanpipe.rig import load_rig
 
         load_rig(rig_override)  # a bad rig file is refused before the workdir is touched
-    with workdir_lock(workdir, lock_wait_s), deferred_folder_flushes():
+    with workdir_lock(workdir, lock_wait_s), background_commits():
         return run_locked_chain(chain, recording, workdir, params, force, rig_override,
                                  progress, on_stage)
 
@@ -288,14 +290,21 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
     override_path = rig_override_artifact(rig_override, workdir) if rig_override else None
     records: list[RunRecord] = []
     rig_made = False
+    # the key of every artifact this chain produced or reused (its provenance's "key" is its
+    # stage's key): a stage folder may still be being committed (background_commits)
+    keys: dict[str, str] = dict(raw_keys or {})
     for index, stage in enumerate(chain):
         next_inputs = set(chain[index + 1].inputs) if index + 1 < len(chain) else set()
+        if any(committing(available[n]) for n in stage.inputs
+               if n not in tables and n in available):
+            settle_commits()  # a file to read is not in place yet
         hold = InMemory(tables={n: tables[n] for n in stage.inputs if n in tables},
                         compute=(compute or {}).get(stage.name),
                         keep_tables=in_memory or bool(next_inputs & set(stage.outputs)),
-                        keys={n: k for n, k in (raw_keys or {}).items() if n in stage.inputs})
+                        keys={n: k for n, k in keys.items() if n in stage.inputs})
         record = chain_step(stage, available, workdir, params, force, progress, hold=hold)
         available.update(record.outputs)
+        keys.update(dict.fromkeys(record.outputs, record.key))
         for name in record.outputs:  # reused outputs are read back from their files
             tables.pop(name, None)
         tables.update(record.tables)
@@ -304,6 +313,7 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
         if override_path is not None and "rig" in record.outputs and not rig_made:
             available["rig"] = override_path
             tables.pop("rig", None)
+            keys.pop("rig", None)  # the override's own key, from its file
         rig_made = rig_made or "rig" in record.outputs
         needed = ({n for later in chain[index + 1:] for n in later.inputs} if in_memory
                   else next_inputs)
