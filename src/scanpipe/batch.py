@@ -466,6 +466,9 @@ def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: 
         limit = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
         # each task asks for its threads as CPUs: Ray then sets OMP_NUM_THREADS to them
         task = ray.remote(num_cpus=threads or 1)(stage_task)
+        # the parameters serialised once, not in every task's arguments (the driver runs on
+        # the cores the tasks use)
+        params_ref = ray.put(params)
         queue = list(reversed(largest_first(items)))
         last: dict[Any, BatchItem] = {}  # the last stage's ref of each recording in flight
         pending: list[Any] = []  # every ref not yet finished, for progress
@@ -475,7 +478,7 @@ def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: 
                 carry: Any = {"available": {"recording": item.recording}, "records": [],
                               "warnings": [], "first": stages[0]}
                 for name in stages:
-                    carry = task.remote(name, item, carry, params, force, lock_wait_s,
+                    carry = task.remote(name, item, carry, params_ref, force, lock_wait_s,
                                         threads or 1)
                     pending.append(carry)
                 last[carry] = item
