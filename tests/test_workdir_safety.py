@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 import scanpipe
@@ -508,3 +509,36 @@ def test_cli_disk_full_is_one_line_and_keeps_the_previous_set(
                           "(No space left on device); the previous decode artifacts are kept\n")
     assert "Traceback" not in failed.err
     assert _snapshot(out) == before
+
+
+@pytest.mark.parametrize(("threads", "where"), [("2", "commit"), ("1", "MainThread")])
+def test_a_chains_tables_are_encoded_in_the_background_unless_one_thread(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, threads: str,
+        where: str) -> None:
+    """With more than one thread a stage's tables (a set of tables only) are encoded and
+    written by the committer while the next stage computes; at one thread (a batch worker's
+    share of a core) in place. The same files either way."""
+    import threading
+
+    monkeypatch.setenv("OMP_NUM_THREADS", threads)
+    writers: list[str] = []
+    real = artifacts._write_parquet
+
+    def write(path: Path, table: Any, provenance: Any) -> None:
+        writers.append(threading.current_thread().name)
+        real(path, table, provenance)
+
+    monkeypatch.setattr(artifacts, "_write_parquet", write)
+    work = tmp_path / "w"
+    run_chain(recording, work, {"read": ReadParams(scale=2.0)}, [READ, COPY])
+    # read's set has a file besides its tables (made while written: always in place)
+    assert writers[:3] == ["MainThread"] * 3 and writers[3].startswith(where)
+    monkeypatch.undo()
+    plain = tmp_path / "plain"
+    for stage, params in ((READ, ReadParams(scale=2.0)), (COPY, ReadParams())):
+        inputs = {"recording": recording} if stage is READ else {"a": plain / "read" / "a.parquet"}
+        execute(stage, inputs, plain / stage.name, params, replace_folder=True)
+    for name in ("read/a.parquet", "read/b.parquet", "read/c.parquet", "copy/d.parquet"):
+        ours, theirs = read_provenance(work / name), read_provenance(plain / name)
+        assert ours["key"] == theirs["key"] and ours["inputs"] == theirs["inputs"]
+        assert pq.read_table(work / name).equals(pq.read_table(plain / name))

@@ -33,6 +33,7 @@ import pyarrow.parquet as pq
 
 from scanpipe.errors import ArtifactError
 from scanpipe.schema import ArtifactSchema
+from scanpipe.threads import omp_threads
 
 PROVENANCE_KEY = b"scanpipe.provenance"
 
@@ -360,6 +361,7 @@ def write_together(
     files: Mapping[str, FileData],
     replace_folder: bool,
     manifest: tuple[str, Mapping[str, Any]] | None = None,
+    now: bool = False,
 ) -> pa.Table | None:
     """Write a stage's artifacts (``name.parquet``) and extra files (bytes, :class:`Pieces` or
     a :class:`Stream`, written piece by piece) so that they replace the previous set together;
@@ -376,6 +378,12 @@ def write_together(
     writer killed in between is completed by :func:`recover` before the next write.
     The caller holds the folder's lock (:func:`scanpipe.workdir.workdir_lock`).
     """
+    if (replace_folder and not now and _COMMITS and _COMMITS[-1].encode and not files
+            and manifest is None):
+        # tables only: encoded and written by the committer too (see background_commits)
+        _COMMITS[-1].submit_job(out_dir, lambda: write_together(
+            out_dir, stage, tables, files, replace_folder, manifest, now=True))
+        return None
     owner = out_dir.parent if replace_folder else out_dir
     state = owner / STATE_DIR
     staging = state / f"tmp-{stage}-{os.getpid()}"
@@ -410,7 +418,7 @@ def write_together(
             flushes.start(staging / f"{name}.parquet")
         where = out_dir
         flushes.start(staging)  # its names: every file is in it by now
-        if replace_folder and _COMMITS:  # finished in the background, in order (see there)
+        if replace_folder and _COMMITS and not now:  # finished in the background, in order
             _COMMITS[-1].submit(out_dir, stage, staging, flushes,
                                 state / f"old-{stage}-{os.getpid()}")
             flushes = _Flushes()  # the committer owns the pending ones now
@@ -477,12 +485,30 @@ class _Committer:
     waits for each set's flushes, then swaps it in (:func:`_swap_folder`). After a failure the
     later sets are dropped (their staging folders deleted) and :meth:`settle` raises it."""
 
-    def __init__(self) -> None:
+    def __init__(self, encode: bool) -> None:
         self._pool = cf.ThreadPoolExecutor(1, thread_name_prefix="commit")
         self._pending: list[cf.Future[None]] = []
         self._failed: BaseException | None = None
-        #: The stage folders staged and not yet swapped in.
+        #: The stage folders staged (or to be written) and not yet swapped in.
         self.waiting: set[Path] = set()
+        #: Whether a stage's tables are encoded and written here too (:meth:`submit_job`).
+        self.encode = encode
+
+    def submit_job(self, out_dir: Path, write: Callable[[], object]) -> None:
+        """Write and swap in ``out_dir``'s set (``write`` does it all, as
+        :func:`write_together` does in place) after the sets submitted before."""
+        self.waiting.add(out_dir)
+
+        def job() -> None:
+            try:
+                if self._failed is None:
+                    write()
+            except BaseException as err:  # an ArtifactError naming the file, or a bug
+                self._failed = err
+            finally:
+                self.waiting.discard(out_dir)
+
+        self._pending.append(self._pool.submit(job))
 
     def submit(self, out_dir: Path, stage: str, staging: Path, flushes: _Flushes,
                aside: Path) -> None:
@@ -547,7 +573,9 @@ def committing(path: Path) -> bool:
 def background_commits() -> Iterator[None]:
     """While in effect, a stage folder staged by :func:`write_together` (``replace_folder``)
     is flushed and swapped in by a background thread, in staging order, while the caller goes
-    on to the next stage; and the workdir's flush after each swap runs in the background too.
+    on to the next stage — a set of tables only is also encoded and written there when the
+    process may use more than one thread (:func:`scanpipe.threads.omp_threads`; the tables are
+    then held until written) — and the workdir's flush after each swap runs in the background.
     Every set is in place, and every flush done, when the block ends; a failed commit is
     raised there (or by :func:`settle_commits`), the later sets dropped.
 
@@ -558,7 +586,10 @@ def background_commits() -> Iterator[None]:
     with their keys, and calls :func:`settle_commits` before reading a file still being
     committed (:func:`committing`) — the runner's chain does all of this."""
     flushes = _Flushes()
-    committer = _Committer()
+    # a stage's tables are encoded in the background too, unless the process is limited to
+    # one thread (a batch worker's share of one core: a second busy thread would take the
+    # other workers' core)
+    committer = _Committer(encode=(omp_threads() or os.cpu_count() or 1) > 1)
     _DEFERRED.append(flushes)
     _COMMITS.append(committer)
     failing = True
