@@ -59,8 +59,9 @@ class RunRecord:
     seconds: float
     outputs: dict[str, Path]
     report: dict[str, Any]
-    #: The output tables in memory, when the caller asked to keep them (``keep_tables``) and
-    #: the stage ran; empty otherwise (read them from ``outputs``).
+    #: The output tables in memory, and the input tables the stage read, when the caller asked
+    #: to keep them (``keep_tables``) and the stage ran; empty otherwise (read them from
+    #: ``outputs``).
     tables: Mapping[str, pa.Table] = field(default_factory=dict, repr=False, compare=False)
 
 
@@ -177,6 +178,9 @@ def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, par
     seconds = time.perf_counter() - started
     kept = {name: with_provenance(table, tables[name][1]) if name in tables else table
             for name, table in result.tables.items()} if hold.keep_tables else {}
+    if hold.keep_tables:  # and the inputs it read, as read (the next stage may take them too)
+        kept.update({name: loaded[name] for name in stage.inputs
+                     if name not in RAW_INPUTS and name not in kept})
     return RunRecord(stage.name, key, False, seconds, outputs, result.report, kept)
 
 
@@ -279,9 +283,10 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
     to every later stage in memory as well as written (``scanpipe run --follow``), not read
     back.
 
-    Otherwise the outputs a stage computed are handed in memory to the *next* stage only (as
-    well as written): it would read them back at once, which cost ~1.5 s of CPU per lab-scale
-    chain (points into filter and mesh, the mesh into texture, texture and mesh into export).
+    Otherwise the outputs a stage computed, and the inputs it read, are handed in memory to
+    the *next* stage only (as well as written): it would read them back at once, which cost
+    ~2 s of CPU per lab-scale chain (points into filter and mesh, the mesh into texture,
+    texture's outputs, the mesh and the camera frames into export).
     A table is never kept across a stage that does not take it, so no stage holds more than
     it would have read: the chain's peak memory stays its largest stage's. The same tables
     either way (``run --follow`` relies on it and its tests compare every artifact)."""
@@ -300,7 +305,8 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
             settle_commits()  # a file to read is not in place yet
         hold = InMemory(tables={n: tables[n] for n in stage.inputs if n in tables},
                         compute=(compute or {}).get(stage.name),
-                        keep_tables=in_memory or bool(next_inputs & set(stage.outputs)),
+                        keep_tables=in_memory or bool(
+                            next_inputs & {*stage.outputs, *stage.inputs}),
                         keys={n: k for n, k in keys.items() if n in stage.inputs})
         record = chain_step(stage, available, workdir, params, force, progress, hold=hold)
         available.update(record.outputs)
