@@ -19,7 +19,8 @@ import json
 import os
 import shutil
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -208,12 +209,60 @@ def run_end_to_end(recording: Path, out: Path, name: str, overrides: Mapping[str
             per_stage[record.stage] = round(now - clock, 3)
             clock = now
 
-        run_chain(recording, workdir, params, force=True, to=to, on_stage=on_stage)
+        with runner_share() as share:
+            run_chain(recording, workdir, params, force=True, to=to, on_stage=on_stage)
         cpu_file.write_text(json.dumps(per_stage))
+        (out / f"{name}-runner.json").write_text(json.dumps(share))
 
     measurement = measure(f"end to end: {name}", work, 1.0, "runs", repeats)
     stage_cpu: dict[str, float] = json.loads(cpu_file.read_text())
     return measurement, stage_cpu
+
+
+def _main_thread_s() -> tuple[float, float]:
+    """(wall, run-queue) seconds of the calling thread: its time less its waits for a core is
+    what the load of other processes does not lengthen (Linux; run-queue 0 elsewhere)."""
+    try:
+        with open("/proc/thread-self/schedstat") as handle:
+            queued = int(handle.read().split()[1]) / 1e9
+    except (OSError, ValueError, IndexError):
+        queued = 0.0
+    return time.perf_counter(), queued
+
+
+@contextmanager
+def runner_share() -> Iterator[dict[str, float]]:
+    """The runner's share of a chain run in this block, filled in at its end: CPU (all threads)
+    and the main thread's time (less its waits for a core) spent outside the stages' own
+    calls (``Stage.call``): reading inputs, keys, writing and flushing outputs, provenance,
+    handing memory back — the runner overhead of issue 20."""
+    from scanpipe.stage import Stage
+
+    share: dict[str, float] = {}
+    inside = {"cpu": 0.0, "time": 0.0}
+    real = Stage.call
+
+    def timed(self: Stage, *args: Any, **kwargs: Any) -> Any:
+        cpu, (wall, queued) = time.process_time(), _main_thread_s()
+        try:
+            return real(self, *args, **kwargs)
+        finally:
+            now_wall, now_queued = _main_thread_s()
+            inside["cpu"] += time.process_time() - cpu
+            inside["time"] += (now_wall - wall) - (now_queued - queued)
+
+    cpu, (wall, queued) = time.process_time(), _main_thread_s()
+    Stage.call = timed  # type: ignore[method-assign]
+    try:
+        yield share
+    finally:
+        Stage.call = real  # type: ignore[method-assign]
+        now_wall, now_queued = _main_thread_s()
+        total_time = (now_wall - wall) - (now_queued - queued)
+        share.update(runner_cpu_s=round(time.process_time() - cpu - inside["cpu"], 3),
+                     runner_time_s=round(total_time - inside["time"], 3),
+                     stages_cpu_s=round(inside["cpu"], 3),
+                     stages_time_s=round(inside["time"], 3))
 
 
 #: Runs one chain in a fresh interpreter and prints its figures as JSON (see chain_memory).
@@ -440,6 +489,8 @@ def run(scan: BenchScan, repeats: int = 3, cache_dir: Path = CACHE_DIR,
             "end_to_end_s": e2e[name].median_s, "end_to_end_cpu_s": e2e[name].cpu_median_s,
             "peak_rss_mb": e2e[name].peak_rss_mb,
             "stage_seconds": times, "stage_cpu_seconds": stage_cpu[name],
+            # the runner's own share (outside the stages' calls), last run
+            "runner": json.loads((out / f"{name}-runner.json").read_text()),
             "points_to_textured_mesh_s": points_to_mesh_s,
             "points_to_textured_mesh_cpu_s": points_to_mesh_cpu_s,
             "speedup_over_baseline": baseline_m.median_s / points_to_mesh_s,
@@ -554,6 +605,11 @@ def report(results: Mapping[str, Any]) -> str:
                           else None, " mm"),
                      _fmt(acc["completeness"]), _fmt(acc["precision"]),
                      _fmt(acc["texture_psnr_db"], " dB")))
+    parts.append("the runner outside the stages' calls (reading, keys, writing, flushing; "
+                 "main thread's time less its waits for a core / CPU): " + ", ".join(
+                     f"{name} {comparison[name]['runner']['runner_time_s']:.1f} s / "
+                     f"{comparison[name]['runner']['runner_cpu_s']:.1f} s"
+                     for name in results["end_to_end_over_acquisition"]))
     parts.append(table(rows, ("path", "points → coloured mesh (wall / CPU)",
                               "end to end (wall / CPU)", "speed-up (wall / CPU)", "faces",
                               "peak RSS", "mesh mean", "completeness@2cm", "precision@2cm",

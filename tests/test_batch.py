@@ -139,6 +139,8 @@ def _check_cpu_accounting(summary: dict[str, Any], engine: str) -> None:
         assert item["cpu_s"] > 0
         for stage in item["stages"]:
             assert stage["cpu_s"] >= 0 and isinstance(stage["pid"], int)
+            # the worker's own waits (disk flushes, its helper threads); Linux says
+            assert stage["blocked_s"] >= 0 and stage["blocked_s"] <= item["seconds"]
             stage_cpu += stage["cpu_s"]
             pids.add(str(stage["pid"]))
         starts = item["worker_start_cpu_s"]

@@ -72,6 +72,9 @@ def test_baseline_and_paths_are_compared_on_accuracy_and_time(results: dict[str,
         assert entry["glb_exists"] and Path(entry["glb"]).stat().st_size > 0
         assert positive(entry["end_to_end_s"]) and positive(entry["points_to_textured_mesh_s"])
         assert positive(entry["speedup_over_baseline"])
+        runner = entry["runner"]  # the runner's share, outside the stages' own calls
+        assert positive(runner["runner_cpu_s"]) and positive(runner["stages_cpu_s"])
+        assert runner["runner_cpu_s"] + runner["stages_cpu_s"] <= entry["end_to_end_cpu_s"] * 1.5
         assert set(entry["stage_seconds"]) == {"decode", "calibrate", "assemble", "filter", "mesh",
                                                "texture", "export"}
         assert set(entry["stage_cpu_seconds"]) == set(entry["stage_seconds"])

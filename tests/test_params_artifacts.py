@@ -97,3 +97,18 @@ def test_not_parquet(tmp_path: Path) -> None:
         read_provenance(path)
     with pytest.raises(ArtifactError, match="not found"):
         read_provenance(tmp_path / "missing.parquet")
+
+
+def test_library_versions_are_the_installed_ones_looked_up_once(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The versions in keys are the installed distributions' (cached per process: the lookup
+    parses metadata files, milliseconds per stage)."""
+    from importlib.metadata import version
+
+    from scanpipe import artifacts
+
+    assert artifacts.library_versions(["numpy", "cv2", "no_such_library_x"]) == {
+        "numpy": version("numpy"), "cv2": version("opencv-python-headless"),
+        "no_such_library_x": "absent"}
+    monkeypatch.setattr(artifacts, "version", lambda name: pytest.fail("looked up again"))
+    assert artifacts.library_versions(["numpy"]) == {"numpy": version("numpy")}

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
+import pyarrow.parquet as pq
 import pytest
 
 import scanpipe
@@ -105,6 +106,144 @@ def test_oserror_part_way_keeps_the_previous_set(
             replace_folder=replace_folder)
     assert _scales(out) == {2.0}
     assert (out / "note.txt").read_text() == "scale 2.0"
+
+
+@pytest.mark.parametrize("replace_folder", [True, False])
+def test_every_staged_file_and_its_folder_are_flushed_before_the_swap(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        replace_folder: bool) -> None:
+    """The flushes run concurrently, but every one of them (each file, then the staging
+    folder's names) has finished before the set is renamed into place."""
+    out = tmp_path / "w" / "read"
+    events: list[tuple[str, str]] = []
+    real_fsync, real_rename = artifacts._fsync, artifacts.os.rename
+
+    def fsync(path: Path) -> None:
+        time.sleep(0.02)  # a slow disk: a swap that did not wait would come first
+        real_fsync(path)
+        events.append(("fsync", Path(path).name))
+
+    def rename(src: Any, dst: Any) -> None:
+        events.append(("rename", Path(src).name))
+        real_rename(src, dst)
+
+    monkeypatch.setattr(artifacts, "_fsync", fsync)
+    monkeypatch.setattr(artifacts.os, "rename", rename)
+    execute(READ, {"recording": recording}, out, ReadParams(scale=3.0),
+            replace_folder=replace_folder)
+    staged = [e for e in events if e[1].startswith("tmp-read-")]
+    first_rename = next(i for i, e in enumerate(events) if e[0] == "rename"
+                        and e[1].startswith("tmp-read-"))
+    flushed = {name for kind, name in events[:first_rename] if kind == "fsync"}
+    assert {"a.parquet", "b.parquet", "c.parquet", "note.txt"} <= flushed
+    assert staged[0][0] == "fsync"  # the staging folder itself, before it moves
+    assert _scales(out) == {3.0}
+
+
+def test_a_chain_flushes_its_workdir_after_each_swap_before_it_returns(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """In a chain the workdir's flush after each stage's swap runs in the background, but
+    every one has finished when run_chain returns (and they still come after each swap)."""
+    work = tmp_path / "w"
+    flushed: list[Path] = []
+    real_fsync = artifacts._fsync
+
+    def fsync(path: Path) -> None:
+        if Path(path) == work:
+            time.sleep(0.05)  # a slow disk: a chain that did not wait returns first
+        real_fsync(path)
+        flushed.append(Path(path))
+
+    monkeypatch.setattr(artifacts, "_fsync", fsync)
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ, COPY])
+    assert flushed.count(work) == 2  # once per stage's swap, all done
+    assert not artifacts._DEFERRED
+    assert _scales(work / "read") == {1.0}
+
+
+def _copy(inputs: Mapping[str, Any], params: ReadParams, progress: ProgressFn) -> StageResult:
+    return StageResult({"d": inputs["a"]}, {})
+
+
+COPY = Stage("copy", 1, ReadParams, ("a",), ("d",), _copy,  # type: ignore[arg-type]
+             "a copy", schemas=(TOY[0], ArtifactSchema("d", (Column("v", pa.float64()),),
+                                                       "a copy")))
+
+
+def test_the_next_stage_runs_while_the_previous_set_is_flushed_and_swapped_in(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """In a chain a stage's folder is flushed and swapped in by a background thread while the
+    next stage computes from the tables in memory; keys and files are those of a plain run."""
+    work = tmp_path / "w"
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ, COPY])
+    real_fsync = artifacts._fsync
+    seen: list[set[float]] = []
+
+    def fsync(path: Path) -> None:
+        time.sleep(0.1)  # a slow disk
+        real_fsync(path)
+
+    def copy(inputs: Mapping[str, Any], params: ReadParams, progress: ProgressFn
+             ) -> StageResult:
+        seen.append(_scales(work / "read"))  # what is on disk while this stage computes
+        return _copy(inputs, params, progress)
+
+    monkeypatch.setattr(artifacts, "_fsync", fsync)
+    slow_copy = Stage("copy", 1, ReadParams, ("a",), ("d",), copy,  # type: ignore[arg-type]
+                      "a copy", schemas=COPY.schemas)
+    records = run_chain(recording, work, {"read": ReadParams(scale=2.0)}, [READ, slow_copy])
+    assert seen == [{1.0}]  # the previous set was still in place: the commit overlapped
+    assert _scales(work / "read") == {2.0}  # and everything is in place on return
+    copied = read_provenance(work / "copy" / "d.parquet")
+    assert copied["inputs"] == {"a": read_provenance(work / "read" / "a.parquet")["key"]}
+    assert copied["inputs"] == {"a": records[0].key}
+    assert not list((work / STATE_DIR).glob("tmp-*"))
+
+
+def test_a_background_commit_that_fails_stops_the_chain_and_keeps_every_previous_set(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    work = tmp_path / "w"
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ, COPY])
+    before = _snapshot(work)
+    real = os.rename
+
+    def rename(src: Any, dst: Any) -> None:
+        if Path(src).name.startswith("tmp-read-"):  # the read stage's new folder moving in
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        real(src, dst)
+
+    monkeypatch.setattr(artifacts.os, "rename", rename)
+    with pytest.raises(ArtifactError) as info:
+        run_chain(recording, work, {"read": ReadParams(scale=2.0)}, [READ, COPY])
+    assert str(info.value) == (f"{work / 'read'}: cannot be written (Input/output error); "
+                               "the previous read artifacts are kept")
+    assert _snapshot(work) == before  # read's old set, copy's old set: nothing of the new
+    assert not list((work / STATE_DIR).glob("tmp-*"))
+    monkeypatch.undo()
+    run_chain(recording, work, {"read": ReadParams(scale=2.0)}, [READ, COPY])
+    assert _scales(work / "read") == {2.0}
+
+
+def test_a_failed_flush_names_the_file_and_keeps_the_previous_set(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    out = tmp_path / "w" / "read"
+    execute(READ, {"recording": recording}, out, ReadParams(scale=1.0), replace_folder=True)
+    before = _snapshot(out.parent)
+    real_fsync = artifacts._fsync
+
+    def fsync(path: Path) -> None:
+        if Path(path).name == "b.parquet":
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        real_fsync(path)
+
+    monkeypatch.setattr(artifacts, "_fsync", fsync)
+    with pytest.raises(ArtifactError) as info:
+        execute(READ, {"recording": recording}, out, ReadParams(scale=2.0), force=True,
+                replace_folder=True)
+    assert str(info.value) == (f"{out / 'b.parquet'}: cannot be written (Input/output error); "
+                               "the previous read artifacts are kept")
+    assert _snapshot(out.parent) == before
+    assert _scales(out) == {1.0}
 
 
 def test_failed_swap_puts_the_old_folder_back(recording: Path, tmp_path: Path,
@@ -370,3 +509,36 @@ def test_cli_disk_full_is_one_line_and_keeps_the_previous_set(
                           "(No space left on device); the previous decode artifacts are kept\n")
     assert "Traceback" not in failed.err
     assert _snapshot(out) == before
+
+
+@pytest.mark.parametrize(("threads", "where"), [("2", "commit"), ("1", "MainThread")])
+def test_a_chains_tables_are_encoded_in_the_background_unless_one_thread(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, threads: str,
+        where: str) -> None:
+    """With more than one thread a stage's tables (a set of tables only) are encoded and
+    written by the committer while the next stage computes; at one thread (a batch worker's
+    share of a core) in place. The same files either way."""
+    import threading
+
+    monkeypatch.setenv("OMP_NUM_THREADS", threads)
+    writers: list[str] = []
+    real = artifacts._write_parquet
+
+    def write(path: Path, table: Any, provenance: Any) -> None:
+        writers.append(threading.current_thread().name)
+        real(path, table, provenance)
+
+    monkeypatch.setattr(artifacts, "_write_parquet", write)
+    work = tmp_path / "w"
+    run_chain(recording, work, {"read": ReadParams(scale=2.0)}, [READ, COPY])
+    # read's set has a file besides its tables (made while written: always in place)
+    assert writers[:3] == ["MainThread"] * 3 and writers[3].startswith(where)
+    monkeypatch.undo()
+    plain = tmp_path / "plain"
+    for stage, params in ((READ, ReadParams(scale=2.0)), (COPY, ReadParams())):
+        inputs = {"recording": recording} if stage is READ else {"a": plain / "read" / "a.parquet"}
+        execute(stage, inputs, plain / stage.name, params, replace_folder=True)
+    for name in ("read/a.parquet", "read/b.parquet", "read/c.parquet", "copy/d.parquet"):
+        ours, theirs = read_provenance(work / name), read_provenance(plain / name)
+        assert ours["key"] == theirs["key"] and ours["inputs"] == theirs["inputs"]
+        assert pq.read_table(work / name).equals(pq.read_table(plain / name))

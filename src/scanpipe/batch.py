@@ -137,13 +137,46 @@ def _fail(result: ItemResult, err: BaseException) -> ItemResult:
     return result
 
 
-def _record_dict(record: RunRecord, cpu_s: float) -> dict[str, Any]:
+def _record_dict(record: RunRecord, cpu_s: float, blocked_s: float | None) -> dict[str, Any]:
     """A stage as the summary shows it: ``seconds`` is the stage's own computation (wall),
     ``cpu_s`` the CPU of the whole step in its worker (cache look-up, reading and writing
-    included)."""
+    included), ``blocked_s`` the time the worker's main thread slept in the step (waiting on
+    the disk or on its own helper threads; not waiting for a core: None where unknown)."""
     return {"stage": record.stage, "key": record.key, "reused": record.reused,
             "seconds": round(record.seconds, 4), "cpu_s": round(cpu_s, 4),
+            "blocked_s": None if blocked_s is None else round(blocked_s, 4),
             "pid": os.getpid()}
+
+
+class _Clock:
+    """The CPU of this process and the time its calling thread slept, between two laps."""
+
+    def __init__(self) -> None:
+        self.cpu = time.process_time()
+        self.sleep = _slept_s()
+
+    def lap(self) -> tuple[float, float | None]:
+        """(CPU seconds, seconds asleep or None) since the last lap."""
+        cpu, sleep = time.process_time(), _slept_s()
+        spent = (cpu - self.cpu,
+                 None if sleep is None or self.sleep is None else max(0.0, sleep - self.sleep))
+        self.cpu, self.sleep = cpu, sleep
+        return spent
+
+
+def _slept_s() -> float | None:
+    """Seconds the calling thread has been neither running nor waiting for a core (Linux's
+    ``/proc/thread-self/schedstat``: on-CPU and run-queue nanoseconds), counted from an
+    arbitrary origin; None where the kernel does not say. Unlike wall time this does not grow
+    when other processes take the cores: it is the waits a worker causes itself — flushes to
+    disk, handing work to a thread and waiting for it — which idle a core when every core has
+    its worker."""
+    try:
+        with open("/proc/thread-self/schedstat") as handle:
+            on_cpu_ns, queued_ns = (int(v) for v in handle.read().split()[:2])
+    except (OSError, ValueError):
+        return None
+    return time.perf_counter() - (on_cpu_ns + queued_ns) / 1e9
 
 
 def _warnings(record: RunRecord) -> list[str]:
@@ -157,15 +190,13 @@ def run_item(item: BatchItem, params: Mapping[str, Params], to: str | None = Non
     """The chain on one recording into its workdir; every failure is caught into the result."""
     result = ItemResult(item.name, str(item.recording), str(item.workdir))
     started = time.perf_counter()
-    cpu_started = last_cpu = time.process_time()
+    cpu_started = time.process_time()
+    clock = _Clock()
     records: list[RunRecord] = []  # filled stage by stage: kept up to a failure
 
     def on_stage(record: RunRecord) -> None:
-        nonlocal last_cpu
-        now = time.process_time()
         records.append(record)
-        result.stages.append(_record_dict(record, now - last_cpu))
-        last_cpu = now
+        result.stages.append(_record_dict(record, *clock.lap()))
 
     try:
         run_chain(item.recording, item.workdir, params, stages=_chain(to), force=force,
@@ -365,6 +396,7 @@ def stage_task(stage_name: str, item: BatchItem, carry: dict[str, Any],
     result = ItemResult(item.name, str(item.recording), str(item.workdir))
     started = time.perf_counter()
     cpu_started = time.process_time()
+    clock = _Clock()
     carry = {**carry, "available": dict(carry["available"]), "records": list(carry["records"]),
              "warnings": list(carry["warnings"])}
     try:
@@ -377,7 +409,7 @@ def stage_task(stage_name: str, item: BatchItem, carry: dict[str, Any],
         carry.update(error=result.error, detail=result.detail)
     else:
         carry["available"].update(record.outputs)
-        carry["records"].append(_record_dict(record, time.process_time() - cpu_started))
+        carry["records"].append(_record_dict(record, *clock.lap()))
         carry["warnings"].extend(_warnings(record))
     carry["seconds"] = carry.get("seconds", 0.0) + time.perf_counter() - started
     carry["cpu_s"] = carry.get("cpu_s", 0.0) + time.process_time() - cpu_started
@@ -434,6 +466,9 @@ def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: 
         limit = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
         # each task asks for its threads as CPUs: Ray then sets OMP_NUM_THREADS to them
         task = ray.remote(num_cpus=threads or 1)(stage_task)
+        # the parameters serialised once, not in every task's arguments (the driver runs on
+        # the cores the tasks use)
+        params_ref = ray.put(params)
         queue = list(reversed(largest_first(items)))
         last: dict[Any, BatchItem] = {}  # the last stage's ref of each recording in flight
         pending: list[Any] = []  # every ref not yet finished, for progress
@@ -443,7 +478,7 @@ def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: 
                 carry: Any = {"available": {"recording": item.recording}, "records": [],
                               "warnings": [], "first": stages[0]}
                 for name in stages:
-                    carry = task.remote(name, item, carry, params, force, lock_wait_s,
+                    carry = task.remote(name, item, carry, params_ref, force, lock_wait_s,
                                         threads or 1)
                     pending.append(carry)
                 last[carry] = item

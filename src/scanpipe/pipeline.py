@@ -25,11 +25,15 @@ import pyarrow as pa
 from scanpipe import __version__
 from scanpipe.artifacts import (
     artifact_key,
+    background_commits,
+    committing,
     file_key,
     library_versions,
     read_artifact,
     read_provenance,
     recover,
+    settle_commits,
+    with_provenance,
     write_artifact,
     write_together,
 )
@@ -55,8 +59,9 @@ class RunRecord:
     seconds: float
     outputs: dict[str, Path]
     report: dict[str, Any]
-    #: The output tables in memory, when the caller asked to keep them (``keep_tables``) and
-    #: the stage ran; empty otherwise (read them from ``outputs``).
+    #: The output tables in memory, and the input tables the stage read, when the caller asked
+    #: to keep them (``keep_tables``) and the stage ran; empty otherwise (read them from
+    #: ``outputs``).
     tables: Mapping[str, pa.Table] = field(default_factory=dict, repr=False, compare=False)
 
 
@@ -171,8 +176,12 @@ def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, par
         result.tables[manifest] = made
     # the record's time includes writing: a streamed file is made then
     seconds = time.perf_counter() - started
-    return RunRecord(stage.name, key, False, seconds, outputs, result.report,
-                     dict(result.tables) if hold.keep_tables else {})
+    kept = {name: with_provenance(table, tables[name][1]) if name in tables else table
+            for name, table in result.tables.items()} if hold.keep_tables else {}
+    if hold.keep_tables:  # and the inputs it read, as read (the next stage may take them too)
+        kept.update({name: loaded[name] for name in stage.inputs
+                     if name not in RAW_INPUTS and name not in kept})
+    return RunRecord(stage.name, key, False, seconds, outputs, result.report, kept)
 
 
 def _reusable(outputs: Mapping[str, Path], out_dir: Path, key: str) -> bool:
@@ -249,7 +258,7 @@ def run_chain(
         from scanpipe.rig import load_rig
 
         load_rig(rig_override)  # a bad rig file is refused before the workdir is touched
-    with workdir_lock(workdir, lock_wait_s):
+    with workdir_lock(workdir, lock_wait_s), background_commits():
         return run_locked_chain(chain, recording, workdir, params, force, rig_override,
                                  progress, on_stage)
 
@@ -271,18 +280,37 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
                       raw_keys: Mapping[str, str] | None = None) -> list[RunRecord]:
     """The chain, while the caller holds the workdir's lock. ``compute``: a stage's result
     computed otherwise (see :class:`InMemory`); ``in_memory``: each stage's outputs are handed
-    to the next ones in memory as well as written (``scanpipe run --follow``), not read back."""
+    to every later stage in memory as well as written (``scanpipe run --follow``), not read
+    back.
+
+    Otherwise the outputs a stage computed, and the inputs it read, are handed in memory to
+    the *next* stage only (as well as written): it would read them back at once, which cost
+    ~2 s of CPU per lab-scale chain (points into filter and mesh, the mesh into texture,
+    texture's outputs, the mesh and the camera frames into export).
+    A table is never kept across a stage that does not take it, so no stage holds more than
+    it would have read: the chain's peak memory stays its largest stage's. The same tables
+    either way (``run --follow`` relies on it and its tests compare every artifact)."""
     available: dict[str, Path] = {"recording": recording}
     tables: dict[str, pa.Table] = {}
     override_path = rig_override_artifact(rig_override, workdir) if rig_override else None
     records: list[RunRecord] = []
     rig_made = False
+    # the key of every artifact this chain produced or reused (its provenance's "key" is its
+    # stage's key): a stage folder may still be being committed (background_commits)
+    keys: dict[str, str] = dict(raw_keys or {})
     for index, stage in enumerate(chain):
+        next_inputs = set(chain[index + 1].inputs) if index + 1 < len(chain) else set()
+        if any(committing(available[n]) for n in stage.inputs
+               if n not in tables and n in available):
+            settle_commits()  # a file to read is not in place yet
         hold = InMemory(tables={n: tables[n] for n in stage.inputs if n in tables},
-                        compute=(compute or {}).get(stage.name), keep_tables=in_memory,
-                        keys={n: k for n, k in (raw_keys or {}).items() if n in stage.inputs})
+                        compute=(compute or {}).get(stage.name),
+                        keep_tables=in_memory or bool(
+                            next_inputs & {*stage.outputs, *stage.inputs}),
+                        keys={n: k for n, k in keys.items() if n in stage.inputs})
         record = chain_step(stage, available, workdir, params, force, progress, hold=hold)
         available.update(record.outputs)
+        keys.update(dict.fromkeys(record.outputs, record.key))
         for name in record.outputs:  # reused outputs are read back from their files
             tables.pop(name, None)
         tables.update(record.tables)
@@ -291,8 +319,10 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
         if override_path is not None and "rig" in record.outputs and not rig_made:
             available["rig"] = override_path
             tables.pop("rig", None)
+            keys.pop("rig", None)  # the override's own key, from its file
         rig_made = rig_made or "rig" in record.outputs
-        needed = {n for later in chain[index + 1:] for n in later.inputs}
+        needed = ({n for later in chain[index + 1:] for n in later.inputs} if in_memory
+                  else next_inputs)
         tables = {n: t for n, t in tables.items() if n in needed}
         record = replace(record, tables={})  # the chain's records hold no tables
         release_free_memory()

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
-from concurrent.futures import ThreadPoolExecutor
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -70,6 +69,7 @@ from scanpipe.texturing.visibility import (
     face_normals,
     mesh_edges,
 )
+from scanpipe.threads import thread_pool
 
 __all__ = ["STAGE", "TextureParams", "colorize_points", "texture_stage"]
 
@@ -173,7 +173,7 @@ def pages_table(pages: list[NDArray[np.uint8]], level: int) -> pa.Table:
     releases the GIL), levels 1–3 with the fast PNG filter (:func:`scanpipe.images.encode_png`:
     as small as level 3 with every filter tried, 2–3× faster)."""
     fast = 1 <= level <= 3
-    with ThreadPoolExecutor(max_workers=worker_count(len(pages), limit=8)) as pool:
+    with thread_pool(worker_count(len(pages), limit=8)) as pool:
         encoded = list(pool.map(lambda page: encode_png(page, level, fast=fast), pages))
     return pa.table({
         "page": pa.array(np.arange(len(pages), dtype=np.int16)),

@@ -14,7 +14,6 @@ top, texel centres at ``(i + 0.5) / size``.
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from itertools import pairwise
 
@@ -27,6 +26,7 @@ from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.texturing.frames import FrameSet, worker_count
 from scanpipe.texturing.patches import Patches
 from scanpipe.texturing.seams import SeamCorrections, correction_field
+from scanpipe.threads import thread_pool
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -232,7 +232,7 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
 
     # a frame per thread (numpy and OpenCV release the GIL); regions numbered in frame order,
     # each frame's faces, corner pixels and regions kept for its UVs once the pages are packed
-    with ThreadPoolExecutor(max_workers=worker_count(len(used_frames))) as pool:
+    with thread_pool(worker_count(len(used_frames))) as pool:
         for i, (idx, vertex_uv, corner, region, boxes) in zip(
                 used_frames, pool.map(regions_of, range(len(used_frames))), strict=True):
             region += count
@@ -294,7 +294,7 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     changes = np.flatnonzero(np.diff(frame_of[:n_regions])) + 1
     edges = [0, *changes.tolist(), n_regions] if n_regions else [0]
     runs = [range(a, b) for a, b in pairwise(edges)]
-    with ThreadPoolExecutor(max_workers=worker_count(len(runs))) as pool:
+    with thread_pool(worker_count(len(runs))) as pool:
         for finished in pool.map(cut_frame, runs):
             progress("atlas", finished, len(boxes))
     progress("atlas", len(boxes), len(boxes))

@@ -12,7 +12,6 @@ import hashlib
 import os
 import threading
 from collections import Counter, OrderedDict
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -28,7 +27,7 @@ from scanpipe.motion import beta_deg_at
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import CameraConfig, Rig
 from scanpipe.schema import FRAMES
-from scanpipe.threads import omp_threads
+from scanpipe.threads import omp_threads, thread_pool
 
 U8 = NDArray[np.uint8]
 F64 = NDArray[np.float64]
@@ -183,7 +182,7 @@ def rate_frames(data: pa.ChunkedArray, rows: NDArray[np.int64], sequences: NDArr
     time of choosing); each distinct content is rated once, also across calls in this process
     (:data:`_RATED`); the first broken frame raises its :class:`StageError`."""
     workers = worker_count(len(rows))
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    with thread_pool(workers) as pool:
         keys = list(pool.map(lambda row: _content_key(data[int(row)].as_buffer()), rows))
         ratings = {key: _RATED[key] for key in set(keys) if key in _RATED}
         # one row per content not rated yet: identical frames (a still platform) are decoded

@@ -16,7 +16,6 @@ overlaps serve twice (Waechter et al. 2014, sections 4.1 and 5):
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -25,6 +24,7 @@ from numpy.typing import NDArray
 
 from scanpipe.texturing.exposure import sample_pixels_at
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet, worker_count
+from scanpipe.threads import thread_pool
 
 F32 = NDArray[np.float32]
 FloatT = TypeVar("FloatT", np.float32, np.float64)
@@ -72,7 +72,7 @@ def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> F32:
     colour = np.full((n_faces, k, 3), np.nan, dtype=np.float32)
     # float32 columns: projected into up to K frames each (scanpipe.camera.project_columns)
     columns = [np.ascontiguousarray(points[:, c], dtype=np.float32) for c in range(3)]
-    with ThreadPoolExecutor(max_workers=worker_count(len(frames))) as pool:
+    with thread_pool(worker_count(len(frames))) as pool:
         for slot in range(k):
             column = frame[:, slot]
             # frame numbers are small: a stable sort of int16 is a radix sort
@@ -198,6 +198,6 @@ def photometric_outliers(views: Views, gains: F64, outlier_levels: float = 40.0
         outlier[faces] = ((deviation > limit) & ~missing).T
 
     # blocks of faces on a thread per core (numpy releases the GIL; each writes its own rows)
-    with ThreadPoolExecutor(max_workers=worker_count(-(-len(judged) // OUTLIER_CHUNK))) as pool:
+    with thread_pool(worker_count(-(-len(judged) // OUTLIER_CHUNK))) as pool:
         list(pool.map(judge, range(0, len(judged), OUTLIER_CHUNK)))
     return outlier

@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -47,6 +47,7 @@ from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import CameraConfig, Rig
 from scanpipe.texturing.frames import FrameSet, choose_frames, worker_count
 from scanpipe.texturing.visibility import MeshOcclusion, face_centroids
+from scanpipe.threads import thread_pool
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -120,7 +121,7 @@ class FaceScores:
             out.frame[target] = np.where(key > 0, top - (key & 0xFFFFFFFF), -1)
 
         # blocks of faces on a thread per core (numpy releases the GIL; each its own rows)
-        with ThreadPoolExecutor(max_workers=worker_count(-(-n_faces // SORT_CHUNK_FACES))
+        with thread_pool(worker_count(-(-n_faces // SORT_CHUNK_FACES))
                                 ) as pool:
             list(pool.map(order, range(0, n_faces, SORT_CHUNK_FACES)))
         return out
@@ -541,7 +542,7 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
     workers = worker_count(len(frames))
     # one frame per thread (numpy and OpenCV release the GIL); offered in frame order here, at
     # most one frame ahead (a 360° frame's scores are ~60 MB at lab scale)
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    with thread_pool(workers) as pool:
         pending: deque[Future[list[tuple[I64, F32]]]] = deque()
         submitted = 0
         for done in range(len(frames)):

@@ -14,7 +14,6 @@ there is within the distance tolerance.
 from __future__ import annotations
 
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,6 +22,7 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import StageError
 from scanpipe.texturing.frames import worker_count
+from scanpipe.threads import thread_pool
 
 F64 = NDArray[np.float64]
 I32 = NDArray[np.int32]
@@ -313,7 +313,7 @@ class MeshOcclusion:
                                               abs_tol_m, rel_tol)
 
         # blocks on a thread per core: Open3D casts on all cores, the numpy around it on one
-        with ThreadPoolExecutor(max_workers=worker_count(len(blocks))) as pool:
+        with thread_pool(worker_count(len(blocks))) as pool:
             list(pool.map(test, blocks))
         return result
 
