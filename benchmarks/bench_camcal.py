@@ -8,10 +8,11 @@ Three cases per seed:
 - **mount360**: the recorded frames of the 360° camera cam360 (equirect; no focal length to
   fit), its mount turned and moved alike;
 - **video**: a phone video of cam0 that runs from 4 s before the scan to 4 s after it, its frames
-  stamped 0.5 s late (the rough ``import-video --offset``); the mount and the clock offset are
-  fitted together. Of the video, ``--frames`` frames spread over it and every 30 fps frame
-  within 1.6 s of the platform's start and stop are rendered (a phone has them all; the fit
-  takes some of each, :func:`scanpipe.camera_selfcal.frame_rows`).
+  stamped 0.5 s late (the rough ``import-video --offset``). Of the video, ``--frames`` frames
+  spread over it and every 30 fps frame within 1.6 s of the platform's start and stop are
+  rendered (a phone has them all). The clock is read from the video's own motion around the
+  start and stop (:func:`scanpipe.camera_selfcal.motion_clock`) and the mount fitted at it;
+  ``--edge-clock``: the clock fitted to the edges with the mount instead (the fallback).
 
 Reported: the rotation error (the angle between the fitted and the true camera rotation, and as
 a rotation vector in the platform frame: which axis), the translation and focal errors (as
@@ -222,7 +223,7 @@ def room_phase_deg(seed: int, motor_step: float) -> float:
 
 def one(seed: int, motor_step: float, beam_step: float, camera_scale: float, frames: int,
         folder: Path, cases: tuple[str, ...] = CASES, cache: Path | None = None,
-        random_phase: bool = False) -> list[dict[str, Any]]:
+        random_phase: bool = False, clock_from_motion: bool = True) -> list[dict[str, Any]]:
     scene_pose = None
     if random_phase:
         scene_pose = Pose(translation_m=(0.0, 0.0, 0.0),
@@ -243,7 +244,7 @@ def one(seed: int, motor_step: float, beam_step: float, camera_scale: float, fra
         started, cpu_started = time.perf_counter(), time.process_time()
         result = calibrate_cameras(tables["points"], frames_table, tables["motor"], wrong_rig,
                                    [camera_id], fit_time_offset=case == "video",
-                                   max_frames=frames)[0]
+                                   max_frames=frames, clock_from_motion=clock_from_motion)[0]
         seconds = time.perf_counter() - started
         cpu_seconds = time.process_time() - cpu_started
         after, before = result.alignment_after.as_dict(), result.alignment_before.as_dict()
@@ -287,6 +288,10 @@ def main() -> None:
     parser.add_argument("--random-phase", action="store_true",
                         help="turn the room by a random fraction of a motor step per seed (the "
                              "seeds then also draw where the scan samples its silhouettes)")
+    parser.add_argument("--edge-clock", action="store_true",
+                        help="video: fit the clock to the edges with the mount (the fallback "
+                             "when a video does not film the platform's start and stop), not "
+                             "from the video's own motion")
     parser.add_argument("--label", default="",
                         help="appended to the result file's name (runs of one day kept apart)")
     parser.add_argument("--merge", type=Path, nargs="+", default=None,
@@ -305,7 +310,8 @@ def main() -> None:
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         with tempfile.TemporaryDirectory() as tmp:
             runs += one(seed, args.motor_step, args.beam_step, args.camera_scale, args.frames,
-                        Path(tmp), cases, args.sim_cache, args.random_phase)
+                        Path(tmp), cases, args.sim_cache, args.random_phase,
+                        not args.edge_clock)
         for r in runs[-len(cases):]:
             time_error = "" if r["time_error_s"] is None else \
                 f" clock {r['time_error_s'] * 1000:+.1f} ms"

@@ -290,10 +290,15 @@ def test_calibrate_cameras_finds_a_video_clock_offset(scan: dict[str, Any]) -> N
     result = calibrate_cameras(points, frames, motor, scan["true"], ["cam0"],
                                fit_time_offset=True, max_frames=24)[0]
     assert result.time_offset_s is not None
-    assert result.time_offset_s == pytest.approx(-0.5, abs=0.1)
+    # read from the video's motion around the platform's start and stop (30 fps there):
+    # within the 20 ms, the mount fitted at that clock
+    assert result.time_offset_s == pytest.approx(-0.5, abs=0.02)
+    assert result.motion_clock is not None and result.motion_clock["determined"]
     offset = next(p for p in result.parameters if p.name == "time_offset_s")
-    assert offset.observable and offset.sigma is not None and offset.sigma < 0.1
+    assert offset.observable and offset.sigma is not None and offset.sigma <= 0.02
     assert result.time_offset_determined is True
+    assert result.report()["motion_clock"]["offset_s"] == result.time_offset_s
+    assert rotation_error_deg(result.after, true_cam) < 0.5
     assert not any("clock offset is not determined" in w for w in result.warnings)
 
 
@@ -577,3 +582,26 @@ def test_motion_clock_needs_close_frames_and_the_start_or_stop() -> None:
     stamps, frames = _moving_frames(track, steady, 0.5)
     clock = motion_clock(stamps, frames, track, 0.0, 1.0)
     assert clock is not None and not clock.determined
+
+
+def test_sample_video_also_reads_every_frame_near_the_start_and_stop(tmp_path: Path) -> None:
+    from scanpipe.acquire.video_import import sample_video
+
+    video = tmp_path / "phone.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (64, 48))
+    rng = np.random.default_rng(3)
+    for _ in range(150):  # 5 s
+        writer.write(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    writer.release()
+    start = _T0_NS
+    still = (start + 1_000_000_000, start + 4_000_000_000)  # the platform turns 1 s … 4 s
+    chosen, moving = sample_video(video, start, 10, still, 200_000_000, 300_000_000)
+    assert len(chosen) == 10 and chosen[0][1].shape == (48, 64, 3)
+    times = np.array([t for t, _ in moving])
+    # every frame within 0.3 s of the start and of the stop, as small grey images
+    near = [t for t in start + np.round(np.arange(150) / 30 * 1e9).astype(np.int64)
+            if min(abs(t - still[0]), abs(t - still[1])) <= 300_000_000]
+    assert len(times) == len(near) and np.allclose(times, near, atol=2e6)
+    assert moving[0][1].ndim == 2 and moving[0][1].dtype == np.float32
+    # without a reach, none
+    assert sample_video(video, start, 10, still, 200_000_000)[1] == []

@@ -20,11 +20,14 @@ may be degrees off); then point to line, as ICP: each projected depth edge is ma
 nearest image edge within a few pixels that runs its way (within 30°), and the signed distance
 along that edge's normal is minimised (soft-L1), matches renewed until the values settle. The
 distance map's whole pixels and its blur leave a bias of a fraction of a pixel that the point-to-
-line pass does not; the alignment figures are its distances. With a clock offset to find, the
-mount is first fitted to the frames of the platform standing still, then δ is scanned over the
-search window, then everything is fitted together; every basin of the cost that competes, over
-δ and along the valley where δ and the camera's orbit about the axis trade, is refined and the
-least final cost wins — two that end alike leave δ undetermined (a warning, the 1σ widened to
+line pass does not; the alignment figures are its distances. With a clock offset to find and a
+video that films the platform's start and stop, the clock is read from the video's own motion
+(:func:`motion_clock`: the change between consecutive frames against the platform's turn
+between their times) and the mount fitted at it. Otherwise the mount is first fitted to the
+frames of the platform standing still, then δ is scanned over the search window, then
+everything is fitted together; every basin of the cost that competes, over δ and along the
+valley where δ and the camera's orbit about the axis trade, is refined and the least final
+cost wins — two that end alike leave δ undetermined (a warning, the 1σ widened to
 cover both). The 1σ of each value is the larger of the
 curvature (the Jacobian's ``s² (JᵀJ)⁻¹``) and the spread over groups of frames (a jackknife: the
 fit repeated with each group left out; for a 360° camera, whose every frame sees the whole
@@ -1585,7 +1588,10 @@ def frame_rows(frames: pa.Table, camera_id: str, max_frames: int,
     for mask, count in zip(parts, quota, strict=True):
         part = rows[mask]
         if count > 0 and part.size:
-            chosen.append(part[_spread_in_time(times[mask], count)])
+            count = min(count, part.size)
+            # over the frames of each share (where a video's frames are denser, around the
+            # start and stop, more of them: the edges' clock fit needs those)
+            chosen.append(part[np.round(np.linspace(0, part.size - 1, count)).astype(np.int64)])
     return np.sort(np.concatenate(chosen)).astype(np.int64) if chosen else rows[:0]
 
 
@@ -1620,6 +1626,23 @@ def observations(frames: pa.Table, rows: NDArray[np.int64], camera: CameraConfig
         sized = camera_for_size(camera, image.shape[1], image.shape[0])
         out.append(observe(sized, int(times[row]), image))
     return out
+
+
+def _frames_between_moves(frames: pa.Table, camera_id: str, track: MotorTrack,
+                          motion: MotionClock, max_frames: int) -> NDArray[np.int64]:
+    """:func:`frame_rows` (spread in time) of ``camera_id``'s frames taken while the platform
+    stands between moves at the motion clock (within its 3σ and 20 ms): a frame taken during a
+    move shows an angle that the motor's states, tens of ms apart, give only roughly. All
+    frames when too few stand (a platform that turns steadily)."""
+    ids = np.asarray(frames.column("camera_id").to_pylist(), dtype=object)
+    rows = np.flatnonzero(ids == camera_id)
+    times = frames.column("log_time_ns").to_numpy()[rows] + np.int64(round(motion.offset_s
+                                                                            * 1e9))
+    margin = np.int64(round((3 * motion.sigma_s + 0.02) * 1e9))
+    standing = np.abs(track.beta_deg(times + margin) - track.beta_deg(times - margin)) < 1e-9
+    if np.count_nonzero(standing) >= min(max_frames, rows.size) // 2:
+        rows = rows[standing]
+    return np.asarray(rows[frame_rows(frames.take(rows), camera_id, max_frames)], np.int64)
 
 
 def frames_motion_clock(frames: pa.Table, camera_id: str, track: MotorTrack,
@@ -1672,8 +1695,11 @@ def calibrate_cameras(points: pa.Table, frames: pa.Table, motor: pa.Table, rig: 
                 motion = frames_motion_clock(frames, camera_id, track, start, time_window_s)
             if motion is not None and motion.determined:
                 still = None  # the clock is known: the frames spread over the views
-        rows = frame_rows(frames, camera_id, max_frames, still,
-                          round(time_window_s * 1e9) if still is not None else 0)
+        if motion is not None and motion.determined:
+            rows = _frames_between_moves(frames, camera_id, track, motion, max_frames)
+        else:
+            rows = frame_rows(frames, camera_id, max_frames, still,
+                              round(time_window_s * 1e9) if still is not None else 0)
         if rows.size == 0:
             raise StageError(f"frames: camera {camera_id!r} has no frames")
         results.append(calibrate_camera(edges, observations(frames, rows, camera), track,
