@@ -550,6 +550,11 @@ class MotionClock:
     agreement: float = 1.0
 
     @property
+    def trusted(self) -> bool:
+        """Determined, and its 1σ within the clock's limit (:data:`SIGMA_LIMITS`)."""
+        return self.determined and self.sigma_s <= SIGMA_LIMITS["time_offset_s"]
+
+    @property
     def sigma_s(self) -> float:
         """1σ of the offset: the larger of the bootstrap's spread, a uniform spread over the
         interval of equal scores, and :data:`MOTION_GRID_S`."""
@@ -594,7 +599,7 @@ def motion_reach_ns(track: MotorTrack, window_s: float) -> int:
 
 def motion_rows(frames: pa.Table, camera_id: str, track: MotorTrack, start_offset_s: float,
                 window_s: float) -> NDArray[np.int64]:
-    """Rows of ``camera_id``'s frames within ``window_s`` (and a step period) of the
+    """Rows of ``camera_id``'s frames within ``window_s`` (and two step periods) of the
     platform's start and stop in the frames' rough clock: the motion signal's frames."""
     ids = np.asarray(frames.column("camera_id").to_pylist(), dtype=object)
     rows = np.flatnonzero(ids == camera_id)
@@ -612,8 +617,9 @@ def motion_clock(times_ns: NDArray[np.int64], images: Sequence[F32], track: Moto
     consecutive frame pairs (a camera taking a frame every few seconds).
 
     The change between consecutive frames (mean absolute difference of the grey images) is
-    correlated with the platform's turn between their times at each offset tried; the offsets
-    of the best correlation form an interval one frame spacing wide. A clock found from the
+    correlated with the platform's turn between their times (the motor's states interpolated)
+    at each offset tried; the best correlation is the clock (the middle of its top where that
+    is flat). A clock found from the
     start and stop of the motion cannot trade with a turn of the camera (the edges' fit can:
     a stepping platform looks the same one step period later, turned by a step).
     """
@@ -1068,7 +1074,7 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
     clock is the motion's and the edges fit the mount at it, as for recorded frames: the
     edges alone cannot tell a clock from a turn of the camera about the axis."""
     camera = frames[0].camera
-    motion_fixed = fit_time_offset and motion is not None and motion.determined
+    motion_fixed = fit_time_offset and motion is not None and motion.trusted
     if motion is not None and motion_fixed:
         start_offset_s = motion.offset_s
         fit_time_offset = False
@@ -1202,20 +1208,16 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
     clock_determined = bool(determined and observable[names.index("time_offset_s")]) \
         if fit_time_offset else None
     if motion is not None and motion_fixed:
-        sigma_s = motion.sigma_s
-        clock_determined = sigma_s <= SIGMA_LIMITS["time_offset_s"]
-        results.append(ParameterResult("time_offset_s", float(final[7]), sigma_s,
-                                       clock_determined, True, True))
-        if not clock_determined:
-            warnings.append(f"camera {camera.id!r}: the clock offset from the video's motion "
-                            f"({final[7]:+.3f} s) has a 1σ of {sigma_s * 1000:.0f} ms, over "
-                            f"the limit of {SIGMA_LIMITS['time_offset_s'] * 1000:.0f} ms")
+        clock_determined = True
+        results.append(ParameterResult("time_offset_s", float(final[7]), motion.sigma_s,
+                                       True, True, True))
     elif motion is not None and fit_time_offset:
         warnings.append(f"camera {camera.id!r}: the video's own motion did not determine the "
-                        f"clock (best {motion.offset_s:+.3f} s, correlation {motion.score:.2f} "
-                        f"against {motion.rival_score:.2f} elsewhere, {motion.moving_pairs} of "
-                        f"{motion.pairs} frame pairs moving); fitted from the edges instead "
-                        "(keep filming through the platform's start and stop)")
+                        f"clock (best {motion.offset_s:+.3f} s ± {motion.sigma_s * 1000:.0f} ms, "
+                        f"correlation {motion.score:.2f} against {motion.rival_score:.2f} "
+                        f"elsewhere, {motion.moving_pairs} of {motion.pairs} frame pairs "
+                        "moving); fitted from the edges instead (keep filming through the "
+                        "platform's start and stop)")
     if clock_determined is False:
         # the mount was refitted at the start offset; a clock offset looks like a turn about
         # the axis (and, off the axis, a shift): never report those as known
@@ -1693,9 +1695,7 @@ def calibrate_cameras(points: pa.Table, frames: pa.Table, motor: pa.Table, rig: 
             still = (first - shift, last - shift)
             if clock_from_motion:
                 motion = frames_motion_clock(frames, camera_id, track, start, time_window_s)
-            if motion is not None and motion.determined:
-                still = None  # the clock is known: the frames spread over the views
-        if motion is not None and motion.determined:
+        if motion is not None and motion.trusted:  # the frames spread over the views
             rows = _frames_between_moves(frames, camera_id, track, motion, max_frames)
         else:
             rows = frame_rows(frames, camera_id, max_frames, still,

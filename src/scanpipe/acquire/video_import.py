@@ -210,7 +210,8 @@ def refine_offset(video: Path, recording: Path, start_ns: int, camera_id: str,
     # the clock from the video's own motion where it films the platform start and stop
     motion = motion_clock(np.array([t for t, _ in moving], np.int64),
                           [image for _, image in moving], track, 0.0, window_s)
-    if not any(t < first - margin or t > last + margin for t, _ in sampled):
+    trusted = motion is not None and motion.trusted
+    if not trusted and not any(t < first - margin or t > last + margin for t, _ in sampled):
         raise StageError(_NO_STILL_FRAMES.format(video=video))
     height, width = sampled[0][1].shape[:2]
     sized = camera_for_size(camera, width, height)
