@@ -9,10 +9,11 @@ Three cases per seed:
   fit), its mount turned and moved alike;
 - **video**: a phone video of cam0 that runs from 4 s before the scan to 4 s after it, its frames
   stamped 0.5 s late (the rough ``import-video --offset``). Of the video, ``--frames`` frames
-  spread over it and every 30 fps frame within 1.6 s of the platform's start and stop are
-  rendered (a phone has them all). The clock is read from the video's own motion around the
-  start and stop (:func:`scanpipe.camera_selfcal.motion_clock`) and the mount fitted at it;
-  ``--edge-clock``: the clock fitted to the edges with the mount instead (the fallback).
+  spread over the scan, a quarter as many before and after it, and every 30 fps frame within
+  1.6 s of the platform's start and stop are rendered (a phone has them all). The clock is
+  read from the video's own motion around the start and stop
+  (:func:`scanpipe.camera_selfcal.motion_clock`) and the mount fitted at it; ``--edge-clock``:
+  the clock fitted to the edges with the mount instead (the fallback).
 
 Reported: the rotation error (the angle between the fitted and the true camera rotation, and as
 a rotation vector in the platform frame: which axis), the translation and focal errors (as
@@ -155,21 +156,24 @@ def simulate(folder: Path, options: SimOptions, cache: Path | None = None
 
 
 def video_frames(options: SimOptions, camera: CameraConfig, count: int,
-                 late_s: float) -> pa.Table:
+                 late_s: float, scan_frames: int | None = None) -> pa.Table:
     """A ``frames`` table of a video of ``camera`` from :data:`VIDEO_MARGIN_S` before the
-    session to as long after it, stamped ``late_s`` late: ``count`` frames spread over it and,
-    as a phone records them, every frame at :data:`VIDEO_FPS` within
+    session to as long after it, stamped ``late_s`` late: a quarter of ``count`` frames each
+    before and after the scan, ``scan_frames`` (default: the rest of ``count``) spread over
+    it and, as a phone records them, every frame at :data:`VIDEO_FPS` within
     :data:`VIDEO_DENSE_S` of the platform's start and stop (the fit chooses among them)."""
     true_rig = options.true_rig()
     session = plan_session(options, true_rig)
     scene = resolve_scene(options.scene, options.scene_pose, options.scene_up)
-    # a real video has many frames before and after the scan: 30 fps; a quarter of ``count``
-    # each here, the rest spread over the scan
+    # a real video has every frame at 30 fps: here a quarter of ``count`` each before and
+    # after the scan, ``scan_frames`` (default: the rest of ``count``) spread over it, and
+    # every frame around the start and stop
     still = max(1, count // 4)
+    during = count - 2 * still if scan_frames is None else scan_frames
     dense = np.arange(-VIDEO_DENSE_S, VIDEO_DENSE_S, 1.0 / VIDEO_FPS)
     times = np.unique(np.concatenate([
         np.linspace(-VIDEO_MARGIN_S, -0.1, still),
-        np.linspace(0.0, session.end_s, count - 2 * still),
+        np.linspace(0.0, session.end_s, during),
         np.linspace(session.end_s + 0.1, session.end_s + VIDEO_MARGIN_S, still),
         dense, session.end_s + dense]))
     pulse = options.rig.motor.pulse_step_deg
@@ -240,7 +244,8 @@ def one(seed: int, motor_step: float, beam_step: float, camera_scale: float, fra
         wrong_rig = with_camera(true_rig, perturbed(true_cam, seed))
         frames_table = tables["frames"]
         if case == "video":
-            frames_table = video_frames(options, true_cam, frames, VIDEO_ERROR_S)
+            frames_table = video_frames(options, true_cam, frames, VIDEO_ERROR_S,
+                                        scan_frames=frames)
         started, cpu_started = time.perf_counter(), time.process_time()
         result = calibrate_cameras(tables["points"], frames_table, tables["motor"], wrong_rig,
                                    [camera_id], fit_time_offset=case == "video",
