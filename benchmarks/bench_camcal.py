@@ -8,10 +8,12 @@ Three cases per seed:
 - **mount360**: the recorded frames of the 360° camera cam360 (equirect; no focal length to
   fit), its mount turned and moved alike;
 - **video**: a phone video of cam0 that runs from 4 s before the scan to 4 s after it, its frames
-  stamped 0.5 s late (the rough ``import-video --offset``); the mount and the clock offset are
-  fitted together. Of the video, ``--frames`` frames spread over it and every 30 fps frame
-  within 1.6 s of the platform's start and stop are rendered (a phone has them all; the fit
-  takes some of each, :func:`scanpipe.camera_selfcal.frame_rows`).
+  stamped 0.5 s late (the rough ``import-video --offset``). Of the video, ``--frames`` frames
+  spread over the scan, a quarter as many before and after it, and every 30 fps frame within
+  1.6 s of the platform's start and stop are rendered (a phone has them all). The clock is
+  read from the video's own motion around the start and stop
+  (:func:`scanpipe.camera_selfcal.motion_clock`) and the mount fitted at it; ``--edge-clock``:
+  the clock fitted to the edges with the mount instead (the fallback).
 
 Reported: the rotation error (the angle between the fitted and the true camera rotation, and as
 a rotation vector in the platform frame: which axis), the translation and focal errors (as
@@ -154,21 +156,24 @@ def simulate(folder: Path, options: SimOptions, cache: Path | None = None
 
 
 def video_frames(options: SimOptions, camera: CameraConfig, count: int,
-                 late_s: float) -> pa.Table:
+                 late_s: float, scan_frames: int | None = None) -> pa.Table:
     """A ``frames`` table of a video of ``camera`` from :data:`VIDEO_MARGIN_S` before the
-    session to as long after it, stamped ``late_s`` late: ``count`` frames spread over it and,
-    as a phone records them, every frame at :data:`VIDEO_FPS` within
+    session to as long after it, stamped ``late_s`` late: a quarter of ``count`` frames each
+    before and after the scan, ``scan_frames`` (default: the rest of ``count``) spread over
+    it and, as a phone records them, every frame at :data:`VIDEO_FPS` within
     :data:`VIDEO_DENSE_S` of the platform's start and stop (the fit chooses among them)."""
     true_rig = options.true_rig()
     session = plan_session(options, true_rig)
     scene = resolve_scene(options.scene, options.scene_pose, options.scene_up)
-    # a real video has many frames before and after the scan: 30 fps; a quarter of ``count``
-    # each here, the rest spread over the scan
+    # a real video has every frame at 30 fps: here a quarter of ``count`` each before and
+    # after the scan, ``scan_frames`` (default: the rest of ``count``) spread over it, and
+    # every frame around the start and stop
     still = max(1, count // 4)
+    during = count - 2 * still if scan_frames is None else scan_frames
     dense = np.arange(-VIDEO_DENSE_S, VIDEO_DENSE_S, 1.0 / VIDEO_FPS)
     times = np.unique(np.concatenate([
         np.linspace(-VIDEO_MARGIN_S, -0.1, still),
-        np.linspace(0.0, session.end_s, count - 2 * still),
+        np.linspace(0.0, session.end_s, during),
         np.linspace(session.end_s + 0.1, session.end_s + VIDEO_MARGIN_S, still),
         dense, session.end_s + dense]))
     pulse = options.rig.motor.pulse_step_deg
@@ -222,7 +227,7 @@ def room_phase_deg(seed: int, motor_step: float) -> float:
 
 def one(seed: int, motor_step: float, beam_step: float, camera_scale: float, frames: int,
         folder: Path, cases: tuple[str, ...] = CASES, cache: Path | None = None,
-        random_phase: bool = False) -> list[dict[str, Any]]:
+        random_phase: bool = False, clock_from_motion: bool = True) -> list[dict[str, Any]]:
     scene_pose = None
     if random_phase:
         scene_pose = Pose(translation_m=(0.0, 0.0, 0.0),
@@ -239,11 +244,12 @@ def one(seed: int, motor_step: float, beam_step: float, camera_scale: float, fra
         wrong_rig = with_camera(true_rig, perturbed(true_cam, seed))
         frames_table = tables["frames"]
         if case == "video":
-            frames_table = video_frames(options, true_cam, frames, VIDEO_ERROR_S)
+            frames_table = video_frames(options, true_cam, frames, VIDEO_ERROR_S,
+                                        scan_frames=frames)
         started, cpu_started = time.perf_counter(), time.process_time()
         result = calibrate_cameras(tables["points"], frames_table, tables["motor"], wrong_rig,
                                    [camera_id], fit_time_offset=case == "video",
-                                   max_frames=frames)[0]
+                                   max_frames=frames, clock_from_motion=clock_from_motion)[0]
         seconds = time.perf_counter() - started
         cpu_seconds = time.process_time() - cpu_started
         after, before = result.alignment_after.as_dict(), result.alignment_before.as_dict()
@@ -287,6 +293,10 @@ def main() -> None:
     parser.add_argument("--random-phase", action="store_true",
                         help="turn the room by a random fraction of a motor step per seed (the "
                              "seeds then also draw where the scan samples its silhouettes)")
+    parser.add_argument("--edge-clock", action="store_true",
+                        help="video: fit the clock to the edges with the mount (the fallback "
+                             "when a video does not film the platform's start and stop), not "
+                             "from the video's own motion")
     parser.add_argument("--label", default="",
                         help="appended to the result file's name (runs of one day kept apart)")
     parser.add_argument("--merge", type=Path, nargs="+", default=None,
@@ -305,7 +315,8 @@ def main() -> None:
     for seed in range(args.first_seed, args.first_seed + args.seeds):
         with tempfile.TemporaryDirectory() as tmp:
             runs += one(seed, args.motor_step, args.beam_step, args.camera_scale, args.frames,
-                        Path(tmp), cases, args.sim_cache, args.random_phase)
+                        Path(tmp), cases, args.sim_cache, args.random_phase,
+                        not args.edge_clock)
         for r in runs[-len(cases):]:
             time_error = "" if r["time_error_s"] is None else \
                 f" clock {r['time_error_s'] * 1000:+.1f} ms"

@@ -290,10 +290,15 @@ def test_calibrate_cameras_finds_a_video_clock_offset(scan: dict[str, Any]) -> N
     result = calibrate_cameras(points, frames, motor, scan["true"], ["cam0"],
                                fit_time_offset=True, max_frames=24)[0]
     assert result.time_offset_s is not None
-    assert result.time_offset_s == pytest.approx(-0.5, abs=0.1)
+    # read from the video's motion around the platform's start and stop (30 fps there):
+    # within the issue's 20 ms, the mount fitted at that clock
+    assert result.time_offset_s == pytest.approx(-0.5, abs=0.02)
+    assert result.motion_clock is not None and result.motion_clock["determined"]
     offset = next(p for p in result.parameters if p.name == "time_offset_s")
-    assert offset.observable and offset.sigma is not None and offset.sigma < 0.1
+    assert offset.observable and offset.sigma is not None and offset.sigma <= 0.02
     assert result.time_offset_determined is True
+    assert result.report()["motion_clock"]["offset_s"] == result.time_offset_s
+    assert rotation_error_deg(result.after, true_cam) < 0.5
     assert not any("clock offset is not determined" in w for w in result.warnings)
 
 
@@ -347,7 +352,8 @@ def test_a_wrong_clock_basin_is_refined_and_loses(scan: dict[str, Any],
 
     monkeypatch.setattr(selfcal, "_coarse_basins", wrong_first)
     result = selfcal.calibrate_cameras(points, frames, motor, scan["true"], ["cam0"],
-                                       fit_time_offset=True, max_frames=24)[0]
+                                       fit_time_offset=True, max_frames=24,
+                                       clock_from_motion=False)[0]
     assert result.time_offset_s == pytest.approx(-0.5, abs=0.1)
     assert result.time_offset_determined is True
     assert not any("clock offset is not determined" in w for w in result.warnings)
@@ -369,7 +375,8 @@ def test_two_clock_basins_that_fit_alike_leave_the_offset_undetermined(
     # data that cannot tell the two apart: both basins' final costs alike
     monkeypatch.setattr(selfcal, "_basin_score", lambda *args: 1.0)
     result = selfcal.calibrate_cameras(points, frames, motor, scan["true"], ["cam0"],
-                                       fit_time_offset=True, max_frames=24)[0]
+                                       fit_time_offset=True, max_frames=24,
+                                       clock_from_motion=False)[0]
     offset = next(p for p in result.parameters if p.name == "time_offset_s")
     assert result.time_offset_determined is False
     assert any("clock offset is not determined" in w for w in result.warnings)
@@ -503,3 +510,98 @@ def test_a_360_camera_mount_is_recovered(scan: dict[str, Any]) -> None:
     before, after = result.alignment_before, result.alignment_after
     assert after.median_px is not None and before.median_px is not None
     assert after.median_px < before.median_px
+
+
+# -- the clock from the video's own motion ---------------------------------------------------
+
+_T0_NS = 1_700_000_000_000_000_000
+
+
+def _stepping_track() -> Any:
+    """A platform that stands still for 2 s, makes 12 moves of 7 pulses (60 ms each) every
+    0.4 s, and stands still again; states every 20 ms as a controller reports them."""
+    from scanpipe.camera_selfcal import MotorTrack
+
+    times_s = np.arange(0.0, 9.0, 0.02)
+    since = times_s - 2.0
+    moves = np.clip(np.floor(since / 0.4), -1, 11)
+    within = np.clip((since - np.maximum(moves, 0) * 0.4) / 0.06, 0.0, 1.0)
+    steps = np.where(since < 0, 0, np.round(7 * (moves + np.where(moves >= 11, 1.0, within))))
+    motor = pa.table({"log_time_ns": (_T0_NS + np.round(times_s * 1e9)).astype(np.int64),
+                      "step_count": steps.astype(np.int64)})
+    return MotorTrack(motor, OPTIONS.true_rig())
+
+
+def _moving_frames(track: Any, times_s: np.ndarray, late_s: float) -> tuple[np.ndarray, list]:
+    """Grey frames of a textured wall turning with the platform (20 px per degree), taken at
+    ``times_s`` and stamped ``late_s`` late."""
+    from scanpipe.camera_selfcal import motion_grey
+
+    rng = np.random.default_rng(7)
+    wall = cv2.GaussianBlur(rng.uniform(0, 255, (120, 200)).astype(np.float32), (0, 0), 1.5)
+    true_ns = (_T0_NS + np.round(times_s * 1e9)).astype(np.int64)
+    frames = []
+    for beta in track.beta_deg(true_ns):
+        shift = np.float32([[1, 0, -20.0 * beta], [0, 1, 0]])
+        image = cv2.warpAffine(wall, shift, (160, 120), flags=cv2.INTER_LINEAR)
+        noisy = np.clip(image + rng.normal(0, 2.0, image.shape), 0, 255).astype(np.uint8)
+        frames.append(motion_grey(noisy))
+    return true_ns + np.int64(round(late_s * 1e9)), frames
+
+
+def test_motion_clock_reads_the_offset_from_the_start_and_stop() -> None:
+    from scanpipe.camera_selfcal import motion_clock
+
+    track = _stepping_track()
+    assert track.step_period_s() == pytest.approx(0.4, abs=0.021)
+    # a 30 fps video around the start (2 s) and the stop (6.46 s), its clock 0.5 s late and
+    # its frames at a phase of their own
+    times = np.concatenate([np.arange(0.6, 3.4, 1 / 30), np.arange(5.1, 7.9, 1 / 30)]) + 0.013
+    stamps, frames = _moving_frames(track, times, 0.5)
+    clock = motion_clock(stamps, frames, track, 0.0, 1.0)
+    assert clock is not None and clock.determined
+    assert clock.offset_s == pytest.approx(-0.5, abs=0.02)
+    assert 0.0 < clock.sigma_s <= 0.02 and clock.score > clock.rival_score + 0.1
+    assert 0 < clock.moving_pairs < clock.pairs
+    # the offset's search window around a rough value
+    clock = motion_clock(stamps, frames, track, -0.3, 0.5)
+    assert clock is not None and clock.offset_s == pytest.approx(-0.5, abs=0.02)
+
+
+def test_motion_clock_needs_close_frames_and_the_start_or_stop() -> None:
+    from scanpipe.camera_selfcal import motion_clock
+
+    track = _stepping_track()
+    # one frame a second (a camera, not a video): no pairs to compare
+    sparse = np.arange(0.5, 8.5, 1.0)
+    stamps, frames = _moving_frames(track, sparse, 0.5)
+    assert motion_clock(stamps, frames, track, 0.0, 1.0) is None
+    # a video of the steady stepping only: it repeats every step period, a clock one period
+    # off fits alike — reported, never as determined
+    steady = np.arange(3.0, 5.5, 1 / 30) + 0.013
+    stamps, frames = _moving_frames(track, steady, 0.5)
+    clock = motion_clock(stamps, frames, track, 0.0, 1.0)
+    assert clock is not None and not clock.determined
+
+
+def test_sample_video_also_reads_every_frame_near_the_start_and_stop(tmp_path: Path) -> None:
+    from scanpipe.acquire.video_import import sample_video
+
+    video = tmp_path / "phone.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (64, 48))
+    rng = np.random.default_rng(3)
+    for _ in range(150):  # 5 s
+        writer.write(rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    writer.release()
+    start = _T0_NS
+    still = (start + 1_000_000_000, start + 4_000_000_000)  # the platform turns 1 s … 4 s
+    chosen, moving = sample_video(video, start, 10, still, 200_000_000, 300_000_000)
+    assert len(chosen) == 10 and chosen[0][1].shape == (48, 64, 3)
+    times = np.array([t for t, _ in moving])
+    # every frame within 0.3 s of the start and of the stop, as small grey images
+    near = [t for t in start + np.round(np.arange(150) / 30 * 1e9).astype(np.int64)
+            if min(abs(t - still[0]), abs(t - still[1])) <= 300_000_000]
+    assert len(times) == len(near) and np.allclose(times, near, atol=2e6)
+    assert moving[0][1].ndim == 2 and moving[0][1].dtype == np.float32
+    # without a reach, none
+    assert sample_video(video, start, 10, still, 200_000_000)[1] == []

@@ -20,11 +20,14 @@ may be degrees off); then point to line, as ICP: each projected depth edge is ma
 nearest image edge within a few pixels that runs its way (within 30°), and the signed distance
 along that edge's normal is minimised (soft-L1), matches renewed until the values settle. The
 distance map's whole pixels and its blur leave a bias of a fraction of a pixel that the point-to-
-line pass does not; the alignment figures are its distances. With a clock offset to find, the
-mount is first fitted to the frames of the platform standing still, then δ is scanned over the
-search window, then everything is fitted together; every basin of the cost that competes, over
-δ and along the valley where δ and the camera's orbit about the axis trade, is refined and the
-least final cost wins — two that end alike leave δ undetermined (a warning, the 1σ widened to
+line pass does not; the alignment figures are its distances. With a clock offset to find and a
+video that films the platform's start and stop, the clock is read from the video's own motion
+(:func:`motion_clock`: the change between consecutive frames against the platform's turn
+between their times) and the mount fitted at it. Otherwise the mount is first fitted to the
+frames of the platform standing still, then δ is scanned over the search window, then
+everything is fitted together; every basin of the cost that competes, over δ and along the
+valley where δ and the camera's orbit about the axis trade, is refined and the least final
+cost wins — two that end alike leave δ undetermined (a warning, the 1σ widened to
 cover both). The 1σ of each value is the larger of the
 curvature (the Jacobian's ``s² (JᵀJ)⁻¹``) and the spread over groups of frames (a jackknife: the
 fit repeated with each group left out; for a 360° camera, whose every frame sees the whole
@@ -46,6 +49,7 @@ is chosen the mount is fitted afresh at it, every view weighing alike. See docs/
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -489,6 +493,196 @@ class MotorTrack:
             return int(times[order][0]), int(times[order][0])
         return int(times[order][changes[0]]), int(times[order][changes[-1] + 1])
 
+    def step_period_s(self) -> float:
+        """The median time (s) from one move of the platform to the next (a stepping platform
+        repeats itself so often); 0.0 for a platform that moves once (turns steadily)."""
+        steps = self.motor.column("step_count").to_numpy()
+        times = motor_times_ns(self.motor)
+        order = np.argsort(times, kind="stable")
+        changed = times[order][1:][np.diff(steps[order]) != 0]
+        if changed.size < 3:
+            return 0.0
+        gaps = np.diff(changed)
+        # a move's own states follow each other closely; a pause parts one move from the next
+        starts = changed[np.concatenate([[True], gaps > 3 * np.median(gaps)])]
+        return float(np.median(np.diff(starts))) / 1e9 if starts.size >= 2 else 0.0
+
+
+#: Frames at most this far apart (s) form a pair for the motion signal: the platform's steps
+#: must fall between frames one by one (a phone's video, 25–60 fps; not a camera at 0.5 fps).
+MOTION_MAX_GAP_S = 0.1
+#: Frames of the motion signal are compared at this width (px) at most (a step of the platform
+#: moves a Full-HD frame by some pixels; a quarter of them still shows it).
+MOTION_WIDTH_PX = 480
+#: The clock from the motion is determined when its best correlation beats the best one a
+#: quarter step period or more away by this much (of 1).
+MOTION_MIN_CONTRAST = 0.1
+#: ... and when at least this many frame pairs see the platform move (and as many see it stand).
+MOTION_MIN_PAIRS = 3
+#: Offsets tried by the motion signal, this far apart (s).
+MOTION_GRID_S = 0.001
+#: Draws of the frame pairs for the motion clock's 1σ, and the share of them that must find
+#: the same basin.
+MOTION_BOOTSTRAP = 64
+MOTION_MIN_AGREEMENT = 0.9
+
+
+@dataclass(frozen=True)
+class MotionClock:
+    """A video's clock offset read from its own motion: when the image changes between two
+    consecutive frames, the platform turned between them. Every offset within
+    ``[low_s, high_s]`` explains the changes equally well (the frames' spacing bounds it)."""
+
+    offset_s: float
+    low_s: float
+    high_s: float
+    #: Frame pairs compared, and those in which the platform turned at the offset.
+    pairs: int
+    moving_pairs: int
+    #: The correlation of the image change with the platform's turn at the offset, and the
+    #: best one at an offset a quarter step period or more away.
+    score: float
+    rival_score: float
+    determined: bool
+    #: The best offset's spread when the frame pairs are drawn again (a bootstrap: half the
+    #: 16–84 % range), and the share of the draws that found the same basin.
+    bootstrap_s: float = 0.0
+    agreement: float = 1.0
+
+    @property
+    def trusted(self) -> bool:
+        """Determined, and its 1σ within the clock's limit (:data:`SIGMA_LIMITS`)."""
+        return self.determined and self.sigma_s <= SIGMA_LIMITS["time_offset_s"]
+
+    @property
+    def sigma_s(self) -> float:
+        """1σ of the offset: the larger of the bootstrap's spread, a uniform spread over the
+        interval of equal scores, and :data:`MOTION_GRID_S`."""
+        return max(self.bootstrap_s, (self.high_s - self.low_s) / math.sqrt(12.0),
+                   MOTION_GRID_S)
+
+    def as_dict(self) -> dict[str, Any]:
+        """The values for a report."""
+        return {"offset_s": self.offset_s, "low_s": self.low_s, "high_s": self.high_s,
+                "sigma_s": self.sigma_s, "pairs": self.pairs, "moving_pairs": self.moving_pairs,
+                "score": self.score, "rival_score": self.rival_score,
+                "bootstrap_s": self.bootstrap_s, "agreement": self.agreement,
+                "determined": self.determined}
+
+
+def motion_image(data: bytes, what: str) -> F32:
+    """A frame decoded grey, at most :data:`MOTION_WIDTH_PX` wide and lightly blurred (the
+    sensor's noise), for the motion signal."""
+    from scanpipe.images import MAX_FRAME_PX, decode_image_bytes
+
+    return motion_grey(decode_image_bytes(data, f"frames: {what}", MAX_FRAME_PX,
+                                          cv2.IMREAD_REDUCED_GRAYSCALE_2, StageError))
+
+
+def motion_grey(image: NDArray[Any]) -> F32:
+    """A decoded frame (grey or BGR) made ready for the motion signal: grey, at most
+    :data:`MOTION_WIDTH_PX` wide, lightly blurred."""
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    out = np.asarray(grey, np.float32)
+    if out.shape[1] > MOTION_WIDTH_PX:
+        size = (MOTION_WIDTH_PX, max(1, round(out.shape[0] * MOTION_WIDTH_PX / out.shape[1])))
+        out = np.asarray(cv2.resize(out, size, interpolation=cv2.INTER_AREA), np.float32)
+    return np.asarray(cv2.GaussianBlur(out, (0, 0), 1.0), np.float32)
+
+
+def motion_reach_ns(track: MotorTrack, window_s: float) -> int:
+    """How far (ns) from the platform's start and stop the motion signal takes frames: the
+    clock's search window and two step periods (the steps either side of the start and
+    stop), at least 0.2 s."""
+    return round((window_s + max(0.2, 2 * track.step_period_s())) * 1e9)
+
+
+def motion_rows(frames: pa.Table, camera_id: str, track: MotorTrack, start_offset_s: float,
+                window_s: float) -> NDArray[np.int64]:
+    """Rows of ``camera_id``'s frames within ``window_s`` (and two step periods) of the
+    platform's start and stop in the frames' rough clock: the motion signal's frames."""
+    ids = np.asarray(frames.column("camera_id").to_pylist(), dtype=object)
+    rows = np.flatnonzero(ids == camera_id)
+    times = frames.column("log_time_ns").to_numpy()[rows] + np.int64(round(start_offset_s * 1e9))
+    first, last = track.moving_span_ns()
+    reach = motion_reach_ns(track, window_s)
+    near = (np.abs(times - first) <= reach) | (np.abs(times - last) <= reach)
+    return np.asarray(rows[near], np.int64)
+
+
+def motion_clock(times_ns: NDArray[np.int64], images: Sequence[F32], track: MotorTrack,
+                 start_offset_s: float = 0.0, window_s: float = 1.0) -> MotionClock | None:
+    """The clock offset δ (a frame stamped t shows the platform at β(t + δ)) within
+    ``start_offset_s`` ± ``window_s`` from the frames' own motion; None when too few
+    consecutive frame pairs (a camera taking a frame every few seconds).
+
+    The change between consecutive frames (mean absolute difference of the grey images) is
+    correlated with the platform's turn between their times (the motor's states interpolated)
+    at each offset tried; the best correlation is the clock (the middle of its top where that
+    is flat). A clock found from the
+    start and stop of the motion cannot trade with a turn of the camera (the edges' fit can:
+    a stepping platform looks the same one step period later, turned by a step).
+    """
+    order = np.argsort(times_ns, kind="stable")
+    times = np.asarray(times_ns, np.int64)[order]
+    shapes = [images[i].shape for i in order]
+    gaps_s = np.diff(times) / 1e9
+    pair = np.flatnonzero((gaps_s > 0) & (gaps_s <= MOTION_MAX_GAP_S)
+                          & np.array([a == b for a, b in itertools.pairwise(shapes)], dtype=bool))
+    if pair.size < 2 * MOTION_MIN_PAIRS:
+        return None
+    change = np.array([float(cv2.norm(images[order[k + 1]], images[order[k]], cv2.NORM_L1))
+                       / images[order[k]].size for k in pair])
+    offsets = np.arange(start_offset_s - window_s, start_offset_s + window_s + MOTION_GRID_S / 2,
+                        MOTION_GRID_S)
+    shift = np.round(offsets * 1e9).astype(np.int64)
+    before = track.beta_deg((times[pair][None, :] + shift[:, None]).ravel()).reshape(
+        offsets.size, pair.size)
+    after = track.beta_deg((times[pair + 1][None, :] + shift[:, None]).ravel()).reshape(
+        offsets.size, pair.size)
+    turn = np.abs(after - before)
+    score = _correlation(turn, change)
+    best = int(np.argmax(score))
+    top = score[best]
+    # the plateau of the best score around it (every offset there explains the frames alike)
+    tie = score >= top - 1e-9
+    low = best
+    while low > 0 and tie[low - 1]:
+        low -= 1
+    high = best
+    while high < offsets.size - 1 and tie[high + 1]:
+        high += 1
+    apart_s = max(0.1, track.step_period_s() / 4)
+    away = (offsets < offsets[low] - apart_s) | (offsets > offsets[high] + apart_s)
+    rival = float(score[away].max()) if away.any() else -1.0
+    moving = int(np.count_nonzero(turn[best] > 0))
+    at_edge = low == 0 or high == offsets.size - 1
+    determined = bool(top - rival >= MOTION_MIN_CONTRAST and not at_edge
+                      and MOTION_MIN_PAIRS <= moving <= pair.size - MOTION_MIN_PAIRS)
+    # the frame pairs drawn again (a bootstrap): how far the best offset moves with them
+    rng = np.random.default_rng(0)
+    draws = rng.integers(0, pair.size, size=(MOTION_BOOTSTRAP, pair.size))
+    found = np.array([offsets[int(np.argmax(_correlation(turn[:, d], change[d])))]
+                      for d in draws])
+    spread_s = float(0.5 * np.subtract(*np.percentile(found, [84.0, 16.0])))
+    # a draw of the pairs that prefers another basin: the clock hangs on a few pairs
+    agree = float(np.mean(np.abs(found - offsets[best]) <= apart_s))
+    determined = determined and agree >= MOTION_MIN_AGREEMENT
+    return MotionClock(float(0.5 * (offsets[low] + offsets[high])), float(offsets[low]),
+                       float(offsets[high]), int(pair.size), moving, float(top), rival,
+                       determined, spread_s, agree)
+
+
+def _correlation(turn: F64, change: F64) -> F64:
+    """The correlation of ``change`` (per frame pair) with each row of ``turn``; −1 where a
+    row is constant."""
+    turn_c = turn - turn.mean(axis=1, keepdims=True)
+    change_c = change - change.mean()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        score = (turn_c @ change_c) / (np.linalg.norm(turn_c, axis=1)
+                                       * np.linalg.norm(change_c))
+    return np.asarray(np.where(np.isfinite(score), score, -1.0), np.float64)
+
 
 def camera_with(camera: CameraConfig, x: F64) -> CameraConfig:
     """``camera`` changed by the fit's parameters ``x`` (in :data:`PARAMETERS` units, the time
@@ -823,6 +1017,9 @@ class CameraCalibration:
     #: With a clock offset fitted: False when it is not determined (competing basins of the
     #: cost, or its 1σ over the limit: the rig's/start value is kept); None without one.
     time_offset_determined: bool | None = None
+    #: The clock read from the video's own motion (:class:`MotionClock`), when its frames
+    #: follow each other closely enough.
+    motion_clock: dict[str, Any] | None = None
 
     def report(self) -> dict[str, Any]:
         """The calibration as JSON-ready values."""
@@ -842,6 +1039,7 @@ class CameraCalibration:
                            for p in self.parameters],
             "alignment_before": self.alignment_before.as_dict(),
             "alignment_after": self.alignment_after.as_dict(),
+            "motion_clock": self.motion_clock,
             "warnings": list(self.warnings),
         }
 
@@ -868,9 +1066,18 @@ def _levels(camera: CameraConfig) -> list[tuple[float, float]]:
 def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], track: MotorTrack,
                      fit_time_offset: bool = False, time_window_s: float = 1.0,
                      start_offset_s: float = 0.0, jackknife_groups: int = 4,
-                     fit_focal: bool = True) -> CameraCalibration:
-    """Fit one camera (all ``frames`` are of it) and report values, 1σ and alignment."""
+                     fit_focal: bool = True, motion: MotionClock | None = None
+                     ) -> CameraCalibration:
+    """Fit one camera (all ``frames`` are of it) and report values, 1σ and alignment.
+
+    With ``fit_time_offset`` and a determined ``motion`` clock (:func:`motion_clock`), the
+    clock is the motion's and the edges fit the mount at it, as for recorded frames: the
+    edges alone cannot tell a clock from a turn of the camera about the axis."""
     camera = frames[0].camera
+    motion_fixed = fit_time_offset and motion is not None and motion.trusted
+    if motion is not None and motion_fixed:
+        start_offset_s = motion.offset_s
+        fit_time_offset = False
     # a 360° image has no focal length: its scale is fixed by the sphere (width = 360°)
     fit_focal = fit_focal and camera.model == "pinhole"
     free = [p for p in PARAMETERS if (p != "time_offset_s" or fit_time_offset)
@@ -1000,6 +1207,17 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
                                        bool(observable[i]), True, bool(applied[i])))
     clock_determined = bool(determined and observable[names.index("time_offset_s")]) \
         if fit_time_offset else None
+    if motion is not None and motion_fixed:
+        clock_determined = True
+        results.append(ParameterResult("time_offset_s", float(final[7]), motion.sigma_s,
+                                       True, True, True))
+    elif motion is not None and fit_time_offset:
+        warnings.append(f"camera {camera.id!r}: the video's own motion did not determine the "
+                        f"clock (best {motion.offset_s:+.3f} s ± {motion.sigma_s * 1000:.0f} ms, "
+                        f"correlation {motion.score:.2f} against {motion.rival_score:.2f} "
+                        f"elsewhere, {motion.moving_pairs} of {motion.pairs} frame pairs "
+                        "moving); fitted from the edges instead (keep filming through the "
+                        "platform's start and stop)")
     if clock_determined is False:
         # the mount was refitted at the start offset; a clock offset looks like a turn about
         # the axis (and, off the axis, a shift): never report those as known
@@ -1024,10 +1242,12 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
                         "about the axis are found only together")
     return CameraCalibration(
         camera_id=camera.id, before=_rig_camera(camera, track.rig), after=after_camera,
-        time_offset_s=float(final[7]) if fit_time_offset else None, parameters=results,
+        time_offset_s=float(final[7]) if fit_time_offset or motion_fixed else None,
+        parameters=results,
         alignment_before=before, alignment_after=after, frames=len(frames),
         edge_points=int(after.distances_px.size), warnings=warnings, still_frames=still,
-        time_offset_determined=clock_determined)
+        time_offset_determined=clock_determined,
+        motion_clock=motion.as_dict() if motion is not None else None)
 
 
 def _mount_on_lines(fit: CameraFit, x: F64, gate_px: float, level: tuple[float, float],
@@ -1355,8 +1575,7 @@ def frame_rows(frames: pa.Table, camera_id: str, max_frames: int,
     if rows.size <= max_frames:
         return rows.astype(np.int64)
     if still_ns is None:
-        return rows[np.round(np.linspace(0, rows.size - 1, max_frames)).astype(np.int64)
-                    ].astype(np.int64)
+        return np.sort(rows[_spread_in_time(times, max_frames)]).astype(np.int64)
     first, last = still_ns
     w = max(0, int(window_ns))
     # before, around the start, during, around the stop, after
@@ -1372,8 +1591,27 @@ def frame_rows(frames: pa.Table, camera_id: str, max_frames: int,
         part = rows[mask]
         if count > 0 and part.size:
             count = min(count, part.size)
+            # over the frames of each share (where a video's frames are denser, around the
+            # start and stop, more of them: the edges' clock fit needs those)
             chosen.append(part[np.round(np.linspace(0, part.size - 1, count)).astype(np.int64)])
     return np.sort(np.concatenate(chosen)).astype(np.int64) if chosen else rows[:0]
+
+
+def _spread_in_time(times: NDArray[np.int64], count: int) -> NDArray[np.int64]:
+    """Indices of at most ``count`` of the sorted ``times`` spread evenly over their span (each
+    the nearest to an even step; where frames are denser in places, as a video's around the
+    platform's start and stop, evenly over time, not over the frames), all when fewer.
+
+    Where the frames leave gaps, fewer: filling the count from where they are dense would
+    give a few views most of the weight (a video of the benchmark, its frames dense only
+    around the start and stop, then fitted its mount on two views: 0.6° off on the test scan).
+    """
+    if times.size <= count:
+        return np.arange(times.size, dtype=np.int64)
+    targets = np.linspace(float(times[0]), float(times[-1]), count)
+    after = np.clip(np.searchsorted(times, targets), 1, times.size - 1)
+    nearer = np.where(targets - times[after - 1] <= times[after] - targets, after - 1, after)
+    return np.asarray(np.unique(nearer), np.int64)
 
 
 def observations(frames: pa.Table, rows: NDArray[np.int64], camera: CameraConfig
@@ -1392,12 +1630,49 @@ def observations(frames: pa.Table, rows: NDArray[np.int64], camera: CameraConfig
     return out
 
 
+def _frames_between_moves(frames: pa.Table, camera_id: str, track: MotorTrack,
+                          motion: MotionClock, max_frames: int) -> NDArray[np.int64]:
+    """:func:`frame_rows` (spread in time) of ``camera_id``'s frames taken while the platform
+    stands between moves at the motion clock (within its 3σ and 20 ms): a frame taken during a
+    move shows an angle that the motor's states, tens of ms apart, give only roughly. All
+    frames when too few stand (a platform that turns steadily)."""
+    ids = np.asarray(frames.column("camera_id").to_pylist(), dtype=object)
+    rows = np.flatnonzero(ids == camera_id)
+    times = frames.column("log_time_ns").to_numpy()[rows] + np.int64(round(motion.offset_s
+                                                                            * 1e9))
+    margin = np.int64(round((3 * motion.sigma_s + 0.02) * 1e9))
+    standing = np.abs(track.beta_deg(times + margin) - track.beta_deg(times - margin)) < 1e-9
+    if np.count_nonzero(standing) >= min(max_frames, rows.size) // 2:
+        rows = rows[standing]
+    return np.asarray(rows[frame_rows(frames.take(rows), camera_id, max_frames)], np.int64)
+
+
+def frames_motion_clock(frames: pa.Table, camera_id: str, track: MotorTrack,
+                        start_offset_s: float, window_s: float) -> MotionClock | None:
+    """:func:`motion_clock` of ``camera_id``'s frames around the platform's start and stop."""
+    rows = motion_rows(frames, camera_id, track, start_offset_s, window_s)
+    if rows.size < 2 * MOTION_MIN_PAIRS:
+        return None
+    data = frames.column("data")
+    times = frames.column("log_time_ns").to_numpy()
+    sequences = frames.column("sequence").to_numpy()
+    images = [motion_image(data[r].as_py(), f"frame {sequences[r]} of {camera_id!r}")
+              for r in rows.tolist()]
+    return motion_clock(times[rows], images, track, start_offset_s, window_s)
+
+
 def calibrate_cameras(points: pa.Table, frames: pa.Table, motor: pa.Table, rig: Rig,
                       camera_ids: Sequence[str] | None = None, fit_time_offset: bool = False,
                       time_window_s: float = 1.0, max_frames: int = 24,
                       start_offsets_s: dict[str, float] | None = None,
-                      fit_focal: bool = True) -> list[CameraCalibration]:
-    """Calibrate each camera (default: every rig camera with frames) against the scan."""
+                      fit_focal: bool = True, clock_from_motion: bool = True
+                      ) -> list[CameraCalibration]:
+    """Calibrate each camera (default: every rig camera with frames) against the scan.
+
+    With ``fit_time_offset``, the clock is read from the frames' own motion where they follow
+    each other closely around the platform's start and stop (:func:`motion_clock`; a video)
+    and the mount is fitted at it; else (or with ``clock_from_motion`` False) the clock and
+    the mount are fitted to the edges together."""
     ids = list(camera_ids) if camera_ids is not None else [
         c.id for c in rig.cameras if frame_rows(frames, c.id, 1).size]
     if not ids:
@@ -1413,17 +1688,23 @@ def calibrate_cameras(points: pa.Table, frames: pa.Table, motor: pa.Table, rig: 
         camera = rig.camera(camera_id)
         start = (start_offsets_s or {}).get(camera_id, 0.0)
         still = None
+        motion = None
         if fit_time_offset:  # the still periods in the frames' own (rough) clock
             first, last = track.moving_span_ns()
             shift = round(start * 1e9)
             still = (first - shift, last - shift)
-        rows = frame_rows(frames, camera_id, max_frames, still,
-                          round(time_window_s * 1e9) if fit_time_offset else 0)
+            if clock_from_motion:
+                motion = frames_motion_clock(frames, camera_id, track, start, time_window_s)
+        if motion is not None and motion.trusted:  # the frames spread over the views
+            rows = _frames_between_moves(frames, camera_id, track, motion, max_frames)
+        else:
+            rows = frame_rows(frames, camera_id, max_frames, still,
+                              round(time_window_s * 1e9) if still is not None else 0)
         if rows.size == 0:
             raise StageError(f"frames: camera {camera_id!r} has no frames")
         results.append(calibrate_camera(edges, observations(frames, rows, camera), track,
                                         fit_time_offset, time_window_s, start,
-                                        fit_focal=fit_focal))
+                                        fit_focal=fit_focal, motion=motion))
     return results
 
 

@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import numpy as np
 
 from scanpipe.artifacts import atomic_path
 from scanpipe.errors import DeviceError, RecordingError, StageError, UsageError
@@ -122,11 +123,17 @@ def _frame_offset_ns(capture: Any, index: int, fps: float, video: Path) -> int:
 
 def sample_video(video: Path, start_ns: int, count: int,
                  still_ns: tuple[int, int] | None = None,
-                 window_ns: int = 0) -> list[tuple[int, Any]]:
+                 window_ns: int = 0, motion_reach_ns: int = 0
+                 ) -> tuple[list[tuple[int, Any]], list[tuple[int, Any]]]:
     """``(time_ns, BGR image)`` of up to ``count`` frames spread over the video; with
     ``still_ns`` (and ``window_ns``), as :func:`scanpipe.camera_selfcal.frame_rows` chooses
     them (a share from before and after the platform turns, and from where it starts and
-    stops)."""
+    stops). Second, with ``still_ns`` and ``motion_reach_ns``, ``(time_ns, small grey image)``
+    of every frame within that of the start and stop
+    (:func:`scanpipe.camera_selfcal.motion_clock`'s frames)."""
+    from scanpipe.camera_selfcal import motion_grey
+
+    motion: list[tuple[int, Any]] = []
     capture = open_video(video)
     try:
         total = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
@@ -144,13 +151,18 @@ def sample_video(video: Path, start_ns: int, count: int,
         chosen: list[tuple[int, Any]] = []
         index = 0
         while capture.grab():
-            if total <= 0 or index in wanted:
+            stamp = start_ns + _frame_offset_ns(capture, index, fps, video)
+            near = still_ns is not None and motion_reach_ns > 0 and min(
+                abs(stamp - still_ns[0]), abs(stamp - still_ns[1])) <= motion_reach_ns
+            if total <= 0 or index in wanted or near:
                 ok, image = capture.retrieve()
                 if ok and image is not None:
                     check_pixels(image.shape[1], image.shape[0], f"{video}: frame {index}",
                                  MAX_FRAME_PX, UsageError)
-                    chosen.append((start_ns + _frame_offset_ns(capture, index, fps, video),
-                                   image))
+                    if near:
+                        motion.append((stamp, motion_grey(image)))
+                    if total <= 0 or index in wanted:
+                        chosen.append((stamp, image))
             index += 1
     finally:
         capture.release()
@@ -159,7 +171,7 @@ def sample_video(video: Path, start_ns: int, count: int,
         chosen = [c for i, c in enumerate(chosen) if i in keep]
     if not chosen:
         raise DeviceError(f"{video}: no frames could be read")
-    return chosen
+    return chosen, motion
 
 
 _NO_STILL_FRAMES = (
@@ -174,7 +186,14 @@ def refine_offset(video: Path, recording: Path, start_ns: int, camera_id: str,
     ``window_s``); the scan in ``recording`` is decoded and assembled in memory, ``frames``
     video frames are aligned with its depth edges. A report with ``offset_s`` (to add to
     ``start_ns``), its 1σ, and the alignment before and after."""
-    from scanpipe.camera_selfcal import MotorTrack, calibrate_camera, depth_edges, observe
+    from scanpipe.camera_selfcal import (
+        MotorTrack,
+        calibrate_camera,
+        depth_edges,
+        motion_clock,
+        motion_reach_ns,
+        observe,
+    )
     from scanpipe.stages.assemble import STAGE as ASSEMBLE
     from scanpipe.stages.decode import STAGE as DECODE
     from scanpipe.texturing.frames import camera_for_size
@@ -186,15 +205,20 @@ def refine_offset(video: Path, recording: Path, start_ns: int, camera_id: str,
     track = MotorTrack(decoded["motor"], rig)
     first, last = track.moving_span_ns()
     margin = round(window_s * 1e9)
-    sampled = sample_video(video, start_ns, frames, (first, last), margin)
-    if not any(t < first - margin or t > last + margin for t, _ in sampled):
+    sampled, moving = sample_video(video, start_ns, frames, (first, last), margin,
+                                   motion_reach_ns(track, window_s))
+    # the clock from the video's own motion where it films the platform start and stop
+    motion = motion_clock(np.array([t for t, _ in moving], np.int64),
+                          [image for _, image in moving], track, 0.0, window_s)
+    trusted = motion is not None and motion.trusted
+    if not trusted and not any(t < first - margin or t > last + margin for t, _ in sampled):
         raise StageError(_NO_STILL_FRAMES.format(video=video))
     height, width = sampled[0][1].shape[:2]
     sized = camera_for_size(camera, width, height)
     observed = [observe(sized, t, image) for t, image in sampled
                 if image.shape[:2] == (height, width)]
     result = calibrate_camera(depth_edges(points), observed, track, fit_time_offset=True,
-                              time_window_s=window_s)
+                              time_window_s=window_s, motion=motion)
     offset = next(p for p in result.parameters if p.name == "time_offset_s")
     if not result.still_frames:
         raise StageError(_NO_STILL_FRAMES.format(video=video))
