@@ -599,3 +599,20 @@ def test_two_chains_in_two_threads_each_commit_their_own_sets(
     assert seen == [True]  # in place when its chain returned
     assert _scales(tmp_path / "first" / "read") == {2.0}
     assert _scales(tmp_path / "second" / "read") == {1.0}
+
+
+def test_a_chain_recovers_what_a_killed_process_of_its_own_pid_left(
+        recording: Path, tmp_path: Path) -> None:
+    """Recovery passes over the sets this process is committing, not every entry with its pid:
+    a container restarted after a kill runs scanpipe under the same pid again, and the staging
+    folder and the set moved aside that the killed run left must still be recovered."""
+    work = tmp_path / "w"
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ, COPY])
+    state = work / STATE_DIR
+    pid = os.getpid()
+    (state / f"tmp-read-{pid}").mkdir()  # killed while staging read's set
+    (state / f"tmp-read-{pid}" / "a.parquet").write_bytes(b"PAR1")
+    os.rename(work / "copy", state / f"old-copy-{pid}")  # killed between the swap's renames
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ])  # reused, copy not run
+    assert sorted(p.name for p in state.iterdir() if p.name != "lock") == []
+    assert read_provenance(work / "copy" / "d.parquet")["stage"] == "copy"  # put back

@@ -652,17 +652,23 @@ def recover(owner: Path) -> None:
     """
     state = owner / STATE_DIR
     try:
+        # the sets this process is committing in the background, taken before the listing
+        # (a set leaves it only once its entries are gone; none joins it meanwhile)
+        busy = set(_STATE.commits[-1].waiting) if _STATE.commits else set()
         entries = sorted(state.iterdir()) if state.is_dir() else []
         for entry in entries:
             kind, _, rest = entry.name.partition("-")
-            if _STATE.commits and rest.rpartition("-")[2] == str(os.getpid()):
-                continue  # this live process's own set, being committed in the background
+            name, _, pid = rest.rpartition("-")
+            if pid == str(os.getpid()) and owner / name in busy:
+                # not every entry of this pid: a restarted container runs scanpipe under the
+                # same pid, and what its killed run left is recovered as any other
+                continue
             if kind == "tmp":
                 shutil.rmtree(entry)
             elif kind == "commit":
                 _roll_forward(entry, owner)
             elif kind == "old":
-                target = owner / rest.rpartition("-")[0]
+                target = owner / name
                 if os.path.lexists(target):
                     shutil.rmtree(entry)
                 else:
