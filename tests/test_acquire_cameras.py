@@ -140,3 +140,44 @@ def test_a_read_that_never_returns_is_reported_lost(tmp_path: Path) -> None:
     assert len(recording.images) == 3
     # decode, info and run say it: the camera's texture covers only what it saw before
     assert any(w.startswith("camera cam0 was lost") for w in recording.partial_scan_warnings())
+
+
+class _Slow:
+    """A live camera slower than the lost limit: each read blocks for its frame period
+    (a camera at a low frame rate pacing itself: a DSLR, a triggered industrial camera)."""
+
+    is_live = True
+
+    def __init__(self, period_s: float) -> None:
+        self.period_s = period_s
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        time.sleep(self.period_s)
+        return True, np.zeros((8, 8, 3), np.uint8)
+
+    def release(self) -> None:
+        pass
+
+
+def test_a_camera_slower_than_the_lost_limit_is_not_taken_for_a_hanging_one(
+        tmp_path: Path) -> None:
+    """The watchdog allows a read a few of the camera's own frame periods: a live camera at
+    0.25 fps (a read of 4 s) was reported lost at the default 3 s and its frames dropped."""
+    cam = small_camera()
+    rig = rig_with_cameras(cam)
+    sink = _sink(tmp_path / "rec.mcap", rig)
+    stop = threading.Event()
+    thread = CameraThread(cam.id, _Slow(0.2), sink, stop, period_s=0.2, pace=False,
+                          lost_after_s=0.1)
+    thread.start()
+    deadline = time.monotonic() + 1.0
+    while time.monotonic() < deadline:
+        thread.watchdog()  # the recorder's flusher calls it
+        time.sleep(0.02)
+    stop.set()
+    thread.join(timeout=5)
+    sink.close()
+    assert not thread.stats.lost
+    assert thread.stats.frames >= 3
+    assert not [e for e in read_recording(tmp_path / "rec.mcap").events
+                if e.kind == "camera_lost"]

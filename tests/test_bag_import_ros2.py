@@ -346,3 +346,40 @@ def test_a_continuous_joint_reported_wrapped_to_pi_is_unwrapped(
     assert cli("run", out, "--workdir", tmp_path / "w", "--to", "assemble", "-q").code == 0
     _, truth, _ = scan(DEFAULT_R_PL, np.zeros(3), yaw0)
     check_against_truth(assembled(tmp_path / "w"), truth)
+
+
+def test_a_cut_bag_whose_copy_cannot_be_written_is_one_line(tmp_path: Path) -> None:
+    """The complete chunks of a cut MCAP bag are copied into a scratch folder; a scratch disk
+    that cannot take them (full, or a file size limit: here a real RLIMIT_FSIZE) is one line
+    naming the bag and where, not a traceback, and no recording is left."""
+    import os
+    import resource
+    import signal
+    import subprocess
+    import sys
+
+    import scanpipe
+
+    bag = write_bag(tmp_path, "mcap", padded)
+    file = storage_file(bag)
+    whole = file.read_bytes()
+    file.write_bytes(whole[:int(len(whole) * 0.6)])
+    out = tmp_path / "rec.mcap"
+    limit = 4096  # smaller than the copy
+
+    def limited() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past it fails with EFBIG
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    env = {**os.environ, "PYTHONPATH": str(Path(scanpipe.__file__).parents[1]),
+           "PYTHONDONTWRITEBYTECODE": "1", "TMPDIR": str(tmp_path)}
+    result = subprocess.run([sys.executable, "-m", "scanpipe.cli.main", "import-bag", str(bag),
+                             "--out", str(out)], env=env, capture_output=True, text=True,
+                            preexec_fn=limited, timeout=120)
+    assert result.returncode == 1, result.stderr
+    assert "Traceback" not in result.stderr
+    assert result.stderr.count("\n") == 1, result.stderr
+    assert result.stderr.startswith(f"scanpipe: error: {file}: its complete chunks cannot be "
+                                    "copied"), result.stderr
+    assert "TMPDIR" in result.stderr
+    assert not out.exists()

@@ -605,3 +605,17 @@ def test_sample_video_also_reads_every_frame_near_the_start_and_stop(tmp_path: P
     assert moving[0][1].ndim == 2 and moving[0][1].dtype == np.float32
     # without a reach, none
     assert sample_video(video, start, 10, still, 200_000_000)[1] == []
+
+
+def test_a_determined_motion_clock_over_its_limit_is_not_reported_as_used() -> None:
+    """A clock the motion determines with a 1σ over the clock's limit is not used (the edge
+    fit is): its report says so (``trusted``), and calibrate-cameras does not label the fitted
+    offset as the motion's."""
+    from scanpipe.camera_selfcal import SIGMA_LIMITS, MotionClock
+
+    wide = MotionClock(0.1, 0.1, 0.1, 40, 10, 0.8, 0.3, True,
+                       bootstrap_s=2 * SIGMA_LIMITS["time_offset_s"])
+    assert wide.determined and not wide.trusted
+    assert wide.as_dict()["determined"] and not wide.as_dict()["trusted"]
+    narrow = MotionClock(0.1, 0.1, 0.1, 40, 10, 0.8, 0.3, True, bootstrap_s=0.005)
+    assert narrow.as_dict()["trusted"]

@@ -121,3 +121,19 @@ def test_a_stalled_link_is_reconnected_and_the_turn_resumed_where_profiles_stopp
     # or two the emulator may skip when the machine is loaded (5° each) is not the stall's.
     assert float(np.max(np.diff(covered))) < 4 * 5.0, np.round(covered, 1)
     assert covered[0] < 5.0 and covered[-1] > 350.0
+
+
+def test_a_loss_before_the_turns_first_motor_report_resumes_from_the_start() -> None:
+    """The last profile arrived before the turn's first motor report (a scanner that browns
+    out as the motor starts): the platform then stood at the start, so the turn resumes there
+    (it resumed where it stood, leaving the sector turned blind as a hole)."""
+    from collections import deque
+
+    from scanpipe.acquire.recorder import Recorder
+
+    recorder = Recorder.__new__(Recorder)  # the position bookkeeping alone
+    recorder._start_count = 100
+    recorder._turn_counts = deque([(1_000, 104), (2_000, 140), (3_000, 176)])
+    assert recorder._count_at(500) == 100  # before the first report: at the start
+    assert recorder._count_at(1_500) == 122  # between two reports: interpolated
+    assert recorder._count_at(4_000) == 176  # after the last: the last

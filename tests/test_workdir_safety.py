@@ -157,7 +157,7 @@ def test_a_chain_flushes_its_workdir_after_each_swap_before_it_returns(
     monkeypatch.setattr(artifacts, "_fsync", fsync)
     run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ, COPY])
     assert flushed.count(work) == 2  # once per stage's swap, all done
-    assert not artifacts._DEFERRED
+    assert not artifacts._STATE.deferred
     assert _scales(work / "read") == {1.0}
 
 
@@ -542,3 +542,77 @@ def test_a_chains_tables_are_encoded_in_the_background_unless_one_thread(
         ours, theirs = read_provenance(work / name), read_provenance(plain / name)
         assert ours["key"] == theirs["key"] and ours["inputs"] == theirs["inputs"]
         assert pq.read_table(work / name).equals(pq.read_table(plain / name))
+
+
+def test_two_chains_in_two_threads_each_commit_their_own_sets(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A library caller running two chains at once in threads (two workdirs): each chain's
+    background commits are its own, so a chain returns with its sets in place (another
+    thread's chain, started later and still running, must not take them over)."""
+    import threading
+
+    first_in, second_in, first_done = threading.Event(), threading.Event(), threading.Event()
+    real_fsync = artifacts._fsync
+
+    def fsync(path: Path) -> None:
+        if "first" in str(path):
+            time.sleep(0.3)  # a slow disk under the first chain's workdir
+        real_fsync(path)
+
+    def read_first(inputs: Mapping[str, Any], params: ReadParams,
+                   progress: ProgressFn) -> StageResult:
+        first_in.set()
+        assert second_in.wait(10)  # the second chain has begun: its commits are set up
+        return _read(inputs, params, progress)
+
+    def read_second(inputs: Mapping[str, Any], params: ReadParams,
+                    progress: ProgressFn) -> StageResult:
+        second_in.set()
+        assert first_done.wait(10)  # still running when the first chain returns
+        return _read(inputs, params, progress)
+
+    def stage(func: Any) -> Stage:
+        return Stage("read", 1, ReadParams, ("recording",), ("a", "b", "c"), func,
+                     "three tables and a file", schemas=TOY)
+
+    recordings = {}
+    for name in ("first", "second"):
+        recordings[name] = tmp_path / f"{name}.bin"
+        recordings[name].write_bytes(bytes([1, 2, 3]))
+    monkeypatch.setattr(artifacts, "_fsync", fsync)
+    seen: list[Any] = []
+
+    def second() -> None:
+        assert first_in.wait(10)  # after the first chain began
+        run_chain(recordings["second"], tmp_path / "second", {"read": ReadParams()},
+                  [stage(read_second)])
+
+    thread = threading.Thread(target=second)
+    thread.start()
+    try:
+        run_chain(recordings["first"], tmp_path / "first", {"read": ReadParams(scale=2.0)},
+                  [stage(read_first)])
+        seen.append((tmp_path / "first" / "read" / "a.parquet").is_file())
+    finally:
+        first_done.set()
+        thread.join(20)
+    assert seen == [True]  # in place when its chain returned
+    assert _scales(tmp_path / "first" / "read") == {2.0}
+    assert _scales(tmp_path / "second" / "read") == {1.0}
+
+
+def test_a_chain_recovers_what_a_killed_process_of_its_own_pid_left(
+        recording: Path, tmp_path: Path) -> None:
+    """Recovery passes over the sets this process is committing, not every entry with its pid:
+    a container restarted after a kill runs scanpipe under the same pid again, and the staging
+    folder and the set moved aside that the killed run left must still be recovered."""
+    work = tmp_path / "w"
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ, COPY])
+    state = work / STATE_DIR
+    pid = os.getpid()
+    (state / f"tmp-read-{pid}").mkdir()  # killed while staging read's set
+    (state / f"tmp-read-{pid}" / "a.parquet").write_bytes(b"PAR1")
+    os.rename(work / "copy", state / f"old-copy-{pid}")  # killed between the swap's renames
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ])  # reused, copy not run
+    assert sorted(p.name for p in state.iterdir() if p.name != "lock") == []
+    assert read_provenance(work / "copy" / "d.parquet")["stage"] == "copy"  # put back

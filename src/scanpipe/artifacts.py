@@ -21,6 +21,7 @@ import json
 import os
 import shutil
 import tempfile
+import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
@@ -378,10 +379,11 @@ def write_together(
     writer killed in between is completed by :func:`recover` before the next write.
     The caller holds the folder's lock (:func:`scanpipe.workdir.workdir_lock`).
     """
-    if (replace_folder and not now and _COMMITS and _COMMITS[-1].encode and not files
+    commits = _STATE.commits
+    if (replace_folder and not now and commits and commits[-1].encode and not files
             and manifest is None):
         # tables only: encoded and written by the committer too (see background_commits)
-        _COMMITS[-1].submit_job(out_dir, lambda: write_together(
+        commits[-1].submit_job(out_dir, lambda: write_together(
             out_dir, stage, tables, files, replace_folder, manifest, now=True))
         return None
     owner = out_dir.parent if replace_folder else out_dir
@@ -418,8 +420,8 @@ def write_together(
             flushes.start(staging / f"{name}.parquet")
         where = out_dir
         flushes.start(staging)  # its names: every file is in it by now
-        if replace_folder and _COMMITS and not now:  # finished in the background, in order
-            _COMMITS[-1].submit(out_dir, stage, staging, flushes,
+        if replace_folder and commits and not now:  # finished in the background, in order
+            commits[-1].submit(out_dir, stage, staging, flushes,
                                 state / f"old-{stage}-{os.getpid()}")
             flushes = _Flushes()  # the committer owns the pending ones now
             return made
@@ -465,19 +467,33 @@ def _swap_folder(staging: Path, target: Path, aside: Path) -> None:
             os.rename(aside, target)
         raise
     # The swap is done; failing to flush the folder or delete the old set does not undo it.
-    if _DEFERRED:
-        _DEFERRED[-1].start(target.parent)
+    if _STATE.deferred:
+        _STATE.deferred[-1].start(target.parent)
     else:
         with suppress(OSError):
             _fsync(target.parent)
     shutil.rmtree(aside, ignore_errors=True)
 
 
-#: The innermost :func:`background_commits` in effect (a stack: they may nest): where the
-#: workdir's flush after a swap goes.
-_DEFERRED: list[_Flushes] = []
-#: The innermost :func:`background_commits` in effect: where staged stage folders go.
-_COMMITS: list[_Committer] = []
+class _ChainState(threading.local):
+    """The :func:`background_commits` in effect in the calling thread (each thread its own:
+    a library caller may run chains on two workdirs in two threads at once, and each chain's
+    sets must be committed, and in place, by the time its own block ends)."""
+
+    def __init__(self) -> None:
+        #: The innermost block's (a stack: they may nest) flushes after a swap; in a
+        #: committer's thread, its block's.
+        self.deferred: list[_Flushes] = []
+        #: The innermost block's committer: where staged stage folders go.
+        self.commits: list[_Committer] = []
+
+
+_STATE = _ChainState()
+
+
+def _defer_flushes(flushes: _Flushes) -> None:
+    """Make the calling thread's swaps defer the workdir's flush to ``flushes``."""
+    _STATE.deferred.append(flushes)
 
 
 class _Committer:
@@ -485,8 +501,10 @@ class _Committer:
     waits for each set's flushes, then swaps it in (:func:`_swap_folder`). After a failure the
     later sets are dropped (their staging folders deleted) and :meth:`settle` raises it."""
 
-    def __init__(self, encode: bool) -> None:
-        self._pool = cf.ThreadPoolExecutor(1, thread_name_prefix="commit")
+    def __init__(self, encode: bool, deferred: _Flushes) -> None:
+        # the swaps on this thread defer the workdir's flush to the block's flushes
+        self._pool = cf.ThreadPoolExecutor(1, thread_name_prefix="commit",
+                                           initializer=_defer_flushes, initargs=(deferred,))
         self._pending: list[cf.Future[None]] = []
         self._failed: BaseException | None = None
         #: The stage folders staged (or to be written) and not yet swapped in.
@@ -560,22 +578,24 @@ def settle_commits() -> None:
     """Wait until every stage folder staged in the innermost :func:`background_commits` is in
     place, raising the first failure (an :class:`ArtifactError` naming the file); a no-op
     outside one. Call it before reading a file a stage of the chain may still be committing."""
-    if _COMMITS:
-        _COMMITS[-1].settle()
+    if _STATE.commits:
+        _STATE.commits[-1].settle()
 
 
 def committing(path: Path) -> bool:
     """Whether ``path`` lies in a stage folder staged and not yet swapped in."""
-    return bool(_COMMITS) and any(path.is_relative_to(d) for d in set(_COMMITS[-1].waiting))
+    commits = _STATE.commits
+    return bool(commits) and any(path.is_relative_to(d) for d in set(commits[-1].waiting))
 
 
 @contextmanager
 def background_commits() -> Iterator[None]:
-    """While in effect, a stage folder staged by :func:`write_together` (``replace_folder``)
-    is flushed and swapped in by a background thread, in staging order, while the caller goes
-    on to the next stage — a set of tables only is also encoded and written there when the
-    process may use more than one thread (:func:`scanpipe.threads.omp_threads`; the tables are
-    then held until written) — and the workdir's flush after each swap runs in the background.
+    """While in effect in the calling thread (each thread its own), a stage folder it stages
+    with :func:`write_together` (``replace_folder``) is flushed and swapped in by a background
+    thread, in staging order, while the caller goes on to the next stage — a set of tables
+    only is also encoded and written there when the process may use more than one thread
+    (:func:`scanpipe.threads.omp_threads`; the tables are then held until written) — and
+    the workdir's flush after each swap runs in the background.
     Every set is in place, and every flush done, when the block ends; a failed commit is
     raised there (or by :func:`settle_commits`), the later sets dropped.
 
@@ -589,22 +609,22 @@ def background_commits() -> Iterator[None]:
     # a stage's tables are encoded in the background too, unless the process is limited to
     # one thread (a batch worker's share of one core: a second busy thread would take the
     # other workers' core)
-    committer = _Committer(encode=(omp_threads() or os.cpu_count() or 1) > 1)
-    _DEFERRED.append(flushes)
-    _COMMITS.append(committer)
+    committer = _Committer((omp_threads() or os.cpu_count() or 1) > 1, flushes)
+    _STATE.deferred.append(flushes)
+    _STATE.commits.append(committer)
     failing = True
     try:
         yield
         failing = False
     finally:
-        _COMMITS.remove(committer)
+        _STATE.commits.remove(committer)
         try:
             committer.close()
         except BaseException:
             if not failing:  # else the block's own exception goes on
                 raise
         finally:
-            _DEFERRED.remove(flushes)
+            _STATE.deferred.remove(flushes)
             with suppress(OSError):  # as the flush in place: the swap is done either way
                 flushes.wait()
             flushes.close()
@@ -632,17 +652,23 @@ def recover(owner: Path) -> None:
     """
     state = owner / STATE_DIR
     try:
+        # the sets this process is committing in the background, taken before the listing
+        # (a set leaves it only once its entries are gone; none joins it meanwhile)
+        busy = set(_STATE.commits[-1].waiting) if _STATE.commits else set()
         entries = sorted(state.iterdir()) if state.is_dir() else []
         for entry in entries:
             kind, _, rest = entry.name.partition("-")
-            if _COMMITS and rest.rpartition("-")[2] == str(os.getpid()):
-                continue  # this live process's own set, being committed in the background
+            name, _, pid = rest.rpartition("-")
+            if pid == str(os.getpid()) and owner / name in busy:
+                # not every entry of this pid: a restarted container runs scanpipe under the
+                # same pid, and what its killed run left is recovered as any other
+                continue
             if kind == "tmp":
                 shutil.rmtree(entry)
             elif kind == "commit":
                 _roll_forward(entry, owner)
             elif kind == "old":
-                target = owner / rest.rpartition("-")[0]
+                target = owner / name
                 if os.path.lexists(target):
                     shutil.rmtree(entry)
                 else:

@@ -189,11 +189,15 @@ def _storage_paths(path: Path, scratch: Path, warnings: list[str]) -> list[Path]
 
 def _recovered_mcap(file: Path, scratch: Path, warnings: list[str]) -> Path:
     """The complete chunks of an MCAP bag cut before its end, copied into ``scratch``."""
-    from scanpipe.recording.catalogue import recover_mcap
+    from scanpipe.recording.catalogue import RecoveryWriteError, recover_mcap
 
     out = scratch / f"{file.stem}-{len(list(scratch.iterdir()))}.mcap"
     try:
         report = recover_mcap(file, out)
+    except RecoveryWriteError as err:
+        raise BagError(f"{file}: its complete chunks cannot be copied into the scratch folder "
+                       f"{scratch} to be read ({err.reason}); make "
+                       "room there or set TMPDIR to a folder with room for the bag") from err
     except RecordingError as err:
         raise BagError(f"{file}: an MCAP bag cut before its end with nothing readable in it "
                        f"({err})") from err

@@ -567,7 +567,7 @@ class MotionClock:
                 "sigma_s": self.sigma_s, "pairs": self.pairs, "moving_pairs": self.moving_pairs,
                 "score": self.score, "rival_score": self.rival_score,
                 "bootstrap_s": self.bootstrap_s, "agreement": self.agreement,
-                "determined": self.determined}
+                "determined": self.determined, "trusted": self.trusted}
 
 
 def motion_image(data: bytes, what: str) -> F32:

@@ -23,8 +23,11 @@ from scanpipe.errors import DeviceError
 from scanpipe.images import encode_jpeg
 from scanpipe.rig import CameraConfig
 
-#: A source failing to deliver for this long is reported lost and its thread ends.
+#: A source failing to deliver for this long is reported lost and its thread ends ...
 LOST_AFTER_S = 3.0
+#: ... or for this many of its frame periods, when longer (a live camera at a low frame rate
+#: blocks in each read for a period: at 0.25 fps a read of 4 s is no hang).
+LOST_AFTER_PERIODS = 3.0
 #: At most one ``camera_frames_dropped`` event per camera per this many seconds (the rest are
 #: counted and reported in the next event and the summary).
 DROP_EVENT_INTERVAL_S = 1.0
@@ -102,7 +105,9 @@ class CameraThread(threading.Thread):
 
     ``pace`` spaces reads at ``fps`` (for files, URLs and the virtual camera, which would
     otherwise deliver as fast as they are asked); a live device paces itself. ``period_s`` is
-    the expected frame spacing in host time, for gap detection.
+    the expected frame spacing in host time, for gap detection. ``lost_after_s``: no frame
+    (or a read not returning) for this long is a lost camera; at least
+    :data:`LOST_AFTER_PERIODS` frame periods.
     """
 
     def __init__(
@@ -127,7 +132,7 @@ class CameraThread(threading.Thread):
         self.jpeg_quality = jpeg_quality
         self.clock_ns = clock_ns
         self.stats = CameraStats()
-        self.lost_after_s = lost_after_s
+        self.lost_after_s = max(lost_after_s, LOST_AFTER_PERIODS * period_s)
         self._pending_drops = 0
         self._last_drop_event_ns = 0
         self._lost_lock = threading.Lock()

@@ -509,11 +509,13 @@ class Recorder:
         self.scanner.close(cancel=False)
 
     def _count_at(self, time_ns: int) -> int | None:
-        """The platform's count at a host time during the turn (from the motor reports)."""
+        """The platform's count at a host time during the turn (from the motor reports); before
+        the turn's first report, the start count (the platform stood there, or had just left
+        it: going back there scans again at most what it turned), None without one."""
         reports = [(t, c) for t, c in self._turn_counts if t <= time_ns]
         later = [(t, c) for t, c in self._turn_counts if t > time_ns]
         if not reports:
-            return None
+            return self._start_count
         (t0, c0) = reports[-1]
         if not later:
             return c0

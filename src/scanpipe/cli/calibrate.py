@@ -198,7 +198,7 @@ def calibrate_cameras(
                 value, sigma = f"{p.change:+.3f}°", f"± {p.sigma or 0:.3f}°"
             shown = sigma if p.observable else (f"{sigma} over its limit (applied)" if p.applied
                                                 else "unobservable (kept)")
-            if p.name == "time_offset_s" and (result.motion_clock or {}).get("determined"):
+            if p.name == "time_offset_s" and (result.motion_clock or {}).get("trusted"):
                 shown += " (from the frames' motion at the platform's start and stop)"
             typer.echo(f"  {p.name:14s} {value:>12s}  {shown}")
         b, a = result.alignment_before.as_dict(), result.alignment_after.as_dict()

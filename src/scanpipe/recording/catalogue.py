@@ -15,6 +15,15 @@ from scanpipe.errors import RecordingError
 from scanpipe.recording.reader import McapCatalogue, read_catalogue
 
 
+class RecoveryWriteError(RecordingError):
+    """The copy :func:`recover_mcap` writes cannot be written (a full disk, a size limit): the
+    damaged file itself may be fine to read. ``reason``: the system's words."""
+
+    def __init__(self, out: Path, err: OSError) -> None:
+        self.reason = err.strerror or str(err)
+        super().__init__(f"{out}: cannot be written ({self.reason})")
+
+
 def catalogue_info(catalogue: McapCatalogue) -> dict[str, Any]:
     """The catalogue as plain data (what ``scanpipe info --json`` prints under ``"mcap"``)."""
     firsts = [c.first_ns for c in catalogue.channels.values() if c.first_ns is not None]
@@ -100,16 +109,37 @@ def recover_mcap(source: Path, out: Path) -> dict[str, Any]:
     metadata and attachments read. Returns the figures of what was saved and lost.
 
     The caller checks ``out`` (the outpaths policy). A file with nothing recoverable raises
-    :class:`RecordingError` and writes nothing.
+    :class:`RecordingError` and writes nothing; a copy that cannot be written raises
+    :class:`RecoveryWriteError` naming ``out`` (and leaves nothing either).
     """
-    from mcap.writer import CompressionType, Writer
-
-    from scanpipe.artifacts import atomic_path
-
     catalogue = read_catalogue(source)  # first pass: the channels and schemas to declare
     if not catalogue.messages and not catalogue.metadata and not catalogue.attachments:
         raise RecordingError(f"{source}: no message, metadata or attachment could be read; "
                              "nothing to recover")
+    try:
+        written = _copy_catalogue(source, out, catalogue)
+    except OSError as err:
+        raise RecoveryWriteError(out, err) from None
+    return {
+        "source": str(source), "out": str(out), "messages": written,
+        "channels": len(catalogue.channels), "schemas": len(catalogue.schemas),
+        "metadata": len(catalogue.metadata), "attachments": len(catalogue.attachments),
+        "source_complete": catalogue.complete, "chunks_damaged": catalogue.chunks_damaged,
+        "loss": catalogue.loss.as_dict(),
+        "unknown_channel_messages": catalogue.unknown_channel_messages,
+        "warnings": list(catalogue.warnings),
+    }
+
+
+def _copy_catalogue(source: Path, out: Path, catalogue: McapCatalogue) -> int:
+    """Write ``out`` (atomically) from ``catalogue`` and the messages read again from
+    ``source``; returns how many messages were written. A failed write is an OSError, or (while
+    the messages are read, where the reader takes an OSError for its own) a
+    :class:`RecoveryWriteError`."""
+    from mcap.writer import CompressionType, Writer
+
+    from scanpipe.artifacts import atomic_path
+
     written = 0
     with atomic_path(out) as tmp, tmp.open("wb") as handle:
         writer = Writer(handle, compression=CompressionType.ZSTD)
@@ -127,8 +157,11 @@ def recover_mcap(source: Path, out: Path) -> dict[str, Any]:
         def copy(channel_id: int, sequence: int, log_time_ns: int, publish_time_ns: int,
                  data: bytes) -> None:
             nonlocal written
-            writer.add_message(channel_ids[channel_id], log_time_ns, data, publish_time_ns,
-                               sequence)
+            try:
+                writer.add_message(channel_ids[channel_id], log_time_ns, data,
+                                   publish_time_ns, sequence)
+            except OSError as err:  # not the source's: the reader would say it cannot be read
+                raise RecoveryWriteError(out, err) from None
             written += 1
 
         read_catalogue(source, on_message=copy)
@@ -138,12 +171,4 @@ def recover_mcap(source: Path, out: Path) -> dict[str, Any]:
             writer.add_attachment(attachment.create_time_ns, attachment.log_time_ns,
                                   attachment.name, attachment.media_type, attachment.data)
         writer.finish()  # type: ignore[no-untyped-call]
-    return {
-        "source": str(source), "out": str(out), "messages": written,
-        "channels": len(catalogue.channels), "schemas": len(catalogue.schemas),
-        "metadata": len(catalogue.metadata), "attachments": len(catalogue.attachments),
-        "source_complete": catalogue.complete, "chunks_damaged": catalogue.chunks_damaged,
-        "loss": catalogue.loss.as_dict(),
-        "unknown_channel_messages": catalogue.unknown_channel_messages,
-        "warnings": list(catalogue.warnings),
-    }
+    return written
