@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from test_bag_import import (
     DEFAULT_R_PL,
+    OMEGA,
     PROFILES,
     SCAN_TIME,
     assembled,
@@ -188,6 +189,33 @@ def test_scans_outside_the_angle_reports_are_dropped_not_held(tmp_path: Path, cl
     assert valid.sum() >= 34 * 530
     expected = truth[10:44][points["profile"], points["sample"]]
     assert float(np.linalg.norm((rig @ G)[valid] - expected[valid], axis=1).max()) < 2e-3
+
+
+def test_scans_beyond_the_angle_reports_of_a_platform_at_rest_are_kept(
+        tmp_path: Path, cli: Any) -> None:
+    """A joint publisher that starts after the laser (the usual order in a real bag) with the
+    platform at rest there: the held angle is right, so no scan is dropped and nothing warned."""
+    from test_bag_import import _header
+
+    def messages(ts: Any) -> list[tuple[str, str, float, Any]]:
+        out = []
+        for topic, msgtype, t, msg in turntable_messages(ts, "joint"):
+            if topic == "/joint_states":
+                if t < 0.5:
+                    continue
+                msg.header = _header(ts, t, "")
+                # at rest for 1.1 s from the first report, then turning to the end
+                msg.position = np.array([OMEGA * max(t - 1.6, 0.0), 0.5])
+            out.append((topic, msgtype, t, msg))
+        return out
+
+    bag = write_bag(tmp_path, "sqlite3", messages)
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", bag, "--out", out, "--json")
+    assert result.code == 0, result.err
+    report = json.loads(result.out)
+    assert report["profiles"] == 60  # the ten scans before the first report included
+    assert not any("outside the platform angle reports" in w for w in report["warnings"])
 
 
 def test_angles_on_another_clock_than_the_scans_are_refused(tmp_path: Path, cli: Any) -> None:

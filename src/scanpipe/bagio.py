@@ -51,6 +51,7 @@ from numpy.typing import NDArray
 
 from scanpipe.errors import RecordingError, UsageError
 from scanpipe.images import encode_png
+from scanpipe.motion import beyond_log
 from scanpipe.protocol.profile import ECHO_FULL_SCALE, are_fractions, ranges_between
 from scanpipe.recording import schemas
 from scanpipe.recording.writer import RecordingWriter
@@ -439,16 +440,20 @@ def _scale_fraction_intensities(content: BagContent) -> None:
 
 
 def _keep_scans_within_angles(bag: Path, content: BagContent, scan_time_s: float) -> None:
-    """Drop the scans not wholly within the platform angle reports' time span, warned: assemble
-    holds the nearest angle outside it, which smears a turning platform's scan (a publisher
-    that starts late or stops early, a bag cut). None within it: refused (two clocks)."""
-    times = np.array([t for t, _ in content.angles], np.int64)
-    first, last = int(times.min()), int(times.max())
+    """Drop the scans reaching beyond the platform angle reports at an end where the platform
+    was turning (:func:`scanpipe.motion.beyond_log`), warned: assemble holds the nearest angle
+    there, which smears them (a publisher that starts late or stops early, a bag cut). At an
+    end at rest the held angle is right and the scans are kept. None kept: refused (two
+    clocks)."""
+    order = sorted(range(len(content.angles)), key=lambda i: content.angles[i][0])
+    times = np.array([content.angles[i][0] for i in order], np.int64)
+    angles = np.array([content.angles[i][1] for i in order], np.float64)
+    first, last = int(times[0]), int(times[-1])
     span_ns = round(scan_time_s * 1e9) if math.isfinite(scan_time_s) and scan_time_s > 0 else 0
     starts = np.array([p.device_time_ns for _, p in content.profiles], np.int64)
     ends = np.array([p.device_end_time_ns or p.device_time_ns + span_ns
                      for _, p in content.profiles], np.int64)
-    inside = (starts >= first) & (ends <= last)
+    inside = ~beyond_log(starts, ends, times, angles)
     if inside.all():
         return
     t0 = int(min(starts.min(), first))
@@ -465,7 +470,8 @@ def _keep_scans_within_angles(bag: Path, content: BagContent, scan_time_s: float
     content.profiles[:] = [p for p, keep in zip(content.profiles, inside, strict=True) if keep]
     content.warnings.append(f"{dropped} scans outside the platform angle reports "
                             f"({s(first)} … {s(last)} s; scans {s(int(starts.min()))} … "
-                            f"{s(int(ends.max()))} s) dropped: their platform angle is unknown")
+                            f"{s(int(ends.max()))} s) dropped: the platform was turning there, "
+                            "so their platform angle is unknown")
 
 
 def quaternion_matrix(x: float, y: float, z: float, w: float) -> F64:

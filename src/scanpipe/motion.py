@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -39,39 +40,62 @@ def beta_deg_at(times_ns: NDArray[np.int64], motor_table: pa.Table,
     return beta_deg_from_steps(interpolated, motor)
 
 
-#: A time is beyond the motor log when it lies more than this many of the log's typical report
-#: intervals before its first or after its last state.
-BEYOND_LOG_INTERVALS = 2.0
-#: ... and at least this much (a log of very frequent reports still jitters by a few ms).
-BEYOND_LOG_MIN_NS = 50_000_000
+#: A platform counts as turning at an end of its log when its position there differs from
+#: its position this long before the end (after the start): a slow turn may report one step
+#: count several times in a row, a platform at rest for this long is at rest.
+TURNING_WINDOW_NS = 1_000_000_000
+
+
+def turning_at_ends(times_ns: NDArray[np.int64], positions: NDArray[np.floating] | NDArray[
+        np.integer], moving: Sequence[bool | None] | None = None) -> tuple[bool, bool]:
+    """Whether a platform was turning at the first and at the last of its position reports
+    (in time order): the position changed within :data:`TURNING_WINDOW_NS` of that end, and
+    the report's ``moving`` flag (when known) does not say it was at rest."""
+    t = np.asarray(times_ns, np.int64)
+    x = np.asarray(positions, np.float64)
+    if t.size < 2:
+        return False, False
+    at_start = x[: int(np.searchsorted(t, t[0] + TURNING_WINDOW_NS, side="right")) or 1]
+    at_end = x[int(np.searchsorted(t, t[-1] - TURNING_WINDOW_NS, side="left")):]
+    changed_start = bool(np.any(at_start != x[0]))
+    changed_end = bool(np.any(at_end != x[-1]))
+    flag_start = None if moving is None else moving[0]
+    flag_end = None if moving is None else moving[-1]
+    return (changed_start and flag_start is not False, changed_end and flag_end is not False)
+
+
+def beyond_log(start_ns: NDArray[np.int64], end_ns: NDArray[np.int64],
+               times_ns: NDArray[np.int64], positions: NDArray[np.floating] | NDArray[np.integer],
+               moving: Sequence[bool | None] | None = None) -> NDArray[np.bool_]:
+    """True for each time span ``[start, end]`` reaching beyond a position log (reports at
+    ``times_ns``, in time order) at an end where the platform was turning
+    (:func:`turning_at_ends`): held at the end's position such a span would be misplaced,
+    by the turn's speed times its distance from the log (no tolerance: a log that ends at
+    rest, as every complete one does, never drops anything)."""
+    start = np.asarray(start_ns, np.int64)
+    end = np.asarray(end_ns, np.int64)
+    t = np.asarray(times_ns, np.int64)
+    if t.size < 2:
+        return np.zeros(start.shape, bool)
+    turning_first, turning_last = turning_at_ends(t, positions, moving)
+    before = (start < t[0]) if turning_first else np.zeros(start.shape, bool)
+    after = (end > t[-1]) if turning_last else np.zeros(end.shape, bool)
+    return np.asarray(before | after, bool)
 
 
 def beyond_motor_log(start_ns: NDArray[np.int64], end_ns: NDArray[np.int64],
                      motor_table: pa.Table) -> NDArray[np.bool_]:
-    """True for each time span reaching beyond the motor log at an end where the platform
-    was turning: :func:`beta_deg_at` holds the angle there, which is right for a platform
-    at rest and wrong (silently misplaced points) for one that was still moving — a motor
-    log that ended early (a lost controller) or started late.
-
-    "Moving" at an end is the end state's ``moving`` flag, or, where it is null, a step
-    count that differs from its neighbour's.
-    """
-    start = np.asarray(start_ns, np.int64)
-    end = np.asarray(end_ns, np.int64)
+    """:func:`beyond_log` over a ``motor`` artifact: :func:`beta_deg_at` holds the angle
+    beyond the log, which is right for a platform at rest and wrong (silently misplaced
+    points) for one still turning — a motor log that ended early (a lost controller) or
+    started late."""
     if motor_table.num_rows < 2:
-        return np.zeros(start.shape, bool)
+        return np.zeros(np.shape(start_ns), bool)
     t = motor_times_ns(motor_table)
     order = np.argsort(t, kind="stable")
-    t = t[order]
     steps = motor_table.column("step_count").to_numpy().astype(np.int64)[order]
     flags = motor_table.column("moving").to_pylist()
-    first_flag, last_flag = flags[order[0]], flags[order[-1]]
-    moving_at_start = bool(first_flag) if first_flag is not None else steps[0] != steps[1]
-    moving_at_end = bool(last_flag) if last_flag is not None else steps[-1] != steps[-2]
-    tolerance_ns = max(BEYOND_LOG_INTERVALS * float(np.median(np.diff(t))), BEYOND_LOG_MIN_NS)
-    before = (start < t[0] - tolerance_ns) if moving_at_start else np.zeros(start.shape, bool)
-    after = (end > t[-1] + tolerance_ns) if moving_at_end else np.zeros(end.shape, bool)
-    return np.asarray(before | after, bool)
+    return beyond_log(start_ns, end_ns, t[order], steps, [flags[i] for i in order])
 
 
 def motor_clock(motor_table: pa.Table) -> ClockModel | None:
