@@ -376,6 +376,30 @@ def test_a_continuous_joint_reported_wrapped_to_pi_is_unwrapped(
     check_against_truth(assembled(tmp_path / "w"), truth)
 
 
+def test_non_finite_joint_positions_are_left_out_with_a_warning(
+        tmp_path: Path, cli: Any) -> None:
+    """A driver reporting NaN for an unhomed joint now and then: np.unwrap spread one NaN to
+    every later angle (the bag was refused as "reaching nan°"); the reports are left out."""
+    def with_nans(ts: Any) -> list[tuple[str, str, float, Any]]:
+        out = []
+        for topic, msgtype, t, msg in turntable_messages(ts, "joint"):
+            if topic == "/joint_states" and round(t * 100) % 37 == 5:
+                msg.position[0] = float("nan")
+            out.append((topic, msgtype, t, msg))
+        return out
+
+    bag = write_bag(tmp_path, "mcap", with_nans)
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", bag, "--out", out, "--json")
+    assert result.code == 0, result.err
+    warnings = json.loads(result.out)["warnings"]
+    assert any("turntable on /joint_states: 9 reports with a non-finite position" in w
+               for w in warnings), warnings
+    assert cli("run", out, "--workdir", tmp_path / "w", "--to", "assemble", "-q").code == 0
+    _, truth, _ = ros_scan(DEFAULT_R_PL, np.zeros(3), 0.0)
+    check_against_truth(assembled(tmp_path / "w"), truth)
+
+
 def test_a_cut_bag_whose_copy_cannot_be_written_is_one_line(tmp_path: Path) -> None:
     """The complete chunks of a cut MCAP bag are copied into a scratch folder; a scratch disk
     that cannot take them (full, or a file size limit: here a real RLIMIT_FSIZE) is one line

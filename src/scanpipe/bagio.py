@@ -575,16 +575,23 @@ def tf_angles(path: Path, transforms: Sequence[Transform], parent: str, child: s
             unturn @ first.rotation, unturn @ first.translation)
 
 
-def joint_angles(path: Path, reader: Any, topics: Sequence[Topic], joint: str | None
+def joint_angles(path: Path, reader: Any, topics: Sequence[Topic], joint: str | None,
+                 warnings: list[str] | None = None
                  ) -> tuple[list[tuple[int, float]], str, str]:
-    """β over time from one joint's position: (angles, joint name, topic)."""
+    """β over time from one joint's position: (angles, joint name, topic). Non-finite
+    positions (a driver's unhomed joint) are left out, counted in ``warnings``."""
     joint_topics = [t for t in topics if t.msgtype == JOINT_STATE]
     positions: dict[tuple[str, str], list[tuple[int, float]]] = defaultdict(list)
+    not_finite: Counter[tuple[str, str]] = Counter()
     for connection, log_time, msg in _messages(reader, [t.name for t in joint_topics]):
         stamp = _stamp_ns(msg.header, log_time)
         for name, value in zip(msg.name, msg.position, strict=False):
             if joint is None or name == joint:
-                positions[(connection.topic, str(name))].append((stamp, float(value)))
+                key = (connection.topic, str(name))
+                if math.isfinite(float(value)):
+                    positions[key].append((stamp, float(value)))
+                else:
+                    not_finite[key] += 1
     if joint is not None:
         found = [k for k in positions if k[1] == joint]
         if not found:
@@ -604,6 +611,9 @@ def joint_angles(path: Path, reader: Any, topics: Sequence[Topic], joint: str | 
             raise BagError(f"{path}: no platform angle chosen ({what}); pass --joint NAME or "
                            f"--tf PARENT:CHILD; found: {_listing(topics)}")
         key = moving[0]
+    if not_finite[key] and warnings is not None:
+        warnings.append(f"joint {key[1]} on {key[0]}: {not_finite[key]} reports with a "
+                        "non-finite position (NaN/inf: not homed?) left out")
     values = sorted(positions[key])
     # A continuous joint's driver may wrap its position into (−π, π]: a platform cannot turn
     # half a turn between two reports, so a jump of more than π is the wrap (as TF's yaw).
@@ -799,7 +809,8 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
         mount = (child_rotation @ rotation, child_rotation @ translation + child_translation)
         source = {"tf": f"{parent}:{child}", "laser_frame": laser_frame}
     else:
-        content.angles, joint_name, joint_topic = joint_angles(bag, reader, topics, joint)
+        content.angles, joint_name, joint_topic = joint_angles(bag, reader, topics, joint,
+                                                               content.warnings)
         source = {"joint": joint_name, "topic": joint_topic}
     if len(content.angles) < 2:
         raise BagError(f"{bag}: {len(content.angles)} platform angle reports; need at least "
