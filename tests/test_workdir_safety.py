@@ -224,6 +224,44 @@ def test_a_background_commit_that_fails_stops_the_chain_and_keeps_every_previous
     assert _scales(work / "read") == {2.0}
 
 
+def test_a_failed_commit_stops_the_chain_before_its_next_stage(
+        recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Once a set failed to commit the chain computes no further stage (their results could
+    not be kept anyway): it stops at the next one instead of at its end."""
+    work = tmp_path / "w"
+    run_chain(recording, work, {"read": ReadParams(scale=1.0)}, [READ, COPY])
+    real = os.rename
+
+    def rename(src: Any, dst: Any) -> None:
+        if Path(src).name.startswith("tmp-read-"):
+            raise OSError(errno.EIO, os.strerror(errno.EIO))
+        real(src, dst)
+
+    def copy(inputs: Mapping[str, Any], params: ReadParams, progress: ProgressFn
+             ) -> StageResult:
+        deadline = time.monotonic() + 20  # until the read set's commit has failed
+        while artifacts._STATE.commits[-1]._failed is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+        return _copy(inputs, params, progress)
+
+    ran: list[str] = []
+
+    def last(inputs: Mapping[str, Any], params: ReadParams, progress: ProgressFn
+             ) -> StageResult:
+        ran.append("last")
+        return StageResult({"e": inputs["d"]}, {})
+
+    waiting_copy = Stage("copy", 1, ReadParams, ("a",), ("d",),  # type: ignore[arg-type]
+                         copy, "a copy", schemas=COPY.schemas)
+    third = Stage("last", 1, ReadParams, ("d",), ("e",), last,  # type: ignore[arg-type]
+                  "a last copy", schemas=(COPY.schemas[1], ArtifactSchema(
+                      "e", (Column("v", pa.float64()),), "a last copy")))
+    monkeypatch.setattr(artifacts.os, "rename", rename)
+    with pytest.raises(ArtifactError, match="the previous read artifacts are kept"):
+        run_chain(recording, work, {"read": ReadParams(scale=2.0)}, [READ, waiting_copy, third])
+    assert ran == []
+
+
 def test_a_failed_flush_names_the_file_and_keeps_the_previous_set(
         recording: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     out = tmp_path / "w" / "read"

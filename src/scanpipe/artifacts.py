@@ -557,6 +557,12 @@ class _Committer:
 
         self._pending.append(self._pool.submit(commit))
 
+    def raise_failure(self) -> None:
+        """Raise a failure already met (without waiting for the sets still pending): a chain
+        stops at its next stage instead of computing on for nothing."""
+        if self._failed is not None:
+            self.settle()
+
     def settle(self) -> None:
         """Wait until every set submitted is in place (or dropped); raise the first failure."""
         pending, self._pending = self._pending, []
@@ -580,6 +586,14 @@ def settle_commits() -> None:
     outside one. Call it before reading a file a stage of the chain may still be committing."""
     if _STATE.commits:
         _STATE.commits[-1].settle()
+
+
+def raise_commit_failure() -> None:
+    """Raise a failed commit of the innermost :func:`background_commits` met so far (an
+    :class:`ArtifactError` naming the file), without waiting for the sets still pending; a
+    no-op outside one or when none failed. A chain calls it before each stage."""
+    if _STATE.commits:
+        _STATE.commits[-1].raise_failure()
 
 
 def committing(path: Path) -> bool:

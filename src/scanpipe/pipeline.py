@@ -29,6 +29,7 @@ from scanpipe.artifacts import (
     committing,
     file_key,
     library_versions,
+    raise_commit_failure,
     read_artifact,
     read_provenance,
     recover,
@@ -299,6 +300,7 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
     # stage's key): a stage folder may still be being committed (background_commits)
     keys: dict[str, str] = dict(raw_keys or {})
     for index, stage in enumerate(chain):
+        raise_commit_failure()  # a set failed to commit: stop before computing more
         next_inputs = set(chain[index + 1].inputs) if index + 1 < len(chain) else set()
         if any(committing(available[n]) for n in stage.inputs
                if n not in tables and n in available):
