@@ -50,6 +50,10 @@ def test_ply_cloud_in_open3d_and_trimesh(tmp_path: Path) -> None:
     assert isinstance(loaded, trimesh.PointCloud) and len(loaded.vertices) == len(xyz)
     np.testing.assert_array_equal(loaded.metadata["_ply_raw"]["vertex"]["data"]["intensity"],
                                   echo)
+    # Open3D's tensor reader keeps a float scalar property (it skipped the ushort one)
+    tensor = o3d.t.io.read_point_cloud(str(path))
+    assert "intensity" in tensor.point
+    np.testing.assert_array_equal(tensor.point["intensity"].numpy().ravel(), echo)
 
 
 def test_ply_mesh_takes_vertex_colours_from_the_texture(tmp_path: Path) -> None:

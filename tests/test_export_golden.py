@@ -59,7 +59,7 @@ GOLDEN_MESH: dict[tuple[str, bool], dict[str, str]] = {
     ("ply", True): {"golden.ply": "df8c6cc32e140706"},
     ("ply", False): {"golden.ply": "c2ca7ea85684d435"},
 }
-GOLDEN_CLOUD = {"golden.ply": "193a02bc6192601d"}
+GOLDEN_CLOUD = {"golden.ply": "9e32e6d2500e6ff1"}  # intensity as float (Open3D)
 
 
 def _digests(tables: dict[str, pa.Table], fmt: str) -> dict[str, str]:

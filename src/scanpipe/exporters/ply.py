@@ -161,8 +161,10 @@ def ply_cloud_pieces(cloud: CloudModel, provenance: Mapping[str, Any] | None = N
     ``provenance`` record in a header comment."""
     fields, properties, positions, comments = _positions(cloud.xyz, cloud.offset_m)
     if cloud.intensity is not None:
-        fields.append(("intensity", "<u2"))
-        properties.append("property ushort intensity")
+        # float, not ushort: Open3D's readers skip an integer scalar property (the echo's
+        # 0…65535 are exact in float32); CloudCompare and PCL (PointXYZI) read float
+        fields.append(("intensity", "<f4"))
+        properties.append("property float intensity")
     if cloud.colors is not None:
         fields += [(n, "u1") for n in ("red", "green", "blue")]
         properties += [f"property uchar {n}" for n in ("red", "green", "blue")]
