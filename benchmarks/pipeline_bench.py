@@ -278,9 +278,13 @@ from pathlib import Path
 import benchmarks.pipeline_bench as bench
 import scipy.ndimage, scipy.sparse.csgraph, open3d, cv2  # the stages' imports: before the base
 recording, workdir, to, overrides = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4]
-def status_mb(field):
+def status_mb(*fields):
+    # every field from one read: VmHWM and VmRSS of one moment (read apart, a background
+    # commit thread's allocation in between made the RSS "after" exceed the peak)
     with open("/proc/self/status") as status:
-        return next(int(l.split()[1]) / 1024 for l in status if l.startswith(field + ":"))
+        found = {l.split(":")[0]: int(l.split()[1]) / 1024 for l in status
+                 if l.split(":")[0] in fields}
+    return found[fields[0]] if len(fields) == 1 else tuple(found[f] for f in fields)
 def reset_peak():
     try:
         with open("/proc/self/clear_refs", "w") as refs:
@@ -294,11 +298,11 @@ stages, clock, so_far = {}, time.process_time(), base
 def on_stage(record):
     global clock, so_far
     now = time.process_time()
-    peak = status_mb("VmHWM")
+    peak, rss = status_mb("VmHWM", "VmRSS")
     so_far = max(so_far, peak)
     stages[record.stage] = {
         "cpu_s": round(now - clock, 3), "seconds": round(record.seconds, 3),
-        "peak_rss_mb": peak, "rss_after_mb": status_mb("VmRSS"), "peak_rss_mb_so_far": so_far}
+        "peak_rss_mb": peak, "rss_after_mb": rss, "peak_rss_mb_so_far": so_far}
     clock = now
     reset_peak()
 wall, cpu = time.perf_counter(), time.process_time()
