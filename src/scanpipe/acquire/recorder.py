@@ -485,6 +485,17 @@ class Recorder:
         """Host time for ``seconds`` of device time."""
         return seconds / self.options.speedup
 
+    def _wait_for_stream(self, when: str) -> None:
+        """Wait (phase "waiting for the scanner") until a profile arrives, within three head
+        turns and a reply's time; else DeviceError "scanner: no profiles {when}"."""
+        assert self.scanner is not None
+        self.phase = "waiting for the scanner"
+        if not self.scanner.wait_for_profiles(self.clock_ns(), 1,
+                                              self._device_s(3.0 / self.rig.scanner.scan_hz)
+                                              + self.options.reply_timeout_s, self.stop_event):
+            self._check_stop()
+            raise DeviceError(f"scanner: no profiles {when}")
+
     def _targets(self, start: int) -> list[int]:
         assert self._end_count is not None
         return list(range(start, self._end_count + 1, self.step_count))
@@ -542,12 +553,7 @@ class Recorder:
             self.motor.set_rate(rate_hz)
         self._reconnect_scanner()
         self._stream_since_ns = self.clock_ns()
-        self.phase = "waiting for the scanner"
-        if not self.scanner.wait_for_profiles(self.clock_ns(), 1,
-                                              self._device_s(3.0 / self.rig.scanner.scan_hz)
-                                              + self.options.reply_timeout_s, self.stop_event):
-            self._check_stop()
-            raise DeviceError("scanner: no profiles after reconnecting")
+        self._wait_for_stream("after reconnecting")
         turned_blind = state.step_count - (back_to if back_to is not None else state.step_count)
         self.sink.event("scan_resumed",
                         f"scan resumed at count {back_to if back_to is not None else '?'} "
@@ -668,12 +674,7 @@ class Recorder:
         self.positions_total = (end - start) // self.step_count + 1
         self.motor.set_rate(rate)
         # Wait for the stream to run before turning, so the scan starts at the start position.
-        self.phase = "waiting for the scanner"
-        if not self.scanner.wait_for_profiles(self.clock_ns(), 1,
-                                              self._device_s(3.0 / self.rig.scanner.scan_hz)
-                                              + self.options.reply_timeout_s, self.stop_event):
-            self._check_stop()
-            raise DeviceError("scanner: no profiles before the continuous turn")
+        self._wait_for_stream("before the continuous turn")
         self._stream_since_ns = self.clock_ns()
         while True:
             self._check_stop()
