@@ -5,7 +5,10 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 from acquire_helpers import rig_with_cameras, small_camera, write_video
 
@@ -89,3 +92,102 @@ def test_start_time_forms() -> None:
 
     with pytest.raises(UsageError, match="not a time"):
         parse_start_time("yesterday")
+
+
+# Videos written by ffmpeg (tests/fixtures/README.md): 64 × 48 px, grey with a white 16 × 12 box
+# in the top-left corner of the picture as stored, 10 frames at 10 fps unless said.
+VIDEOS = Path(__file__).parent / "fixtures" / "video"
+
+
+def _frames(rec: Path, camera: str = "phone") -> list[Any]:
+    return [i for i in read_recording(rec).images if i.camera_id == camera]
+
+
+def _pixels(image: Any) -> Any:
+    return cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+
+
+def test_rotation_tag_keeps_the_sensors_pixels_and_says_so(
+        tmp_path: Path, cli: Callable[..., object]) -> None:
+    """A phone held upright stores landscape pixels with a display rotation: OpenCV turned them
+    into portrait frames, which no landscape intrinsics fit (and a half turn, same size, would
+    have been textured upside down without a word)."""
+    rec = _recording(tmp_path / "rec.mcap")
+    result = cli("import-video", VIDEOS / "rotated90.mp4", "--into", rec, "--start-time",
+                 str(T0 / 1e9), "--camera", "phone")
+    assert result.code == 0, result.err  # type: ignore[attr-defined]
+    frames = _frames(rec)
+    assert len(frames) == 10
+    first = _pixels(frames[0])
+    assert first.shape == (48, 64)
+    assert first[:12, :16].mean() > 240 and first[-12:, -16:].mean() < 160  # box top-left
+    assert "display rotation tag" in result.err  # type: ignore[attr-defined]
+    assert "kept as the sensor stored them (64×48 px)" in result.err  # type: ignore[attr-defined]
+
+
+def test_variable_frame_rate_uses_the_containers_times(
+        tmp_path: Path, cli: Callable[..., object]) -> None:
+    rec = _recording(tmp_path / "rec.mcap")
+    result = cli("import-video", VIDEOS / "vfr.mkv", "--into", rec, "--start-time",
+                 str(T0 / 1e9), "--camera", "phone")
+    assert result.code == 0, result.err  # type: ignore[attr-defined]
+    times_s = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.9, 1.1, 1.3]  # not index / fps
+    assert [i.log_time_ns for i in _frames(rec)] == pytest.approx(
+        [T0 + round(t * 1e9) for t in times_s], abs=1_000_000)
+    assert "warning" not in result.err  # type: ignore[attr-defined]
+
+
+def test_ten_bit_video_is_read(tmp_path: Path, cli: Callable[..., object]) -> None:
+    rec = _recording(tmp_path / "rec.mcap")
+    result = cli("import-video", VIDEOS / "yuv420p10.mp4", "--into", rec, "--start-time",
+                 str(T0 / 1e9), "--camera", "phone")
+    assert result.code == 0, result.err  # type: ignore[attr-defined]
+    first = _pixels(_frames(rec)[0])
+    assert first[:12, :16].mean() > 240 and 100 < first[-12:, -16:].mean() < 160
+
+
+def test_non_square_pixels_are_warned(tmp_path: Path, cli: Callable[..., object]) -> None:
+    rec = _recording(tmp_path / "rec.mcap")
+    result = cli("import-video", VIDEOS / "sar4to3.mp4", "--into", rec, "--start-time",
+                 str(T0 / 1e9), "--camera", "phone", "--json")
+    assert result.code == 0, result.err  # type: ignore[attr-defined]
+    assert "not square (sample aspect ratio 4:3)" in result.err  # type: ignore[attr-defined]
+    assert "85×48 picture players show" in result.err  # type: ignore[attr-defined]
+    assert len(_frames(rec)) == 10
+
+
+def test_cut_video_is_warned_with_what_was_decoded(
+        tmp_path: Path, cli: Callable[..., object]) -> None:
+    """A 3 s MP4 (index at its start) cut in half: the frames before the cut are imported, and
+    the line says the file ends before the duration its container announces."""
+    rec = _recording(tmp_path / "rec.mcap")
+    result = cli("import-video", VIDEOS / "cut.mp4", "--into", rec, "--start-time",
+                 str(T0 / 1e9), "--camera", "phone")
+    assert result.code == 0, result.err  # type: ignore[attr-defined]
+    count = len(_frames(rec))
+    assert 0 < count < 30
+    assert f"{count} frames could be decoded" in result.err  # type: ignore[attr-defined]
+    assert "of the 3.00 s (30 frames) its container announces" in result.err  # type: ignore[attr-defined]
+
+
+def test_audio_only_file_is_refused_and_the_recording_kept(
+        tmp_path: Path, cli: Callable[..., object]) -> None:
+    rec = _recording(tmp_path / "rec.mcap")
+    digest = _digest(rec)
+    result = cli("import-video", VIDEOS / "audio_only.m4a", "--into", rec, "--start-time",
+                 "recording")
+    assert result.code == 1  # type: ignore[attr-defined]
+    assert "audio_only.m4a" in result.err and "no video stream" in result.err  # type: ignore[attr-defined]
+    assert result.err.count("\n") == 1  # type: ignore[attr-defined]
+    assert _digest(rec) == digest
+
+
+def test_frames_the_rig_camera_cannot_texture_are_warned(
+        tmp_path: Path, cli: Callable[..., object]) -> None:
+    """A 16:9 video into a 4:3 camera: texture would refuse it; import says so at once."""
+    rec = _recording(tmp_path / "rec.mcap")
+    video = write_video(tmp_path / "wide.avi", frames=3, size=(64, 36))
+    result = cli("import-video", video, "--into", rec, "--start-time", "recording",
+                 "--camera", "phone")
+    assert result.code == 0, result.err  # type: ignore[attr-defined]
+    assert "frames are 64×36 px, camera 'phone' of the recording's rig is 64×48" in result.err  # type: ignore[attr-defined]

@@ -6,8 +6,15 @@ attachments) plus the video's frames on ``/camera/<id>/image`` merged in time or
 it over the original only when everything succeeded: on any error the original is untouched.
 
 Frame times: ``start_time_ns + offset_s + the frame's position in the video`` (OpenCV's
-``CAP_PROP_POS_MSEC``, which follows variable frame rates; ``index / fps`` when the container
-gives none).
+``CAP_PROP_POS_MSEC``: the container's presentation time of each frame, so variable frame rates
+and edit lists are followed; ``index / fps`` when the container gives none).
+
+Frames are taken as the camera's sensor stored them: a container's display rotation (a phone
+held upright records landscape pixels and a rotation tag) is not applied, as calibrate-camera
+ignores a JPEG's EXIF orientation, because intrinsics belong to the sensor's pixel grid (a
+camera's roll is part of its pose). What a container says that the frames alone do not show —
+a rotation tag, non-square pixels, fewer frames decodable than it announces (a cut file), a size
+the rig's camera does not have — is in the report's ``warnings``.
 
 A rough offset (within about a second) is enough: :func:`refine_offset` finds the exact one
 before the frames are written, by aligning the scan's depth edges with the video's image edges
@@ -30,8 +37,8 @@ import numpy as np
 
 from scanpipe.artifacts import atomic_path
 from scanpipe.errors import DeviceError, RecordingError, StageError, UsageError
-from scanpipe.images import MAX_FRAME_PX, check_pixels, encode_jpeg
-from scanpipe.rig import rig_from_table
+from scanpipe.images import MAX_FRAME_PX, check_pixels, encode_jpeg, image_size
+from scanpipe.rig import CameraConfig, rig_from_table
 
 #: Everything mcap's stream reader raises on a damaged file (see shared notes).
 _MCAP_DAMAGE: tuple[type[BaseException], ...] = (ValueError, KeyError, IndexError,
@@ -76,13 +83,60 @@ def open_video(video: Path) -> cv2.VideoCapture:
         raise UsageError(f"{video}: video file not found")
     capture = cv2.VideoCapture(str(video))
     if not capture.isOpened():
-        raise DeviceError(f"{video}: OpenCV cannot open this video (unknown container or codec)")
+        raise DeviceError(f"{video}: OpenCV cannot open this video (unknown container or codec, "
+                          "or no video stream: an audio-only file)")
+    # The sensor's pixels as stored: OpenCV would turn them by the container's display rotation.
+    capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
     return capture
 
 
-def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90
+def container_warnings(capture: Any, video: Path) -> list[str]:
+    """What the container says about the picture that the decoded frames do not show: a display
+    rotation (not applied: the frames stay as the sensor stored them) and non-square pixels."""
+    warnings = []
+    width = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH) or 0)
+    height = int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT) or 0)
+    rotation = round(float(capture.get(cv2.CAP_PROP_ORIENTATION_META) or 0.0)) % 360
+    if rotation:
+        turn = "a half turn" if rotation == 180 else "a quarter turn"
+        warnings.append(
+            f"{video}: its container asks players to show the picture turned by {turn} (a "
+            f"display rotation tag, as a phone writes when held otherwise than level); the "
+            f"frames are kept as the sensor stored them ({width}×{height} px), the grid the "
+            "camera's intrinsics are for: the camera's roll belongs in its pose in the rig")
+    sar_num = float(capture.get(cv2.CAP_PROP_SAR_NUM) or 0.0)
+    sar_den = float(capture.get(cv2.CAP_PROP_SAR_DEN) or 0.0)
+    if sar_num > 0 and sar_den > 0 and abs(sar_num / sar_den - 1.0) > 1e-3:
+        warnings.append(
+            f"{video}: its pixels are not square (sample aspect ratio {sar_num:g}:{sar_den:g}); "
+            f"the frames are kept as stored ({width}×{height} px): the camera's fx and fy must "
+            "be for these pixels (calibrate-camera on frames of this video), not for the "
+            f"{round(width * sar_num / sar_den)}×{height} picture players show")
+    return warnings
+
+
+def cut_warning(video: Path, frames: int, last_offset_ns: int, frame_count: float,
+                fps: float) -> str | None:
+    """A warning when the frames decoded end well before the duration the container announces
+    (``frame_count / fps``): a file cut short (a phone's recording stopped by a full card or a
+    crash) or damaged mid-way; None when they reach it (within two frames or 2 %)."""
+    if frame_count <= 0 or fps <= 0 or frames == 0:
+        return None
+    announced_s = frame_count / fps
+    decoded_s = last_offset_ns / 1e9 + 1.0 / fps
+    if announced_s - decoded_s <= max(2.0 / fps, 0.02 * announced_s):
+        return None
+    return (f"{video}: {frames} frames could be decoded, up to {decoded_s:.2f} s of the "
+            f"{announced_s:.2f} s ({frame_count:.0f} frames) its container announces: the file "
+            "is cut short or damaged; the frames after that are missing")
+
+
+def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90,
+                 warnings: list[str] | None = None
                  ) -> Generator[tuple[int, bytes, int], None, None]:
-    """``(time_ns, jpeg, index)`` for every frame of a video file, in order."""
+    """``(time_ns, jpeg, index)`` for every frame of a video file, in order, as the sensor
+    stored it (no display rotation); what the container says that the frames do not show goes
+    into ``warnings`` (:func:`container_warnings`, and :func:`cut_warning` once all are read)."""
     capture = open_video(video)
     try:
         # The container's size, before any frame is decoded (0 when it does not say).
@@ -91,11 +145,18 @@ def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90
         if width > 0 and height > 0:
             check_pixels(width, height, str(video), MAX_FRAME_PX, UsageError)
         fps = capture.get(cv2.CAP_PROP_FPS) or 0.0
+        frame_count = float(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)
+        if warnings is not None:
+            warnings.extend(container_warnings(capture, video))
         index = 0
         last_ns = -1
+        offset_ns = 0
         while True:
             ok, image = capture.read()
             if not ok or image is None:
+                if warnings is not None:
+                    cut = cut_warning(video, index, offset_ns, frame_count, fps)
+                    warnings.extend([cut] if cut else [])
                 break
             # a stream may change size mid-way: every frame is held to the limit
             check_pixels(image.shape[1], image.shape[0], f"{video}: frame {index}",
@@ -244,9 +305,34 @@ def recording_start_ns(path: Path) -> int | None:
     return min(times) if times else None
 
 
+def frame_size_warning(video: Path, width: int, height: int, camera: CameraConfig,
+                       rotated: bool) -> str | None:
+    """A warning when frames of ``width`` × ``height`` cannot be textured with ``camera`` (a
+    different aspect ratio: :func:`scanpipe.texturing.frames.camera_for_size` refuses them)."""
+    from scanpipe.texturing.frames import camera_for_size
+
+    try:
+        camera_for_size(camera, width, height)
+    except StageError:
+        pass
+    else:
+        return None
+    turned = ("; its frames are stored turned a quarter turn from the rig's camera (the "
+              "display rotation tag is not applied): calibrate the camera on frames as stored"
+              if rotated and abs(width / height - camera.height / camera.width) < 0.01 else "")
+    return (f"{video}: frames are {width}×{height} px, camera {camera.id!r} of the recording's "
+            f"rig is {camera.width}×{camera.height} (a different aspect ratio): texture will "
+            f"refuse them unless given a rig with this camera calibrated at {width}×{height} "
+            f"(scanpipe calibrate-camera, then texture --rig){turned}")
+
+
 def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
-                 jpeg_quality: int = 90) -> dict[str, Any]:
-    """Rewrite ``recording`` with the frames of ``video`` added as ``camera_id``; a report."""
+                 jpeg_quality: int = 90, camera: CameraConfig | None = None) -> dict[str, Any]:
+    """Rewrite ``recording`` with the frames of ``video`` added as ``camera_id``; a report.
+
+    ``camera`` (the rig's ``camera_id``) is checked against the frames' size: a warning when
+    texture would refuse them. The report's ``warnings`` hold that and what the container says
+    that the frames do not show (:func:`video_frames`)."""
     from mcap.records import Attachment, Channel, DataEnd, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
     from mcap.writer import CompressionType
@@ -258,14 +344,20 @@ def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
     if not recording.is_file():
         raise RecordingError(f"{recording}: recording not found")
     topic = camera_topic(camera_id)
-    frames = video_frames(video, start_ns, jpeg_quality)
+    warnings: list[str] = []
+    frames = video_frames(video, start_ns, jpeg_quality, warnings)
     pending = next(frames, None)
     if pending is None:
         raise DeviceError(f"{video}: no frames could be read")
     report: dict[str, Any] = {"video": str(video), "recording": str(recording),
                               "camera_id": camera_id, "topic": topic, "frames": 0,
                               "first_time_ns": pending[0], "last_time_ns": pending[0],
-                              "original_messages": 0}
+                              "original_messages": 0, "warnings": warnings}
+    size = image_size(pending[1])
+    if camera is not None and size is not None:
+        mismatch = frame_size_warning(video, *size, camera,
+                                      any("display rotation" in w for w in warnings))
+        warnings.extend([mismatch] if mismatch else [])
     try:
         with atomic_path(recording) as tmp, recording.open("rb") as source, \
                 tmp.open("wb") as target:

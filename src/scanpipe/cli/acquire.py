@@ -20,6 +20,7 @@ from scanpipe.cli.common import (
     live_taps,
     print_error,
     print_json,
+    print_warnings,
     take_alias,
 )
 from scanpipe.errors import UsageError
@@ -224,7 +225,9 @@ def import_video(
 
         refined = refine_offset(video, into, start + round(offset * 1e9), camera, window)
         offset += refined["offset_s"]
-    report = run_import(video, into, start + round(offset * 1e9), camera, quality)
+    report = run_import(video, into, start + round(offset * 1e9), camera, quality,
+                        rig.camera(camera))
+    print_warnings("import-video", report)
     if refined is not None:
         report["offset_s"] = offset
         report["refined"] = refined
