@@ -147,3 +147,30 @@ def test_mixed_image_sizes_are_refused() -> None:
                   BOARD, SQUARE_M)
     with pytest.raises(StageError, match="found in 0 of 1"):
         calibrate([("a", np.zeros((48, 64), np.uint8))], BOARD, SQUARE_M)
+
+
+def test_exif_orientation_is_not_applied(cli, board_images: list[Path], tmp_path: Path) -> None:
+    """A phone turned between shots stores the sensor's pixels with an EXIF orientation tag.
+    Applied, a half turn (3) keeps the size and mirrors the principal point, a quarter turn (6,
+    8) makes a portrait image: the lens must be fitted on the pixels as stored."""
+    from PIL import Image
+
+    paths = []
+    for k, png in enumerate(board_images):
+        exif = Image.Exif()
+        exif[0x0112] = (1, 3, 6, 8)[k % 4]
+        path = tmp_path / f"{png.stem}.jpg"
+        with Image.open(png) as image:
+            image.save(path, quality=97, exif=exif)
+        paths.append(path)
+    rig_path = tmp_path / "rig.toml"
+    rig_path.write_text(rig_to_toml(default_rig()))
+    result = cli("calibrate-camera", *paths, "--rig", rig_path, "--camera", "cam1")
+    assert result.code == 0, result.err
+    cam1 = load_rig(rig_path).camera("cam1")
+    assert (cam1.width, cam1.height) == (640, 480)
+    assert cam1.cx == pytest.approx(TRUE.cx, abs=3.0)
+    assert cam1.cy == pytest.approx(TRUE.cy, abs=3.0)
+    assert cam1.fx == pytest.approx(TRUE.fx, rel=0.01)
+    assert "7 of 10 images carry an EXIF orientation tag" in result.err
+    assert "not applied" in result.err

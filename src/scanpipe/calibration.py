@@ -121,12 +121,46 @@ def calibrate(images: Sequence[tuple[str, NDArray[np.uint8]]], board: tuple[int,
     )
 
 
-def read_images(paths: Sequence[Path]) -> list[tuple[str, NDArray[np.uint8]]]:
-    """Grey images from files; :class:`UsageError` naming a file that is missing, unreadable or
-    larger than :data:`~scanpipe.images.MAX_FRAME_PX` (checked from its header, before
-    decoding: calibration images come from the camera that records the frames)."""
-    return [(str(path), read_image_file(path, MAX_FRAME_PX, cv2.IMREAD_GRAYSCALE, UsageError))
-            for path in paths]
+#: EXIF's Orientation tag (0x0112): how a viewer should turn the stored pixels.
+_EXIF_ORIENTATION = 0x0112
+
+
+def exif_orientation(path: Path) -> int:
+    """A JPEG's (or TIFF's) EXIF orientation, 1 (as stored) when it has none or is unreadable."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            value = image.getexif().get(_EXIF_ORIENTATION, 1)
+    except (OSError, ValueError, SyntaxError):  # Pillow's errors for odd files; decode says
+        return 1
+    return int(value) if isinstance(value, int) and 1 <= value <= 8 else 1
+
+
+def read_images(paths: Sequence[Path], warnings: list[str] | None = None
+                ) -> list[tuple[str, NDArray[np.uint8]]]:
+    """Grey images from files as the sensor stored them; :class:`UsageError` naming a file that
+    is missing, unreadable or larger than :data:`~scanpipe.images.MAX_FRAME_PX` (checked from
+    its header, before decoding: calibration images come from the camera that records the
+    frames).
+
+    A JPEG's EXIF orientation is not applied: intrinsics belong to the sensor's pixel grid,
+    and a phone turned between shots would otherwise give images whose principal points differ
+    (a half turn keeps the size and averaged two mirrored centres without a word). Frames are
+    read the same way (``import-video`` ignores a video's rotation tag). Images with an
+    orientation tag are named in ``warnings``."""
+    images = [(str(path), read_image_file(path, MAX_FRAME_PX,
+                                          cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION,
+                                          UsageError))
+              for path in paths]
+    turned = [path.name for path in paths if exif_orientation(path) != 1]
+    if turned and warnings is not None:
+        warnings.append(
+            f"{len(turned)} of {len(paths)} images carry an EXIF orientation tag (the camera "
+            f"was turned: {', '.join(turned[:5])}{' …' if len(turned) > 5 else ''}); it is "
+            "not applied: the intrinsics are for the sensor's pixels as stored, the way "
+            "the frames are recorded")
+    return images
 
 
 def apply_calibration(rig_path: Path, camera_id: str, calibration: Calibration) -> Rig:

@@ -97,10 +97,14 @@ def calibrate_camera(
     check_input_file(rig_path, "--rig")  # rewritten in place (temporary name, then rename)
     check_not_input(rig_path, images, "--rig")
     load_rig(rig_path).camera(camera)  # fail before the slow part on a bad rig or camera
-    result = calibrate(read_images(images), pattern, square_m, fix_k3=not free_k3)
+    warnings: list[str] = []
+    result = calibrate(read_images(images, warnings), pattern, square_m, fix_k3=not free_k3)
+    for warning in warnings:
+        sys.stderr.write(f"warning: calibrate-camera: {warning}\n")
     apply_calibration(rig_path, camera, result)
     if as_json:
-        print_json({"rig": str(rig_path), "camera": camera, **result.to_json()})
+        print_json({"rig": str(rig_path), "camera": camera, **result.to_json(),
+                    "warnings": warnings})
         return
     k1, k2, p1, p2, k3 = result.distortion
     typer.echo(
