@@ -662,18 +662,66 @@ def _camera_info(reader: Any, topics: Sequence[Topic], image_topic: str) -> Any 
     return None
 
 
-def _camera(camera_id: str, info: Any | None, size: tuple[int, int] | None,
+#: CameraInfo distortion models that are OpenCV's pinhole (k1 k2 p1 p2 k3 [k4 k5 k6]).
+_PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "")
+
+
+def _rectified(image_topic: str) -> bool:
+    """An image topic that carries rectified images (image_proc's ``image_rect``,
+    ``image_rect_color``, also behind ``/compressed``): no distortion left, intrinsics in P."""
+    return re.search(r"(^|[_/])rect", "/".join(image_topic.split("/")[-2:])) is not None
+
+
+def camera_intrinsics(info: Any, image_topic: str, bag: Path) -> dict[str, Any] | None:
+    """A rig camera's ``width height fx fy cx cy distortion`` from a CameraInfo, or None when
+    it holds no calibration (K zero). :class:`BagError` for a lens scanpipe's OpenCV pinhole
+    cannot describe (fisheye ``equidistant``, a rational model using k4…k6, an unknown model).
+
+    A rectified image topic takes P (its undistorted projection) with zero distortion: K and D
+    describe the raw image, and would distort a rectified one a second time. The ROI (in
+    full-resolution, unbinned pixels) and the binning (ROS's image_geometry applies them in
+    that order) are applied, as the images published have that size."""
+    k = [float(v) for v in getattr(info, "k", getattr(info, "K", []))]
+    if len(k) != 9 or not k[0] > 0 or not int(info.width):
+        return None
+    d = [float(v) for v in getattr(info, "d", getattr(info, "D", []))]
+    model = str(info.distortion_model).strip().lower()
+    width, height = int(info.width), int(info.height)
+    if _rectified(image_topic):
+        p = [float(v) for v in getattr(info, "p", getattr(info, "P", []))]
+        fx, fy, cx, cy = (p[0], p[5], p[2], p[6]) if len(p) == 12 and p[0] > 0 else (
+            k[0], k[4], k[2], k[5])
+        distortion = [0.0] * 5
+    else:
+        fx, fy, cx, cy = k[0], k[4], k[2], k[5]
+        extra = [v for v in d[5:] if v != 0.0]
+        if (model not in _PINHOLE_MODELS and any(d)) or extra:
+            raise BagError(
+                f"{bag}: {image_topic}: its CameraInfo's lens model is {model or '(none)'!r} "
+                f"with distortion {d}; scanpipe's cameras are OpenCV's pinhole with k1 k2 p1 "
+                "p2 k3 only (plumb_bob, or rational_polynomial with k4…k6 zero): pass --rig "
+                "with this camera calibrated in that model (scanpipe calibrate-camera), import "
+                "its rectified topic (image_rect), or leave --image out")
+        distortion = (d + [0.0] * 5)[:5]
+    roi = getattr(info, "roi", None)
+    if roi is not None and int(roi.width) > 0 and int(roi.height) > 0:
+        cx, cy = cx - int(roi.x_offset), cy - int(roi.y_offset)
+        width, height = int(roi.width), int(roi.height)
+    bx = max(int(getattr(info, "binning_x", 0) or 0), 1)
+    by = max(int(getattr(info, "binning_y", 0) or 0), 1)
+    return {"width": width // bx, "height": height // by, "fx": fx / bx, "fy": fy / by,
+            "cx": (cx + 0.5) / bx - 0.5, "cy": (cy + 0.5) / by - 0.5,
+            "distortion": distortion}
+
+
+def _camera(camera_id: str, intrinsics: dict[str, Any] | None, size: tuple[int, int] | None,
             base: CameraConfig) -> CameraConfig:
-    """A camera of the imported rig: intrinsics from CameraInfo when present."""
+    """A camera of the imported rig: intrinsics from CameraInfo when present, else a guess."""
     data = base.model_dump()
     data["id"] = camera_id
     data["source"] = "bag"
-    # ROS 2 spells the matrices k and d, ROS 1 (a .bag's own definitions) K and D.
-    k = [float(v) for v in getattr(info, "k", getattr(info, "K", []))] if info else []
-    if info is not None and int(info.width) and len(k) == 9 and k[0] > 0:
-        d = [float(v) for v in getattr(info, "d", getattr(info, "D", []))][:5]
-        data.update(width=int(info.width), height=int(info.height), fx=k[0], fy=k[4],
-                    cx=k[2], cy=k[5], distortion=d + [0.0] * (5 - len(d)))
+    if intrinsics is not None:
+        data.update(intrinsics)
     elif size is not None:
         w, h = size
         focal = 0.5 * w / math.tan(math.radians(30.0))  # 60° horizontal: a guess, say so
@@ -835,11 +883,18 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
                 size = image_size(encoded[0])
             content.images.append((camera_id, _stamp_ns(msg.header, log_time), encoded[0],
                                    encoded[1], _frame(msg.header.frame_id)))
+        if given is not None and any(c.id == camera_id for c in given.cameras):
+            continue  # --rig's own camera: its calibration, not the bag's
         info = _camera_info(reader, topics, name)
+        intrinsics = None if info is None else camera_intrinsics(info, name, bag)
         if info is None:
             content.warnings.append(f"{name}: no CameraInfo beside it: intrinsics guessed "
                                     "(60° horizontal field of view); pass --rig")
-        cameras.append(_camera(camera_id, info, size, default_rig().cameras[0]))
+        elif intrinsics is None:
+            content.warnings.append(f"{name}: its CameraInfo holds no calibration (K is "
+                                    "zero: an uncalibrated camera): intrinsics guessed (60° "
+                                    "horizontal field of view); pass --rig")
+        cameras.append(_camera(camera_id, intrinsics, size, default_rig().cameras[0]))
     for name, n in skipped.items():
         content.warnings.append(f"{name}: {n} images in an encoding not taken (only "
                                 "JPEG/PNG CompressedImage and rgb8/bgr8/mono8 Image)")

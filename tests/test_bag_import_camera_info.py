@@ -1,0 +1,123 @@
+"""``import-bag``: a camera's intrinsics from the CameraInfo beside its image topic, as ROS's
+image_geometry reads them: the lens model, rectified topics (P, no distortion), ROI and
+binning, an uncalibrated camera (K zero). A lens scanpipe's pinhole cannot describe is refused
+in one line instead of being read as another lens."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+from test_bag_import import _header, turntable_messages, write_bag
+
+from scanpipe.recording.reader import read_recording
+
+K = [500.0, 0.0, 320.0, 0.0, 502.0, 240.0, 0.0, 0.0, 1.0]
+P = [480.0, 0.0, 316.0, 0.0, 0.0, 481.0, 244.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+
+
+def camera_bag(tmp_path: Path, topic: str, width: int = 640, height: int = 480,
+               **info: Any) -> Path:
+    """A turntable bag with 2 JPEG images on ``topic`` (``width`` × ``height``) and a
+    CameraInfo (640 × 480, K, P, plumb_bob D = 0 unless ``info`` says) beside it."""
+    ok, jpeg = cv2.imencode(".jpg", np.zeros((height, width, 3), np.uint8))
+    assert ok
+
+    def messages(ts: Any) -> list[Any]:
+        names = [f[0] for f in ts.fielddefs["sensor_msgs/msg/CameraInfo"][1]]
+        lower = "k" in names
+        out = turntable_messages(ts, "joint")
+        for i in range(2):
+            out.append((topic, "sensor_msgs/msg/CompressedImage", 0.5 * i,
+                        ts.types["sensor_msgs/msg/CompressedImage"](
+                            header=_header(ts, 0.5 * i, "cam"), format="jpeg",
+                            data=np.frombuffer(jpeg.tobytes(), np.uint8))))
+        roi = info.pop("roi", (0, 0, 0, 0))
+        values: dict[str, Any] = {
+            "header": _header(ts, 0.0, "cam"), "height": 480, "width": 640,
+            "distortion_model": "plumb_bob", "binning_x": 0, "binning_y": 0,
+            "roi": ts.types["sensor_msgs/msg/RegionOfInterest"](
+                x_offset=roi[0], y_offset=roi[1], width=roi[2], height=roi[3],
+                do_rectify=False)}
+        values.update(info)
+        for key, default in (("d", np.zeros(5)), ("k", K), ("r", np.eye(3).ravel()),
+                             ("p", P)):
+            values[key if lower else key.upper()] = np.asarray(values.pop(key, default),
+                                                               np.float64)
+        base = topic.rsplit("/", 2)[0] if topic.endswith("/compressed") else \
+            topic.rsplit("/", 1)[0]
+        out.append((f"{base}/camera_info", "sensor_msgs/msg/CameraInfo", 0.0,
+                    ts.types["sensor_msgs/msg/CameraInfo"](**values)))
+        return sorted(out, key=lambda m: m[2])
+
+    return write_bag(tmp_path, "ros1", messages)
+
+
+def _camera(cli: Any, bag: Path, topic: str, out: Path) -> tuple[Any, Any]:
+    result = cli("import-bag", bag, "--out", out, "--image", topic)
+    assert result.code == 0, result.err
+    camera_id = topic.strip("/").replace("/", "_")
+    return read_recording(out).rig().camera(camera_id), result
+
+
+def test_raw_topic_takes_k_and_d(tmp_path: Path, cli: Any) -> None:
+    d = [-0.2, 0.05, 0.001, -0.002, 0.01]
+    bag = camera_bag(tmp_path, "/cam/image_raw/compressed", d=d)
+    cam, _ = _camera(cli, bag, "/cam/image_raw/compressed", tmp_path / "r.mcap")
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (500.0, 502.0, 320.0, 240.0)
+    assert list(cam.distortion) == pytest.approx(d)
+
+
+def test_rectified_topic_takes_p_without_distortion(tmp_path: Path, cli: Any) -> None:
+    """K and D describe the raw image: applied to image_rect they distorted it twice."""
+    bag = camera_bag(tmp_path, "/cam/image_rect_color/compressed",
+                     d=[-0.2, 0.05, 0.0, 0.0, 0.0])
+    cam, _ = _camera(cli, bag, "/cam/image_rect_color/compressed", tmp_path / "r.mcap")
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (480.0, 481.0, 316.0, 244.0)
+    assert list(cam.distortion) == [0.0] * 5
+
+
+def test_roi_and_binning_give_the_published_images_intrinsics(tmp_path: Path, cli: Any
+                                                              ) -> None:
+    bag = camera_bag(tmp_path, "/cam/image_raw/compressed", width=160, height=120,
+                     roi=(100, 40, 320, 240), binning_x=2, binning_y=2)
+    cam, _ = _camera(cli, bag, "/cam/image_raw/compressed", tmp_path / "r.mcap")
+    assert (cam.width, cam.height) == (160, 120)
+    assert (cam.fx, cam.fy) == (250.0, 251.0)
+    assert (cam.cx, cam.cy) == pytest.approx(((220 + 0.5) / 2 - 0.5, (200 + 0.5) / 2 - 0.5))
+
+
+def test_uncalibrated_camera_info_is_a_warned_guess(tmp_path: Path, cli: Any) -> None:
+    bag = camera_bag(tmp_path, "/cam/image_raw/compressed", k=np.zeros(9), p=np.zeros(12),
+                     distortion_model="")
+    cam, result = _camera(cli, bag, "/cam/image_raw/compressed", tmp_path / "r.mcap")
+    assert "holds no calibration (K is zero" in result.err
+    assert cam.width == 640 and cam.fx == pytest.approx(320 / np.tan(np.radians(30)))
+
+
+@pytest.mark.parametrize(("model", "d", "named"), [
+    ("equidistant", [0.1, -0.02, 0.003, -0.001], "'equidistant'"),
+    ("rational_polynomial", [-0.2, 0.05, 0.0, 0.0, 0.0, 0.3, 0.01, 0.0], "'rational_polynomial'"),
+])
+def test_lens_the_pinhole_cannot_describe_is_refused(tmp_path: Path, cli: Any, model: str,
+                                                     d: list[float], named: str) -> None:
+    """A fisheye's k1…k4 were read as k1 k2 p1 p2, a rational model's k4…k6 dropped: texture
+    would have projected through another lens without a word."""
+    bag = camera_bag(tmp_path, "/cam/image_raw/compressed", d=d, distortion_model=model)
+    out = tmp_path / "r.mcap"
+    result = cli("import-bag", bag, "--out", out, "--image", "/cam/image_raw/compressed")
+    assert result.code == 1, result.err
+    assert f"its CameraInfo's lens model is {named}" in result.err
+    assert "pass --rig" in result.err and result.err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_rational_model_with_zero_k4_to_k6_is_taken(tmp_path: Path, cli: Any) -> None:
+    d = [-0.2, 0.05, 0.001, 0.0, 0.01, 0.0, 0.0, 0.0]
+    bag = camera_bag(tmp_path, "/cam/image_raw/compressed", d=d,
+                     distortion_model="rational_polynomial")
+    cam, _ = _camera(cli, bag, "/cam/image_raw/compressed", tmp_path / "r.mcap")
+    assert list(cam.distortion) == pytest.approx(d[:5])
