@@ -43,6 +43,7 @@ import tempfile
 from collections import Counter, defaultdict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any
 
@@ -140,6 +141,77 @@ def _split_index(path: Path) -> tuple[int, str]:
     return (int(match.group(1)) if match else -1, path.name)
 
 
+#: Split parts of one ROS 1 recording follow each other: the next part's first message comes
+#: within this of the previous part's last (rosbag record switches files between two messages).
+_SPLIT_GAP_NS = 2_000_000_000
+
+
+def _ros1_span_ns(path: Path) -> tuple[int, int] | None:
+    """(first, last) message time of a ROS 1 bag from its index; None if it cannot be read."""
+    from rosbags.rosbag1 import Reader
+
+    try:
+        with Reader(path) as reader:
+            return int(reader.start_time), int(reader.end_time)
+    except Exception:  # rosbags raises several types for damaged files
+        return None
+
+
+def _split_parts(path: Path, warnings: list[str]) -> list[Path]:
+    """The parts of the split recording ``path`` belongs to, in order: ``NAME_0.bag``,
+    ``NAME_1.bag`` … (``rosbag record --split``), or rosbag2's ``NAME_0.db3`` / ``.mcap`` …
+    beside each other. Given one part, only that part's share of the scan was imported. A ROS 1
+    part is joined by the neighbours whose times continue it (two scans named ``scan_0.bag``,
+    ``scan_1.bag`` by hand are not one recording: the gap between them tells, and the part is
+    read alone, warned); rosbag2 writes a bag's parts into its own folder, so its siblings
+    are its parts. ``[path]`` when it is not a part."""
+    match = re.fullmatch(r"(.*)_(\d+)", path.stem)
+    kind = _kind(path) if path.is_file() else None
+    if match is None or kind is None:
+        return [path]
+    prefix, suffix = match.group(1), path.suffix
+    siblings = {}
+    for candidate in path.parent.glob(f"{glob_escape(prefix)}_*{glob_escape(suffix)}"):
+        number = re.fullmatch(rf"{re.escape(prefix)}_(\d+)", candidate.stem)
+        if number and candidate.is_file() and _kind(candidate) == kind:
+            siblings[int(number.group(1))] = candidate
+    own = int(match.group(2))
+    if len(siblings) < 2:
+        return [path]
+    run = [own]  # the consecutive numbers around the given part
+    while run[0] - 1 in siblings:
+        run.insert(0, run[0] - 1)
+    while run[-1] + 1 in siblings:
+        run.append(run[-1] + 1)
+    parts = [siblings[n] for n in run]
+    if kind == ".bag":
+        spans = [_ros1_span_ns(part) for part in parts]
+        start = end = run.index(own)
+        while start > 0 and _continues(spans[start - 1], spans[start]):
+            start -= 1
+        while end < len(parts) - 1 and _continues(spans[end], spans[end + 1]):
+            end += 1
+        if start == end:
+            warnings.append(
+                f"{path.name}: files named like parts of a split recording lie beside it "
+                f"({', '.join(p.name for p in parts if p != path)}), but their times do not "
+                "continue it: read alone")
+            return [path]
+        parts = parts[start:end + 1]
+    if len(parts) > 1:
+        warnings.append(f"{path.name}: one part of a split recording: read with its parts "
+                        f"{', '.join(p.name for p in parts)}")
+    return parts
+
+
+def _continues(before: tuple[int, int] | None, after: tuple[int, int] | None) -> bool:
+    """The bag with span ``after`` continues the one with span ``before`` (split parts)."""
+    if before is None or after is None:
+        return False
+    gap = after[0] - before[1]
+    return -_SPLIT_GAP_NS // 4 <= gap <= _SPLIT_GAP_NS
+
+
 def _mcap_complete(path: Path) -> bool:
     """An MCAP file that ends in its magic (a recorder killed mid-write leaves none)."""
     size = path.stat().st_size
@@ -165,7 +237,7 @@ def _storage_paths(path: Path, scratch: Path, warnings: list[str]) -> list[Path]
             warnings.append(f"{path}: no metadata.yaml (its recorder was stopped before writing "
                             f"it?): read from its storage files {', '.join(f.name for f in files)}")
     else:
-        files = [path]
+        files = _split_parts(path, warnings)
     kinds = {f: _kind(f) for f in files}
     if None in kinds.values():
         raise BagError(f"{path}: not a readable ROS bag (it starts with neither '#ROSBAG "
