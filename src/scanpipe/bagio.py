@@ -427,12 +427,16 @@ def _profile(msg: Any, msgtype: str, log_time_ns: int, index: int
         intensities = np.asarray(msg.intensities, np.float64)
     lo, hi = float(msg.range_min), float(msg.range_max)
     with np.errstate(invalid="ignore"):
-        no_return = ~np.isfinite(ranges) | (ranges < lo) | (ranges > hi)
+        # range_max itself is a no-return too: drivers that do not follow REP 117's +inf
+        # (LMS1xx's default, Gazebo's laser plugin) publish exactly range_max for no echo
+        at_max = ranges == np.float64(np.float32(hi))
+        no_return = ~np.isfinite(ranges) | (ranges < lo) | (ranges > hi) | at_max
     ranges = np.where(no_return, np.nan, ranges)
     start = _stamp_ns(msg.header, log_time_ns)
     n = ranges.size
     dt = float(msg.time_increment)
-    end = start + round(max(n - 1, 0) * dt * 1e9) if dt > 0 and math.isfinite(dt) else 0
+    # dt < 0: the beams were taken from the last to the first (ranges[0] last, at the stamp)
+    end = start + round(max(n - 1, 0) * dt * 1e9) if dt != 0 and math.isfinite(dt) else 0
     profile = schemas.Profile(
         device_time_ns=start, device_end_time_ns=end, frame=index,
         start_angle_deg=math.degrees(float(msg.angle_min)) + 90.0,
@@ -442,7 +446,8 @@ def _profile(msg: Any, msgtype: str, log_time_ns: int, index: int
                      if intensities.size == n else []))
     facts = {"samples": float(n), "step_deg": profile.step_deg,
              "angle_min_deg": math.degrees(float(msg.angle_min)),
-             "scan_time_s": float(msg.scan_time), "range_min_m": lo, "range_max_m": hi}
+             "scan_time_s": float(msg.scan_time), "range_min_m": lo, "range_max_m": hi,
+             "at_range_max": float(np.count_nonzero(at_max))}
     return (end or start), profile, facts
 
 
@@ -878,9 +883,11 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
     facts: dict[str, float] = {}
     frame_ids: Counter[str] = Counter()
     steps_seen: set[float] = set()
+    at_max = 0
     for _, log_time, msg in _messages(reader, [scan.name]):
         log_ns, profile, f = _profile(msg, scan.msgtype, log_time, len(content.profiles))
         facts = facts or f
+        at_max += int(f["at_range_max"])
         steps_seen.add(round(profile.step_deg, 9))
         frame_ids[_frame(msg.header.frame_id)] += 1
         content.profiles.append((log_ns, profile))
@@ -902,6 +909,11 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
                            f"{MAX_STEP_SPREAD:.0%} is taken as one step following the head's "
                            "speed): one scan must use one beam step")
         content.warnings.append(on_one_beam_grid(content.profiles, f"{scan.name}: "))
+    if at_max:
+        content.warnings.append(
+            f"{scan.name}: {at_max} ranges equal to range_max ({facts['range_max_m']:g} m) "
+            "taken as no return (drivers that do not publish REP 117's +inf, such as LMS1xx's "
+            "default and Gazebo's laser plugin, put range_max there)")
     _scale_fraction_intensities(content)
     if scan.msgtype == MULTI_ECHO:
         content.warnings.append(f"{scan.name}: MultiEchoLaserScan: the first echo of each "
