@@ -89,3 +89,24 @@ def test_negative_time_increment_places_each_beam_at_its_own_time(tmp_path: Path
     result = cli("run", out, "--workdir", tmp_path / "w", "--to", "assemble", "-q")
     assert result.code == 0, result.err
     check_against_truth(assembled(tmp_path / "w"), truth)
+
+
+def test_point_cloud_only_bag_is_refused_with_the_way_on(tmp_path: Path, cli: Any) -> None:
+    """laser_assembler's output: PointCloud2 of assembled scans, no LaserScan."""
+    def messages(ts: Any) -> list[Any]:
+        cloud = ts.types["sensor_msgs/msg/PointCloud2"]
+        field = ts.types["sensor_msgs/msg/PointField"]
+        fields = [field(name=n, offset=4 * i, datatype=7, count=1)
+                  for i, n in enumerate("xyz")]
+        return [("/assembled_cloud", "sensor_msgs/msg/PointCloud2", 0.1 * k, cloud(
+            header=_header(ts, 0.1 * k, "base"), height=1, width=2, fields=fields,
+            is_bigendian=False, point_step=12, row_step=24,
+            data=np.zeros(24, np.uint8), is_dense=True)) for k in range(3)]
+
+    bag = write_bag(tmp_path, "ros1", messages)
+    out = tmp_path / "rec.mcap"
+    result = cli("import-bag", bag, "--out", out)
+    assert result.code == 1
+    assert "found: /assembled_cloud (sensor_msgs/PointCloud2, 3)" in result.err
+    assert "use scanpipe import-points" in result.err and result.err.count("\n") == 1
+    assert not out.exists()

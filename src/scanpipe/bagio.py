@@ -67,6 +67,7 @@ TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 RAW_IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+POINT_CLOUD = "sensor_msgs/msg/PointCloud2"
 SCAN_TYPES = (LASER_SCAN, MULTI_ECHO)
 IMAGE_TYPES = (COMPRESSED_IMAGE, RAW_IMAGE)
 #: The platform turn per pulse the imported angles are written in (see the module docstring).
@@ -397,8 +398,13 @@ def choose_scan_topic(path: Path, topics: Sequence[Topic], requested: str | None
                            f"LaserScan; laser scan topics: {_listing(scans)}")
         return match[0]
     if not scans:
+        clouds = [t for t in topics if t.msgtype == POINT_CLOUD]
+        hint = ("; sensor_msgs/PointCloud2 is not taken (assembled or converted scans, "
+                "laser_assembler's: no beam grid to rebuild a profile from, usually in a moving "
+                "frame): export it to PCD/PLY with ROS tools and use scanpipe import-points"
+                if clouds else "")
         raise BagError(f"{path}: no laser scan (sensor_msgs/LaserScan or MultiEchoLaserScan) "
-                       f"in the bag; found: {_listing(topics)}")
+                       f"in the bag; found: {_listing(topics)}{hint}")
     if len(scans) > 1:
         raise BagError(f"{path}: {len(scans)} laser scan topics; choose one with --scan: "
                        f"{_listing(scans)}")
