@@ -191,3 +191,33 @@ def test_frames_the_rig_camera_cannot_texture_are_warned(
                  "--camera", "phone")
     assert result.code == 0, result.err  # type: ignore[attr-defined]
     assert "frames are 64×36 px, camera 'phone' of the recording's rig is 64×48" in result.err  # type: ignore[attr-defined]
+
+
+def test_unstitched_dual_fisheye_into_an_equirect_camera_is_warned(
+        tmp_path: Path, cli: Callable[..., object]) -> None:
+    """A 360° camera's raw video is 2:1 too (two fisheye discs): the size check passes it, and
+    texture would map the discs as a panorama."""
+    from scanpipe.rig import CameraConfig
+
+    rec = tmp_path / "rec.mcap"
+    pano = CameraConfig(id="pano", source="1", model="equirect", width=128, height=64, fps=10)
+    with RecordingWriter(rec, rig_with_cameras(pano), {"mode": "step"}) as writer:
+        for i in range(5):
+            writer.write_motor_state(T0 + i * 100_000_000, i, i, False, i * 1000)
+    discs = np.zeros((64, 128, 3), np.uint8)
+    for cx in (32, 96):
+        cv2.circle(discs, (cx, 32), 31, (150, 160, 170), -1)
+    stitched = np.tile(np.linspace(60, 200, 64, dtype=np.uint8)[:, None, None], (1, 128, 3))
+    for name, frame in (("raw.avi", discs), ("pano.avi", stitched)):
+        writer_ = cv2.VideoWriter(str(tmp_path / name), cv2.VideoWriter_fourcc(*"MJPG"), 10.0,
+                                  (128, 64))
+        for _ in range(3):
+            writer_.write(frame)
+        writer_.release()
+    raw = cli("import-video", tmp_path / "raw.avi", "--into", rec, "--start-time", "recording",
+              "--camera", "pano")
+    assert raw.code == 0, raw.err  # type: ignore[attr-defined]
+    assert "looks like two unstitched fisheye circles" in raw.err  # type: ignore[attr-defined]
+    pano_run = cli("import-video", tmp_path / "pano.avi", "--into", rec, "--start-time",
+                   "recording", "--camera", "pano")
+    assert pano_run.code == 0 and "warning" not in pano_run.err  # type: ignore[attr-defined]

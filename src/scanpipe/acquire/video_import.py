@@ -34,6 +34,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from scanpipe.artifacts import atomic_path
 from scanpipe.errors import DeviceError, RecordingError, StageError, UsageError
@@ -305,6 +306,23 @@ def recording_start_ns(path: Path) -> int | None:
     return min(times) if times else None
 
 
+def looks_dual_fisheye(grey: NDArray[np.uint8]) -> bool:
+    """A 2:1 frame that is two fisheye discs side by side (a 360° camera's raw, unstitched
+    video) rather than an equirectangular panorama: the corners of both square halves are
+    black and their centres are not. An equirectangular frame's corners are the poles, which
+    a scene (sky, ceiling, floor) does not leave black at eight places at once."""
+    height, width = grey.shape[:2]
+    half = width // 2
+    patch = max(height // 16, 1)
+    corners = [grey[y:y + patch, x:x + patch]
+               for x0 in (0, half) for x in (x0, x0 + half - patch)
+               for y in (0, height - patch)]
+    centres = [grey[height // 2 - patch:height // 2 + patch,
+                    x0 + half // 2 - patch:x0 + half // 2 + patch] for x0 in (0, half)]
+    return (max(int(c.max()) for c in corners) < 16
+            and min(float(c.mean()) for c in centres) > 40.0)
+
+
 def frame_size_warning(video: Path, width: int, height: int, camera: CameraConfig,
                        rotated: bool) -> str | None:
     """A warning when frames of ``width`` × ``height`` cannot be textured with ``camera`` (a
@@ -358,6 +376,14 @@ def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
         mismatch = frame_size_warning(video, *size, camera,
                                       any("display rotation" in w for w in warnings))
         warnings.extend([mismatch] if mismatch else [])
+        if camera.model == "equirect" and mismatch is None:
+            first = cv2.imdecode(np.frombuffer(pending[1], np.uint8), cv2.IMREAD_GRAYSCALE)
+            if first is not None and looks_dual_fisheye(first):
+                warnings.append(
+                    f"{video}: camera {camera.id!r} is equirect, but the first frame looks like "
+                    "two unstitched fisheye circles (black outside two discs: a 360° camera's "
+                    "raw video); texture would map it as an equirectangular panorama: stitch "
+                    "it to equirectangular with the camera's own software first")
     try:
         with atomic_path(recording) as tmp, recording.open("rb") as source, \
                 tmp.open("wb") as target:
