@@ -378,7 +378,7 @@ def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
         warnings.extend([mismatch] if mismatch else [])
         if camera.model == "equirect" and mismatch is None:
             first = cv2.imdecode(np.frombuffer(pending[1], np.uint8), cv2.IMREAD_GRAYSCALE)
-            if first is not None and looks_dual_fisheye(first):
+            if first is not None and looks_dual_fisheye(np.asarray(first, np.uint8)):
                 warnings.append(
                     f"{video}: camera {camera.id!r} is equirect, but the first frame looks like "
                     "two unstitched fisheye circles (black outside two discs: a 360° camera's "
