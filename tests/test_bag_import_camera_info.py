@@ -121,3 +121,29 @@ def test_rational_model_with_zero_k4_to_k6_is_taken(tmp_path: Path, cli: Any) ->
                      distortion_model="rational_polynomial")
     cam, _ = _camera(cli, bag, "/cam/image_raw/compressed", tmp_path / "r.mcap")
     assert list(cam.distortion) == pytest.approx(d[:5])
+
+
+@pytest.mark.parametrize("encoding", ["bgra8", "rgba8"])
+def test_four_channel_raw_images_are_taken(tmp_path: Path, cli: Any, encoding: str) -> None:
+    """ZED and Gazebo cameras publish bgra8 / rgba8: they were skipped (a count, no frames)."""
+    bgr = np.zeros((48, 64, 3), np.uint8)
+    bgr[:, :32] = (0, 0, 255)  # red left half
+    order = [0, 1, 2] if encoding == "bgra8" else [2, 1, 0]
+    pixels = np.concatenate([bgr[:, :, order], np.full((48, 64, 1), 255, np.uint8)], axis=2)
+
+    def messages(ts: Any) -> list[Any]:
+        out = turntable_messages(ts, "joint")
+        out.append(("/zed/image_raw", "sensor_msgs/msg/Image", 0.2, ts.types[
+            "sensor_msgs/msg/Image"](header=_header(ts, 0.2, "zed"), height=48, width=64,
+                                     encoding=encoding, is_bigendian=0, step=64 * 4,
+                                     data=pixels.ravel().copy())))
+        return sorted(out, key=lambda m: m[2])
+
+    bag = write_bag(tmp_path, "ros1", messages)
+    out = tmp_path / "r.mcap"
+    result = cli("import-bag", bag, "--out", out, "--image", "/zed/image_raw")
+    assert result.code == 0, result.err
+    images = read_recording(out).images
+    assert len(images) == 1
+    decoded = cv2.imdecode(np.frombuffer(images[0].data, np.uint8), cv2.IMREAD_COLOR)
+    assert tuple(decoded[0, 0]) == (0, 0, 255) and tuple(decoded[0, 63]) == (0, 0, 0)

@@ -720,14 +720,14 @@ def _image_bytes(msg: Any, msgtype: str) -> tuple[bytes, str] | None:
             return data, "png"
         return None
     encoding = str(msg.encoding).lower()
-    channels = {"rgb8": 3, "bgr8": 3, "mono8": 1}.get(encoding)
+    channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}.get(encoding)
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     raw = np.asarray(msg.data, np.uint8)
     if channels is None or step < width * channels or raw.size < height * step:
         return None
     pixels = raw[:height * step].reshape(height, step)[:, :width * channels]
-    image = pixels.reshape(height, width, channels) if channels == 3 else pixels
-    if encoding == "rgb8":
+    image = pixels.reshape(height, width, channels)[:, :, :3] if channels > 1 else pixels
+    if encoding.startswith("rgb"):
         image = image[:, :, ::-1]  # encode_png takes BGR
     return encode_png(np.ascontiguousarray(image)), "png"
 
@@ -987,7 +987,7 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
         cameras.append(_camera(camera_id, intrinsics, size, default_rig().cameras[0]))
     for name, n in skipped.items():
         content.warnings.append(f"{name}: {n} images in an encoding not taken (only "
-                                "JPEG/PNG CompressedImage and rgb8/bgr8/mono8 Image)")
+                                "JPEG/PNG CompressedImage and rgb8/bgr8/rgba8/bgra8/mono8 Image)")
 
     times = np.array([t for t, _ in content.profiles], np.int64)
     rate_hz = (1e9 / float(np.median(np.diff(np.sort(times)))) if times.size > 1
