@@ -147,3 +147,25 @@ def test_four_channel_raw_images_are_taken(tmp_path: Path, cli: Any, encoding: s
     assert len(images) == 1
     decoded = cv2.imdecode(np.frombuffer(images[0].data, np.uint8), cv2.IMREAD_COLOR)
     assert tuple(decoded[0, 0]) == (0, 0, 255) and tuple(decoded[0, 63]) == (0, 0, 0)
+
+
+def test_sixteen_bit_png_is_a_depth_image_not_a_frame(tmp_path: Path, cli: Any) -> None:
+    """A depth camera's compressed 16UC1 PNG on --image: OpenCV read its high bytes as a grey
+    picture, textured as if it were a colour frame."""
+    ok, depth = cv2.imencode(".png", np.full((48, 64), 1234, np.uint16))
+    assert ok
+
+    def messages(ts: Any) -> list[Any]:
+        out = turntable_messages(ts, "joint")
+        out.append(("/depth/image/compressed", "sensor_msgs/msg/CompressedImage", 0.2,
+                    ts.types["sensor_msgs/msg/CompressedImage"](
+                        header=_header(ts, 0.2, "depth"), format="16UC1; png",
+                        data=np.frombuffer(depth.tobytes(), np.uint8))))
+        return sorted(out, key=lambda m: m[2])
+
+    bag = write_bag(tmp_path, "ros1", messages)
+    out = tmp_path / "r.mcap"
+    result = cli("import-bag", bag, "--out", out, "--image", "/depth/image/compressed")
+    assert result.code == 0, result.err
+    assert not read_recording(out).images
+    assert "/depth/image/compressed: 1 images in an encoding not taken" in result.err

@@ -29,8 +29,9 @@ Read with ``rosbags`` (pure Python, no ROS install). What is taken (docs/import.
   (the paper's): the laser's +x horizontal along the platform's x, its +y pointing down, its
   scan plane holding the motor axis. ``--rig`` gives a calibrated rig instead (its motor step
   is replaced by :data:`PULSE_STEP_DEG`, the step the angles are written in).
-- **frames** from ``sensor_msgs/CompressedImage`` (JPEG and PNG kept as they are) and
-  ``sensor_msgs/Image`` (``rgb8``, ``bgr8``, ``mono8`` encoded to PNG); a ``CameraInfo`` beside
+- **frames** from ``sensor_msgs/CompressedImage`` (JPEG and 8-bit PNG kept as they are; a
+  16-bit PNG is a depth image, skipped) and ``sensor_msgs/Image`` (``rgb8``, ``bgr8``,
+  ``rgba8``, ``bgra8``, ``mono8`` encoded to PNG); a ``CameraInfo`` beside
   the image topic gives the camera's intrinsics (its pose stays the default: pass ``--rig``).
 """
 
@@ -717,7 +718,9 @@ def _image_bytes(msg: Any, msgtype: str) -> tuple[bytes, str] | None:
         if data[:3] == b"\xff\xd8\xff":
             return data, "jpeg"
         if data[:8] == b"\x89PNG\r\n\x1a\n":
-            return data, "png"
+            # 16 bits per sample (IHDR's bit depth): a depth image (compressed 16UC1), not a
+            # camera frame; OpenCV would read its high bytes as a grey picture
+            return (data, "png") if len(data) > 24 and data[24] <= 8 else None
         return None
     encoding = str(msg.encoding).lower()
     channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}.get(encoding)
@@ -987,7 +990,7 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
         cameras.append(_camera(camera_id, intrinsics, size, default_rig().cameras[0]))
     for name, n in skipped.items():
         content.warnings.append(f"{name}: {n} images in an encoding not taken (only "
-                                "JPEG/PNG CompressedImage and rgb8/bgr8/rgba8/bgra8/mono8 Image)")
+                                "JPEG/8-bit PNG CompressedImage and rgb8/bgr8/rgba8/bgra8/mono8 Image)")
 
     times = np.array([t for t, _ in content.profiles], np.int64)
     rate_hz = (1e9 / float(np.median(np.diff(np.sort(times)))) if times.size > 1
