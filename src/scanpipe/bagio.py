@@ -990,7 +990,8 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
         cameras.append(_camera(camera_id, intrinsics, size, default_rig().cameras[0]))
     for name, n in skipped.items():
         content.warnings.append(f"{name}: {n} images in an encoding not taken (only "
-                                "JPEG/8-bit PNG CompressedImage and rgb8/bgr8/rgba8/bgra8/mono8 Image)")
+                                "JPEG/8-bit PNG CompressedImage and rgb8/bgr8/rgba8/bgra8/"
+                                "mono8 Image)")
 
     times = np.array([t for t, _ in content.profiles], np.int64)
     rate_hz = (1e9 / float(np.median(np.diff(np.sort(times)))) if times.size > 1
