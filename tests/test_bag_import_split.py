@@ -71,3 +71,13 @@ def test_files_named_like_parts_that_do_not_continue_are_read_alone(
     assert f"{PROFILES // 2} profiles" in result.out
     assert "scan_0.bag: files named like parts of a split recording lie beside it " \
            "(scan_1.bag), but their times do not continue it: read alone" in result.err
+
+
+def test_an_unclosed_next_part_is_named(tmp_path: Path, cli: Any) -> None:
+    """rosbag record killed mid-scan leaves its last part as NAME_1.bag.active (no index)."""
+    parts = write_parts(tmp_path, ["scan_0.bag", "scan_1.bag"], [0.0, 0.0])
+    parts[1].rename(tmp_path / "scan_1.bag.active")
+    result = cli("import-bag", parts[0], "--out", tmp_path / "rec.mcap")
+    assert result.code == 0, result.err
+    assert "scan_1.bag.active: the next part, left unclosed by its recorder (no index), is " \
+           "not read: run `rosbag reindex` on it" in result.err

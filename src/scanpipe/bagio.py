@@ -178,15 +178,13 @@ def _split_parts(path: Path, warnings: list[str]) -> list[Path]:
         if number and candidate.is_file() and _kind(candidate) == kind:
             siblings[int(number.group(1))] = candidate
     own = int(match.group(2))
-    if len(siblings) < 2:
-        return [path]
     run = [own]  # the consecutive numbers around the given part
     while run[0] - 1 in siblings:
         run.insert(0, run[0] - 1)
     while run[-1] + 1 in siblings:
         run.append(run[-1] + 1)
     parts = [siblings[n] for n in run]
-    if kind == ".bag":
+    if kind == ".bag" and len(parts) > 1:
         spans = [_ros1_span_ns(part) for part in parts]
         start = end = run.index(own)
         while start > 0 and _continues(spans[start - 1], spans[start]):
@@ -203,6 +201,11 @@ def _split_parts(path: Path, warnings: list[str]) -> list[Path]:
     if len(parts) > 1:
         warnings.append(f"{path.name}: one part of a split recording: read with its parts "
                         f"{', '.join(p.name for p in parts)}")
+    unclosed = path.parent / f"{prefix}_{run[-1] + 1}{suffix}.active"
+    if kind == ".bag" and parts[-1] == siblings[run[-1]] and unclosed.is_file():
+        warnings.append(f"{unclosed.name}: the next part, left unclosed by its recorder (no "
+                        "index), is not read: run `rosbag reindex` on it and import again to "
+                        "include the end of the scan")
     return parts
 
 
