@@ -81,3 +81,34 @@ def test_an_unclosed_next_part_is_named(tmp_path: Path, cli: Any) -> None:
     assert result.code == 0, result.err
     assert "scan_1.bag.active: the next part, left unclosed by its recorder (no index), is " \
            "not read: run `rosbag reindex` on it" in result.err
+
+
+def test_out_naming_another_part_is_refused(tmp_path: Path, cli: Any) -> None:
+    """A rosbag2 split bag's parts are .mcap files: --out must not name one, even with
+    --force (the part is read as an input)."""
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Writer2
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    messages = turntable_messages(ts, "joint")
+    folder = tmp_path / "bag"
+    folder.mkdir()
+    for k in range(2):
+        with Writer2(tmp_path / f"w{k}", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+            conns: dict[str, Any] = {}
+            for topic, msgtype, t, msg in messages:
+                if (t < PROFILES * SCAN_TIME / 2) != (k == 0):
+                    continue
+                if topic not in conns:
+                    conns[topic] = w.add_connection(topic, msgtype, typestore=ts)
+                w.write(conns[topic], T0 + round(t * 1e9) + 1000, ts.serialize_cdr(msg, msgtype))
+        (tmp_path / f"w{k}" / f"w{k}.mcap").rename(folder / f"bag_{k}.mcap")
+    before = (folder / "bag_1.mcap").read_bytes()
+    result = cli("import-bag", folder / "bag_0.mcap", "--out", folder / "bag_1.mcap", "--force")
+    assert result.code == 2, result.err
+    assert "is a file of the bag being imported" in result.err
+    assert (folder / "bag_1.mcap").read_bytes() == before
+    ok = cli("import-bag", folder / "bag_0.mcap", "--out", tmp_path / "rec.mcap")
+    assert ok.code == 0, ok.err
+    assert f"{PROFILES} profiles" in ok.out and "read with its parts bag_0.mcap, bag_1.mcap" \
+        in ok.err

@@ -869,6 +869,12 @@ def import_bag(bag: Path, out: Path, scan_topic: str | None = None, joint: str |
     warnings: list[str] = []
     with tempfile.TemporaryDirectory(prefix="scanpipe-bag-") as scratch:
         reader = open_bag(bag, Path(scratch), warnings)
+        read = {Path(p).resolve() for p in reader.paths}
+        read |= {f.resolve() for p in read if p.is_dir() for f in p.iterdir()}
+        if out.resolve() in read:
+            reader.close()
+            raise UsageError(f"--out {out}: is a file of the bag being imported (a part of a "
+                             "split recording); choose another name")
         try:
             return _import(reader, bag, out, scan_topic, joint, tf, image_topics, rig, warnings)
         except (BagError, UsageError):
