@@ -169,3 +169,39 @@ def test_sixteen_bit_png_is_a_depth_image_not_a_frame(tmp_path: Path, cli: Any) 
     assert result.code == 0, result.err
     assert not read_recording(out).images
     assert "/depth/image/compressed: 1 images in an encoding not taken" in result.err
+
+
+def test_exif_orientation_in_a_compressed_image_is_removed(tmp_path: Path, cli: Any) -> None:
+    """A JPEG with EXIF orientation 3 (a half turn): ROS shows its pixels as stored; OpenCV's
+    frame decoding turned them upside down, with intrinsics still for the stored pixels."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    rgb[:12, :16] = 255  # a white box top-left as stored
+    exif = Image.Exif()
+    exif[0x0112] = 3
+    buffer = BytesIO()
+    Image.fromarray(rgb).save(buffer, "JPEG", quality=95, exif=exif)
+    jpeg = buffer.getvalue()
+
+    def messages(ts: Any) -> list[Any]:
+        out = turntable_messages(ts, "joint")
+        out.append(("/cam/image_raw/compressed", "sensor_msgs/msg/CompressedImage", 0.2,
+                    ts.types["sensor_msgs/msg/CompressedImage"](
+                        header=_header(ts, 0.2, "cam"), format="jpeg",
+                        data=np.frombuffer(jpeg, np.uint8))))
+        return sorted(out, key=lambda m: m[2])
+
+    bag = write_bag(tmp_path, "ros1", messages)
+    out = tmp_path / "r.mcap"
+    result = cli("import-bag", bag, "--out", out, "--image", "/cam/image_raw/compressed")
+    assert result.code == 0, result.err
+    assert "1 JPEG images carried an EXIF orientation tag: removed" in result.err
+    data = read_recording(out).images[0].data
+    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    assert decoded[:12, :16].mean() > 240 and decoded[-12:, -16:].mean() < 15
+    stored = cv2.imdecode(np.frombuffer(jpeg, np.uint8),
+                          cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+    assert np.array_equal(decoded, stored)  # the pixels unchanged

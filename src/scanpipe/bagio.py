@@ -714,6 +714,37 @@ def _camera_id(topic: str) -> str:
     return name or "camera"
 
 
+def without_exif(jpeg: bytes) -> bytes | None:
+    """``jpeg`` without its Exif APP1 segments when one holds an orientation other than 1
+    (the pixels untouched: the segments are cut out); None when there is nothing to remove.
+
+    ROS's image_transport decodes a CompressedImage as stored (OpenCV's IMREAD_UNCHANGED), and
+    its CameraInfo describes those pixels; scanpipe's frame decoding would turn them by the
+    tag."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    try:
+        with Image.open(BytesIO(jpeg)) as image:
+            orientation = image.getexif().get(0x0112, 1)
+    except (OSError, ValueError, SyntaxError):  # Pillow's errors; the frame decode will say
+        return None
+    if orientation in (1, None):
+        return None
+    out, at = [jpeg[:2]], 2
+    while at + 4 <= len(jpeg) and jpeg[at] == 0xFF:
+        marker, length = jpeg[at + 1], int.from_bytes(jpeg[at + 2:at + 4], "big")
+        if marker == 0xDA:  # start of scan: the rest is image data
+            break
+        segment = jpeg[at:at + 2 + length]
+        if not (marker == 0xE1 and segment[4:10] == b"Exif\x00\x00"):
+            out.append(segment)
+        at += 2 + length
+    out.append(jpeg[at:])
+    return b"".join(out)
+
+
 def _image_bytes(msg: Any, msgtype: str) -> tuple[bytes, str] | None:
     """(encoded bytes, jpeg|png) of an image message; None for an encoding not taken."""
     if msgtype == COMPRESSED_IMAGE:
@@ -969,6 +1000,7 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
 
     cameras: list[CameraConfig] = []
     skipped: Counter[str] = Counter()
+    turned: Counter[str] = Counter()
     for name in image_topics:
         topic = next(t for t in topics if t.name == name)
         camera_id = _camera_id(name)
@@ -983,7 +1015,13 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
             if size is None:
                 from scanpipe.images import image_size
                 size = image_size(encoded[0])
-            content.images.append((camera_id, _stamp_ns(msg.header, log_time), encoded[0],
+            data = encoded[0]
+            if encoded[1] == "jpeg":
+                stripped = without_exif(data)
+                if stripped is not None:
+                    data = stripped
+                    turned[name] += 1
+            content.images.append((camera_id, _stamp_ns(msg.header, log_time), data,
                                    encoded[1], _frame(msg.header.frame_id)))
         if given is not None and any(c.id == camera_id for c in given.cameras):
             continue  # --rig's own camera: its calibration, not the bag's
@@ -997,6 +1035,10 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
                                     "zero: an uncalibrated camera): intrinsics guessed (60° "
                                     "horizontal field of view); pass --rig")
         cameras.append(_camera(camera_id, intrinsics, size, default_rig().cameras[0]))
+    for name, n in turned.items():
+        content.warnings.append(f"{name}: {n} JPEG images carried an EXIF orientation tag: "
+                                "removed (the pixels are unchanged), as ROS's image_transport "
+                                "ignores it and the CameraInfo describes the pixels as stored")
     for name, n in skipped.items():
         content.warnings.append(f"{name}: {n} images in an encoding not taken (only "
                                 "JPEG/8-bit PNG CompressedImage and rgb8/bgr8/rgba8/bgra8/"
