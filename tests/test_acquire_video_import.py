@@ -221,3 +221,19 @@ def test_unstitched_dual_fisheye_into_an_equirect_camera_is_warned(
     pano_run = cli("import-video", tmp_path / "pano.avi", "--into", rec, "--start-time",
                    "recording", "--camera", "pano")
     assert pano_run.code == 0 and "warning" not in pano_run.err  # type: ignore[attr-defined]
+
+
+def test_frames_that_miss_the_recording_are_refused(tmp_path: Path,
+                                                    cli: Callable[..., object]) -> None:
+    """A start time in local time (UTC+1) read as UTC: every frame an hour after the scan."""
+    rec = _recording(tmp_path / "rec.mcap")
+    digest = _digest(rec)
+    video = write_video(tmp_path / "phone.avi", frames=4)
+    result = cli("import-video", video, "--into", rec, "--start-time",
+                 "2026-01-01T01:00:00", "--camera", "phone")
+    assert result.code == 2  # type: ignore[attr-defined]
+    assert "begin 3598.1 s after the recording ends" in result.err  # type: ignore[attr-defined]
+    assert "(about 1.0 h: a time zone?)" in result.err  # type: ignore[attr-defined]
+    assert result.err.count("\n") == 1  # type: ignore[attr-defined]
+    assert _digest(rec) == digest
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["phone.avi", "rec.mcap"]

@@ -393,6 +393,7 @@ def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
             topics: dict[int, str] = {}
             image_channel: int | None = None
             started = False
+            scan_span = [2**63 - 1, -1]  # the recording's own messages but cameras', ns
             for record in StreamReader(source, skip_magic=False).records:
                 if not started:
                     writer.start(profile=getattr(record, "profile", PROFILE),
@@ -424,6 +425,9 @@ def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
                         writer.add_message(channel_ids[record.channel_id], record.log_time,
                                            record.data, record.publish_time, record.sequence)
                         report["original_messages"] += 1
+                        if not topics[channel_ids[record.channel_id]].startswith("/camera/"):
+                            scan_span[0] = min(scan_span[0], record.log_time)
+                            scan_span[1] = max(scan_span[1], record.log_time)
                 elif isinstance(record, Metadata) and record.name != CHANNELS_METADATA:
                     writer.add_metadata(record.name, record.metadata)
                 elif isinstance(record, Attachment):
@@ -436,6 +440,7 @@ def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
                                              report)
                 topics[image_channel] = topic
                 pending = next(frames, None)
+            _check_overlap(video, recording, report, scan_span)
             # Channel ids may have changed: write the id → topic map afresh.
             writer.add_metadata(CHANNELS_METADATA, {str(k): v for k, v in topics.items()})
             writer.finish()  # type: ignore[no-untyped-call]
@@ -454,6 +459,30 @@ def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
         with contextlib.suppress(Exception):
             frames.close()
     return report
+
+
+def _check_overlap(video: Path, recording: Path, report: dict[str, Any],
+                   scan_span: list[int]) -> None:
+    """:class:`UsageError` when the frames' times miss the recording's span altogether: a
+    --start-time in local time read as UTC, or the wrong day, would texture every frame at
+    the platform's first or last angle."""
+    lo, hi = scan_span
+    first, last = report["first_time_ns"], report["last_time_ns"]
+    if hi < lo or (first <= hi and last >= lo):
+        return
+    gap_s = (lo - last if last < lo else first - hi) / 1e9
+    where = ("end {:.1f} s before the recording begins" if last < lo else
+             "begin {:.1f} s after the recording ends").format(gap_s)
+    hours = f" (about {gap_s / 3600:.1f} h: a time zone?)" if gap_s > 1800 else ""
+    raise UsageError(
+        f"{video}: its frames ({_utc(first)} … {_utc(last)}) {where} ({_utc(lo)} … "
+        f"{_utc(hi)}){hours}; none would see the scan. --start-time "
+        "without a zone is UTC; give the time the video's first frame was taken; "
+        f"{recording} is unchanged")
+
+
+def _utc(time_ns: int) -> str:
+    return datetime.fromtimestamp(time_ns / 1e9, UTC).isoformat(timespec="milliseconds")
 
 
 def _write_frame(writer: Any, channel: int | None, topic: str, frame: tuple[int, bytes, int],
