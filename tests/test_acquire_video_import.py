@@ -219,7 +219,7 @@ def test_unstitched_dual_fisheye_into_an_equirect_camera_is_warned(
     assert raw.code == 0, raw.err  # type: ignore[attr-defined]
     assert "looks like two unstitched fisheye circles" in raw.err  # type: ignore[attr-defined]
     pano_run = cli("import-video", tmp_path / "pano.avi", "--into", rec, "--start-time",
-                   "recording", "--camera", "pano")
+                   "recording", "--camera", "pano", "--replace")
     assert pano_run.code == 0 and "warning" not in pano_run.err  # type: ignore[attr-defined]
 
 
@@ -237,3 +237,26 @@ def test_frames_that_miss_the_recording_are_refused(tmp_path: Path,
     assert result.err.count("\n") == 1  # type: ignore[attr-defined]
     assert _digest(rec) == digest
     assert sorted(p.name for p in tmp_path.iterdir()) == ["phone.avi", "rec.mcap"]
+
+
+def test_a_second_take_for_one_camera_is_refused_or_replaces(
+        tmp_path: Path, cli: Callable[..., object]) -> None:
+    """Imported twice, two takes interleaved under one camera without a word."""
+    rec = _recording(tmp_path / "rec.mcap")
+    first = write_video(tmp_path / "take1.avi", frames=6)
+    second = write_video(tmp_path / "take2.avi", frames=4)
+    start = str(T0 / 1e9)
+    assert cli("import-video", first, "--into", rec, "--start-time", start,  # type: ignore[attr-defined]
+               "--camera", "phone").code == 0
+    digest = _digest(rec)
+    again = cli("import-video", second, "--into", rec, "--start-time", start, "--camera",
+                "phone")
+    assert again.code == 2  # type: ignore[attr-defined]
+    assert "already holds 6 frames of camera phone" in again.err  # type: ignore[attr-defined]
+    assert "--replace" in again.err and _digest(rec) == digest  # type: ignore[attr-defined]
+    replaced = cli("import-video", second, "--into", rec, "--start-time", start, "--camera",
+                   "phone", "--replace", "--json")
+    assert replaced.code == 0, replaced.err  # type: ignore[attr-defined]
+    assert '"replaced_frames": 6' in replaced.out  # type: ignore[attr-defined]
+    assert len(_frames(rec)) == 4
+    assert read_recording(rec).complete and not read_recording(rec).warnings

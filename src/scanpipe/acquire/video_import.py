@@ -345,8 +345,10 @@ def frame_size_warning(video: Path, width: int, height: int, camera: CameraConfi
 
 
 def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
-                 jpeg_quality: int = 90, camera: CameraConfig | None = None) -> dict[str, Any]:
-    """Rewrite ``recording`` with the frames of ``video`` added as ``camera_id``; a report.
+                 jpeg_quality: int = 90, camera: CameraConfig | None = None,
+                 replace: bool = False) -> dict[str, Any]:
+    """Rewrite ``recording`` with the frames of ``video`` added as ``camera_id`` (with
+    ``replace``, instead of the frames it held for that camera); a report.
 
     ``camera`` (the rig's ``camera_id``) is checked against the frames' size: a warning when
     texture would refuse them. The report's ``warnings`` hold that and what the container says
@@ -421,7 +423,9 @@ def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
                                                      schemas, report)
                         topics[image_channel] = topic
                         pending = next(frames, None)
-                    if record.channel_id in channel_ids:
+                    if replace and topics.get(channel_ids.get(record.channel_id, -1)) == topic:
+                        report["replaced_frames"] = report.get("replaced_frames", 0) + 1
+                    elif record.channel_id in channel_ids:
                         writer.add_message(channel_ids[record.channel_id], record.log_time,
                                            record.data, record.publish_time, record.sequence)
                         report["original_messages"] += 1
