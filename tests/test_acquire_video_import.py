@@ -144,6 +144,7 @@ def test_ten_bit_video_is_read(tmp_path: Path, cli: Callable[..., object]) -> No
     assert result.code == 0, result.err  # type: ignore[attr-defined]
     first = _pixels(_frames(rec)[0])
     assert first[:12, :16].mean() > 240 and 100 < first[-12:, -16:].mean() < 160
+    assert "more than 8 bits per sample (phones record HDR video" in result.err  # type: ignore[attr-defined]
 
 
 def test_non_square_pixels_are_warned(tmp_path: Path, cli: Callable[..., object]) -> None:

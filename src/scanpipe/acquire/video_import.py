@@ -105,6 +105,11 @@ def container_warnings(capture: Any, video: Path) -> list[str]:
             f"display rotation tag, as a phone writes when held otherwise than level); the "
             f"frames are kept as the sensor stored them ({width}×{height} px), the grid the "
             "camera's intrinsics are for: the camera's roll belongs in its pose in the rig")
+    if _high_bit_depth(int(capture.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT) or 0)):
+        warnings.append(
+            f"{video}: more than 8 bits per sample (phones record HDR video — HLG or PQ — this "
+            "way): OpenCV reads it as 8-bit without tone mapping, so an HDR video's colours "
+            "come out flat and dim; film with HDR video off, or convert it to SDR first")
     sar_num = float(capture.get(cv2.CAP_PROP_SAR_NUM) or 0.0)
     sar_den = float(capture.get(cv2.CAP_PROP_SAR_DEN) or 0.0)
     if sar_num > 0 and sar_den > 0 and abs(sar_num / sar_den - 1.0) > 1e-3:
@@ -114,6 +119,15 @@ def container_warnings(capture: Any, video: Path) -> list[str]:
             "be for these pixels (calibrate-camera on frames of this video), not for the "
             f"{round(width * sar_num / sar_den)}×{height} picture players show")
     return warnings
+
+
+def _high_bit_depth(tag: int) -> bool:
+    """A decoded pixel format of more than 8 bits per sample: FFmpeg's raw tags for them end
+    (little-endian formats) or begin (big-endian) with the bit depth, after ``Y1``/``Y0``/
+    ``Y3`` (yuv420p10le is ``Y3`` 11 10, yuv444p12le ``Y3`` 0 12)."""
+    raw = tag.to_bytes(4, "little")
+    return ((raw[:2] in (b"Y1", b"Y0", b"Y3") and 8 < raw[3] <= 16)
+            or (raw[2:] in (b"1Y", b"0Y", b"3Y") and 8 < raw[0] <= 16))
 
 
 def cut_warning(video: Path, frames: int, last_offset_ns: int, frame_count: float,
