@@ -107,22 +107,24 @@ def _pixels(image: Any) -> Any:
     return cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_GRAYSCALE)
 
 
-def test_rotation_tag_keeps_the_sensors_pixels_and_says_so(
+def test_rotation_tag_gives_upright_frames_as_players_show_them(
         tmp_path: Path, cli: Callable[..., object]) -> None:
-    """A phone held upright stores landscape pixels with a display rotation: OpenCV turned them
-    into portrait frames, which no landscape intrinsics fit (and a half turn, same size, would
-    have been textured upside down without a word)."""
-    rec = _recording(tmp_path / "rec.mcap")
+    """A phone held upright stores landscape pixels and a display rotation: the frames are
+    upright, as ffmpeg shows them (its own rendering of rotated90.mp4 puts the box at the
+    bottom left), the orientation the rig's camera poses describe (the default rig's phones
+    are upright); a rig camera held the other way is warned about at once."""
+    rec = _recording(tmp_path / "rec.mcap")  # its cameras are 64 × 48, landscape
     result = cli("import-video", VIDEOS / "rotated90.mp4", "--into", rec, "--start-time",
-                 str(T0 / 1e9), "--camera", "phone")
+                 str(T0 / 1e9), "--camera", "phone", "--json")
     assert result.code == 0, result.err  # type: ignore[attr-defined]
+    assert '"display_rotation_deg": 270' in result.out  # type: ignore[attr-defined]
     frames = _frames(rec)
     assert len(frames) == 10
     first = _pixels(frames[0])
-    assert first.shape == (48, 64)
-    assert first[:12, :16].mean() > 240 and first[-12:, -16:].mean() < 160  # box top-left
-    assert "display rotation tag" in result.err  # type: ignore[attr-defined]
-    assert "kept as the sensor stored them (64×48 px)" in result.err  # type: ignore[attr-defined]
+    assert first.shape == (64, 48)
+    assert first[-12:, :12].mean() > 240 and first[:12, :12].mean() < 160
+    assert "frames are 48×64 px, camera 'phone' of the recording's rig is 64×48" in result.err  # type: ignore[attr-defined]
+    assert "the phone was held upright (portrait)" in result.err  # type: ignore[attr-defined]
 
 
 def test_variable_frame_rate_uses_the_containers_times(

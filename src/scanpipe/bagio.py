@@ -728,8 +728,8 @@ def without_exif(jpeg: bytes) -> bytes | None:
     try:
         with Image.open(BytesIO(jpeg)) as image:
             orientation = image.getexif().get(0x0112, 1)
-    except (OSError, ValueError, SyntaxError):  # Pillow's errors; the frame decode will say
-        return None
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
+        return None  # Pillow's errors: the frame decode checks the size and will say
     if orientation in (1, None):
         return None
     out, at = [jpeg[:2]], 2

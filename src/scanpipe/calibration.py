@@ -132,35 +132,40 @@ def exif_orientation(path: Path) -> int:
     try:
         with Image.open(path) as image:
             value = image.getexif().get(_EXIF_ORIENTATION, 1)
-    except (OSError, ValueError, SyntaxError):  # Pillow's errors for odd files; decode says
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):  # decode says
         return 1
     return int(value) if isinstance(value, int) and 1 <= value <= 8 else 1
 
 
-def read_images(paths: Sequence[Path], warnings: list[str] | None = None
-                ) -> list[tuple[str, NDArray[np.uint8]]]:
-    """Grey images from files as the sensor stored them; :class:`UsageError` naming a file that
-    is missing, unreadable or larger than :data:`~scanpipe.images.MAX_FRAME_PX` (checked from
-    its header, before decoding: calibration images come from the camera that records the
-    frames).
+def read_images(paths: Sequence[Path]) -> list[tuple[str, NDArray[np.uint8]]]:
+    """Grey images from files, upright (a JPEG's EXIF orientation applied, as frames are taken:
+    import-video applies a video's display rotation); :class:`UsageError` naming a file that is
+    missing, unreadable or larger than :data:`~scanpipe.images.MAX_FRAME_PX` (checked from its
+    header, before decoding: calibration images come from the camera that records the frames).
 
-    A JPEG's EXIF orientation is not applied: intrinsics belong to the sensor's pixel grid,
-    and a phone turned between shots would otherwise give images whose principal points differ
-    (a half turn keeps the size and averaged two mirrored centres without a word). Frames are
-    read the same way (``import-video`` ignores a video's rotation tag). Images with an
-    orientation tag are named in ``warnings``."""
-    images = [(str(path), read_image_file(path, MAX_FRAME_PX,
-                                          cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION,
-                                          UsageError))
+    Images whose EXIF orientations differ are refused: turned a half turn (3 against 1, or 8
+    against 6) a photo keeps its size but the lens's centre and distortion land mirrored in the
+    upright picture, and one fit over both averaged them without a word."""
+    # each file's size is checked from its header (and it is decoded) before Pillow opens it
+    images = [(str(path), read_image_file(path, MAX_FRAME_PX, cv2.IMREAD_GRAYSCALE, UsageError))
               for path in paths]
-    turned = [path.name for path in paths if exif_orientation(path) != 1]
-    if turned and warnings is not None:
-        warnings.append(
-            f"{len(turned)} of {len(paths)} images carry an EXIF orientation tag (the camera "
-            f"was turned: {', '.join(turned[:5])}{' …' if len(turned) > 5 else ''}); it is "
-            "not applied: the intrinsics are for the sensor's pixels as stored, the way "
-            "the frames are recorded")
+    groups: dict[int, list[str]] = {}
+    for path in paths:
+        groups.setdefault(exif_orientation(path), []).append(path.name)
+    if len(groups) > 1:
+        listed = "; ".join(f"{_ORIENTATIONS.get(k, k)}: {', '.join(v[:3])}"
+                           f"{' …' if len(v) > 3 else ''}" for k, v in sorted(groups.items()))
+        raise UsageError(
+            f"calibration images were taken with the camera turned differently (EXIF "
+            f"orientation {listed}): turned, the lens's centre and distortion land elsewhere "
+            "in the upright picture; calibrate from images taken the one way the camera is "
+            "held for the scan")
     return images
+
+
+#: EXIF orientations by what they mean for the camera.
+_ORIENTATIONS = {1: "1 (as stored)", 3: "3 (half turn)", 6: "6 (quarter turn)",
+                 8: "8 (quarter turn the other way)"}
 
 
 def apply_calibration(rig_path: Path, camera_id: str, calibration: Calibration) -> Rig:

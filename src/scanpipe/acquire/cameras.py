@@ -72,8 +72,6 @@ def open_capture(cam: CameraConfig) -> FrameSource:
                 capture.set(cv2.CAP_PROP_FPS, cam.fps)
         else:
             capture = cv2.VideoCapture(source)
-            # a file's display rotation tag not applied: the sensor's pixels, as import-video
-            capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
     except cv2.error as err:
         raise DeviceError(f"camera {cam.id}: cannot open source {source!r} ({err})") from err
     if not capture.isOpened():

@@ -9,12 +9,14 @@ Frame times: ``start_time_ns + offset_s + the frame's position in the video`` (O
 ``CAP_PROP_POS_MSEC``: the container's presentation time of each frame, so variable frame rates
 and edit lists are followed; ``index / fps`` when the container gives none).
 
-Frames are taken as the camera's sensor stored them: a container's display rotation (a phone
-held upright records landscape pixels and a rotation tag) is not applied, as calibrate-camera
-ignores a JPEG's EXIF orientation, because intrinsics belong to the sensor's pixel grid (a
-camera's roll is part of its pose). What a container says that the frames alone do not show —
-a rotation tag, non-square pixels, fewer frames decodable than it announces (a cut file), a size
-the rig's camera does not have — is in the report's ``warnings``.
+Frames are taken as players show them: a container's display rotation (a phone held upright
+stores landscape pixels and a rotation tag) is applied, so the frames are upright whichever way
+the phone was turned — the orientation a rig camera's pose describes (the default rig's phones
+are upright, 1080 × 1920), and the one calibrate-camera reads photos in (EXIF orientation
+applied). The rotation is in the report (``display_rotation_deg``). What a container says that
+the frames alone do not show — non-square pixels, more than 8 bits per sample, fewer frames
+decodable than it announces (a cut file) — and a frame size the rig's camera cannot texture are
+in the report's ``warnings``.
 
 A rough offset (within about a second) is enough: :func:`refine_offset` finds the exact one
 before the frames are written, by aligning the scan's depth edges with the video's image edges
@@ -86,25 +88,23 @@ def open_video(video: Path) -> cv2.VideoCapture:
     if not capture.isOpened():
         raise DeviceError(f"{video}: OpenCV cannot open this video (unknown container or codec, "
                           "or no video stream: an audio-only file)")
-    # The sensor's pixels as stored: OpenCV would turn them by the container's display rotation.
-    capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 0)
+    # Upright frames, as players show them (OpenCV's default since 4.5; pinned: the rig's camera
+    # poses and calibrate-camera's photos are in that orientation).
+    capture.set(cv2.CAP_PROP_ORIENTATION_AUTO, 1)
     return capture
 
 
+def display_rotation_deg(capture: Any) -> int:
+    """The container's display rotation (0, 90, 180, 270; OpenCV's sense), applied to frames."""
+    return round(float(capture.get(cv2.CAP_PROP_ORIENTATION_META) or 0.0)) % 360
+
+
 def container_warnings(capture: Any, video: Path) -> list[str]:
-    """What the container says about the picture that the decoded frames do not show: a display
-    rotation (not applied: the frames stay as the sensor stored them) and non-square pixels."""
+    """What the container says about the picture that the decoded frames do not show: more
+    than 8 bits per sample (HDR) and non-square pixels."""
     warnings = []
     width = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH) or 0)
     height = int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT) or 0)
-    rotation = round(float(capture.get(cv2.CAP_PROP_ORIENTATION_META) or 0.0)) % 360
-    if rotation:
-        turn = "a half turn" if rotation == 180 else "a quarter turn"
-        warnings.append(
-            f"{video}: its container asks players to show the picture turned by {turn} (a "
-            f"display rotation tag, as a phone writes when held otherwise than level); the "
-            f"frames are kept as the sensor stored them ({width}×{height} px), the grid the "
-            "camera's intrinsics are for: the camera's roll belongs in its pose in the rig")
     if _high_bit_depth(int(capture.get(cv2.CAP_PROP_CODEC_PIXEL_FORMAT) or 0)):
         warnings.append(
             f"{video}: more than 8 bits per sample (phones record HDR video — HLG or PQ — this "
@@ -147,11 +147,12 @@ def cut_warning(video: Path, frames: int, last_offset_ns: int, frame_count: floa
 
 
 def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90,
-                 warnings: list[str] | None = None
+                 warnings: list[str] | None = None, facts: dict[str, Any] | None = None
                  ) -> Generator[tuple[int, bytes, int], None, None]:
-    """``(time_ns, jpeg, index)`` for every frame of a video file, in order, as the sensor
-    stored it (no display rotation); what the container says that the frames do not show goes
-    into ``warnings`` (:func:`container_warnings`, and :func:`cut_warning` once all are read)."""
+    """``(time_ns, jpeg, index)`` for every frame of a video file, in order, upright (its
+    display rotation applied, ``facts["display_rotation_deg"]``); what the container says that
+    the frames do not show goes into ``warnings`` (:func:`container_warnings`, and
+    :func:`cut_warning` once all are read)."""
     capture = open_video(video)
     try:
         # The container's size, before any frame is decoded (0 when it does not say).
@@ -163,6 +164,8 @@ def video_frames(video: Path, start_ns: int, jpeg_quality: int = 90,
         frame_count = float(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)
         if warnings is not None:
             warnings.extend(container_warnings(capture, video))
+        if facts is not None:
+            facts["display_rotation_deg"] = display_rotation_deg(capture)
         index = 0
         last_ns = -1
         offset_ns = 0
@@ -338,7 +341,7 @@ def looks_dual_fisheye(grey: NDArray[np.uint8]) -> bool:
 
 
 def frame_size_warning(video: Path, width: int, height: int, camera: CameraConfig,
-                       rotated: bool) -> str | None:
+                       rotation_deg: int) -> str | None:
     """A warning when frames of ``width`` × ``height`` cannot be textured with ``camera`` (a
     different aspect ratio: :func:`scanpipe.texturing.frames.camera_for_size` refuses them)."""
     from scanpipe.texturing.frames import camera_for_size
@@ -349,9 +352,10 @@ def frame_size_warning(video: Path, width: int, height: int, camera: CameraConfi
         pass
     else:
         return None
-    turned = ("; its frames are stored turned a quarter turn from the rig's camera (the "
-              "display rotation tag is not applied): calibrate the camera on frames as stored"
-              if rotated and abs(width / height - camera.height / camera.width) < 0.01 else "")
+    held = "upright (portrait)" if height > width else "level (landscape)"
+    turned = (f"; the phone was held {held} (its display rotation, {rotation_deg}°, is "
+              f"applied, as players show it): the rig's camera must be {held} too"
+              if abs(width / height - camera.height / camera.width) < 0.01 else "")
     return (f"{video}: frames are {width}×{height} px, camera {camera.id!r} of the recording's "
             f"rig is {camera.width}×{camera.height} (a different aspect ratio): texture will "
             f"refuse them unless given a rig with this camera calibrated at {width}×{height} "
@@ -379,18 +383,19 @@ def import_video(video: Path, recording: Path, start_ns: int, camera_id: str,
         raise RecordingError(f"{recording}: recording not found")
     topic = camera_topic(camera_id)
     warnings: list[str] = []
-    frames = video_frames(video, start_ns, jpeg_quality, warnings)
+    facts: dict[str, Any] = {}
+    frames = video_frames(video, start_ns, jpeg_quality, warnings, facts)
     pending = next(frames, None)
     if pending is None:
         raise DeviceError(f"{video}: no frames could be read")
     report: dict[str, Any] = {"video": str(video), "recording": str(recording),
                               "camera_id": camera_id, "topic": topic, "frames": 0,
                               "first_time_ns": pending[0], "last_time_ns": pending[0],
-                              "original_messages": 0, "warnings": warnings}
+                              "original_messages": 0, "warnings": warnings,
+                              "display_rotation_deg": facts.get("display_rotation_deg", 0)}
     size = image_size(pending[1])
     if camera is not None and size is not None:
-        mismatch = frame_size_warning(video, *size, camera,
-                                      any("display rotation" in w for w in warnings))
+        mismatch = frame_size_warning(video, *size, camera, report["display_rotation_deg"])
         warnings.extend([mismatch] if mismatch else [])
         if camera.model == "equirect" and mismatch is None:
             first = cv2.imdecode(np.frombuffer(pending[1], np.uint8), cv2.IMREAD_GRAYSCALE)
