@@ -173,6 +173,17 @@ def test_cut_video_is_warned_with_what_was_decoded(
     assert "of the 3.00 s (30 frames) its container announces" in result.err  # type: ignore[attr-defined]
 
 
+def test_video_trimmed_without_reencoding_is_not_taken_for_cut(
+        tmp_path: Path, cli: Callable[..., object]) -> None:
+    """An MP4 trimmed by an edit list counts the frames before its trim point too (30 announced,
+    22 shown): not a cut file."""
+    rec = _recording(tmp_path / "rec.mcap")
+    result = cli("import-video", VIDEOS / "trimmed.mp4", "--into", rec, "--start-time",
+                 str(T0 / 1e9), "--camera", "phone")
+    assert result.code == 0, result.err  # type: ignore[attr-defined]
+    assert len(_frames(rec)) == 22 and "warning" not in result.err  # type: ignore[attr-defined]
+
+
 def test_audio_only_file_is_refused_and_the_recording_kept(
         tmp_path: Path, cli: Callable[..., object]) -> None:
     rec = _recording(tmp_path / "rec.mcap")

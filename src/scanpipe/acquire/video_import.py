@@ -133,13 +133,15 @@ def _high_bit_depth(tag: int) -> bool:
 def cut_warning(video: Path, frames: int, last_offset_ns: int, frame_count: float,
                 fps: float) -> str | None:
     """A warning when the frames decoded end well before the duration the container announces
-    (``frame_count / fps``): a file cut short (a phone's recording stopped by a full card or a
-    crash) or damaged mid-way; None when they reach it (within two frames or 2 %)."""
+    (``frame_count / fps``): a file cut short (a recording stopped by a full card or a crash)
+    or damaged mid-way; None when they reach it within 1.5 s and 5 %. The margin: a video
+    trimmed without re-encoding (an MP4 edit list) still counts the frames from the keyframe
+    before its trim point, up to one keyframe interval (about 1 s in phones' videos)."""
     if frame_count <= 0 or fps <= 0 or frames == 0:
         return None
     announced_s = frame_count / fps
     decoded_s = last_offset_ns / 1e9 + 1.0 / fps
-    if announced_s - decoded_s <= max(2.0 / fps, 0.02 * announced_s):
+    if announced_s - decoded_s <= max(1.5, 0.05 * announced_s):
         return None
     return (f"{video}: {frames} frames could be decoded, up to {decoded_s:.2f} s of the "
             f"{announced_s:.2f} s ({frame_count:.0f} frames) its container announces: the file "
