@@ -11,7 +11,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from test_bag_import import _header, turntable_messages, write_bag
+from test_bag_import import T0, _header, turntable_messages, write_bag
 
 from scanpipe.recording.reader import read_recording
 
@@ -205,3 +205,46 @@ def test_exif_orientation_in_a_compressed_image_is_removed(tmp_path: Path, cli: 
     stored = cv2.imdecode(np.frombuffer(jpeg, np.uint8),
                           cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
     assert np.array_equal(decoded, stored)  # the pixels unchanged
+
+
+def _uptime_header(ts: Any, seconds: float, frame: str) -> Any:
+    """A header stamped by another clock: seconds since the camera booted."""
+    stamp = ts.types["builtin_interfaces/msg/Time"](sec=int(seconds),
+                                                    nanosec=int(seconds % 1 * 1e9))
+    if "seq" in ts.fielddefs["std_msgs/msg/Header"][1][0]:
+        return ts.types["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=frame)
+    return ts.types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+
+def test_images_stamped_by_another_clock_take_the_bags_log_times(tmp_path: Path,
+                                                                  cli: Any) -> None:
+    """A camera stamping its own uptime: every frame 56 years before the scan, textured at
+    the platform's first angle without a word."""
+    ok, jpeg = cv2.imencode(".jpg", np.zeros((48, 64, 3), np.uint8))
+    assert ok
+
+    def messages(ts: Any) -> list[Any]:
+        out = turntable_messages(ts, "joint")
+        for i, (topic, t) in enumerate([("/cam/image/compressed", 0.5),
+                                        ("/cam/image/compressed", 1.5),
+                                        ("/late/image/compressed", 100.0)]):
+            header = (_uptime_header(ts, 40.0 + i, "cam") if topic.startswith("/cam") else
+                      _header(ts, t, "late"))
+            out.append((topic, "sensor_msgs/msg/CompressedImage", t,
+                        ts.types["sensor_msgs/msg/CompressedImage"](
+                            header=header, format="jpeg",
+                            data=np.frombuffer(jpeg.tobytes(), np.uint8))))
+        return sorted(out, key=lambda m: m[2])
+
+    bag = write_bag(tmp_path, "ros1", messages)
+    out = tmp_path / "r.mcap"
+    result = cli("import-bag", bag, "--out", out, "--image", "/cam/image/compressed",
+                 "--image", "/late/image/compressed")
+    assert result.code == 0, result.err
+    assert "/cam/image/compressed: none of its 2 header stamps falls within the scan's " \
+           "time" in result.err
+    assert "/late/image/compressed: none of its 1 images was taken during the scan" \
+        in result.err
+    images = read_recording(out).images
+    assert [i.camera_id for i in images] == ["cam_image_compressed"] * 2
+    assert [i.log_time_ns for i in images] == [T0 + 500_001_000, T0 + 1_500_001_000]

@@ -849,6 +849,31 @@ def _camera(camera_id: str, intrinsics: dict[str, Any] | None, size: tuple[int, 
     return CameraConfig.model_validate(data)
 
 
+def _place_images(content: BagContent, first: int, log_times: Sequence[int],
+                  scan_span: tuple[int, int], topic: str) -> None:
+    """Check the times of one image topic's images (``content.images[first:]``) against the
+    scan's: header stamps from another clock than the scan's (a camera stamping its own uptime)
+    put every frame before or after the scan, where texture would show it at the platform's
+    first or last angle. Then the bag's log times are used when they meet the scan, else the
+    images are dropped; a warning says which."""
+    images = content.images[first:]
+    lo, hi = scan_span
+    if not images or any(lo <= image[1] <= hi for image in images):
+        return
+    if any(lo <= t <= hi for t in log_times):
+        content.images[first:] = [(c, t, d, f, i) for (c, _, d, f, i), t
+                                  in zip(images, log_times, strict=True)]
+        content.warnings.append(
+            f"{topic}: none of its {len(images)} header stamps falls within the scan's time "
+            "(another clock: a camera stamping its own time?): the bag's log times are used")
+        return
+    del content.images[first:]
+    content.warnings.append(
+        f"{topic}: none of its {len(images)} images was taken during the scan (by header stamp "
+        "or bag log time): dropped (texture would have shown them at the platform's first or "
+        "last angle)")
+
+
 def build_rig(path: Path, facts: dict[str, float], rate_hz: float, mount: tuple[F64, F64] | None,
               cameras: Sequence[CameraConfig], given: Rig | None, max_steps: int) -> Rig:
     """The rig of the recording: from the bag (or ``given``), motor step :data:`PULSE_STEP_DEG`."""
@@ -1001,10 +1026,14 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
     cameras: list[CameraConfig] = []
     skipped: Counter[str] = Counter()
     turned: Counter[str] = Counter()
+    scan_times = [t for t, _ in content.profiles]
+    scan_span = (min(scan_times), max(scan_times))
     for name in image_topics:
         topic = next(t for t in topics if t.name == name)
         camera_id = _camera_id(name)
         size: tuple[int, int] | None = None
+        first = len(content.images)
+        log_times: list[int] = []
         for _, log_time, msg in _messages(reader, [name]):
             encoded = _image_bytes(msg, topic.msgtype)
             if encoded is None:
@@ -1023,6 +1052,8 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
                     turned[name] += 1
             content.images.append((camera_id, _stamp_ns(msg.header, log_time), data,
                                    encoded[1], _frame(msg.header.frame_id)))
+            log_times.append(log_time)
+        _place_images(content, first, log_times, scan_span, name)
         if given is not None and any(c.id == camera_id for c in given.cameras):
             continue  # --rig's own camera: its calibration, not the bag's
         info = _camera_info(reader, topics, name)
