@@ -181,3 +181,14 @@ def test_a_camera_slower_than_the_lost_limit_is_not_taken_for_a_hanging_one(
     assert thread.stats.frames >= 3
     assert not [e for e in read_recording(tmp_path / "rec.mcap").events
                 if e.kind == "camera_lost"]
+
+
+def test_file_source_frames_are_upright_as_import_video_takes_them(tmp_path: Path) -> None:
+    """A phone video with a display rotation tag as a camera source: frames upright (the
+    rotation applied), as import-video takes them (tests/fixtures/video/rotated90.mp4: stored
+    64 × 48, shown 48 × 64 with the box bottom left)."""
+    video = Path(__file__).parent / "fixtures" / "video" / "rotated90.mp4"
+    capture = open_capture(small_camera(source=str(video)))
+    ok, image = capture.read()
+    assert ok and image.shape == (64, 48, 3)
+    assert image[-12:, :12].mean() > 240

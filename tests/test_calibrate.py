@@ -147,3 +147,67 @@ def test_mixed_image_sizes_are_refused() -> None:
                   BOARD, SQUARE_M)
     with pytest.raises(StageError, match="found in 0 of 1"):
         calibrate([("a", np.zeros((48, 64), np.uint8))], BOARD, SQUARE_M)
+
+
+def _tagged(board_images: list[Path], folder: Path, orientations: tuple[int, ...]
+            ) -> list[Path]:
+    """The boards as JPEGs with EXIF orientation tags (pixels as stored), cycling through
+    ``orientations``."""
+    from PIL import Image
+
+    paths = []
+    for k, png in enumerate(board_images):
+        exif = Image.Exif()
+        exif[0x0112] = orientations[k % len(orientations)]
+        path = folder / f"{png.stem}.jpg"
+        with Image.open(png) as image:
+            image.save(path, quality=97, exif=exif)
+        paths.append(path)
+    return paths
+
+
+def test_images_turned_differently_are_refused(cli, board_images: list[Path],
+                                               tmp_path: Path) -> None:
+    """A phone turned a half turn between shots keeps the size; upright, its lens's centre
+    lands mirrored, and one fit over both averaged two centres without a word."""
+    paths = _tagged(board_images, tmp_path, (1, 3))
+    rig_path = tmp_path / "rig.toml"
+    rig_path.write_text(rig_to_toml(default_rig()))
+    before = rig_path.read_bytes()
+    result = cli("calibrate-camera", *paths, "--rig", rig_path, "--camera", "cam1")
+    assert result.code == 2
+    assert "taken with the camera turned differently (EXIF orientation 1 (as stored): " \
+           "board00.jpg, board02.jpg, board04.jpg …; 3 (half turn): board01.jpg" in result.err
+    assert result.err.count("\n") == 1 and rig_path.read_bytes() == before
+
+
+def test_images_turned_alike_calibrate_the_upright_picture(cli, board_images: list[Path],
+                                                           tmp_path: Path) -> None:
+    """All shot with the phone upright (stored landscape, tagged 6): the intrinsics are for
+    the upright picture, as import-video's frames are (the display rotation applied)."""
+    paths = _tagged(board_images, tmp_path, (6,))
+    rig_path = tmp_path / "rig.toml"
+    rig_path.write_text(rig_to_toml(default_rig()))
+    result = cli("calibrate-camera", *paths, "--rig", rig_path, "--camera", "cam1")
+    assert result.code == 0, result.err
+    cam1 = load_rig(rig_path).camera("cam1")
+    # orientation 6 turns the stored picture a quarter turn clockwise: x' = H − 1 − y, y' = x
+    assert (cam1.width, cam1.height) == (480, 640)
+    assert cam1.cx == pytest.approx(479 - TRUE.cy, abs=3.0)
+    assert cam1.cy == pytest.approx(TRUE.cx, abs=3.0)
+    assert cam1.fx == pytest.approx(TRUE.fy, rel=0.01)
+    assert cam1.fy == pytest.approx(TRUE.fx, rel=0.01)
+    assert "turned differently" not in result.err
+
+
+def test_another_aspect_ratio_than_the_rigs_camera_is_warned(
+        cli, board_images: list[Path], tmp_path: Path) -> None:
+    """Photos (4:3) calibrating a camera that records 9:16 video: the intrinsics are for
+    another crop of the sensor."""
+    rig_path = tmp_path / "rig.toml"
+    rig_path.write_text(rig_to_toml(default_rig()))  # cam1: an upright phone, 1080 × 1920
+    result = cli("calibrate-camera", *board_images, "--rig", rig_path, "--camera", "cam1")
+    assert result.code == 0, result.err
+    assert "the images are 640×480, camera cam1 was 1080×1920 in the rig (another aspect " \
+           "ratio: a photo mode rather than the video mode?)" in result.err
+    assert load_rig(rig_path).camera("cam1").width == 640

@@ -439,7 +439,8 @@ def test_import_video_refines_a_rough_offset(scan: dict[str, Any], tmp_path: Pat
     first_ns = write_video(OPTIONS, scan["true"].camera("cam0"), video, fps=1.0)
     # the phone's clock says its first frame came 0.5 s later than it did
     result = cli("import-video", video, "--into", rec, "--start-time", str(first_ns),
-                 "--offset", "0.5", "--camera", "cam0", "--refine", "--json")
+                 "--offset", "0.5", "--camera", "cam0", "--refine", "--json",
+                 "--replace")  # the simulated cam0 frames: the video stands in for them
     assert result.code == 0, result.err
     report = json.loads(result.out)
     assert report["offset_s"] == pytest.approx(0.0, abs=0.1)
@@ -474,7 +475,7 @@ def test_import_video_refuses_to_refine_without_still_frames(
     writer.release()
     capture.release()
     result = cli("import-video", trimmed, "--into", rec, "--start-time",
-                 str(first_ns + 6_000_000_000), "--camera", "cam0", "--refine")
+                 str(first_ns + 6_000_000_000), "--camera", "cam0", "--refine", "--replace")
     assert result.code == 1
     assert "standing still" in result.err and result.err.count("\n") == 1
     assert _digest(rec) == digest

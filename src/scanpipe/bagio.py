@@ -29,8 +29,9 @@ Read with ``rosbags`` (pure Python, no ROS install). What is taken (docs/import.
   (the paper's): the laser's +x horizontal along the platform's x, its +y pointing down, its
   scan plane holding the motor axis. ``--rig`` gives a calibrated rig instead (its motor step
   is replaced by :data:`PULSE_STEP_DEG`, the step the angles are written in).
-- **frames** from ``sensor_msgs/CompressedImage`` (JPEG and PNG kept as they are) and
-  ``sensor_msgs/Image`` (``rgb8``, ``bgr8``, ``mono8`` encoded to PNG); a ``CameraInfo`` beside
+- **frames** from ``sensor_msgs/CompressedImage`` (JPEG and 8-bit PNG kept as they are; a
+  16-bit PNG is a depth image, skipped) and ``sensor_msgs/Image`` (``rgb8``, ``bgr8``,
+  ``rgba8``, ``bgra8``, ``mono8`` encoded to PNG); a ``CameraInfo`` beside
   the image topic gives the camera's intrinsics (its pose stays the default: pass ``--rig``).
 """
 
@@ -43,6 +44,7 @@ import tempfile
 from collections import Counter, defaultdict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from glob import escape as glob_escape
 from pathlib import Path
 from typing import Any
 
@@ -66,6 +68,7 @@ TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 RAW_IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+POINT_CLOUD = "sensor_msgs/msg/PointCloud2"
 SCAN_TYPES = (LASER_SCAN, MULTI_ECHO)
 IMAGE_TYPES = (COMPRESSED_IMAGE, RAW_IMAGE)
 #: The platform turn per pulse the imported angles are written in (see the module docstring).
@@ -140,6 +143,80 @@ def _split_index(path: Path) -> tuple[int, str]:
     return (int(match.group(1)) if match else -1, path.name)
 
 
+#: Split parts of one ROS 1 recording follow each other: the next part's first message comes
+#: within this of the previous part's last (rosbag record switches files between two messages).
+_SPLIT_GAP_NS = 2_000_000_000
+
+
+def _ros1_span_ns(path: Path) -> tuple[int, int] | None:
+    """(first, last) message time of a ROS 1 bag from its index; None if it cannot be read."""
+    from rosbags.rosbag1 import Reader
+
+    try:
+        with Reader(path) as reader:
+            return int(reader.start_time), int(reader.end_time)
+    except Exception:  # rosbags raises several types for damaged files
+        return None
+
+
+def _split_parts(path: Path, warnings: list[str]) -> list[Path]:
+    """The parts of the split recording ``path`` belongs to, in order: ``NAME_0.bag``,
+    ``NAME_1.bag`` … (``rosbag record --split``), or rosbag2's ``NAME_0.db3`` / ``.mcap`` …
+    beside each other. Given one part, only that part's share of the scan was imported. A ROS 1
+    part is joined by the neighbours whose times continue it (two scans named ``scan_0.bag``,
+    ``scan_1.bag`` by hand are not one recording: the gap between them tells, and the part is
+    read alone, warned); rosbag2 writes a bag's parts into its own folder, so its siblings
+    are its parts. ``[path]`` when it is not a part."""
+    match = re.fullmatch(r"(.*)_(\d+)", path.stem)
+    kind = _kind(path) if path.is_file() else None
+    if match is None or kind is None:
+        return [path]
+    prefix, suffix = match.group(1), path.suffix
+    siblings = {}
+    for candidate in path.parent.glob(f"{glob_escape(prefix)}_*{glob_escape(suffix)}"):
+        number = re.fullmatch(rf"{re.escape(prefix)}_(\d+)", candidate.stem)
+        if number and candidate.is_file() and _kind(candidate) == kind:
+            siblings[int(number.group(1))] = candidate
+    own = int(match.group(2))
+    run = [own]  # the consecutive numbers around the given part
+    while run[0] - 1 in siblings:
+        run.insert(0, run[0] - 1)
+    while run[-1] + 1 in siblings:
+        run.append(run[-1] + 1)
+    parts = [siblings[n] for n in run]
+    if kind == ".bag" and len(parts) > 1:
+        spans = [_ros1_span_ns(part) for part in parts]
+        start = end = run.index(own)
+        while start > 0 and _continues(spans[start - 1], spans[start]):
+            start -= 1
+        while end < len(parts) - 1 and _continues(spans[end], spans[end + 1]):
+            end += 1
+        if start == end:
+            warnings.append(
+                f"{path.name}: files named like parts of a split recording lie beside it "
+                f"({', '.join(p.name for p in parts if p != path)}), but their times do not "
+                "continue it: read alone")
+            return [path]
+        parts = parts[start:end + 1]
+    if len(parts) > 1:
+        warnings.append(f"{path.name}: one part of a split recording: read with its parts "
+                        f"{', '.join(p.name for p in parts)}")
+    unclosed = path.parent / f"{prefix}_{run[-1] + 1}{suffix}.active"
+    if kind == ".bag" and parts[-1] == siblings[run[-1]] and unclosed.is_file():
+        warnings.append(f"{unclosed.name}: the next part, left unclosed by its recorder (no "
+                        "index), is not read: run `rosbag reindex` on it and import again to "
+                        "include the end of the scan")
+    return parts
+
+
+def _continues(before: tuple[int, int] | None, after: tuple[int, int] | None) -> bool:
+    """The bag with span ``after`` continues the one with span ``before`` (split parts)."""
+    if before is None or after is None:
+        return False
+    gap = after[0] - before[1]
+    return -_SPLIT_GAP_NS // 4 <= gap <= _SPLIT_GAP_NS
+
+
 def _mcap_complete(path: Path) -> bool:
     """An MCAP file that ends in its magic (a recorder killed mid-write leaves none)."""
     size = path.stat().st_size
@@ -165,7 +242,7 @@ def _storage_paths(path: Path, scratch: Path, warnings: list[str]) -> list[Path]
             warnings.append(f"{path}: no metadata.yaml (its recorder was stopped before writing "
                             f"it?): read from its storage files {', '.join(f.name for f in files)}")
     else:
-        files = [path]
+        files = _split_parts(path, warnings)
     kinds = {f: _kind(f) for f in files}
     if None in kinds.values():
         raise BagError(f"{path}: not a readable ROS bag (it starts with neither '#ROSBAG "
@@ -325,8 +402,13 @@ def choose_scan_topic(path: Path, topics: Sequence[Topic], requested: str | None
                            f"LaserScan; laser scan topics: {_listing(scans)}")
         return match[0]
     if not scans:
+        clouds = [t for t in topics if t.msgtype == POINT_CLOUD]
+        hint = ("; sensor_msgs/PointCloud2 is not taken (assembled or converted scans, "
+                "laser_assembler's: no beam grid to rebuild a profile from, usually in a moving "
+                "frame): export it to PCD/PLY with ROS tools and use scanpipe import-points"
+                if clouds else "")
         raise BagError(f"{path}: no laser scan (sensor_msgs/LaserScan or MultiEchoLaserScan) "
-                       f"in the bag; found: {_listing(topics)}")
+                       f"in the bag; found: {_listing(topics)}{hint}")
     if len(scans) > 1:
         raise BagError(f"{path}: {len(scans)} laser scan topics; choose one with --scan: "
                        f"{_listing(scans)}")
@@ -355,12 +437,16 @@ def _profile(msg: Any, msgtype: str, log_time_ns: int, index: int
         intensities = np.asarray(msg.intensities, np.float64)
     lo, hi = float(msg.range_min), float(msg.range_max)
     with np.errstate(invalid="ignore"):
-        no_return = ~np.isfinite(ranges) | (ranges < lo) | (ranges > hi)
+        # range_max itself is a no-return too: drivers that do not follow REP 117's +inf
+        # (LMS1xx's default, Gazebo's laser plugin) publish exactly range_max for no echo
+        at_max = ranges == np.float64(np.float32(hi))
+        no_return = ~np.isfinite(ranges) | (ranges < lo) | (ranges > hi) | at_max
     ranges = np.where(no_return, np.nan, ranges)
     start = _stamp_ns(msg.header, log_time_ns)
     n = ranges.size
     dt = float(msg.time_increment)
-    end = start + round(max(n - 1, 0) * dt * 1e9) if dt > 0 and math.isfinite(dt) else 0
+    # dt < 0: the beams were taken from the last to the first (ranges[0] last, at the stamp)
+    end = start + round(max(n - 1, 0) * dt * 1e9) if dt != 0 and math.isfinite(dt) else 0
     profile = schemas.Profile(
         device_time_ns=start, device_end_time_ns=end, frame=index,
         start_angle_deg=math.degrees(float(msg.angle_min)) + 90.0,
@@ -370,7 +456,8 @@ def _profile(msg: Any, msgtype: str, log_time_ns: int, index: int
                      if intensities.size == n else []))
     facts = {"samples": float(n), "step_deg": profile.step_deg,
              "angle_min_deg": math.degrees(float(msg.angle_min)),
-             "scan_time_s": float(msg.scan_time), "range_min_m": lo, "range_max_m": hi}
+             "scan_time_s": float(msg.scan_time), "range_min_m": lo, "range_max_m": hi,
+             "at_range_max": float(np.count_nonzero(at_max))}
     return (end or start), profile, facts
 
 
@@ -627,6 +714,37 @@ def _camera_id(topic: str) -> str:
     return name or "camera"
 
 
+def without_exif(jpeg: bytes) -> bytes | None:
+    """``jpeg`` without its Exif APP1 segments when one holds an orientation other than 1
+    (the pixels untouched: the segments are cut out); None when there is nothing to remove.
+
+    ROS's image_transport decodes a CompressedImage as stored (OpenCV's IMREAD_UNCHANGED), and
+    its CameraInfo describes those pixels; scanpipe's frame decoding would turn them by the
+    tag."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    try:
+        with Image.open(BytesIO(jpeg)) as image:
+            orientation = image.getexif().get(0x0112, 1)
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):
+        return None  # Pillow's errors: the frame decode checks the size and will say
+    if orientation in (1, None):
+        return None
+    out, at = [jpeg[:2]], 2
+    while at + 4 <= len(jpeg) and jpeg[at] == 0xFF:
+        marker, length = jpeg[at + 1], int.from_bytes(jpeg[at + 2:at + 4], "big")
+        if marker == 0xDA:  # start of scan: the rest is image data
+            break
+        segment = jpeg[at:at + 2 + length]
+        if not (marker == 0xE1 and segment[4:10] == b"Exif\x00\x00"):
+            out.append(segment)
+        at += 2 + length
+    out.append(jpeg[at:])
+    return b"".join(out)
+
+
 def _image_bytes(msg: Any, msgtype: str) -> tuple[bytes, str] | None:
     """(encoded bytes, jpeg|png) of an image message; None for an encoding not taken."""
     if msgtype == COMPRESSED_IMAGE:
@@ -634,17 +752,19 @@ def _image_bytes(msg: Any, msgtype: str) -> tuple[bytes, str] | None:
         if data[:3] == b"\xff\xd8\xff":
             return data, "jpeg"
         if data[:8] == b"\x89PNG\r\n\x1a\n":
-            return data, "png"
+            # 16 bits per sample (IHDR's bit depth): a depth image (compressed 16UC1), not a
+            # camera frame; OpenCV would read its high bytes as a grey picture
+            return (data, "png") if len(data) > 24 and data[24] <= 8 else None
         return None
     encoding = str(msg.encoding).lower()
-    channels = {"rgb8": 3, "bgr8": 3, "mono8": 1}.get(encoding)
+    channels = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1}.get(encoding)
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     raw = np.asarray(msg.data, np.uint8)
     if channels is None or step < width * channels or raw.size < height * step:
         return None
     pixels = raw[:height * step].reshape(height, step)[:, :width * channels]
-    image = pixels.reshape(height, width, channels) if channels == 3 else pixels
-    if encoding == "rgb8":
+    image = pixels.reshape(height, width, channels)[:, :, :3] if channels > 1 else pixels
+    if encoding.startswith("rgb"):
         image = image[:, :, ::-1]  # encode_png takes BGR
     return encode_png(np.ascontiguousarray(image)), "png"
 
@@ -662,23 +782,96 @@ def _camera_info(reader: Any, topics: Sequence[Topic], image_topic: str) -> Any 
     return None
 
 
-def _camera(camera_id: str, info: Any | None, size: tuple[int, int] | None,
+#: CameraInfo distortion models that are OpenCV's pinhole (k1 k2 p1 p2 k3 [k4 k5 k6]).
+_PINHOLE_MODELS = ("plumb_bob", "rational_polynomial", "")
+
+
+def _rectified(image_topic: str) -> bool:
+    """An image topic that carries rectified images (image_proc's ``image_rect``,
+    ``image_rect_color``, also behind ``/compressed``): no distortion left, intrinsics in P."""
+    return re.search(r"(^|[_/])rect", "/".join(image_topic.split("/")[-2:])) is not None
+
+
+def camera_intrinsics(info: Any, image_topic: str, bag: Path) -> dict[str, Any] | None:
+    """A rig camera's ``width height fx fy cx cy distortion`` from a CameraInfo, or None when
+    it holds no calibration (K zero). :class:`BagError` for a lens scanpipe's OpenCV pinhole
+    cannot describe (fisheye ``equidistant``, a rational model using k4…k6, an unknown model).
+
+    A rectified image topic takes P (its undistorted projection) with zero distortion: K and D
+    describe the raw image, and would distort a rectified one a second time. The ROI (in
+    full-resolution, unbinned pixels) and the binning (ROS's image_geometry applies them in
+    that order) are applied, as the images published have that size."""
+    k = [float(v) for v in getattr(info, "k", getattr(info, "K", []))]
+    if len(k) != 9 or not k[0] > 0 or not int(info.width):
+        return None
+    d = [float(v) for v in getattr(info, "d", getattr(info, "D", []))]
+    model = str(info.distortion_model).strip().lower()
+    width, height = int(info.width), int(info.height)
+    if _rectified(image_topic):
+        p = [float(v) for v in getattr(info, "p", getattr(info, "P", []))]
+        fx, fy, cx, cy = (p[0], p[5], p[2], p[6]) if len(p) == 12 and p[0] > 0 else (
+            k[0], k[4], k[2], k[5])
+        distortion = [0.0] * 5
+    else:
+        fx, fy, cx, cy = k[0], k[4], k[2], k[5]
+        extra = [v for v in d[5:] if v != 0.0]
+        if (model not in _PINHOLE_MODELS and any(d)) or extra:
+            raise BagError(
+                f"{bag}: {image_topic}: its CameraInfo's lens model is {model or '(none)'!r} "
+                f"with distortion {d}; scanpipe's cameras are OpenCV's pinhole with k1 k2 p1 "
+                "p2 k3 only (plumb_bob, or rational_polynomial with k4…k6 zero): pass --rig "
+                "with this camera calibrated in that model (scanpipe calibrate-camera), import "
+                "its rectified topic (image_rect), or leave --image out")
+        distortion = (d + [0.0] * 5)[:5]
+    roi = getattr(info, "roi", None)
+    if roi is not None and int(roi.width) > 0 and int(roi.height) > 0:
+        cx, cy = cx - int(roi.x_offset), cy - int(roi.y_offset)
+        width, height = int(roi.width), int(roi.height)
+    bx = max(int(getattr(info, "binning_x", 0) or 0), 1)
+    by = max(int(getattr(info, "binning_y", 0) or 0), 1)
+    return {"width": width // bx, "height": height // by, "fx": fx / bx, "fy": fy / by,
+            "cx": (cx + 0.5) / bx - 0.5, "cy": (cy + 0.5) / by - 0.5,
+            "distortion": distortion}
+
+
+def _camera(camera_id: str, intrinsics: dict[str, Any] | None, size: tuple[int, int] | None,
             base: CameraConfig) -> CameraConfig:
-    """A camera of the imported rig: intrinsics from CameraInfo when present."""
+    """A camera of the imported rig: intrinsics from CameraInfo when present, else a guess."""
     data = base.model_dump()
     data["id"] = camera_id
     data["source"] = "bag"
-    # ROS 2 spells the matrices k and d, ROS 1 (a .bag's own definitions) K and D.
-    k = [float(v) for v in getattr(info, "k", getattr(info, "K", []))] if info else []
-    if info is not None and int(info.width) and len(k) == 9 and k[0] > 0:
-        d = [float(v) for v in getattr(info, "d", getattr(info, "D", []))][:5]
-        data.update(width=int(info.width), height=int(info.height), fx=k[0], fy=k[4],
-                    cx=k[2], cy=k[5], distortion=d + [0.0] * (5 - len(d)))
+    if intrinsics is not None:
+        data.update(intrinsics)
     elif size is not None:
         w, h = size
         focal = 0.5 * w / math.tan(math.radians(30.0))  # 60° horizontal: a guess, say so
         data.update(width=w, height=h, fx=focal, fy=focal, cx=(w - 1) / 2, cy=(h - 1) / 2)
     return CameraConfig.model_validate(data)
+
+
+def _place_images(content: BagContent, first: int, log_times: Sequence[int],
+                  scan_span: tuple[int, int], topic: str) -> None:
+    """Check the times of one image topic's images (``content.images[first:]``) against the
+    scan's: header stamps from another clock than the scan's (a camera stamping its own uptime)
+    put every frame before or after the scan, where texture would show it at the platform's
+    first or last angle. Then the bag's log times are used when they meet the scan, else the
+    images are dropped; a warning says which."""
+    images = content.images[first:]
+    lo, hi = scan_span
+    if not images or any(lo <= image[1] <= hi for image in images):
+        return
+    if any(lo <= t <= hi for t in log_times):
+        content.images[first:] = [(c, t, d, f, i) for (c, _, d, f, i), t
+                                  in zip(images, log_times, strict=True)]
+        content.warnings.append(
+            f"{topic}: none of its {len(images)} header stamps falls within the scan's time "
+            "(another clock: a camera stamping its own time?): the bag's log times are used")
+        return
+    del content.images[first:]
+    content.warnings.append(
+        f"{topic}: none of its {len(images)} images was taken during the scan (by header stamp "
+        "or bag log time): dropped (texture would have shown them at the platform's first or "
+        "last angle)")
 
 
 def build_rig(path: Path, facts: dict[str, float], rate_hz: float, mount: tuple[F64, F64] | None,
@@ -732,6 +925,12 @@ def import_bag(bag: Path, out: Path, scan_topic: str | None = None, joint: str |
     warnings: list[str] = []
     with tempfile.TemporaryDirectory(prefix="scanpipe-bag-") as scratch:
         reader = open_bag(bag, Path(scratch), warnings)
+        read = {Path(p).resolve() for p in reader.paths}
+        read |= {f.resolve() for p in read if p.is_dir() for f in p.iterdir()}
+        if out.resolve() in read:
+            reader.close()
+            raise UsageError(f"--out {out}: is a file of the bag being imported (a part of a "
+                             "split recording); choose another name")
         try:
             return _import(reader, bag, out, scan_topic, joint, tf, image_topics, rig, warnings)
         except (BagError, UsageError):
@@ -758,9 +957,11 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
     facts: dict[str, float] = {}
     frame_ids: Counter[str] = Counter()
     steps_seen: set[float] = set()
+    at_max = 0
     for _, log_time, msg in _messages(reader, [scan.name]):
         log_ns, profile, f = _profile(msg, scan.msgtype, log_time, len(content.profiles))
         facts = facts or f
+        at_max += int(f["at_range_max"])
         steps_seen.add(round(profile.step_deg, 9))
         frame_ids[_frame(msg.header.frame_id)] += 1
         content.profiles.append((log_ns, profile))
@@ -782,6 +983,11 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
                            f"{MAX_STEP_SPREAD:.0%} is taken as one step following the head's "
                            "speed): one scan must use one beam step")
         content.warnings.append(on_one_beam_grid(content.profiles, f"{scan.name}: "))
+    if at_max:
+        content.warnings.append(
+            f"{scan.name}: {at_max} ranges equal to range_max ({facts['range_max_m']:g} m) "
+            "taken as no return (drivers that do not publish REP 117's +inf, such as LMS1xx's "
+            "default and Gazebo's laser plugin, put range_max there)")
     _scale_fraction_intensities(content)
     if scan.msgtype == MULTI_ECHO:
         content.warnings.append(f"{scan.name}: MultiEchoLaserScan: the first echo of each "
@@ -819,10 +1025,15 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
 
     cameras: list[CameraConfig] = []
     skipped: Counter[str] = Counter()
+    turned: Counter[str] = Counter()
+    scan_times = [t for t, _ in content.profiles]
+    scan_span = (min(scan_times), max(scan_times))
     for name in image_topics:
         topic = next(t for t in topics if t.name == name)
         camera_id = _camera_id(name)
         size: tuple[int, int] | None = None
+        first = len(content.images)
+        log_times: list[int] = []
         for _, log_time, msg in _messages(reader, [name]):
             encoded = _image_bytes(msg, topic.msgtype)
             if encoded is None:
@@ -833,16 +1044,36 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
             if size is None:
                 from scanpipe.images import image_size
                 size = image_size(encoded[0])
-            content.images.append((camera_id, _stamp_ns(msg.header, log_time), encoded[0],
+            data = encoded[0]
+            if encoded[1] == "jpeg":
+                stripped = without_exif(data)
+                if stripped is not None:
+                    data = stripped
+                    turned[name] += 1
+            content.images.append((camera_id, _stamp_ns(msg.header, log_time), data,
                                    encoded[1], _frame(msg.header.frame_id)))
+            log_times.append(log_time)
+        _place_images(content, first, log_times, scan_span, name)
+        if given is not None and any(c.id == camera_id for c in given.cameras):
+            continue  # --rig's own camera: its calibration, not the bag's
         info = _camera_info(reader, topics, name)
+        intrinsics = None if info is None else camera_intrinsics(info, name, bag)
         if info is None:
             content.warnings.append(f"{name}: no CameraInfo beside it: intrinsics guessed "
                                     "(60° horizontal field of view); pass --rig")
-        cameras.append(_camera(camera_id, info, size, default_rig().cameras[0]))
+        elif intrinsics is None:
+            content.warnings.append(f"{name}: its CameraInfo holds no calibration (K is "
+                                    "zero: an uncalibrated camera): intrinsics guessed (60° "
+                                    "horizontal field of view); pass --rig")
+        cameras.append(_camera(camera_id, intrinsics, size, default_rig().cameras[0]))
+    for name, n in turned.items():
+        content.warnings.append(f"{name}: {n} JPEG images carried an EXIF orientation tag: "
+                                "removed (the pixels are unchanged), as ROS's image_transport "
+                                "ignores it and the CameraInfo describes the pixels as stored")
     for name, n in skipped.items():
         content.warnings.append(f"{name}: {n} images in an encoding not taken (only "
-                                "JPEG/PNG CompressedImage and rgb8/bgr8/mono8 Image)")
+                                "JPEG/8-bit PNG CompressedImage and rgb8/bgr8/rgba8/bgra8/"
+                                "mono8 Image)")
 
     times = np.array([t for t, _ in content.profiles], np.int64)
     rate_hz = (1e9 / float(np.median(np.diff(np.sort(times)))) if times.size > 1

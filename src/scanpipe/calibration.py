@@ -121,12 +121,51 @@ def calibrate(images: Sequence[tuple[str, NDArray[np.uint8]]], board: tuple[int,
     )
 
 
+#: EXIF's Orientation tag (0x0112): how a viewer should turn the stored pixels.
+_EXIF_ORIENTATION = 0x0112
+
+
+def exif_orientation(path: Path) -> int:
+    """A JPEG's (or TIFF's) EXIF orientation, 1 (as stored) when it has none or is unreadable."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            value = image.getexif().get(_EXIF_ORIENTATION, 1)
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError):  # decode says
+        return 1
+    return int(value) if isinstance(value, int) and 1 <= value <= 8 else 1
+
+
 def read_images(paths: Sequence[Path]) -> list[tuple[str, NDArray[np.uint8]]]:
-    """Grey images from files; :class:`UsageError` naming a file that is missing, unreadable or
-    larger than :data:`~scanpipe.images.MAX_FRAME_PX` (checked from its header, before
-    decoding: calibration images come from the camera that records the frames)."""
-    return [(str(path), read_image_file(path, MAX_FRAME_PX, cv2.IMREAD_GRAYSCALE, UsageError))
-            for path in paths]
+    """Grey images from files, upright (a JPEG's EXIF orientation applied, as frames are taken:
+    import-video applies a video's display rotation); :class:`UsageError` naming a file that is
+    missing, unreadable or larger than :data:`~scanpipe.images.MAX_FRAME_PX` (checked from its
+    header, before decoding: calibration images come from the camera that records the frames).
+
+    Images whose EXIF orientations differ are refused: turned a half turn (3 against 1, or 8
+    against 6) a photo keeps its size but the lens's centre and distortion land mirrored in the
+    upright picture, and one fit over both averaged them without a word."""
+    # each file's size is checked from its header (and it is decoded) before Pillow opens it
+    images = [(str(path), read_image_file(path, MAX_FRAME_PX, cv2.IMREAD_GRAYSCALE, UsageError))
+              for path in paths]
+    groups: dict[int, list[str]] = {}
+    for path in paths:
+        groups.setdefault(exif_orientation(path), []).append(path.name)
+    if len(groups) > 1:
+        listed = "; ".join(f"{_ORIENTATIONS.get(k, k)}: {', '.join(v[:3])}"
+                           f"{' …' if len(v) > 3 else ''}" for k, v in sorted(groups.items()))
+        raise UsageError(
+            f"calibration images were taken with the camera turned differently (EXIF "
+            f"orientation {listed}): turned, the lens's centre and distortion land elsewhere "
+            "in the upright picture; calibrate from images taken the one way the camera is "
+            "held for the scan")
+    return images
+
+
+#: EXIF orientations by what they mean for the camera.
+_ORIENTATIONS = {1: "1 (as stored)", 3: "3 (half turn)", 6: "6 (quarter turn)",
+                 8: "8 (quarter turn the other way)"}
 
 
 def apply_calibration(rig_path: Path, camera_id: str, calibration: Calibration) -> Rig:

@@ -20,6 +20,7 @@ from scanpipe.cli.common import (
     live_taps,
     print_error,
     print_json,
+    print_warnings,
     take_alias,
 )
 from scanpipe.errors import UsageError
@@ -193,6 +194,8 @@ def import_video(
                                       help="Camera id in the recording's rig "
                                            "(default: its first camera)."),
     quality: int = typer.Option(90, "--jpeg-quality", help="JPEG quality 1–100."),
+    replace: bool = typer.Option(False, "--replace", help="Drop the frames the recording "
+                                 "already holds for this camera (a video imported before)."),
     as_json: bool = JSON,
 ) -> None:
     """Add a separately recorded video to a recording as camera frames with timestamps."""
@@ -216,6 +219,12 @@ def import_video(
                              "the rig (its intrinsics are needed for texturing)")
         camera = rig.cameras[0].id
     rig.camera(camera)  # an unknown id is an error naming the known ones
+    held = sum(1 for i in recorded.images if i.camera_id == camera)
+    if held and not replace:
+        raise UsageError(f"{into}: already holds {held} frames of camera {camera} (recorded, "
+                         "or a video imported before): two takes under one camera would be "
+                         "mixed; pass --replace to drop them, or import as another camera of "
+                         "the rig")
     start = parse_start_time(start_time, recording_start_ns(into) if start_time.strip()
                              == "recording" else None)
     refined = None
@@ -224,7 +233,9 @@ def import_video(
 
         refined = refine_offset(video, into, start + round(offset * 1e9), camera, window)
         offset += refined["offset_s"]
-    report = run_import(video, into, start + round(offset * 1e9), camera, quality)
+    report = run_import(video, into, start + round(offset * 1e9), camera, quality,
+                        rig.camera(camera), replace=replace)
+    print_warnings("import-video", report)
     if refined is not None:
         report["offset_s"] = offset
         report["refined"] = refined

@@ -96,11 +96,25 @@ def calibrate_camera(
     pattern = parse_board(board)
     check_input_file(rig_path, "--rig")  # rewritten in place (temporary name, then rename)
     check_not_input(rig_path, images, "--rig")
-    load_rig(rig_path).camera(camera)  # fail before the slow part on a bad rig or camera
+    before = load_rig(rig_path).camera(camera)  # fail before the slow part on a bad rig
+    warnings: list[str] = []
     result = calibrate(read_images(images), pattern, square_m, fix_k3=not free_k3)
+    if abs(result.width / result.height - before.width / before.height) > 0.01:
+        turned = abs(result.width / result.height - before.height / before.width) <= 0.01
+        why = ("the camera held the other way (upright against level)" if turned else
+               "a photo mode rather than the video mode?")
+        warnings.append(
+            f"the images are {result.width}×{result.height}, camera {camera} was "
+            f"{before.width}×{before.height} in the rig (another aspect ratio: {why}); the rig "
+            f"now says {result.width}×{result.height}, and frames of another aspect ratio will "
+            "be refused by texture: calibrate on images taken the way and in the mode the "
+            "frames are recorded")
+    for warning in warnings:
+        sys.stderr.write(f"warning: calibrate-camera: {warning}\n")
     apply_calibration(rig_path, camera, result)
     if as_json:
-        print_json({"rig": str(rig_path), "camera": camera, **result.to_json()})
+        print_json({"rig": str(rig_path), "camera": camera, **result.to_json(),
+                    "warnings": warnings})
         return
     k1, k2, p1, p2, k3 = result.distortion
     typer.echo(
