@@ -152,11 +152,15 @@ def _check_cpu_accounting(summary: dict[str, Any], engine: str) -> None:
             pids.add(str(stage["pid"]))
         starts = item["worker_start_cpu_s"]
         # a worker's start (local: interpreter and imports; Ray: the chain's imports in its
-        # Ray worker) is its own figure: the two recordings started on two new workers
-        assert len(starts) == 1 and next(iter(starts.values())) > 0
-        assert set(starts) == {str(s["pid"]) for s in item["stages"]}
-    if engine == "ray":  # once per worker in the batch, with its first recording
-        assert sum(len(i["worker_start_cpu_s"]) for i in summary["items"]) == 2
+        # Ray worker) is its own figure: local, with each of the worker's recordings; Ray,
+        # with the first recording a worker started in this batch ran
+        assert all(v > 0 for v in starts.values())
+        assert set(starts) <= {str(s["pid"]) for s in item["stages"]}
+        assert len(starts) == 1 if engine == "local" else len(starts) <= 1
+    if engine == "ray":  # once per worker, every worker new in this batch
+        started = [p for i in summary["items"] for p in i["worker_start_cpu_s"]]
+        ran = {str(s["pid"]) for i in summary["items"] for s in i["stages"]}
+        assert len(started) == len(set(started)) and ran <= set(started)
     assert pids <= set(summary["workers_cpu_s"])
     assert sum(summary["workers_cpu_s"].values()) >= stage_cpu - 1e-3
 
