@@ -262,6 +262,9 @@ def test_ray_runs_a_recordings_stages_in_one_kept_worker(recordings: list[Path],
     """Each recording's stage tasks run in one Ray worker (its outputs reach the next stage in
     memory); ``keep_workers`` keeps that worker, with the chain imported, for the next batch;
     :func:`stop_ray_workers` ends it."""
+    import os
+    import signal
+
     from scanpipe.batch import stop_ray_workers
 
     params = pipeline_params_from_cli(None, GRID)
@@ -277,6 +280,14 @@ def test_ray_runs_a_recordings_stages_in_one_kept_worker(recordings: list[Path],
     assert len(pids) == 1  # one worker for both recordings, every stage
     (start,) = one["worker_start_cpu_s"].values()
     assert start > 0 and two["worker_start_cpu_s"] == {}  # started once, in the first batch
+    # a kept worker that died meanwhile (out of memory, say) is replaced, not used
+    os.kill(pids.pop(), signal.SIGKILL)
+    third = run_batch(recordings[:1], tmp_path / "c", params, engine="ray", workers=1,
+                      to="decode", keep_workers=True)
+    (three,) = third["items"]
+    assert three["ok"], three["error"]
+    (new_pid, new_start), = three["worker_start_cpu_s"].items()
+    assert new_start > 0 and new_pid == str(three["stages"][0]["pid"])
     assert stop_ray_workers() == 1 and stop_ray_workers() == 0
 
 

@@ -577,9 +577,12 @@ def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: 
         stop_ray_workers()  # kept for another session or thread count
         # more kept than this batch uses: the spare ones wait, idle, for a later batch
         actors, spare = kept[:limit], kept[limit:]
-        free = list(actors)
+        free: list[_Actor] = []
         starting: dict[Any, _Actor] = {}
         start_errors: list[str] = []
+        for actor in actors:  # a kept worker may have died meanwhile: asked first
+            actor.ready = actor.handle.ready.remote()
+            starting[actor.ready] = actor
 
         def new_actor() -> None:
             handle = remote.remote(per_task)
@@ -602,7 +605,10 @@ def _run_ray(items: Sequence[BatchItem], params: Mapping[str, Params], workers: 
                 ready, _ = ray.wait([*running, *starting], num_returns=1)
                 for ref in ready:
                     if ref in starting:
-                        _started(ray, ref, starting.pop(ref), free, actors, start_errors)
+                        actor = starting.pop(ref)
+                        if not _started(ray, ref, actor, free, actors, start_errors) \
+                                and actor.pid and queue:
+                            new_actor()  # in place of a kept one that died meanwhile
                         continue
                     flight = running.pop(ref)
                     stage_done()
@@ -636,19 +642,24 @@ def _submit(actor: _Actor, item: BatchItem, params: Mapping[str, Params], names:
 
 
 def _started(ray: Any, ref: Any, actor: _Actor, free: list[_Actor], actors: list[_Actor],
-             errors: list[str]) -> None:
-    """A worker answered, or failed to start (then it is dropped and its error kept)."""
+             errors: list[str]) -> bool:
+    """A worker answered (its start CPU to report unless it was reported already, when an
+    earlier batch kept it), or failed to start or died (then it is dropped and its error
+    kept: False)."""
     try:
         info = ray.get(ref)
-    except Exception as err:  # Ray's: the actor could not start
+    except Exception as err:  # Ray's: the actor could not start, or died since
         errors.append(f"{type(err).__name__}: "
                       f"{(str(err).strip().splitlines() or [''])[0]}")
         actors.remove(actor)
         with suppress(Exception):
             ray.kill(actor.handle)
-        return
-    actor.ready, actor.pid, actor.start_cpu_s = None, str(info["pid"]), info["start_cpu_s"]
+        return False
+    if not actor.pid:  # new: its start is this batch's
+        actor.pid, actor.start_cpu_s = str(info["pid"]), info["start_cpu_s"]
+    actor.ready = None
     free.append(actor)
+    return True
 
 
 def _stage_finished(ray: Any, ref: Any, flight: _InFlight, done: Callable[[ItemResult], None],
