@@ -48,7 +48,7 @@ from typing import Any
 
 from benchmarks.bench_site import pool_server_cpu_s
 from benchmarks.harness import machine, positive_int, save, table, timed_say
-from scanpipe.batch import run_batch, stop_pool_server
+from scanpipe.batch import run_batch, start_local_ray, stop_pool_server, stop_ray_workers
 from scanpipe.cli.main import main as scanpipe_main
 from scanpipe.cli.pipeline import pipeline_params_from_cli
 from scanpipe.stages import chain_stages
@@ -77,23 +77,39 @@ def make_recordings(folder: Path, count: int, settings: list[str]) -> list[Path]
     return paths
 
 
+class _Empty:
+    """An actor with an empty method, as a batch's Ray worker receives stage tasks."""
+
+    def call(self, x: int) -> int:
+        """Nothing."""
+        return x
+
+
 def ray_task_costs(ray: Any) -> dict[str, float]:
-    """Round trip of one empty task, and wall time per empty task with many in flight (ms)."""
+    """Ray's scheduling per task (ms): the round trip of one empty task and the wall time per
+    empty task with many in flight, for plain tasks (scheduled by the raylet, each on a leased
+    worker) and for actor tasks (sent straight to a running worker, as a batch's stage tasks
+    are)."""
     @ray.remote(num_cpus=1)
     def empty(x: int) -> int:
         return x
 
-    ray.get([empty.remote(i) for i in range(20)])  # workers started and warm
-    trips = []
-    for i in range(50):
+    actor = ray.remote(num_cpus=1)(_Empty).remote()
+    costs: dict[str, float] = {}
+    for label, call in (("", empty.remote), ("actor_", actor.call.remote)):
+        ray.get([call(i) for i in range(20)])  # workers started and warm
+        trips = []
+        for i in range(50):
+            started = time.perf_counter()
+            ray.get(call(i))
+            trips.append(time.perf_counter() - started)
         started = time.perf_counter()
-        ray.get(empty.remote(i))
-        trips.append(time.perf_counter() - started)
-    started = time.perf_counter()
-    ray.get([empty.remote(i) for i in range(EMPTY_TASKS)])
-    in_flight_s = time.perf_counter() - started
-    return {"round_trip_ms": round(statistics.median(trips) * 1e3, 3),
-            "per_task_in_flight_ms": round(in_flight_s / EMPTY_TASKS * 1e3, 3)}
+        ray.get([call(i) for i in range(EMPTY_TASKS)])
+        in_flight_s = time.perf_counter() - started
+        costs[f"{label}round_trip_ms"] = round(statistics.median(trips) * 1e3, 3)
+        costs[f"{label}per_task_in_flight_ms"] = round(in_flight_s / EMPTY_TASKS * 1e3, 3)
+    ray.kill(actor)
+    return costs
 
 
 def _nothing(x: int = 0) -> int:
@@ -216,13 +232,14 @@ def run(count: int, settings: list[str], say: Any, repeats: int = 1,
         for engine in ("local", "ray"):
             if engine == "ray":
                 started = time.perf_counter()
-                ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+                start_local_ray(2)  # as `scanpipe batch --engine ray` starts one
                 results["ray_init_s"] = round(time.perf_counter() - started, 2)
                 results["ray_task"] = ray_task_costs(ray)
             try:
                 _engine_runs(engine, recordings, root, params, repeats, threads, say, results)
             finally:
                 if engine == "ray":
+                    stop_ray_workers()
                     ray.shutdown()
     return summarise(results, count, n_stages, cpus)
 
@@ -240,11 +257,14 @@ def _engine_runs(engine: str, recordings: list[Path], root: Path, params: Any, r
             cold = attempt == 0
             if engine == "local" and cold:
                 stop_pool_server()
+            if engine == "ray" and cold:
+                stop_ray_workers()
             before_local = _children_cpu_s() + pool_server_cpu_s()
             before_ray = _descendants_cpu() if engine == "ray" else {}
             started = time.perf_counter()
+            # Ray's workers kept between runs, as the local fork server is
             summary = run_batch(recordings, root / f"{name}-{attempt}", params, engine=engine,
-                                workers=workers, threads=threads)
+                                workers=workers, threads=threads, keep_workers=True)
             wall = time.perf_counter() - started
             if engine == "local":
                 processes = _children_cpu_s() + pool_server_cpu_s() - before_local
@@ -366,7 +386,10 @@ def report(results: dict[str, Any]) -> str:
                      f"{cost['engine_cpu_per_task_ms_1w']:.2f} / "
                      f"{cost['engine_cpu_per_task_ms_2w']:.2f} ms (1 / 2 workers)")
     ray_cost = results["ray_scheduling"]
-    lines.append(f"Ray: {ray_cost['per_task_in_flight_ms']:.2f} ms per empty task in flight, "
+    lines.append(f"Ray: {ray_cost['per_task_in_flight_ms']:.2f} ms per empty task in flight "
+                 f"(actor tasks, as the batch's stage tasks: round trip "
+                 f"{ray_cost['actor_round_trip_ms']:.2f} ms, "
+                 f"{ray_cost['actor_per_task_in_flight_ms']:.2f} ms in flight), "
                  f"batch excess over local {ray_cost['batch_excess_per_task_ms']:.2f} ms per "
                  f"stage task; Ray start {results['ray_init_s']} s")
     pool = results["local_pool"]

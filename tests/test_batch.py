@@ -13,7 +13,14 @@ import pyarrow as pa
 import pytest
 
 from scanpipe.artifacts import read_artifact
-from scanpipe.batch import largest_first, plan_batch, run_batch, workdir_name, worker_threads
+from scanpipe.batch import (
+    largest_first,
+    plan_batch,
+    run_batch,
+    start_local_ray,
+    workdir_name,
+    worker_threads,
+)
 from scanpipe.cli.pipeline import pipeline_params_from_cli
 from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
@@ -43,7 +50,7 @@ def ray_local() -> Iterator[Any]:
     """One local Ray for the module, with 2 CPUs (starting one takes seconds)."""
     import ray
 
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    start_local_ray(2)
     yield ray
     ray.shutdown()
 
@@ -144,10 +151,16 @@ def _check_cpu_accounting(summary: dict[str, Any], engine: str) -> None:
             stage_cpu += stage["cpu_s"]
             pids.add(str(stage["pid"]))
         starts = item["worker_start_cpu_s"]
-        # a local worker's start (interpreter, imports) is its own figure; Ray's workers were
-        # started by Ray before the batch
-        assert (len(starts) == 1 and next(iter(starts.values())) > 0) if engine == "local" \
-            else starts == {}
+        # a worker's start (local: interpreter and imports; Ray: the chain's imports in its
+        # Ray worker) is its own figure: local, with each of the worker's recordings; Ray,
+        # with the first recording a worker started in this batch ran
+        assert all(v > 0 for v in starts.values())
+        assert set(starts) <= {str(s["pid"]) for s in item["stages"]}
+        assert len(starts) == 1 if engine == "local" else len(starts) <= 1
+    if engine == "ray":  # once per worker, every worker new in this batch
+        started = [p for i in summary["items"] for p in i["worker_start_cpu_s"]]
+        ran = {str(s["pid"]) for i in summary["items"] for s in i["stages"]}
+        assert len(started) == len(set(started)) and ran <= set(started)
     assert pids <= set(summary["workers_cpu_s"])
     assert sum(summary["workers_cpu_s"].values()) >= stage_cpu - 1e-3
 
@@ -242,3 +255,79 @@ def test_foreign_batch_json_is_kept(cli, recordings: list[Path], tmp_path: Path)
         result.err
     assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["batch.json"]
     assert (tmp_path / "w" / "batch.json").read_text() == "my notes"
+
+
+def test_ray_runs_a_recordings_stages_in_one_kept_worker(recordings: list[Path], ray_local: Any,
+                                                         tmp_path: Path) -> None:
+    """Each recording's stage tasks run in one Ray worker (its outputs reach the next stage in
+    memory); ``keep_workers`` keeps that worker, with the chain imported, for the next batch;
+    :func:`stop_ray_workers` ends it."""
+    import os
+    import signal
+
+    from scanpipe.batch import stop_ray_workers
+
+    params = pipeline_params_from_cli(None, GRID)
+    stop_ray_workers()
+    first = run_batch(recordings[:1], tmp_path / "a", params, engine="ray", workers=1,
+                      to="assemble", keep_workers=True)
+    second = run_batch(recordings[1:2], tmp_path / "b", params, engine="ray", workers=1,
+                       to="assemble", keep_workers=True)
+    (one,), (two,) = first["items"], second["items"]
+    assert one["ok"] and two["ok"]
+    assert [s["stage"] for s in one["stages"]] == ["decode", "calibrate", "assemble"]
+    pids = {s["pid"] for s in one["stages"]} | {s["pid"] for s in two["stages"]}
+    assert len(pids) == 1  # one worker for both recordings, every stage
+    (start,) = one["worker_start_cpu_s"].values()
+    assert start > 0 and two["worker_start_cpu_s"] == {}  # started once, in the first batch
+    # a kept worker that died meanwhile (out of memory, say) is replaced, not used
+    os.kill(pids.pop(), signal.SIGKILL)
+    third = run_batch(recordings[:1], tmp_path / "c", params, engine="ray", workers=1,
+                      to="decode", keep_workers=True)
+    (three,) = third["items"]
+    assert three["ok"], three["error"]
+    (new_pid, new_start), = three["worker_start_cpu_s"].items()
+    assert new_start > 0 and new_pid == str(three["stages"][0]["pid"])
+    assert stop_ray_workers() == 1 and stop_ray_workers() == 0
+
+
+def test_ray_worker_lost_fails_its_recording_only(recordings: list[Path], ray_local: Any,
+                                                 tmp_path: Path) -> None:
+    """A Ray worker killed while it runs a recording (out of memory, a lost node) fails that
+    recording with a one-line reason; a new worker runs the others, and a re-run finishes it
+    from its cache."""
+    import os
+    import signal
+
+    params = pipeline_params_from_cli(None, GRID)
+    first = largest_first(plan_batch(recordings, tmp_path / "w"))[0].name
+    killed: list[int] = []
+
+    def kill_the_running_worker(task: str, done: float, total: float | None = None) -> None:
+        if task == "stages" and done == 1 and not killed:  # the first recording's decode
+            # the worker holds the recording's workdir lock from its first stage to its last
+            lock = tmp_path / "w" / first / ".scanpipe" / "lock"
+            pid = json.loads(lock.read_text())["pid"]
+            os.kill(pid, signal.SIGKILL)
+            killed.append(pid)
+
+    summary = run_batch(recordings, tmp_path / "w", params, engine="ray", workers=1,
+                        progress=kill_the_running_worker)
+    by_name = {i["name"]: i for i in summary["items"]}
+    lost = by_name.pop(first)
+    bad = summary["items"][2]
+    (other,) = (i for i in by_name.values() if i is not bad)
+    assert killed and not lost["ok"] and other["ok"] and not bad["ok"]
+    assert lost["error"].startswith("the Ray worker running this recording was lost (")
+    assert lost["error"].endswith("re-run the batch to retry it: finished stages are reused")
+    assert "\n" not in lost["error"]
+    assert [s["stage"] for s in lost["stages"]] == ["decode"]
+    assert killed[0] not in {s["pid"] for s in other["stages"]}
+    assert bad["error"] == f"{recordings[2]}: not an MCAP file (bad magic bytes)"
+    again = {i["name"]: i for i in run_batch(recordings[:2], tmp_path / "w", params,
+                                              engine="ray", workers=1)["items"]}
+    assert all(i["ok"] for i in again.values())
+    # (its decode was committed in the background: kept or not, never half-written)
+    assert [s["reused"] for s in again[first]["stages"]][1:] == [False] * 6
+    assert (tmp_path / "w" / first / "export" / "model.glb").is_file()
+    assert all(s["reused"] for s in again[other["name"]]["stages"])

@@ -15,7 +15,8 @@ from __future__ import annotations
 import difflib
 import functools
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Generator, Mapping, Sequence
+from contextlib import closing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -46,8 +47,9 @@ from scanpipe.stages import chain_stages, get_stage, registry
 from scanpipe.workdir import DEFAULT_LOCK_WAIT_S, lock_root, workdir_lock
 
 __all__ = ["InMemory", "RunRecord", "Stage", "StageResult", "chain_step", "chain_to",
-           "check_recording", "execute", "get_stage", "registry", "rig_override_artifact",
-           "run_chain", "run_locked_chain", "validate_pipeline_params"]
+           "check_recording", "execute", "get_stage", "iter_chain", "iter_locked_chain",
+           "registry", "rig_override_artifact", "run_chain", "run_locked_chain",
+           "validate_pipeline_params"]
 
 
 @dataclass(frozen=True)
@@ -253,6 +255,38 @@ def run_chain(
     The whole chain holds the workdir's lock, so a second run on the same workdir waits up to
     ``lock_wait_s`` seconds (then :class:`ArtifactError`) and two runs never mix artifacts.
     """
+    return _collect(iter_chain(recording, workdir, params, stages, to, force, rig_override,
+                               progress, lock_wait_s), on_stage)
+
+
+def _collect(steps: Generator[RunRecord, None, None],
+             on_stage: Callable[[RunRecord], None] | None) -> list[RunRecord]:
+    """Every record of a chain run one stage at a time, each given to ``on_stage`` too."""
+    records: list[RunRecord] = []
+    with closing(steps):
+        for record in steps:
+            records.append(record)
+            if on_stage is not None:
+                on_stage(record)
+    return records
+
+
+def iter_chain(
+    recording: Path,
+    workdir: Path,
+    params: Mapping[str, Params],
+    stages: Sequence[Stage] | None = None,
+    to: str | None = None,
+    force: bool = False,
+    rig_override: Path | None = None,
+    progress: ProgressFn = no_progress,
+    lock_wait_s: float = DEFAULT_LOCK_WAIT_S,
+) -> Generator[RunRecord, None, None]:
+    """:func:`run_chain` one stage at a time: each ``next()`` runs the next stage and gives its
+    record (a Ray batch runs each stage as its own task in one worker this way). The workdir's
+    lock and the background commits are held from the first ``next()`` until the iterator is
+    exhausted — which waits until every stage folder is in place and raises a failed commit —
+    or closed (always close it: :func:`contextlib.closing`)."""
     chain = chain_to(stages, to)
     check_recording(recording)
     if rig_override is not None:
@@ -260,8 +294,8 @@ def run_chain(
 
         load_rig(rig_override)  # a bad rig file is refused before the workdir is touched
     with workdir_lock(workdir, lock_wait_s), background_commits():
-        return run_locked_chain(chain, recording, workdir, params, force, rig_override,
-                                 progress, on_stage)
+        yield from iter_locked_chain(chain, recording, workdir, params, force, rig_override,
+                                     progress)
 
 
 def chain_to(stages: Sequence[Stage] | None, to: str | None) -> list[Stage]:
@@ -279,10 +313,23 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
                       compute: Mapping[str, Callable[[Mapping[str, Any]], StageResult]]
                       | None = None, in_memory: bool = False,
                       raw_keys: Mapping[str, str] | None = None) -> list[RunRecord]:
-    """The chain, while the caller holds the workdir's lock. ``compute``: a stage's result
-    computed otherwise (see :class:`InMemory`); ``in_memory``: each stage's outputs are handed
-    to every later stage in memory as well as written (``scanpipe run --follow``), not read
-    back.
+    """The chain, while the caller holds the workdir's lock (:func:`iter_locked_chain`, each
+    record also given to ``on_stage``)."""
+    return _collect(iter_locked_chain(chain, recording, workdir, params, force, rig_override,
+                                      progress, compute, in_memory, raw_keys), on_stage)
+
+
+def iter_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
+                      params: Mapping[str, Params], force: bool, rig_override: Path | None,
+                      progress: ProgressFn,
+                      compute: Mapping[str, Callable[[Mapping[str, Any]], StageResult]]
+                      | None = None, in_memory: bool = False,
+                      raw_keys: Mapping[str, str] | None = None
+                      ) -> Generator[RunRecord, None, None]:
+    """The chain, one stage per ``next()``, while the caller holds the workdir's lock.
+    ``compute``: a stage's result computed otherwise (see :class:`InMemory`); ``in_memory``:
+    each stage's outputs are handed to every later stage in memory as well as written
+    (``scanpipe run --follow``), not read back.
 
     Otherwise the outputs a stage computed, and the inputs it read, are handed in memory to
     the *next* stage only (as well as written): it would read them back at once, which cost
@@ -294,7 +341,6 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
     available: dict[str, Path] = {"recording": recording}
     tables: dict[str, pa.Table] = {}
     override_path = rig_override_artifact(rig_override, workdir) if rig_override else None
-    records: list[RunRecord] = []
     rig_made = False
     # the key of every artifact this chain produced or reused (its provenance's "key" is its
     # stage's key): a stage folder may still be being committed (background_commits)
@@ -328,10 +374,7 @@ def run_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
         tables = {n: t for n, t in tables.items() if n in needed}
         record = replace(record, tables={})  # the chain's records hold no tables
         release_free_memory()
-        records.append(record)
-        if on_stage is not None:
-            on_stage(record)
-    return records
+        yield record
 
 
 def release_free_memory() -> None:
