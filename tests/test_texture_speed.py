@@ -103,6 +103,32 @@ def test_shared_rays_decide_as_each_face_alone(origin: tuple[float, float, float
     assert occlusion.rays_cast < 4 * len(wall)  # corners and edges shared: not 7 per face
 
 
+def test_blocks_follow_the_mesh_not_the_face_order(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A scan grid lists a quad's two triangles half the mesh apart: cast in blocks of faces,
+    the faces are grouped by their lowest vertex, so a block shares its corners' and edges'
+    rays (~3 per face, not ~5 in face order), and the answers do not depend on the blocks."""
+    import scanpipe.texturing.visibility as visibility
+
+    xs, ys = np.meshgrid(np.linspace(-0.6, 0.6, 61), np.linspace(-0.6, 0.6, 61))
+    wall = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 3.0)], 1)
+    _, pole_faces = wall_and_pole()
+    pole = wall_and_pole()[0][31 * 31:]
+    vertices = np.concatenate([wall, pole])
+    faces = np.concatenate([grid_faces(61, 61), pole_faces[2 * 30 * 30:] - 31 * 31 + len(wall)])
+    on_wall = np.arange(2 * 60 * 60)
+    origin = np.array(ORIGINS[1])
+    origins = np.tile(origin, (len(on_wall), 1))
+    whole = MeshOcclusion(vertices, faces).faces_visible(origins, on_wall)
+    monkeypatch.setattr(visibility, "FACES_PER_CAST", 1024)
+    occlusion = MeshOcclusion(vertices, faces)
+    blocked = occlusion.faces_visible(origins, on_wall)
+    np.testing.assert_array_equal(blocked, whole)
+    assert 0 < (~blocked).sum() < len(on_wall) // 4
+    assert occlusion.rays_cast < 3.4 * len(on_wall)  # 5.1 per face in face order
+    rank = occlusion.locality_rank()
+    assert sorted(rank.tolist()) == list(range(len(faces)))
+
+
 def test_views_group_the_rays_and_only_group_them() -> None:
     """Faces from several origins in any order: each decided from its own origin; views found
     from the origins when not given."""

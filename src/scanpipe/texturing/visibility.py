@@ -199,6 +199,7 @@ class MeshOcclusion:
         self.rays_cast = 0
         self._edges = edges
         self._dense: NDArray[np.bool_] | None = None
+        self._rank: I32 | None = None
         # per thread: scratch for sharing points between the faces of a block (_visible_from)
         self._scratch = threading.local()
         self._lock = threading.Lock()
@@ -206,6 +207,7 @@ class MeshOcclusion:
             # the per-face flags before the tree: their temporaries are gone when it is built
             # (the peak of the stage is the tree and what the rays hold beside it)
             self.dense_faces()
+            self.locality_rank()
         import open3d as o3d  # here, not at import: every command would pay ~0.8 s for it
 
         self._o3d = o3d
@@ -297,9 +299,13 @@ class MeshOcclusion:
         if len(ids) == 0:
             return result
         views = np.asarray(views).reshape(-1)
-        # frame numbers are small: a stable sort of int16 is a radix sort
-        order = np.argsort(views.astype(np.int16) if views.max(initial=0) < 2 ** 15
-                           and views.min(initial=0) >= 0 else views, kind="stable")
+        # the faces of a view in the mesh's locality order (neighbours in one block: they
+        # share their corners' and edges' rays), then by view: frame numbers are small, a
+        # stable sort of int16 is a radix sort
+        local = self._locality_sorted(ids)
+        order = local[np.argsort(views[local].astype(np.int16) if views.max(initial=0) < 2 ** 15
+                                 and views.min(initial=0) >= 0 else views[local],
+                                 kind="stable")]
         ordered = views[order]
         starts = np.r_[0, np.flatnonzero(ordered[1:] != ordered[:-1]) + 1, len(order)]
         blocks = [order[start:min(b, start + FACES_PER_CAST)]
@@ -316,6 +322,40 @@ class MeshOcclusion:
         with thread_pool(worker_count(len(blocks))) as pool:
             list(pool.map(test, blocks))
         return result
+
+    def locality_rank(self) -> I32:
+        """Per face its position in an order that keeps neighbours together: by its lowest
+        vertex, in buckets of consecutive vertices few enough for a 16-bit key (a stable
+        radix sort). A mesh's faces are often not in such an order — a scan grid's two
+        triangles of a quad lie half the mesh apart — and a block of faces cast at once
+        shares a corner's or an edge's ray only between the faces in it (at lab scale 4.9
+        rays per face in face order, ~3 in this one). Found once."""
+        with self._lock:
+            if self._rank is None:
+                faces = self.faces
+                lowest = np.minimum(np.minimum(faces[:, 0], faces[:, 1]), faces[:, 2])
+                shift = max(0, int(len(self.vertices) - 1).bit_length() - 16)
+                lowest >>= shift
+                order = np.argsort(lowest.astype(np.uint16), kind="stable")
+                del lowest
+                rank = np.empty(len(faces), dtype=np.int32)
+                rank[order] = np.arange(len(faces), dtype=np.int32)
+                self._rank = rank
+            return self._rank
+
+    def _locality_sorted(self, ids: I64) -> I64:
+        """The positions in ``ids`` (face numbers) ordered by :meth:`locality_rank`: for many
+        distinct faces by a pass over the ranks (no sort), else a sort of theirs."""
+        rank = self.locality_rank()[ids]
+        n = len(self.faces)
+        if 16 * len(ids) >= n:
+            at: NDArray[np.signedinteger[Any]] = np.full(
+                n, -1, dtype=np.int32 if len(ids) < 2 ** 31 else np.int64)
+            at[rank] = np.arange(len(ids), dtype=at.dtype)
+            ordered = at[at >= 0]
+            if len(ordered) == len(ids):  # else a face twice: sorted below
+                return ordered.astype(np.int64)
+        return np.argsort(rank, kind="stable")
 
     def dense_faces(self) -> NDArray[np.bool_]:
         """Per face: an edge longer than :data:`DENSE_EDGE_M` (tested at 13 points, not 7);
