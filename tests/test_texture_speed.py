@@ -397,3 +397,38 @@ def test_a_triangle_soup_is_textured_as_the_shared_mesh() -> None:
     assert soup.report["seam_edges"] == soup.report["seam_edges_best_frame"] == 0
     assert shared.report["seam_edges_best_frame"] > 0
     assert soup.report["faces_textured"] >= 0.95 * shared.report["faces_textured"] > 1000
+
+
+def test_atlas_charts_found_beside_the_patches_are_the_atlas_own(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stage finds the atlas's regions on a second thread while the patches are baked:
+    the atlas built from them is the one it builds itself; with one thread
+    (OMP_NUM_THREADS=1) the stage's result is the same; charts of another padding are
+    refused."""
+    import scanpipe.stages.texture as texture_module
+    from scanpipe.texturing.atlas import build_atlas, frame_charts
+
+    rec = record(small_rig(), beta_step_deg=30.0)
+    inputs = rec.inputs(*mesh_tables(*room_mesh(0.25)))
+    compared: list[int] = []
+
+    def both(*args: Any, **kwargs: Any) -> Any:
+        given = build_atlas(*args, **kwargs)
+        own = build_atlas(*args, **{**kwargs, "charts": None})
+        for a, b in zip(given.pages, own.pages, strict=True):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(given.face_uv, own.face_uv)
+        np.testing.assert_array_equal(given.face_page, own.face_page)
+        compared.append(given.regions)
+        with pytest.raises(ValueError, match="pad_px"):
+            build_atlas(*args, **{**kwargs, "charts": frame_charts(
+                args[0], args[1], args[2], args[3], pad_px=kwargs["pad_px"] + 1)})
+        return given
+
+    monkeypatch.setattr(texture_module, "build_atlas", both)
+    threaded = STAGE.run(inputs)
+    assert compared and compared[0] > 0
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    single = STAGE.run(inputs)
+    for name in ("textured_faces", "texture_pages"):
+        assert threaded.tables[name].equals(single.tables[name])

@@ -176,27 +176,34 @@ def pack_shelves(sizes: I64, page_px: int, first: tuple[int, int] | None = None
     return page, xs, ys, used
 
 
-def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chosen: I64,
-                frames: FrameSet, gains: F64, *, page_px: int = 4096, texel_scale: float = 1.0,
-                pad_px: int = 3, cell_px: int = 32,
-                neutral_bgr: tuple[int, int, int] = (128, 128, 128),
-                seams: SeamCorrections | None = None, strip_px: float = 20.0,
-                patches: Patches | None = None,
-                progress: ProgressFn = no_progress) -> Atlas:
-    """Cut, scale, expose and pack the regions of every used frame; UVs for every face.
+#: Per used frame: its faces, their vertices' pixels, each corner's row in them, and the
+#: faces' regions (numbered over all frames).
+Chart = tuple[I64, F64, NDArray[np.int32], NDArray[np.int32]]
 
-    With ``seams``, each region also gets its frame's seam corrections faded over
-    ``strip_px`` (:func:`scanpipe.texturing.seams.correction_field`), after the gain.
-    ``patches`` (faces textured texel by texel, :mod:`scanpipe.texturing.patches`; their
-    ``chosen`` is −1) are packed as squares with a one-texel border.
-    """
+
+@dataclass
+class Charts:
+    """What :func:`build_atlas` cuts: per used frame its :data:`Chart`, and per region its
+    frame and pixel box ``x0, y0, x1, y1`` (found with ``pad_px`` and ``cell_px``)."""
+
+    charts: list[Chart]
+    frame_of: I64
+    boxes: I64
+    pad_px: int
+    cell_px: int
+
+
+def frame_charts(vertices: NDArray[np.floating], faces: NDArray[np.integer], chosen: I64,
+                 frames: FrameSet, *, pad_px: int = 3, cell_px: int = 32) -> Charts:
+    """The regions of every used frame (:func:`vertex_regions`), the first step of
+    :func:`build_atlas`: it reads only the frame choice (no image), so the texture stage
+    finds them on a second thread while the multi-view patches are baked."""
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces)  # int32 or int64 as given: no copy of the mesh's corners
-    n_faces = len(faces)
     # per used frame: its faces, their vertices' pixels with each corner's row in them, and
     # the faces' regions (numbered over all frames); not the corners' pixels (~0.3 GB at lab
     # scale): gathered again per block of faces once the pages are packed
-    charts: list[tuple[I64, F64, NDArray[np.int32], I64]] = []
+    charts: list[Chart] = []
     region_frame: list[I64] = []
     region_boxes: list[I64] = []
     count = 0
@@ -207,7 +214,7 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
                                    else chosen[textured], kind="stable")]
     bounds = [*np.searchsorted(chosen[by_frame], used_frames).tolist(), len(by_frame)]
 
-    def regions_of(k: int) -> tuple[I64, F64, NDArray[np.int32], I64, I64]:
+    def regions_of(k: int) -> tuple[I64, F64, NDArray[np.int32], NDArray[np.int32], I64]:
         i = int(used_frames[k])
         idx = by_frame[bounds[k]:bounds[k + 1]]
         cam = frames.cameras[i]
@@ -243,6 +250,31 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
             del idx, vertex_uv, corner, region
     frame_of = np.concatenate(region_frame) if region_frame else np.zeros(0, np.int64)
     boxes = np.concatenate(region_boxes) if region_boxes else np.zeros((0, 4), np.int64)
+    return Charts(charts, frame_of, boxes, pad_px, cell_px)
+
+
+def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chosen: I64,
+                frames: FrameSet, gains: F64, *, page_px: int = 4096, texel_scale: float = 1.0,
+                pad_px: int = 3, cell_px: int = 32,
+                neutral_bgr: tuple[int, int, int] = (128, 128, 128),
+                seams: SeamCorrections | None = None, strip_px: float = 20.0,
+                patches: Patches | None = None, charts: Charts | None = None,
+                progress: ProgressFn = no_progress) -> Atlas:
+    """Cut, scale, expose and pack the regions of every used frame; UVs for every face.
+
+    With ``seams``, each region also gets its frame's seam corrections faded over
+    ``strip_px`` (:func:`scanpipe.texturing.seams.correction_field`), after the gain.
+    ``patches`` (faces textured texel by texel, :mod:`scanpipe.texturing.patches`; their
+    ``chosen`` is −1) are packed as squares with a one-texel border. ``charts``: the
+    :func:`frame_charts` of ``chosen`` with the same ``pad_px`` and ``cell_px``, when already
+    found.
+    """
+    n_faces = len(faces)
+    if charts is None:
+        charts = frame_charts(vertices, faces, chosen, frames, pad_px=pad_px, cell_px=cell_px)
+    elif (charts.pad_px, charts.cell_px) != (pad_px, cell_px):
+        raise ValueError("build_atlas: charts found with another pad_px or cell_px")
+    frame_of, boxes = charts.frame_of, charts.boxes
     src_w, src_h = boxes[:, 2] - boxes[:, 0], boxes[:, 3] - boxes[:, 1]
     limit = page_px - 2
     scale = np.minimum(texel_scale, np.minimum(limit / src_w.clip(1), limit / src_h.clip(1)))
@@ -317,7 +349,7 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
                        dst[:n_regions, 1] / src_h, page_height[page[:n_regions]]], axis=1)
     region_page = page[:n_regions].astype(np.int16)
     # per frame, in blocks of faces: the whole mesh's float64 temporaries at once were ~1 GB
-    for idx, vertex_uv, corner, region in charts:
+    for idx, vertex_uv, corner, region in charts.charts:
         for start in range(0, len(idx), UV_BLOCK_FACES):
             reg = region[start:start + UV_BLOCK_FACES]
             uv = vertex_uv[corner[start:start + UV_BLOCK_FACES]]
@@ -334,7 +366,7 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
             done = idx[start:start + UV_BLOCK_FACES]
             face_uv[done] = uv
             face_page[done] = region_page[reg]
-    del charts
+    charts.charts.clear()  # consumed: its memory goes now, not when the caller lets go
     if patches is not None and len(patches.face):
         texels = float(patches.texels.shape[1])
         at = np.arange(n_regions, len(dst))
