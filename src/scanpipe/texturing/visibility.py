@@ -387,6 +387,14 @@ class MeshOcclusion:
                 self._dense = dense
             return self._dense
 
+    def _scratch_array(self, kind: str, size: int) -> I32:
+        """This thread's scratch array ``kind`` of at least ``size`` int32 (kept, grown)."""
+        held: I32 | None = getattr(self._scratch, kind, None)
+        if held is None or len(held) < size:
+            held = np.empty(size, dtype=np.int32)
+            setattr(self._scratch, kind, held)
+        return held
+
     def _visible_from(self, origin: NDArray[np.float32], face_ids: NDArray[np.int64],
                       edge_ids: I32, abs_tol_m: float, rel_tol: float) -> NDArray[np.bool_]:
         """:meth:`faces_visible` for faces seen from one origin: their centroids, corners and
@@ -394,16 +402,18 @@ class MeshOcclusion:
         n = len(face_ids)
         tri = self.faces[face_ids]  # (n, 3)
         slots = np.arange(3 * n, dtype=np.int32)
-        if not hasattr(self._scratch, "vertex_slot"):
-            self._scratch.vertex_slot = np.zeros(len(self.vertices), dtype=np.int32)
-            self._scratch.edge_slot = np.zeros(self.edges.count, dtype=np.int32)
         # a corner or an edge shared by faces of this block is one point: the last slot that
-        # names it (a scatter into a per-vertex / per-edge scratch array, no sort)
+        # names it (a scatter into a per-vertex / per-edge scratch array, no sort); the
+        # scratch spans only the block's numbers (a block of neighbours spans few: a small
+        # array the scatter stays in the cache of, not 38 MB per thread at lab scale)
         shared = []
-        for ids, scratch in ((tri.reshape(-1), self._scratch.vertex_slot),
-                             (edge_ids[face_ids].reshape(-1), self._scratch.edge_slot)):
-            scratch[ids] = slots
-            owner_slot = scratch[ids]
+        for kind, ids in (("vertex", tri.reshape(-1)), ("edge", edge_ids[face_ids].reshape(-1))):
+            low = int(ids.min())
+            scratch = self._scratch_array(kind, int(ids.max()) - low + 1)
+            local = np.subtract(ids, low, dtype=np.int64 if low > 2 ** 31 else np.int32)
+            scratch[local] = slots
+            owner_slot = scratch[local]
+            del local
             is_first = owner_slot == slots
             first = np.flatnonzero(is_first)
             compact = np.cumsum(is_first, dtype=np.int32)
