@@ -400,6 +400,8 @@ class MeshOcclusion:
         """:meth:`faces_visible` for faces seen from one origin: their centroids, corners and
         edge middles, each corner and edge once, and the inset points of long-edged faces."""
         n = len(face_ids)
+        if n == 0:
+            return np.ones(0, dtype=bool)
         tri = self.faces[face_ids]  # (n, 3)
         slots = np.arange(3 * n, dtype=np.int32)
         # a corner or an edge shared by faces of this block is one point: the last slot that
