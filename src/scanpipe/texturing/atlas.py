@@ -76,20 +76,28 @@ def vertex_regions(vertex_uv: F64, corner: NDArray[np.integer], width: int, heig
     k = len(corner)
     gw, gh = math.ceil(width / cell_px), math.ceil(height / cell_px)
 
-    def face_boxes(rows: slice) -> tuple[I64, I64]:
-        """The faces' pixel boxes ``lo``, ``hi`` (exclusive), padded and clipped."""
-        uv = vertex_uv[corner[rows]]
-        # the corners' min and max as two elementwise passes (a reduction over the middle
-        # axis of a (k, 3, 2) array is several times slower)
-        low = np.minimum(np.minimum(uv[:, 0], uv[:, 1]), uv[:, 2])
-        high = np.maximum(np.maximum(uv[:, 0], uv[:, 1]), uv[:, 2])
-        lo = np.floor(low, out=low).astype(np.int64)
-        hi = np.ceil(high, out=high).astype(np.int64)
-        lo -= pad_px
-        hi += pad_px + 1
-        for axis, size in enumerate((width, height)):
-            np.clip(lo[:, axis], 0, size - 1, out=lo[:, axis])
-            np.clip(hi[:, axis], lo[:, axis] + 1, size, out=hi[:, axis])
+    # the pixel coordinates a column each (1-D gathers: ~2× faster than gathering (k, 3, 2)
+    # rows of corners; the same numbers)
+    columns = [np.ascontiguousarray(vertex_uv[:, axis]) for axis in (0, 1)]
+
+    def face_boxes(rows: slice) -> tuple[list[I64], list[I64]]:
+        """The faces' pixel boxes ``lo``, ``hi`` (exclusive) per axis, padded and clipped."""
+        block = corner[rows]
+        at = [np.ascontiguousarray(block[:, j]) for j in range(3)]
+        lo, hi = [], []
+        for column, size in zip(columns, (width, height), strict=True):
+            p0, p1, p2 = column[at[0]], column[at[1]], column[at[2]]
+            low = np.minimum(np.minimum(p0, p1), p2)
+            high = np.maximum(np.maximum(p0, p1), p2)
+            del p0, p1, p2
+            first = np.floor(low, out=low).astype(np.int64)
+            last = np.ceil(high, out=high).astype(np.int64)
+            first -= pad_px
+            last += pad_px + 1
+            np.clip(first, 0, size - 1, out=first)
+            np.clip(last, first + 1, size, out=last)
+            lo.append(first)
+            hi.append(last)
         return lo, hi
 
     # one pass over the faces, in blocks: each face's box of cells as +1/−1 at its corners
@@ -103,19 +111,19 @@ def vertex_regions(vertex_uv: F64, corner: NDArray[np.integer], width: int, heig
     cell_box[2:] = np.iinfo(np.int64).min
     for start in range(0, k, REGION_BLOCK_FACES):
         rows = slice(start, start + REGION_BLOCK_FACES)
-        lo, hi = face_boxes(rows)
-        c0, c1 = lo // cell_px, (hi - 1) // cell_px + 1
-        row0, col0, row1, col1 = c0[:, 1] * (gw + 1), c0[:, 0], c1[:, 1] * (gw + 1), c1[:, 0]
+        (lo_x, lo_y), (hi_x, hi_y) = face_boxes(rows)
+        row0, col0 = lo_y // cell_px * (gw + 1), lo_x // cell_px
+        row1, col1 = ((hi_y - 1) // cell_px + 1) * (gw + 1), (hi_x - 1) // cell_px + 1
         diff += (np.bincount(row0 + col0, minlength=cells)
                  - np.bincount(row0 + col1, minlength=cells)
                  - np.bincount(row1 + col0, minlength=cells)
                  + np.bincount(row1 + col1, minlength=cells))
-        cell = c0[:, 1] * gw + c0[:, 0]
+        cell = lo_y // cell_px * gw + col0
         face_cell[rows] = cell
-        np.minimum.at(cell_box[0], cell, lo[:, 0])
-        np.minimum.at(cell_box[1], cell, lo[:, 1])
-        np.maximum.at(cell_box[2], cell, hi[:, 0])
-        np.maximum.at(cell_box[3], cell, hi[:, 1])
+        np.minimum.at(cell_box[0], cell, lo_x)
+        np.minimum.at(cell_box[1], cell, lo_y)
+        np.maximum.at(cell_box[2], cell, hi_x)
+        np.maximum.at(cell_box[3], cell, hi_y)
     covered = (diff.reshape(gh + 1, gw + 1).cumsum(0).cumsum(1)[:gh, :gw] > 0).astype(np.uint8)
     _, labels, stats, _ = cv2.connectedComponentsWithStats(covered, connectivity=8)
     # a sparse region (a diagonal band, an L) is cut into tiles of SPLIT_CELLS cells (by the
