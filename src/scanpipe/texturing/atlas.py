@@ -351,29 +351,30 @@ def build_atlas(vertices: NDArray[np.floating], faces: NDArray[np.integer], chos
     page_width = np.array([s[0] for s in sizes], dtype=np.float64)
     page_height = np.array([s[1] for s in sizes], dtype=np.float64)
     # per region: its page position, box corner, scale and page size, as float64 (exact for
-    # these integers: the same arithmetic as on the integer arrays), gathered once per face
+    # these integers: the same arithmetic as on the integer arrays), gathered once per face;
+    # u and v apart, from a column of the vertices' pixels each: contiguous (faces, 3) arrays
+    # (~25 % faster than strided halves of (faces, 3, 2) ones; the same numbers)
     placed = np.stack([ox[:n_regions], boxes[:, 0], dst[:n_regions, 0] / src_w,
                        page_width[page[:n_regions]], oy[:n_regions], boxes[:, 1],
-                       dst[:n_regions, 1] / src_h, page_height[page[:n_regions]]], axis=1)
+                       dst[:n_regions, 1] / src_h, page_height[page[:n_regions]]])
     region_page = page[:n_regions].astype(np.int16)
     # per frame, in blocks of faces: the whole mesh's float64 temporaries at once were ~1 GB
     for idx, vertex_uv, corner, region in charts.charts:
-        for start in range(0, len(idx), UV_BLOCK_FACES):
-            reg = region[start:start + UV_BLOCK_FACES]
-            uv = vertex_uv[corner[start:start + UV_BLOCK_FACES]]
-            at = placed[reg][:, :, None]
-            uv[:, :, 0] -= at[:, 1]
-            uv[:, :, 1] -= at[:, 5]
-            uv += 0.5
-            uv[:, :, 0] *= at[:, 2]
-            uv[:, :, 1] *= at[:, 6]
-            uv[:, :, 0] += at[:, 0]
-            uv[:, :, 1] += at[:, 4]
-            uv[:, :, 0] /= at[:, 3]
-            uv[:, :, 1] /= at[:, 7]
-            done = idx[start:start + UV_BLOCK_FACES]
-            face_uv[done] = uv
-            face_page[done] = region_page[reg]
+        for axis in (0, 1):
+            coordinate = np.ascontiguousarray(vertex_uv[:, axis])
+            offset, box_corner, scale_of, size = placed[4 * axis:4 * axis + 4]
+            for start in range(0, len(idx), UV_BLOCK_FACES):
+                reg = region[start:start + UV_BLOCK_FACES]
+                uv = coordinate[corner[start:start + UV_BLOCK_FACES]]  # (b, 3)
+                uv -= box_corner[reg][:, None]
+                uv += 0.5
+                uv *= scale_of[reg][:, None]
+                uv += offset[reg][:, None]
+                uv /= size[reg][:, None]
+                done = idx[start:start + UV_BLOCK_FACES]
+                face_uv[done, :, axis] = uv
+                if axis == 0:
+                    face_page[done] = region_page[reg]
     charts.charts.clear()  # consumed: its memory goes now, not when the caller lets go
     if patches is not None and len(patches.face):
         texels = float(patches.texels.shape[1])
