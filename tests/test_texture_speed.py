@@ -432,3 +432,28 @@ def test_atlas_charts_found_beside_the_patches_are_the_atlas_own(
     single = STAGE.run(inputs)
     for name in ("textured_faces", "texture_pages"):
         assert threaded.tables[name].equals(single.tables[name])
+
+
+def test_scattered_faces_share_points_by_a_sort() -> None:
+    """A few faces far apart (ICM's movers) find their shared corners by a sort, not a
+    mesh-sized scratch array: the same answers and rays as among all faces."""
+    xs, ys = np.meshgrid(np.linspace(-0.6, 0.6, 201), np.linspace(-0.6, 0.6, 201))
+    wall = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 3.0)], 1)
+    pole = wall_and_pole()[0][31 * 31:]
+    _, pole_faces = wall_and_pole()
+    vertices = np.concatenate([wall, pole])
+    faces = np.concatenate([grid_faces(201, 201),
+                            pole_faces[2 * 30 * 30:] - 31 * 31 + len(wall)])
+    on_wall = np.arange(2 * 200 * 200)
+    origin = np.array(ORIGINS[1])
+    whole = MeshOcclusion(vertices, faces).faces_visible(
+        np.tile(origin, (len(on_wall), 1)), on_wall)
+    assert (~whole).sum() > 0
+    hidden, shown = np.flatnonzero(~whole), np.flatnonzero(whole)
+    some = np.sort(np.concatenate([hidden[::max(1, len(hidden) // 20)], shown[::997]]))
+    # a quad's two triangles (a shared edge and two corners) among them
+    some = np.unique(np.concatenate([some, [1000, 1000 + 200 * 200]]))
+    occlusion = MeshOcclusion(vertices, faces)
+    got = occlusion.faces_visible(np.tile(origin, (len(some), 1)), some)
+    np.testing.assert_array_equal(got, whole[some])
+    assert occlusion.rays_cast < 7 * len(some)  # the quad's corners and edge cast once

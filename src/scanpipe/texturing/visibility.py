@@ -426,10 +426,16 @@ class MeshOcclusion:
         # names it (a scatter into a per-vertex / per-edge scratch array, no sort); the
         # scratch spans only the block's numbers (a block of neighbours spans few: a small
         # array the scatter stays in the cache of, not 38 MB per thread at lab scale)
-        shared = []
+        shared: list[tuple[NDArray[np.signedinteger[Any]], NDArray[np.signedinteger[Any]]]] = []
         for kind, ids in (("vertex", tri.reshape(-1)), ("edge", edge_ids[face_ids].reshape(-1))):
-            low = int(ids.min())
-            scratch = self._scratch_array(kind, int(ids.max()) - low + 1)
+            low, span = int(ids.min()), int(ids.max()) - int(ids.min()) + 1
+            if span > 16 * len(ids) + 4096:
+                # scattered faces (ICM's movers): a sort of a few numbers, not a mesh-sized
+                # scratch array whose touched pages fault in at every call (~20 ms each)
+                _, first, point = np.unique(ids, return_index=True, return_inverse=True)
+                shared.append((first, point.reshape(-1)))
+                continue
+            scratch = self._scratch_array(kind, span)
             local = np.subtract(ids, low, dtype=np.int64 if low > 2 ** 31 else np.int32)
             scratch[local] = slots
             owner_slot = scratch[local]
