@@ -103,6 +103,32 @@ def test_shared_rays_decide_as_each_face_alone(origin: tuple[float, float, float
     assert occlusion.rays_cast < 4 * len(wall)  # corners and edges shared: not 7 per face
 
 
+def test_blocks_follow_the_mesh_not_the_face_order(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A scan grid lists a quad's two triangles half the mesh apart: cast in blocks of faces,
+    the faces are grouped by their lowest vertex, so a block shares its corners' and edges'
+    rays (~3 per face, not ~5 in face order), and the answers do not depend on the blocks."""
+    import scanpipe.texturing.visibility as visibility
+
+    xs, ys = np.meshgrid(np.linspace(-0.6, 0.6, 61), np.linspace(-0.6, 0.6, 61))
+    wall = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 3.0)], 1)
+    _, pole_faces = wall_and_pole()
+    pole = wall_and_pole()[0][31 * 31:]
+    vertices = np.concatenate([wall, pole])
+    faces = np.concatenate([grid_faces(61, 61), pole_faces[2 * 30 * 30:] - 31 * 31 + len(wall)])
+    on_wall = np.arange(2 * 60 * 60)
+    origin = np.array(ORIGINS[1])
+    origins = np.tile(origin, (len(on_wall), 1))
+    whole = MeshOcclusion(vertices, faces).faces_visible(origins, on_wall)
+    monkeypatch.setattr(visibility, "FACES_PER_CAST", 1024)
+    occlusion = MeshOcclusion(vertices, faces)
+    blocked = occlusion.faces_visible(origins, on_wall)
+    np.testing.assert_array_equal(blocked, whole)
+    assert 0 < (~blocked).sum() < len(on_wall) // 4
+    assert occlusion.rays_cast < 3.4 * len(on_wall)  # 5.1 per face in face order
+    rank = occlusion.locality_rank()
+    assert sorted(rank.tolist()) == list(range(len(faces)))
+
+
 def test_views_group_the_rays_and_only_group_them() -> None:
     """Faces from several origins in any order: each decided from its own origin; views found
     from the origins when not given."""
@@ -371,3 +397,63 @@ def test_a_triangle_soup_is_textured_as_the_shared_mesh() -> None:
     assert soup.report["seam_edges"] == soup.report["seam_edges_best_frame"] == 0
     assert shared.report["seam_edges_best_frame"] > 0
     assert soup.report["faces_textured"] >= 0.95 * shared.report["faces_textured"] > 1000
+
+
+def test_atlas_charts_found_beside_the_patches_are_the_atlas_own(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stage finds the atlas's regions on a second thread while the patches are baked:
+    the atlas built from them is the one it builds itself; with one thread
+    (OMP_NUM_THREADS=1) the stage's result is the same; charts of another padding are
+    refused."""
+    import scanpipe.stages.texture as texture_module
+    from scanpipe.texturing.atlas import build_atlas, frame_charts
+
+    rec = record(small_rig(), beta_step_deg=30.0)
+    inputs = rec.inputs(*mesh_tables(*room_mesh(0.25)))
+    compared: list[int] = []
+
+    def both(*args: Any, **kwargs: Any) -> Any:
+        given = build_atlas(*args, **kwargs)
+        own = build_atlas(*args, **{**kwargs, "charts": None})
+        for a, b in zip(given.pages, own.pages, strict=True):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(given.face_uv, own.face_uv)
+        np.testing.assert_array_equal(given.face_page, own.face_page)
+        compared.append(given.regions)
+        with pytest.raises(ValueError, match="pad_px"):
+            build_atlas(*args, **{**kwargs, "charts": frame_charts(
+                args[0], args[1], args[2], args[3], pad_px=kwargs["pad_px"] + 1)})
+        return given
+
+    monkeypatch.setattr(texture_module, "build_atlas", both)
+    threaded = STAGE.run(inputs)
+    assert compared and compared[0] > 0
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    single = STAGE.run(inputs)
+    for name in ("textured_faces", "texture_pages"):
+        assert threaded.tables[name].equals(single.tables[name])
+
+
+def test_scattered_faces_share_points_by_a_sort() -> None:
+    """A few faces far apart (ICM's movers) find their shared corners by a sort, not a
+    mesh-sized scratch array: the same answers and rays as among all faces."""
+    xs, ys = np.meshgrid(np.linspace(-0.6, 0.6, 201), np.linspace(-0.6, 0.6, 201))
+    wall = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 3.0)], 1)
+    pole = wall_and_pole()[0][31 * 31:]
+    _, pole_faces = wall_and_pole()
+    vertices = np.concatenate([wall, pole])
+    faces = np.concatenate([grid_faces(201, 201),
+                            pole_faces[2 * 30 * 30:] - 31 * 31 + len(wall)])
+    on_wall = np.arange(2 * 200 * 200)
+    origin = np.array(ORIGINS[1])
+    whole = MeshOcclusion(vertices, faces).faces_visible(
+        np.tile(origin, (len(on_wall), 1)), on_wall)
+    assert (~whole).sum() > 0
+    hidden, shown = np.flatnonzero(~whole), np.flatnonzero(whole)
+    some = np.sort(np.concatenate([hidden[::max(1, len(hidden) // 20)], shown[::997]]))
+    # a quad's two triangles (a shared edge and two corners) among them
+    some = np.unique(np.concatenate([some, [1000, 1000 + 200 * 200]]))
+    occlusion = MeshOcclusion(vertices, faces)
+    got = occlusion.faces_visible(np.tile(origin, (len(some), 1)), some)
+    np.testing.assert_array_equal(got, whole[some])
+    assert occlusion.rays_cast < 7 * len(some)  # the quad's corners and edge cast once

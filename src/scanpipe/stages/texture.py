@@ -38,7 +38,7 @@ from scanpipe.schema import (
     XYZ,
 )
 from scanpipe.stage import Stage, StageResult
-from scanpipe.texturing.atlas import build_atlas
+from scanpipe.texturing.atlas import build_atlas, frame_charts
 from scanpipe.texturing.exposure import solve_gains
 from scanpipe.texturing.frames import (
     choose_frames,
@@ -341,30 +341,39 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     labels = smoothing.labels
     del scores
     clock.lap("icm")
-    patches = None
-    if params.patch_texels > 0:
-        untextured = labels[partial_pool] < 0  # a face no frame holds whole, still without one
-        straddling = partial_pool[untextured]
-        partial = partial_candidates(
-            vertices, faces, partial_normals[untextured], straddling, frames,
-            frames.relative_sharpness() ** params.sharpness_weight
-            * resolution_weights(frames.cameras), params.min_cos)
-        straddling, partial = straddling[partial[:, 0] >= 0], partial[partial[:, 0] >= 0]
-        patches = bake_patches(vertices, faces, straddling, partial, frames, gains, occlusion,
-                               params.patch_texels)
-    rays_cast = occlusion.rays_cast
-    del occlusion, partial_normals  # the ray scene (~0.4 GB at lab scale): not in the atlas
-    clock.lap("patches")
-    seams = None
-    if params.seam_strip_px > 0:
-        seams = seam_corrections(vertices, faces, labels, frames, gains, edges=edges)
-    del edges
-    clock.lap("seam_strip")
+    # the atlas's regions read only the frame choice: found on a second thread while the
+    # patches are baked and the seams measured (that work is mostly on one core)
+    with thread_pool(worker_count(2, limit=2)) as side:  # waits for it on an error
+        charts_job = side.submit(frame_charts, vertices, faces, labels, frames,
+                                 pad_px=params.pad_px)
+        patches = None
+        if params.patch_texels > 0:
+            untextured = labels[partial_pool] < 0  # a face no frame holds whole, still without one
+            straddling = partial_pool[untextured]
+            partial = partial_candidates(
+                vertices, faces, partial_normals[untextured], straddling, frames,
+                frames.relative_sharpness() ** params.sharpness_weight
+                * resolution_weights(frames.cameras), params.min_cos)
+            straddling, partial = straddling[partial[:, 0] >= 0], partial[partial[:, 0] >= 0]
+            patches = bake_patches(vertices, faces, straddling, partial, frames, gains, occlusion,
+                                   params.patch_texels)
+        rays_cast = occlusion.rays_cast
+        del occlusion, partial_normals  # the ray scene (~0.4 GB at lab scale): not in the atlas
+        clock.lap("patches")
+        seams = None
+        if params.seam_strip_px > 0:
+            seams = seam_corrections(vertices, faces, labels, frames, gains, edges=edges)
+        del edges
+        clock.lap("seam_strip")
+        charts = charts_job.result()
+        del charts_job
     red, green, blue = params.neutral_rgb
     atlas = build_atlas(vertices, faces, labels, frames, gains,
                         page_px=params.page_size_px, texel_scale=params.texel_scale,
                         pad_px=params.pad_px, neutral_bgr=(blue, green, red), seams=seams,
-                        strip_px=params.seam_strip_px, patches=patches, progress=progress)
+                        strip_px=params.seam_strip_px, patches=patches, charts=charts,
+                        progress=progress)
+    del charts
     if patches is not None:
         labels = labels.copy()
         labels[patches.face] = patches.frame
