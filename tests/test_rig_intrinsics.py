@@ -211,10 +211,59 @@ def _write_metashape(path: Path, cam: CameraConfig) -> None:
 """)
 
 
+def _write_metashape_calibration(path: Path, cam: CameraConfig) -> None:
+    """As Metashape's Camera Calibration → Export (Agisoft calibration XML) writes it."""
+    k1, k2, p1, p2, k3 = cam.distortion
+    path.write_text(f"""<?xml version="1.0" encoding="UTF-8"?>
+<calibration>
+  <projection>frame</projection>
+  <width>{cam.width}</width>
+  <height>{cam.height}</height>
+  <f>{cam.fy!r}</f>
+  <cx>{cam.cx + 0.5 - cam.width / 2!r}</cx>
+  <cy>{cam.cy + 0.5 - cam.height / 2!r}</cy>
+  <b1>{cam.fx - cam.fy!r}</b1>
+  <b2>0</b2>
+  <k1>{k1!r}</k1>
+  <k2>{k2!r}</k2>
+  <k3>{k3!r}</k3>
+  <k4>0</k4>
+  <p1>{p2!r}</p1>
+  <p2>{p1!r}</p2>
+  <date>2024-02-05T21:40:39Z</date>
+</calibration>
+""")
+
+
+def _write_photoscan_legacy(path: Path, cam: CameraConfig) -> None:
+    """As PhotoScan before 1.3 (and Agisoft Lens) wrote it: fx, fy, absolute cx, cy in its
+    pixel-corner frame, skew, p1 p2 in OpenCV's order."""
+    k1, k2, p1, p2, k3 = cam.distortion
+    path.write_text(f"""<?xml version="1.0" encoding="UTF-8"?>
+<calibration>
+  <projection>frame</projection>
+  <width>{cam.width}</width>
+  <height>{cam.height}</height>
+  <fx>{cam.fx!r}</fx>
+  <fy>{cam.fy!r}</fy>
+  <cx>{cam.cx + 0.5!r}</cx>
+  <cy>{cam.cy + 0.5!r}</cy>
+  <skew>0</skew>
+  <k1>{k1!r}</k1>
+  <k2>{k2!r}</k2>
+  <k3>{k3!r}</k3>
+  <p1>{p1!r}</p1>
+  <p2>{p2!r}</p2>
+  <date>2015-05-17T11:13:14Z</date>
+</calibration>
+""")
+
+
 @pytest.mark.parametrize(("name", "writer"), [
     ("calib.yml", _write_opencv), ("calib.xml", _write_opencv), ("camera.yaml", _write_ros),
     ("info.yaml", _write_ros_echo), ("cameras.txt", _write_colmap),
-    ("cameras.xml", _write_metashape)])
+    ("cameras.xml", _write_metashape), ("calibration.xml", _write_metashape_calibration),
+    ("lens.xml", _write_photoscan_legacy)])
 def test_round_trip_through_each_format(cli: Cli, tmp_path: Path, name: str,
                                         writer: Callable[[Path, CameraConfig], None]) -> None:
     file = tmp_path / name
@@ -392,6 +441,32 @@ UNSUPPORTED = [
      "<calibration type='frame' class='adjusted'><resolution width='1280' height='720'/>"
      "<f>1000</f><b2>4.5</b2></calibration></sensor></sensors></chunk></document>",
      "skew b2 = 4.5 px shifts the image's edge by 1.6 px"),
+    ("calibration.xml", "<calibration><projection>frame</projection><width>1920</width>"
+     "<height>1080</height><f>1430.15</f><cx>-24.13</cx><cy>17.55</cy><b2>-4.25</b2>"
+     "<k1>-0.118</k1></calibration>",
+     "calibration: skew b2 = -4.25 px shifts the image's edge by 1.6 px"),
+    ("lens.xml", "<calibration><projection>frame</projection><width>1280</width>"
+     "<height>720</height><fx>1000</fx><fy>1000</fy><cx>640</cx><cy>360</cy>"
+     "<skew>2.2</skew></calibration>",
+     "calibration: skew = 2.2 px shifts the image's edge by 0.79 px"),
+    ("calibration.xml", "<calibration><projection>frame</projection><f>1000</f>"
+     "</calibration>", "calibration: no image size"),
+    ("calib.yml", "%YAML:1.0\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n"
+     "   dt: d\n   data: [ 1000., 0., 0., 0., 1000., 0., 640., 360., 1. ]\n",
+     "is not [fx 0 cx; 0 fy cy; 0 0 1] (transposed, or scaled?)"),
+    ("info.yaml", "image_width: 1280\nimage_height: 720\ncamera_matrix:\n  rows: 3\n"
+     "  cols: 3\n  data: [1000, 3.5, 640, 0, 1000, 360, 0, 0, 1]\n",
+     "the camera matrix has a skew of 3.5 px"),
+    ("info.yaml", "image_width: 1280\nimage_height: 720\ncamera_matrix:\n  rows: 3\n"
+     "  cols: 3\n  data: [0, 0, 0, 0, 0, 0, 0, 0, 0]\n",
+     "holds no calibration (fx = 0, fy = 0"),
+    ("cameras.txt", "1 PINHOLE 1280 720 1000 1000 abc 360\n", "a parameter is not a number"),
+    ("cameras.xml", "<document><chunk><sensors><sensor id='0' type='frame'>"
+     "<calibration type='frame' class='adjusted'><resolution width='wide' height='720'/>"
+     "<f>1000</f></calibration></sensor></sensors></chunk></document>",
+     "image size 'wide' × '720' is not a number"),
+    ("broken.xml", "<document><chunk><sensors>", "not valid XML"),
+    ("info.yaml", "camera_matrix: [1, 2\n", "not valid YAML"),
 ]
 
 

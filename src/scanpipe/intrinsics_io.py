@@ -26,8 +26,10 @@ Four formats are read, and each differs from that in its own, silent way:
     camera calibration export (``<calibration>`` at the root). Its ``cx, cy`` are offsets from
     the image centre in a pixel-corner frame (``u = w/2 + cx + x'(f + b1) + y'b2``), so the
     rig's ``cx = w/2 + cx − 0.5``; its ``p1, p2`` are OpenCV's ``p2, p1``; ``fx = f + b1``,
-    ``fy = f``. ``k4``, ``p3``, ``p4`` must be 0, and the skew ``b2`` small enough to drop
-    (under 0.5 px at the image's edge); other sensor types (fisheye, spherical …) are refused.
+    ``fy = f``. PhotoScan before 1.3 (and Agisoft Lens) wrote ``fx, fy``, an absolute ``cx, cy``
+    (same pixel-corner origin) and ``skew``, with ``p1, p2`` in OpenCV's order. ``k4``, ``p3``,
+    ``p4`` must be 0, and the skew (``b2``) small enough to drop (under 0.5 px at the image's
+    edge); other sensor types (fisheye, spherical …) are refused.
 """
 
 from __future__ import annotations
@@ -199,14 +201,23 @@ def _read_opencv(path: Path) -> Intrinsics:
         size = _opencv_size(node)
     finally:
         storage.release()
-    if abs(k[0, 1]) > 1e-9 * max(abs(k[0, 0]), 1.0):
-        raise _fail(path, f"the camera matrix has a skew of {k[0, 1]:g}; the rig's camera "
-                          "matrix has none")
+    _check_camera_matrix(path, [float(v) for v in k.ravel()])
     distortion = _pinhole_distortion(path, coefficients, "distortion_coefficients")
     width, height = size if size is not None else (None, None)
     return Intrinsics("opencv", "", width, height, float(k[0, 0]), float(k[1, 1]),
                       float(k[0, 2]), float(k[1, 2]), distortion,
                       ["OpenCV: same pixel convention and coefficients as the rig"])
+
+
+def _check_camera_matrix(path: Path, k: Sequence[float]) -> None:
+    """Refuse a 3×3 camera matrix (row by row) that is not ``[[fx 0 cx] [0 fy cy] [0 0 1]]``:
+    a skew the rig cannot hold, or a matrix scaled or transposed."""
+    if abs(k[1]) > 1e-9 * max(abs(k[0]), 1.0):
+        raise _fail(path, f"the camera matrix has a skew of {k[1]:g} px; the rig's camera "
+                          "matrix has none: recalibrate with zero skew")
+    if k[3] != 0 or k[6] != 0 or k[7] != 0 or k[8] != 1:
+        raise _fail(path, f"the camera matrix {list(k)} is not [fx 0 cx; 0 fy cy; 0 0 1] "
+                          "(transposed, or scaled?)")
 
 
 def _opencv_size(node: Any) -> tuple[int, int] | None:
@@ -259,6 +270,7 @@ def _read_ros(path: Path, text: str) -> Intrinsics:
     if not k[0] > 0 or not k[4] > 0:
         raise _fail(path, f"the camera matrix holds no calibration (fx = {k[0]:g}, "
                           f"fy = {k[4]:g}: an uncalibrated camera publishes K = 0)")
+    _check_camera_matrix(path, k)
     model = str(data.get("distortion_model", "") or "").strip().lower()
     if model == "equidistant" or (model not in ("plumb_bob", "rational_polynomial", "")
                                   and any(d)):
@@ -374,6 +386,16 @@ def _xml_float(element: ET.Element, name: str) -> float:
     return float(child.text)
 
 
+def _xml_size(path: Path, width: str | None, height: str | None
+              ) -> tuple[int | None, int | None]:
+    """An image size from XML text (None where absent or 0)."""
+    try:
+        return (round(float(width)) or None if width else None,
+                round(float(height)) or None if height else None)
+    except ValueError:
+        raise _fail(path, f"image size {width!r} × {height!r} is not a number") from None
+
+
 def _read_metashape(path: Path, text: str, file_camera: str | None) -> Intrinsics:
     try:
         root = ET.fromstring(text)
@@ -384,8 +406,7 @@ def _read_metashape(path: Path, text: str, file_camera: str | None) -> Intrinsic
             raise IntrinsicsError("--file-camera: a Metashape calibration file holds one "
                                   "camera; leave it out")
         kind = (root.findtext("projection") or "frame").strip()
-        width = int(_xml_float(root, "width")) or None
-        height = int(_xml_float(root, "height")) or None
+        width, height = _xml_size(path, root.findtext("width"), root.findtext("height"))
         return _metashape_calibration(path, root, kind, "", width, height)
     sensors = root.findall(".//sensors/sensor")
     calibrated = {s.get("id", str(n)): s for n, s in enumerate(sensors)
@@ -407,8 +428,7 @@ def _read_metashape(path: Path, text: str, file_camera: str | None) -> Intrinsic
         resolution = sensor.find("resolution")
     width = height = None
     if resolution is not None:
-        width = int(resolution.get("width", "0")) or None
-        height = int(resolution.get("height", "0")) or None
+        width, height = _xml_size(path, resolution.get("width"), resolution.get("height"))
     kind = chosen.get("type", sensor.get("type", "frame"))
     return _metashape_calibration(path, chosen, kind, sensor_id, width, height)
 
@@ -423,35 +443,49 @@ def _metashape_calibration(path: Path, element: ET.Element, kind: str, sensor_id
         raise _fail(path, f"{where}: no image size (<resolution width height> or "
                           "<width>/<height>); Metashape's cx, cy are offsets from the image "
                           "centre and mean nothing without it")
+    # PhotoScan before 1.3 and Agisoft Lens wrote fx, fy, an absolute cx, cy and skew, with
+    # p1, p2 in OpenCV's order (Agisoft: F = fy, B1 = fx − fy, B2 = skew)
+    legacy = element.find("f") is None and element.find("fx") is not None
+    names = ("fx", "fy", "cx", "cy", "skew") if legacy else ("f", "f", "cx", "cy", "b2")
     try:
-        f, cx, cy, b1, b2 = (_xml_float(element, n) for n in ("f", "cx", "cy", "b1", "b2"))
+        fx, fy, cx, cy, skew = (_xml_float(element, n) for n in names)
+        if not legacy:
+            fx += _xml_float(element, "b1")
         k1, k2, k3, k4 = (_xml_float(element, n) for n in ("k1", "k2", "k3", "k4"))
         p1, p2, p3, p4 = (_xml_float(element, n) for n in ("p1", "p2", "p3", "p4"))
     except ValueError as err:
         raise _fail(path, f"{where}: a value is not a number ({err})") from None
-    if not f > 0:
-        raise _fail(path, f"{where}: no focal length <f> (found {f:g})")
+    if not (fx > 0 and fy > 0):
+        raise _fail(path, f"{where}: no focal length (<f>, or <fx> and <fy>)")
     unsupported = {n: v for n, v in (("k4", k4), ("p3", p3), ("p4", p4)) if v}
     if unsupported:
         shown = ", ".join(f"{n} = {v:g}" for n, v in unsupported.items())
         raise _fail(path, f"{where}: {shown}; the rig's pinhole has k1 k2 p1 p2 k3 only: "
                           "re-optimise in Metashape with k4, p3, p4 fixed at 0")
-    edge_skew_px = abs(b2) * (height / 2) / f
+    skew_name = "skew" if legacy else "skew b2"
+    edge_skew_px = abs(skew) * (height / 2) / fy
     if edge_skew_px > MAX_DROPPED_SKEW_PX:
-        raise _fail(path, f"{where}: skew b2 = {b2:g} px shifts the image's edge by "
+        raise _fail(path, f"{where}: {skew_name} = {skew:g} px shifts the image's edge by "
                           f"{edge_skew_px:.2g} px; the rig's camera matrix has no skew "
                           f"(at most {MAX_DROPPED_SKEW_PX:g} px is dropped): re-optimise "
-                          "in Metashape with b2 fixed at 0")
-    notes = [f"Metashape: cx, cy are offsets from the image centre: cx = {width}/2 "
-             f"{cx:+g} − 0.5, cy = {height}/2 {cy:+g} − 0.5 (pixel-corner origin → the rig's "
-             "pixel-centre origin)",
-             "Metashape: p1, p2 swapped into OpenCV's order"]
-    if b1:
-        notes.append(f"Metashape: fx = f + b1 = {f:g} {b1:+g}")
-    if b2:
-        notes.append(f"Metashape: skew b2 = {b2:g} dropped ({edge_skew_px:.2g} px at the edge)")
-    return Intrinsics("metashape", sensor_id, width, height, f + b1, f,
-                      width / 2 + cx - 0.5, height / 2 + cy - 0.5, (k1, k2, p2, p1, k3), notes)
+                          "in Metashape with it fixed at 0")
+    if legacy:
+        notes = ["PhotoScan (before 1.3): cx, cy − 0.5 px (pixel-corner origin → the rig's "
+                 "pixel-centre origin); p1, p2 already in OpenCV's order"]
+        distortion = (k1, k2, p1, p2, k3)
+    else:
+        notes = [f"Metashape: cx, cy are offsets from the image centre: cx = {width}/2 "
+                 f"{cx:+g} − 0.5, cy = {height}/2 {cy:+g} − 0.5 (pixel-corner origin → the "
+                 "rig's pixel-centre origin)",
+                 "Metashape: p1, p2 swapped into OpenCV's order"]
+        if fx != fy:
+            notes.append(f"Metashape: fx = f + b1 = {fx:g}")
+        cx, cy = width / 2 + cx, height / 2 + cy
+        distortion = (k1, k2, p2, p1, k3)
+    if skew:
+        notes.append(f"{skew_name} = {skew:g} dropped ({edge_skew_px:.2g} px at the edge)")
+    return Intrinsics("metashape", sensor_id, width, height, fx, fy, cx - 0.5, cy - 0.5,
+                      distortion, notes)
 
 
 # --- fitting to the rig's camera ------------------------------------------------------------
