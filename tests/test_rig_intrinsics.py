@@ -182,6 +182,18 @@ def _write_colmap(path: Path, cam: CameraConfig) -> None:
                     + _camera_line(1, cam) + "\n")
 
 
+def _write_colmap_binary(path: Path, cam: CameraConfig) -> None:
+    """As COLMAP writes cameras.bin (WriteCamerasBinary): one OPENCV/FULL_OPENCV camera."""
+    import struct
+
+    fields = _camera_line(1, cam).split()
+    model_id = {"OPENCV": 4, "FULL_OPENCV": 6}[fields[1]]
+    params = [float(v) for v in fields[4:]]
+    path.write_bytes(struct.pack("<Q", 1) + struct.pack("<IiQQ", 1, model_id, cam.width,
+                                                         cam.height)
+                     + struct.pack(f"<{len(params)}d", *params))
+
+
 def _write_metashape(path: Path, cam: CameraConfig) -> None:
     """As Metashape's Export Cameras writes a frame sensor (offsets from the centre, its own
     p1/p2 order, fx − fy as the affinity b1)."""
@@ -262,6 +274,7 @@ def _write_photoscan_legacy(path: Path, cam: CameraConfig) -> None:
 @pytest.mark.parametrize(("name", "writer"), [
     ("calib.yml", _write_opencv), ("calib.xml", _write_opencv), ("camera.yaml", _write_ros),
     ("info.yaml", _write_ros_echo), ("cameras.txt", _write_colmap),
+    ("cameras.bin", _write_colmap_binary),
     ("cameras.xml", _write_metashape), ("calibration.xml", _write_metashape_calibration),
     ("lens.xml", _write_photoscan_legacy)])
 def test_round_trip_through_each_format(cli: Cli, tmp_path: Path, name: str,
@@ -466,6 +479,8 @@ UNSUPPORTED = [
      "<f>1000</f></calibration></sensor></sensors></chunk></document>",
      "image size 'wide' × '720' is not a number"),
     ("broken.xml", "<document><chunk><sensors>", "not valid XML"),
+    ("cameras.bin", "\x02\x00\x00\x00\x00\x00\x00\x00\x01\x00",
+     "not a COLMAP cameras.bin (ends inside a camera record after 0 cameras)"),
     ("info.yaml", "camera_matrix: [1, 2\n", "not valid YAML"),
 ]
 

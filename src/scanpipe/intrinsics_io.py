@@ -17,8 +17,9 @@ Four formats are read, and each differs from that in its own, silent way:
     convention as OpenCV's; ``plumb_bob``, or ``rational_polynomial`` with k4…k6 = 0;
     ``equidistant`` (fisheye) is refused. The message's ROI and binning are applied.
 ``colmap``
-    COLMAP's ``cameras.txt``: ``CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]``. COLMAP puts the centre
-    of the top-left pixel at (0.5, 0.5): ``cx, cy`` are moved by −0.5 px. ``SIMPLE_PINHOLE``,
+    COLMAP's ``cameras.txt`` (``CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]``) or ``cameras.bin``.
+    COLMAP puts the centre of the top-left pixel at (0.5, 0.5): ``cx, cy`` are moved by
+    −0.5 px. ``SIMPLE_PINHOLE``,
     ``PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``, ``FULL_OPENCV`` (k4…k6 = 0); the
     fisheye and other models are refused.
 ``metashape``
@@ -109,14 +110,18 @@ def read_intrinsics(path: Path, fmt: str = "auto", file_camera: str | None = Non
     if fmt != "auto" and fmt not in FORMATS:
         raise IntrinsicsError(f"--format {fmt!r}: unknown; allowed: auto, {', '.join(FORMATS)}")
     try:
-        text = path.read_text(encoding="utf-8")
+        data = path.read_bytes()
     except FileNotFoundError:
         raise IntrinsicsError(f"{path}: not found") from None
-    except UnicodeDecodeError:
-        raise _fail(path, "not a text file (binary COLMAP cameras.bin is not read: "
-                          "convert it with `colmap model_converter --output_type TXT`)") from None
     except OSError as err:
         raise _fail(path, f"cannot be read ({err.strerror or err})") from None
+    if path.suffix.lower() == ".bin" and fmt in ("auto", "colmap"):
+        return _choose_colmap(path, _colmap_binary(path, data), file_camera)
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise _fail(path, "not a text file (a COLMAP binary model is read from a file named "
+                          "cameras.bin)") from None
     if fmt == "auto":
         fmt = detect_format(path, text)
     if fmt == "opencv":
@@ -316,8 +321,46 @@ COLMAP_MODELS: dict[str, tuple[str, ...]] = {
 }
 
 
+#: COLMAP's model ids in cameras.bin (its camera_models.h), with their parameter counts.
+COLMAP_MODEL_IDS: dict[int, tuple[str, int]] = {
+    0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5),
+    4: ("OPENCV", 8), 5: ("OPENCV_FISHEYE", 8), 6: ("FULL_OPENCV", 12), 7: ("FOV", 5),
+    8: ("SIMPLE_RADIAL_FISHEYE", 4), 9: ("RADIAL_FISHEYE", 5), 10: ("THIN_PRISM_FISHEYE", 12),
+    11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16)}
+
+ColmapCameras = dict[str, tuple[str, int, int, list[str]]]
+
+
+def _colmap_binary(path: Path, data: bytes) -> ColmapCameras:
+    """cameras.bin as COLMAP writes it (little-endian): uint64 count, then per camera uint32
+    id, int32 model id, uint64 width, uint64 height, float64 parameters."""
+    import struct
+
+    cameras: ColmapCameras = {}
+    try:
+        (count,), offset = struct.unpack_from("<Q", data, 0), 8
+        for _ in range(count):
+            camera_id, model_id, width, height = struct.unpack_from("<IiQQ", data, offset)
+            offset += 24
+            if model_id not in COLMAP_MODEL_IDS:
+                raise _fail(path, f"camera {camera_id}: unknown COLMAP model id {model_id}; "
+                                  "known: " + ", ".join(f"{i} {n}" for i, (n, _)
+                                                        in COLMAP_MODEL_IDS.items()))
+            model, n = COLMAP_MODEL_IDS[model_id]
+            params = struct.unpack_from(f"<{n}d", data, offset)
+            offset += 8 * n
+            cameras[str(camera_id)] = (model, width, height, [repr(v) for v in params])
+    except struct.error:
+        raise _fail(path, f"not a COLMAP cameras.bin (ends inside a camera record after "
+                          f"{len(cameras)} cameras)") from None
+    if offset != len(data):
+        raise _fail(path, f"not a COLMAP cameras.bin ({len(data) - offset} bytes after its "
+                          f"{len(cameras)} cameras)")
+    return cameras
+
+
 def _read_colmap(path: Path, text: str, file_camera: str | None) -> Intrinsics:
-    cameras: dict[str, tuple[str, int, int, list[str]]] = {}
+    cameras: ColmapCameras = {}
     for number, line in enumerate(text.splitlines(), 1):
         fields = line.split()
         if not fields or fields[0].startswith("#"):
@@ -332,6 +375,13 @@ def _read_colmap(path: Path, text: str, file_camera: str | None) -> Intrinsics:
                               f"found {fields[2]!r} {fields[3]!r}") from None
     if not cameras:
         raise _fail(path, "no camera line (CAMERA_ID MODEL WIDTH HEIGHT PARAMS[])")
+    return _choose_colmap(path, cameras, file_camera)
+
+
+def _choose_colmap(path: Path, cameras: ColmapCameras, file_camera: str | None) -> Intrinsics:
+    """The camera ``file_camera`` (or the only one) of a COLMAP model, converted."""
+    if not cameras:
+        raise _fail(path, "holds no camera")
     camera_id = _pick(path, sorted(cameras, key=int), file_camera, "CAMERA_ID")
     model, width, height, raw = cameras[camera_id]
     names = COLMAP_MODELS.get(model)
