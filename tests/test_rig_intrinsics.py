@@ -539,3 +539,50 @@ def test_centre_offset_typed_as_position_is_refused_or_warned(cli: Cli, tmp_path
     assert "warning:" in result.err and "camera cam0: cx = 15.06 px" in result.err
     assert "offset from the image centre" in result.err
     assert "warning" not in cli("rig", "check", _rig(tmp_path, CAM)).err
+
+
+# --- the user's path: a scan → its COLMAP model (for an SfM/MVS tool) → back into a rig -------
+
+
+def test_colmap_model_of_a_run_imports_back_into_the_recorded_rig(cli: Cli, tmp_path: Path
+                                                                   ) -> None:
+    """simulate → run (COLMAP export of the frames) → `rig intrinsics` of its
+    sparse/0/cameras.txt into the recording's rig with the cameras blanked: equal to the
+    recorded cameras; into a rig whose cameras record 8× larger (the phone's full resolution):
+    scaled up with a warning."""
+    import pyarrow.parquet as pq
+
+    from scanpipe.rig import Rig, rig_from_table
+    from scanpipe.sim.direct import SimOptions, simulate_direct
+
+    simulate_direct(tmp_path / "scan.mcap", tmp_path / "truth", SimOptions(
+        beam_step_deg=6.0, motor_step_deg=15.0, camera_scale=0.125, camera_fps=0.5, seed=4))
+    work = tmp_path / "w"
+    done = cli("run", tmp_path / "scan.mcap", "--workdir", work, "--set", "mesh.method=grid",
+               "--set", 'export.cloud_formats=["colmap"]', "--set", "export.mesh_formats=[]")
+    assert done.code == 0, done.err
+    recorded = rig_from_table(pq.read_table(work / "decode" / "rig.parquet"))
+    cameras_txt = work / "export" / "cloud_colmap" / "sparse" / "0" / "cameras.txt"
+    lines = [ln.split() for ln in cameras_txt.read_text().splitlines() if ln[:1].isdigit()]
+    pinholes = [c for c in recorded.cameras if c.model == "pinhole"]
+    assert len(lines) == len(pinholes) >= 2
+    for scale in (1, 8):
+        blank = Rig(cameras=tuple(
+            _blank(c.model_copy(update={"width": c.width * scale, "height": c.height * scale}))
+            if c.model == "pinhole" else c for c in recorded.cameras))
+        rig = tmp_path / f"blank{scale}.toml"
+        rig.write_text(rig_to_toml(blank))
+        for fields, cam in zip(lines, pinholes, strict=True):
+            assert (int(fields[2]), int(fields[3])) == (cam.width, cam.height)
+            out = tmp_path / f"{cam.id}-{scale}.toml"
+            result = cli("rig", "intrinsics", cameras_txt, "--rig", rig, "--camera", cam.id,
+                         "--file-camera", fields[0], "--out", out)
+            assert result.code == 0, result.err
+            scaled = f"scaled by 8 to camera {cam.id}'s {cam.width * 8}×{cam.height * 8}"
+            assert (scaled in result.err) == (scale == 8), result.err
+            found = load_rig(out).camera(cam.id)
+            np.testing.assert_allclose(
+                [found.fx, found.fy, found.cx, found.cy],
+                [cam.fx * scale, cam.fy * scale, (cam.cx + 0.5) * scale - 0.5,
+                 (cam.cy + 0.5) * scale - 0.5], atol=1e-6)
+            np.testing.assert_allclose(found.distortion, cam.distortion, atol=1e-12)
