@@ -353,6 +353,18 @@ def test_other_resolution_same_aspect_is_scaled_with_a_warning(cli: Cli, tmp_pat
     assert found.distortion == CAM.distortion
 
 
+def test_file_without_size_or_distortion_is_taken_at_the_cameras_size_with_a_warning(
+        cli: Cli, tmp_path: Path) -> None:
+    file = _file(tmp_path, "K.yml", "%YAML:1.0\nK: !!opencv-matrix\n   rows: 3\n   cols: 3\n"
+                 "   dt: d\n   data: [ 1000., 0., 641.5, 0., 1001., 358.25, 0., 0., 1. ]\n")
+    rig = _rig(tmp_path, _blank(CAM))
+    result = cli("rig", "intrinsics", file, "--rig", rig, "--camera", "cam0")
+    assert result.code == 0, result.err
+    assert f"{file} gives no image size; taken to be camera cam0's 1280×720" in result.err
+    assert "no distortion coefficients: taken as 0" in result.out
+    assert "cx         639.5 → 641.5" in result.out
+
+
 # --- bad inputs: one line, exit code 2, nothing overwritten ----------------------------------
 
 

@@ -209,9 +209,11 @@ def _read_opencv(path: Path) -> Intrinsics:
     _check_camera_matrix(path, [float(v) for v in k.ravel()])
     distortion = _pinhole_distortion(path, coefficients, "distortion_coefficients")
     width, height = size if size is not None else (None, None)
+    notes = ["OpenCV: same pixel convention and coefficients as the rig"]
+    if not coefficients:
+        notes.append("the file gives no distortion coefficients: taken as 0 (an ideal lens)")
     return Intrinsics("opencv", "", width, height, float(k[0, 0]), float(k[1, 1]),
-                      float(k[0, 2]), float(k[1, 2]), distortion,
-                      ["OpenCV: same pixel convention and coefficients as the rig"])
+                      float(k[0, 2]), float(k[1, 2]), distortion, notes)
 
 
 def _check_camera_matrix(path: Path, k: Sequence[float]) -> None:
@@ -252,6 +254,13 @@ def _ros_list(data: dict[str, Any], *names: str) -> list[float] | None:
     return None
 
 
+def _whole(value: Any) -> int | None:
+    """A size written as a whole number (640 or 640.0); None otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return int(value) if float(value).is_integer() else None
+
+
 def _read_ros(path: Path, text: str) -> Intrinsics:
     import yaml  # type: ignore[import-untyped]
 
@@ -283,11 +292,11 @@ def _read_ros(path: Path, text: str) -> Intrinsics:
                           "pinhole k1 k2 p1 p2 k3 (OpenCV's plumb_bob); recalibrate with "
                           "plumb_bob, or use the rectified images with P")
     distortion = _pinhole_distortion(path, d, f"distortion ({model or 'no model'})")
-    width = data.get("image_width", data.get("width"))
-    height = data.get("image_height", data.get("height"))
+    width = _whole(data.get("image_width", data.get("width")))
+    height = _whole(data.get("image_height", data.get("height")))
     fx, fy, cx, cy = k[0], k[4], k[2], k[5]
     notes = ["ROS: same pixel convention and coefficients as the rig"]
-    if isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0:
+    if width is not None and height is not None and width > 0 and height > 0:
         roi = data.get("roi")
         if isinstance(roi, dict) and int(roi.get("width", 0) or 0) > 0:
             cx, cy = cx - int(roi.get("x_offset", 0)), cy - int(roi.get("y_offset", 0))
