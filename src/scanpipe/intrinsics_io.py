@@ -120,8 +120,8 @@ def read_intrinsics(path: Path, fmt: str = "auto", file_camera: str | None = Non
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError:
-        raise _fail(path, "not a text file (a COLMAP binary model is read from a file named "
-                          "cameras.bin)") from None
+        raise _fail(path, "not a text file (COLMAP's binary cameras.bin is read from a file "
+                          "whose name ends in .bin)") from None
     if fmt == "auto":
         fmt = detect_format(path, text)
     if fmt == "opencv":
