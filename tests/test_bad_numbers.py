@@ -225,8 +225,12 @@ BAD_RIGS = [
     ("[[cameras]]\nid = 'c'\nfy = 1e6\n", "cameras.0: fy = 1e+06 px over 1080 px gives a "
                                           "0.0619° field of view"),
     ("[[cameras]]\nid = 'c'\nwidth = 320\nheight = 240\nfx = 300.0\nfy = 300.0\n",
-     "cameras.0: cx = 959.5 px lies more than an image width outside the 320 px image; "
-     "allowed: -320 to 640"),
+     "cameras.0: cx = 959.5 px is 800 px from the centre of the 320 px image; "
+     "allowed: -0.5 to 319.5 (the image); intrinsics for another image size"),
+    ("[[cameras]]\nid = 'c'\ncx = -12.5\n",
+     "cameras.0: cx = -12.5 px is 972 px from the centre of the 1920 px image; allowed: -0.5 "
+     "to 1919.5 (the image); a value near 0 is likely an offset from the image centre "
+     "(Metashape's cx, cy)"),
     ("[[cameras]]\nid = 'c'\nwidth = 100000\n", "cameras.0.width = 100000: out of range"),
 ]
 

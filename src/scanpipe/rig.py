@@ -33,6 +33,37 @@ MAX_PLATFORM_STEP_DEG = 90.0
 #: The field of view a pinhole camera model can describe (per axis).
 MIN_FOV_DEG = 0.5
 MAX_FOV_DEG = 170.0
+#: The share of the image (per axis, centred) where a lens's principal point lies: a real
+#: lens's is within a few percent of the centre. One outside the middle half is another
+#: convention (Metashape's offset from the centre, near 0), another image's size, or a crop of
+#: the sensor (a ROS ROI): :func:`camera_warnings` says so; outside the image it is refused.
+PRINCIPAL_POINT_SPAN = 0.5
+
+
+def principal_point_problem(axis: str, centre: float, size_px: int, plausible: bool) -> str:
+    """What is wrong with ``c{axis} = centre`` over an image ``size_px`` wide (or high), or "".
+
+    ``plausible=False`` checks that it lies within the image (pixel centres 0 … size − 1, edges
+    at −0.5 and size − 0.5); ``plausible=True`` that it lies in the image's middle half.
+    """
+    if plausible:
+        half = size_px * PRINCIPAL_POINT_SPAN / 2
+        low, high = (size_px - 1) / 2 - half, (size_px - 1) / 2 + half
+        where = f"the middle {PRINCIPAL_POINT_SPAN:.0%} of the image, where a lens's lies"
+    else:
+        low, high = -0.5, size_px - 0.5
+        where = "the image"
+    if low <= centre <= high:
+        return ""
+    if abs(centre) < size_px * PRINCIPAL_POINT_SPAN / 2:
+        why = ("a value near 0 is likely an offset from the image centre (Metashape's cx, cy), "
+               "not a position: import the calibration with `scanpipe rig intrinsics`")
+    else:
+        why = "intrinsics for another image size or orientation?"
+    return (f"c{axis} = {centre:g} px is {abs(centre - (size_px - 1) / 2):.4g} px from the centre "
+            f"of the {size_px} px image; allowed: {low:g} to {high:g} ({where}); {why}")
+
+
 #: OpenCV's k1 k2 p1 p2 k3 of any real lens are far below this.
 Coefficient = Annotated[float, Field(ge=-1000, le=1000)]
 
@@ -262,9 +293,9 @@ class CameraConfig(Params):
                     f"f{axis} = {focal:g} px over {size} px gives a {fov_deg:.3g}° field of view; "
                     f"allowed: {MIN_FOV_DEG:g}° to {MAX_FOV_DEG:g}° (a pinhole lens)")
         for axis, size, centre in (("x", self.width, self.cx), ("y", self.height, self.cy)):
-            if not -size <= centre <= 2 * size:
-                problems.append(f"c{axis} = {centre:g} px lies more than an image width outside "
-                                f"the {size} px image; allowed: {-size} to {2 * size}")
+            problem = principal_point_problem(axis, centre, size, plausible=False)
+            if problem:
+                problems.append(problem)
         if problems:
             raise ValueError("; ".join(problems))
         return self
@@ -315,6 +346,21 @@ class Rig(Params):
                 return cam
         known = ", ".join(c.id for c in self.cameras) or "none"
         raise RigError([f"no camera {camera_id!r} (cameras: {known})"], "rig")
+
+
+def camera_warnings(rig: Rig) -> list[str]:
+    """Valid but unlikely camera values, one line each: a principal point outside the image's
+    middle half (an offset from the centre typed as a position, or a crop of the sensor)."""
+    warnings = []
+    for cam in rig.cameras:
+        if cam.model != "pinhole":
+            continue
+        for axis, size, centre in (("x", cam.width, cam.cx), ("y", cam.height, cam.cy)):
+            problem = principal_point_problem(axis, centre, size, plausible=True)
+            if problem:
+                warnings.append(f"camera {cam.id}: {problem} (right only for a crop of the "
+                                "sensor, such as a ROS ROI)")
+    return warnings
 
 
 def default_cameras() -> tuple[CameraConfig, ...]:
