@@ -248,3 +248,17 @@ def test_images_stamped_by_another_clock_take_the_bags_log_times(tmp_path: Path,
     images = read_recording(out).images
     assert [i.camera_id for i in images] == ["cam_image_compressed"] * 2
     assert [i.log_time_ns for i in images] == [T0 + 500_001_000, T0 + 1_500_001_000]
+
+
+def test_camera_info_the_rig_refuses_is_one_line(tmp_path: Path, cli: Any) -> None:
+    """A ROI that leaves the principal point outside the published image gives a camera the
+    rig refuses: one line naming the topic, not a pydantic traceback; nothing written."""
+    topic = "/cam/image_raw/compressed"
+    bag = camera_bag(tmp_path, topic, width=100, height=80, roi=(400, 300, 100, 80))
+    out = tmp_path / "r.mcap"
+    result = cli("import-bag", bag, "--out", out, "--image", topic)
+    assert result.code != 0
+    assert "Traceback" not in result.err
+    message = result.err.strip().splitlines()
+    assert len(message) == 1 and topic in message[0] and "cx" in message[0], result.err
+    assert not out.exists()

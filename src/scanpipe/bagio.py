@@ -50,10 +50,13 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import ValidationError
 
 from scanpipe.errors import RecordingError, UsageError
 from scanpipe.images import encode_png
+from scanpipe.intrinsics_io import ros_roi_binning
 from scanpipe.motion import beyond_log
+from scanpipe.params import describe_validation_error
 from scanpipe.protocol.profile import ECHO_FULL_SCALE, are_fractions, ranges_between
 from scanpipe.recording import schemas
 from scanpipe.recording.writer import RecordingWriter
@@ -824,13 +827,12 @@ def camera_intrinsics(info: Any, image_topic: str, bag: Path) -> dict[str, Any] 
                 "its rectified topic (image_rect), or leave --image out")
         distortion = (d + [0.0] * 5)[:5]
     roi = getattr(info, "roi", None)
-    if roi is not None and int(roi.width) > 0 and int(roi.height) > 0:
-        cx, cy = cx - int(roi.x_offset), cy - int(roi.y_offset)
-        width, height = int(roi.width), int(roi.height)
-    bx = max(int(getattr(info, "binning_x", 0) or 0), 1)
-    by = max(int(getattr(info, "binning_y", 0) or 0), 1)
-    return {"width": width // bx, "height": height // by, "fx": fx / bx, "fy": fy / by,
-            "cx": (cx + 0.5) / bx - 0.5, "cy": (cy + 0.5) / by - 0.5,
+    roi_box = (0, 0, 0, 0) if roi is None else (
+        int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height))
+    binning = (int(getattr(info, "binning_x", 0) or 0), int(getattr(info, "binning_y", 0) or 0))
+    width, height, fx, fy, cx, cy = ros_roi_binning(width, height, fx, fy, cx, cy, roi_box,
+                                                    binning)
+    return {"width": width, "height": height, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
             "distortion": distortion}
 
 
@@ -1065,7 +1067,12 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
             content.warnings.append(f"{name}: its CameraInfo holds no calibration (K is "
                                     "zero: an uncalibrated camera): intrinsics guessed (60° "
                                     "horizontal field of view); pass --rig")
-        cameras.append(_camera(camera_id, intrinsics, size, default_rig().cameras[0]))
+        try:
+            cameras.append(_camera(camera_id, intrinsics, size, default_rig().cameras[0]))
+        except ValidationError as err:
+            raise BagError(f"{bag}: {name}: its CameraInfo gives a camera the rig refuses: "
+                           + "; ".join(describe_validation_error(err, CameraConfig))
+                           + "; pass --rig with this camera calibrated") from None
     for name, n in turned.items():
         content.warnings.append(f"{name}: {n} JPEG images carried an EXIF orientation tag: "
                                 "removed (the pixels are unchanged), as ROS's image_transport "

@@ -261,6 +261,29 @@ def _whole(value: Any) -> int | None:
     return int(value) if float(value).is_integer() else None
 
 
+def ros_roi_binning(width: int, height: int, fx: float, fy: float, cx: float, cy: float,
+                    roi: tuple[int, ...], binning: tuple[int, int], notes: list[str] | None = None
+                    ) -> tuple[int, int, float, float, float, float]:
+    """A CameraInfo's size and intrinsics for the images it describes, as ROS's image_geometry
+    applies them: the ROI ``(x_offset, y_offset, width, height)`` in full-resolution pixels
+    first (a zero width means none), then the binning (0 or 1: none). ``notes`` gets a line
+    for each one applied."""
+    x_offset, y_offset, roi_width, roi_height = roi
+    if roi_width > 0 and roi_height > 0:
+        cx, cy = cx - x_offset, cy - y_offset
+        width, height = roi_width, roi_height
+        if notes is not None:
+            notes.append(f"the ROI's offset ({x_offset}, {y_offset}) subtracted")
+    bx, by = max(binning[0], 1), max(binning[1], 1)
+    if (bx, by) != (1, 1):
+        fx, fy = fx / bx, fy / by
+        cx, cy = (cx + 0.5) / bx - 0.5, (cy + 0.5) / by - 0.5
+        width, height = width // bx, height // by
+        if notes is not None:
+            notes.append(f"binning {bx}×{by} applied")
+    return width, height, fx, fy, cx, cy
+
+
 def _read_ros(path: Path, text: str) -> Intrinsics:
     import yaml  # type: ignore[import-untyped]
 
@@ -297,19 +320,12 @@ def _read_ros(path: Path, text: str) -> Intrinsics:
     fx, fy, cx, cy = k[0], k[4], k[2], k[5]
     notes = ["ROS: same pixel convention and coefficients as the rig"]
     if width is not None and height is not None and width > 0 and height > 0:
-        roi = data.get("roi")
-        if isinstance(roi, dict) and int(roi.get("width", 0) or 0) > 0:
-            cx, cy = cx - int(roi.get("x_offset", 0)), cy - int(roi.get("y_offset", 0))
-            width, height = int(roi["width"]), int(roi.get("height", height))
-            notes.append(f"the ROI's offset ({roi.get('x_offset', 0)}, "
-                         f"{roi.get('y_offset', 0)}) subtracted")
-        bx = max(int(data.get("binning_x", 0) or 0), 1)
-        by = max(int(data.get("binning_y", 0) or 0), 1)
-        if (bx, by) != (1, 1):
-            fx, fy = fx / bx, fy / by
-            cx, cy = (cx + 0.5) / bx - 0.5, (cy + 0.5) / by - 0.5
-            width, height = width // bx, height // by
-            notes.append(f"binning {bx}×{by} applied")
+        roi = data.get("roi") if isinstance(data.get("roi"), dict) else {}
+        binning = (int(data.get("binning_x", 0) or 0), int(data.get("binning_y", 0) or 0))
+        roi_box = tuple(int(roi.get(key, 0) or 0)
+                        for key in ("x_offset", "y_offset", "width", "height"))
+        width, height, fx, fy, cx, cy = ros_roi_binning(
+            width, height, fx, fy, cx, cy, roi_box, binning, notes)
         size: tuple[int | None, int | None] = (width, height)
     else:
         size = (None, None)
