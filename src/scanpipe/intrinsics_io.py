@@ -320,7 +320,8 @@ def _read_ros(path: Path, text: str) -> Intrinsics:
     fx, fy, cx, cy = k[0], k[4], k[2], k[5]
     notes = ["ROS: same pixel convention and coefficients as the rig"]
     if width is not None and height is not None and width > 0 and height > 0:
-        roi = data.get("roi") if isinstance(data.get("roi"), dict) else {}
+        found_roi = data.get("roi")
+        roi: dict[str, Any] = found_roi if isinstance(found_roi, dict) else {}
         binning = (int(data.get("binning_x", 0) or 0), int(data.get("binning_y", 0) or 0))
         roi_box = tuple(int(roi.get(key, 0) or 0)
                         for key in ("x_offset", "y_offset", "width", "height"))
