@@ -627,16 +627,18 @@ def colorize_points(
     for name in ("x", "y", "z"):
         if name not in points.column_names:
             raise StageError(f"points: missing column {name!r}")
-    xyz = np.stack([points.column(n).to_numpy(zero_copy_only=False) for n in "xyz"], axis=1)
-    xyz = xyz.astype(np.float64)  # float64 azimuths: searchsorted then never converts them
+    columns = [points.column(n).to_numpy(zero_copy_only=False) for n in "xyz"]
     chosen = choose_frames(frames, motor, rig, spacing_deg, progress=progress,
                            equirect_spacing_deg=max(spacing_deg, EQUIRECT_SPACING_DEG))
     resolution = resolution_weights(chosen.cameras)
     near_m, parallax_deg = _window_margins(chosen.cameras)
-    index = AzimuthIndex(xyz, near_m)
-    # every per-point array below is in azimuth order: position k is point index.order[k]
-    ordered = xyz[index.order]
-    del xyz
+    # float64 azimuths: searchsorted then never converts them
+    index = AzimuthIndex(np.stack(columns, axis=1).astype(np.float64), near_m)
+    # every per-point array below is in azimuth order: position k is point index.order[k];
+    # the coordinates as the artifact holds them (float32: half the memory of float64, and
+    # the projection widens each piece to float64 exactly as it widened the whole)
+    ordered = np.stack(columns, axis=1, dtype=np.float32)[index.order]
+    del columns
     Piece = tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.int32], F64]
 
     def visible(i: int) -> list[Piece]:
