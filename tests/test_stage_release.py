@@ -18,7 +18,7 @@ from scanpipe.progress import ProgressFn
 from scanpipe.schema import ArtifactSchema, Column
 from scanpipe.sim.direct import simulate_direct
 from scanpipe.sim.options import SimOptions
-from scanpipe.stage import Inputs, release_inputs
+from scanpipe.stage import Inputs, narrow_input, release_inputs
 from scanpipe.stages import get_stage
 
 TOY = tuple(ArtifactSchema(n, (Column("v", pa.float64()),), "a toy table")
@@ -124,3 +124,15 @@ def test_export_in_the_chain_writes_what_it_writes_unreleased(tmp_path: Path) ->
     assert dict(zip(again.column("file").to_pylist(), again.column("sha256").to_pylist(),
                     strict=True)) == written
     assert all(t.num_rows for t in tables.values())  # a plain dict is never released
+
+
+def test_narrow_input_keeps_the_named_columns_of_a_handed_over_table() -> None:
+    table = pa.table({"x": [1.0], "origin_x": [0.0], "face": [3]}).replace_schema_metadata(
+        {PROVENANCE_KEY: b'{"key": "k"}'})
+    handed = Inputs({"points": table}, {"points"})
+    assert narrow_input(handed, "points", ("x", "face", "absent"))
+    assert handed["points"].column_names == ["x", "face"]
+    assert handed["points"].schema.metadata == table.schema.metadata
+    assert not narrow_input(handed, "points", ("x", "face"))  # nothing more to drop
+    for other in (Inputs({"points": table}), {"points": table}):  # not handed over
+        assert not narrow_input(other, "points", ("x",)) and other["points"] is table

@@ -127,6 +127,23 @@ class Inputs(dict[str, Any]):
         self.releasable = frozenset(releasable)
 
 
+def narrow_input(inputs: Mapping[str, Any], name: str, columns: Collection[str]) -> bool:
+    """Keep only ``columns`` of an input table the stage reads nothing else of, where its
+    caller handed it over (as :func:`release_inputs`; schema metadata kept), and hand the
+    freed memory back; returns whether any column went."""
+    table = inputs.get(name)
+    if (not isinstance(inputs, Inputs) or name not in inputs.releasable
+            or not isinstance(table, pa.Table)):
+        return False
+    kept = [c for c in table.column_names if c in columns]
+    if len(kept) == table.num_columns:
+        return False
+    inputs[name] = table.select(kept)
+    del table
+    release_free_memory()
+    return True
+
+
 def release_inputs(inputs: Mapping[str, Any], *names: str) -> bool:
     """Drop the named input tables a stage is done with, where its caller handed them over
     (:attr:`Inputs.releasable`; a plain mapping — a notebook's, a test's — is left as it is),

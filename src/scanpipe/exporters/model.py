@@ -41,6 +41,12 @@ F32 = NDArray[np.float32]
 
 #: The texture coordinates of a face's three corners, in the order of ``textured_faces``.
 UV_COLUMNS = ("u0", "v0", "u1", "v1", "u2", "v2")
+#: The columns of ``textured_faces`` a :class:`MeshModel` is made from (:func:`mesh_from_tables`).
+TEXTURED_FACE_COLUMNS = ("face", "page", *UV_COLUMNS)
+#: The columns of a points artifact a :class:`CloudModel` is made from (:func:`cloud_from_table`;
+#: the beams' origins are not exported).
+CLOUD_COLUMNS = (*XYZ, "echo", "time_ns", "range_m", "profile", "beta_deg", "alpha_deg",
+                 "sample", *RGB, "filtered_by")
 
 
 @dataclass(frozen=True)
@@ -165,7 +171,7 @@ def mesh_from_tables(
     face_pages = face_uvs = None
     pages: dict[int, bytes] = {}
     if textured_faces is not None and texture_pages is not None:
-        TEXTURED_FACES.check(textured_faces, ("face", "page", *UV_COLUMNS))
+        TEXTURED_FACES.check(textured_faces, TEXTURED_FACE_COLUMNS)
         TEXTURE_PAGES.check(texture_pages)
         face_index = textured_faces.column("face").to_numpy()
         if face_index.size and (int(face_index.min()) < 0 or int(face_index.max()) >= len(tri)):

@@ -36,6 +36,8 @@ from scanpipe.exporters.glb import glb_pieces
 from scanpipe.exporters.las import LAS_VERSIONS, frame_wkt, las_bytes, pdal_pipeline_bytes
 from scanpipe.exporters.mcap_foxglove import camera_views_from_tables, foxglove_export_files
 from scanpipe.exporters.model import (
+    CLOUD_COLUMNS,
+    TEXTURED_FACE_COLUMNS,
     CloudModel,
     MeshModel,
     cloud_from_table,
@@ -49,7 +51,7 @@ from scanpipe.exporters.ply import ply_cloud_pieces, ply_mesh_pieces
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.schema import ZERO_OFFSET, Offset, format_offset, offset_z_up
-from scanpipe.stage import Inputs, Stage, StageResult, release_inputs
+from scanpipe.stage import Inputs, Stage, StageResult, narrow_input, release_inputs
 
 if TYPE_CHECKING:
     from scanpipe.camera import F64
@@ -311,6 +313,9 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
                          "the mesh and the cloud files would overwrite each other")
     files: dict[str, FileData] = {}
     formats = {*params.mesh_formats, *params.cloud_formats}
+    if not formats & CAMERA_FORMATS:  # what no model is made of goes before the colouring
+        narrow_input(inputs, "textured_faces", TEXTURED_FACE_COLUMNS)
+        narrow_input(inputs, "points", CLOUD_COLUMNS)
     tables, coloured = prepare_tables(
         inputs, params.cloud_colors and bool(params.cloud_formats or "mcap" in
                                              params.mesh_formats), progress)
