@@ -136,3 +136,27 @@ def test_narrow_input_keeps_the_named_columns_of_a_handed_over_table() -> None:
     assert not narrow_input(handed, "points", ("x", "face"))  # nothing more to drop
     for other in (Inputs({"points": table}), {"points": table}):  # not handed over
         assert not narrow_input(other, "points", ("x",)) and other["points"] is table
+
+
+@pytest.mark.slow
+def test_colouring_lets_the_frames_go_once_it_has_chosen_its_own(tmp_path: Path) -> None:
+    """``prepare_tables(keep_frames=False)`` on handed-over inputs: the frames are released
+    (the colouring copied the bytes of the frames it chose) and the colours are those made
+    with the frames kept."""
+    from scanpipe.stages.export import prepare_tables
+
+    rec = tmp_path / "scan.mcap"
+    simulate_direct(rec, tmp_path / "truth", SimOptions(
+        beam_step_deg=2.0, motor_step_deg=3.0, camera_scale=0.125, camera_fps=0.5, seed=4))
+    run_chain(rec, tmp_path / "w", {}, to="filter")
+    producers = {"points": "filter", "frames": "decode", "motor": "decode", "rig": "calibrate"}
+    tables = {n: read_artifact(tmp_path / "w" / d / f"{n}.parquet")[0]
+              for n, d in producers.items()}
+    kept, coloured = prepare_tables(tables)
+    assert coloured and kept["frames"].num_rows == tables["frames"].num_rows > 0
+    handed = Inputs(tables, set(tables))
+    released, coloured = prepare_tables(handed, keep_frames=False)
+    assert coloured and handed["frames"].num_rows == 0 and released["frames"].num_rows == 0
+    assert released["frames"].schema == tables["frames"].schema
+    assert released["points"].equals(kept["points"])
+    assert handed["points"].num_rows == tables["points"].num_rows  # only the frames went

@@ -124,10 +124,15 @@ def provenance_of(tables: Mapping[str, pa.Table]) -> dict[str, Any]:
 
 
 def prepare_tables(tables: Mapping[str, pa.Table], colors: bool = True,
-                   progress: ProgressFn = no_progress) -> tuple[dict[str, pa.Table], bool]:
+                   progress: ProgressFn = no_progress, keep_frames: bool = True
+                   ) -> tuple[dict[str, pa.Table], bool]:
     """The tables every export format reads, and whether the points were coloured: the points
     get ``red/green/blue`` from the camera frames when ``colors`` and there are frames (the
-    same for ``run`` and ``export``; the points artifact's provenance is kept)."""
+    same for ``run`` and ``export``; the points artifact's provenance is kept).
+
+    Without ``keep_frames`` (no format reads the frames) the frames are released once the
+    colouring has chosen its own (:func:`scanpipe.stage.release_inputs`, where ``tables`` were
+    handed over) and are an empty table of their schema in the result."""
     out = dict(tables)
     points = out.get("points")
     if (not colors or points is None or not all(n in out for n in CAMERA_ARTIFACTS)
@@ -136,8 +141,14 @@ def prepare_tables(tables: Mapping[str, pa.Table], colors: bool = True,
     from scanpipe.rig import rig_from_table
     from scanpipe.texturing.projective import colorize_points
 
+    def chosen() -> None:
+        if not keep_frames:
+            out["frames"] = out["frames"].schema.empty_table()
+            release_inputs(tables, "frames")
+
     coloured = colorize_points(points, out["frames"], out["motor"], rig_from_table(out["rig"]),
-                               spacing_deg=FRAME_SPACING_DEG, progress=progress)
+                               spacing_deg=FRAME_SPACING_DEG, progress=progress,
+                               frames_chosen=chosen)
     out["points"] = coloured.replace_schema_metadata(points.schema.metadata)
     return out, True
 
@@ -318,7 +329,8 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
         narrow_input(inputs, "points", CLOUD_COLUMNS)
     tables, coloured = prepare_tables(
         inputs, params.cloud_colors and bool(params.cloud_formats or "mcap" in
-                                             params.mesh_formats), progress)
+                                             params.mesh_formats), progress,
+        keep_frames=bool(formats & CAMERA_FORMATS))
     if not formats & CAMERA_FORMATS:  # the frames have coloured the points: done with them
         release_inputs(inputs, *CAMERA_ARTIFACTS)
         tables = {k: v for k, v in tables.items() if k not in CAMERA_ARTIFACTS}

@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from functools import lru_cache
@@ -606,6 +607,7 @@ def colorize_points(
     neutral_rgb: tuple[int, int, int] = (128, 128, 128),
     cell_px: int = 6,
     progress: ProgressFn = no_progress,
+    frames_chosen: Callable[[], object] | None = None,
 ) -> pa.Table:
     """``points`` with ``red``, ``green``, ``blue`` (uint8) from the camera frames.
 
@@ -622,7 +624,9 @@ def colorize_points(
     sorted by azimuth once, so a window is a few contiguous slices. Every point a frame sees
     is in its window, so the colours are those of projecting every point into every frame.
     Each frame is decoded once, and only when it gives some point its colour; the frames one
-    at a time.
+    at a time. ``frames_chosen`` is called once the frames are chosen (their bytes copied):
+    from then on this function holds no reference to ``frames``, so a caller that drops its
+    own lets the table go while the points are coloured (the export stage).
     """
     for name in ("x", "y", "z"):
         if name not in points.column_names:
@@ -630,6 +634,11 @@ def colorize_points(
     columns = [points.column(n).to_numpy(zero_copy_only=False) for n in "xyz"]
     chosen = choose_frames(frames, motor, rig, spacing_deg, progress=progress,
                            equirect_spacing_deg=max(spacing_deg, EQUIRECT_SPACING_DEG))
+    del frames
+    if frames_chosen is not None:
+        frames_chosen()
+    # each frame is decoded once and used at once: no decoded frame is kept beside it
+    chosen.cache_size = 0
     resolution = resolution_weights(chosen.cameras)
     near_m, parallax_deg = _window_margins(chosen.cameras)
     # float64 azimuths: searchsorted then never converts them
