@@ -160,3 +160,22 @@ def test_colouring_lets_the_frames_go_once_it_has_chosen_its_own(tmp_path: Path)
     assert released["frames"].schema == tables["frames"].schema
     assert released["points"].equals(kept["points"])
     assert handed["points"].num_rows == tables["points"].num_rows  # only the frames went
+
+
+def test_execute_hands_over_the_inputs_it_read_itself(tmp_path: Path) -> None:
+    """A stage run alone (``execute`` on files: ``scanpipe mesh``, a batch's task) may release
+    the tables the runner read for it; not those a caller keeps (``keep_tables``)."""
+    from scanpipe.artifacts import write_artifact
+    from scanpipe.pipeline import InMemory, execute
+
+    numbers = tmp_path / "numbers.parquet"
+    write_artifact(numbers, pa.table({"v": [1.0, 2.0]}), {"key": "k", "stage": "read"})
+    scale = _toy_chain(False)[1]
+    for keep in (False, True):
+        SEEN.clear()
+        record = execute(scale, {"numbers": numbers}, tmp_path / f"out{keep}", NoParams(),
+                         force=True, hold=InMemory(keep_tables=keep))
+        assert SEEN["scale"][:2] == (not keep, not keep)
+        assert record.tables.get("numbers") is None or record.tables["numbers"].num_rows == 2
+        assert read_artifact(tmp_path / f"out{keep}" / "scaled.parquet")[0].column(
+            "v").to_pylist() == [2.0, 4.0]

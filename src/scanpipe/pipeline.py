@@ -145,7 +145,10 @@ def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, par
         report = read_provenance(next(iter(outputs.values()))).get("report", {})
         return RunRecord(stage.name, key, True, 0.0, outputs, report)
 
-    loaded = Inputs({}, releasable=hold.release)
+    # the stage may release what no later stage takes: the inputs named so, and those read
+    # here when the tables are not kept (no one else holds them)
+    read_here = {n for n in stage.inputs if n not in RAW_INPUTS and n not in hold.tables}
+    loaded = Inputs({}, releasable=hold.release | (set() if hold.keep_tables else read_here))
     given = hold.tables
     take = given.pop if hold.handed_over and isinstance(given, dict) else given.get
     for name in stage.inputs:
