@@ -256,8 +256,10 @@ def split_by_uv(corner_vertex: NDArray[np.integer], corner_uv: NDArray[np.floati
     # slice by slice: the per-corner temporaries (first corner, its uv) stay slice-sized.
     # A corner's first corner is never after it, so the running count of own vertices there
     # is known by the time the corner is reached: one pass makes both.
+    # A vertex's first corner is its own, so the new index of a corner that is not its own
+    # is its first corner's, written already (an earlier slice, or this slice's own corners
+    # first): no array of own indices beside ``index`` (57 MB less at lab scale).
     own = np.empty(n, dtype=np.bool_)
-    own_index = np.empty(n, dtype=np.uint32)
     index = np.empty(n, dtype=np.uint32)
     count = np.uint32(0)
     for start in range(0, n, SPLIT_SLICE):
@@ -267,12 +269,13 @@ def split_by_uv(corner_vertex: NDArray[np.integer], corner_uv: NDArray[np.floati
         np.not_equal(packed[start:stop], packed[first_of_corner], out=own_slice)
         own_slice |= first_of_corner == np.arange(start, stop, dtype=np.uint32)
         # the first corner is its vertex's first: the count is ≥ 1 before the − 1
-        np.cumsum(own_slice, dtype=np.uint32, out=own_index[start:stop])
-        own_index[start:stop] += count
-        own_index[start:stop] -= np.uint32(1)
-        count = own_index[stop - 1] + np.uint32(1)
-        index[start:stop] = np.where(own_slice, own_index[start:stop],
-                                     own_index[first_of_corner])
+        own_index = np.cumsum(own_slice, dtype=np.uint32)
+        own_index += count
+        own_index -= np.uint32(1)
+        count = own_index[-1] + np.uint32(1)
+        index_slice = index[start:stop]
+        np.copyto(index_slice, own_index, where=own_slice)
+        np.copyto(index_slice, index[first_of_corner], where=~own_slice)
     return np.asarray(corner_vertex[own], dtype=np.int64), uv[own], index
 
 
