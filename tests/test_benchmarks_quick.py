@@ -122,7 +122,11 @@ def test_acquisition_targets_and_table(results: dict[str, Any]) -> None:
     assert simulation["frame_sizes"][cam.id] == [cam.width, cam.height]
     assert simulation["frames_at_rig_resolution"] is False  # 1/8 scale
     rows = {t["name"]: t for t in results["targets"]}
-    assert len(rows) == 16 and all(isinstance(t["met"], bool) for t in rows.values())
+    assert len(rows) == 17 and all(isinstance(t["met"], bool) for t in rows.values())
+    outside = rows["peak memory of the default chain outside texture (each stage's own peak)"]
+    stages = results["chain_memory"]["whole"]["stages"]
+    assert positive(outside["value"]) and outside["value"] == max(
+        v["peak_rss_mb"] for k, v in stages.items() if k != "texture")
     assert positive(rows["grid mesh at full resolution (CPU)"]["value"])
     assert positive(rows["decode scanner stream"]["value"])
     assert positive(rows["end to end / acquisition (CPU)"]["value"])

@@ -146,3 +146,50 @@ def test_a_stream_is_made_block_by_block_and_a_failing_one_keeps_the_previous_se
     assert (out / "model.obj").read_bytes() == b"old"
     assert sorted(p.name for p in out.iterdir()) == ["model.obj"]
     assert not any((tmp_path / "run" / ".scanpipe").glob("tmp-*"))
+
+
+def test_pieces_are_written_and_hashed_in_order_beside_their_making(tmp_path: Path) -> None:
+    """A file of many pieces is written on one thread and hashed on another while the next
+    pieces are made: the bytes and digest of the joined pieces, in order; a write that fails
+    part-way raises its OSError once the pieces in flight are done, and nothing after it is
+    made."""
+    import numpy as np
+
+    from scanpipe.artifacts import PIECES_IN_FLIGHT, write_file_data
+
+    rng = np.random.default_rng(5)
+    parts = [rng.integers(0, 256, int(n), np.uint8).tobytes()
+             for n in rng.integers(0, 50_000, 200)]
+    made: list[int] = []
+
+    def make() -> Iterator[bytes]:
+        for index, part in enumerate(parts):
+            made.append(index)
+            yield part
+
+    joined = b"".join(parts)
+    path = tmp_path / "big.bin"
+    with path.open("wb") as handle:
+        digest = write_file_data(handle, Stream(make), hashed=True)
+    assert path.read_bytes() == joined
+    assert digest.nbytes == len(joined) and digest.sha256 == _sha(joined)
+    assert write_file_data(tmp_path.joinpath("b").open("wb"), Pieces(tuple(parts))).sha256 == ""
+
+    class Full:
+        """A disk that fills up at the fifth piece."""
+
+        def __init__(self) -> None:
+            self.written: list[bytes] = []
+
+        def write(self, part: bytes) -> int:
+            if len(self.written) == 4:
+                raise OSError(28, "No space left on device")
+            self.written.append(bytes(part))
+            return len(part)
+
+    made.clear()
+    full = Full()
+    with pytest.raises(OSError, match="No space left"):
+        write_file_data(full, Stream(make), hashed=True)  # type: ignore[arg-type]
+    assert full.written == parts[:4]
+    assert len(made) <= 5 + PIECES_IN_FLIGHT + 1

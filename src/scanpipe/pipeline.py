@@ -13,7 +13,6 @@ artifacts together (:func:`scanpipe.artifacts.write_together`).
 from __future__ import annotations
 
 import difflib
-import functools
 import time
 from collections.abc import Callable, Generator, Mapping, Sequence
 from contextlib import closing
@@ -34,6 +33,7 @@ from scanpipe.artifacts import (
     read_artifact,
     read_provenance,
     recover,
+    release_free_memory,
     settle_commits,
     with_provenance,
     write_artifact,
@@ -42,7 +42,7 @@ from scanpipe.artifacts import (
 from scanpipe.errors import ArtifactError, ParameterError
 from scanpipe.params import Params, validate
 from scanpipe.progress import ProgressFn, no_progress
-from scanpipe.stage import RAW_INPUTS, Stage, StageResult
+from scanpipe.stage import RAW_INPUTS, Inputs, Stage, StageResult
 from scanpipe.stages import chain_stages, get_stage, registry
 from scanpipe.workdir import DEFAULT_LOCK_WAIT_S, lock_root, workdir_lock
 
@@ -120,13 +120,19 @@ class InMemory:
     computes the stage's result from its loaded inputs instead of the stage's own call — the
     same result by construction (the follow runner's decode of a stream decoded as it grew);
     ``keep_tables``: return the outputs in :attr:`RunRecord.tables`; ``keys``: the keys of raw
-    inputs computed already from the same bytes (the file may not be at its path yet).
+    inputs computed already from the same bytes (the file may not be at its path yet);
+    ``release``: inputs no later stage takes, which the stage may release while it runs
+    (:func:`scanpipe.stage.release_inputs`; they are then not among the kept tables either);
+    ``handed_over``: the caller keeps no other reference to ``tables`` (a dict): the stage
+    takes them out of it (those it never took, a reused stage's, stay in it).
     """
 
     tables: Mapping[str, pa.Table] = field(default_factory=dict)
     keys: Mapping[str, str] = field(default_factory=dict)
     compute: Callable[[Mapping[str, Any]], StageResult] | None = None
     keep_tables: bool = False
+    release: frozenset[str] = frozenset()
+    handed_over: bool = False
 
 
 def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, params: Params,
@@ -141,13 +147,19 @@ def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, par
         report = read_provenance(next(iter(outputs.values()))).get("report", {})
         return RunRecord(stage.name, key, True, 0.0, outputs, report)
 
-    loaded: dict[str, Any] = {}
+    # the stage may release what no later stage takes: the inputs named so, and those read
+    # here when the tables are not kept (no one else holds them)
+    read_here = {n for n in stage.inputs if n not in RAW_INPUTS and n not in hold.tables}
+    loaded = Inputs({}, releasable=hold.release | (set() if hold.keep_tables else read_here))
+    given = hold.tables
+    take = given.pop if hold.handed_over and isinstance(given, dict) else given.get
     for name in stage.inputs:
         if name in RAW_INPUTS:
             loaded[name] = inputs[name]
-        else:
-            held = hold.tables.get(name)
-            loaded[name] = held if held is not None else read_artifact(inputs[name])[0]
+        else:  # no local name keeps a table: the stage may release it
+            loaded[name] = take(name, None)
+            if loaded[name] is None:
+                loaded[name] = read_artifact(inputs[name])[0]
     started = time.perf_counter()
     if hold.compute is not None:
         result = hold.compute(loaded)
@@ -183,7 +195,8 @@ def _execute_locked(stage: Stage, inputs: Mapping[str, Path], out_dir: Path, par
             for name, table in result.tables.items()} if hold.keep_tables else {}
     if hold.keep_tables:  # and the inputs it read, as read (the next stage may take them too)
         kept.update({name: loaded[name] for name in stage.inputs
-                     if name not in RAW_INPUTS and name not in kept})
+                     if name not in RAW_INPUTS and name not in kept
+                     and name not in hold.release})
     return RunRecord(stage.name, key, False, seconds, outputs, result.report, kept)
 
 
@@ -351,12 +364,18 @@ def iter_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
         if any(committing(available[n]) for n in stage.inputs
                if n not in tables and n in available):
             settle_commits()  # a file to read is not in place yet
-        hold = InMemory(tables={n: tables[n] for n in stage.inputs if n in tables},
+        # handed over, not shared: a stage may release an input no later stage takes while it
+        # runs (what the next stage takes comes back in the record's tables)
+        hold = InMemory(tables={n: tables.pop(n) for n in stage.inputs if n in tables},
                         compute=(compute or {}).get(stage.name),
                         keep_tables=in_memory or bool(
                             next_inputs & {*stage.outputs, *stage.inputs}),
-                        keys={n: k for n, k in keys.items() if n in stage.inputs})
+                        keys={n: k for n, k in keys.items() if n in stage.inputs},
+                        release=frozenset() if in_memory else frozenset(
+                            n for n in stage.inputs if n not in next_inputs),
+                        handed_over=True)
         record = chain_step(stage, available, workdir, params, force, progress, hold=hold)
+        tables.update(hold.tables)  # what the stage did not take (reused): as before
         available.update(record.outputs)
         keys.update(dict.fromkeys(record.outputs, record.key))
         for name in record.outputs:  # reused outputs are read back from their files
@@ -375,29 +394,6 @@ def iter_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
         record = replace(record, tables={})  # the chain's records hold no tables
         release_free_memory()
         yield record
-
-
-def release_free_memory() -> None:
-    """Hand the memory freed by a finished stage back to the system: Arrow's pool and the C
-    heap (glibc's ``malloc_trim``) keep freed pages for reuse, so without this each stage
-    starts from the previous stages' high-water marks (the lab chain's RSS between stages
-    crept from 0.3 to 1 GB). Costs 2–40 ms of CPU per stage on the lab scan; a no-op where the
-    calls do not exist."""
-    pa.default_memory_pool().release_unused()
-    trim = getattr(_libc(), "malloc_trim", None)
-    if trim is not None:
-        trim(0)
-
-
-@functools.cache
-def _libc() -> object:
-    """The process's C library (glibc's functions by name), or a plain object elsewhere."""
-    import ctypes
-
-    try:
-        return ctypes.CDLL(None)
-    except OSError:
-        return object()
 
 
 def check_recording(recording: Path) -> None:

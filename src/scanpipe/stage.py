@@ -9,13 +9,19 @@ another tool) reach a stage as paths and are named in :data:`RAW_INPUTS`.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import pyarrow as pa
 
-from scanpipe.artifacts import PROVENANCE_KEY, FileData, file_digest, files_manifest
+from scanpipe.artifacts import (
+    PROVENANCE_KEY,
+    FileData,
+    file_digest,
+    files_manifest,
+    release_free_memory,
+)
 from scanpipe.errors import ArtifactError
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
@@ -105,6 +111,55 @@ def refuse_uncarried_offset(where: str, table: pa.Table) -> None:
 
 
 StageFn = Callable[[Mapping[str, Any], Any, ProgressFn], StageResult]
+
+
+class Inputs(dict[str, Any]):
+    """A stage's inputs as the runner hands them over when nothing after the stage takes
+    them: the stage may :func:`release_inputs` a table once it is done with it, so its memory
+    goes back before the stage ends (the export stage's camera frames after colouring the
+    points, its tables once its models are built) instead of at the stage's end. A released
+    table is replaced by an empty table of its schema (its metadata, provenance and
+    georeference offset kept: :func:`carry_offset` and provenance still read them)."""
+
+    def __init__(self, tables: Mapping[str, Any], releasable: Collection[str] = ()) -> None:
+        super().__init__(tables)
+        #: The inputs the caller keeps no other reference to and no later stage takes.
+        self.releasable = frozenset(releasable)
+
+
+def narrow_input(inputs: Mapping[str, Any], name: str, columns: Collection[str]) -> bool:
+    """Keep only ``columns`` of an input table the stage reads nothing else of, where its
+    caller handed it over (as :func:`release_inputs`; schema metadata kept), and hand the
+    freed memory back; returns whether any column went."""
+    table = inputs.get(name)
+    if (not isinstance(inputs, Inputs) or name not in inputs.releasable
+            or not isinstance(table, pa.Table)):
+        return False
+    kept = [c for c in table.column_names if c in columns]
+    if len(kept) == table.num_columns:
+        return False
+    inputs[name] = table.select(kept)
+    del table
+    release_free_memory()
+    return True
+
+
+def release_inputs(inputs: Mapping[str, Any], *names: str) -> bool:
+    """Drop the named input tables a stage is done with, where its caller handed them over
+    (:attr:`Inputs.releasable`; a plain mapping — a notebook's, a test's — is left as it is),
+    and hand the freed memory back; returns whether any was released. The stage must hold no
+    other reference to a table's data for its memory to go."""
+    if not isinstance(inputs, Inputs):
+        return False
+    released = False
+    for name in names:
+        table = inputs.get(name)
+        if name in inputs.releasable and isinstance(table, pa.Table) and table.num_rows:
+            inputs[name] = table.schema.empty_table()
+            released = True
+    if released:
+        release_free_memory()
+    return released
 
 
 @dataclass(frozen=True)

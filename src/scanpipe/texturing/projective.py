@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from functools import lru_cache
@@ -606,6 +607,7 @@ def colorize_points(
     neutral_rgb: tuple[int, int, int] = (128, 128, 128),
     cell_px: int = 6,
     progress: ProgressFn = no_progress,
+    frames_chosen: Callable[[], object] | None = None,
 ) -> pa.Table:
     """``points`` with ``red``, ``green``, ``blue`` (uint8) from the camera frames.
 
@@ -622,21 +624,32 @@ def colorize_points(
     sorted by azimuth once, so a window is a few contiguous slices. Every point a frame sees
     is in its window, so the colours are those of projecting every point into every frame.
     Each frame is decoded once, and only when it gives some point its colour; the frames one
-    at a time.
+    at a time. ``frames_chosen`` is called once the frames are chosen (their bytes copied):
+    from then on this function holds no reference to ``frames``, so a caller that drops its
+    own lets the table go while the points are coloured (the export stage).
     """
     for name in ("x", "y", "z"):
         if name not in points.column_names:
             raise StageError(f"points: missing column {name!r}")
-    xyz = np.stack([points.column(n).to_numpy(zero_copy_only=False) for n in "xyz"], axis=1)
-    xyz = xyz.astype(np.float64)  # float64 azimuths: searchsorted then never converts them
+    columns = [points.column(n).to_numpy(zero_copy_only=False) for n in "xyz"]
     chosen = choose_frames(frames, motor, rig, spacing_deg, progress=progress,
                            equirect_spacing_deg=max(spacing_deg, EQUIRECT_SPACING_DEG))
+    del frames
+    if frames_chosen is not None:
+        frames_chosen()
+    # each frame is decoded once and used at once: no decoded frame is kept beside it
+    chosen.cache_size = 0
     resolution = resolution_weights(chosen.cameras)
     near_m, parallax_deg = _window_margins(chosen.cameras)
-    index = AzimuthIndex(xyz, near_m)
-    # every per-point array below is in azimuth order: position k is point index.order[k]
-    ordered = xyz[index.order]
-    del xyz
+    # float64 azimuths: searchsorted then never converts them
+    index = AzimuthIndex(np.stack(columns, axis=1).astype(np.float64), near_m)
+    # every per-point array below is in azimuth order: position k is point index.order[k];
+    # the coordinate columns as the artifact holds them, projected in float32 as the texture
+    # stage projects (:func:`scanpipe.camera.project_columns`: well under 10⁻³ px off float64,
+    # twice as fast)
+    ordered = [np.asarray(c, dtype=np.float32)[index.order] for c in columns]
+    del columns
+    count = len(ordered[0])
     Piece = tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.int32], F64]
 
     def visible(i: int) -> list[Piece]:
@@ -645,25 +658,28 @@ def colorize_points(
         (the projection's temporaries then stay in the cache: several times faster)."""
         cam, beta = chosen.cameras[i], float(chosen.beta_deg[i])
         window = view_window(cam, beta)
-        ranges = ([(0, len(ordered))] if window is None
+        ranges = ([(0, count)] if window is None
                   else index.ranges(window[0], window[1] + parallax_deg))
         cells_w = cam.width // cell_px + 1
-        nearest = np.full((cam.height // cell_px + 1) * cells_w, np.inf)
+        nearest = np.full((cam.height // cell_px + 1) * cells_w, np.inf, np.float32)
         pieces = []
         for a, b in ranges:
             for start in range(a, b, COLOUR_CHUNK_POINTS):
-                uv, depth, valid = project_valid(
-                    ordered[start:min(b, start + COLOUR_CHUNK_POINTS)], cam, beta, 0.0)
+                stop = min(b, start + COLOUR_CHUNK_POINTS)
+                u, v, depth, valid = project_valid_columns(
+                    ordered[0][start:stop], ordered[1][start:stop], ordered[2][start:stop],
+                    cam, beta, 0.0)
                 local = np.flatnonzero(valid)
                 if len(local) == 0:
                     continue
                 if len(local) < len(valid):  # a 360° camera's frame sees every point
-                    uv, depth = uv[local], depth[local]
-                col = np.clip(np.rint(uv[:, 0]), 0, cam.width - 1).astype(np.int32)
-                row = np.clip(np.rint(uv[:, 1]), 0, cam.height - 1).astype(np.int32)
+                    u, v, depth = u[local], v[local], depth[local]
+                col = np.clip(np.rint(u), 0, cam.width - 1).astype(np.int32)
+                row = np.clip(np.rint(v), 0, cam.height - 1).astype(np.int32)
                 cell = (row // cell_px) * cells_w + col // cell_px
                 np.minimum.at(nearest, cell, depth)
-                score = centrality(uv, cam) * resolution[i]
+                score = (np.full(len(u), resolution[i]) if cam.model == "equirect"
+                         else pinhole_centrality(u, v, cam) * resolution[i])
                 pieces.append((local + start, depth, cell, col, row, score))
         out: list[Piece] = []
         while pieces:  # each piece's arrays go as its visible part is kept
@@ -672,22 +688,36 @@ def colorize_points(
             out.append((idx[seen], col[seen], row[seen], score[seen]))
         return out
 
-    best = np.zeros(len(ordered), dtype=np.float64)
-    rgb = np.tile(np.asarray(neutral_rgb, dtype=np.uint8), (len(ordered), 1))
+    best = np.zeros(count, dtype=np.float64)
+    rgb = np.tile(np.asarray(neutral_rgb, dtype=np.uint8), (count, 1))
     # one frame at a time: projecting frames on worker threads gave no CPU back and kept
-    # ~400 MB more resident (per-thread malloc arenas) into the rest of the export
-    for i in range(len(chosen)):
-        image = None
-        for idx, col, row, score in visible(i):
-            better = score > best[idx]
-            if not np.any(better):
-                continue
-            if image is None:
-                image = chosen.image(i)
-            idx = idx[better]
-            best[idx] = score[better]
-            rgb[idx] = image[row[better], col[better], ::-1]
-        progress("colour points", i + 1, len(chosen))
+    # ~400 MB more resident (per-thread malloc arenas) into the rest of the export. Only the
+    # frame's decode (OpenCV, without the GIL) runs on a thread of its own, beside its
+    # projection, when there is a core for it (else it is decoded only if it gives a colour):
+    # one decoded frame more at a time (≤ 22 MB, 33 MB traced at lab scale), below the
+    # export's peak, which is later.
+    from concurrent.futures import ThreadPoolExecutor
+
+    ahead = worker_count(len(chosen), limit=2) > 1
+    decoder = ThreadPoolExecutor(1, thread_name_prefix="decode") if ahead else None
+    try:
+        for i in range(len(chosen)):
+            decoding = decoder.submit(chosen.image, i) if decoder is not None else None
+            image = None
+            for idx, col, row, score in visible(i):
+                better = score > best[idx]
+                if not np.any(better):
+                    continue
+                if image is None:
+                    image = chosen.image(i) if decoding is None else decoding.result()
+                idx = idx[better]
+                best[idx] = score[better]
+                rgb[idx] = image[row[better], col[better], ::-1]
+            del decoding, image  # a frame that gave no colour: its image goes now
+            progress("colour points", i + 1, len(chosen))
+    finally:
+        if decoder is not None:
+            decoder.shutdown(wait=True)
     colours = np.empty_like(rgb)
     colours[index.order] = rgb
     table = points
