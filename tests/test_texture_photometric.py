@@ -52,7 +52,7 @@ def test_outliers_are_the_plain_rule(slots: int) -> None:
     colour[person] = rng.uniform(0, 255, size=(int(person.sum()), 3))
     colour[(frame < 0) | (rng.random(frame.shape) < 0.05)] = np.nan  # none, or off the image
     gains = rng.uniform(0.8, 1.25, size=(frames, 3))
-    views = Views(frame, colour)
+    views = Views.from_levels(frame, colour)
     outlier = photometric_outliers(views, gains, 40.0)
     assert outlier.sum() > 100  # the test has outliers to find
     np.testing.assert_array_equal(outlier, plain_outliers(views, gains, 40.0))
