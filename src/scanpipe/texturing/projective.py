@@ -96,16 +96,21 @@ class FaceScores:
         return int(self.frame.shape[1])
 
     def best_first(self, rows: I64 | None = None) -> FaceScores:
-        """Order every row by score, best first (empty slots last): in place, returning self;
-        or, given ``rows`` (a permutation of the faces), into a new one whose row ``rows[k]``
-        is this one's row ``k`` ordered (one pass over the rows for both).
+        """Order every row by score, best first (empty slots last): in place, returning self
+        (frames held in a smaller integer type than int32 go into a new int32 array); or,
+        given ``rows`` (a permutation of the faces), into a new one whose row ``rows[k]`` is
+        this one's row ``k`` ordered (one pass over the rows for both).
 
         The float32 score's bits (positive: ordered as integers) and the frame's complement
         pack into one int64 key per slot, so a plain sort of each row orders both.
         """
         n_faces, keep = self.frame.shape
-        out = self if rows is None else FaceScores(np.empty(self.frame.shape, np.int32),
-                                                   np.empty_like(self.score))
+        if rows is not None:
+            out = FaceScores(np.empty(self.frame.shape, np.int32), np.empty_like(self.score))
+        elif self.frame.dtype != np.int32:  # each block's rows are read before written
+            out = FaceScores(np.empty(self.frame.shape, np.int32), self.score)
+        else:
+            out = self
         if keep == 0:
             return out
         top = np.int64(np.iinfo(np.int32).max)
@@ -157,18 +162,17 @@ class BestFrames:
     (:meth:`add`), for :class:`FaceScores`. Per face: the slots filled so far, and once all
     are, the lowest kept score and its slot: a score must beat it to be kept. ``small``: fewer
     than 2¹⁵ frames, held as int16 (a quarter less memory; :meth:`result` with ``rows`` gives
-    int32 as :class:`FaceScores` holds them). The slot counts and numbers are int8 (``keep``
-    ≤ 127): 50 MB less than int32 and int64 at lab scale, and less to stream per offer."""
+    int32 as :class:`FaceScores` holds them). The slot counts and numbers are int8 (up to
+    127 kept): 50 MB less than int32 and int64 at lab scale, and less to stream per offer."""
 
     def __init__(self, n_faces: int, keep: int, small: bool = False) -> None:
-        if not 0 <= keep <= 127:
-            raise ValueError(f"BestFrames: keep must lie in [0, 127], not {keep}")
         self.keep = keep
         self.frame = np.full((n_faces, keep), -1, dtype=np.int16 if small else np.int32)
         self.score = np.zeros((n_faces, keep), dtype=np.float32)
-        self._filled = np.zeros(n_faces, dtype=np.int8)
+        slot_type = np.int8 if keep < 128 else np.int32
+        self._filled = np.zeros(n_faces, dtype=slot_type)
         self._floor = np.zeros(n_faces, dtype=np.float32)  # 0 while a slot is free
-        self._low = np.zeros(n_faces, dtype=np.int8)  # the slot of the lowest kept score
+        self._low = np.zeros(n_faces, dtype=slot_type)  # the slot of the lowest kept score
 
     def add(self, frame: int, face: NDArray[np.integer], score: F32) -> None:
         """Offer frame ``frame``'s positive scores of (distinct) faces ``face``: into a free
@@ -189,7 +193,7 @@ class BestFrames:
         flat += np.where(free, filled, self._low[face])
         self.score.reshape(-1)[flat] = score
         self.frame.reshape(-1)[flat] = frame
-        filled += free  # int8: keep ≤ 127
+        filled += free
         self._filled[face] = filled
         # the faces whose lowest slot may have changed: those just full and those replaced
         redo = face[filled == self.keep]
@@ -200,8 +204,9 @@ class BestFrames:
             self._floor[redo] = rows[np.arange(len(redo)), slot]
 
     def result(self, rows: I64 | None = None) -> FaceScores:
-        """The kept frames, best first (the builder's arrays, not copies); given ``rows``, a
-        copy with the builder's row ``k`` as row ``rows[k]`` (:meth:`FaceScores.best_first`)."""
+        """The kept frames, best first (the builder's scores, not a copy; its frames too when
+        int32); given ``rows``, a copy with the builder's row ``k`` as row ``rows[k]``
+        (:meth:`FaceScores.best_first`)."""
         # done with: not held through the copy
         self._filled, self._low = np.zeros(0, np.int8), np.zeros(0, np.int8)
         self._floor = np.zeros(0, np.float32)
@@ -392,25 +397,23 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     first corner is one of them are looked at (a face in view has every corner in view).
     Vertices are renumbered by azimuth once and faces by their first corner, so that a window
     is a few contiguous slices of every per-vertex and per-face array (a phone's faces are
-    gathered from its vertices in view instead: most of its window is out of its view), and
-    the kept frames are gathered in that order too (a frame's faces then fill contiguous
-    rows); they are put back in face order at the end.
+    gathered from its vertices in view instead: most of its window is out of its view). The
+    kept frames are held in face order (each frame's offers renumbered on its thread): put
+    back in face order at the end instead, they were a second copy (~0.5 GB at lab scale),
+    for about the same CPU time.
     """
-    # the per-face arrays of the loop are gone before the kept frames are put back in face
-    # order (a copy)
-    kept, face_ids = _kept_by_azimuth(
+    return _kept_by_azimuth(
         vertices, faces, normals, frames, min_cos=min_cos, margin_px=margin_px,
         sharpness_weight=sharpness_weight, two_sided=two_sided, progress=progress,
-        centroids=centroids, keep=keep)
-    return kept.result(face_ids)
+        centroids=centroids, keep=keep).result()
 
 
 def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer], normals: F64,
                      frames: FrameSet, *, min_cos: float, margin_px: float,
                      sharpness_weight: float, two_sided: bool, progress: ProgressFn,
-                     centroids: F64 | None, keep: int) -> tuple[BestFrames, I64]:
-    """:func:`face_scores`' frames kept for the faces in azimuth order, and the face of each
-    row (:attr:`AzimuthIndex.order`)."""
+                     centroids: F64 | None, keep: int) -> BestFrames:
+    """:func:`face_scores`' frames kept for the faces (in face order; scored in azimuth
+    order, :attr:`AzimuthIndex.order`)."""
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     sharp = frames.relative_sharpness() ** sharpness_weight * resolution_weights(frames.cameras)
@@ -424,6 +427,9 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
     position = np.empty(len(vertices), dtype=np.int64)
     position[vertex_index.order] = np.arange(len(vertices))
     face_ids = np.argsort(position[faces[:, 0]], kind="stable")
+    # the face of each position as offered (int32 when it fits: the scores of up to three
+    # frames are in flight, ~5 M faces each for a 360° frame at lab scale)
+    face_of = face_ids.astype(np.int32) if len(faces) < 2 ** 31 else face_ids
     # float32 and int32 columns per face and vertex: the loop below streams them for every
     # frame (column arithmetic: an (n, 3) @ (3,) product is ~7× slower than three columns)
     corners = [np.ascontiguousarray(position[faces[face_ids, k]], dtype=np.int32)
@@ -496,7 +502,7 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
         window = view_window(cam, beta)
         if window is None:  # every direction in view
             vertex_ranges = [(0, len(vertices))]
-            face_ranges = [(0, len(face_ids))]
+            face_ranges = [(0, len(face_of))]
         else:
             window = (window[0], window[1] + parallax_deg)
             vertex_ranges = vertex_index.ranges(*window)
@@ -558,20 +564,25 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
             out.append((face[positive], np.asarray(score[positive], dtype=np.float32)))
         return out
 
+    def offers(i: int) -> list[tuple[NDArray[np.integer], F32]]:
+        """Frame ``i``'s scores by face (renumbered from positions on the worker thread)."""
+        return [(face_of[position], score) for position, score in score_frame(i)]
+
+    del face_ids
     workers = worker_count(len(frames))
     # one frame per thread (numpy and OpenCV release the GIL); offered in frame order here, at
-    # most one frame ahead (a 360° frame's scores are ~60 MB at lab scale)
+    # most one frame ahead (a 360° frame's scores are ~40 MB at lab scale)
     with thread_pool(workers) as pool:
-        pending: deque[Future[list[tuple[I64, F32]]]] = deque()
+        pending: deque[Future[list[tuple[NDArray[np.integer], F32]]]] = deque()
         submitted = 0
         for done in range(len(frames)):
             while submitted < len(frames) and len(pending) < workers + 1:
-                pending.append(pool.submit(score_frame, submitted))
+                pending.append(pool.submit(offers, submitted))
                 submitted += 1
             for face, score in pending.popleft().result():
                 kept.add(done, face, score)
             progress("score frames", done + 1, len(frames))
-    return kept, face_ids
+    return kept
 
 
 @dataclass
