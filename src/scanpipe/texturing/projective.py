@@ -521,18 +521,22 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
             if (first_of[seen + 1] - first_of[seen]).sum() < IN_VIEW_SHARE * sum(
                     b - a for a, b in face_ranges):
                 return score_in_view(faces_in_view(seen), cam, centre, weight, u, v, valid)
+        every_valid = window is None and bool(valid.all())
         for a, b in _pieces(face_ranges):
             # the angle first, over the contiguous slice; the corner look-ups then only for
             # the faces that face the camera
             cos = cosines(slice(a, b), centre)
             facing = np.flatnonzero(cos >= min_cos)
             c0, c1, c2 = (corner[a:b][facing].astype(np.intp) for corner in corners)
-            inside = valid[c0] & valid[c1] & valid[c2]
             if cam.model == "equirect":
-                inside &= ~wraps(u[c0], u[c1], u[c2], cam)
+                # a 360° frame sees about every vertex: their look-ups only when some not
+                inside = ~wraps(u[c0], u[c1], u[c2], cam)
+                if not every_valid:
+                    inside &= valid[c0] & valid[c1] & valid[c2]
                 facing = facing[inside]
                 score = cos[facing] * weight
             else:
+                inside = valid[c0] & valid[c1] & valid[c2]
                 facing, c0, c1, c2 = facing[inside], c0[inside], c1[inside], c2[inside]
                 score = cos[facing] * weight
                 mean_u = (u[c0] + u[c1] + u[c2]) / 3
