@@ -130,8 +130,11 @@ def sample_views(points: F64, frame: FrameIds, frames: FrameSet) -> U32:
     with thread_pool(worker_count(len(frames))) as pool:
         for slot in range(k):
             column = frame[:, slot]
-            # frame numbers are small: a stable sort of int16 is a radix sort
-            order = np.argsort(column.astype(np.int16) if len(frames) < 2 ** 15 else column,
+            # frame numbers are small: a stable sort of int8 or int16 is a radix sort (of one
+            # byte: one pass)
+            small = (np.int8 if len(frames) < 2 ** 7 else np.int16 if len(frames) < 2 ** 15
+                     else None)
+            order = np.argsort(column if small is None else column.astype(small),
                                kind="stable")
             # where each frame's faces start in ``order`` (after those with none, −1): counted
             # (a searchsorted of int64 frame numbers cast the whole column every slot)

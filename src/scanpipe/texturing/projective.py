@@ -27,6 +27,7 @@ from collections import deque
 from concurrent.futures import Future
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import cv2
 import numpy as np
@@ -170,9 +171,10 @@ class BestFrames:
         self.frame = np.full((n_faces, keep), -1, dtype=np.int16 if small else np.int32)
         self.score = np.zeros((n_faces, keep), dtype=np.float32)
         slot_type = np.int8 if keep < 128 else np.int32
-        self._filled = np.zeros(n_faces, dtype=slot_type)
+        self._filled: NDArray[np.signedinteger[Any]] = np.zeros(n_faces, dtype=slot_type)
         self._floor = np.zeros(n_faces, dtype=np.float32)  # 0 while a slot is free
-        self._low = np.zeros(n_faces, dtype=slot_type)  # the slot of the lowest kept score
+        # the slot of the lowest kept score
+        self._low: NDArray[np.signedinteger[Any]] = np.zeros(n_faces, dtype=slot_type)
 
     def add(self, frame: int, face: NDArray[np.integer], score: F32) -> None:
         """Offer frame ``frame``'s positive scores of (distinct) faces ``face``: into a free
@@ -183,14 +185,18 @@ class BestFrames:
         # one conversion to the index type for the several look-ups below (numpy converts
         # any other integer index array at every look-up)
         face = np.asarray(face, dtype=np.intp)
-        better = score > self._floor[face]
+        better = score > self._floor.take(face)  # take: a little cheaper than indexing
         if not better.all():
             face, score = face[better], score[better]
-        filled = self._filled[face]
+        filled: NDArray[np.signedinteger[Any]] = self._filled.take(face)
         free = filled < self.keep
         # flat slot of each kept score: the next free one, or the lowest one's
         flat = face * self.keep
-        flat += np.where(free, filled, self._low[face])
+        if free.all():  # most offers of the lab's 360° frames
+            flat += filled
+        else:
+            low: NDArray[np.signedinteger[Any]] = self._low.take(face)
+            flat += np.where(free, filled, low)
         self.score.reshape(-1)[flat] = score
         self.frame.reshape(-1)[flat] = frame
         filled += free
