@@ -528,28 +528,33 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
                     b - a for a, b in face_ranges):
                 return score_in_view(faces_in_view(seen), cam, centre, weight, u, v, valid)
         every_valid = window is None and bool(valid.all())
+        all_positive = surely_positive(weight)
         for a, b in _pieces(face_ranges):
             # the angle first, over the contiguous slice; the corner look-ups then only for
             # the faces that face the camera
             cos = cosines(slice(a, b), centre)
             facing = np.flatnonzero(cos >= min_cos)
-            c0, c1, c2 = (corner[a:b][facing].astype(np.intp) for corner in corners)
             if cam.model == "equirect":
                 # a 360° frame sees about every vertex: their look-ups only when some not
-                inside = ~wraps(u[c0], u[c1], u[c2], cam)
+                # (each corner then looked up once: no conversion to the index type first)
+                k0, k1, k2 = (corner[a:b][facing] for corner in corners)
+                inside = ~wraps(u[k0], u[k1], u[k2], cam)
                 if not every_valid:
-                    inside &= valid[c0] & valid[c1] & valid[c2]
+                    inside &= valid[k0] & valid[k1] & valid[k2]
                 facing = facing[inside]
                 score = cos[facing] * weight
             else:
+                c0, c1, c2 = (corner[a:b][facing].astype(np.intp) for corner in corners)
                 inside = valid[c0] & valid[c1] & valid[c2]
                 facing, c0, c1, c2 = facing[inside], c0[inside], c1[inside], c2[inside]
                 score = cos[facing] * weight
                 mean_u = (u[c0] + u[c1] + u[c2]) / 3
                 mean_v = (v[c0] + v[c1] + v[c2]) / 3
                 score *= pinhole_centrality(mean_u, mean_v, cam)
-            positive = score > 0  # a frame of sharpness 0 is of no use
-            out.append((facing[positive] + a, np.asarray(score[positive], dtype=np.float32)))
+            if not all_positive:
+                positive = score > 0  # a frame of sharpness 0 is of no use
+                facing, score = facing[positive], score[positive]
+            out.append((facing + a, np.asarray(score, dtype=np.float32)))
         return out
 
     def score_in_view(candidates: I64, cam: CameraConfig, centre: F32, weight: np.float32,
@@ -570,9 +575,16 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
             mean_u = (u[c0] + u[c1] + u[c2]) / 3
             mean_v = (v[c0] + v[c1] + v[c2]) / 3
             score *= pinhole_centrality(mean_u, mean_v, cam)
-            positive = score > 0
-            out.append((face[positive], np.asarray(score[positive], dtype=np.float32)))
+            if not surely_positive(weight):
+                positive = score > 0
+                face, score = face[positive], score[positive]
+            out.append((face, np.asarray(score, dtype=np.float32)))
         return out
+
+    def surely_positive(weight: np.float32) -> bool:
+        """Whether every score of a face facing the camera is positive: each is at least
+        min_cos × weight × 0.05 (the centrality's floor), here far from float32's underflow."""
+        return min_cos * float(weight) * 0.05 > 1e-30
 
     def offers(i: int) -> list[tuple[NDArray[np.integer], F32]]:
         """Frame ``i``'s scores by face (renumbered from positions on the worker thread)."""
