@@ -278,15 +278,9 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
                          f"({', '.join(c.id for c in rig.cameras)}) has frames; "
                          + "; ".join(w.removeprefix("frames: ") for w in warnings))
     inputs = {**inputs, "frames": known_frames}
-    # the frames are chosen (every one decoded to rate it: most of this phase) on other
-    # threads while this one prepares the mesh (~1.5 s at lab scale)
-    with thread_pool(worker_count(2)) as pool:
-        choosing = None if params.method == "panorama" else pool.submit(
-            choose_frames, inputs["frames"], inputs["motor"], rig, params.frame_spacing_deg,
-            params.frame_stride, progress, params.equirect_spacing_deg)
-        normals, areas = face_normals(vertices, faces, vertex_normals)
-        centroids = face_centroids(vertices, faces)
-        flipped = orient_towards_rig(centroids, normals, areas, rig)
+    normals, areas = face_normals(vertices, faces, vertex_normals)
+    centroids = face_centroids(vertices, faces)
+    flipped = orient_towards_rig(centroids, normals, areas, rig)
     if params.method == "panorama":
         inputs, rig, skipped = pinhole_frames_only(inputs, rig)
         warnings += skipped
@@ -300,8 +294,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
                     "normals_flipped": flipped, "warnings": warnings},
             files={"panorama.png": encode_png(pano.panorama, params.png_compression)},
         )
-    assert choosing is not None  # projective
-    frames = choosing.result()
+    frames = choose_frames(inputs["frames"], inputs["motor"], rig, params.frame_spacing_deg,
+                           params.frame_stride, progress, params.equirect_spacing_deg)
     clock.lap("frames")
     # each face's best frames only, not a frames × faces matrix (1.9 GB at lab scale)
     scores = face_scores(vertices, faces, normals, frames, min_cos=params.min_cos,
