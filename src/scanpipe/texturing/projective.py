@@ -162,8 +162,8 @@ class BestFrames:
     """Keeps each face's best ``keep`` frames while frames are offered one after another
     (:meth:`add`), for :class:`FaceScores`. Per face: the slots filled so far, and once all
     are, the lowest kept score and its slot: a score must beat it to be kept. ``small``: fewer
-    than 2¹⁵ frames, held as int16 (a quarter less memory; :meth:`result` with ``rows`` gives
-    int32 as :class:`FaceScores` holds them). The slot counts and numbers are int8 (up to
+    than 2¹⁵ frames, held as int16 (a quarter less memory; :meth:`result` gives int32 as
+    :class:`FaceScores` holds them). The slot counts and numbers are int8 (up to
     127 kept): 50 MB less than int32 and int64 at lab scale, and less to stream per offer."""
 
     def __init__(self, n_faces: int, keep: int, small: bool = False) -> None:
