@@ -9,8 +9,11 @@ import pytest
 from scanpipe.texturing.photometric import (
     NETWORK_SLOTS,
     Views,
+    pack_levels,
+    packed_image,
     photometric_outliers,
     sort_small_axis0,
+    unpack_levels,
 )
 
 
@@ -52,7 +55,40 @@ def test_outliers_are_the_plain_rule(slots: int) -> None:
     colour[person] = rng.uniform(0, 255, size=(int(person.sum()), 3))
     colour[(frame < 0) | (rng.random(frame.shape) < 0.05)] = np.nan  # none, or off the image
     gains = rng.uniform(0.8, 1.25, size=(frames, 3))
-    views = Views(frame, colour)
+    views = Views.from_levels(frame, colour)
     outlier = photometric_outliers(views, gains, 40.0)
     assert outlier.sum() > 100  # the test has outliers to find
     np.testing.assert_array_equal(outlier, plain_outliers(views, gains, 40.0))
+
+
+def test_packed_levels_round_trip() -> None:
+    """A colour sample in one uint32: the three levels back exactly, NaN where not sampled
+    (also a black pixel, which is sampled)."""
+    colour = np.array([[[0, 0, 0], [255, 128, 7], [np.nan] * 3],
+                       [[12, 250, 99], [np.nan] * 3, [1, 2, 3]]], np.float32)
+    packed = pack_levels(colour)
+    assert packed.dtype == np.uint32 and packed.shape == (2, 3)
+    assert (packed == 0).tolist() == [[False, False, True], [False, True, False]]
+    np.testing.assert_array_equal(unpack_levels(packed), colour)  # NaN where NaN
+    image = np.array([[[7, 128, 255], [0, 0, 0]]], np.uint8)  # BGR as decoded
+    np.testing.assert_array_equal(unpack_levels(packed_image(image)), image.astype(np.float32))
+
+
+@pytest.mark.parametrize("gain_range", [(1.0, 1.0), (0.9, 1.1), (0.5, 2.0)])
+def test_outliers_near_the_limit_are_the_plain_rule(gain_range: tuple[float, float]) -> None:
+    """Faces whose levelled colours span about ``outlier_levels`` (the quick test that skips
+    the even faces decides there): the plain rule's outliers, face for face."""
+    rng = np.random.default_rng(int(gain_range[1] * 10))
+    faces, slots, frames = 1500, 6, 30
+    frame = rng.integers(0, frames, size=(faces, slots))
+    frame[rng.random(frame.shape) < 0.1] = -1
+    low = rng.integers(40, 160, size=(faces, 1, 3))
+    span = rng.integers(36, 45, size=(faces, 1, 1))  # recorded spread about the limit of 40
+    colour = (low + rng.integers(0, 2, size=(faces, slots, 3)) * span).astype(np.float32)
+    colour[frame < 0] = np.nan
+    gains = rng.uniform(*gain_range, size=(frames, 3))
+    views = Views.from_levels(frame, colour)
+    outlier = photometric_outliers(views, gains, 40.0)
+    np.testing.assert_array_equal(outlier, plain_outliers(views, gains, 40.0))
+    if gain_range == (1.0, 1.0):
+        assert outlier.sum() > 30  # the limit is crossed both ways here

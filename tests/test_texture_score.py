@@ -15,7 +15,7 @@ from scanpipe.batch import worker_threads
 from scanpipe.rig import Pose, Rig, default_rig
 from scanpipe.sim.camera import scaled_camera
 from scanpipe.texturing.frames import REDUCED_FACTOR, FrameSet, choose_frames, worker_count
-from scanpipe.texturing.photometric import sample_views
+from scanpipe.texturing.photometric import sample_views, unpack_levels
 from scanpipe.texturing.projective import (
     face_scores,
     project_valid,
@@ -111,8 +111,9 @@ def test_views_are_the_plain_per_sample_pixels(scene) -> None:
     vertices, faces, normals, frames = scene
     centroids = face_centroids(vertices, faces)
     candidates = face_scores(vertices, faces, normals, frames, keep=4).frame
-    colour = sample_views(centroids, candidates, frames)
-    assert colour.shape == (len(faces), 4, 3) and colour.dtype == np.float32
+    packed = sample_views(centroids, candidates, frames)
+    assert packed.shape == (len(faces), 4) and packed.dtype == np.uint32
+    colour = unpack_levels(packed)
     # a plain look-up for every candidate of every 5th face (and no colour without one)
     faces_checked = np.arange(0, len(faces), 5)
     expected = np.full((len(faces_checked), 4, 3), np.nan, np.float32)

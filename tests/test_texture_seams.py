@@ -256,7 +256,7 @@ def test_photometric_outliers_need_three_views_and_use_the_gains() -> None:
     frame = np.array([[0, 1, 2, -1], [0, 1, -1, -1], [0, 3, 1, 2]])
     gains = np.ones((4, 3))
     gains[3] = 2.0  # frame 3 recorded at half the exposure: levelled, it agrees
-    outlier = photometric_outliers(Views(frame, colour), gains, 40.0)
+    outlier = photometric_outliers(Views.from_levels(frame, colour), gains, 40.0)
     np.testing.assert_array_equal(outlier, [[False, False, True, False],
                                             [False, False, False, False],
                                             [False, False, False, False]])

@@ -12,7 +12,7 @@ from texture_scene import Caster, record, room_mesh, small_rig
 
 import scanpipe.texturing.frames as frames_module
 from scanpipe.texturing.frames import choose_frames
-from scanpipe.texturing.projective import FaceScores, face_scores
+from scanpipe.texturing.projective import BestFrames, FaceScores, face_scores
 from scanpipe.texturing.visibility import face_normals
 
 
@@ -75,6 +75,29 @@ def test_face_scores_keeps_the_best_of_every_frame_scored() -> None:
     dense[every.frame[seen], rows[seen]] = every.score[seen]
     np.testing.assert_array_equal(dense_best(dense, len(frames)), every.frame)
     assert (np.diff(every.score, axis=1) <= 0).all()  # best first
+    # held as int16 while built (few frames), handed on as int32 as FaceScores says
+    assert every.frame.dtype == few.frame.dtype == np.int32
+
+
+@pytest.mark.parametrize("small", [False, True])
+@pytest.mark.parametrize("keep", [3, 130])
+def test_the_keeper_in_any_offer_pieces_is_the_dense_best(small: bool, keep: int) -> None:
+    """Offers in pieces of any size and order of faces (as the frames' threads hand them
+    on), frames held as int16 or int32, more than 127 kept (wider slot counters): the
+    dense best, in int32."""
+    rng = np.random.default_rng(keep)
+    n_frames, n_faces = 140, 300
+    scores = rng.uniform(0.05, 1.0, (n_frames, n_faces)).astype(np.float32)
+    scores[rng.random(scores.shape) < 0.3] = 0.0
+    scores[5:9, :50] = 0.25  # ties: the lower frame first
+    best = BestFrames(n_faces, keep, small=small)
+    for i, row in enumerate(scores):
+        face = rng.permutation(np.flatnonzero(row > 0)).astype(np.int32)
+        for piece in np.array_split(face, 3):
+            best.add(i, piece, row[piece])
+    kept = best.result()
+    assert kept.frame.dtype == np.int32
+    np.testing.assert_array_equal(kept.frame, dense_best(scores, keep))
 
 
 def test_frames_are_rated_once_per_content(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -10,6 +10,8 @@ white balance is levelled with its exposure.
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -18,6 +20,7 @@ from scanpipe.texturing.visibility import mesh_edges
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
+PixelT = TypeVar("PixelT", np.uint8, np.uint32)
 
 
 def shared_edges(faces: NDArray[np.integer]) -> tuple[I64, I64]:
@@ -49,9 +52,10 @@ def sample_pixels(small: NDArray[np.uint8], uv: F64, factor: int) -> NDArray[np.
     return sample_pixels_at(small, uv[:, 0], uv[:, 1], factor)
 
 
-def sample_pixels_at(small: NDArray[np.uint8], u: NDArray[np.floating], v: NDArray[np.floating],
-                     factor: int) -> NDArray[np.uint8]:
-    """:func:`sample_pixels` at full-size pixel columns ``u``, ``v`` (float32 or float64)."""
+def sample_pixels_at(small: NDArray[PixelT], u: NDArray[np.floating], v: NDArray[np.floating],
+                     factor: int) -> NDArray[PixelT]:
+    """:func:`sample_pixels` at full-size pixel columns ``u``, ``v`` (float32 or float64), of
+    any pixel type (uint8 channels, or packed uint32 pixels)."""
     h, w = small.shape[:2]
     # clipped to the image first, so that truncation is the floor
     col = np.clip((u + 0.5) / factor, 0, w - 1).astype(np.int64)

@@ -28,6 +28,7 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Any
 
 import cv2
 import numpy as np
@@ -97,16 +98,21 @@ class FaceScores:
         return int(self.frame.shape[1])
 
     def best_first(self, rows: I64 | None = None) -> FaceScores:
-        """Order every row by score, best first (empty slots last): in place, returning self;
-        or, given ``rows`` (a permutation of the faces), into a new one whose row ``rows[k]``
-        is this one's row ``k`` ordered (one pass over the rows for both).
+        """Order every row by score, best first (empty slots last): in place, returning self
+        (frames held in a smaller integer type than int32 go into a new int32 array); or,
+        given ``rows`` (a permutation of the faces), into a new one whose row ``rows[k]`` is
+        this one's row ``k`` ordered (one pass over the rows for both).
 
         The float32 score's bits (positive: ordered as integers) and the frame's complement
         pack into one int64 key per slot, so a plain sort of each row orders both.
         """
         n_faces, keep = self.frame.shape
-        out = self if rows is None else FaceScores(np.empty(self.frame.shape, np.int32),
-                                                   np.empty_like(self.score))
+        if rows is not None:
+            out = FaceScores(np.empty(self.frame.shape, np.int32), np.empty_like(self.score))
+        elif self.frame.dtype != np.int32:  # each block's rows are read before written
+            out = FaceScores(np.empty(self.frame.shape, np.int32), self.score)
+        else:
+            out = self
         if keep == 0:
             return out
         top = np.int64(np.iinfo(np.int32).max)
@@ -115,11 +121,18 @@ class FaceScores:
             stop = min(start + SORT_CHUNK_FACES, n_faces)
             target = slice(start, stop) if rows is None else rows[start:stop]
             score = self.score[start:stop]
-            bits = score.view(np.int32).astype(np.int64)
-            key = np.where(score > 0, (bits << 32) | (top - self.frame[start:stop]), 0)
-            key = -np.sort(-key, axis=1)  # descending
+            # in place on one temporary (half the passes of building it by np.where and
+            # sorting its negation)
+            key = score.view(np.int32).astype(np.int64)
+            key <<= 32
+            key |= top - self.frame[start:stop]
+            key[score <= 0] = 0
+            key.sort(axis=1)
+            key = key[:, ::-1]  # descending
             out.score[target] = (key >> 32).astype(np.int32).view(np.float32)
-            out.frame[target] = np.where(key > 0, top - (key & 0xFFFFFFFF), -1)
+            frame = top - (key & 0xFFFFFFFF)
+            frame[key == 0] = -1
+            out.frame[target] = frame
 
         # blocks of faces on a thread per core (numpy releases the GIL; each its own rows)
         with thread_pool(worker_count(-(-n_faces // SORT_CHUNK_FACES))
@@ -150,45 +163,59 @@ class BestFrames:
     """Keeps each face's best ``keep`` frames while frames are offered one after another
     (:meth:`add`), for :class:`FaceScores`. Per face: the slots filled so far, and once all
     are, the lowest kept score and its slot: a score must beat it to be kept. ``small``: fewer
-    than 2¹⁵ frames, held as int16 (a quarter less memory; :meth:`result` with ``rows`` gives
-    int32 as :class:`FaceScores` holds them)."""
+    than 2¹⁵ frames, held as int16 (a quarter less memory; :meth:`result` gives int32 as
+    :class:`FaceScores` holds them). The slot counts and numbers are int8 (up to
+    127 kept): 50 MB less than int32 and int64 at lab scale, and less to stream per offer."""
 
     def __init__(self, n_faces: int, keep: int, small: bool = False) -> None:
         self.keep = keep
         self.frame = np.full((n_faces, keep), -1, dtype=np.int16 if small else np.int32)
         self.score = np.zeros((n_faces, keep), dtype=np.float32)
-        self._filled = np.zeros(n_faces, dtype=np.int32)
+        slot_type = np.int8 if keep < 128 else np.int32
+        self._filled: NDArray[np.signedinteger[Any]] = np.zeros(n_faces, dtype=slot_type)
         self._floor = np.zeros(n_faces, dtype=np.float32)  # 0 while a slot is free
-        self._low = np.zeros(n_faces, dtype=np.int64)  # flat index of the lowest slot
+        # the slot of the lowest kept score
+        self._low: NDArray[np.signedinteger[Any]] = np.zeros(n_faces, dtype=slot_type)
 
-    def add(self, frame: int, face: I64, score: F32) -> None:
+    def add(self, frame: int, face: NDArray[np.integer], score: F32) -> None:
         """Offer frame ``frame``'s positive scores of (distinct) faces ``face``: into a free
         slot, else into the slot of the face's lowest kept score when higher (an equal score
         keeps the earlier, lower frame)."""
         if self.keep == 0:
             return
-        better = score > self._floor[face]
-        face, score = face[better], score[better]
-        filled = self._filled[face]
+        # one conversion to the index type for the several look-ups below (numpy converts
+        # any other integer index array at every look-up)
+        face = np.asarray(face, dtype=np.intp)
+        better = score > self._floor.take(face)  # take: a little cheaper than indexing
+        if not better.all():
+            face, score = face[better], score[better]
+        filled: NDArray[np.signedinteger[Any]] = self._filled.take(face)
         free = filled < self.keep
         # flat slot of each kept score: the next free one, or the lowest one's
-        flat = np.where(free, face * self.keep + filled, self._low[face])
+        flat = face * self.keep
+        if free.all():  # most offers of the lab's 360° frames
+            flat += filled
+        else:
+            low: NDArray[np.signedinteger[Any]] = self._low.take(face)
+            flat += np.where(free, filled, low)
         self.score.reshape(-1)[flat] = score
         self.frame.reshape(-1)[flat] = frame
-        self._filled[face] = np.minimum(filled + 1, self.keep)
+        filled += free
+        self._filled[face] = filled
         # the faces whose lowest slot may have changed: those just full and those replaced
-        redo = face[(filled >= self.keep - 1)]
+        redo = face[filled == self.keep]
         if len(redo):
             rows = self.score[redo]
             slot = np.argmin(rows, axis=1)
-            self._low[redo] = redo * self.keep + slot
+            self._low[redo] = slot
             self._floor[redo] = rows[np.arange(len(redo)), slot]
 
     def result(self, rows: I64 | None = None) -> FaceScores:
-        """The kept frames, best first (the builder's arrays, not copies); given ``rows``, a
-        copy with the builder's row ``k`` as row ``rows[k]`` (:meth:`FaceScores.best_first`)."""
+        """The kept frames, best first (the builder's scores, not a copy; its frames too when
+        int32); given ``rows``, a copy with the builder's row ``k`` as row ``rows[k]``
+        (:meth:`FaceScores.best_first`)."""
         # done with: not held through the copy
-        self._filled, self._low = np.zeros(0, np.int32), np.zeros(0, np.int64)
+        self._filled, self._low = np.zeros(0, np.int8), np.zeros(0, np.int8)
         self._floor = np.zeros(0, np.float32)
         return FaceScores(self.frame, self.score).best_first(rows)
 
@@ -377,25 +404,23 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
     first corner is one of them are looked at (a face in view has every corner in view).
     Vertices are renumbered by azimuth once and faces by their first corner, so that a window
     is a few contiguous slices of every per-vertex and per-face array (a phone's faces are
-    gathered from its vertices in view instead: most of its window is out of its view), and
-    the kept frames are gathered in that order too (a frame's faces then fill contiguous
-    rows); they are put back in face order at the end.
+    gathered from its vertices in view instead: most of its window is out of its view). The
+    kept frames are held in face order (each frame's offers renumbered on its thread): put
+    back in face order at the end instead, they were a second copy (~0.5 GB at lab scale),
+    for about the same CPU time.
     """
-    # the per-face arrays of the loop are gone before the kept frames are put back in face
-    # order (a copy)
-    kept, face_ids = _kept_by_azimuth(
+    return _kept_by_azimuth(
         vertices, faces, normals, frames, min_cos=min_cos, margin_px=margin_px,
         sharpness_weight=sharpness_weight, two_sided=two_sided, progress=progress,
-        centroids=centroids, keep=keep)
-    return kept.result(face_ids)
+        centroids=centroids, keep=keep).result()
 
 
 def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer], normals: F64,
                      frames: FrameSet, *, min_cos: float, margin_px: float,
                      sharpness_weight: float, two_sided: bool, progress: ProgressFn,
-                     centroids: F64 | None, keep: int) -> tuple[BestFrames, I64]:
-    """:func:`face_scores`' frames kept for the faces in azimuth order, and the face of each
-    row (:attr:`AzimuthIndex.order`)."""
+                     centroids: F64 | None, keep: int) -> BestFrames:
+    """:func:`face_scores`' frames kept for the faces (in face order; scored in azimuth
+    order, :attr:`AzimuthIndex.order`)."""
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     sharp = frames.relative_sharpness() ** sharpness_weight * resolution_weights(frames.cameras)
@@ -409,6 +434,9 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
     position = np.empty(len(vertices), dtype=np.int64)
     position[vertex_index.order] = np.arange(len(vertices))
     face_ids = np.argsort(position[faces[:, 0]], kind="stable")
+    # the face of each position as offered (int32 when it fits: the scores of up to three
+    # frames are in flight, ~5 M faces each for a 360° frame at lab scale)
+    face_of = face_ids.astype(np.int32) if len(faces) < 2 ** 31 else face_ids
     # float32 and int32 columns per face and vertex: the loop below streams them for every
     # frame (column arithmetic: an (n, 3) @ (3,) product is ~7× slower than three columns)
     corners = [np.ascontiguousarray(position[faces[face_ids, k]], dtype=np.int32)
@@ -430,7 +458,9 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
 
     # where the faces of each vertex position (as first corner) start: a frame's faces are
     # those of its window's vertices (a face wholly in view has its first corner in view)
-    first_of = np.searchsorted(corners[0], np.arange(len(vertices) + 1))
+    # (counted: the positions are small integers; a search for each took 8× as long)
+    first_of = np.zeros(len(vertices) + 1, np.int64)
+    np.cumsum(np.bincount(corners[0], minlength=len(vertices)), out=first_of[1:])
 
     def faces_in_view(seen: I64) -> I64:
         """Positions of the faces whose first corner is one of the vertex positions ``seen``
@@ -479,7 +509,7 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
         window = view_window(cam, beta)
         if window is None:  # every direction in view
             vertex_ranges = [(0, len(vertices))]
-            face_ranges = [(0, len(face_ids))]
+            face_ranges = [(0, len(face_of))]
         else:
             window = (window[0], window[1] + parallax_deg)
             vertex_ranges = vertex_index.ranges(*window)
@@ -498,25 +528,34 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
             if (first_of[seen + 1] - first_of[seen]).sum() < IN_VIEW_SHARE * sum(
                     b - a for a, b in face_ranges):
                 return score_in_view(faces_in_view(seen), cam, centre, weight, u, v, valid)
+        every_valid = window is None and bool(valid.all())
+        all_positive = surely_positive(weight)
         for a, b in _pieces(face_ranges):
             # the angle first, over the contiguous slice; the corner look-ups then only for
             # the faces that face the camera
             cos = cosines(slice(a, b), centre)
             facing = np.flatnonzero(cos >= min_cos)
-            c0, c1, c2 = (corner[a:b][facing] for corner in corners)
-            inside = valid[c0] & valid[c1] & valid[c2]
             if cam.model == "equirect":
-                inside &= ~wraps(u[c0], u[c1], u[c2], cam)
+                # a 360° frame sees about every vertex: their look-ups only when some not
+                # (each corner then looked up once: no conversion to the index type first)
+                k0, k1, k2 = (corner[a:b][facing] for corner in corners)
+                inside = ~wraps(u[k0], u[k1], u[k2], cam)
+                if not every_valid:
+                    inside &= valid[k0] & valid[k1] & valid[k2]
                 facing = facing[inside]
                 score = cos[facing] * weight
             else:
+                c0, c1, c2 = (corner[a:b][facing].astype(np.intp) for corner in corners)
+                inside = valid[c0] & valid[c1] & valid[c2]
                 facing, c0, c1, c2 = facing[inside], c0[inside], c1[inside], c2[inside]
                 score = cos[facing] * weight
                 mean_u = (u[c0] + u[c1] + u[c2]) / 3
                 mean_v = (v[c0] + v[c1] + v[c2]) / 3
                 score *= pinhole_centrality(mean_u, mean_v, cam)
-            positive = score > 0  # a frame of sharpness 0 is of no use
-            out.append((facing[positive] + a, np.asarray(score[positive], dtype=np.float32)))
+            if not all_positive:
+                positive = score > 0  # a frame of sharpness 0 is of no use
+                facing, score = facing[positive], score[positive]
+            out.append((facing + a, np.asarray(score, dtype=np.float32)))
         return out
 
     def score_in_view(candidates: I64, cam: CameraConfig, centre: F32, weight: np.float32,
@@ -526,7 +565,8 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
         out: list[tuple[I64, F32]] = []
         for start in range(0, len(candidates), SCORE_CHUNK):
             face = candidates[start:start + SCORE_CHUNK]
-            c0, c1, c2 = (corner[face] for corner in corners)
+            # positions as the index type once (numpy converts int32 at every look-up)
+            c0, c1, c2 = (corner[face].astype(np.intp) for corner in corners)
             inside = valid[c0] & valid[c1] & valid[c2]
             face, c0, c1, c2 = face[inside], c0[inside], c1[inside], c2[inside]
             cos = cosines(face, centre)
@@ -536,24 +576,36 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
             mean_u = (u[c0] + u[c1] + u[c2]) / 3
             mean_v = (v[c0] + v[c1] + v[c2]) / 3
             score *= pinhole_centrality(mean_u, mean_v, cam)
-            positive = score > 0
-            out.append((face[positive], np.asarray(score[positive], dtype=np.float32)))
+            if not surely_positive(weight):
+                positive = score > 0
+                face, score = face[positive], score[positive]
+            out.append((face, np.asarray(score, dtype=np.float32)))
         return out
 
+    def surely_positive(weight: np.float32) -> bool:
+        """Whether every score of a face facing the camera is positive: each is at least
+        min_cos × weight × 0.05 (the centrality's floor), here far from float32's underflow."""
+        return min_cos * float(weight) * 0.05 > 1e-30
+
+    def offers(i: int) -> list[tuple[NDArray[np.integer], F32]]:
+        """Frame ``i``'s scores by face (renumbered from positions on the worker thread)."""
+        return [(face_of[position], score) for position, score in score_frame(i)]
+
+    del face_ids
     workers = worker_count(len(frames))
     # one frame per thread (numpy and OpenCV release the GIL); offered in frame order here, at
-    # most one frame ahead (a 360° frame's scores are ~60 MB at lab scale)
+    # most one frame ahead (a 360° frame's scores are ~40 MB at lab scale)
     with thread_pool(workers) as pool:
-        pending: deque[Future[list[tuple[I64, F32]]]] = deque()
+        pending: deque[Future[list[tuple[NDArray[np.integer], F32]]]] = deque()
         submitted = 0
         for done in range(len(frames)):
             while submitted < len(frames) and len(pending) < workers + 1:
-                pending.append(pool.submit(score_frame, submitted))
+                pending.append(pool.submit(offers, submitted))
                 submitted += 1
             for face, score in pending.popleft().result():
                 kept.add(done, face, score)
             progress("score frames", done + 1, len(frames))
-    return kept, face_ids
+    return kept
 
 
 @dataclass
