@@ -332,6 +332,14 @@ def test_calibrate_cameras_recovers_a_wrong_mount(scan: dict[str, Any],
     assert after["edge_within_2px"] > before["edge_within_2px"]
     assert {p["name"] for p in cam["parameters"]} == {
         "rot_x_deg", "rot_y_deg", "rot_z_deg", "tx_m", "ty_m", "tz_m", "focal_scale"}
+    # the covariance says which values trade: a tilt against a height at one distance
+    correlation = cam["correlation"]
+    assert correlation["names"] == [p["name"] for p in cam["parameters"]]
+    matrix = np.array(correlation["matrix"])
+    assert np.allclose(matrix, matrix.T) and np.allclose(np.diag(matrix), 1.0)
+    names = correlation["names"]
+    assert matrix[names.index("rot_x_deg"), names.index("ty_m")] > 0.8
+    assert all(abs(t["correlation"]) >= 0.9 for t in cam["trade_offs"])
     assert _digest(folder / "wrong.toml") == rig_before  # the input rig is never rewritten
     # the other camera keeps its values
     assert load_rig(folder / "fixed.toml").camera("cam1") == scan["wrong"].camera("cam1")

@@ -1013,6 +1013,22 @@ class ParameterResult:
     applied: bool = True
 
 
+#: Two fitted values whose correlation is at least this in size are reported as trading.
+TRADE_OFF = 0.9
+
+
+def _parameter_correlation(result: Any) -> F64:
+    """The correlation matrix of the fitted values from the curvature at the solution
+    (``(JᵀJ)⁻¹`` normalised); NaN where J is singular."""
+    jac = np.asarray(result.jac, dtype=np.float64)
+    try:
+        cov = np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return np.full((jac.shape[1], jac.shape[1]), np.nan)
+    scale = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    return np.asarray(np.clip(cov / np.outer(scale, scale), -1.0, 1.0), np.float64)
+
+
 @dataclass
 class CameraCalibration:
     """The result for one camera."""
@@ -1035,6 +1051,20 @@ class CameraCalibration:
     #: The clock read from the video's own motion (:class:`MotionClock`), when its frames
     #: follow each other closely enough.
     motion_clock: dict[str, Any] | None = None
+    #: The fitted values' names and their correlation matrix at the solution (curvature):
+    #: values near ±1 trade (a tilt against a height, a dolly against a zoom).
+    correlation_names: list[str] = field(default_factory=list)
+    correlation: list[list[float]] = field(default_factory=list)
+
+    def trade_offs(self, threshold: float = TRADE_OFF) -> list[tuple[str, str, float]]:
+        """The pairs of fitted values whose correlation is at least ``threshold`` in size:
+        each is known only together with the other."""
+        out = []
+        for i, j in itertools.combinations(range(len(self.correlation_names)), 2):
+            r = self.correlation[i][j]
+            if abs(r) >= threshold:
+                out.append((self.correlation_names[i], self.correlation_names[j], r))
+        return out
 
     def report(self) -> dict[str, Any]:
         """The calibration as JSON-ready values."""
@@ -1055,6 +1085,10 @@ class CameraCalibration:
             "alignment_before": self.alignment_before.as_dict(),
             "alignment_after": self.alignment_after.as_dict(),
             "motion_clock": self.motion_clock,
+            "correlation": {"names": list(self.correlation_names),
+                            "matrix": [list(row) for row in self.correlation]},
+            "trade_offs": [{"values": [a, b], "correlation": r}
+                           for a, b, r in self.trade_offs()],
             "warnings": list(self.warnings),
         }
 
@@ -1181,6 +1215,7 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
     if fit_time_offset:
         x = _mount_on_lines(fit, x, gate, levels[-1], names)
     curvature = _curvature_sigma(result)
+    correlation = _parameter_correlation(result)
     spread = _jackknife_sigma(fit, x, gate, levels[-1], lines, jackknife_groups)
     if camera.model == "equirect":  # every frame sees the whole scene: leave parts of it out
         spread = np.fmax(spread, _scene_jackknife_sigma(fit, x, gate, levels[-1], lines,
@@ -1283,7 +1318,8 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         alignment_before=before, alignment_after=after, frames=len(frames),
         edge_points=int(after.distances_px.size), warnings=warnings, still_frames=still,
         time_offset_determined=clock_determined,
-        motion_clock=motion.as_dict() if motion is not None else None)
+        motion_clock=motion.as_dict() if motion is not None else None,
+        correlation_names=names, correlation=np.round(np.nan_to_num(correlation), 3).tolist())
 
 
 def _mount_on_lines(fit: CameraFit, x: F64, gate_px: float, level: tuple[float, float],
