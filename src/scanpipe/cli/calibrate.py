@@ -201,6 +201,11 @@ def calibrate_cameras(
             if p.name == "time_offset_s" and (result.motion_clock or {}).get("trusted"):
                 shown += " (from the frames' motion at the platform's start and stop)"
             typer.echo(f"  {p.name:14s} {value:>12s}  {shown}")
+        trades = result.trade_offs()
+        if trades:
+            listed = ", ".join(f"{x}–{y} {r:+.2f}" for x, y, r in trades)
+            typer.echo(f"  trade-offs: {listed} (correlation: each pair is known only "
+                       "together; a measured value of one pins the other)")
         b, a = result.alignment_before.as_dict(), result.alignment_after.as_dict()
         typer.echo(f"  edges: median {_px(b['edge_median_px'])} → {_px(a['edge_median_px'])}, "
                    f"within 2 px {_share(b['edge_within_2px'])} → "
