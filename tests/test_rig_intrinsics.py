@@ -489,7 +489,7 @@ UNSUPPORTED = [
     ("cameras.xml", "<document><chunk><sensors><sensor id='0' type='frame'>"
      "<calibration type='frame' class='adjusted'><resolution width='wide' height='720'/>"
      "<f>1000</f></calibration></sensor></sensors></chunk></document>",
-     "image size 'wide' × '720' is not a number"),
+     "image size 'wide' × '720' is not a whole number of pixels"),
     ("broken.xml", "<document><chunk><sensors>", "not valid XML"),
     ("cameras.bin", "\x02\x00\x00\x00\x00\x00\x00\x00\x01\x00",
      "not a COLMAP cameras.bin (ends inside a camera record after 0 cameras)"),
@@ -516,6 +516,12 @@ UNSUPPORTED = [
     ("cameras.xml", "<calibration><projection>frame</projection><width>-1280</width>"
      "<height>720</height><f>1000</f></calibration>",
      "image size -1280 × 720: not a positive whole number of pixels"),
+    ("cameras.xml", "<calibration><projection>frame</projection><width>inf</width>"
+     "<height>720</height><f>1000</f></calibration>",
+     "image size 'inf' × '720' is not a whole number of pixels"),
+    ("cameras.xml", "<calibration><projection>frame</projection><width>1280.5</width>"
+     "<height>720</height><f>1000</f></calibration>",
+     "image size '1280.5' × '720' is not a whole number of pixels"),
 ]
 
 

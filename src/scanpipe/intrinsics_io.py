@@ -508,11 +508,20 @@ def _xml_float(element: ET.Element, name: str) -> float:
 def _xml_size(path: Path, width: str | None, height: str | None
               ) -> tuple[int | None, int | None]:
     """An image size from XML text (None where absent or 0)."""
-    try:
-        return (round(float(width)) or None if width else None,
-                round(float(height)) or None if height else None)
-    except ValueError:
-        raise _fail(path, f"image size {width!r} × {height!r} is not a number") from None
+
+    def side(text: str | None) -> int | None:
+        if not text:
+            return None
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value.is_integer()):
+            raise _fail(path, f"image size {width!r} × {height!r} is not a whole number of "
+                              "pixels")
+        return int(value) or None
+
+    return side(width), side(height)
 
 
 def _read_metashape(path: Path, text: str, file_camera: str | None) -> Intrinsics:
