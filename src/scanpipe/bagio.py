@@ -736,10 +736,18 @@ def without_exif(jpeg: bytes) -> bytes | None:
     if orientation in (1, None):
         return None
     out, at = [jpeg[:2]], 2
-    while at + 4 <= len(jpeg) and jpeg[at] == 0xFF:
-        marker, length = jpeg[at + 1], int.from_bytes(jpeg[at + 2:at + 4], "big")
-        if marker == 0xDA:  # start of scan: the rest is image data
+    while at + 2 <= len(jpeg) and jpeg[at] == 0xFF:
+        marker = jpeg[at + 1]
+        if marker == 0xFF:  # a fill byte before a marker (allowed): dropped
+            at += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:  # a marker without a length
+            out.append(jpeg[at:at + 2])
+            at += 2
+            continue
+        if marker == 0xDA or at + 4 > len(jpeg):  # start of scan: the rest is image data
             break
+        length = int.from_bytes(jpeg[at + 2:at + 4], "big")
         segment = jpeg[at:at + 2 + length]
         if not (marker == 0xE1 and segment[4:10] == b"Exif\x00\x00"):
             out.append(segment)
