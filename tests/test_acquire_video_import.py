@@ -274,3 +274,25 @@ def test_a_second_take_for_one_camera_is_refused_or_replaces(
     assert '"replaced_frames": 6' in replaced.out  # type: ignore[attr-defined]
     assert len(_frames(rec)) == 4
     assert read_recording(rec).complete and not read_recording(rec).warnings
+
+
+@pytest.mark.parametrize(("args", "needle"), [
+    (["--start-time", "recording", "--offset", "nan"], "--offset nan: allowed"),
+    (["--start-time", "recording", "--offset", "1e300"], "is not a time between 1970 and 9999"),
+    (["--start-time", "1e30"], "is not a time between 1970 and 9999"),
+    (["--start-time", "-5"], "is not a time between 1970 and 9999"),
+])
+def test_a_frame_time_outside_any_clock_is_refused_in_one_line(
+        tmp_path: Path, cli: Callable[..., object], args: list[str], needle: str) -> None:
+    """A NaN or huge --offset was a traceback; a --start-time past year 9999 blamed the
+    recording ("damaged or incomplete")."""
+    rec = _recording(tmp_path / "rec.mcap")
+    digest = _digest(rec)
+    video = write_video(tmp_path / "phone.avi", frames=3)
+    result = cli("import-video", video, "--into", rec, *args, "--camera", "phone")
+    assert result.code == 2, result.err  # type: ignore[attr-defined]
+    assert needle in result.err, result.err  # type: ignore[attr-defined]
+    assert result.err.startswith("scanpipe: error: ")  # type: ignore[attr-defined]
+    assert result.err.count("\n") == 1  # type: ignore[attr-defined]
+    assert _digest(rec) == digest
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["phone.avi", "rec.mcap"]

@@ -198,7 +198,7 @@ def test_exif_orientation_in_a_compressed_image_is_removed(tmp_path: Path, cli: 
     out = tmp_path / "r.mcap"
     result = cli("import-bag", bag, "--out", out, "--image", "/cam/image_raw/compressed")
     assert result.code == 0, result.err
-    assert "1 JPEG images carried an EXIF orientation tag: removed" in result.err
+    assert "1 images carried an EXIF orientation tag: removed" in result.err
     data = read_recording(out).images[0].data
     decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
     assert decoded[:12, :16].mean() > 240 and decoded[-12:, -16:].mean() < 15
@@ -262,3 +262,53 @@ def test_camera_info_the_rig_refuses_is_one_line(tmp_path: Path, cli: Any) -> No
     message = result.err.strip().splitlines()
     assert len(message) == 1 and topic in message[0] and "cx" in message[0], result.err
     assert not out.exists()
+
+
+def test_exif_is_cut_out_past_fill_bytes() -> None:
+    """JPEG allows 0xFF fill bytes before a marker: the segment
+    walk read a fill byte as a marker, kept the Exif segment, and the frame decoded turned
+    without a word."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    from scanpipe.bagio import without_exif
+
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    rgb[:12, :16] = 255
+    exif = Image.Exif()
+    exif[0x0112] = 6  # a quarter turn: a turned decode changes the shape
+    buffer = BytesIO()
+    Image.fromarray(rgb).save(buffer, "JPEG", quality=95, exif=exif)
+    jpeg = buffer.getvalue()
+    for variant in (jpeg, jpeg[:2] + b"\xff\xff" + jpeg[2:]):
+        assert cv2.imdecode(np.frombuffer(variant, np.uint8), cv2.IMREAD_COLOR).shape[:2] \
+            == (64, 48)  # OpenCV turns it by the tag
+        stripped = without_exif(variant)
+        assert stripped is not None
+        decoded = cv2.imdecode(np.frombuffer(stripped, np.uint8), cv2.IMREAD_COLOR)
+        assert decoded.shape[:2] == (48, 64)
+        assert decoded[:12, :16].mean() > 200 and decoded[24:, 32:].mean() < 50
+
+
+def test_exif_orientation_is_cut_out_of_a_png_too() -> None:
+    """OpenCV turns a PNG by its eXIf chunk's orientation as it turns a JPEG."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    from scanpipe.bagio import without_exif
+
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    rgb[:12, :16] = 255
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    buffer = BytesIO()
+    Image.fromarray(rgb).save(buffer, "PNG", exif=exif)
+    png = buffer.getvalue()
+    assert cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR).shape[:2] == (64, 48)
+    stripped = without_exif(png)
+    assert stripped is not None
+    decoded = cv2.imdecode(np.frombuffer(stripped, np.uint8), cv2.IMREAD_COLOR)
+    assert decoded.shape[:2] == (48, 64) and decoded[:12, :16].mean() > 200
+    assert without_exif(without_exif(png) or b"") is None  # nothing left to cut

@@ -489,11 +489,39 @@ UNSUPPORTED = [
     ("cameras.xml", "<document><chunk><sensors><sensor id='0' type='frame'>"
      "<calibration type='frame' class='adjusted'><resolution width='wide' height='720'/>"
      "<f>1000</f></calibration></sensor></sensors></chunk></document>",
-     "image size 'wide' × '720' is not a number"),
+     "image size 'wide' × '720' is not a whole number of pixels"),
     ("broken.xml", "<document><chunk><sensors>", "not valid XML"),
     ("cameras.bin", "\x02\x00\x00\x00\x00\x00\x00\x00\x01\x00",
      "not a COLMAP cameras.bin (ends inside a camera record after 0 cameras)"),
     ("info.yaml", "camera_matrix: [1, 2\n", "not valid YAML"),
+    # a matrix whose data does not fill its rows × cols (OpenCV's read asserts)
+    ("calib.yml", "%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n"
+     "   dt: d\n   data: [ 1000., 0., 640., 0., 1000., 360., 0., 0. ]\n",
+     "camera_matrix cannot be read as a matrix"),
+    ("calib.yml", "%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n"
+     "   dt: d\n   data: [ 1000., 0., 640., 0., 1000., 360., 0., 0., 1. ]\n"
+     "distortion_coefficients: !!opencv-matrix\n   rows: 5\n   cols: 1\n   dt: d\n"
+     "   data: [ 0.1, 0.01 ]\n", "distortion_coefficients cannot be read as a matrix"),
+    # an image size that is not a positive whole number of pixels (scaling divided by it)
+    ("calib.yml", "%YAML:1.0\n---\nimage_width: 0\nimage_height: 720\n"
+     "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+     "   data: [ 1000., 0., 640., 0., 1000., 360., 0., 0., 1. ]\n",
+     "image size 0 × 720: not a positive whole number of pixels"),
+    ("calib.yml", "%YAML:1.0\n---\nimage_width: wide\nimage_height: 720\n"
+     "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+     "   data: [ 1000., 0., 640., 0., 1000., 360., 0., 0., 1. ]\n",
+     "image_width is not a number"),
+    ("cameras.txt", "1 PINHOLE 0 720 1000 1000 640 360\n",
+     "image size 0 × 720: not a positive whole number of pixels"),
+    ("cameras.xml", "<calibration><projection>frame</projection><width>-1280</width>"
+     "<height>720</height><f>1000</f></calibration>",
+     "image size -1280 × 720: not a positive whole number of pixels"),
+    ("cameras.xml", "<calibration><projection>frame</projection><width>inf</width>"
+     "<height>720</height><f>1000</f></calibration>",
+     "image size 'inf' × '720' is not a whole number of pixels"),
+    ("cameras.xml", "<calibration><projection>frame</projection><width>1280.5</width>"
+     "<height>720</height><f>1000</f></calibration>",
+     "image size '1280.5' × '720' is not a whole number of pixels"),
 ]
 
 

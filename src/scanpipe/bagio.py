@@ -720,6 +720,7 @@ def _camera_id(topic: str) -> str:
 def without_exif(jpeg: bytes) -> bytes | None:
     """``jpeg`` without its Exif APP1 segments when one holds an orientation other than 1
     (the pixels untouched: the segments are cut out); None when there is nothing to remove.
+    A PNG (OpenCV turns it by its eXIf chunk alike) loses its eXIf chunk the same way.
 
     ROS's image_transport decodes a CompressedImage as stored (OpenCV's IMREAD_UNCHANGED), and
     its CameraInfo describes those pixels; scanpipe's frame decoding would turn them by the
@@ -735,16 +736,41 @@ def without_exif(jpeg: bytes) -> bytes | None:
         return None  # Pillow's errors: the frame decode checks the size and will say
     if orientation in (1, None):
         return None
+    if jpeg[:8] == PNG_SIGNATURE:
+        return _png_without_exif(jpeg)
     out, at = [jpeg[:2]], 2
-    while at + 4 <= len(jpeg) and jpeg[at] == 0xFF:
-        marker, length = jpeg[at + 1], int.from_bytes(jpeg[at + 2:at + 4], "big")
-        if marker == 0xDA:  # start of scan: the rest is image data
+    while at + 2 <= len(jpeg) and jpeg[at] == 0xFF:
+        marker = jpeg[at + 1]
+        if marker == 0xFF:  # a fill byte before a marker (allowed): dropped
+            at += 1
+            continue
+        if marker == 0x01 or 0xD0 <= marker <= 0xD7:  # a marker without a length
+            out.append(jpeg[at:at + 2])
+            at += 2
+            continue
+        if marker == 0xDA or at + 4 > len(jpeg):  # start of scan: the rest is image data
             break
+        length = int.from_bytes(jpeg[at + 2:at + 4], "big")
         segment = jpeg[at:at + 2 + length]
         if not (marker == 0xE1 and segment[4:10] == b"Exif\x00\x00"):
             out.append(segment)
         at += 2 + length
     out.append(jpeg[at:])
+    return b"".join(out)
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _png_without_exif(png: bytes) -> bytes:
+    """A PNG without its eXIf chunks (each chunk: length, type, data, CRC)."""
+    out, at = [png[:8]], 8
+    while at + 12 <= len(png):
+        end = at + 12 + int.from_bytes(png[at:at + 4], "big")
+        if png[at + 4:at + 8] != b"eXIf":
+            out.append(png[at:end])
+        at = end
+    out.append(png[at:])
     return b"".join(out)
 
 
@@ -754,7 +780,7 @@ def _image_bytes(msg: Any, msgtype: str) -> tuple[bytes, str] | None:
         data = bytes(msg.data)
         if data[:3] == b"\xff\xd8\xff":
             return data, "jpeg"
-        if data[:8] == b"\x89PNG\r\n\x1a\n":
+        if data[:8] == PNG_SIGNATURE:
             # 16 bits per sample (IHDR's bit depth): a depth image (compressed 16UC1), not a
             # camera frame; OpenCV would read its high bytes as a grey picture
             return (data, "png") if len(data) > 24 and data[24] <= 8 else None
@@ -1047,7 +1073,7 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
                 from scanpipe.images import image_size
                 size = image_size(encoded[0])
             data = encoded[0]
-            if encoded[1] == "jpeg":
+            if encoded[1] in ("jpeg", "png"):
                 stripped = without_exif(data)
                 if stripped is not None:
                     data = stripped
@@ -1074,7 +1100,7 @@ def _import(reader: Any, bag: Path, out: Path, scan_topic: str | None, joint: st
                            + "; ".join(describe_validation_error(err, CameraConfig))
                            + "; pass --rig with this camera calibrated") from None
     for name, n in turned.items():
-        content.warnings.append(f"{name}: {n} JPEG images carried an EXIF orientation tag: "
+        content.warnings.append(f"{name}: {n} images carried an EXIF orientation tag: "
                                 "removed (the pixels are unchanged), as ROS's image_transport "
                                 "ignores it and the CameraInfo describes the pixels as stored")
     for name, n in skipped.items():

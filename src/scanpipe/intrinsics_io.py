@@ -51,6 +51,8 @@ FORMATS = ("opencv", "ros", "colmap", "metashape")
 #: Skew a Metashape ``b2`` may cause at the image's edge and still be dropped (the rig's camera
 #: matrix has no skew term).
 MAX_DROPPED_SKEW_PX = 0.5
+#: The largest image side a file may give (pixels): far beyond any camera's.
+MAX_IMAGE_SIDE_PX = 1 << 20
 #: Two image sizes have "the same aspect ratio" when scaling one to the other moves the far
 #: corner by less than this (rounding of an odd size when a camera bins or scales).
 ASPECT_TOLERANCE_PX = 1.0
@@ -115,6 +117,22 @@ def read_intrinsics(path: Path, fmt: str = "auto", file_camera: str | None = Non
         raise IntrinsicsError(f"{path}: not found") from None
     except OSError as err:
         raise _fail(path, f"cannot be read ({err.strerror or err})") from None
+    return _checked_size(path, _read_format(path, data, fmt, file_camera))
+
+
+def _checked_size(path: Path, found: Intrinsics) -> Intrinsics:
+    """``found``, refused when its image size is not a positive whole number of pixels (a
+    calibration at another size is scaled by it)."""
+    sizes = (found.width, found.height)
+    if found.width is not None and found.height is not None and not all(
+            isinstance(n, int) and 0 < n <= MAX_IMAGE_SIDE_PX for n in sizes):
+        raise _fail(path, f"image size {found.width} × {found.height}: not a positive whole "
+                          f"number of pixels (at most {MAX_IMAGE_SIDE_PX} a side)")
+    return found
+
+
+def _read_format(path: Path, data: bytes, fmt: str, file_camera: str | None) -> Intrinsics:
+    """The intrinsics of ``data`` (the file's bytes) in ``fmt`` (or the one detected)."""
     if path.suffix.lower() == ".bin" and fmt in ("auto", "colmap"):
         return _choose_colmap(path, _colmap_binary(path, data), file_camera)
     try:
@@ -189,7 +207,7 @@ def _read_opencv(path: Path) -> Intrinsics:
         if matrix_node is None or matrix_node.empty():
             raise _fail(path, f"no camera matrix (looked for camera_matrix, Camera_Matrix, K; "
                               f"the file has {', '.join(root.keys()) or 'no keys'})")
-        matrix = matrix_node.mat()
+        matrix = _opencv_mat(path, matrix_node, "camera_matrix")
         if matrix is None or np.asarray(matrix).shape != (3, 3):
             raise _fail(path, "the camera matrix is not a 3×3 !!opencv-matrix")
         k = np.asarray(matrix, dtype=np.float64)
@@ -201,9 +219,9 @@ def _read_opencv(path: Path) -> Intrinsics:
         dist_node = node("distortioncoefficients", "distcoeffs", "distortion", "d", "dist")
         coefficients: list[float] = []
         if dist_node is not None and not dist_node.empty():
-            dist = dist_node.mat()
+            dist = _opencv_mat(path, dist_node, "distortion_coefficients")
             coefficients = [] if dist is None else [float(v) for v in np.ravel(dist)]
-        size = _opencv_size(node)
+        size = _opencv_size(path, node)
     finally:
         storage.release()
     _check_camera_matrix(path, [float(v) for v in k.ravel()])
@@ -227,13 +245,38 @@ def _check_camera_matrix(path: Path, k: Sequence[float]) -> None:
                           "(transposed, or scaled?)")
 
 
-def _opencv_size(node: Any) -> tuple[int, int] | None:
+def _opencv_mat(path: Path, node: Any, name: str) -> Any:
+    """A FileStorage node's matrix; a matrix whose data does not fill its rows × cols (which
+    OpenCV's read asserts on) refused in one line."""
+    import cv2
+
+    try:
+        return node.mat()
+    except cv2.error as err:
+        detail = (str(err).strip().splitlines() or [""])[-1][:200]
+        raise _fail(path, f"{name} cannot be read as a matrix (its data does not fill its "
+                          f"rows × cols? {detail})") from err
+
+
+def _opencv_number(path: Path, node: Any, name: str) -> int:
+    """A size node's whole number (a non-number refused: ``real()`` reads it as nonsense)."""
+    if not (node.isInt() or node.isReal()):
+        raise _fail(path, f"{name} is not a number")
+    value = float(node.real())
+    if not (math.isfinite(value) and value.is_integer()):
+        raise _fail(path, f"{name} = {value:g} is not a whole number of pixels")
+    return int(value)
+
+
+def _opencv_size(path: Path, node: Any) -> tuple[int, int] | None:
     width, height = node("imagewidth"), node("imageheight")
     if width is not None and height is not None and not width.empty() and not height.empty():
-        return int(width.real()), int(height.real())
+        return (_opencv_number(path, width, "image_width"),
+                _opencv_number(path, height, "image_height"))
     size = node("imagesize")
     if size is not None and size.isSeq() and size.size() == 2:
-        return int(size.at(0).real()), int(size.at(1).real())
+        return (_opencv_number(path, size.at(0), "image_size"),
+                _opencv_number(path, size.at(1), "image_size"))
     return None
 
 
@@ -465,11 +508,20 @@ def _xml_float(element: ET.Element, name: str) -> float:
 def _xml_size(path: Path, width: str | None, height: str | None
               ) -> tuple[int | None, int | None]:
     """An image size from XML text (None where absent or 0)."""
-    try:
-        return (round(float(width)) or None if width else None,
-                round(float(height)) or None if height else None)
-    except ValueError:
-        raise _fail(path, f"image size {width!r} × {height!r} is not a number") from None
+
+    def side(text: str | None) -> int | None:
+        if not text:
+            return None
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (math.isfinite(value) and value.is_integer()):
+            raise _fail(path, f"image size {width!r} × {height!r} is not a whole number of "
+                              "pixels")
+        return int(value) or None
+
+    return side(width), side(height)
 
 
 def _read_metashape(path: Path, text: str, file_camera: str | None) -> Intrinsics:

@@ -412,7 +412,7 @@ def chain_step(stage: Stage, available: Mapping[str, Path], workdir: Path,
                ) -> RunRecord:
     """One stage of the chain into ``workdir/<stage>/``, its inputs taken from ``available``
     (artifact name → path of the nearest upstream producer). :func:`run_chain` calls it per
-    stage; so does a batch that runs each stage as its own task (:mod:`scanpipe.batch`)."""
+    stage (so does a Ray batch's worker, through :func:`iter_chain`)."""
     missing = [n for n in stage.inputs if n not in available]
     if missing:
         raise ArtifactError(f"stage {stage.name!r} needs {', '.join(missing)}, "

@@ -26,6 +26,7 @@ before the frames are written, by aligning the scan's depth edges with the video
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import re
 from collections.abc import Generator
@@ -78,6 +79,25 @@ def parse_start_time(text: str, recording_start_ns: int | None = None) -> int:
         moment = moment.replace(tzinfo=UTC)
     delta = moment - datetime(1970, 1, 1, tzinfo=UTC)
     return (delta.days * 86_400 + delta.seconds) * 1_000_000_000 + delta.microseconds * 1000
+
+
+#: The latest first-frame time taken (ns since the epoch, 9999-01-01): a frame's time is written
+#: as a protobuf Timestamp, which ends with the year 9999.
+LATEST_START_NS = 253_370_764_800 * 1_000_000_000
+
+
+def first_frame_ns(start_ns: int, offset_s: float, start_text: str) -> int:
+    """The first frame's time: ``start_ns`` (from ``--start-time start_text``) plus
+    ``offset_s`` seconds; :class:`UsageError` for an offset that is not finite or a time
+    before 1970 or after 9999 (no clock the recording's frames can be written with)."""
+    if not math.isfinite(offset_s):
+        raise UsageError(f"--offset {offset_s:g}: allowed a finite number of seconds")
+    first_s = start_ns / 1e9 + offset_s  # checked in float: a huge offset has no int ns
+    if not 0 <= first_s <= LATEST_START_NS / 1e9:
+        raise UsageError(f"--start-time {start_text!r} with --offset {offset_s:g} s: the first "
+                         f"frame at {first_s:g} s since the epoch is not a time between 1970 "
+                         "and 9999; give the time the video's first frame was taken")
+    return start_ns + round(offset_s * 1e9)
 
 
 def open_video(video: Path) -> cv2.VideoCapture:

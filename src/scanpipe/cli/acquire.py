@@ -199,8 +199,12 @@ def import_video(
     as_json: bool = JSON,
 ) -> None:
     """Add a separately recorded video to a recording as camera frames with timestamps."""
+    from scanpipe.acquire.video_import import (
+        first_frame_ns,
+        parse_start_time,
+        recording_start_ns,
+    )
     from scanpipe.acquire.video_import import import_video as run_import
-    from scanpipe.acquire.video_import import parse_start_time, recording_start_ns
     from scanpipe.outpaths import check_input_file, check_not_input
     from scanpipe.recording.reader import read_recording
 
@@ -231,10 +235,11 @@ def import_video(
     if refine:
         from scanpipe.acquire.video_import import refine_offset
 
-        refined = refine_offset(video, into, start + round(offset * 1e9), camera, window)
+        refined = refine_offset(video, into, first_frame_ns(start, offset, start_time), camera,
+                                window)
         offset += refined["offset_s"]
-    report = run_import(video, into, start + round(offset * 1e9), camera, quality,
-                        rig.camera(camera), replace=replace)
+    report = run_import(video, into, first_frame_ns(start, offset, start_time), camera,
+                        quality, rig.camera(camera), replace=replace)
     print_warnings("import-video", report)
     if refined is not None:
         report["offset_s"] = offset
