@@ -714,3 +714,24 @@ def test_a_determined_motion_clock_over_its_limit_is_not_reported_as_used() -> N
     assert wide.as_dict()["determined"] and not wide.as_dict()["trusted"]
     narrow = MotionClock(0.1, 0.1, 0.1, 40, 10, 0.8, 0.3, True, bootstrap_s=0.005)
     assert narrow.as_dict()["trusted"]
+
+
+def test_unknown_correlations_are_null_not_independent() -> None:
+    """A singular curvature gives NaN correlations: reported as None (JSON null), never as a
+    0 that reads "uncorrelated", and no trade-off is claimed from them."""
+    from types import SimpleNamespace
+
+    from scanpipe.camera_selfcal import (
+        CameraCalibration,
+        _known_correlations,
+        _parameter_correlation,
+    )
+
+    singular = SimpleNamespace(jac=np.array([[1.0, 2.0], [2.0, 4.0], [3.0, 6.0]]))
+    matrix = _known_correlations(_parameter_correlation(singular))
+    assert matrix == [[None, None], [None, None]]
+    known = _known_correlations(_parameter_correlation(
+        SimpleNamespace(jac=np.array([[1.0, 1.0], [1.0, 1.01], [1.0, 0.99]]))))
+    assert known[0][0] == 1.0 and known[0][1] is not None
+    report = SimpleNamespace(correlation_names=["a", "b"], correlation=matrix)
+    assert CameraCalibration.trade_offs(report) == []  # type: ignore[arg-type]

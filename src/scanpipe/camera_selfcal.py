@@ -1057,9 +1057,10 @@ class CameraCalibration:
     #: follow each other closely enough.
     motion_clock: dict[str, Any] | None = None
     #: The fitted values' names and their correlation matrix at the solution (curvature):
-    #: values near ±1 trade (a tilt against a height, a dolly against a zoom).
+    #: values near ±1 trade (a tilt against a height, a dolly against a zoom); None where it
+    #: is not known (a singular curvature), never a 0 that would read as "independent".
     correlation_names: list[str] = field(default_factory=list)
-    correlation: list[list[float]] = field(default_factory=list)
+    correlation: list[list[float | None]] = field(default_factory=list)
 
     def trade_offs(self, threshold: float = TRADE_OFF) -> list[tuple[str, str, float]]:
         """The pairs of fitted values whose correlation is at least ``threshold`` in size:
@@ -1067,7 +1068,7 @@ class CameraCalibration:
         out = []
         for i, j in itertools.combinations(range(len(self.correlation_names)), 2):
             r = self.correlation[i][j]
-            if abs(r) >= threshold:
+            if r is not None and abs(r) >= threshold:
                 out.append((self.correlation_names[i], self.correlation_names[j], r))
         return out
 
@@ -1305,6 +1306,9 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
                         "is the mount's turn about the platform's axis (a clock offset looks "
                         f"like one): the mount values hold only with the clock at "
                         f"{final[7]:+.3f} s and are not determined")
+    if not np.isfinite(correlation).all():
+        warnings.append(f"camera {camera.id!r}: the fit's curvature is singular: which fitted "
+                        "values trade against each other is not known (correlations null)")
     after_camera = camera_with(_rig_camera(camera, track.rig), final)
     after = fit.alignment(final)
     if after.median_px is not None and before.median_px is not None \
@@ -1325,7 +1329,13 @@ def calibrate_camera(edges: DepthEdges, frames: Sequence[FrameObservation], trac
         edge_points=int(after.distances_px.size), warnings=warnings, still_frames=still,
         time_offset_determined=clock_determined,
         motion_clock=motion.as_dict() if motion is not None else None,
-        correlation_names=names, correlation=np.round(np.nan_to_num(correlation), 3).tolist())
+        correlation_names=names, correlation=_known_correlations(correlation))
+
+
+def _known_correlations(correlation: F64) -> list[list[float | None]]:
+    """The correlation matrix rounded for the report, None where it is not known (NaN)."""
+    return [[None if not math.isfinite(r) else round(float(r), 3) for r in row]
+            for row in correlation]
 
 
 def _mount_on_lines(fit: CameraFit, x: F64, gate_px: float, level: tuple[float, float],
