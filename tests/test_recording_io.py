@@ -253,3 +253,24 @@ def test_stream_seq_numbers_are_per_link_and_direction(tmp_path: Path) -> None:
         [(t, d, s) for s in range(3) for t, d in
          (("/scanner/stream", 0), ("/scanner/stream", 1), ("/motor/stream", 0))])
     assert os.path.getsize(path) > 0
+
+
+def test_a_recording_made_before_a_stricter_rig_check_still_reads(tmp_path: Path) -> None:
+    """A rig stored in a recording holds what was accepted when it was made: a principal point
+    outside the image (a ROS ROI crop; refused for new rig files since the check tightened)
+    does not make the recording unreadable, while a rig file with it is still refused."""
+    from scanpipe.errors import RigError
+    from scanpipe.rig import RECORDED, rig_from_dict, rig_from_toml, rig_to_dict
+
+    data = rig_to_dict(default_rig())
+    data["cameras"][0]["cx"] = -40.0
+    with pytest.raises(RigError, match="cx = -40"):
+        rig_from_dict(data, "new.toml")
+    rig = rig_from_dict(data, "old", context=RECORDED)
+    path = tmp_path / "old.mcap"
+    with RecordingWriter(path, rig, {}):
+        pass
+    rec = read_recording(path)
+    assert rec.rig().cameras[0].cx == -40.0
+    with pytest.raises(RigError, match="cx = -40"):
+        rig_from_toml(rec.rig_toml or "", "rig check")

@@ -267,9 +267,11 @@ def _nesting_message(path: tuple[Any, ...], prefix: str) -> str:
 
 
 def validate(
-    model: type[P], data: Mapping[str, Any], source: str = "parameters", prefix: str = ""
+    model: type[P], data: Mapping[str, Any], source: str = "parameters", prefix: str = "",
+    context: Mapping[str, Any] | None = None,
 ) -> P:
-    """Build ``model`` from ``data`` or raise :class:`ParameterError` listing every problem.
+    """Build ``model`` from ``data`` or raise :class:`ParameterError` listing every problem;
+    ``context`` goes to the model's validators (pydantic's validation context).
 
     Parts nested deeper than :data:`MAX_NESTING` are reported and left out before pydantic
     validates the rest, so absurd nesting cannot exhaust the stack.
@@ -281,7 +283,7 @@ def validate(
     pruned = _prune_deep(data, 0, (), cut)
     problems = [_nesting_message(path, prefix) for path in cut]
     try:
-        result = model.model_validate(pruned)
+        result = model.model_validate(pruned, context=context)
     except ValidationError as err:
         # What was cut is reported once above, not again as "expected a list".
         kept = [e for e in err.errors() if not any(_on_path(tuple(e["loc"]), path)

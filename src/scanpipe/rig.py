@@ -274,7 +274,7 @@ class CameraConfig(Params):
     pose: Pose = Pose()
 
     @model_validator(mode="after")
-    def _pinhole_possible(self) -> CameraConfig:
+    def _pinhole_possible(self, info: ValidationInfo) -> CameraConfig:
         problems = []
         if self.model == "equirect":
             if abs(self.width - 2 * self.height) > 1:
@@ -292,9 +292,10 @@ class CameraConfig(Params):
                 problems.append(
                     f"f{axis} = {focal:g} px over {size} px gives a {fov_deg:.3g}° field of view; "
                     f"allowed: {MIN_FOV_DEG:g}° to {MAX_FOV_DEG:g}° (a pinhole lens)")
+        recorded = bool(info.context and info.context.get("recorded"))
         for axis, size, centre in (("x", self.width, self.cx), ("y", self.height, self.cy)):
             problem = principal_point_problem(axis, centre, size, plausible=False)
-            if problem:
+            if problem and not recorded:
                 problems.append(problem)
         if problems:
             raise ValueError("; ".join(problems))
@@ -407,13 +408,21 @@ def scanner_for_model(name: str, mount: Pose | None = None) -> ScannerConfig:
     return ScannerConfig.model_validate(values)
 
 
-def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
-    """Validate a rig from plain data, reporting every problem (device limits too) at once."""
+#: Validation context of a rig stored in a recording: it holds what was accepted when the
+#: recording was made, so checks added since then (a principal point within the image) do not
+#: make an existing recording unreadable; `rig check` and new rig files still apply them.
+RECORDED = {"recorded": True}
+
+
+def rig_from_dict(data: dict[str, Any], source: str = "rig",
+                  context: dict[str, Any] | None = None) -> Rig:
+    """Validate a rig from plain data, reporting every problem (device limits too) at once;
+    ``context`` :data:`RECORDED` for a rig stored in a recording."""
 
     problems: list[str] = []
     rig: Rig | None = None
     try:
-        rig = validate(Rig, data, source)
+        rig = validate(Rig, data, source, context=context)
     except ParameterError as err:
         problems.extend(err.problems)
     scanner_data = data.get("scanner", {}) if isinstance(data, dict) else {}
@@ -431,7 +440,8 @@ def rig_from_dict(data: dict[str, Any], source: str = "rig") -> Rig:
     return rig
 
 
-def rig_from_toml(text: str, source: str = "rig", empty_hint: str = "") -> Rig:
+def rig_from_toml(text: str, source: str = "rig", empty_hint: str = "",
+                  context: dict[str, Any] | None = None) -> Rig:
     """Parse and validate a rig TOML text; an empty one (no keys at all) is an error too.
 
     An empty rig file would silently be the built-in rig without cameras, which is never what
@@ -444,7 +454,7 @@ def rig_from_toml(text: str, source: str = "rig", empty_hint: str = "") -> Rig:
     if not data:
         raise RigError(["the rig is empty (no keys in it)" + (f"; {empty_hint}" if empty_hint
                                                                 else "")], source)
-    return rig_from_dict(data, source)
+    return rig_from_dict(data, source, context)
 
 
 def load_rig(path: Path | str | None) -> Rig:

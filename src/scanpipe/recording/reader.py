@@ -215,13 +215,13 @@ class Recording:
     def rig(self) -> Rig:
         """The rig the recording was made with; :class:`RecordingError` if absent or invalid."""
         from scanpipe.errors import RigError
-        from scanpipe.rig import rig_from_toml
+        from scanpipe.rig import RECORDED, rig_from_toml
 
         text = self.rig_toml
         if text is None:
             raise RecordingError(f"{self.path}: no {RIG_METADATA!r} metadata (no rig stored)")
         try:
-            return rig_from_toml(text, f"{self.path}:{RIG_METADATA}")
+            return rig_from_toml(text, f"{self.path}:{RIG_METADATA}", context=RECORDED)
         except RigError as err:
             raise RecordingError(f"{self.path}: stored rig is invalid: {err}") from None
 
