@@ -419,7 +419,12 @@ class RecordingWorker:
     the workdir's lock, background commits), each task runs the next stage, and the last one
     closes it (every stage folder in place, a failed commit reported). So a stage's outputs
     reach the next stage in memory and its folder is flushed and swapped in while the next
-    stage computes, as in a local worker; the tasks return only small records."""
+    stage computes, as in a local worker; the tasks return only small records.
+
+    It relies on Ray running a plain (not async, max_concurrency 1) actor's tasks one after
+    another on one thread: the open chain's background commits keep per-thread state across
+    ``next()`` calls, so tasks spread over threads would fail the recording (an error, not a
+    silent result)."""
 
     def __init__(self, threads: int) -> None:
         cpu_started = time.process_time()
