@@ -421,8 +421,12 @@ class MotorClient:
             elapsed_s = max((state.log_time_ns - previous.log_time_ns) / 1e9, 0.0)
         step = state.step_count - previous.step_count
         towards = previous.target_step_count - previous.step_count
+        # A STOP ends a move where the platform stands: at rest, its target set to the count
+        # it reached on the way (after the reports in flight have spent the anchor ones).
+        stopped_on_the_way = (not state.moving and state.target_step_count == state.step_count
+                              and previous.moving)
         ok = abs(step) <= self._rate_hz * elapsed_s * 1.25 + 2 and (anchoring or (
-            state.target_step_count == previous.target_step_count
+            (state.target_step_count == previous.target_step_count or stopped_on_the_way)
             and step * towards >= 0 and abs(step) <= abs(towards)))
         if ok and not anchoring and self._velocity is not None:
             # On from the last speed: the ramp can change it by at most accel · t (twice the
