@@ -323,15 +323,16 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
         raise UsageError(f"export.name and export.cloud_name are both {params.name!r}: "
                          "the mesh and the cloud files would overwrite each other")
     files: dict[str, FileData] = {}
-    formats = {*params.mesh_formats, *params.cloud_formats}
-    if not formats & CAMERA_FORMATS:  # what no model is made of goes before the colouring
+    # only these formats read tables beyond the models: otherwise inputs go as they are used
+    reads_tables = bool({*params.mesh_formats, *params.cloud_formats} & CAMERA_FORMATS)
+    if not reads_tables:  # what no model is made of goes before the colouring
         narrow_input(inputs, "textured_faces", TEXTURED_FACE_COLUMNS)
         narrow_input(inputs, "points", CLOUD_COLUMNS)
     tables, coloured = prepare_tables(
         inputs, params.cloud_colors and bool(params.cloud_formats or "mcap" in
                                              params.mesh_formats), progress,
-        keep_frames=bool(formats & CAMERA_FORMATS))
-    if not formats & CAMERA_FORMATS:  # the frames have coloured the points: done with them
+        keep_frames=reads_tables)
+    if not reads_tables:  # the frames have coloured the points: done with them
         release_inputs(inputs, *CAMERA_ARTIFACTS)
         tables = {k: v for k, v in tables.items() if k not in CAMERA_ARTIFACTS}
     mesh_tables = {k: v for k, v in tables.items() if k not in ("points", *CAMERA_ARTIFACTS)}
@@ -347,7 +348,7 @@ def export_stage(inputs: Mapping[str, pa.Table], params: ExportStageParams,
     # as soon as its model is built (the coloured points with the points), so the stage
     # never holds a table and its model for long. (Building the mesh first, to colour the
     # points without the mesh tables, measured a higher peak: 1.8 GB against 1.6 GB.)
-    release = not formats & CAMERA_FORMATS and isinstance(inputs, Inputs)
+    release = not reads_tables and isinstance(inputs, Inputs)
     cloud = models_from_tables(cloud_tables)[1] if use_cloud else None
     if release:
         tables = {}
