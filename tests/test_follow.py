@@ -188,6 +188,8 @@ def test_a_live_simulation_followed_from_another_process_equals_the_batch_run(
     # (the way back's motor states can move the clock fits on a loaded host).
     changed = report["changed_after_scan_end"]
     assert "mesh" in report["reused_from_scan_end"] or changed.get("mesh"), report
+    # a change is in the content: never the runner's provenance stamp (then nothing was reused)
+    assert not any(c == ["schema"] for stage in changed.values() for c in stage.values()), changed
     assert report["model_latency_s"] is not None and report["model_latency_s"] > 0
     assert report["preview"]["positions"] > 0 and report["preview"]["problem"] is None
     assert report["visible_lag_s"]["count"] > 0
@@ -277,3 +279,23 @@ def test_tables_identical_compares_bits_and_metadata() -> None:
     other_nan.view(np.uint32)[1] = 0x7FC00001  # another NaN: not the same bits
     assert not tables_identical(table, pa.table({"x": other_nan, "n": pa.array([1, None, 3])}))
     assert not tables_identical(table, table.replace_schema_metadata({b"k": b"v"}))
+
+
+def test_the_runners_provenance_is_no_change_after_the_scan_end() -> None:
+    """A stage is taken from the scan's end when its inputs' content is the same: the
+    provenance the runner stamps into a table handed on (made when, from which files) is not
+    content, other schema metadata (a scanner's range, a CRS) is."""
+    import pyarrow as pa
+
+    from scanpipe.artifacts import PROVENANCE_KEY
+    from scanpipe.follow import _changed_columns
+
+    table = pa.table({"x": np.arange(3.0)})
+    at_scan_end = table.replace_schema_metadata({PROVENANCE_KEY: b'{"created_ns": 1}'})
+    final = table.replace_schema_metadata({PROVENANCE_KEY: b'{"created_ns": 2}',
+                                           b"scanpipe.scanner_range_m": b"[0.5, 10]"})
+    assert _changed_columns(final.replace_schema_metadata({PROVENANCE_KEY: b"{}"}),
+                            at_scan_end) == []
+    assert _changed_columns(table, at_scan_end) == []
+    assert _changed_columns(final, at_scan_end) == ["schema"]
+    assert _changed_columns(pa.table({"x": np.arange(3.0) + 1}), at_scan_end) == ["x"]

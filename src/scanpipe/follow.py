@@ -45,7 +45,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from scanpipe.artifacts import stream_key
+from scanpipe.artifacts import PROVENANCE_KEY, stream_key
 from scanpipe.errors import ProtocolError, RecordingError, ScanpipeError, StageError, UsageError
 from scanpipe.meshing.mesh import Mesh
 from scanpipe.params import Params
@@ -476,13 +476,24 @@ def tables_identical(a: pa.Table, b: pa.Table) -> bool:
 
 
 def _changed_columns(a: pa.Table, b: pa.Table) -> list[str]:
-    """What differs between two tables: rows, schema, or the names of the columns."""
+    """What differs between two tables: rows, schema, or the names of the columns.
+
+    The runner stamps its provenance (where and when a table was made) into the schema of a
+    table it hands on; that says nothing of the content the stages up to the mesh compute from
+    (only export reads it, and export is never taken from the scan's end), so it is not compared:
+    with it, every table differed and no stage was ever taken from the scan's end."""
     if a.num_rows != b.num_rows:
         return [f"rows {b.num_rows} → {a.num_rows}"]
-    if not a.schema.equals(b.schema, check_metadata=True):
+    if not _without_provenance(a.schema).equals(_without_provenance(b.schema),
+                                                check_metadata=True):
         return ["schema"]
     return [name for i, name in enumerate(a.column_names)
             if not _arrays_identical(a.column(i).combine_chunks(), b.column(i).combine_chunks())]
+
+
+def _without_provenance(schema: pa.Schema) -> pa.Schema:
+    metadata = {k: v for k, v in (schema.metadata or {}).items() if k != PROVENANCE_KEY}
+    return schema.with_metadata(metadata) if metadata else schema.remove_metadata()
 
 
 def _arrays_identical(a: pa.Array, b: pa.Array) -> bool:
