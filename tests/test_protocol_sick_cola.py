@@ -3,6 +3,7 @@ resync, any split, fuzzing, and a real scanner's capture."""
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 from pathlib import Path
 
@@ -12,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from scanpipe.captureio import load_scanner_capture
-from scanpipe.errors import ScanpipeError
+from scanpipe.errors import ProtocolError, ScanpipeError
 from scanpipe.protocol import sick_cola
 from scanpipe.protocol.framing import xor_checksum
 from scanpipe.protocol.profile import Profile
@@ -450,3 +451,25 @@ def test_real_tim55x_cola_a_with_the_default_device_name(copies: int) -> None:
         telegrams[0]).command == b"sRA LMDscandata "
     # and back: the encoder writes such a name as the device does
     assert sick_cola.encode_ascii(t)[1:-1] == telegrams[1]
+
+
+@pytest.mark.parametrize("dialect", ["cola_b", "cola_a"])
+@pytest.mark.parametrize("copies", [1, 12])  # 12: the bulk path too
+def test_multi_layer_telegrams_are_refused(dialect: str, copies: int) -> None:
+    """A multi-layer SICK scanner (MRS1000: 4 layers, MRS6000: 24) sends one LMDscandata per
+    layer with the layer's elevation in the field after the outputs (SICK's driver:
+    ``elevAngleX200`` at payload byte 42, 1/200° on the MRS6000, 1/100° on the MRS1000; F5 B2 =
+    −2638 is layer 24). Their beams lie on cones, not in the scan plane; decoded as profiles
+    of one plane the layers were interleaved into one cloud without a word."""
+    base = profile(301, 0, True)
+    flat = sick_cola.profile_telegram(base)
+    layers = [dataclasses.replace(flat, layer_angle=a, scan_counter=k)
+              for k, a in enumerate((0, -250, 250, 500) * copies)]
+    encode = ((lambda t: colab(sick_cola.encode_telegram(t))) if dialect == "cola_b"
+              else sick_cola.encode_ascii)
+    stream = b"".join(encode(t) for t in layers)
+    with pytest.raises(ProtocolError, match=r"multi-layer .*layer angle.*not supported"):
+        decode_bytes(stream, dialect)
+    # single-layer telegrams (layer angle 0, every LMS1xx/5xx/TiM capture) still decode
+    single = b"".join(encode(dataclasses.replace(flat, scan_counter=k)) for k in range(8))
+    assert decode_bytes(single, dialect)[1].frames_decoded == 8

@@ -50,6 +50,7 @@ from scanpipe.protocol.framing import (
     FrameCounters,
     LengthMismatch,
     RawFrame,
+    UnsupportedVariant,
     encode_frame,
 )
 from scanpipe.protocol.profile import Profile, check_plausible
@@ -276,7 +277,14 @@ def _end_time_us(start_us: int, samples: int, step_deg: float, freq_centihz: int
 
 
 def telegram_profile(t: ScanTelegram, checksum_ok: bool = True) -> Profile:
-    """The profile of a telegram: DIST1 ranges, RSSI1 echo (if sent), device times in µs."""
+    """The profile of a telegram: DIST1 ranges, RSSI1 echo (if sent), device times in µs;
+    :class:`UnsupportedVariant` for a multi-layer scanner's telegram (a layer angle)."""
+    if t.layer_angle:
+        raise UnsupportedVariant(
+            f"SICK multi-layer telegram (layer angle field {t.layer_angle}: "
+            f"{t.layer_angle / 100:g}° on an MRS1000, {t.layer_angle / 200:g}° on an MRS6000; "
+            "its beams lie on a cone, not in the scan plane): not supported; scanpipe reads "
+            "single-plane scanners (LMS1xx, LMS5xx, TiM), whose telegrams carry layer angle 0")
     dist = t.channel("DIST1")
     if dist is None:
         raise ProtocolError("LMDscandata without a DIST1 channel")
@@ -335,8 +343,11 @@ class _Layout:
 
 
 def _layout(t: ScanTelegram, binary: bool) -> _Layout | None:
-    """The layout of a parsed telegram (None without DIST1: the field-by-field path says so)."""
-    fixed: list[int] = []
+    """The layout of a parsed telegram (None without DIST1 or with a layer angle: the
+    field-by-field path says so). The layer angle is a layout-fixing field (0)."""
+    if t.layer_angle:
+        return None
+    fixed: list[int] = [42, 43] if binary else [15]
     texts: list[int] = [0, 1]
     names: list[tuple[int, bytes]] = [(1, b"LMDscandata")]
     first: dict[str, tuple[int, int, int]] = {}  # name → (header position, width, count)
@@ -990,6 +1001,8 @@ class AsciiFrameReader:
                 self.check(parsed)
             else:
                 parsed = _other_telegram(body)
+        except UnsupportedVariant:
+            raise
         except (LengthMismatch, ProtocolError) as err:
             if isinstance(err, LengthMismatch):
                 self.counters.length_mismatches += 1
