@@ -131,6 +131,9 @@ def test_autzen_las_comes_back_at_its_own_coordinates(tmp_path: Path, cli: Cli) 
     header = laspy.read(str(tmp_path / "c.las")).header
     wkt = next(v for v in header.vlrs if v.record_id == 2112)
     assert wkt.string == GEO_WKT  # not the rig frame's LOCAL_CS
+    # Autzen's CRS is in feet: the LAS must not send the user to assign it to metres (it said
+    # "assign the source CRS": done, the cloud lands 3.28 times too far from the origin)
+    assert "in metres" in wkt.string and "source CRS in feet" in wkt.string
     assert np.all(header.offsets == np.floor(truth.min(axis=0)))
 
 
