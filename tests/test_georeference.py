@@ -131,6 +131,9 @@ def test_autzen_las_comes_back_at_its_own_coordinates(tmp_path: Path, cli: Cli) 
     header = laspy.read(str(tmp_path / "c.las")).header
     wkt = next(v for v in header.vlrs if v.record_id == 2112)
     assert wkt.string == GEO_WKT  # not the rig frame's LOCAL_CS
+    # Autzen's CRS is in feet: the LAS must not send the user to assign it to metres (it said
+    # "assign the source CRS": done, the cloud lands 3.28 times too far from the origin)
+    assert "in metres" in wkt.string and "source CRS in feet" in wkt.string
     assert np.all(header.offsets == np.floor(truth.min(axis=0)))
 
 
@@ -423,3 +426,30 @@ def test_a_metre_crs_is_carried_to_the_las_exports(tmp_path: Path, cli: Cli) -> 
         wkt = next(v for v in laspy.read(str(tmp_path / "o.las")).header.vlrs
                    if v.record_id == 2112)
         assert "UTM" not in wkt.string
+
+
+def e57_coordinate_metadata(path: Path) -> str:
+    """The E57 root's ``coordinateMetadata`` string (the file's coordinate system)."""
+    e57 = pye57.E57(str(path))
+    try:
+        value = e57.root["coordinateMetadata"].value()
+    finally:
+        e57.close()
+    assert isinstance(value, str)
+    return value
+
+
+def test_a_metre_crs_is_carried_to_the_e57_exports(tmp_path: Path, cli: Cli) -> None:
+    """E57's root ``coordinateMetadata`` names the coordinate system of the file's frame (ASTM
+    E2807: a WKT string, or empty). It was always empty, even when the points kept a metre CRS
+    that the LAS exports carry; a point cloud's georeference was lost in E57."""
+    truth = write_utm_las(tmp_path / "utm.las", np.array([512_345.0, 5_401_234.0, 230.0]))
+    assert cli("import-points", tmp_path / "utm.las", "--out", tmp_path / "pts", "-q").code == 0
+    assert cli("export", tmp_path / "pts", "-f", "e57", "-o", tmp_path / "c.e57").code == 0
+    assert e57_coordinate_metadata(tmp_path / "c.e57") == UTM32_WKT
+    back = e57_xyz(tmp_path / "c.e57")  # the pose applied: the file's own coordinates
+    assert cKDTree(truth).query(back)[0].max() <= 1e-4
+    # a CRS not carried (feet: the exports are in metres) is not claimed
+    assert cli("import-points", AUTZEN, "--out", tmp_path / "ft", "-q").code == 0
+    assert cli("export", tmp_path / "ft", "-f", "e57", "-o", tmp_path / "ft.e57").code == 0
+    assert e57_coordinate_metadata(tmp_path / "ft.e57") == ""

@@ -252,6 +252,24 @@ def test_real_urg04lx_vv_and_pp_replies_parse_and_set_the_geometry() -> None:
     frames = reader.feed((FIXTURES / "urg04lx_pp_vv.txt").read_bytes())
     assert [f.parsed for f in frames] == [None, None] and reader.counters.resyncs == 0
     assert reader.geometry == scip.Geometry(1024, 384, 600) and reader.geometry_from_device
+    assert reader.range_limits_mm == (20, 5600)
+
+
+def test_values_outside_the_devices_dmin_dmax_are_no_return() -> None:
+    """The real URG-04LX PP reply says DMIN 20, DMAX 5600 mm. Values outside are the
+    device's codes (no echo, interference, …: UST/UTM send e.g. 65533), which urg_library and
+    urg_node take as out of range; they were decoded as ranges (a phantom wall at 65.5 m)."""
+    values = np.array([5, 19, 20, 21, 1234, 5600, 5601, 65533], np.int64)
+    scan = (b"MD0384039101000\n" + scip.status_line("99") + scip.timestamp_line(1000)
+            + scip.data_block(scip.encode_values(values, 3)) + b"\n")
+    pp = (FIXTURES / "urg04lx_pp_vv.txt").read_bytes()
+    (p,), counters = decode_bytes(pp + scan, "scip")
+    assert counters.checksum_failures == 0
+    expected = [np.nan, np.nan, 0.020, 0.021, 1.234, 5.6, np.nan, np.nan]
+    assert np.allclose(p.ranges_m, expected, equal_nan=True)
+    # without a PP reply only the 20 mm error-code floor applies (no DMAX is known)
+    (q,), _ = decode_bytes(scan, "scip")
+    assert np.isnan(q.ranges_m[:2]).all() and q.ranges_m[-1] == pytest.approx(65.533)
 
 
 def test_the_reader_reports_its_own_warning_through_the_decoder() -> None:
@@ -263,3 +281,28 @@ def test_the_reader_reports_its_own_warning_through_the_decoder() -> None:
     assert reader_warnings(ScipReader()) == []  # nothing decoded yet
     for name in ("cola_b", "cola_a", "ldoem", "paper", "ldrobot"):
         assert StreamDecoder(name).warnings == []
+
+
+def _scip11_g_reply(start: int, end: int, cluster: int, mm: int = 1000) -> bytes:
+    """A SCIP 1.1 ``G`` reply as Hokuyo's SCIP 1.1 specification lays it out: the echo
+    ``G`` + start, end (3 digits each) + cluster (2), a one-character status (``0``: ok), the
+    ranges in 2 characters of 6 bits in lines of 64 characters *without* check characters, and
+    an empty line. (No public capture of a SCIP 1.1 device was found; urg_library detects one
+    by its one-character answer ``E`` to ``QT`` and switches it with ``SCIP2.0``.)"""
+    count = -(-(end - start + 1) // cluster)
+    data = bytes([(mm >> 6) + 0x30, (mm & 0x3F) + 0x30]) * count
+    lines = b"".join(data[i:i + 64] + b"\n" for i in range(0, len(data), 64))
+    return b"G%03d%03d%02d\n0\n" % (start, end, cluster) + lines + b"\n"
+
+
+def test_scip_1_1_is_refused_naming_the_version() -> None:
+    """A URG-04LX with old firmware (or not switched) answers SCIP 1.1: one-character status,
+    no check characters. It was skipped byte by byte as noise (0 profiles, "cannot detect the
+    dialect"); now the decoder says which protocol it saw and what to do."""
+    data = _scip11_g_reply(44, 725, 1) * 3
+    with pytest.raises(ProtocolError, match=r"SCIP 1\.1 .*not supported.*SCIP2\.0"):
+        decode_bytes(data, "scip")
+    with pytest.raises(ProtocolError, match=r"SCIP 1\.1"):
+        detect_dialect(data)
+    # SCIP 2.0 messages (status of two characters and a check) are not taken for it
+    assert decode_bytes(b"".join(encoded(3)), "scip")[1].frames_decoded == 3

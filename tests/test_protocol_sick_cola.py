@@ -3,6 +3,7 @@ resync, any split, fuzzing, and a real scanner's capture."""
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 from pathlib import Path
 
@@ -12,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from scanpipe.captureio import load_scanner_capture
-from scanpipe.errors import ScanpipeError
+from scanpipe.errors import ProtocolError, ScanpipeError
 from scanpipe.protocol import sick_cola
 from scanpipe.protocol.framing import xor_checksum
 from scanpipe.protocol.profile import Profile
@@ -406,3 +407,69 @@ def test_real_lms111_capture_decodes_to_sick_scan_xd_own_output() -> None:
         ours_rad = np.deg2rad(p.start_angle_deg + i * p.step_deg) + LMS1XX_ROS_ANGLE_SHIFT_RAD
         assert np.max(np.abs(ours_rad - driver_rad)) <= F32_ANGLE_TOL_RAD
         assert driver_rad[-1] == pytest.approx(scan["angle_max_rad"], abs=F32_ANGLE_TOL_RAD)
+
+
+TIM55X_COLA_A = Path(__file__).parent / "fixtures" / "sick" / "tim55x_cola_a_lmdscandata.txt"
+
+
+def _tim55x_telegrams() -> list[bytes]:
+    lines = TIM55X_COLA_A.read_text().splitlines()
+    return [line.encode("ascii") for line in lines if not line.startswith("#")]
+
+
+@pytest.mark.parametrize("copies", [1, 12])  # 12: the bulk (one layout at once) path too
+def test_real_tim55x_cola_a_with_the_default_device_name(copies: int) -> None:
+    """A real TiM55x's CoLa-A telegrams end ``… 0 1 B not defined 0 0 0``: the device name
+    block holds the factory name "not defined", 11 (B) characters with a space. Read as one
+    token per string, every telegram was dropped as malformed (no profile from a TiM in
+    CoLa-A mode). The reference reads the tokens by the manual's field order."""
+    telegrams = _tim55x_telegrams()
+    assert len(telegrams) == 2
+    stream = b"".join(b"\x02" + t + b"\x03" for t in telegrams) * copies
+    assert detect_dialect(stream) == "cola_a"
+    profiles, counters = decode_bytes(stream, "cola_a")
+    assert counters.frames_decoded == 2 * copies and counters.malformed_frames == 0
+    assert counters.bytes_skipped == 0
+    for body, p in zip(telegrams * copies, profiles, strict=True):
+        tokens = body.split(b" ")
+        at = tokens.index(b"DIST1")
+        scale = struct.unpack(">f", bytes.fromhex(tokens[at + 1].decode()))[0]
+        start = struct.unpack(">i", bytes.fromhex(tokens[at + 3].decode()))[0]
+        step, count = int(tokens[at + 4], 16), int(tokens[at + 5], 16)
+        raw = [int(v, 16) for v in tokens[at + 6:at + 6 + count]]
+        assert (scale, start, step, count) == (1.0, -450000, 10000, 271)  # −45° … 225° at 1°
+        assert p.frame == int(tokens[8], 16) and p.device_time_ms == int(tokens[9], 16)
+        assert p.start_angle_deg == -45.0 and p.step_deg == 1.0
+        expected = np.array([v * scale / 1000 if v else np.nan for v in raw], np.float32)
+        assert np.array_equal(p.ranges_m, expected, equal_nan=True)
+        rssi = tokens.index(b"RSSI1")
+        assert p.echo is not None
+        assert p.echo.tolist() == [int(v, 16) for v in tokens[rssi + 6:rssi + 6 + count]]
+    t = sick_cola.parse_ascii(telegrams[1])
+    assert t.name == "not defined" and t.comment is None and t.time is None
+    assert t.command == b"sSN LMDscandata " and sick_cola.parse_ascii(
+        telegrams[0]).command == b"sRA LMDscandata "
+    # and back: the encoder writes such a name as the device does
+    assert sick_cola.encode_ascii(t)[1:-1] == telegrams[1]
+
+
+@pytest.mark.parametrize("dialect", ["cola_b", "cola_a"])
+@pytest.mark.parametrize("copies", [1, 12])  # 12: the bulk path too
+def test_multi_layer_telegrams_are_refused(dialect: str, copies: int) -> None:
+    """A multi-layer SICK scanner (MRS1000: 4 layers, MRS6000: 24) sends one LMDscandata per
+    layer with the layer's elevation in the field after the outputs (SICK's driver:
+    ``elevAngleX200`` at payload byte 42, 1/200° on the MRS6000, 1/100° on the MRS1000; F5 B2 =
+    −2638 is layer 24). Their beams lie on cones, not in the scan plane; decoded as profiles
+    of one plane the layers were interleaved into one cloud without a word."""
+    base = profile(301, 0, True)
+    flat = sick_cola.profile_telegram(base)
+    layers = [dataclasses.replace(flat, layer_angle=a, scan_counter=k)
+              for k, a in enumerate((0, -250, 250, 500) * copies)]
+    encode = ((lambda t: colab(sick_cola.encode_telegram(t))) if dialect == "cola_b"
+              else sick_cola.encode_ascii)
+    stream = b"".join(encode(t) for t in layers)
+    with pytest.raises(ProtocolError, match=r"multi-layer .*layer angle.*not supported"):
+        decode_bytes(stream, dialect)
+    # single-layer telegrams (layer angle 0, every LMS1xx/5xx/TiM capture) still decode
+    single = b"".join(encode(dataclasses.replace(flat, scan_counter=k)) for k in range(8))
+    assert decode_bytes(single, dialect)[1].frames_decoded == 8

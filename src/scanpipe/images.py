@@ -161,10 +161,19 @@ def _pillow_size(source: bytes | Path, what: str, max_px: int,
 
 def decode_image_bytes(data: bytes, what: str, max_px: int = MAX_FRAME_PX,
                        flags: int = cv2.IMREAD_COLOR,
-                       error: type[ScanpipeError] = ScanpipeError) -> NDArray[np.uint8]:
+                       error: type[ScanpipeError] = ScanpipeError,
+                       upright: bool = False) -> NDArray[np.uint8]:
     """Decode image bytes with OpenCV (``flags``: colour BGR, grey, reduced …) after checking
-    the size in the header against ``max_px``; ``error`` naming ``what`` on any failure."""
+    the size in the header against ``max_px``; ``error`` naming ``what`` on any failure.
+
+    The pixels come as stored: a JPEG's (or PNG's) EXIF orientation is ignored unless
+    ``upright``. A recording's frames are a camera's pixels — their size in the frames table is
+    the header's and the rig's intrinsics describe them — and OpenCV would otherwise turn a
+    frame carrying an orientation tag (a half turn, or any turn of a square frame, keeps the
+    size: nothing would say so). Photos read as files (:func:`read_image_file`) are upright."""
     probe_image(data, what, max_px, error)
+    if not upright:
+        flags |= cv2.IMREAD_IGNORE_ORIENTATION
     try:
         image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), flags)
     except cv2.error as err:
@@ -176,8 +185,10 @@ def decode_image_bytes(data: bytes, what: str, max_px: int = MAX_FRAME_PX,
 
 def read_image_file(path: Path, max_px: int = MAX_FRAME_PX, flags: int = cv2.IMREAD_COLOR,
                     error: type[ScanpipeError] = ScanpipeError) -> NDArray[np.uint8]:
-    """Decode an image file (see :func:`decode_image_bytes`); ``error`` naming the file if it is
-    missing, unreadable, not an image or larger than ``max_px``."""
+    """Decode an image file (see :func:`decode_image_bytes`) upright: its EXIF orientation
+    applied, as a viewer shows a photo (``calibrate-camera``'s images);
+    ``error`` naming the file if it is missing, unreadable, not an image or larger than
+    ``max_px``."""
     what = str(path)
     if not path.is_file():
         raise error(f"{what}: image not found")
@@ -186,4 +197,4 @@ def read_image_file(path: Path, max_px: int = MAX_FRAME_PX, flags: int = cv2.IMR
         data = path.read_bytes()
     except OSError as err:
         raise error(f"{what}: cannot read ({err.strerror or err})") from None
-    return decode_image_bytes(data, what, max_px, flags, error)
+    return decode_image_bytes(data, what, max_px, flags, error, upright=True)

@@ -137,8 +137,19 @@ def write_e57(path: Path, scans: Sequence[E57Scan], images: Sequence[E57Image] =
         if image.image_format not in ("jpeg", "png"):
             raise ExportError(f"image {image.name!r}: format {image.image_format!r}; "
                               "allowed: jpeg, png")
+    crs = {scan.cloud.crs_wkt or "" for scan in scans}
+    if len(crs) > 1:
+        raise ExportError(f"{path}: the scans are in different coordinate systems; an E57 "
+                          "file has one")
+
+    class Writer(pye57.E57):  # type: ignore[misc]
+        """pye57's writer with the root's ``coordinateMetadata`` set (a node is set once)."""
+
+        def write_default_header(self) -> None:
+            _write_header(self, crs.pop())
+
     try:
-        writer = pye57.E57(str(path), mode="w")
+        writer = Writer(str(path), mode="w")
         try:
             for scan in scans:
                 data = _scan_data(scan.cloud)
@@ -155,6 +166,32 @@ def write_e57(path: Path, scans: Sequence[E57Scan], images: Sequence[E57Image] =
         raise
     except Exception as err:  # libE57Format raises its own exception types
         raise ExportError(f"E57 writer failed: {err}") from err
+
+
+def _write_header(writer: Any, coordinate_metadata: str) -> None:
+    """The E57 root as pye57 writes it, with ``coordinateMetadata``: the coordinate system
+    (WKT) of the file's frame, the imported file's own when the points keep it (the scans'
+    poses carry the georeference offset, so the posed points are in its coordinates), else
+    empty (ASTM E2807: the string is empty when the system is unknown)."""
+    import uuid
+
+    import pye57.libe57 as libe57
+
+    imf = writer.image_file
+    root = imf.root()
+    imf.extensionsAdd("", libe57.E57_V1_0_URI)
+    root.set("formatName", libe57.StringNode(imf, "ASTM E57 3D Imaging Data File"))
+    root.set("guid", libe57.StringNode(imf, f"{{{uuid.uuid4()}}}"))
+    root.set("versionMajor", libe57.IntegerNode(imf, libe57.E57_FORMAT_MAJOR))
+    root.set("versionMinor", libe57.IntegerNode(imf, libe57.E57_FORMAT_MINOR))
+    root.set("e57LibraryVersion", libe57.StringNode(imf, libe57.E57_LIBRARY_ID))
+    root.set("coordinateMetadata", libe57.StringNode(imf, coordinate_metadata))
+    created = libe57.StructureNode(imf)
+    created.set("dateTimeValue", libe57.FloatNode(imf, 0.0))
+    created.set("isAtomicClockReferenced", libe57.IntegerNode(imf, 0))
+    root.set("creationDateTime", created)
+    root.set("data3D", libe57.VectorNode(imf, True))
+    root.set("images2D", libe57.VectorNode(imf, True))
 
 
 def _describe(writer: Any, index: int, scan: E57Scan) -> None:

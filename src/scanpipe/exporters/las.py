@@ -46,9 +46,12 @@ GPS_LEAP_S = 18
 LOCAL_WKT = ('LOCAL_CS["scanpipe rig frame (z up)",LOCAL_DATUM["scanpipe turntable",0],'
              'UNIT["metre",1],AXIS["X",EAST],AXIS["Y",NORTH],AXIS["Z",UP]]')
 #: The frame of a georeferenced cloud (an import shifted by ``offset_m``, added back here):
-#: the imported file's own coordinates in metres; its CRS is not carried (assign it).
+#: the imported file's own coordinates in metres; its CRS is not carried (a CRS in feet would
+#: not fit metre coordinates: the user assigns the source's CRS, or its metre equivalent).
 GEO_WKT = ('LOCAL_CS["imported coordinates in metres (scanpipe added the import offset '
-           'back; assign the source CRS)",LOCAL_DATUM["unknown",0],UNIT["metre",1],'
+           'back; assign the source CRS if it is in metres; a source CRS in feet does not fit '
+           'these coordinates: assign its metre equivalent)",LOCAL_DATUM["unknown",0],'
+           'UNIT["metre",1],'
            'AXIS["X",EAST],AXIS["Y",NORTH],AXIS["Z",UP]]')
 PROVENANCE_USER_ID = "scanpipe"
 PROVENANCE_RECORD_ID = 1

@@ -96,6 +96,12 @@ class ImplausibleFrame(ProtocolError):
     """A frame that parses but holds values the device cannot send (angles, sizes)."""
 
 
+class UnsupportedVariant(ProtocolError):
+    """A sound frame of a variant scanpipe does not read (a multi-layer scanner's telegram):
+    raised through the readers to the caller, never counted as damage and skipped — decoding
+    the rest would be a silent misreading."""
+
+
 @dataclass
 class FrameCounters:
     """What a reader saw: frames, checksum failures, resyncs, skipped bytes, odd frames.
@@ -267,6 +273,8 @@ class FrameReader:
                     self._false_start()
                     pos = start + 1
                     continue
+                except UnsupportedVariant:
+                    raise
                 except ProtocolError:
                     self.counters.malformed_frames += 1
                     self._false_start()
@@ -415,6 +423,8 @@ class FrameReader:
                 parsed = self.parse(payload, True)
                 if self.check is not None:
                     self.check(parsed)
+            except UnsupportedVariant:
+                raise
             except ProtocolError:
                 return False
         return True

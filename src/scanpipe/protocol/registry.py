@@ -20,6 +20,7 @@ from scanpipe.protocol.framing import (
     LengthMismatch,
     ParseMany,
     RawFrame,
+    UnsupportedVariant,
 )
 from scanpipe.protocol.profile import Profile, check_plausible
 
@@ -270,6 +271,8 @@ class StreamDecoder:
                     counters.length_mismatches += 1
                     counters.bytes_skipped += raw.end_offset - raw.start_offset
                     continue
+                except UnsupportedVariant:
+                    raise
                 except ProtocolError:
                     counters.malformed_frames += 1
                     counters.bytes_skipped += raw.end_offset - raw.start_offset

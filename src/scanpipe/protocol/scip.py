@@ -79,6 +79,8 @@ _MULTI_ECHO = re.compile(rb"^[HN][DE]\d{10}(\d{3})?(;[ -~]{0,16})?$")
 STREAM_PARAM_CHARS = 13
 _STREAM_ECHO = re.compile(rb"^(M[DSE])(\d{4})(\d{4})(\d{2})(\d)(\d{2})(;[ -~]{0,16})?$")
 _SINGLE_ECHO = re.compile(rb"^(G[DSE])(\d{4})(\d{4})(\d{2})(;[ -~]{0,16})?$")
+#: A SCIP 1.1 ``G`` echo: start and end step (3 digits each), cluster count (2).
+_SCIP11_ECHO = re.compile(rb"^G(\d{3})(\d{3})(\d{2})$")
 #: Where a data message's echo line may begin (a resync target at any byte).
 _DATA_ECHO = re.compile(rb"[MGHN][DSE]\d{8}")
 #: The next place to try after a false start: the next line, or a data echo within this one.
@@ -253,7 +255,12 @@ def encode_profile(profile: Profile) -> bytes:
     command = b"MD" if profile.echo is None else b"ME"
     prefix = b""
     if geometry != UST_GEOMETRY:
-        prefix = parameter_reply(b"PP", pp_fields(geometry, "URG-04LX", 20, 5600, 44, 725))
+        # the URG-04LX's DMAX, or beyond it the longest range sent (the decoder takes values
+        # above DMAX for no return)
+        ranges = np.asarray(profile.ranges_m, np.float64)
+        finite = ranges[np.isfinite(ranges)]
+        dmax = max(5600, int(np.ceil(finite.max() * 1000.0)) if finite.size else 0)
+        prefix = parameter_reply(b"PP", pp_fields(geometry, "URG-04LX", 20, dmax, 44, 725))
     time_ms = profile.device_time_ms or 0
     return prefix + encode_scan(command, start, end, cluster, time_ms, profile.ranges_m,
                                 profile.echo)
@@ -294,6 +301,11 @@ class ScipReader:
         self.counters = FrameCounters()
         self.geometry = geometry or Geometry()
         self.geometry_from_device = geometry is not None
+        #: The ranges the device measures, ``DMIN`` … ``DMAX`` mm, from its PP reply (values
+        #: outside are its codes for no echo, too near, interference …: no return, as
+        #: urg_library's ``urg_distance_min_max`` and urg_node's range_min/range_max take
+        #: them). Without a PP reply: the 20 mm error-code floor, no upper bound.
+        self.range_limits_mm: tuple[int, int | None] = (MIN_VALID_RANGE_MM, None)
         self.scans_decoded = 0
         #: The last non-scan reply's (command, status), for drivers.
         self.last_status: tuple[str, str] | None = None
@@ -386,6 +398,12 @@ class ScipReader:
         lines = message[:-2].split(b"\n", 3)
         echo = lines[0]
         end = offset + len(message)
+        if _is_scip11_scan(message):
+            raise ProtocolError(
+                "Hokuyo SCIP 1.1 scan data (a 'G' reply: one-character status, no check "
+                "characters; a URG-04LX with old firmware or not switched): not supported; "
+                "scanpipe reads SCIP 2.0 — switch the device with the command 'SCIP2.0' "
+                "(urg_library does; firmware without it needs an update) and stream MD/GD")
         if len(echo) < 2 or not echo[:2].isalpha() or not echo[:2].isupper():
             raise _Bad
         command = echo[:2]
@@ -420,11 +438,16 @@ class ScipReader:
         try:
             ares, afrt = int(fields["ARES"]), int(fields["AFRT"])
             rpm = int(fields.get("SCAN", "0"))
+            dmin = int(fields.get("DMIN", str(MIN_VALID_RANGE_MM)))
+            dmax: int | None = int(fields["DMAX"]) if "DMAX" in fields else None
         except (KeyError, ValueError):
             return
+        if dmax is not None and dmax <= dmin:
+            dmax = None  # a reply that makes no sense keeps only the error-code floor
         if 0 < ares <= 1 << 16 and 0 <= afrt < ares:
             self.geometry = Geometry(ares, afrt, rpm)
             self.geometry_from_device = True
+            self.range_limits_mm = (max(dmin, MIN_VALID_RANGE_MM), dmax)
 
     def _echo_agrees(self, params: bytes) -> bool:
         if self._stream_params is None or self._stream_params == params:
@@ -457,7 +480,8 @@ class ScipReader:
                                                                              else 0):
             raise _Bad
         return _Scan(message, offset, end, body_start, n_chars, chars, per_step, start, last,
-                     cluster, status_ok, command[:1] == b"M", self.geometry)
+                     cluster, status_ok, command[:1] == b"M", self.geometry,
+                     self.range_limits_mm)
 
     def _finish_scans(self, pending: list[RawFrame | _Scan]
                       ) -> tuple[list[RawFrame], int | None]:
@@ -514,6 +538,7 @@ class _Scan:
     status_ok: bool
     stream: bool
     geometry: Geometry
+    limits_mm: tuple[int, int | None]
     ok: bool = False
     time_ms: int = 0
     ranges: NDArray[np.float32] | None = None
@@ -570,12 +595,35 @@ def _decode_group(group: list[_Scan], n_chars: int, chars: int, per_step: int) -
         echo = np.minimum(values[:, 1::2], 65535).astype(np.uint16)
         values = values[:, 0::2]
     ranges = values.astype(np.float32) * np.float32(0.001)
-    ranges[values < MIN_VALID_RANGE_MM] = np.nan
+    # each scan's own device limits (a PP reply may arrive between scans of one feed)
+    low = np.array([s.limits_mm[0] for s in group], np.int32)[:, None]
+    high = np.array([s.limits_mm[1] or (1 << 30) for s in group], np.int32)[:, None]
+    ranges[(values < low) | (values > high)] = np.nan
     for row, scan in enumerate(group):
         scan.ok = bool(ok[row]) and scan.status_ok
         scan.time_ms = int(times[row])
         scan.ranges = ranges[row]
         scan.echo = None if echo is None else echo[row]
+
+
+def _is_scip11_scan(message: bytes) -> bool:
+    """Whether ``message`` (ending LF LF) is a whole SCIP 1.1 ``G`` reply: the echo, a
+    one-character status, then exactly the 2-character ranges the echo asks for in lines of
+    at most 64 characters (no check characters)."""
+    if message[:1] != b"G":
+        return False
+    lines = message[:-2].split(b"\n")
+    match = _SCIP11_ECHO.match(lines[0])
+    if match is None or len(lines) < 3 or len(lines[1]) != 1:
+        return False
+    start, end, cluster = int(match[1]), int(match[2]), max(int(match[3]), 1)
+    if end < start:
+        return False
+    body = lines[2:]
+    if any(len(line) > DATA_LINE_CHARS for line in body) or any(
+            len(line) != DATA_LINE_CHARS for line in body[:-1]):
+        return False
+    return sum(len(line) for line in body) == 2 * -(-(end - start + 1) // cluster)
 
 
 def _terminators(buf: bytearray) -> list[int]:

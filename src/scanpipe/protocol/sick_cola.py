@@ -50,6 +50,7 @@ from scanpipe.protocol.framing import (
     FrameCounters,
     LengthMismatch,
     RawFrame,
+    UnsupportedVariant,
     encode_frame,
 )
 from scanpipe.protocol.profile import Profile, check_plausible
@@ -276,7 +277,14 @@ def _end_time_us(start_us: int, samples: int, step_deg: float, freq_centihz: int
 
 
 def telegram_profile(t: ScanTelegram, checksum_ok: bool = True) -> Profile:
-    """The profile of a telegram: DIST1 ranges, RSSI1 echo (if sent), device times in µs."""
+    """The profile of a telegram: DIST1 ranges, RSSI1 echo (if sent), device times in µs;
+    :class:`UnsupportedVariant` for a multi-layer scanner's telegram (a layer angle)."""
+    if t.layer_angle:
+        raise UnsupportedVariant(
+            f"SICK multi-layer telegram (layer angle field {t.layer_angle}: "
+            f"{t.layer_angle / 100:g}° on an MRS1000, {t.layer_angle / 200:g}° on an MRS6000; "
+            "its beams lie on a cone, not in the scan plane): not supported; scanpipe reads "
+            "single-plane scanners (LMS1xx, LMS5xx, TiM), whose telegrams carry layer angle 0")
     dist = t.channel("DIST1")
     if dist is None:
         raise ProtocolError("LMDscandata without a DIST1 channel")
@@ -335,8 +343,11 @@ class _Layout:
 
 
 def _layout(t: ScanTelegram, binary: bool) -> _Layout | None:
-    """The layout of a parsed telegram (None without DIST1: the field-by-field path says so)."""
-    fixed: list[int] = []
+    """The layout of a parsed telegram (None without DIST1 or with a layer angle: the
+    field-by-field path says so). The layer angle is a layout-fixing field (0)."""
+    if t.layer_angle:
+        return None
+    fixed: list[int] = [42, 43] if binary else [15]
     texts: list[int] = [0, 1]
     names: list[tuple[int, bytes]] = [(1, b"LMDscandata")]
     first: dict[str, tuple[int, int, int]] = {}  # name → (header position, width, count)
@@ -373,11 +384,10 @@ def _layout(t: ScanTelegram, binary: bool) -> _Layout | None:
             text = value.encode("latin-1")
             if binary:
                 pos += 1 + len(text)
-            elif text:
-                texts.append(pos + 1)
-                pos += 2
-            else:
-                pos += 1
+            else:  # the length token, then the tokens the string spans (it may hold spaces)
+                words = len([w for w in text.split(b" ") if w])
+                texts += range(pos + 1, pos + 1 + words)
+                pos += 1 + words
         elif binary:
             pos += n_bytes
         else:
@@ -723,6 +733,21 @@ def _parse_tokens(tok: _Tokens, lo: int, hi: int) -> ScanTelegram:
         pos += 1
         return tok.text(pos - 1)
 
+    def string(length: int) -> bytes:
+        # A string is its length's characters after the length token's separator, spaces
+        # included (a device's factory name is "not defined"): as many tokens as it spans.
+        nonlocal pos
+        begin = int(tok.ends[pos - 1]) + 1
+        end = begin + length
+        stop = pos
+        while stop < hi and tok.starts[stop] < end:
+            stop += 1
+        if (stop < hi and tok.starts[stop] <= end) or (stop == hi and end > tok.ends[hi - 1]):
+            raise LengthMismatch(f"CoLa-A string of {length} characters does not end before "
+                                 "a separator")
+        pos = stop
+        return bytes(tok.data[begin:end])
+
     version, device_number, serial, s1, s2, tcount, scount, t_start, t_tx, i1, i2, o1, o2, \
         layer, freq, mfreq, n_enc = num(17)
     enc_values = num(2 * n_enc)
@@ -763,7 +788,7 @@ def _parse_tokens(tok: _Tokens, lo: int, hi: int) -> ScanTelegram:
             optional[block] = (*[_float(x) for x in v[:6]], v[6], v[7])
         elif block in ("name", "comment"):
             (length,) = num(1)
-            optional[block] = (text() if length else b"").decode("latin-1")
+            optional[block] = string(length).decode("latin-1")
         elif block == "time":
             optional[block] = tuple(num(7))
         else:
@@ -821,10 +846,11 @@ def encode_ascii(t: ScanTelegram) -> bytes:
     for text in (t.name, t.comment):
         if text is None:
             blocks.append([b"0"])
-        elif " " in text or not text:
-            raise ProtocolError("CoLa-A strings here are one token (no spaces, not empty)")
+        elif "\x02" in text or "\x03" in text:
+            raise ProtocolError("CoLa-A strings cannot hold STX or ETX")
         else:
-            blocks.append([b"1", *_hex([len(text)]), text.encode("latin-1")])
+            raw = text.encode("latin-1")
+            blocks.append([b"1", *_hex([len(raw)])] + ([raw] if raw else []))
     blocks.append([b"0"] if t.time is None else [b"1", *_hex(list(t.time))])
     blocks.append([b"0"] if t.event is None else [
         b"1", t.event[0], *_hex([t.event[1], t.event[2], t.event[3] & 0xFFFFFFFF])])
@@ -975,6 +1001,8 @@ class AsciiFrameReader:
                 self.check(parsed)
             else:
                 parsed = _other_telegram(body)
+        except UnsupportedVariant:
+            raise
         except (LengthMismatch, ProtocolError) as err:
             if isinstance(err, LengthMismatch):
                 self.counters.length_mismatches += 1
