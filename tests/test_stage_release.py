@@ -184,3 +184,29 @@ def test_execute_hands_over_the_inputs_it_read_itself(tmp_path: Path) -> None:
         assert record.tables.get("numbers") is None or record.tables["numbers"].num_rows == 2
         assert read_artifact(tmp_path / f"out{keep}" / "scaled.parquet")[0].column(
             "v").to_pylist() == [2.0, 4.0]
+
+
+@pytest.mark.slow
+def test_texture_lets_frames_and_mesh_go_and_textures_the_same(tmp_path: Path) -> None:
+    """Handed over, the texture stage releases the camera frames once it has chosen its own
+    and the mesh tables once it has its arrays (the chain then reads them back for export
+    instead of holding them through texture's peak); its outputs are those of the stage run
+    on tables nobody releases."""
+    rec = tmp_path / "scan.mcap"
+    simulate_direct(rec, tmp_path / "truth", SimOptions(
+        beam_step_deg=2.0, motor_step_deg=3.0, camera_scale=0.125, camera_fps=0.5, seed=4))
+    work = tmp_path / "w"
+    run_chain(rec, work, {}, to="mesh")
+    producers = {"mesh_vertices": "mesh", "mesh_faces": "mesh", "frames": "decode",
+                 "motor": "decode", "rig": "calibrate"}
+    tables = {n: read_artifact(work / d / f"{n}.parquet")[0] for n, d in producers.items()}
+    stage = get_stage("texture")
+    kept = stage.run(dict(tables))
+    handed = Inputs(dict(tables), set(tables))
+    released = stage.run(handed)
+    assert handed.released == {"frames", "mesh_vertices", "mesh_faces"}
+    assert all(handed[n].num_rows == 0 and handed[n].schema == tables[n].schema
+               for n in handed.released)
+    assert handed["motor"].num_rows == tables["motor"].num_rows  # still read by nobody else
+    for name in ("textured_faces", "texture_pages"):
+        assert released.tables[name].equals(kept.tables[name]), name
