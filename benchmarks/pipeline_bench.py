@@ -301,12 +301,14 @@ stages, clock, so_far = {}, time.process_time(), base
 order = [s.name for s in chain_to(None, to or None)]
 now_in = {"stage": order[0], "task": "(start)"}
 timeline, sampling = {}, True
+def take_sample():
+    rss = status_mb("VmRSS")
+    at = timeline.setdefault(now_in["stage"], {"entry_mb": rss, "peak_mb": rss, "tasks": {}})
+    at["peak_mb"] = max(at["peak_mb"], rss)
+    at["tasks"][now_in["task"]] = max(at["tasks"].get(now_in["task"], 0), rss)
 def sample():
     while sampling:
-        rss = status_mb("VmRSS")
-        at = timeline.setdefault(now_in["stage"], {"entry_mb": rss, "peak_mb": rss, "tasks": {}})
-        at["peak_mb"] = max(at["peak_mb"], rss)
-        at["tasks"][now_in["task"]] = max(at["tasks"].get(now_in["task"], 0), rss)
+        take_sample()
         time.sleep(0.02)
 def progress(task, done, total=None):
     now_in["task"] = task
@@ -314,6 +316,7 @@ def on_stage(record):
     global clock, so_far
     following = order.index(record.stage) + 1
     now_in.update(stage=order[following] if following < len(order) else "(end)", task="(start)")
+    take_sample()  # every stage has an entry, however short it is
     now = time.process_time()
     peak, rss = status_mb("VmHWM", "VmRSS")
     so_far = max(so_far, peak)
@@ -322,6 +325,7 @@ def on_stage(record):
         "peak_rss_mb": peak, "rss_after_mb": rss, "peak_rss_mb_so_far": so_far}
     clock = now
     reset_peak()
+take_sample()
 sampler = threading.Thread(target=sample, daemon=True)
 sampler.start()
 wall, cpu = time.perf_counter(), time.process_time()
