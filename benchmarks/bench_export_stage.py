@@ -23,6 +23,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import scanpipe  # noqa: F401, I001  (first: Arrow's allocator set up as in ``scanpipe run``)
 from harness import made, measure, save, table
 
 from scanpipe.artifacts import read_artifact

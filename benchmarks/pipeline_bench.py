@@ -273,9 +273,11 @@ def runner_share() -> Iterator[dict[str, float]]:
 #: is reset after each stage (writing 5 to /proc/self/clear_refs); without that permission the
 #: stage's peak is the peak so far.
 _CHAIN_CHILD = """
-import json, sys, time
+import scanpipe  # first, as a user's ``scanpipe run`` has it (the allocator's set-up)
+import json, sys, threading, time
 from pathlib import Path
 import benchmarks.pipeline_bench as bench
+from scanpipe.pipeline import chain_to
 import scipy.ndimage, scipy.sparse.csgraph, open3d, cv2  # the stages' imports: before the base
 recording, workdir, to, overrides = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3], sys.argv[4]
 def status_mb(*fields):
@@ -295,8 +297,26 @@ def reset_peak():
 base = status_mb("VmRSS")
 resets = reset_peak()
 stages, clock, so_far = {}, time.process_time(), base
+# the timeline: the RSS every 20 ms, by stage and by its progress task (what it was doing)
+order = [s.name for s in chain_to(None, to or None)]
+now_in = {"stage": order[0], "task": "(start)"}
+timeline, sampling = {}, True
+def take_sample():
+    rss = status_mb("VmRSS")
+    at = timeline.setdefault(now_in["stage"], {"entry_mb": rss, "peak_mb": rss, "tasks": {}})
+    at["peak_mb"] = max(at["peak_mb"], rss)
+    at["tasks"][now_in["task"]] = max(at["tasks"].get(now_in["task"], 0), rss)
+def sample():
+    while sampling:
+        take_sample()
+        time.sleep(0.02)
+def progress(task, done, total=None):
+    now_in["task"] = task
 def on_stage(record):
     global clock, so_far
+    following = order.index(record.stage) + 1
+    now_in.update(stage=order[following] if following < len(order) else "(end)", task="(start)")
+    take_sample()  # every stage has an entry, however short it is
     now = time.process_time()
     peak, rss = status_mb("VmHWM", "VmRSS")
     so_far = max(so_far, peak)
@@ -305,21 +325,30 @@ def on_stage(record):
         "peak_rss_mb": peak, "rss_after_mb": rss, "peak_rss_mb_so_far": so_far}
     clock = now
     reset_peak()
+take_sample()
+sampler = threading.Thread(target=sample, daemon=True)
+sampler.start()
 wall, cpu = time.perf_counter(), time.process_time()
 bench.run_chain(recording, workdir, bench.chain_params(json.loads(overrides)), force=True,
-                to=to or None, on_stage=on_stage)
-print(json.dumps({"seconds": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu,
+                to=to or None, on_stage=on_stage, progress=progress)
+seconds, cpu_s = time.perf_counter() - wall, time.process_time() - cpu
+sampling = False
+sampler.join()
+print(json.dumps({"seconds": seconds, "cpu_s": cpu_s,
                   "rss_after_imports_mb": base, "per_stage_peaks": resets,
-                  "peak_rss_mb": max(so_far, status_mb("VmHWM")), "stages": stages}))
+                  "peak_rss_mb": max(so_far, status_mb("VmHWM")), "stages": stages,
+                  "timeline": timeline}))
 """
 
 
 def chain_memory(recording: Path, workdir: Path, overrides: Mapping[str, Any],
                  to: str | None = None) -> dict[str, Any]:
     """Peak memory of one chain run (every stage recomputed) in a fresh interpreter, as a user's
-    ``scanpipe run`` has it: the absolute peak RSS, the RSS after the imports, the growth, and
-    per stage the CPU seconds and the peak so far. A forked child's growth would start from the
-    benchmark's own (larger) peak and hide the chain's."""
+    ``scanpipe run`` has it: the absolute peak RSS, the RSS after the imports, the growth,
+    per stage the CPU seconds and the peak so far, and the ``timeline``: per stage its RSS at
+    entry and its peak, and the peak during each of its progress tasks (what it was doing).
+    A forked child's growth would start from the benchmark's own (larger) peak and hide the
+    chain's."""
     import subprocess
     import sys
 

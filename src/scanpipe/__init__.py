@@ -15,8 +15,15 @@ light (no numpy, pyarrow or Open3D until a function is called):
 from __future__ import annotations
 
 import importlib
+import os
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
+
+# Arrow's allocator (mimalloc) hands freed pages back to the system only after a delay, and
+# Arrow's release_unused does not shorten it: a table released between stages stayed resident
+# and a Parquet read peaked at twice its table (the lab chain's peak 2.52 → 2.16 GB without
+# the delay; docs/performance.md). Read when pyarrow is first loaded: a user's setting wins.
+os.environ.setdefault("MIMALLOC_PURGE_DELAY", "0")
 
 from scanpipe.lazy_open3d import defer_plotly_viewer
 

@@ -775,8 +775,11 @@ def read_artifact(
     provenance = read_provenance(path)
     try:
         # Row group by row group (no pre-buffering of the whole file): the peak stays near
-        # the table's own size.
-        table = pq.read_table(path, pre_buffer=False)
+        # the table's own size. On this thread: Arrow's allocator (mimalloc) gives back the
+        # pages of a released table only from the heap of the thread that allocated them
+        # (release_free_memory runs here), so a table read by Arrow's worker threads stayed
+        # resident after a stage released it, in some runs (the same CPU either way).
+        table = pq.read_table(path, pre_buffer=False, use_threads=False)
     except (OSError, pa.ArrowException) as err:
         raise ArtifactError(f"{path}: not a readable Parquet file ({err})") from None
     if schema is not None:

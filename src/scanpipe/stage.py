@@ -114,17 +114,23 @@ StageFn = Callable[[Mapping[str, Any], Any, ProgressFn], StageResult]
 
 
 class Inputs(dict[str, Any]):
-    """A stage's inputs as the runner hands them over when nothing after the stage takes
-    them: the stage may :func:`release_inputs` a table once it is done with it, so its memory
-    goes back before the stage ends (the export stage's camera frames after colouring the
-    points, its tables once its models are built) instead of at the stage's end. A released
-    table is replaced by an empty table of its schema (its metadata, provenance and
-    georeference offset kept: :func:`carry_offset` and provenance still read them)."""
+    """A stage's inputs as the runner hands them over: the stage may :func:`release_inputs`
+    a table once it is done with it, so its memory goes back before the stage ends (the
+    texture stage's camera frames once it has chosen its own and the mesh tables once it has
+    its arrays; the export stage's frames after colouring the points, its tables once its
+    models are built) instead of at the stage's end. A released table is replaced by an empty
+    table of its schema (its metadata, provenance and georeference offset kept:
+    :func:`carry_offset` and provenance still read them). A later stage that takes a released
+    (or narrowed) table reads it back from its file: the runner hands on only what
+    :attr:`released` does not name."""
 
     def __init__(self, tables: Mapping[str, Any], releasable: Collection[str] = ()) -> None:
         super().__init__(tables)
-        #: The inputs the caller keeps no other reference to and no later stage takes.
+        #: The inputs the caller keeps no other reference to (a later stage that takes one
+        #: reads it from its file if the stage released it).
         self.releasable = frozenset(releasable)
+        #: The inputs the stage released or narrowed: no longer the artifact as written.
+        self.released: set[str] = set()
 
 
 def narrow_input(inputs: Mapping[str, Any], name: str, columns: Collection[str]) -> bool:
@@ -139,6 +145,7 @@ def narrow_input(inputs: Mapping[str, Any], name: str, columns: Collection[str])
     if len(kept) == table.num_columns:
         return False
     inputs[name] = table.select(kept)
+    inputs.released.add(name)
     del table
     release_free_memory()
     return True
@@ -156,6 +163,7 @@ def release_inputs(inputs: Mapping[str, Any], *names: str) -> bool:
         table = inputs.get(name)
         if name in inputs.releasable and isinstance(table, pa.Table) and table.num_rows:
             inputs[name] = table.schema.empty_table()
+            inputs.released.add(name)
             released = True
     if released:
         release_free_memory()

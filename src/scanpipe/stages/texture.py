@@ -37,7 +37,7 @@ from scanpipe.schema import (
     TEXTURED_FACES,
     XYZ,
 )
-from scanpipe.stage import Stage, StageResult
+from scanpipe.stage import Stage, StageResult, release_inputs
 from scanpipe.texturing.atlas import build_atlas, frame_charts
 from scanpipe.texturing.exposure import solve_gains
 from scanpipe.texturing.frames import (
@@ -269,6 +269,9 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     """Texture the mesh from the camera frames (the stage function)."""
     clock = PhaseClock()
     vertices, faces, vertex_normals = _mesh_arrays(inputs)
+    # the arrays are copies: the tables go (export reads them back), as do the frames below
+    handed = inputs
+    release_inputs(handed, "mesh_vertices", "mesh_faces")
     rig = rig_from_table(inputs["rig"])
     if not rig.cameras:  # a scan without cameras (simulate --no-cameras): geometry only
         return untextured_result(len(faces), "the rig has no cameras", params.png_compression)
@@ -296,6 +299,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         )
     frames = choose_frames(inputs["frames"], inputs["motor"], rig, params.frame_spacing_deg,
                            params.frame_stride, progress, params.equirect_spacing_deg)
+    del inputs, known_frames  # the chosen frames' bytes are copies
+    release_inputs(handed, "frames")
     clock.lap("frames")
     # each face's best frames only, not a frames × faces matrix (1.9 GB at lab scale)
     scores = face_scores(vertices, faces, normals, frames, min_cos=params.min_cos,
