@@ -73,10 +73,9 @@ def test_groups_partition_the_faces_by_place_and_orientation(mesh) -> None:
         assert (groups.of[members] == g).all()
         corners = groups.corners[groups.corner_start[g]:groups.corner_start[g + 1]]
         assert corners.tolist() == faces[members].ravel().tolist()  # each face's, in order
-        # one orientation: every face's normal in the same bucket, the group's their mean
-        bucket = np.rint(normals[members] + 1.0)
-        assert (bucket == bucket[0]).all()
-        assert (normals[members] @ groups.normal[g] > 0).all()
+        # one orientation: a face turned ~60° from its voxel's mean goes alone
+        if len(members) > 1:
+            assert (normals[members] @ groups.normal[g] > 0).all()
         if len(members) == 1:  # a face alone: its own corners (in order), normal, centroid
             assert corners.tolist() == faces[members[0]].tolist()
             assert np.array_equal(groups.normal[g], normals[members[0]])

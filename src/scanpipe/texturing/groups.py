@@ -3,8 +3,9 @@ and ranks frames for together (docs/texture.md, "Face groups").
 
 A lab-scale mesh has millions of faces of a few frame pixels each: a frame choice cannot tell
 neighbours apart, yet scoring every face in every frame was most of the stage. Faces are
-grouped by a voxel of their centroid and a bucket of their normal (any mesh, not only a scan
-grid), each voxel's faces cut into runs of at most ``max_faces``. A group is held by its
+grouped by a voxel of their centroid (any mesh, not only a scan grid), each voxel's faces cut
+into runs of at most ``max_faces``; a face turned far from its voxel's mean normal (a crease)
+goes alone. A group is held by its
 distinct corners (a frame holds a group whole when it holds every one of them: then it holds
 each of its faces whole, exactly), its area-weighted normal and centroid. Groups of one face
 are the faces themselves: their corners in the face's order, their own normal and centroid,
@@ -25,9 +26,9 @@ I64 = NDArray[np.int64]
 #: The voxel side is this many times the side of a square of ``max_faces`` median faces
 #: (a voxel cuts a surface obliquely and at its edges: it holds fewer faces than its area).
 VOXEL_SCALE = 2.0
-#: Normal components are bucketed in steps of this: −1, 0, 1, borders at ±0.5 (an axis-aligned
-#: wall's noisy normals stay in one bucket).
-NORMAL_STEP = 1.0
+#: A face whose normal is further than acos(this) ≈ 60° from its voxel's mean goes alone.
+CREASE_COS = 0.5
+
 
 @dataclass
 class FaceGroups:
@@ -93,7 +94,7 @@ def face_groups(faces: NDArray[np.integer], normals: F64, areas: F64, centroids:
     n = len(faces)
     if max_faces <= 1 or n == 0:
         return single_faces(faces, normals, centroids)
-    positive = areas[areas > 0]
+    positive = areas[::16][areas[::16] > 0]  # a sample is enough for a typical face
     face_side = float(np.sqrt(np.median(positive))) if len(positive) else 1.0
     voxel_m = max(VOXEL_SCALE * face_side * np.sqrt(max_faces), 1e-9)
     lo = centroids.min(axis=0)
@@ -102,27 +103,41 @@ def face_groups(faces: NDArray[np.integer], normals: F64, areas: F64, centroids:
     while sum(max(1, int((hi[k] - lo[k]) / voxel_m).bit_length()) for k in range(3)) > 40:
         voxel_m *= 2.0  # a huge room of tiny faces: coarser voxels rather than an overflow
     bits = [max(1, int((hi[k] - lo[k]) / voxel_m).bit_length()) for k in range(3)]
-    levels = round(2 / NORMAL_STEP) + 1  # −1, 0, 1: bucket borders at ±0.5, off the axes
     key = np.zeros(n, np.int64)
     for k in range(3):  # a column at a time: no (faces, 3) temporaries
-        key *= levels
-        key += np.rint((np.clip(normals[:, k], -1.0, 1.0) + 1.0) / NORMAL_STEP).astype(np.int64)
-    for k in range(3):
         key <<= bits[k]
         cell = centroids[:, k] - lo[k]
         cell /= voxel_m
         key |= cell.astype(np.int64)  # ≥ 0: truncation is the floor
     del cell
-    order = _radix_order(key, sum(bits) + int(levels ** 3 - 1).bit_length())
+    order = _radix_order(key, sum(bits))
     sorted_key = key[order]
     del key
     new_run = np.empty(n, dtype=bool)
     new_run[0] = True
     np.not_equal(sorted_key[1:], sorted_key[:-1], out=new_run[1:])
     del sorted_key
-    run_start = np.flatnonzero(new_run)
-    # a run longer than max_faces is cut into pieces of at most max_faces, in its order
+    # a face turned far from its voxel's mean normal (a crease: a wall meets the floor, an
+    # object's edge) is not scored by that mean: it goes alone, after the others
     run_of = np.cumsum(new_run) - 1
+    run_start = np.flatnonzero(new_run)
+    mean = np.empty((len(run_start), 3))
+    for c in range(3):
+        mean[:, c] = np.add.reduceat(normals[order, c], run_start)
+    mean /= np.maximum(np.sqrt(np.einsum("ij,ij->i", mean, mean)), 1e-20)[:, None]
+    dot = np.zeros(n)
+    for c in range(3):
+        dot += normals[order, c] * mean[run_of, c]
+    crease = dot < CREASE_COS
+    del dot, mean
+    if crease.any():
+        order = np.r_[order[~crease], order[crease]]
+        run_of = np.r_[run_of[~crease], len(run_start) + np.arange(int(crease.sum()))]
+        new_run = np.r_[True, run_of[1:] != run_of[:-1]]
+        run_start = np.flatnonzero(new_run)
+        run_of = np.cumsum(new_run) - 1
+    del crease
+    # a run longer than max_faces is cut into pieces of at most max_faces, in its order
     within = np.arange(n) - run_start[run_of]
     new_group = new_run | (within % max_faces == 0)
     del new_run, run_of, within, run_start

@@ -26,7 +26,7 @@ import threading
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any
 
@@ -546,6 +546,11 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], groups: FaceGroups, frames:
     """:func:`group_scores`' frames kept for the groups (in group order; scored in azimuth
     order, :attr:`AzimuthIndex.order`)."""
     vertices = np.asarray(vertices, np.float64)
+    if 4 * len(groups.corners) < len(vertices):
+        # a few faces of a large mesh (those scored alone): only their vertices projected
+        used, corners_used = np.unique(groups.corners, return_inverse=True)
+        vertices = vertices[used]
+        groups = replace(groups, corners=corners_used.astype(np.int32).reshape(-1))
     sharp = frames.relative_sharpness() ** sharpness_weight * resolution_weights(frames.cameras)
     near_m, parallax_deg = _window_margins(frames.cameras)
     vertex_index = AzimuthIndex(vertices, near_m)
