@@ -136,7 +136,7 @@ def test_half_hidden_groups_take_frames_their_faces_are_seen_in(recording: Recor
     less surface is textured than face by face."""
     vertices, faces, _ = mesh
     inputs = recording.inputs(*mesh_tables(*mesh))
-    grouped = STAGE.run(inputs, STAGE.params(face_group=64, seam_weight=0.0))
+    grouped = STAGE.run(inputs, STAGE.params(face_group=64, group_px=0, seam_weight=0.0))
     alone = STAGE.run(inputs, STAGE.params(face_group=1, seam_weight=0.0))
     table = grouped.tables["textured_faces"]
     frame_of = np.asarray(table.column("frame").to_numpy(zero_copy_only=False))
@@ -163,12 +163,22 @@ def test_cli_refuses_a_bad_group_size(cli, recording: Recording, tmp_path: Path)
                                 ("decode", "rig", rig_table(recording.rig))):
         write_artifact(work / folder / f"{name}.parquet", table, {"key": name, "stage": folder})
     out = tmp_path / "o"
-    good = cli("texture", work, "--out", out, "--set", "face_group=4", "--json", "-q")
+    good = cli("texture", work, "--out", out, "--set", "face_group=4", "--set", "group_px=0",
+               "--json", "-q")
     assert good.code == 0, good.err
-    assert json.loads(good.out)["face_groups"] > 0
+    assert 0 < json.loads(good.out)["face_groups"] < 0.5 * ft.num_rows
     before = (out / "textured_faces.parquet").read_bytes()
-    for value in ("0", "65", "many"):
-        bad = cli("texture", work, "--out", out, "--set", f"face_group={value}", "-q")
-        assert bad.code == 2 and "face_group" in bad.err, bad.err
+    for key, value in (("face_group", "0"), ("face_group", "65"), ("face_group", "many"),
+                       ("group_px", "-1")):
+        bad = cli("texture", work, "--out", out, "--set", f"{key}={value}", "-q")
+        assert bad.code == 2 and key in bad.err, bad.err
         assert "Traceback" not in bad.err and len(bad.err.strip().splitlines()) == 1
     assert (out / "textured_faces.parquet").read_bytes() == before
+
+
+def test_coarse_faces_stay_alone_at_the_defaults(recording: Recording, mesh) -> None:
+    """Faces already many frame pixels wide (this scene's, ~45 px) are not grouped at the
+    defaults (``group_px``): the per-face result, bit for bit."""
+    result = STAGE.run(recording.inputs(*mesh_tables(*mesh)))
+    assert result.report["face_groups"] == len(mesh[1])
+    assert table_digest(result.tables["textured_faces"]) == PER_FACE_DIGEST

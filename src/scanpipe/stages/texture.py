@@ -14,6 +14,7 @@ Two methods (docs/texture.md):
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Mapping
 from typing import Annotated, Any, Literal
@@ -47,7 +48,13 @@ from scanpipe.texturing.frames import (
     pinhole_frames,
     worker_count,
 )
-from scanpipe.texturing.groups import FaceGroups, face_groups, single_faces, split_into_singles
+from scanpipe.texturing.groups import (
+    GROUP_PX,
+    FaceGroups,
+    face_groups,
+    single_faces,
+    split_into_singles,
+)
 from scanpipe.texturing.labels import smooth_labels
 from scanpipe.texturing.panorama import texture_panorama
 from scanpipe.texturing.patches import bake_patches, partial_candidates
@@ -119,6 +126,9 @@ class TextureParams(Params):
     face_group: int = Field(16, ge=1, le=64, description="faces scored, sampled and ranked "
                             "together at most (a voxel of a few faces of one orientation; 1 = "
                             "every face alone)")
+    group_px: float = Field(GROUP_PX, ge=0, le=1000, description="a face group spans at most "
+                            "about this many pixels of the finest camera at the surface's "
+                            "median distance (coarse faces stay alone; 0 = no limit)")
     max_views: int = Field(6, ge=1, le=32, description="frames sampled per face for levelling "
                            "and outlier rejection")
     patch_texels: int = Field(8, ge=0, le=64, description="faces no frame holds whole are "
@@ -222,6 +232,19 @@ def orient_towards_rig(centroids: NDArray[np.float64], normals: NDArray[np.float
         return False
     normals *= -1
     return True
+
+
+def group_voxel_m(centroids: NDArray[np.float64], rig: Rig, group_px: float) -> float:
+    """The largest voxel side of a face group: ``group_px`` pixels of the finest camera at
+    the median distance of the surface from the rig's axis at the cameras' height (0: no
+    limit)."""
+    if group_px <= 0:
+        return math.inf
+    height = float(np.mean([c.pose.translation_m[1] for c in rig.cameras]))
+    sample = centroids[::16] - np.array([0.0, height, 0.0])
+    distance = float(np.median(np.sqrt(np.einsum("ij,ij->i", sample, sample)))) \
+        if len(sample) else 1.0
+    return group_px * distance / max(c.px_per_rad for c in rig.cameras)
 
 
 def pinhole_frames_only(inputs: Mapping[str, Any], rig: Rig
@@ -345,7 +368,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
                             two_sided=two_sided, progress=progress,
                             keep=params.max_views + params.max_candidates)
 
-    groups = face_groups(faces, normals, areas, centroids, params.face_group)
+    groups = face_groups(faces, normals, areas, centroids, params.face_group,
+                         group_voxel_m(centroids, rig, params.group_px))
     group_count = groups.count
     kept = scored(groups)
     split = np.flatnonzero((kept.frame[:, 0] < 0) & (groups.sizes > 1))

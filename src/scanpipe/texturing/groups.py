@@ -14,6 +14,7 @@ so that scoring them is today's per-face scoring, bit for bit.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,10 @@ I64 = NDArray[np.int64]
 #: The voxel side is this many times the side of a square of ``max_faces`` median faces
 #: (a voxel cuts a surface obliquely and at its edges: it holds fewer faces than its area).
 VOXEL_SCALE = 2.0
+#: A group spans at most about this many pixels of the finest camera at the surface's median
+#: distance (a frame choice at a few pixels is as fine as one per face: the lab's 2-pixel
+#: faces are grouped, a coarse mesh's faces are not).
+GROUP_PX = 24.0
 #: A face whose normal is further than acos(this) ≈ 60° from its voxel's mean goes alone.
 CREASE_COS = 0.5
 
@@ -88,15 +93,20 @@ def single_faces(faces: NDArray[np.integer], normals: F64, centroids: F64,
 
 
 def face_groups(faces: NDArray[np.integer], normals: F64, areas: F64, centroids: F64,
-                max_faces: int) -> FaceGroups:
-    """Group the faces (see the module docstring); ``max_faces`` ≤ 1: every face alone."""
+                max_faces: int, max_voxel_m: float = math.inf) -> FaceGroups:
+    """Group the faces (see the module docstring); ``max_faces`` ≤ 1: every face alone.
+    ``max_voxel_m`` caps the voxel's side (the stage: what spans ``group_px`` frame pixels,
+    :data:`GROUP_PX` by default), so that coarse faces, each already many pixels, are not
+    grouped further."""
     faces = np.asarray(faces)
     n = len(faces)
     if max_faces <= 1 or n == 0:
         return single_faces(faces, normals, centroids)
     positive = areas[::16][areas[::16] > 0]  # a sample is enough for a typical face
     face_side = float(np.sqrt(np.median(positive))) if len(positive) else 1.0
-    voxel_m = max(VOXEL_SCALE * face_side * np.sqrt(max_faces), 1e-9)
+    voxel_m = max(min(VOXEL_SCALE * face_side * math.sqrt(max_faces), max_voxel_m), 1e-9)
+    if voxel_m < 2.0 * face_side:  # a voxel of a few faces at most: every face alone
+        return single_faces(faces, normals, centroids)
     lo = centroids.min(axis=0)
     # the voxel's cell on each axis, packed with the normal's bucket into one int64 key
     hi = centroids.max(axis=0)
