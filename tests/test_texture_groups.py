@@ -182,3 +182,18 @@ def test_coarse_faces_stay_alone_at_the_defaults(recording: Recording, mesh) -> 
     result = STAGE.run(recording.inputs(*mesh_tables(*mesh)))
     assert result.report["face_groups"] == len(mesh[1])
     assert table_digest(result.tables["textured_faces"]) == PER_FACE_DIGEST
+
+
+def test_groups_of_odd_meshes() -> None:
+    """No faces, one face, faces of no area, a vertex not finite: groups (or every face
+    alone) without an error."""
+    for faces, vertices in ((np.zeros((0, 3), np.int64), np.zeros((0, 3))),
+                            (np.array([[0, 1, 2]]), np.eye(3)),
+                            (np.array([[0, 1, 2], [0, 1, 3]]), np.zeros((4, 3))),
+                            (np.array([[0, 1, 2], [1, 2, 3]]),
+                             np.r_[np.eye(3), [[np.nan, 0.0, 0.0]]])):
+        normals, areas = face_normals(vertices, faces)
+        centroids = face_centroids(vertices, faces)
+        groups = face_groups(faces, normals, areas, centroids, 16)
+        assert np.array_equal(np.sort(groups.members), np.arange(len(faces)))
+        assert len(groups.corners) == 3 * len(faces)

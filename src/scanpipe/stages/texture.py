@@ -514,8 +514,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
 
 STAGE = Stage(
     name="texture",
-    version=3,  # 3: occlusion tested at exact shared corners and edge middles (a few faces at
-    # silhouettes take another frame): no cached texture of 2 is reused
+    version=4,  # 4: frames scored per face group (a face may take another frame); 3: occlusion
+    # tested at exact shared corners and edge middles: no cached texture of 3 is reused
     params=TextureParams,
     inputs=("mesh_vertices", "mesh_faces", "frames", "motor", "rig"),
     outputs=("textured_faces", "texture_pages"),

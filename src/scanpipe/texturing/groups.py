@@ -110,6 +110,8 @@ def face_groups(faces: NDArray[np.integer], normals: F64, areas: F64, centroids:
     lo = centroids.min(axis=0)
     # the voxel's cell on each axis, packed with the normal's bucket into one int64 key
     hi = centroids.max(axis=0)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        return single_faces(faces, normals, centroids)  # a vertex not finite: no voxels
     while sum(max(1, int((hi[k] - lo[k]) / voxel_m).bit_length()) for k in range(3)) > 40:
         voxel_m *= 2.0  # a huge room of tiny faces: coarser voxels rather than an overflow
     bits = [max(1, int((hi[k] - lo[k]) / voxel_m).bit_length()) for k in range(3)]
