@@ -297,7 +297,8 @@ def run_lab(run_dir: Path) -> dict[str, Any]:
     report = result.report
     kept = ("coverage", "faces", "faces_textured", "frames_considered", "frames_used",
             "occluded_candidates", "rays_cast", "exposure_pairs", "photometric_outliers",
-            "faces_multiview", "seam_edges_best_frame", "seam_edges", "seam_faces_moved",
+            "faces_multiview", "face_groups", "faces_scored_alone", "seam_edges_best_frame",
+            "seam_edges", "seam_faces_moved",
             "seam_points", "regions", "pages", "gain_min", "gain_max")
     figures: dict[str, Any] = {
         "run": str(run_dir), "seconds": round(wall_s, 2), "cpu_seconds": round(cpu_s, 2),

@@ -14,8 +14,9 @@ Two methods (docs/texture.md):
 
 from __future__ import annotations
 
+import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -41,10 +42,18 @@ from scanpipe.stage import Stage, StageResult, release_inputs
 from scanpipe.texturing.atlas import build_atlas, frame_charts
 from scanpipe.texturing.exposure import solve_gains
 from scanpipe.texturing.frames import (
+    FrameSet,
     choose_frames,
     known_camera_frames,
     pinhole_frames,
     worker_count,
+)
+from scanpipe.texturing.groups import (
+    GROUP_PX,
+    FaceGroups,
+    face_groups,
+    single_faces,
+    split_into_singles,
 )
 from scanpipe.texturing.labels import smooth_labels
 from scanpipe.texturing.panorama import texture_panorama
@@ -57,8 +66,12 @@ from scanpipe.texturing.photometric import (
 )
 from scanpipe.texturing.projective import (
     EQUIRECT_SPACING_DEG,
+    FaceScores,
+    GroupedScores,
+    Scores,
+    Selection,
     colorize_points,
-    face_scores,
+    group_scores,
     resolution_weights,
     select_frames_per_face,
 )
@@ -110,6 +123,12 @@ class TextureParams(Params):
     seam_rounds: int = Field(10, ge=1, le=100, description="ICM rounds of the frame choice")
     seam_strip_px: float = Field(20.0, ge=0, le=200, description="seam blending strip width in "
                                  "frame pixels (0 = off)")
+    face_group: int = Field(16, ge=1, le=64, description="faces scored, sampled and ranked "
+                            "together at most (a voxel of a few faces of one orientation; 1 = "
+                            "every face alone)")
+    group_px: float = Field(GROUP_PX, ge=0, le=1000, description="a face group spans at most "
+                            "about this many pixels of the finest camera at the surface's "
+                            "median distance (coarse faces stay alone; 0 = no limit)")
     max_views: int = Field(6, ge=1, le=32, description="frames sampled per face for levelling "
                            "and outlier rejection")
     patch_texels: int = Field(8, ge=0, le=64, description="faces no frame holds whole are "
@@ -215,6 +234,19 @@ def orient_towards_rig(centroids: NDArray[np.float64], normals: NDArray[np.float
     return True
 
 
+def group_voxel_m(centroids: NDArray[np.float64], rig: Rig, group_px: float) -> float:
+    """The largest voxel side of a face group: ``group_px`` pixels of the finest camera at
+    the median distance of the surface from the rig's axis at the cameras' height (0: no
+    limit)."""
+    if group_px <= 0:
+        return math.inf
+    height = float(np.mean([c.pose.translation_m[1] for c in rig.cameras]))
+    sample = centroids[::16] - np.array([0.0, height, 0.0])
+    distance = float(np.median(np.sqrt(np.einsum("ij,ij->i", sample, sample)))) \
+        if len(sample) else 1.0
+    return group_px * distance / max(c.px_per_rad for c in rig.cameras)
+
+
 def pinhole_frames_only(inputs: Mapping[str, Any], rig: Rig
                         ) -> tuple[dict[str, Any], Rig, list[str]]:
     """The inputs and the rig with only the pinhole cameras, for the paper's panorama
@@ -238,6 +270,35 @@ def untextured_result(n_faces: int, reason: str, png_compression: int) -> StageR
                 "texture_pages": pages_table([], png_compression)},
         report={"untextured": True, "faces": n_faces, "textured_faces": 0,
                 "warnings": [f"untextured: {reason}; the model is exported without texture"]})
+
+
+def _select_alone(alone: NDArray[np.int64], selection: Selection, scores: GroupedScores,
+                  groups: FaceGroups, vertices: NDArray[np.float64],
+                  faces: NDArray[np.signedinteger[Any]],
+                  vertex_normals: NDArray[np.floating[Any]] | None, flipped: bool,
+                  scored: Callable[[FaceGroups], FaceScores], frames: FrameSet,
+                  occlusion: MeshOcclusion, progress: ProgressFn
+                  ) -> tuple[Selection, GroupedScores, FaceGroups]:
+    """The faces ``alone`` (of groups, left without a frame by the ray test) scored and
+    tested each alone, as the per-face path does: the selection, scores and groups with
+    them as groups of their own (their normals and centroids found again, bit for bit)."""
+    normals = face_normals(vertices, faces[alone],
+                           None if vertex_normals is None else vertex_normals)[0]
+    if flipped:
+        normals *= -1
+    centroids = face_centroids(vertices, faces[alone])
+    alone_kept = scored(single_faces(faces[alone], normals, centroids))
+    new_groups, _ = split_into_singles(groups, faces, alone, normals, centroids)
+    merged = GroupedScores(FaceScores(np.concatenate([scores.groups.frame, alone_kept.frame]),
+                                      np.concatenate([scores.groups.score, alone_kept.score])),
+                           new_groups.of)
+    merged.struck[...] = scores.struck
+    merged.struck[alone] = 0
+    again = select_frames_per_face(merged, frames, occlusion, progress, faces=alone)
+    chosen = selection.frame.copy()
+    chosen[alone] = again.frame[alone]
+    return (Selection(chosen, selection.occluded_candidates + again.occluded_candidates,
+                      selection.rays_cast + again.rays_cast), merged, new_groups)
 
 
 class PhaseClock:
@@ -302,16 +363,34 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     del inputs, known_frames  # the chosen frames' bytes are copies
     release_inputs(handed, "frames")
     clock.lap("frames")
-    # each face's best frames only, not a frames × faces matrix (1.9 GB at lab scale)
-    scores = face_scores(vertices, faces, normals, frames, min_cos=params.min_cos,
-                         margin_px=params.margin_px, sharpness_weight=params.sharpness_weight,
-                         two_sided=params.two_sided or vertex_normals is None, progress=progress,
-                         centroids=centroids, keep=params.max_views + params.max_candidates)
+    # each group's best frames only, not a frames × faces matrix (1.9 GB at lab scale); the
+    # faces of a group no frame holds whole are scored alone (a frame may hold some whole)
+    two_sided = params.two_sided or vertex_normals is None
+
+    def scored(of: FaceGroups) -> FaceScores:
+        return group_scores(vertices, of, frames, min_cos=params.min_cos,
+                            margin_px=params.margin_px, sharpness_weight=params.sharpness_weight,
+                            two_sided=two_sided, progress=progress,
+                            keep=params.max_views + params.max_candidates)
+
+    groups = face_groups(faces, normals, areas, centroids, params.face_group,
+                         group_voxel_m(centroids, rig, params.group_px))
+    group_count = groups.count
+    kept = scored(groups)
+    split = np.flatnonzero((kept.frame[:, 0] < 0) & (groups.sizes > 1))
+    split_faces = groups.faces_of(split)
+    if len(split_faces):
+        groups, _ = split_into_singles(groups, faces, split_faces, normals[split_faces],
+                                       centroids[split_faces])
+        alone = scored(single_faces(faces, normals, centroids, split_faces))
+        kept = FaceScores(np.concatenate([kept.frame, alone.frame]),
+                          np.concatenate([kept.score, alone.score]))
+        del alone
     clock.lap("score")
-    candidates = scores.frame  # best first, −1 = none
-    whole = candidates[:, 0] >= 0  # some frame holds the face whole
+    candidates = kept.frame  # per group, best first, −1 = none
+    whole = (candidates[:, 0] >= 0)[groups.of]  # some frame holds the face whole
     views = Views(candidates[:, :params.max_views],
-                  sample_views(centroids, candidates[:, :params.max_views], frames))
+                  sample_views(groups.centroid, candidates[:, :params.max_views], frames))
     del centroids
     gains = np.ones((len(frames), 3))
     fa = np.zeros(0, np.int64)
@@ -321,15 +400,17 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     outliers = 0
     if params.outlier_levels > 0:
         face_of, slot = np.nonzero(photometric_outliers(views, gains, params.outlier_levels))
-        scores.score[face_of, slot] = 0.0
+        kept.score[face_of, slot] = 0.0
         candidates[face_of, slot] = -1
-        outliers = len(face_of)
+        outliers = int(groups.sizes[face_of].sum())  # faces, as the per-face path counts
     del views
     clock.lap("photometric")
     # the stage's peak is the ray scene and the rays beside it: before it is built, the mesh is
     # cut to what the steps below read (int32 corners, shared with the scene; the normals of
     # the faces no frame holds whole, for the multi-view patches), and the edges' sort is done
-    del vertex_normals
+    # the vertex normals (float32, as read) stay for faces scored alone after the ray test
+    if vertex_normals is not None:
+        vertex_normals = vertex_normals.astype(np.float32)
     faces = np.ascontiguousarray(faces, dtype=np.int32)
     partial_pool = np.flatnonzero(~whole)
     partial_normals = normals[partial_pool]
@@ -337,8 +418,22 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     edges = mesh_edges(faces, len(vertices))  # once: rays, seam step, seam strip
     occlusion = MeshOcclusion(vertices, faces, edges)  # the tree is built here, not at a ray
     clock.lap("ray_scene")
+    scores: Scores = (kept if groups.count == len(faces) and params.face_group == 1
+                      else GroupedScores(kept, groups.of))
+    del kept
     selection = select_frames_per_face(scores, frames, occlusion, progress)
     del candidates
+    # faces of a group hidden (in part) in every frame kept for it: scored and tested alone,
+    # as the per-face path does (a half-hidden group's hidden half from another frame)
+    alone_faces = np.zeros(0, np.int64)
+    if isinstance(scores, GroupedScores):
+        alone_faces = np.flatnonzero((selection.frame < 0) & scores.has_candidates()
+                                     & (groups.sizes > 1)[groups.of])
+    if isinstance(scores, GroupedScores) and len(alone_faces):
+        selection, scores, groups = _select_alone(
+            alone_faces, selection, scores, groups, vertices, faces, vertex_normals, flipped,
+            scored, frames, occlusion, progress)
+    del vertex_normals
     clock.lap("visibility")
     smoothing = smooth_labels(scores, selection.frame, edges, frames,
                               occlusion, params.seam_weight, params.seam_rounds,
@@ -404,6 +499,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         "exposure_pairs": len(fa),
         "photometric_outliers": outliers,
         "faces_multiview": 0 if patches is None else len(patches.face),
+        "face_groups": group_count,
+        "faces_scored_alone": len(split_faces) + len(alone_faces),
         "seam_edges_best_frame": smoothing.seam_edges_before,
         "seam_edges": smoothing.seam_edges_after,
         "seam_faces_moved": smoothing.moved,
@@ -422,8 +519,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
 
 STAGE = Stage(
     name="texture",
-    version=3,  # 3: occlusion tested at exact shared corners and edge middles (a few faces at
-    # silhouettes take another frame): no cached texture of 2 is reused
+    version=4,  # 4: frames scored per face group (a face may take another frame); 3: occlusion
+    # tested at exact shared corners and edge middles: no cached texture of 3 is reused
     params=TextureParams,
     inputs=("mesh_vertices", "mesh_faces", "frames", "motor", "rig"),
     outputs=("textured_faces", "texture_pages"),

@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.texturing.frames import FrameSet
-from scanpipe.texturing.projective import FaceScores
+from scanpipe.texturing.projective import FaceScores, Scores
 from scanpipe.texturing.visibility import MeshEdges, MeshOcclusion, mesh_edges
 
 F32 = NDArray[np.float32]
@@ -81,16 +81,15 @@ def seam_edge_count(labels: I64, neighbours: I64 | MeshEdges) -> int:
     return _seam_faces(labels, neighbours)[1]
 
 
-def _reference_scores(scores: FaceScores, labels: I64) -> F64:
+def _reference_scores(scores: Scores, labels: I64) -> F64:
     """Each textured face's score in its frame (0 untextured), in blocks of faces; most faces
     are in their best frame (slot 0): only the others look through their kept frames."""
     reference = np.zeros(len(labels), dtype=np.float64)
     for start in range(0, len(labels), BLOCK_FACES):
         label = labels[start:start + BLOCK_FACES]
-        first = scores.frame[start:start + BLOCK_FACES, 0]
+        first, first_score = scores.first(slice(start, start + len(label)))
         at_first = (first == label) & (label >= 0)
-        reference[start:start + BLOCK_FACES][at_first] = scores.score[
-            start:start + BLOCK_FACES, 0][at_first]
+        reference[start:start + BLOCK_FACES][at_first] = first_score[at_first]
         other = np.flatnonzero(~at_first & (label >= 0))
         reference[start + other] = scores.lookup(label[other], start + other)
     return reference
@@ -107,7 +106,7 @@ def _cost(candidate: I64, rows_frame: I32, rows_score: F32, reference: F64, nb: 
     return np.asarray(data + seam_weight * potts)
 
 
-def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64 | MeshEdges, frames: FrameSet,
+def smooth_labels(scores: Scores, labels: I64, neighbours: I64 | MeshEdges, frames: FrameSet,
                   occlusion: MeshOcclusion, seam_weight: float = 0.3, rounds: int = 10,
                   seed: int = 0, progress: ProgressFn = no_progress) -> Smoothing:
     """ICM on the Potts energy above, from ``labels``; ``scores`` is modified (hidden
@@ -149,7 +148,7 @@ def smooth_labels(scores: FaceScores, labels: I64, neighbours: I64 | MeshEdges, 
         nb = lab_n[on_seam]  # (A, 3) candidate labels
         cnt = counted[on_seam]
 
-        rows_frame, rows_score, ref = scores.frame[active], scores.score[active], reference[active]
+        (rows_frame, rows_score), ref = scores.rows(active), reference[active]
         current = _cost(own, rows_frame, rows_score, ref, nb, cnt, seam_weight)
         options = np.stack([_cost(nb[:, k], rows_frame, rows_score, ref, nb, cnt, seam_weight)
                             for k in range(nb.shape[1])], axis=1)

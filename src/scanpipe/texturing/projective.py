@@ -26,7 +26,7 @@ import threading
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any
 
@@ -48,6 +48,7 @@ from scanpipe.errors import StageError
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.rig import CameraConfig, Rig
 from scanpipe.texturing.frames import FrameSet, choose_frames, worker_count
+from scanpipe.texturing.groups import FaceGroups, ragged_slots, single_faces
 from scanpipe.texturing.visibility import MeshOcclusion, face_centroids
 from scanpipe.threads import thread_pool
 
@@ -157,6 +158,112 @@ class FaceScores:
         match = (self.frame[face] == frame[:, None]) & (frame[:, None] >= 0)
         has = match.any(axis=1)
         self.score[face[has], np.argmax(match[has], axis=1)] = 0.0
+
+    @property
+    def faces(self) -> int:
+        """Rows (faces, or groups)."""
+        return int(self.frame.shape[0])
+
+    def rows(self, face: NDArray[np.integer]) -> tuple[I32, F32]:
+        """The kept frames and scores of faces ``face`` (copies)."""
+        return self.frame[face], self.score[face]
+
+    def first(self, face: slice) -> tuple[I32, F32]:
+        """The best kept frame and its score of the faces ``face`` (a slice)."""
+        return self.frame[face, 0], self.score[face, 0]
+
+    def slot(self, face: NDArray[np.integer], slot: int) -> I32:
+        """The frame in slot ``slot`` of faces ``face`` (−1 = none)."""
+        return np.asarray(self.frame[face, slot], dtype=np.int32)
+
+    def has_candidates(self) -> NDArray[np.bool_]:
+        """Per face: some frame kept."""
+        return np.asarray((self.frame >= 0).any(axis=1))
+
+    def strike_slot(self, face: NDArray[np.integer], slot: int) -> None:
+        """Score 0 for slot ``slot`` of faces ``face`` (an occluded candidate)."""
+        self.score[face, slot] = 0.0
+
+
+class GroupedScores:
+    """Each face's kept frames as its group's (:class:`FaceScores` of the groups, one row per
+    group), and per face the slots struck out for it alone (an occluded candidate: a bit per
+    slot). The methods of :class:`FaceScores` the visibility and seam steps read, per face:
+    a lab-scale mesh's faces hold 4 + a few bytes each here instead of 112 (14 kept frames).
+    """
+
+    def __init__(self, groups: FaceScores, of: I32) -> None:
+        self.groups = groups
+        self.of = of
+        keep = groups.keep
+        self._bits = next((bits for bits in (8, 16, 32, 64) if keep <= bits), 64)
+        self._words = max(1, -(-keep // self._bits))
+        word = {8: np.uint8, 16: np.uint16, 32: np.uint32, 64: np.uint64}[self._bits]
+        #: Per face (and word of slots): bit k set where slot k is struck for that face.
+        self.struck = np.zeros((len(of), self._words), dtype=word)
+
+    @property
+    def keep(self) -> int:
+        """Frames kept per face."""
+        return self.groups.keep
+
+    @property
+    def faces(self) -> int:
+        """Faces."""
+        return len(self.of)
+
+    def _struck_mask(self, face: NDArray[np.integer]) -> NDArray[np.bool_]:
+        """``(len(face), keep)``: the slots struck for each face."""
+        slots = np.arange(self.keep)
+        words = self.struck[face][:, slots // self._bits]
+        shift = (slots % self._bits).astype(words.dtype)
+        return np.asarray((words >> shift) & words.dtype.type(1), dtype=bool)
+
+    def rows(self, face: NDArray[np.integer]) -> tuple[I32, F32]:
+        """The kept frames and scores of faces ``face`` (copies; struck slots score 0)."""
+        group = self.of[face]
+        frame, score = self.groups.frame[group], self.groups.score[group]
+        struck = self._struck_mask(face)
+        if struck.any():
+            score[struck] = 0.0
+        return frame, score
+
+    def first(self, face: slice) -> tuple[I32, F32]:
+        """The best kept frame and its score of the faces ``face`` (a slice)."""
+        group = self.of[face]
+        frame, score = self.groups.frame[group, 0], self.groups.score[group, 0]
+        struck = (self.struck[face, 0] & self.struck.dtype.type(1)) != 0
+        return frame, np.where(struck, np.float32(0.0), score)
+
+    def slot(self, face: NDArray[np.integer], slot: int) -> I32:
+        """The frame in slot ``slot`` of faces ``face`` (−1 = none)."""
+        return np.asarray(self.groups.frame[self.of[face], slot], dtype=np.int32)
+
+    def has_candidates(self) -> NDArray[np.bool_]:
+        """Per face: some frame kept for its group."""
+        return self.groups.has_candidates()[self.of]
+
+    def strike_slot(self, face: NDArray[np.integer], slot: int) -> None:
+        """Slot ``slot`` struck for faces ``face`` (not for the rest of their groups)."""
+        word = self.struck.dtype.type(1) << self.struck.dtype.type(slot % self._bits)
+        self.struck[face, slot // self._bits] |= word
+
+    def lookup(self, frame: I64, face: I64) -> F32:
+        """Score of frame ``frame[i]`` for face ``face[i]`` (0 where not kept or struck)."""
+        return FaceScores.lookup_rows(frame, *self.rows(face))
+
+    def strike(self, frame: I64, face: I64) -> None:
+        """Frame ``frame[i]`` struck for face ``face[i]`` (an occluded candidate)."""
+        rows_frame, _ = self.rows(face)
+        match = (rows_frame == frame[:, None]) & (frame[:, None] >= 0)
+        has = match.any(axis=1)
+        slot = np.argmax(match[has], axis=1)
+        for k in np.unique(slot).tolist():  # a pass per distinct slot (≤ keep)
+            self.strike_slot(face[has][slot == k], k)
+
+
+#: What the visibility and seam steps read: per face (:class:`FaceScores`) or per group.
+Scores = FaceScores | GroupedScores
 
 
 class BestFrames:
@@ -392,79 +499,106 @@ def face_scores(vertices: NDArray[np.floating], faces: NDArray[np.integer], norm
                 sharpness_weight: float = 1.0, two_sided: bool = False,
                 progress: ProgressFn = no_progress, centroids: F64 | None = None,
                 keep: int = 14) -> FaceScores:
-    """Each face's best ``keep`` frames by score, best first (see the module docstring).
+    """Each face's best ``keep`` frames by score, best first (see the module docstring): the
+    per-face path, :func:`group_scores` with every face a group of its own.
 
     ``keep``: the texture stage passes ``max_views + max_candidates``, every frame a face's
-    later steps read but ICM's (which then may move a face only to one of these frames). The
-    frames are scored on threads, a frame each, and offered to :class:`BestFrames` in frame
-    order on this thread (the result does not depend on the threads).
+    later steps read but ICM's (which then may move a face only to one of these frames).
+    """
+    faces = np.asarray(faces, np.int64)
+    if centroids is None:
+        centroids = face_centroids(np.asarray(vertices, np.float64), faces)
+    return group_scores(vertices, single_faces(faces, normals, centroids), frames,
+                        min_cos=min_cos, margin_px=margin_px,
+                        sharpness_weight=sharpness_weight, two_sided=two_sided,
+                        progress=progress, keep=keep)
+
+
+def group_scores(vertices: NDArray[np.floating], groups: FaceGroups, frames: FrameSet, *,
+                 min_cos: float = 0.2, margin_px: float = 2.0, sharpness_weight: float = 1.0,
+                 two_sided: bool = False, progress: ProgressFn = no_progress,
+                 keep: int = 14) -> FaceScores:
+    """Each group's best ``keep`` frames by score, best first (rows: the groups): a frame
+    scores a group when it holds every corner of the group inside its image (then it holds
+    each of its faces whole), from the group's normal and centroid, and the mean image
+    position of its corners (a group of one face: exactly the face's score).
+
+    The frames are scored on threads, a frame each, and offered to :class:`BestFrames` in
+    frame order on this thread (the result does not depend on the threads).
 
     Per frame only the vertices within the camera's azimuth window (plus those near the axis,
-    where the camera's offset from the axis matters) are projected, and only the faces whose
-    first corner is one of them are looked at (a face in view has every corner in view).
-    Vertices are renumbered by azimuth once and faces by their first corner, so that a window
-    is a few contiguous slices of every per-vertex and per-face array (a phone's faces are
+    where the camera's offset from the axis matters) are projected, and only the groups whose
+    first corner is one of them are looked at (a group in view has every corner in view).
+    Vertices are renumbered by azimuth once and groups by their first corner, so that a window
+    is a few contiguous slices of every per-vertex and per-group array (a phone's groups are
     gathered from its vertices in view instead: most of its window is out of its view). The
-    kept frames are held in face order (each frame's offers renumbered on its thread): put
-    back in face order at the end instead, they were a second copy (~0.5 GB at lab scale),
-    for about the same CPU time.
+    kept frames are held in group order (each frame's offers renumbered on its thread).
     """
     return _kept_by_azimuth(
-        vertices, faces, normals, frames, min_cos=min_cos, margin_px=margin_px,
+        vertices, groups, frames, min_cos=min_cos, margin_px=margin_px,
         sharpness_weight=sharpness_weight, two_sided=two_sided, progress=progress,
-        centroids=centroids, keep=keep).result()
+        keep=keep).result()
 
 
-def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer], normals: F64,
-                     frames: FrameSet, *, min_cos: float, margin_px: float,
-                     sharpness_weight: float, two_sided: bool, progress: ProgressFn,
-                     centroids: F64 | None, keep: int) -> BestFrames:
-    """:func:`face_scores`' frames kept for the faces (in face order; scored in azimuth
+def _kept_by_azimuth(vertices: NDArray[np.floating], groups: FaceGroups, frames: FrameSet, *,
+                     min_cos: float, margin_px: float, sharpness_weight: float,
+                     two_sided: bool, progress: ProgressFn, keep: int) -> BestFrames:
+    """:func:`group_scores`' frames kept for the groups (in group order; scored in azimuth
     order, :attr:`AzimuthIndex.order`)."""
     vertices = np.asarray(vertices, np.float64)
-    faces = np.asarray(faces, np.int64)
+    if 4 * len(groups.corners) < len(vertices):
+        # a few faces of a large mesh (those scored alone): only their vertices projected
+        used, corners_used = np.unique(groups.corners, return_inverse=True)
+        vertices = vertices[used]
+        groups = replace(groups, corners=corners_used.astype(np.int32).reshape(-1))
     sharp = frames.relative_sharpness() ** sharpness_weight * resolution_weights(frames.cameras)
     near_m, parallax_deg = _window_margins(frames.cameras)
-    if centroids is None:
-        centroids = face_centroids(vertices, faces)
     vertex_index = AzimuthIndex(vertices, near_m)
-    # everything below in azimuth order: vertex k is vertices[vertex_index.order[k]], face
-    # position k is face face_ids[k], the faces ordered by their first corner's position:
-    # the faces whose first corner lies in a range of vertices are a range of faces
+    n_groups = groups.count
+    # everything below in azimuth order: vertex k is vertices[vertex_index.order[k]], group
+    # position k is group face_ids[k], the groups ordered by their first corner's position:
+    # the groups whose first corner lies in a range of vertices are a range of groups
     position = np.empty(len(vertices), dtype=np.int64)
     position[vertex_index.order] = np.arange(len(vertices))
-    face_ids = np.argsort(position[faces[:, 0]], kind="stable")
-    # the face of each position as offered (int32 when it fits: the scores of up to three
-    # frames are in flight, ~5 M faces each for a 360° frame at lab scale)
-    face_of = face_ids.astype(np.int32) if len(faces) < 2 ** 31 else face_ids
-    # float32 and int32 columns per face and vertex: the loop below streams them for every
-    # frame (column arithmetic: an (n, 3) @ (3,) product is ~7× slower than three columns)
-    corners = [np.ascontiguousarray(position[faces[face_ids, k]], dtype=np.int32)
-               for k in range(3)]
+    face_ids = np.argsort(position[groups.corners[groups.corner_start[:-1]]], kind="stable")
+    # the group of each position as offered (int32 when it fits: the scores of up to three
+    # frames are in flight, ~5 M for a 360° frame at lab scale)
+    face_of = face_ids.astype(np.int32) if n_groups < 2 ** 31 else face_ids
+    corner_count = np.diff(groups.corner_start)[face_ids]
+    # every group three corners (faces): a column per corner, as the per-face path always
+    # was; else the corners of a group in a ragged row (group positions' rows in order)
+    triangles = bool((corner_count == 3).all())
+    flat_corners = np.ascontiguousarray(
+        position[groups.corners[ragged_slots(groups.corner_start, face_ids)]], dtype=np.int32)
+    corner_start = np.zeros(n_groups + 1, np.int64)
+    np.cumsum(corner_count, out=corner_start[1:])
+    del corner_count
+    corners = ([np.ascontiguousarray(flat_corners[k::3]) for k in range(3)] if triangles
+               else [flat_corners[corner_start[:-1]]])
     del position
     # float32 vertex columns: the projection streams them for every frame (twice as fast as
     # float64, and well under 10⁻³ px off it: scanpipe.camera.project_columns)
     point_of = [np.ascontiguousarray(vertices[vertex_index.order, k], dtype=np.float32)
                 for k in range(3)]
-    centre_of = [np.ascontiguousarray(centroids[face_ids, k], dtype=np.float32)
+    centre_of = [np.ascontiguousarray(groups.centroid[face_ids, k], dtype=np.float32)
                  for k in range(3)]
-    normal_of = [np.ascontiguousarray(normals[face_ids, k], dtype=np.float32)
+    normal_of = [np.ascontiguousarray(groups.normal[face_ids, k], dtype=np.float32)
                  for k in range(3)]
-    # cos θ = (n·c − n·p) / |c − p| from per-face constants and two dot products per frame
+    # cos θ = (n·c − n·p) / |c − p| from per-group constants and two dot products per frame
     n_dot_p = sum((normal_of[k] * centre_of[k] for k in range(1, 3)), normal_of[0] * centre_of[0])
     p_squared = sum((centre_of[k] * centre_of[k] for k in range(1, 3)), centre_of[0] * centre_of[0])
-    kept = BestFrames(len(faces), keep, small=len(frames) < 2 ** 15)
+    kept = BestFrames(n_groups, keep, small=len(frames) < 2 ** 15)
     scratch = threading.local()  # per thread: u, v and valid of every vertex (azimuth order)
 
-    # where the faces of each vertex position (as first corner) start: a frame's faces are
-    # those of its window's vertices (a face wholly in view has its first corner in view)
+    # where the groups of each vertex position (as first corner) start: a frame's groups are
+    # those of its window's vertices (a group wholly in view has its first corner in view)
     # (counted: the positions are small integers; a search for each took 8× as long)
     first_of = np.zeros(len(vertices) + 1, np.int64)
     np.cumsum(np.bincount(corners[0], minlength=len(vertices)), out=first_of[1:])
 
     def faces_in_view(seen: I64) -> I64:
-        """Positions of the faces whose first corner is one of the vertex positions ``seen``
-        (ascending, as ``seen``): every face with all its corners in view, and others. (Most
+        """Positions of the groups whose first corner is one of the vertex positions ``seen``
+        (ascending, as ``seen``): every group with all its corners in view, and others. (Most
         of a phone's azimuth window is floor and ceiling outside its view.)"""
         start = first_of[seen]
         count = first_of[seen + 1] - start
@@ -535,7 +669,28 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
             # the faces that face the camera
             cos = cosines(slice(a, b), centre)
             facing = np.flatnonzero(cos >= min_cos)
-            if cam.model == "equirect":
+            if not triangles:  # groups: their corners in ragged rows, the slice's in a row
+                first, last = int(corner_start[a]), int(corner_start[b])
+                offset = corner_start[a:b] - first
+                at = flat_corners[first:last]
+                if not every_valid:
+                    inside = np.logical_and.reduceat(valid[at], offset)
+                    facing = facing[inside[facing]]
+                score = cos[facing] * weight
+                # (the image columns of corners out of view are any numbers: not used)
+                with np.errstate(invalid="ignore", over="ignore"):
+                    if cam.model == "equirect":
+                        column = u[at]
+                        spread = np.maximum.reduceat(column, offset)
+                        spread -= np.minimum.reduceat(column, offset)
+                        whole = spread[facing] <= cam.width / 4
+                        facing, score = facing[whole], score[whole]
+                    else:
+                        count = np.diff(corner_start[a:b + 1]).astype(np.float32)
+                        mean_u = np.add.reduceat(u[at], offset)[facing] / count[facing]
+                        mean_v = np.add.reduceat(v[at], offset)[facing] / count[facing]
+                        score *= pinhole_centrality(mean_u, mean_v, cam)
+            elif cam.model == "equirect":
                 # a 360° frame sees about every vertex: their look-ups only when some not
                 # (each corner then looked up once: no conversion to the index type first)
                 k0, k1, k2 = (corner[a:b][facing] for corner in corners)
@@ -565,6 +720,31 @@ def _kept_by_azimuth(vertices: NDArray[np.floating], faces: NDArray[np.integer],
         out: list[tuple[I64, F32]] = []
         for start in range(0, len(candidates), SCORE_CHUNK):
             face = candidates[start:start + SCORE_CHUNK]
+            if not triangles and len(face):  # groups: their corners in ragged rows
+                slots = ragged_slots(corner_start, face)
+                count = corner_start[face + 1] - corner_start[face]
+                offset = np.cumsum(count) - count
+                at = flat_corners[slots]
+                del slots
+                held = np.flatnonzero(np.logical_and.reduceat(valid[at], offset))
+                face = face[held]
+                cos = cosines(face, centre)
+                facing = np.flatnonzero(cos >= min_cos)
+                face, kept_rows = face[facing], held[facing]
+                score = cos[facing] * weight
+                # (the image columns of corners out of view are any numbers: not used)
+                with np.errstate(invalid="ignore", over="ignore"):
+                    per = count[kept_rows].astype(np.float32)
+                    mean_u = np.add.reduceat(u[at], offset)[kept_rows] / per
+                    mean_v = np.add.reduceat(v[at], offset)[kept_rows] / per
+                score *= pinhole_centrality(mean_u, mean_v, cam)
+                if not surely_positive(weight):
+                    positive = score > 0
+                    face, score = face[positive], score[positive]
+                out.append((face, np.asarray(score, dtype=np.float32)))
+                continue
+            if not triangles:
+                continue
             # positions as the index type once (numpy converts int32 at every look-up)
             c0, c1, c2 = (corner[face].astype(np.intp) for corner in corners)
             inside = valid[c0] & valid[c1] & valid[c2]
@@ -617,32 +797,35 @@ class Selection:
     rays_cast: int
 
 
-def select_frames_per_face(scores: FaceScores, frames: FrameSet, occlusion: MeshOcclusion,
-                           progress: ProgressFn = no_progress) -> Selection:
+def select_frames_per_face(scores: Scores, frames: FrameSet, occlusion: MeshOcclusion,
+                           progress: ProgressFn = no_progress,
+                           faces: NDArray[np.integer] | None = None) -> Selection:
     """Each face's best frame in which it is wholly visible (see module docstring), from its
-    kept frames (``scores.frame``: best first, −1 = none or struck out).
+    kept frames (best first, −1 = none or struck out); only of the faces ``faces`` when given
+    (the others −1).
 
-    ``scores`` is modified: occluded candidates score 0.
+    ``scores`` is modified: occluded candidates are struck out.
     """
-    candidates = scores.frame
-    n_faces, k = candidates.shape
+    n_faces, k = scores.faces, scores.keep
     chosen = np.full(n_faces, -1, dtype=np.int64)
     if len(frames) == 0 or n_faces == 0:
         return Selection(chosen, 0, 0)
     centres = np.stack([frames.centre(i) for i in range(len(frames))])
-    pending = np.flatnonzero((candidates >= 0).any(axis=1))
+    has = scores.has_candidates()
+    pending = (np.flatnonzero(has) if faces is None
+               else np.sort(np.asarray(faces, np.int64)[has[faces]]))
     occluded = 0
     rays_before = occlusion.rays_cast
     for slot in range(k):
         if len(pending) == 0:
             break
-        struck = candidates[pending, slot] < 0  # none left, or an outlier: try the next
-        waiting, pending = pending[struck], pending[~struck]
-        best = candidates[pending, slot]
+        best = scores.slot(pending, slot)
+        struck = best < 0  # none left, or an outlier: try the next
+        waiting, pending, best = pending[struck], pending[~struck], best[~struck]
         visible = occlusion.faces_visible_from(centres, best, pending)
         chosen[pending[visible]] = best[visible]
         blocked = ~visible
-        scores.score[pending[blocked], slot] = 0.0
+        scores.strike_slot(pending[blocked], slot)
         occluded += int(blocked.sum())
         pending = np.sort(np.concatenate([pending[blocked], waiting]))
         progress("visibility", slot + 1, k)
