@@ -14,6 +14,7 @@ import pytest
 
 from scanpipe.acquire.scanner_client import ScannerClient
 from scanpipe.artifacts import read_provenance
+from scanpipe.errors import DeviceError
 from scanpipe.evaluate import SurfaceDistance, load_reference
 from scanpipe.protocol import scip
 from scanpipe.protocol.registry import decode_bytes
@@ -132,3 +133,53 @@ def test_scip_live_through_the_emulator_and_run(tmp_path: Path, cli: Callable[..
         SurfaceDistance(load_reference(truth).mesh).distance_m(xyz)))))
     sigma = SCANNER_MODELS[model].noise_sigma_m
     assert rms <= 1.1 * sigma, f"RMS {rms * 1e3:.2f} mm = {rms / sigma:.3f} σ"
+
+
+def test_a_scip11_device_answers_as_scip11_until_switched() -> None:
+    device = ScipDevice(scanner_for_model("urg04lx"), protocol="1.1")
+    assert device.receive(b"VV\nSCIP2.0\nVV\n", 1.0)[:2] == [b"VV\nE\n\n", b"SCIP2.0\n0\n\n"]
+    assert device.protocol == "2.0"
+    refusing = ScipDevice(scanner_for_model("urg04lx"), protocol="1.1-only")
+    assert refusing.receive(b"SCIP2.0\nVV\n", 1.0) == [b"SCIP2.0\nE\n\n", b"VV\nE\n\n"]
+    # A SCIP 2.0 device answers the switch 0E (already SCIP 2.0).
+    assert ScipDevice(scanner_for_model("urg04lx")).receive(b"SCIP2.0\n", 1.0) == [
+        b"SCIP2.0\n" + scip.status_line("0E") + b"\n"]
+
+
+def test_a_scip11_urg_is_switched_to_scip20_over_a_pty() -> None:
+    """A URG-04LX of older firmware starts in SCIP 1.1: the driver's VV is answered 'E' (it
+    timed out before: the reply was no SCIP 2.0 message); the driver sends SCIP2.0, as
+    urg_library does, and records the SCIP 2.0 stream, which decodes as the 2.0 device's."""
+    options = _options("urg04lx").model_copy(update={"scip_protocol": "1.1"})
+    with VirtualRig(options, speedup=2.0, scene=box_room()) as virtual:
+        sink = Sink()
+        client = ScannerClient(virtual.client_rig().scanner, sink)
+        client.connect()
+        try:
+            assert client.wait_for_profiles(time.time_ns() - 1, 3, timeout_s=5.0)
+        finally:
+            client.close()
+        requests = virtual.scanner.requests
+    assert requests[:6] == ["VV", "SC", "VV", "PP", "BM", "MD"]
+    received = b"".join(d for _, d, direction in sink.chunks if direction == 0)
+    assert received.startswith(b"VV\nE\n\nSCIP2.0\n0\n\nVV\n00P\n")
+    profiles, counters = decode_bytes(received, "scip")
+    assert len(profiles) >= 3 and profiles[0].start_angle_deg == pytest.approx(-119.53125)
+    assert counters.other_frames >= 5 and counters.checksum_failures == 0
+    # The handshake (the two SCIP 1.1 answers, VV, PP, BM, MD) is read whole: six other
+    # frames, not a byte skipped as noise.
+    handshake = received[:received.index(b"\n\n", received.index(b"\nMD")) + 2]
+    _, counters = decode_bytes(handshake, "scip")
+    assert counters.other_frames == 6 and counters.bytes_skipped == 0
+
+
+def test_a_scip11_urg_that_refuses_the_switch_is_one_line() -> None:
+    options = _options("urg04lx").model_copy(update={"scip_protocol": "1.1-only"})
+    with VirtualRig(options, speedup=2.0, scene=box_room()) as virtual:
+        client = ScannerClient(virtual.client_rig().scanner, Sink())
+        with pytest.raises(DeviceError) as raised:
+            client.connect()
+        client.close()
+    message = str(raised.value)
+    assert "\n" not in message and "SCIP 1.1" in message and "refused the switch" in message
+    assert "update the sensor's firmware" in message

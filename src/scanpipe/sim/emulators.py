@@ -48,6 +48,7 @@ from scanpipe.sim.scanner import (
     true_ranges,
 )
 from scanpipe.sim.scene import Scene
+from scanpipe.sim.scip_device import ScipDevice
 from scanpipe.sim.truth import truth_table, write_truth
 
 #: How often idle emulator threads look at their stop flag (real seconds).
@@ -173,8 +174,10 @@ class ScannerEmulator:
 
     def __init__(self, scene: Scene, scanner_true: ScannerConfig, platform: PlatformState,
                  clock: SimClock, measurement: MeasurementModel, host: str = "127.0.0.1",
-                 port: int = 0, phase_s: float = 0.0) -> None:
+                 port: int = 0, phase_s: float = 0.0, scip_protocol: str = "2.0") -> None:
         self.scene = scene
+        #: A Hokuyo's protocol at power-on (``sim.scip_device.START_PROTOCOLS``).
+        self.scip_protocol = scip_protocol
         self.scanner = scanner_true
         self.platform = platform
         self.clock = clock
@@ -288,6 +291,8 @@ class ScannerEmulator:
     # -- one connection --------------------------------------------------------------------
     def _serve(self, client: socket.socket | _PtyEndpoint) -> None:
         device = emulated_device(self.scanner)
+        if isinstance(device, ScipDevice):
+            device.protocol = self.scip_protocol
         with self._lock:
             self.devices.append(device)
         serial = isinstance(client, _PtyEndpoint)
@@ -635,7 +640,8 @@ class VirtualRig:
         phase = float(np.random.default_rng([self.options.seed, 7]).uniform(
             0.0, 1.0 / self.true.scanner.scan_hz))
         self.scanner = ScannerEmulator(self.scene, self.true.scanner, self.platform, self.clock,
-                                       self.options.measurement(), phase_s=phase)
+                                       self.options.measurement(), phase_s=phase,
+                                       scip_protocol=self.options.scip_protocol)
         self.motor = MotorEmulator(motor, self.platform, self.clock,
                                    self.options.report_interval_s)
         self.cameras = {
