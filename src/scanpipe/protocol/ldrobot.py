@@ -855,7 +855,8 @@ def _resample(p: _Pending, revs: NDArray[np.int64], beams: int,
     # turn late from a device that sends a turn at once), an earlier one (a turn whose tail
     # was lost) would make one negative and shift every time.
     first_packet = np.searchsorted(last_rev, revs, side="left")
-    reached = np.floor((p.angle_bounds()[1] + 1.5 * step) / 360.0).astype(np.int64)
+    reached = np.floor((p.start_deg + _SPAN_STEPS * p.step_deg + 1.5 * step) / 360.0
+                       ).astype(np.int64)
     end_packet = np.searchsorted(np.maximum.accumulate(reached), revs + 1, side="left")
     start_offsets = p.end_offset[np.minimum(first_packet, len(p) - 1)] - PACKET_BYTES
     end_offsets = p.end_offset[np.minimum(end_packet, len(p) - 1)]

@@ -29,7 +29,6 @@ import pyarrow as pa
 from numpy.typing import NDArray
 
 from scanpipe.errors import SimulationError
-from scanpipe.protocol import ldrobot
 from scanpipe.rig import CameraConfig, MotorConfig, Rig, ScannerConfig
 from scanpipe.sim.camera import CameraModel, render_rgb
 from scanpipe.sim.clock import SimClock
@@ -40,9 +39,9 @@ from scanpipe.sim.options import SimOptions
 from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import (
     MeasurementModel,
-    beam_angles_deg,
     echo_amplitude,
     measure,
+    packet_beams,
     sample_time_offsets_s,
     sector_duration_s,
     true_ranges,
@@ -408,17 +407,8 @@ class ScannerEmulator:
         times = start_s + offsets
         beta = self.platform.beta_deg_at(times)[None, :]
         truth = true_ranges(self.scene, config, beta)
-        beams = truth
-        if config.dialect == "ldrobot_ld14":
-            # An LD14 reports at its packet angle a sample whose beam points at that angle less
-            # the distance-dependent shift: cast those beams (the decoder's correction maps
-            # them back onto the grid, where ``truth`` is what the profile should read).
-            def range_at(beam_deg: NDArray[np.float64]) -> NDArray[np.float64]:
-                cast = true_ranges(self.scene, config, beta, beam_deg=beam_deg).ranges_m[0]
-                return np.asarray(cast, np.float64)
-
-            corrected, _ = ldrobot.sl_packet_angles_deg(beam_angles_deg(config), range_at)
-            beams = true_ranges(self.scene, config, beta, beam_deg=corrected)
+        beams = packet_beams(self.scene, config, beta) if config.dialect == "ldrobot_ld14" \
+            else truth
         measured = measure(beams, self.measurement, k, config)[0]
         echo = (echo_amplitude(measured[None, :], beams)[0] if self._sends_echo(config)
                 else None)
