@@ -9,19 +9,29 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
 from scanpipe.evaluate import SurfaceDistance, load_reference
 from scanpipe.protocol import ldrobot as ld
 from scanpipe.protocol.profile import Profile
-from scanpipe.protocol.registry import DIALECTS, decode_bytes, detect_dialect
+from scanpipe.protocol.registry import (
+    DIALECTS,
+    StreamDecoder,
+    decode_bytes,
+    detect_dialect,
+    get_dialect,
+)
+from scanpipe.recording.reader import read_recording
+from scanpipe.recording.schemas import RX
 from scanpipe.rig import load_rig
 from scanpipe.scanner_models import SCANNER_MODELS, limit_problems
 from scanpipe.sim.ldrobot_device import LdrobotHead, cast_beams, ldrobot_model
 from scanpipe.sim.motion import PlatformState
 from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import MeasurementModel
+from scanpipe.stages.decode import DecodedStream, DecodeParams, decode_recording
 
 
 def test_the_shift_is_the_sdks_formula_computed_by_hand() -> None:
@@ -152,3 +162,25 @@ def test_simulate_ld14_direct_then_run_is_within_the_noise(tmp_path: Path,
     distances = SurfaceDistance(load_reference(truth).mesh).distance_m(xyz)
     rms = float(np.sqrt(np.mean(np.square(distances))))
     assert rms <= 1.1 * SCANNER_MODELS["ld14"].noise_sigma_m, rms
+
+    # A stream decoded while it was recorded (run --follow) detects the plain family from
+    # the bytes: the decode stage does not take it for an LD14 rig, it decodes with the
+    # correction (the same profiles as the batch decode).
+    recording = read_recording(rec)
+    params = DecodeParams()
+    plain = get_dialect("ldrobot")
+    decoder = StreamDecoder(plain)
+    frames = decoder.feed_frames(recording.stream("scanner", RX).data)
+    frames += decoder.finish_frames()
+    followed = decode_recording(recording, params, decoded=DecodedStream(plain, decoder, frames))
+    batch = decode_recording(recording, params)
+    assert followed.report["dialect"] == batch.report["dialect"] == "ldrobot_ld14"
+    a, b = followed.tables["profiles"], batch.tables["profiles"]
+    assert a.schema == b.schema and a.num_rows == b.num_rows, (a.schema, b.schema)
+    for name in a.column_names:  # lists flattened (with their lengths): NaN equals NaN
+        x, y = a.column(name).combine_chunks(), b.column(name).combine_chunks()
+        if pa.types.is_list(x.type):
+            assert x.value_lengths().equals(y.value_lengths()), name
+            x, y = x.flatten(), y.flatten()
+        np.testing.assert_array_equal(x.to_numpy(zero_copy_only=False),
+                                      y.to_numpy(zero_copy_only=False), name)
