@@ -18,7 +18,8 @@ from scanpipe.errors import DeviceError
 from scanpipe.evaluate import SurfaceDistance, load_reference
 from scanpipe.protocol import scip
 from scanpipe.protocol.registry import decode_bytes
-from scanpipe.rig import default_rig, scanner_for_model
+from scanpipe.recording.reader import read_recording
+from scanpipe.rig import default_rig, rig_to_toml, scanner_for_model
 from scanpipe.scanner_models import SCANNER_MODELS
 from scanpipe.sim.emulators import VirtualRig
 from scanpipe.sim.options import SimOptions
@@ -183,3 +184,34 @@ def test_a_scip11_urg_that_refuses_the_switch_is_one_line() -> None:
     message = str(raised.value)
     assert "\n" not in message and "SCIP 1.1" in message and "refused the switch" in message
     assert "update the sensor's firmware" in message
+
+
+@pytest.mark.slow
+def test_record_a_scip11_urg_then_run_and_a_refusing_one_is_one_line(
+        tmp_path: Path, cli: Callable[..., Any]) -> None:
+    """The user's path with a URG-04LX that starts in SCIP 1.1: ``record`` (switched, as
+    urg_library does) → ``run``; one that refuses the switch: ``record`` fails in one line
+    naming SCIP 1.1, and its file is finished and says what happened."""
+    for protocol in ("1.1", "1.1-only"):
+        options = _options("urg04lx").model_copy(update={"scip_protocol": protocol})
+        rec = tmp_path / f"{protocol}.mcap"
+        with VirtualRig(options, speedup=2.0, scene=box_room()) as virtual:
+            rig_file = tmp_path / f"{protocol}.toml"
+            rig_file.write_text(rig_to_toml(virtual.client_rig()))
+            result = cli("record", "--rig", rig_file, "--out", rec, "--mode", "continuous",
+                         "--motor-step", "10", "--no-cameras", "--quiet")
+        assert "Traceback" not in result.err
+        if protocol == "1.1-only":
+            assert result.code == 1 and result.err.count("\n") == 1, result.err
+            assert "SCIP 1.1" in result.err and "refused the switch" in result.err
+            recording = read_recording(rec)
+            assert recording.complete and "device_error" in [e.kind for e in recording.events]
+            continue
+        assert result.code == 0, result.err
+        work = tmp_path / "work"
+        result = cli("run", rec, "--workdir", work, "--quiet")
+        assert result.code == 0, result.err
+        report = read_provenance(work / "decode" / "profiles.parquet")["report"]
+        assert report["dialect"] == "scip" and report["counters"]["checksum_failures"] == 0
+        assert report["counters"]["frames_decoded"] >= 10
+        assert (work / "assemble" / "points.parquet").is_file()
