@@ -4,6 +4,7 @@ distance-dependent shift (ldlidar_sl_ros2, ``SlTransform``), as their own dialec
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -155,6 +156,8 @@ def test_simulate_ld14_direct_then_run_is_within_the_noise(tmp_path: Path,
     profiles = pq.read_table(work / "decode" / "profiles.parquet", columns=["dialect",
                                                                             "ranges_m"])
     assert set(profiles.column("dialect").to_pylist()) == {"ldrobot_ld14"}
+    info = cli("info", rec, "--json")  # its rig names the variant there too
+    assert info.code == 0 and json.loads(info.out)["profiles"]["dialect"] == "ldrobot_ld14"
     table = pq.read_table(work / "assemble" / "points.parquet", columns=["x", "y", "z"])
     xyz = np.stack([table.column(c).to_numpy() for c in "xyz"], axis=1).astype(np.float64)
     xyz = xyz[np.isfinite(xyz).all(axis=1)]

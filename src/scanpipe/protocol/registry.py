@@ -422,6 +422,17 @@ def describe_bytes(data: bytes) -> str:
     return f"it begins {head} (not a pcap/pcapng, MCAP or ROS bag container)"
 
 
+#: Dialects whose bytes are another's, told apart only by the rig's scanner model (never
+#: detected): each → the dialect its bytes are detected as (an LD14's stream reads as an LD06's).
+DETECTED_AS: dict[str, str] = {"ldrobot_ld14": "ldrobot"}
+
+
+def rig_variant(detected: str, rig_dialect: str) -> str:
+    """The dialect to decode with when the bytes name ``detected`` and the rig's scanner
+    speaks ``rig_dialect``: the rig's when it is a variant of the detected one."""
+    return rig_dialect if DETECTED_AS.get(rig_dialect) == detected else detected
+
+
 def resolve_dialect(name: str, data: bytes) -> Dialect:
     """``name`` as a dialect, detecting it from ``data`` for ``auto``."""
     return get_dialect(detect_dialect(data) if name == "auto" else name)

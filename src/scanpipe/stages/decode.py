@@ -42,6 +42,7 @@ from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, unwrap_counter
 from scanpipe.protocol.registry import (
+    DETECTED_AS,
     DecodedFrame,
     Dialect,
     StreamDecoder,
@@ -262,20 +263,15 @@ def _recording_rig(recording: Recording, warnings: list[str]) -> tuple[Rig, pa.T
     return rig, rig_table(rig)
 
 
-#: Dialects whose bytes are another's and that only the rig's model tells apart (never
-#: detected): the variant → the dialect its bytes are detected as.
-_VARIANT_OF: dict[str, str] = {"ldrobot_ld14": "ldrobot"}
-
-
 def _model_variant(recording: Recording, rig: Rig, params: DecodeParams) -> Dialect | None:
     """The dialect variant the rig's scanner model needs (an LD14's stream is detected as
     ``ldrobot`` but its angles need the LD14 correction), or None. An explicit
     ``decode.dialect`` of the plain family on such a rig is refused: the angles would be
     sheared by up to 7°, silently."""
     name = rig.scanner.dialect
-    if name not in _VARIANT_OF:
+    if name not in DETECTED_AS:
         return None
-    if params.dialect == _VARIANT_OF[name]:
+    if params.dialect == DETECTED_AS[name]:
         raise ParameterError([
             f"decode.dialect = {params.dialect} decodes without the angle "
             f"correction the rig's scanner needs (scanner.model = {rig.scanner.model or '?'}, "
@@ -315,7 +311,7 @@ def decode_recording(recording: Recording, params: DecodeParams,
             if data or not recording.profiles:
                 warnings.append(f"{err}; decoding as the rig's dialect {rig.scanner.dialect!r}")
             dialect = get_dialect(rig.scanner.dialect)
-        if variant is not None and dialect.name == _VARIANT_OF.get(variant.name):
+        if variant is not None and dialect.name == DETECTED_AS[variant.name]:
             dialect = variant  # the bytes name the family, the rig's model the variant
         decoder = StreamDecoder(dialect, params.checksum, params.max_frame_bytes)
         frames = []
