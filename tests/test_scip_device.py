@@ -3,7 +3,9 @@ the SCIP commands, the recorder's driver starts and stops them, simulate → run
 
 from __future__ import annotations
 
+import os
 import time
+import tty
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -215,3 +217,37 @@ def test_record_a_scip11_urg_then_run_and_a_refusing_one_is_one_line(
         assert report["dialect"] == "scip" and report["counters"]["checksum_failures"] == 0
         assert report["counters"]["frames_decoded"] >= 10
         assert (work / "assemble" / "points.parquet").is_file()
+
+
+def test_a_scip11_urg_that_leaves_vv_unanswered_is_switched_too() -> None:
+    """A SCIP 1.1 device that ignores SCIP 2.0 commands: VV times out, the driver tries the
+    switch before giving up, and records SCIP 2.0."""
+    options = _options("urg04lx").model_copy(update={"scip_protocol": "1.1-silent"})
+    with VirtualRig(options, speedup=2.0, scene=box_room()) as virtual:
+        client = ScannerClient(virtual.client_rig().scanner, Sink(), reply_timeout_s=1.0)
+        client.connect()
+        try:
+            assert client.wait_for_profiles(time.time_ns() - 1, 3, timeout_s=5.0)
+        finally:
+            client.close()
+        assert virtual.scanner.requests[:4] == ["VV", "SC", "VV", "PP"]
+    silent = ScipDevice(scanner_for_model("urg04lx"), protocol="1.1-silent")
+    assert silent.receive(b"VV\nPP\n", 1.0) == []
+
+
+def test_a_port_that_answers_nothing_is_one_line() -> None:
+    master, slave = os.openpty()  # a real serial line with nothing behind it
+    try:
+        tty.setraw(slave)
+        scanner = scanner_for_model("urg04lx").model_copy(update={
+            "serial_url": os.ttyname(slave)})
+        client = ScannerClient(scanner, Sink(), reply_timeout_s=0.5)
+        with pytest.raises(DeviceError) as raised:
+            client.connect()
+        client.close()
+    finally:
+        os.close(master)
+        os.close(slave)
+    message = str(raised.value)
+    assert "\n" not in message and "no reply to SCIP VV" in message
+    assert "nor to SCIP2.0" in message and "Hokuyo on this port" in message
