@@ -62,9 +62,10 @@ def lab_stream(seconds: float, model: str = "stl27l", seed: int = 0) -> bytes:
     return b"".join(parts)
 
 
-def decode_chunks(stream: bytes) -> int:
-    """Decode ``stream`` in 1 MiB chunks; the number of revolutions."""
-    decoder = ld.RevolutionDecoder()
+def decode_chunks(stream: bytes, sl_correction: bool = False) -> int:
+    """Decode ``stream`` in 1 MiB chunks (an LD14's with its angle correction); the number of
+    revolutions."""
+    decoder = ld.RevolutionDecoder(sl_correction=sl_correction)
     view = memoryview(stream)
     count = 0
     for start in range(0, len(stream), FEED_BYTES):
@@ -154,6 +155,14 @@ def run(quick: bool = False) -> dict[str, Any]:
     if stage is not None:
         measurements.append(stage)
     rec = recovery(stream, 20_000 if quick else 100_000)
+    # The LD14P (4 000 samples/s, 6 Hz) decoded with its per-sample angle correction.
+    ld14 = lab_stream(seconds, "ld14p")
+    ld14_samples = len(ld14) // ld.PACKET_BYTES * ld.POINTS_PER_PACKET
+    ld14_decoder = measure("LD14P stream decoder (angle correction)",
+                           lambda: decode_chunks(ld14, True), float(ld14_samples), "samples",
+                           repeats=repeats)
+    ld14_cpu_s = cpu_seconds(lambda: decode_chunks(ld14, True), repeats=repeats)
+    measurements.append(ld14_decoder)
     return {
         "model": "stl27l", "seconds": seconds, "stream_bytes": len(stream), "samples": samples,
         "revolutions": decode_chunks(stream), "stream_made_s": made_s,
@@ -161,6 +170,9 @@ def run(quick: bool = False) -> dict[str, Any]:
         "stage_samples_per_s": None if stage is None else stage.throughput,
         "target_samples_per_s": 10e6, "meets_target": decoder.throughput >= 10e6,
         "recovery": rec, "load_average": os.getloadavg(), "measurements": measurements,
+        "ld14p": {"seconds": seconds, "samples": ld14_samples,
+                  "samples_per_s": ld14_decoder.throughput,
+                  "cpu_samples_per_s": ld14_samples / ld14_cpu_s},
     }
 
 

@@ -229,7 +229,7 @@ def test_cli_frames_text_shows_the_golden_mismatch(tmp_path: Path, cli: CliRunne
     assert "MISMATCH (received 0x8a, computed 0x9f)" in result.out
     result = cli("frames", capture, "--dialect", "cola")
     assert result.code == 2
-    assert "allowed paper, ldoem, cola_b, cola_a, ldrobot, scip, auto" in result.err
+    assert "allowed paper, ldoem, cola_b, cola_a, ldrobot, ldrobot_ld14, scip, auto" in result.err
 
 
 def test_scip_without_a_pp_reply_warns_of_the_assumed_geometry(tmp_path: Path) -> None:

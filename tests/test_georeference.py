@@ -421,6 +421,10 @@ def test_a_metre_crs_is_carried_to_the_las_exports(tmp_path: Path, cli: Cli) -> 
         report = json.loads(moved.out)
         assert report["crs_carried"] is False
         assert any(why in w and "not carried" in w for w in report["warnings"])
+        # the advice fits the reason: a CRS in feet is not to be assigned to metres as is
+        warning = next(w for w in report["warnings"] if "not carried" in w)
+        assert "assign the CRS there" not in warning
+        assert ("metre equivalent" in warning) == (why == "not the metre")
         assert cli("export", tmp_path / "other", "-f", "las", "-o", tmp_path / "o.las",
                    "--force").code == 0
         wkt = next(v for v in laspy.read(str(tmp_path / "o.las")).header.vlrs

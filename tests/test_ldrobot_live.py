@@ -1,5 +1,6 @@
-"""The user's path with an LDRobot LD06 and STL-27L: the live virtual device on a pty, the
-recorder, then ``scanpipe run``; the assembled points lie on the room within the device's noise.
+"""The user's path with an LDRobot LD06, STL-27L and LD14: the live virtual device on a pty,
+the recorder, then ``scanpipe run``; the assembled points lie on the room within the device's
+noise (the LD14's angles corrected as its SDK does: its recording names its dialect).
 
 On a loaded host the emulator skips the turns it cannot measure in time (a real head never
 falls behind; ``scans_skipped`` in the truth). A skipped turn must cost coverage, never
@@ -31,7 +32,8 @@ MIN_COVERAGE = 0.5
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("model", "motor_step"), [("ld06", "1"), ("stl27l", "2")])
+@pytest.mark.parametrize(("model", "motor_step"), [("ld06", "1"), ("stl27l", "2"),
+                                                   ("ld14", "1")])
 def test_simulate_ldrobot_live_then_run_is_within_the_noise(
         tmp_path: Path, cli: Callable[..., Any], model: str, motor_step: str) -> None:
     recording, truth, work = tmp_path / "rec.mcap", tmp_path / "truth", tmp_path / "work"
@@ -43,7 +45,7 @@ def test_simulate_ldrobot_live_then_run_is_within_the_noise(
     assert result.code == 0, result.err
     assert "Traceback" not in result.err
     decode = read_provenance(work / "decode" / "profiles.parquet")["report"]
-    assert decode["dialect"] == "ldrobot"
+    assert decode["dialect"] == SCANNER_MODELS[model].dialect
     assert decode["counters"]["checksum_failures"] == 0
     assemble = read_provenance(work / "assemble" / "points.parquet")["report"]
     assert assemble["mode"] == "continuous" and assemble["time_source"] == "device"
@@ -64,13 +66,30 @@ def test_simulate_ldrobot_live_then_run_is_within_the_noise(
     nearest = np.abs(start_ns[:, None] - sent_ns[None, :]).argmin(axis=1)
     assert nearest.tolist() == list(range(nearest[0], nearest[-1] + 1))
     true_rows = sent.column("ranges_true_m").to_pylist()
-    residual = np.concatenate([  # the last profile may be a turn cut short by the stop
-        np.asarray(row, np.float64) - np.asarray(true_rows[k][:len(row)], np.float64)
-        for row, k in zip(profiles.column("ranges_m").to_pylist(), nearest, strict=True)])
+    # The truth is on the rig's grid (beam_step_deg), a profile on the decoder's (360° / N
+    # beams): the same for the LD06 and STL-27L, 0.08 % apart for the LD14 (383 ⅓ steps a
+    # turn); each beam is compared with the truth at its own angle.
+    rig_step = SCANNER_MODELS[model].beam_step_deg
+    step = pq.read_table(work / "decode" / "profiles.parquet",
+                         columns=["step_deg"]).column("step_deg").to_numpy()
+    # Off the truth's grid, a beam between two truth beams across a depth edge (> 10 cm) has
+    # no truth to compare with: it is left out (the LD14's samples are off any grid).
+    residuals = []
+    for i, (row, k) in enumerate(zip(profiles.column("ranges_m").to_pylist(), nearest,
+                                     strict=True)):
+        true_row = np.asarray(true_rows[k], np.float64)
+        at = np.arange(len(row)) * step[i] / rig_step  # the beams in truth beams
+        below = np.clip(np.floor(at).astype(np.int64), 0, len(true_row) - 1)
+        above = np.clip(below + 1, 0, len(true_row) - 1)
+        edge = np.abs(true_row[above] - true_row[below]) > 0.1
+        expected = np.interp(at, np.arange(len(true_row)), true_row)
+        # the last profile may be a turn cut short by the stop
+        residuals.append(np.where(edge, np.nan, np.asarray(row, np.float64) - expected))
+    residual = np.concatenate(residuals)
     sigma = SCANNER_MODELS[model].noise_sigma_m
     residual = residual[np.isfinite(residual)]
     assert np.sqrt(np.mean(np.square(residual))) <= 1.1 * sigma
-    turn_ns = 1e9 / 10.0 / SPEEDUP
+    turn_ns = 1e9 / SCANNER_MODELS[model].scan_hz / SPEEDUP
     # No profile made of a skipped turn's holes (the first one may begin mid-turn: the recorder
     # opened the port while the head turned).
     measured = [np.isfinite(np.asarray(r, np.float64)).mean() for r in
@@ -89,3 +108,11 @@ def test_simulate_ldrobot_live_then_run_is_within_the_noise(
     rms = float(np.sqrt(np.mean(np.square(distances))))
     assert rms <= 1.1 * sigma, f"RMS {rms * 1e3:.2f} mm = {rms / sigma:.3f} σ; {report}"
     assert (work / "mesh" / "mesh_faces.parquet").is_file()
+    if model == "ld14":
+        # The LD14 read as an LD06 (its angles up to 7° off) is refused in one line.
+        refused = cli("run", recording, "--workdir", tmp_path / "plain", "--quiet",
+                      "--set", "decode.dialect=ldrobot")
+        assert refused.code == 2, refused.err
+        assert refused.err.count("\n") == 1 and "scanner.model = ld14" in refused.err
+        assert "Traceback" not in refused.err
+        assert not (tmp_path / "plain" / "decode").exists()

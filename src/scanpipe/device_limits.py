@@ -77,8 +77,10 @@ def device_limit_problems(scanner: ScanSettings) -> list[str]:
 @dataclass(frozen=True)
 class LdrobotLimits:
     """One LDRobot model (LDRobot datasheets): serial link, sample rate, head speed range and
-    range window. The head speed is set by the host (PWM) within ``head_hz``; the sample rate
-    is fixed, so the beam step follows from the speed."""
+    range window, its nominal head speed, and whether its samples need the triangulation
+    heads' angle correction (LD14/LD14P: ``protocol.ldrobot.sl_angle_shift_deg``). The head
+    speed is set by the host (PWM) within ``head_hz``; the sample rate is fixed, so the beam
+    step follows from the speed."""
 
     model: str
     baud: int
@@ -86,6 +88,8 @@ class LdrobotLimits:
     head_hz: tuple[float, float]
     min_range_m: float
     max_range_m: float
+    nominal_hz: float = 10.0
+    angle_correction: bool = False
 
     def beam_step_deg(self, scan_hz: float) -> float:
         """The angle between two samples at ``scan_hz`` head turns per second."""
@@ -94,10 +98,16 @@ class LdrobotLimits:
 
 #: LD06 and LD19: 4 500 samples/s, 5–13 Hz, 0.02–12 m, 230 400 baud; STL-27L: 21 600
 #: samples/s, 6–12 Hz (uncertain: the datasheets quote 10 Hz typical), 0.03–25 m, 921 600 baud.
+#: LD14: 2 300 samples/s, 115 200 baud (LDRobot's SDK ldlidar_sl_ros2: LD_14 measure rate and
+#: launch file); LD14P: 4 000 samples/s, 230 400 baud (the SDK's LD_14P_4000HZ, which its
+#: node uses for an LD14P; older LD14P firmware sampled 2 300/s); both 0.1–8 m, 6 Hz default,
+#: 2–8 Hz (the LD14P datasheet; the LD14's speed range is assumed the same).
 LDROBOT_LIMITS: dict[str, LdrobotLimits] = {
     "ld06": LdrobotLimits("ld06", 230_400, 4_500.0, (5.0, 13.0), 0.02, 12.0),
     "ld19": LdrobotLimits("ld19", 230_400, 4_500.0, (5.0, 13.0), 0.02, 12.0),
     "stl27l": LdrobotLimits("stl27l", 921_600, 21_600.0, (6.0, 12.0), 0.03, 25.0),
+    "ld14": LdrobotLimits("ld14", 115_200, 2_300.0, (2.0, 8.0), 0.1, 8.0, 6.0, True),
+    "ld14p": LdrobotLimits("ld14p", 230_400, 4_000.0, (2.0, 8.0), 0.1, 8.0, 6.0, True),
 }
 
 

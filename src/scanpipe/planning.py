@@ -106,7 +106,7 @@ def choose_steps(motor_step_deg: float, pulse_step_deg: float, pulse_limit: int)
 #: it); CoLa-A: about 5 ASCII characters per sample and ~250 of header.
 WIRE_BYTES: dict[str, tuple[int, int]] = {"cola_b": (100, 2), "cola_a": (250, 5),
                                           # LDRobot: 47-byte packets of 12 samples (4 each)
-                                          "ldrobot": (0, 4),
+                                          "ldrobot": (0, 4), "ldrobot_ld14": (0, 4),
                                           # SCIP: 3 characters a value, 66 bytes a 64-char line
                                           "scip": (60, 4)}
 

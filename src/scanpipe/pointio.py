@@ -998,18 +998,25 @@ def _carried_crs(scans: list[_Scan], params: ImportParams, axes: F64
     if wkts == {None}:
         return None, None
     why = None
+    # What the user may assign in another tool depends on why: a CRS in feet does not fit the
+    # metre coordinates (assigned as is, the cloud lands 3.28× too far out), moved points fit
+    # no CRS of the file's.
+    advice = "assign the CRS there"
     if len(wkts) > 1:
         why = "the files state different coordinate systems (or some none)"
     elif not all(s.units_stated and s.units == "m" and (s.vertical_units or "m") == "m"
                  for s in scans):
         why = "its unit is not the metre (the exports are in metres)"
+        advice = ("assign the metre equivalent of the file's CRS there, not the file's own "
+                  "(a CRS in feet on these metre coordinates puts the cloud 3.28× too far out)")
     elif any(params.poses) or any(s.left_handed for s in scans) or not np.array_equal(
             axes, parse_axes(Z_UP_AXES)):
         why = "--pose/--axes/--up/--left-handed moved the points out of its axes"
+        advice = "the file's CRS no longer fits them"
     if why is None:
         return next(iter(wkts)), None
     return None, (f"the file's coordinate system is not carried to the exports ({why}): "
-                  "LAS/LAZ/COPC say 'imported coordinates in metres'; assign the CRS there")
+                  f"LAS/LAZ/COPC say 'imported coordinates in metres'; {advice}")
 
 
 def _rig_centre(points: F64) -> F64:

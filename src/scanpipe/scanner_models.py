@@ -15,6 +15,7 @@ Base floor: imports only :mod:`scanpipe.device_limits`, so :mod:`scanpipe.rig` c
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Literal, Protocol
@@ -30,7 +31,8 @@ from scanpipe.device_limits import (
 
 #: Every dialect name a rig may give (the protocol registry holds one entry per name; a test
 #: keeps the two equal). A new family adds its name here and its entry in protocol/registry.py.
-DIALECT_NAMES: tuple[str, ...] = ("ldoem", "paper", "cola_b", "cola_a", "ldrobot", "scip")
+DIALECT_NAMES: tuple[str, ...] = ("ldoem", "paper", "cola_b", "cola_a", "ldrobot",
+                                  "ldrobot_ld14", "scip")
 Transport = Literal["tcp", "serial"]
 
 
@@ -153,16 +155,25 @@ SCANNER_MODELS: Mapping[str, ScannerModel] = {
         dialect="cola_b", transport="tcp", fov_deg=(-45.0, 225.0),
         modes=((15.0, 1.0 / 3.0),), range_m=(0.05, 25.0),
         noise_sigma_m=0.020, intensity=True, port=2112),
+    # The LD14/LD14P speak the LD06's packets but need the SDK's angle correction: their own
+    # dialect (never detected from the bytes), so a recording of one names it.
     **{name: ScannerModel(
         name=name, description=f"LDRobot {label} (360°, {lim.max_range_m:g} m, "
                                f"{lim.sample_hz:g} samples/s, serial {lim.baud} baud)",
-        dialect="ldrobot", transport="serial", fov_deg=(0.0, 360.0 - lim.beam_step_deg(10.0)),
-        modes=((10.0, lim.beam_step_deg(10.0)),), range_m=(lim.min_range_m, lim.max_range_m),
-        noise_sigma_m=0.010, intensity=True, baudrate=lim.baud,
-        limit_checks=_ldrobot_checks(name))
+        dialect="ldrobot_ld14" if lim.angle_correction else "ldrobot", transport="serial",
+        # the last whole step within the turn (360° need not be a whole number of steps)
+        fov_deg=(0.0, (math.floor(360.0 / lim.beam_step_deg(lim.nominal_hz) + 1e-9) - 1)
+                 * lim.beam_step_deg(lim.nominal_hz)),
+        modes=((lim.nominal_hz, lim.beam_step_deg(lim.nominal_hz)),),
+        range_m=(lim.min_range_m, lim.max_range_m),
+        # LD14/LD14P: ±1 % in 1–6 m (datasheet), a 1.5 cm σ in a room (a modelling choice)
+        noise_sigma_m=0.015 if lim.angle_correction else 0.010, intensity=True,
+        baudrate=lim.baud, limit_checks=_ldrobot_checks(name))
        for name, label, lim in (("ld06", "LD06", LDROBOT_LIMITS["ld06"]),
                                 ("ld19", "LD19", LDROBOT_LIMITS["ld19"]),
-                                ("stl27l", "STL-27L", LDROBOT_LIMITS["stl27l"]))},
+                                ("stl27l", "STL-27L", LDROBOT_LIMITS["stl27l"]),
+                                ("ld14", "LD14", LDROBOT_LIMITS["ld14"]),
+                                ("ld14p", "LD14P", LDROBOT_LIMITS["ld14p"]))},
     "ust10lx": ScannerModel(
         name="ust10lx", description="Hokuyo UST-10LX (270°, 10 m, SCIP 2.0 on TCP 10940)",
         dialect="scip", transport="tcp", fov_deg=(-135.0, 135.0),

@@ -7,6 +7,7 @@ could be read, with the reader's warnings.
 
 from __future__ import annotations
 
+import contextlib
 from collections import Counter
 from typing import Any
 
@@ -39,7 +40,7 @@ def time_figures(times_ns: NDArray[np.int64], gap_s: float) -> dict[str, Any]:
 
 def _profile_figures(recording: Recording) -> dict[str, Any]:
     """Decode the scanner's RX stream only to count profiles (the decode stage does the rest)."""
-    from scanpipe.protocol.registry import StreamDecoder, detect_dialect
+    from scanpipe.protocol.registry import StreamDecoder, detect_dialect, rig_variant
 
     data = recording.stream("scanner").data
     if not data and recording.profiles:  # already decoded (/scanner/profiles: import-bag)
@@ -51,6 +52,10 @@ def _profile_figures(recording: Recording) -> dict[str, Any]:
         dialect = detect_dialect(data)
     except ProtocolError:
         return {"count": 0, "dialect": None, "note": "no scanner frames recognised"}
+    # An LD14's bytes read as an LD06's: its stored rig names it (none or an invalid one:
+    # the bytes' dialect).
+    with contextlib.suppress(RecordingError):
+        dialect = rig_variant(dialect, recording.rig().scanner.dialect)
     decoder = StreamDecoder(dialect)
     frames = decoder.feed_frames(data) + decoder.finish_frames()
     counters = decoder.counters.as_dict()

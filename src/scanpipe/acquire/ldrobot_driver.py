@@ -1,4 +1,5 @@
-"""The recorder driver of the LDRobot LD06 / LD19 / STL-27L (dialect ``ldrobot``).
+"""The recorder driver of the LDRobot LD06 / LD19 / STL-27L (dialect ``ldrobot``) and LD14 /
+LD14P (``ldrobot_ld14``: the same packets, angles corrected).
 
 These scanners stream from power-on and take no command on their serial line, so starting
 and stopping send nothing: the client opens the port (``scanner.transport = serial``,
@@ -23,7 +24,8 @@ class LdrobotDriver:
 
     def __init__(self, scanner: ScannerConfig) -> None:
         self.scanner = scanner
-        self._decoder = RevolutionDecoder()
+        self._decoder = RevolutionDecoder(
+            sl_correction=scanner.dialect == "ldrobot_ld14")
 
     def start(self, client: ScannerClient) -> None:
         """Nothing to send: the device is already streaming."""

@@ -137,6 +137,7 @@ def _register() -> None:
     from scanpipe.acquire.ldrobot_driver import LdrobotDriver
 
     DRIVERS["ldrobot"] = LdrobotDriver
+    DRIVERS["ldrobot_ld14"] = LdrobotDriver
 
 
 _register()

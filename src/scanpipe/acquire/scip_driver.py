@@ -1,9 +1,11 @@
 """The recorder's driver for Hokuyo SCIP 2.0 scanners (URG over serial, UST over TCP).
 
-Start: ``VV`` (who is there), ``PP`` (its geometry: the reply is recorded, so the decoder reads
-ARES/AFRT from the recording), ``BM`` (laser on), then ``MD`` (``ME`` when the model sends
-intensities) over the rig's sector with scan count ``00``: the device streams until ``QT``.
-Step-and-scan and continuous recording both use the stream; the client counts profiles.
+Start: ``VV`` (who is there; answered as SCIP 1.1 does — the echo and a one-character status
+``E`` — the driver sends ``SCIP2.0``, as urg_library does, and asks ``VV`` again in 2.0),
+``PP`` (its geometry: the reply is recorded, so the decoder reads ARES/AFRT from the
+recording), ``BM`` (laser on), then ``MD`` (``ME`` when the model sends intensities) over the
+rig's sector with scan count ``00``: the device streams until ``QT``. Step-and-scan and
+continuous recording both use the stream; the client counts profiles.
 """
 
 from __future__ import annotations
@@ -18,6 +20,10 @@ from scanpipe.scanner_models import model_of
 
 if TYPE_CHECKING:
     from scanpipe.acquire.driver_types import ScannerClient
+
+
+#: SCIP 1.1 answers a SCIP 2.0 command with a one-character status (``E``: not a command).
+SCIP11_STATUSES = ("E",)
 
 
 @dataclass(frozen=True)
@@ -56,12 +62,51 @@ class ScipDriver:
         return reply.status
 
     def start(self, client: ScannerClient) -> None:
-        """Identify, read the geometry, laser on, stream the rig's sector."""
-        self._ask(client, b"VV")
+        """Identify (switching a SCIP 1.1 device to 2.0), read the geometry, laser on, stream
+        the rig's sector."""
+        try:
+            status = self._ask(client, b"VV", ok=("00", *SCIP11_STATUSES))
+        except DeviceError as err:
+            if "no reply" not in str(err):
+                raise
+            # A device in SCIP 1.1 might leave a SCIP 2.0 command unanswered: the switch is
+            # tried before giving up (no answer to it either: one line naming both).
+            self._switch_to_scip2(client, "it did not answer VV", unanswered=str(err))
+            status = ""
+        else:
+            if len(status) == 1:
+                self._switch_to_scip2(client, f"it answered VV with the one-character "
+                                              f"status {status!r}")
+        if len(status) != 2:
+            self._ask(client, b"VV")
         self._ask(client, b"PP")
         self._ask(client, b"BM", ok=("00", "02"))
         start, end, cluster = self.steps
         self._ask(client, b"%s%04d%04d%02d%01d%02d" % (self.command, start, end, cluster, 0, 0))
+
+    def _switch_to_scip2(self, client: ScannerClient, why: str, unanswered: str = "") -> None:
+        """``SCIP2.0``, as urg_library sends when ``QT`` is answered ``E`` (SCIP 1.1): the
+        device answered as SCIP 1.1 does (``why``), or not at all (``unanswered``: that
+        time-out). A refusal, or no answer either, is one line."""
+        def accept(reply: object) -> bool:
+            return isinstance(reply, ScipReply) and reply.command == "SC"
+
+        try:
+            reply = client.request(scip.SCIP20_SWITCH + b"\n",
+                                   "SCIP2.0 (the switch from SCIP 1.1)", accept)
+        except DeviceError as err:
+            if not unanswered:
+                raise
+            raise DeviceError(
+                f"{unanswered}, nor to SCIP2.0 (the switch from SCIP 1.1): is it a Hokuyo on "
+                "this port, at this baud rate, and powered?") from err
+        assert isinstance(reply, ScipReply)
+        if reply.status != "0":
+            raise DeviceError(
+                f"scanner: the Hokuyo speaks SCIP 1.1 ({why}) and refused the switch to SCIP "
+                f"2.0 ('SCIP2.0' answered {reply.status!r}); scanpipe records SCIP 2.0 only: "
+                "update the sensor's firmware to one with SCIP 2.0 (Hokuyo), or record it with "
+                "another tool")
 
     def stop(self, client: ScannerClient) -> None:
         """``QT``: stop streaming and switch the laser off."""

@@ -80,7 +80,8 @@ def frames(
     capture: Path = typer.Argument(..., help="A raw byte capture of a scanner stream, or a "
                                              "network capture (.pcap, .pcapng) of its TCP link."),
     dialect: str = typer.Option("auto", "--dialect",
-                                help="paper, ldoem, cola_b, cola_a, ldrobot, scip or auto."),
+                                help="paper, ldoem, cola_b, cola_a, ldrobot, ldrobot_ld14, scip "
+                                     "or auto."),
     checksum: str = typer.Option("lenient", "--checksum",
                                  help="lenient shows damaged frames marked; strict drops them."),
     port: int | None = typer.Option(None, "--port",

@@ -43,7 +43,7 @@ the host receive times (``Profile.device_wrap_ticks`` = 30 000;
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -77,6 +77,33 @@ MAX_GRID_BEAMS = 16_384
 MAX_FOLLOW_S = 0.1
 
 _SPAN_STEPS = POINTS_PER_PACKET - 1
+
+#: LD14 / LD14P (triangulation heads; LDRobot's SDK ``ldlidar_sl_ros2``, ``SlTransform``):
+#: a sample's true angle is its packet angle less ``atan((SLOPE·d + OFFSET_Y) / (d +
+#: OFFSET_X))`` (d in mm; the laser and the receiver sit beside the axis). Samples nearer than
+#: the rated 0.1 m are no return: their shift would grow past −3.8° towards −73°, outside
+#: what the fit is made for (the LD14's range is 0.1–8 m).
+SL_SLOPE = 0.11923
+SL_OFFSET_X_MM = 5.9
+SL_OFFSET_Y_MM = -18.975571
+SL_MIN_DISTANCE_MM = 100
+
+
+def sl_angle_shift_deg(distance_mm: NDArray[np.integer] | NDArray[np.floating]
+                       ) -> NDArray[np.float64]:
+    """The LD14/LD14P angle correction (degrees) of samples at ``distance_mm``: the SDK's
+    ``SlTransform`` shift, which the decoder subtracts from the packet's angle (positive
+    beyond 159 mm: 1.36° at 0.2 m, 5.69° at 1 m, towards 6.80° far away). Exact π here; the
+    SDK's 180/3.14159 differs by 1.5 ppm (1e-5° at 7°)."""
+    d = np.asarray(distance_mm, np.float64)
+    return np.asarray(np.degrees(np.arctan((SL_SLOPE * d + SL_OFFSET_Y_MM)
+                                           / (d + SL_OFFSET_X_MM))), np.float64)
+
+
+#: The range of the shift over the rated distances: a sample's true angle lies between its
+#: packet angle − SL_MAX_SHIFT_DEG and its packet angle − SL_MIN_SHIFT_DEG.
+SL_MAX_SHIFT_DEG = float(np.degrees(np.arctan(SL_SLOPE)))
+SL_MIN_SHIFT_DEG = float(sl_angle_shift_deg(np.array(SL_MIN_DISTANCE_MM)))
 
 
 def _crc_table() -> NDArray[np.uint8]:
@@ -511,12 +538,13 @@ def locate_packets(data: bytes | bytearray | memoryview,
 # -- revolutions ---------------------------------------------------------------------------
 
 _PENDING_FIELDS = ("start_deg", "step_deg", "time_ms", "deg_per_ms", "end_offset", "ok",
-                   "range_m", "intensity")
+                   "range_m", "intensity", "shift_deg")
 
 #: Millimetres to metres, 0 → NaN (no return), one gather per packet set.
 _MM_TABLE = np.arange(1 << 16, dtype=np.float32) / np.float32(1000.0)
 _MM_TABLE[0] = np.nan
 _POINT_INDEX32 = np.arange(POINTS_PER_PACKET, dtype=np.float32)
+_POINT_INDEX64 = np.arange(POINTS_PER_PACKET, dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -533,13 +561,31 @@ class _Pending:
     ok: NDArray[np.bool_]
     range_m: NDArray[np.float32]  # (packets, 12)
     intensity: NDArray[np.uint8]  # (packets, 12)
+    # (packets, 12): each sample's angle correction (subtracted), LD14/LD14P; (packets, 0)
+    # for the heads that need none, so their decoding pays nothing for it.
+    shift_deg: NDArray[np.float32]
 
     @staticmethod
-    def empty() -> _Pending:
+    def empty(corrected: bool = False) -> _Pending:
         none = np.zeros(0)
         return _Pending(none, none, none, none, np.zeros(0, np.int64), np.zeros(0, bool),
                         np.zeros((0, POINTS_PER_PACKET), np.float32),
-                        np.zeros((0, POINTS_PER_PACKET), np.uint8))
+                        np.zeros((0, POINTS_PER_PACKET), np.uint8),
+                        np.zeros((0, POINTS_PER_PACKET if corrected else 0), np.float32))
+
+    @property
+    def corrected(self) -> bool:
+        """Whether the samples' angles carry a per-sample correction."""
+        return bool(self.shift_deg.shape[1])
+
+    def angle_bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Per packet, the lowest and highest angle of its samples (corrected)."""
+        span = _SPAN_STEPS * self.step_deg
+        if not self.corrected:
+            return self.start_deg, self.start_deg + span
+        angles = (self.start_deg[:, None] + self.step_deg[:, None] * _POINT_INDEX64
+                  - self.shift_deg)
+        return angles.min(axis=1), angles.max(axis=1)
 
     def __len__(self) -> int:
         return int(self.start_deg.size)
@@ -560,9 +606,15 @@ class _Pending:
         a packet's first sample before the previous one's last, or a packet repeats samples)."""
         start = (self.start_deg - base_deg).astype(np.float32)
         step = self.step_deg.astype(np.float32)
-        angles = (start[:, None] + step[:, None] * _POINT_INDEX32).reshape(-1)
-        last = start + step * np.float32(_SPAN_STEPS)
-        if np.any(start[1:] < last[:-1]):
+        if self.corrected:  # the correction reorders samples wherever the distance changes
+            angles = (start[:, None] + step[:, None] * _POINT_INDEX32
+                      - self.shift_deg).reshape(-1)
+            unordered = bool(np.any(angles[1:] < angles[:-1]))
+        else:
+            angles = (start[:, None] + step[:, None] * _POINT_INDEX32).reshape(-1)
+            last = start + step * np.float32(_SPAN_STEPS)
+            unordered = bool(np.any(start[1:] < last[:-1]))
+        if unordered:
             order = np.argsort(angles, kind="stable").astype(np.int64)
             return angles[order], order
         return angles, None
@@ -586,14 +638,18 @@ class Revolution:
 
 class RevolutionAssembler:
     """Packets in (stream order), revolutions out (module docstring). Fixes the grid of ``N``
-    beams at the first revolution, unless ``grid_beams`` is given."""
+    beams at the first revolution, unless ``grid_beams`` is given. ``sl_correction``: the
+    LD14/LD14P's distance-dependent angle correction (:func:`sl_angle_shift_deg`) is applied
+    to every sample before the turn is resampled."""
 
-    def __init__(self, grid_beams: int | None = None) -> None:
+    def __init__(self, grid_beams: int | None = None, sl_correction: bool = False) -> None:
         if grid_beams is not None and not MIN_GRID_BEAMS <= grid_beams <= MAX_GRID_BEAMS:
             raise ProtocolError(f"grid of {grid_beams} beams: allowed "
                                 f"{MIN_GRID_BEAMS}…{MAX_GRID_BEAMS}")
         self.grid_beams = grid_beams
-        self._pending = _Pending.empty()
+        self.sl_correction = sl_correction
+        self._last_shift = 0.0  # the shift of the last sample with a return (SDK: carried)
+        self._pending = _Pending.empty(sl_correction)
         self._next_rev = 0
         self._unwrap_deg: float | None = None  # unwrapped start angle of the last packet
         self._last_start_cdeg = 0
@@ -644,11 +700,30 @@ class RevolutionAssembler:
             fits = adjacent & (np.abs(pair_step - sample_step[:-1]) < 0.2 * sample_step[:-1])
             self._steps.extend(pair_step[fits].tolist())
             self._spans.extend(sample_step[:64].tolist())
+        range_m = _MM_TABLE[packets.distance_mm]
+        shift = np.zeros((len(packets), 0), np.float32)
+        if self.sl_correction:
+            range_m, shift = self._sl_shift(packets.distance_mm, range_m)
         return _Pending(
             start_deg=unwrapped, step_deg=sample_step, time_ms=times,
             deg_per_ms=speed / 1000.0, end_offset=packets.offset + PACKET_BYTES,
-            ok=packets.crc_ok.copy(), range_m=_MM_TABLE[packets.distance_mm],
-            intensity=packets.intensity)
+            ok=packets.crc_ok.copy(), range_m=range_m,
+            intensity=packets.intensity, shift_deg=shift)
+
+    def _sl_shift(self, distance_mm: NDArray[np.uint16], range_m: NDArray[np.float32]
+                  ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """The LD14 samples' ranges (nearer than 0.1 m: no return) and angle corrections. A
+        no-return sample takes the shift of the last sample with a return before it (as the
+        SDK does), so it stays in its place among its neighbours."""
+        valid = distance_mm >= SL_MIN_DISTANCE_MM
+        range_m = np.where(valid, range_m, np.float32(np.nan)).astype(np.float32)
+        flat_valid = valid.reshape(-1)
+        shift = sl_angle_shift_deg(distance_mm.reshape(-1))
+        last = np.maximum.accumulate(np.where(flat_valid, np.arange(flat_valid.size), -1))
+        filled = np.where(last >= 0, shift[np.maximum(last, 0)], self._last_shift)
+        if filled.size:
+            self._last_shift = float(filled[-1])
+        return range_m, filled.astype(np.float32).reshape(distance_mm.shape)
 
     def _grid(self) -> int:
         if self.grid_beams is None:
@@ -669,8 +744,10 @@ class RevolutionAssembler:
         # A turn is complete once the newest sample is within half a sample step of its end:
         # the next sample belongs to the next turn (and, at the end, the last turn is done).
         # A turn is resampled from its own samples (and the one before it) only, so when it is
-        # handed out does not change it.
-        reach = last_angle + 0.5 * float(pending.step_deg[-1])
+        # handed out does not change it. With the LD14 correction a later sample may still
+        # land up to SL_MAX_SHIFT_DEG below its packet angle.
+        reach = last_angle + 0.5 * float(pending.step_deg[-1]) - (
+            SL_MAX_SHIFT_DEG if pending.corrected and not final else 0.0)
         last_complete = int(np.floor(reach / 360.0)) - (0 if final else 1)
         if last_complete < self._next_rev:
             return []
@@ -678,14 +755,17 @@ class RevolutionAssembler:
         half_deg = 180.0 / beams
         # At the end of the stream, a turn cut short ends at its last beam measured.
         cut_short = final and last_angle + 3 * half_deg < (last_complete + 1) * 360.0
-        first_rev = np.floor(pending.start_deg / 360.0).astype(np.int64)
-        span_deg = _SPAN_STEPS * pending.step_deg
-        last_rev = np.floor((pending.start_deg + span_deg) / 360.0).astype(np.int64)
+        low_deg, high_deg = pending.angle_bounds()
+        first_rev = np.floor(low_deg / 360.0).astype(np.int64)
+        last_rev = np.floor(high_deg / 360.0).astype(np.int64)
+        if pending.corrected:  # corrected samples may reorder packets across a turn's end
+            first_rev = np.minimum.accumulate(first_rev[::-1])[::-1]
+            last_rev = np.maximum.accumulate(last_rev)
         # A revolution is its grid's beams: it is present when a sample lies within half a
         # grid step of one of them (a turn skipped whole leaves at most a sample just below
         # the next turn's 0°, which is that turn's: no revolution of holes is handed out).
-        present = np.concatenate([np.floor((pending.start_deg + half_deg) / 360.0),
-                                  np.floor((pending.start_deg + span_deg + half_deg) / 360.0)
+        present = np.concatenate([np.floor((low_deg + half_deg) / 360.0),
+                                  np.floor((high_deg + half_deg) / 360.0)
                                   ]).astype(np.int64)
         present = present[(present >= self._next_rev) & (present <= last_complete)]
         revs = np.unique(present)
@@ -693,7 +773,8 @@ class RevolutionAssembler:
                         cut_short and revs.size > 0 and int(revs[-1]) == last_complete)
         # Keep the packets of later revolutions and the one before them (interpolation).
         first_kept = max(int(np.searchsorted(last_rev, last_complete + 1)) - 1, 0)
-        self._pending = pending.tail(first_kept) if not final else _Pending.empty()
+        self._pending = (pending.tail(first_kept) if not final
+                         else _Pending.empty(pending.corrected))
         self._next_rev = last_complete + 1
         return out
 
@@ -832,11 +913,13 @@ def _beam_times(p: _Pending, a: NDArray[np.float32], grid: NDArray[np.float64],
 class RevolutionDecoder:
     """Bytes in (chunks of any size), revolutions out: :class:`PacketLocator` then
     :class:`RevolutionAssembler`. ``lenient`` keeps damaged packets where a packet should be
-    (their revolution gets ``checksum_ok`` False)."""
+    (their revolution gets ``checksum_ok`` False); ``sl_correction``: an LD14/LD14P
+    (:class:`RevolutionAssembler`)."""
 
-    def __init__(self, lenient: bool = False, grid_beams: int | None = None) -> None:
+    def __init__(self, lenient: bool = False, grid_beams: int | None = None,
+                 sl_correction: bool = False) -> None:
         self.locator = PacketLocator(lenient)
-        self.assembler = RevolutionAssembler(grid_beams)
+        self.assembler = RevolutionAssembler(grid_beams, sl_correction)
 
     @property
     def counters(self) -> FrameCounters:
@@ -853,9 +936,11 @@ class RevolutionDecoder:
 
 
 def decode_revolutions(data: bytes | bytearray | memoryview, lenient: bool = False,
-                       grid_beams: int | None = None) -> tuple[list[Profile], FrameCounters]:
-    """Every revolution of a whole byte stream, and the counters."""
-    decoder = RevolutionDecoder(lenient, grid_beams)
+                       grid_beams: int | None = None, sl_correction: bool = False
+                       ) -> tuple[list[Profile], FrameCounters]:
+    """Every revolution of a whole byte stream, and the counters (``sl_correction``: an
+    LD14/LD14P's stream)."""
+    decoder = RevolutionDecoder(lenient, grid_beams, sl_correction)
     revolutions = decoder.feed(data) + decoder.finish()
     return [r.profile for r in revolutions], decoder.counters
 
@@ -891,6 +976,53 @@ def encode_profile(profile: Profile, speed_dps: int = 3600) -> bytes:
                           cdeg[rows + POINTS_PER_PACKET - 1], stamp % TIME_WRAP_MS)
 
 
+def sl_packet_angles_deg(packet_deg: NDArray[np.float64],
+                        range_at: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+                        iterations: int = 4) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The inverse of the LD14 correction, for encoders and emulators: an LD14 reports a
+    sample at packet angle ``a`` whose beam truly points at ``a − shift(d)``, ``d`` the range
+    along that beam. For the packet angles ``packet_deg`` (what the packets will carry) and
+    ``range_at(beam angles) → ranges (m, NaN = none)``: the beams' true angles and their
+    ranges, by fixed-point iteration. It converges on a surface; at a depth edge a packet
+    angle may have no consistent beam (the shift of the range found there points elsewhere):
+    such a sample is no return (NaN), like a triangulation head's shadowed spot, rather than
+    a range at a wrong angle."""
+    packet = np.asarray(packet_deg, np.float64)
+
+    def shift_of(ranges: NDArray[np.float64]) -> NDArray[np.float64]:
+        mm = np.nan_to_num(np.asarray(ranges, np.float64) * 1000.0, nan=0.0)
+        return np.asarray(np.where(mm >= SL_MIN_DISTANCE_MM, sl_angle_shift_deg(mm), 0.0),
+                          np.float64)
+
+    beam = packet.copy()
+    shift = shift_of(np.asarray(range_at(beam), np.float64))
+    used = shift
+    ranges = np.full(packet.shape, np.nan)
+    for _ in range(iterations):
+        beam = packet - shift
+        ranges = np.asarray(range_at(beam), np.float64)
+        shift, used = shift_of(ranges), shift
+    return beam, np.where(np.abs(shift - used) <= 0.01, ranges, np.nan)
+
+
+def encode_profile_sl(profile: Profile, speed_dps: int = 3600) -> bytes:
+    """A profile (true angles) as an LD14/LD14P sends it: each packet sample at angle ``a``
+    holds the profile's range at ``a − shift``, interpolated linearly around the turn
+    (:func:`sl_packet_angles_deg`); decoding with the correction gives the profile back."""
+    ranges = np.asarray(profile.ranges_m, np.float64)
+    n = ranges.size
+    if n == 0:
+        raise ProtocolError("ldrobot: a profile without samples has no packet")
+    angles = np.asarray(profile.start_angle_deg + np.arange(n) * profile.step_deg, np.float64)
+
+    def range_at(beam_deg: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(np.interp(beam_deg, angles, ranges, period=360.0), np.float64)
+
+    _, sent = sl_packet_angles_deg(angles, range_at)
+    sent[~np.isfinite(ranges)] = np.nan
+    return encode_profile(replace(profile, ranges_m=sent.astype(np.float32)), speed_dps)
+
+
 def detect_score(data: bytes | bytearray | memoryview) -> int:
     """How many packets of ``data`` belong to runs of at least three back-to-back good packets
     (0: not this dialect). A lone ``54 2C`` with a lucky CRC scores nothing."""
@@ -918,8 +1050,8 @@ class RevolutionReader:
     as a frame reader's callers do); :attr:`packets` counts packets. Damaged packets are never
     used (their samples leave a hole in the revolution), so a revolution's checksum holds."""
 
-    def __init__(self, lenient: bool = False) -> None:
-        self._decoder = RevolutionDecoder(lenient)
+    def __init__(self, lenient: bool = False, sl_correction: bool = False) -> None:
+        self._decoder = RevolutionDecoder(lenient, sl_correction=sl_correction)
         self.counters = FrameCounters()
 
     @property

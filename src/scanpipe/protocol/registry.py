@@ -2,7 +2,7 @@
 
 >>> from scanpipe.protocol.registry import DIALECTS, StreamDecoder
 >>> sorted(DIALECTS)
-['cola_a', 'cola_b', 'ldoem', 'ldrobot', 'paper']
+['cola_a', 'cola_b', 'ldoem', 'ldrobot', 'ldrobot_ld14', 'paper', 'scip']
 """
 
 from __future__ import annotations
@@ -170,6 +170,23 @@ DIALECTS: Mapping[str, Dialect] = {
                     "profile is one head turn",
         reader_factory=lambda dialect, max_payload_bytes, confirm: ldrobot.RevolutionReader(),
         detect_score=ldrobot.detect_score,
+        device_wrap_ticks=ldrobot.TIME_WRAP_MS,
+    ),
+    # The LD14/LD14P send the same packets: never detected from the bytes (they cannot tell
+    # it), chosen by the rig's model (scanner_models: ld14, ld14p) or by name.
+    "ldrobot_ld14": Dialect(
+        name="ldrobot_ld14",
+        marker=ldrobot.MARKER,
+        min_payload_bytes=ldrobot.PACKET_BYTES,
+        max_payload_bytes=ldrobot.PACKET_BYTES,
+        encode_profile=ldrobot.encode_profile_sl,
+        decode_payload=_no_payload,
+        check_frame=check_plausible,
+        description="LDRobot LD14/LD14P serial packets (the LD06's) with the SDK's "
+                    "distance-dependent angle correction; a profile is one head turn",
+        reader_factory=lambda dialect, max_payload_bytes, confirm: ldrobot.RevolutionReader(
+            sl_correction=True),
+        detect_score=lambda data: 0,
         device_wrap_ticks=ldrobot.TIME_WRAP_MS,
     ),
     "scip": Dialect(
@@ -403,6 +420,17 @@ def describe_bytes(data: bytes) -> str:
         if data.startswith(magic):
             return f"it begins {head}: {what}"
     return f"it begins {head} (not a pcap/pcapng, MCAP or ROS bag container)"
+
+
+#: Dialects whose bytes are another's, told apart only by the rig's scanner model (never
+#: detected): each → the dialect its bytes are detected as (an LD14's stream reads as an LD06's).
+DETECTED_AS: dict[str, str] = {"ldrobot_ld14": "ldrobot"}
+
+
+def rig_variant(detected: str, rig_dialect: str) -> str:
+    """The dialect to decode with when the bytes name ``detected`` and the rig's scanner
+    speaks ``rig_dialect``: the rig's when it is a variant of the detected one."""
+    return rig_dialect if DETECTED_AS.get(rig_dialect) == detected else detected
 
 
 def resolve_dialect(name: str, data: bytes) -> Dialect:

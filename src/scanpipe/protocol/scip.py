@@ -79,6 +79,8 @@ _MULTI_ECHO = re.compile(rb"^[HN][DE]\d{10}(\d{3})?(;[ -~]{0,16})?$")
 STREAM_PARAM_CHARS = 13
 _STREAM_ECHO = re.compile(rb"^(M[DSE])(\d{4})(\d{4})(\d{2})(\d)(\d{2})(;[ -~]{0,16})?$")
 _SINGLE_ECHO = re.compile(rb"^(G[DSE])(\d{4})(\d{4})(\d{2})(;[ -~]{0,16})?$")
+#: The command that switches a URG from SCIP 1.1 to 2.0 (answered ``0`` in 1.1: done).
+SCIP20_SWITCH = b"SCIP2.0"
 #: A SCIP 1.1 ``G`` echo: start and end step (3 digits each), cluster count (2).
 _SCIP11_ECHO = re.compile(rb"^G(\d{3})(\d{3})(\d{2})$")
 #: Where a data message's echo line may begin (a resync target at any byte).
@@ -412,6 +414,16 @@ class ScipReader:
                 raise ProtocolError(f"SCIP multi-echo data ({command.decode()}): not supported; "
                                     f"stream MD/ME/GD/GE (first echo) instead")
             raise _Bad
+        scip11 = len(lines) == 2 and len(lines[1]) == 1 and (echo.isalnum()
+                                                             or echo == SCIP20_SWITCH)
+        if scip11 or (echo == SCIP20_SWITCH and len(lines) == 2 and _status_ok(lines[1])):
+            # A SCIP 1.1 answer (one-character status, no check character, no data): what a
+            # URG in SCIP 1.1 answers a SCIP 2.0 command ('E') and the switch ('0'); or a SCIP
+            # 2.0 device's answer to the switch. The recorder's driver reads them
+            # (docs/protocols.md); a decode counts them as other frames.
+            self.last_status = (echo.decode("ascii", "replace"),
+                                lines[1].decode("ascii", "replace"))
+            return RawFrame(message, True, 0, 0, offset, end, None)
         if len(lines) < 2 or len(lines[1]) != 3:
             raise _Bad
         status_ok = _status_ok(lines[1])

@@ -205,6 +205,7 @@ DEVICES: dict[str, Callable[[ScannerConfig], EmulatedDevice]] = {
     "ldoem": LdoemEmulated,
     "paper": StreamingDevice,
     "ldrobot": _ldrobot,
+    "ldrobot_ld14": _ldrobot,
     "cola_b": SickColaDevice,
     "cola_a": SickColaDevice,
     "scip": ScipDevice,

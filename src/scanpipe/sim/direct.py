@@ -32,6 +32,7 @@ from scanpipe.sim.room import resolve_scene
 from scanpipe.sim.scanner import (
     echo_amplitude,
     measure,
+    packet_beams,
     sample_time_offsets_s,
     sector_duration_s,
     true_ranges,
@@ -112,9 +113,11 @@ def simulate_profiles(scene: Scene, scanner_true: ScannerConfig, session: Sessio
         times = starts[first:first + per_batch, None] + offsets[None, :]
         beta = session.timeline.steps_at(times) * step + beta_offset
         truth = true_ranges(scene, scanner_true, beta)
-        measured = measure(truth, model, first, scanner_true)
+        beams = packet_beams(scene, scanner_true, beta) if scanner_true.dialect == \
+            "ldrobot_ld14" else truth  # an LD14's samples: its beams off their angles
+        measured = measure(beams, model, first, scanner_true)
         yield ProfileBatch(first, measured, truth.ranges_m, beta[:, 0].copy(), beta[:, -1].copy(),
-                           echo_amplitude(measured, truth))
+                           echo_amplitude(measured, beams))
         progress("scanner profiles", min(first + per_batch, total), total)
 
 

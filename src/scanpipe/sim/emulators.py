@@ -41,11 +41,13 @@ from scanpipe.sim.scanner import (
     MeasurementModel,
     echo_amplitude,
     measure,
+    packet_beams,
     sample_time_offsets_s,
     sector_duration_s,
     true_ranges,
 )
 from scanpipe.sim.scene import Scene
+from scanpipe.sim.scip_device import ScipDevice
 from scanpipe.sim.truth import truth_table, write_truth
 
 #: How often idle emulator threads look at their stop flag (real seconds).
@@ -171,8 +173,10 @@ class ScannerEmulator:
 
     def __init__(self, scene: Scene, scanner_true: ScannerConfig, platform: PlatformState,
                  clock: SimClock, measurement: MeasurementModel, host: str = "127.0.0.1",
-                 port: int = 0, phase_s: float = 0.0) -> None:
+                 port: int = 0, phase_s: float = 0.0, scip_protocol: str = "2.0") -> None:
         self.scene = scene
+        #: A Hokuyo's protocol at power-on (``sim.scip_device.START_PROTOCOLS``).
+        self.scip_protocol = scip_protocol
         self.scanner = scanner_true
         self.platform = platform
         self.clock = clock
@@ -286,6 +290,8 @@ class ScannerEmulator:
     # -- one connection --------------------------------------------------------------------
     def _serve(self, client: socket.socket | _PtyEndpoint) -> None:
         device = emulated_device(self.scanner)
+        if isinstance(device, ScipDevice):
+            device.protocol = self.scip_protocol
         with self._lock:
             self.devices.append(device)
         serial = isinstance(client, _PtyEndpoint)
@@ -401,8 +407,10 @@ class ScannerEmulator:
         times = start_s + offsets
         beta = self.platform.beta_deg_at(times)[None, :]
         truth = true_ranges(self.scene, config, beta)
-        measured = measure(truth, self.measurement, k, config)[0]
-        echo = (echo_amplitude(measured[None, :], truth)[0] if self._sends_echo(config)
+        beams = packet_beams(self.scene, config, beta) if config.dialect == "ldrobot_ld14" \
+            else truth
+        measured = measure(beams, self.measurement, k, config)[0]
+        echo = (echo_amplitude(measured[None, :], beams)[0] if self._sends_echo(config)
                 else None)
         sent = SentProfile(k, start_s, float(beta[0, 0]), float(beta[0, -1]), truth.ranges_m[0])
         if device is None or packets is None:
@@ -622,7 +630,8 @@ class VirtualRig:
         phase = float(np.random.default_rng([self.options.seed, 7]).uniform(
             0.0, 1.0 / self.true.scanner.scan_hz))
         self.scanner = ScannerEmulator(self.scene, self.true.scanner, self.platform, self.clock,
-                                       self.options.measurement(), phase_s=phase)
+                                       self.options.measurement(), phase_s=phase,
+                                       scip_protocol=self.options.scip_protocol)
         self.motor = MotorEmulator(motor, self.platform, self.clock,
                                    self.options.report_interval_s)
         self.cameras = {

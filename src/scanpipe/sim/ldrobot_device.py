@@ -1,4 +1,6 @@
-"""The simulated LDRobot LD06 / LD19 / STL-27L: a head that spins and sends from power-on.
+"""The simulated LDRobot LD06 / LD19 / STL-27L / LD14 / LD14P: a head that spins and sends
+from power-on (the LD14/LD14P's beams lie the SDK's distance-dependent shift below the angles
+their packets report; :func:`scanpipe.protocol.ldrobot.sl_packet_angles_deg`).
 
 The real devices take no command on their serial line (the LD06's speed is set by a PWM pin;
 some firmwares of the family accept none at all, and none is needed to start them), so the
@@ -101,9 +103,11 @@ class LdrobotModel:
         return self.limits.beam_step_deg(self.scan_hz)
 
 
-#: The family at its nominal 10 Hz, with a range noise σ of 10 mm.
+#: The family at its nominal speed (10 Hz; LD14/LD14P 6 Hz), with a range noise σ of 10 mm
+#: (LD14/LD14P 15 mm, as their scanner models).
 LDROBOT_MODELS: dict[str, LdrobotModel] = {
-    name: LdrobotModel(limits, 10.0, 0.010) for name, limits in LDROBOT_LIMITS.items()}
+    name: LdrobotModel(limits, limits.nominal_hz, 0.015 if limits.angle_correction else 0.010)
+    for name, limits in LDROBOT_LIMITS.items()}
 
 
 def ldrobot_model(name: str) -> LdrobotModel:
@@ -178,6 +182,13 @@ class LdrobotHead:
         beams = start_true[:, None] + (end_true - start_true)[:, None] * (
             np.arange(per) / (per - 1))
         beta = self.platform.beta_deg_at(times.ravel()).reshape(n, per)
+        if self.model.limits.angle_correction:
+            # LD14/LD14P: the sample reported at the interpolated angle is the beam that
+            # points there less the distance-dependent shift (the decoder adds it back).
+            def range_at(beam_deg: F64) -> F64:
+                return cast_beams(self.scene, self.scanner, beam_deg, beta.ravel())[0]
+
+            beams = ldrobot.sl_packet_angles_deg(beams.ravel(), range_at)[0].reshape(n, per)
         truth, cos_inc = cast_beams(self.scene, self.scanner, beams.ravel(), beta.ravel())
         truth = truth.reshape(n, per)
         cos_inc = cos_inc.reshape(n, per)

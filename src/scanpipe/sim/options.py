@@ -58,6 +58,10 @@ class SimOptions(Params):
     true_mount: Pose | None = None
     true_alpha_offset_deg: float | None = Field(None, ge=-180, le=180)
     true_beta_offset_deg: float | None = Field(None, ge=-180, le=180)
+    scip_protocol: Literal["2.0", "1.1", "1.1-silent", "1.1-only"] = Field(
+        "2.0", description="A Hokuyo's protocol at power-on: 2.0, 1.1 (a URG-04LX of older "
+                           "firmware: switches on 'SCIP2.0'), 1.1-silent (the same, SCIP 2.0 "
+                           "commands unanswered) or 1.1-only (refuses the switch)")
     seed: int = Field(0, ge=0, description="Random seed: the same seed, the same bytes.")
     start_time_ns: int = Field(DEFAULT_START_TIME_NS, ge=0)
     report_interval_s: float = Field(0.02, gt=0, le=10)

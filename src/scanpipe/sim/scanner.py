@@ -17,7 +17,7 @@ The echo amplitude (:func:`echo_amplitude`) follows the lidar equation for a dif
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -136,6 +136,38 @@ def true_ranges(scene: Scene, scanner_true: ScannerConfig, beta_deg: F64,
 def profile_rng(seed: int, profile: int) -> np.random.Generator:
     """The random stream of one profile: the same in direct mode and in the emulator."""
     return np.random.default_rng([seed, profile])
+
+
+def packet_beams(scene: Scene, scanner_true: ScannerConfig, beta_deg: F64) -> TrueProfiles:
+    """What each sample of the profiles measures: :func:`true_ranges` on the grid, except for
+    a head whose samples are not where their angle says (the LD14/LD14P, dialect
+    ``ldrobot_ld14``: the sample reported at angle ``a`` is the beam at ``a − shift(d)``,
+    :func:`scanpipe.protocol.ldrobot.sl_packet_angles_deg`), whose beams are cast there, one
+    profile at a time (their angles differ per profile). The truth of the profile itself stays
+    :func:`true_ranges` on the grid: the decoder's correction maps the samples back onto it."""
+    beta = np.atleast_2d(np.asarray(beta_deg, np.float64))
+    if scanner_true.dialect != "ldrobot_ld14":
+        return true_ranges(scene, scanner_true, beta)
+    from scanpipe.protocol import ldrobot
+
+    grid = beam_angles_deg(scanner_true)
+    rows = []
+    for row in beta:
+        def range_at(beam_deg: F64, row: F64 = row) -> F64:
+            cast = true_ranges(scene, scanner_true, row[None, :], beam_deg=beam_deg)
+            return np.asarray(cast.ranges_m[0], np.float64)
+
+        beams, ranges = ldrobot.sl_packet_angles_deg(grid, range_at)
+        cast = true_ranges(scene, scanner_true, row[None, :], beam_deg=beams)
+        # where the beam found is not consistent (a depth edge), no return
+        rows.append(replace(cast, ranges_m=np.where(np.isfinite(ranges), cast.ranges_m,
+                                                    np.nan).astype(cast.ranges_m.dtype)))
+    reflectance = [r.reflectance for r in rows]
+    return TrueProfiles(
+        np.concatenate([r.ranges_m for r in rows]),
+        np.concatenate([r.cos_incidence for r in rows]),
+        None if any(r is None for r in reflectance) else np.concatenate(
+            [r for r in reflectance if r is not None]))
 
 
 def measure(truth: TrueProfiles, model: MeasurementModel, first_profile: int,

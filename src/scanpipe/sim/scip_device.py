@@ -4,6 +4,13 @@ Answers ``VV``/``PP``/``II`` (version, parameters, state), ``BM``/``QT`` (laser 
 stop), ``RS`` (reset), ``MD``/``ME``/``MS`` (stream with start/end step, cluster count, skip
 and scan count: ``00`` = until ``QT``) and ``GD``/``GE``/``GS`` (one scan). An unknown command
 gets status ``0E``; parameters out of range the command's own error code (SCIP 2.0 numbering).
+
+Start modes (:attr:`ScipDevice.protocol`): ``2.0`` (the default); ``1.1``, a URG-04LX of older
+firmware, which answers every SCIP 2.0 command with its echo and the one-character SCIP 1.1
+status ``E`` (what urg_library reads from ``QT`` to tell SCIP 1.1) until it receives
+``SCIP2.0``, answered ``0``, and speaks SCIP 2.0 from then on; ``1.1-silent``, the same but
+leaving SCIP 2.0 commands unanswered; ``1.1-only``, firmware without SCIP 2.0, which answers
+``SCIP2.0`` with ``E`` too.
 """
 
 from __future__ import annotations
@@ -69,10 +76,18 @@ class _Stream:
     sent: int = 0
 
 
-class ScipDevice:
-    """The device side of SCIP 2.0 (see the module docstring)."""
+#: The protocols a device may start in (module docstring).
+START_PROTOCOLS = ("2.0", "1.1", "1.1-silent", "1.1-only")
 
-    def __init__(self, scanner: ScannerConfig) -> None:
+
+class ScipDevice:
+    """The device side of SCIP 2.0 (see the module docstring); ``protocol``: its start mode."""
+
+    def __init__(self, scanner: ScannerConfig, protocol: str = "2.0") -> None:
+        if protocol not in START_PROTOCOLS:
+            raise ValueError(f"SCIP start protocol {protocol!r}: allowed "
+                             f"{', '.join(START_PROTOCOLS)}")
+        self.protocol = protocol
         self.scanner = scanner
         self.spec = spec_for(scanner)
         self.streaming = False
@@ -88,13 +103,22 @@ class ScipDevice:
         while b"\n" in self._line:
             line, _, rest = bytes(self._line).partition(b"\n")
             self._line = bytearray(rest)
-            if line:
-                replies.append(self._handle(line, now_s))
+            reply = self._handle(line, now_s) if line else b""
+            if reply:  # a single scan's reply is the scan; a silent device answers nothing
+                replies.append(reply)
         self.streaming = self.stream is not None
         return replies
 
     def _handle(self, line: bytes, now_s: float) -> bytes:
         self.requests.append(line[:2].decode("ascii", "replace"))
+        if self.protocol != "2.0":
+            # SCIP 1.1: echo and a one-character status, no check character.
+            if line == scip.SCIP20_SWITCH and self.protocol != "1.1-only":
+                self.protocol = "2.0"
+                return line + b"\n0\n\n"
+            return b"" if self.protocol == "1.1-silent" else line + b"\nE\n\n"
+        if line == scip.SCIP20_SWITCH:
+            return line + b"\n" + scip.status_line("0E") + b"\n"  # already SCIP 2.0
         command = line[:2]
         spec = self.spec
         if command == b"VV":

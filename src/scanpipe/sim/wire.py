@@ -52,4 +52,12 @@ def profile_frame(dialect: str, index: int, ranges_m: NDArray[np.float32],
         device_tick_ns=d.device_tick_ns, device_wrap_ticks=d.device_wrap_ticks)
     if dialect == "ldoem" and mask is not None and mask != ldoem.MASK_RANGES:
         return ldoem.encode_profile_reply([profile], mask=mask)
+    if dialect in ("ldrobot", "ldrobot_ld14"):
+        # The packets carry the head speed and their times follow from it: the rig's rate,
+        # not the encoder's 10 Hz default (a 6 Hz LD14 read as 10 Hz lost every other turn).
+        from scanpipe.protocol import ldrobot
+
+        # An LD14's ranges come measured at its packets' beams (sim.scanner.packet_beams):
+        # the packets carry them as they are.
+        return ldrobot.encode_profile(profile, round(360.0 * scanner.scan_hz))
     return DIALECTS[dialect].encode_profile(profile)

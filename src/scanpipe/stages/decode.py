@@ -36,12 +36,13 @@ from numpy.typing import NDArray
 from pydantic import Field
 
 from scanpipe.clock import fit_clock, unwrap_device_ticks
-from scanpipe.errors import ProtocolError, RecordingError, StageError
+from scanpipe.errors import ParameterError, ProtocolError, RecordingError, StageError
 from scanpipe.images import image_size
 from scanpipe.params import Params
 from scanpipe.progress import ProgressFn, no_progress
 from scanpipe.protocol.profile import DEVICE_TIME_WRAP_MS, Profile, unwrap_counter
 from scanpipe.protocol.registry import (
+    DETECTED_AS,
     DecodedFrame,
     Dialect,
     StreamDecoder,
@@ -75,7 +76,8 @@ _FEED_BYTES = 1 << 20
 class DecodeParams(Params):
     """How the scanner stream is decoded."""
 
-    dialect: Literal["auto", "paper", "ldoem", "cola_b", "cola_a", "ldrobot", "scip"] = Field(
+    dialect: Literal["auto", "paper", "ldoem", "cola_b", "cola_a", "ldrobot", "ldrobot_ld14",
+                     "scip"] = Field(
         "auto", description="wire format of the scanner stream; auto detects it from the bytes")
     checksum: Literal["strict", "lenient"] = Field(
         "strict", description="strict drops frames whose checksum fails; lenient keeps them "
@@ -261,6 +263,23 @@ def _recording_rig(recording: Recording, warnings: list[str]) -> tuple[Rig, pa.T
     return rig, rig_table(rig)
 
 
+def _model_variant(recording: Recording, rig: Rig, params: DecodeParams) -> Dialect | None:
+    """The dialect variant the rig's scanner model needs (an LD14's stream is detected as
+    ``ldrobot`` but its angles need the LD14 correction), or None. An explicit
+    ``decode.dialect`` of the plain family on such a rig is refused: the angles would be
+    sheared by up to 7°, silently."""
+    name = rig.scanner.dialect
+    if name not in DETECTED_AS:
+        return None
+    if params.dialect == DETECTED_AS[name]:
+        raise ParameterError([
+            f"decode.dialect = {params.dialect} decodes without the angle "
+            f"correction the rig's scanner needs (scanner.model = {rig.scanner.model or '?'}, "
+            f"dialect {name}: up to 7° of error per sample); use decode.dialect = auto or "
+            f"{name}, or pass the rig of the scanner used with --rig"], str(recording.path))
+    return get_dialect(name)
+
+
 @dataclass
 class DecodedStream:
     """The scanner stream (``/scanner/stream``, RX) already decoded, all of it and finished
@@ -282,7 +301,8 @@ def decode_recording(recording: Recording, params: DecodeParams,
     rig, rig_artifact = _recording_rig(recording, warnings)
     stream = recording.stream("scanner", RX)
     data = stream.data
-    if decoded is not None:
+    variant = _model_variant(recording, rig, params)
+    if decoded is not None and (variant is None or decoded.dialect.name == variant.name):
         dialect, decoder, frames = decoded.dialect, decoded.decoder, decoded.frames
     else:
         try:
@@ -291,6 +311,8 @@ def decode_recording(recording: Recording, params: DecodeParams,
             if data or not recording.profiles:
                 warnings.append(f"{err}; decoding as the rig's dialect {rig.scanner.dialect!r}")
             dialect = get_dialect(rig.scanner.dialect)
+        if variant is not None and dialect.name == DETECTED_AS[variant.name]:
+            dialect = variant  # the bytes name the family, the rig's model the variant
         decoder = StreamDecoder(dialect, params.checksum, params.max_frame_bytes)
         frames = []
         view = memoryview(data)
