@@ -392,20 +392,33 @@ def test_the_placement_sigma_covers_the_scans_sampling_of_its_edge_lines() -> No
     points and every frame): the spread of the fitted pan over many such draws is what the
     placement 1σ reports (the curvature counts every point as independent and reads far
     less)."""
-    from scanpipe.camera_selfcal import _UNITS, _final_fit, _placement_sigma, _weigh_edge_lines
+    from scanpipe.camera_selfcal import (
+        _UNITS,
+        _curvature_sigma,
+        _final_fit,
+        _placement_sigma,
+        _weigh_edge_lines,
+    )
 
-    rng = np.random.default_rng(5)
     counts = (20, 80, 40, 300, 60, 20, 120)
     level, gate_px = (1.0, 5.0), 4.0
-    pans, sigmas = [], []
-    for _ in range(40):
-        fit, _ = _silhouettes(rng.uniform(-0.5, 0.5, len(counts)), counts)
-        _weigh_edge_lines(fit, np.zeros(1))
-        x, _ = _final_fit(fit, np.zeros(1), gate_px, level, True)
-        pans.append(fit.full(x)[1])
-        sigmas.append(float(_placement_sigma(fit, x, gate_px)[0] * _UNITS[1]))
-    spread = float(np.std(pans, ddof=1))
-    assert np.median(sigmas) == pytest.approx(spread, rel=0.3)
+    spreads = []
+    for by_line in (False, True):  # point by point (the fit's default) and weighed by line
+        rng = np.random.default_rng(5)
+        pans, sigmas, curvatures = [], [], []
+        for _ in range(40):
+            fit, _ = _silhouettes(rng.uniform(-0.5, 0.5, len(counts)), counts)
+            if by_line:
+                _weigh_edge_lines(fit, np.zeros(1))
+            x, result = _final_fit(fit, np.zeros(1), gate_px, level, True)
+            pans.append(fit.full(x)[1])
+            sigmas.append(float(_placement_sigma(fit, x, gate_px)[0] * _UNITS[1]))
+            curvatures.append(float(_curvature_sigma(result)[0] * _UNITS[1]))
+        spread = float(np.std(pans, ddof=1))
+        assert np.median(sigmas) == pytest.approx(spread, rel=0.3)
+        assert np.median(curvatures) < 0.2 * spread  # blind to the scan's sampling
+        spreads.append(spread)
+    assert spreads[1] < spreads[0]  # weighed by line, the pan spreads less
 
 
 # -- on the virtual rig ----------------------------------------------------------------------
