@@ -367,7 +367,7 @@ def merge(paths: list[Path]) -> None:
     cases = tuple(c for c in CASES if any(r["case"] == c for r in runs))
     args = {**loaded[0]["args"], "merged": [str(p) for p in paths],
             "seeds": len({r["seed"] for r in runs}), "first_seed": min(r["seed"] for r in runs)}
-    summarise(runs, cases, args, stem_for(args["motor_step"], 0, CASES,
+    summarise(runs, cases, args, stem_for(args["motor_step"], 0, cases,
                                           args.get("label") or "") + "-merged")
 
 
