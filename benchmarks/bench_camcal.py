@@ -115,6 +115,17 @@ def error_statistics(runs: list[dict[str, Any]]) -> dict[str, Any]:
             "correlation": np.nan_to_num(corr).round(3).tolist()}
 
 
+def error_over_sigma(errors: list[float], report: dict[str, Any]) -> list[float | None]:
+    """Each error of :data:`ERROR_NAMES` over the 1σ the fit reported for it (None where the
+    value was not fitted or has no 1σ): an honest 1σ keeps these mostly within ±2."""
+    sigmas = {p["name"]: p["sigma"] for p in report["parameters"]}
+    out: list[float | None] = []
+    for name, error in zip(ERROR_NAMES, errors, strict=True):
+        sigma = sigmas.get(name)
+        out.append(error / sigma if sigma else None)
+    return out
+
+
 def rotation_error_deg(a: CameraConfig, b: CameraConfig) -> float:
     """The angle of the rotation between two cameras' orientations."""
     relative = camera_to_platform(a.pose.rotation_deg).T @ camera_to_platform(b.pose.rotation_deg)
@@ -268,6 +279,7 @@ def one(seed: int, motor_step: float, beam_step: float, camera_scale: float, fra
                              else result.time_offset_s + VIDEO_ERROR_S),
             "alignment_before": before, "alignment_after": after,
             "report": result.report()}
+        run["error_over_sigma"] = error_over_sigma(run["error_vector"], run["report"])
         run["within_targets"] = bool(
             run["rotation_error_deg"] <= ANGLE_TOL_DEG
             and (run["time_error_s"] is None or (abs(run["time_error_s"]) <= TIME_TOL_S
@@ -324,10 +336,15 @@ def main() -> None:
                   f"{r['rotation_error_deg']:.3f}°{time_error}, edges median "
                   f"{r['alignment_before']['edge_median_px']:.2f} → "
                   f"{r['alignment_after']['edge_median_px']:.2f} px, within 2 px "
-                  f"{r['alignment_after']['edge_within_2px'] * 100:.0f} % "
+                  f"{r['alignment_after']['edge_within_2px'] * 100:.0f} %, pan error/1σ "
+                  f"{_ratio(r['error_over_sigma'][1])} "
                   f"({r['seconds']:.1f} s, cpu {r['cpu_seconds']:.1f} s)", flush=True)
     summarise(runs, cases, vars(args), stem_for(args.motor_step, args.first_seed, cases,
                                                 args.label))
+
+
+def _ratio(value: float | None) -> str:
+    return "—" if value is None else f"{value:+.2f}"
 
 
 def stem_for(motor_step: float, first_seed: int, cases: tuple[str, ...] = CASES,
@@ -350,7 +367,7 @@ def merge(paths: list[Path]) -> None:
     cases = tuple(c for c in CASES if any(r["case"] == c for r in runs))
     args = {**loaded[0]["args"], "merged": [str(p) for p in paths],
             "seeds": len({r["seed"] for r in runs}), "first_seed": min(r["seed"] for r in runs)}
-    summarise(runs, cases, args, stem_for(args["motor_step"], 0, CASES,
+    summarise(runs, cases, args, stem_for(args["motor_step"], 0, cases,
                                           args.get("label") or "") + "-merged")
 
 
@@ -378,6 +395,11 @@ def summarise(runs: list[dict[str, Any]], cases: tuple[str, ...], args: dict[str
             print(f"{case}: error mean ± spread over seeds: " + ", ".join(
                 f"{n} {m:+.4g} ± {s:.2g}" for n, m, s in
                 zip(stats["names"], stats["mean"], stats["spread"], strict=True)))
+    for case in cases:
+        ratios = [r.get("error_over_sigma") for r in runs if r["case"] == case]
+        if ratios and all(ratios):
+            print(f"{case}: rotation error / its 1σ per seed (rot_x, rot_y, rot_z): " + "; ".join(
+                ", ".join(_ratio(v) for v in ratio[:3]) for ratio in ratios if ratio))
     print(f"saved {save({'args': args, 'runs': runs, 'statistics': statistics}, stem)}")
 
 
