@@ -9,7 +9,7 @@ import pyarrow as pa
 import pytest
 from texture_scene import Caster, Recording, record, small_rig
 
-from scanpipe.rig import Rig
+from scanpipe.rig import Rig, default_rig
 from scanpipe.texturing.frames import choose_frames
 from scanpipe.texturing.projective import (
     EQUIRECT_SPACING_DEG,
@@ -91,4 +91,19 @@ def test_windowed_colouring_equals_projecting_every_point(caster: Caster,
     got = np.stack([coloured.column(c).to_numpy() for c in ("red", "green", "blue")], 1)
     expected = reference_colours(points, recording, rig)
     assert (expected != 128).any(axis=1).mean() > 0.3  # many points are seen and coloured
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_colouring_with_a_360_camera_equals_projecting_every_point(caster: Caster) -> None:
+    # a 360° camera beside a phone: its frames see every point at one score (its resolution),
+    # and colour where the phone's frames score lower or do not reach (floor, ceiling)
+    phone = small_rig().cameras[0]
+    pano = default_rig().cameras[2].model_copy(update={"width": 360, "height": 180})
+    rig = small_rig().model_copy(update={"cameras": (phone, pano)})
+    recording = record(rig, beta_step_deg=20.0, travel_deg=80.0, caster=caster)
+    points = room_points(1500, seed=5)
+    coloured = colorize_points(points, recording.frames, recording.motor, rig, spacing_deg=20.0)
+    got = np.stack([coloured.column(c).to_numpy() for c in ("red", "green", "blue")], 1)
+    expected = reference_colours(points, recording, rig, spacing_deg=20.0)
+    assert (expected != 128).any(axis=1).mean() > 0.8  # the 360° camera sees nearly all
     np.testing.assert_array_equal(got, expected)
