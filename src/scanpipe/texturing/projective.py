@@ -649,6 +649,35 @@ def select_frames_per_face(scores: FaceScores, frames: FrameSet, occlusion: Mesh
     return Selection(chosen, occluded, occlusion.rays_cast - rays_before)
 
 
+def _turned_360_frames(cameras: list[CameraConfig], beta_deg: F64) -> dict[int, tuple[int, float]]:
+    """Frames of a 360° camera that are another frame of it turned about the camera's own
+    vertical axis (its centre on the motor axis, its y axis along it: the usual mount), as
+    ``{frame: (first frame, column shift px)}``: their pixels are the first frame's, ``u``
+    shifted (and wrapped), ``v`` and the distance the same. A camera any of whose frames is
+    not so (a tilted or off-axis mount) is not listed: its frames are projected each."""
+    first: dict[str, int] = {}
+    turned: dict[int, tuple[int, float]] = {}
+    bad: set[str] = set()
+    for i, cam in enumerate(cameras):
+        if cam.model != "equirect" or cam.id in bad:
+            continue
+        ref = first.setdefault(cam.id, i)
+        r_ref, t_ref = camera_pose_in_rig(cameras[ref], float(beta_deg[ref]))
+        r_i, t_i = camera_pose_in_rig(cam, float(beta_deg[i]))
+        turn = r_i.T @ r_ref  # camera coordinates of frame i from those of frame ref
+        about_y = np.array([[turn[0, 0], 0.0, turn[0, 2]], [0.0, 1.0, 0.0],
+                            [-turn[0, 2], 0.0, turn[0, 0]]])
+        # 10⁻⁹ rad off a turn about y moves a pixel by under 10⁻⁵ of a pixel
+        if (cam != cameras[ref] or np.abs(turn - about_y).max() > 1e-9
+                or np.abs(t_i - t_ref).max() > 1e-9):
+            bad.add(cam.id)
+            continue
+        # longitude atan2(x, z) grows by the turn's angle
+        shift_rad = math.atan2(turn[0, 2], turn[0, 0])  # within ±π: u moves under a width
+        turned[i] = (ref, shift_rad * cam.width / (2 * math.pi))
+    return {i: v for i, v in turned.items() if cameras[i].id not in bad}
+
+
 def colorize_points(
     points: pa.Table,
     frames: pa.Table,
@@ -705,6 +734,37 @@ def colorize_points(
     # (position, pixel row × width + col, score: one for all of a 360° frame's points)
     Piece = tuple[NDArray[np.int64], I32, "F64 | float"]
 
+    # a 360° camera's frames see every point: where they are one frame turned (the usual
+    # mount), every point is projected once, into the first, and the others' columns shifted
+    turned = _turned_360_frames(chosen.cameras, chosen.beta_deg)
+    first_views: dict[int, tuple[F32, F32, F32]] = {}
+    for ref in sorted({ref for ref, _ in turned.values()}):
+        views = [project_valid_columns(
+            ordered[0][a:b], ordered[1][a:b], ordered[2][a:b], chosen.cameras[ref],
+            float(chosen.beta_deg[ref]), 0.0)[:3] for a, b in _pieces([(0, count)])]
+        first_views[ref] = (np.concatenate([w[0] for w in views]),
+                            np.concatenate([w[1] for w in views]),
+                            np.concatenate([w[2] for w in views]))
+        del views
+
+    def turned_columns(i: int, start: int, stop: int
+                       ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any], NDArray[np.bool_]]:
+        """:func:`project_valid_columns` (margin 0) of positions ``start:stop`` in a turned
+        360° frame ``i``, from its first frame's projection."""
+        cam = chosen.cameras[i]
+        ref, shift_px = turned[i]
+        u0, v, depth = (view[start:stop] for view in first_views[ref])
+        u = u0 + np.float32(shift_px)
+        # back into the image's columns (−½, width − ½], as the longitude wraps
+        np.subtract(u, np.float32(cam.width), out=u, where=u > cam.width - 0.5)
+        np.add(u, np.float32(cam.width), out=u, where=u <= -0.5)
+        valid = depth > 0.05  # project_valid_columns' near_m
+        valid &= u >= 0.0
+        valid &= u <= cam.width - 1
+        valid &= v >= 0.0
+        valid &= v <= cam.height - 1
+        return u, v, depth, valid
+
     def visible(i: int) -> list[Piece]:
         """Frame ``i``'s points in front (z-buffer), as pieces ``(position, pixel, score)``:
         first the z-buffer over every point of the window, in cache-sized pieces (the
@@ -719,9 +779,12 @@ def colorize_points(
         for a, b in ranges:
             for start in range(a, b, COLOUR_CHUNK_POINTS):
                 stop = min(b, start + COLOUR_CHUNK_POINTS)
-                u, v, depth, valid = project_valid_columns(
-                    ordered[0][start:stop], ordered[1][start:stop], ordered[2][start:stop],
-                    cam, beta, 0.0)
+                if i in turned:
+                    u, v, depth, valid = turned_columns(i, start, stop)
+                else:
+                    u, v, depth, valid = project_valid_columns(
+                        ordered[0][start:stop], ordered[1][start:stop],
+                        ordered[2][start:stop], cam, beta, 0.0)
                 local = np.flatnonzero(valid)
                 if len(local) == 0:
                     continue
@@ -743,10 +806,10 @@ def colorize_points(
         out: list[Piece] = []
         while pieces:  # each piece's arrays go as its visible part is kept
             idx, depth, cell, pixel, score = pieces.pop(0)
-            seen = nearest[cell]
-            seen += 0.03
-            seen += 0.01 * depth
-            seen = depth <= seen
+            limit = nearest[cell]
+            limit += 0.03
+            limit += 0.01 * depth
+            seen = depth <= limit
             out.append((idx[seen], pixel[seen],
                         score if isinstance(score, float) else score[seen]))
         return out
