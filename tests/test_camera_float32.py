@@ -131,3 +131,7 @@ def test_360_distance_is_the_float64_distance() -> None:
     _, translation = camera_pose_in_rig(pano, 47.0)
     expected = np.linalg.norm(points.astype(np.float64) - translation, axis=1)
     np.testing.assert_allclose(distance, expected, rtol=1e-6)
+    # bit for bit the sum the texture stage's results were made with
+    across, down, depth = camera_columns(x, y, z, pano, 47.0)
+    np.testing.assert_array_equal(distance,
+                                  np.sqrt(across * across + down * down + depth * depth))

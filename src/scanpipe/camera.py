@@ -130,7 +130,7 @@ def _angles(across: NDArray[FloatT], down: NDArray[FloatT], depth: NDArray[Float
             distance: bool) -> tuple[NDArray[FloatT], NDArray[FloatT], NDArray[FloatT]]:
     """:func:`angles_of`, and the distance from the camera centre when ``distance`` (else an
     empty array): every 360° frame projects every point, so each pass over the columns
-    counts (the sum of squares is shared; no temporaries beyond the results)."""
+    counts (no temporaries beyond the results)."""
     dtype = depth.dtype.type
     squares = across * across
     squares += depth * depth
@@ -148,7 +148,10 @@ def _angles(across: NDArray[FloatT], down: NDArray[FloatT], depth: NDArray[Float
            where=np.signbit(depth))
     if not distance:
         return longitude, latitude, squares[:0]
+    # summed in this order as before: the texture stage's results stay bit for bit
+    np.multiply(across, across, out=squares)
     squares += down * down
+    squares += depth * depth
     return longitude, latitude, np.sqrt(squares, out=squares)
 
 
