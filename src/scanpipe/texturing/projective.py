@@ -704,6 +704,7 @@ def colorize_points(
     camera's parallax; those near the axis always) are projected into it: the points are
     sorted by azimuth once, so a window is a few contiguous slices. Every point a frame sees
     is in its window, so the colours are those of projecting every point into every frame.
+    A 360° camera upright on the axis is projected once (:func:`_turned_360_frames`).
     Each frame is decoded once, and only when it gives some point its colour; the frames one
     at a time. ``frames_chosen`` is called once the frames are chosen (their bytes copied):
     from then on this function holds no reference to ``frames``, so a caller that drops its
