@@ -767,9 +767,10 @@ def colorize_points(
         return u, v, depth, valid
 
     def visible(i: int) -> list[Piece]:
-        """Frame ``i``'s points in front (z-buffer), as pieces ``(position, pixel, score)``:
-        first the z-buffer over every point of the window, in cache-sized pieces (the
-        projection's temporaries then stay in the cache: several times faster)."""
+        """Frame ``i``'s points in front (z-buffer) that it colours better than so far, as
+        pieces ``(position, pixel, score)``: first the z-buffer over every point of the
+        window, in cache-sized pieces (the projection's temporaries then stay in the cache:
+        several times faster)."""
         cam, beta = chosen.cameras[i], float(chosen.beta_deg[i])
         window = view_window(cam, beta)
         ranges = ([(0, count)] if window is None
@@ -810,9 +811,12 @@ def colorize_points(
             limit = nearest[cell]
             limit += 0.03
             limit += 0.01 * depth
-            seen = depth <= limit
-            out.append((idx[seen], pixel[seen],
-                        score if isinstance(score, float) else score[seen]))
+            # in front, and better than the point's colour so far (a point is in one piece
+            # of a frame: ``best`` changes for it only after this test)
+            better = depth <= limit
+            better &= best[idx] < score
+            out.append((idx[better], pixel[better],
+                        score if isinstance(score, float) else score[better]))
         return out
 
     best = np.zeros(count, dtype=np.float64)
@@ -835,16 +839,14 @@ def colorize_points(
             decoding = decoder.submit(chosen.image, i) if decoder is not None else None
             pixels = None
             for idx, pixel, score in visible(i):
-                better = best[idx] < score
-                if not np.any(better):
+                if len(idx) == 0:
                     continue
                 if pixels is None:
                     image = chosen.image(i) if decoding is None else decoding.result()
                     pixels = np.ascontiguousarray(image).reshape(-1).view("V3")
                     del image
-                idx = idx[better]
-                best[idx] = score if isinstance(score, float) else score[better]
-                bgr_items[idx] = pixels[pixel[better]]
+                best[idx] = score
+                bgr_items[idx] = pixels[pixel]
             del decoding, pixels  # a frame that gave no colour: its image goes now
             progress("colour points", i + 1, len(chosen))
     finally:
