@@ -10,7 +10,15 @@ import cv2
 import numpy as np
 import pytest
 
-from scanpipe.camera import angles_of, camera_pose_in_rig, intrinsic_matrix, project_points
+from scanpipe.camera import (
+    _pose_as,
+    angles_of,
+    camera_columns,
+    camera_pose_in_rig,
+    intrinsic_matrix,
+    project_columns,
+    project_points,
+)
 from scanpipe.rig import CameraConfig, Pose, default_rig
 from scanpipe.texturing.projective import project_valid, project_valid_columns
 
@@ -95,3 +103,35 @@ def test_angles_are_arctan2s_also_at_signed_zeros(dtype: type) -> None:
     behind = (across == 0) & (depth < 0)
     np.testing.assert_array_equal(longitude[behind],
                                   np.copysign(dtype(np.pi), across[behind]))
+
+
+def test_pose_is_computed_once_per_camera_and_angle_and_cannot_be_changed() -> None:
+    cam = cameras()[1]
+    x, y, z = (np.ascontiguousarray(c) for c in room_points(1000).T)
+    first = camera_columns(x, y, z, cam, 30.0)
+    r32, t32 = _pose_as(cam, 30.0, "f")
+    assert _pose_as(cam, 30.0, "f") is _pose_as(cam, 30.0, "f")
+    with pytest.raises(ValueError, match="read-only"):
+        r32[0, 0] = 2.0
+    rotation, translation = camera_pose_in_rig(cam, 30.0)
+    np.testing.assert_array_equal(r32, rotation.astype(np.float32))
+    np.testing.assert_array_equal(t32, translation.astype(np.float32))
+    # another angle, another camera: another pose
+    assert not np.array_equal(camera_columns(x, y, z, cam, 31.0)[2], first[2])
+    moved = cam.model_copy(update={"pose": Pose(translation_m=(0.5, 0.3, -0.05),
+                                                rotation_deg=cam.pose.rotation_deg)})
+    assert not np.array_equal(camera_columns(x, y, z, moved, 30.0)[0], first[0])
+
+
+def test_360_distance_is_the_float64_distance() -> None:
+    pano = cameras()[2]
+    points = room_points(20_000)
+    x, y, z = (np.ascontiguousarray(c) for c in points.T)
+    _, _, distance = project_columns(x, y, z, pano, 47.0)
+    _, translation = camera_pose_in_rig(pano, 47.0)
+    expected = np.linalg.norm(points.astype(np.float64) - translation, axis=1)
+    np.testing.assert_allclose(distance, expected, rtol=1e-6)
+    # bit for bit the sum the texture stage's results were made with
+    across, down, depth = camera_columns(x, y, z, pano, 47.0)
+    np.testing.assert_array_equal(distance,
+                                  np.sqrt(across * across + down * down + depth * depth))

@@ -9,10 +9,11 @@ import pyarrow as pa
 import pytest
 from texture_scene import Caster, Recording, record, small_rig
 
-from scanpipe.rig import Rig
+from scanpipe.rig import Pose, Rig, default_rig
 from scanpipe.texturing.frames import choose_frames
 from scanpipe.texturing.projective import (
     EQUIRECT_SPACING_DEG,
+    _turned_360_frames,
     centrality,
     colorize_points,
     project_valid,
@@ -92,3 +93,50 @@ def test_windowed_colouring_equals_projecting_every_point(caster: Caster,
     expected = reference_colours(points, recording, rig)
     assert (expected != 128).any(axis=1).mean() > 0.3  # many points are seen and coloured
     np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("pose", [Pose(translation_m=(0.0, 0.4, 0.0)),
+                                  Pose(translation_m=(0.05, 0.4, -0.02),
+                                       rotation_deg=(3.0, 10.0, -2.0))],
+                         ids=["upright-on-axis", "tilted-off-axis"])
+def test_colouring_with_a_360_camera_equals_projecting_every_point(caster: Caster,
+                                                                   pose: Pose) -> None:
+    # a 360° camera beside a phone: its frames see every point at one score (its resolution),
+    # and colour where the phone's frames score lower or do not reach (floor, ceiling). On
+    # the axis and upright its frames are the first one turned (projected once); else each
+    # frame is projected
+    phone = small_rig().cameras[0]
+    pano = default_rig().cameras[2].model_copy(update={"width": 360, "height": 180,
+                                                       "pose": pose})
+    rig = small_rig().model_copy(update={"cameras": (phone, pano)})
+    recording = record(rig, beta_step_deg=20.0, travel_deg=80.0, caster=caster)
+    chosen = choose_frames(recording.frames, recording.motor, rig, 20.0,
+                           equirect_spacing_deg=20.0)
+    turned = _turned_360_frames(chosen.cameras, chosen.beta_deg)
+    pano_frames = [i for i, c in enumerate(chosen.cameras) if c.model == "equirect"]
+    assert len(pano_frames) == 5
+    assert sorted(turned) == (pano_frames if pose.rotation_deg == (0.0, 0.0, 0.0) else [])
+    points = room_points(1500, seed=5)
+    coloured = colorize_points(points, recording.frames, recording.motor, rig, spacing_deg=20.0)
+    got = np.stack([coloured.column(c).to_numpy() for c in ("red", "green", "blue")], 1)
+    expected = reference_colours(points, recording, rig, spacing_deg=20.0)
+    assert (expected != 128).any(axis=1).mean() > 0.8  # the 360° camera sees nearly all
+    np.testing.assert_array_equal(got, expected)
+
+
+def test_turned_360_frames_are_only_an_upright_camera_on_the_axis() -> None:
+    pano = default_rig().cameras[2]
+    beta = np.array([0.0, 20.0, 40.0, 200.0])
+    turned = _turned_360_frames([pano] * 4, beta)
+    assert sorted(turned) == [0, 1, 2, 3] and {ref for ref, _ in turned.values()} == {0}
+    # the shift is the turn in columns, within half a width
+    assert [round(turned[i][1], 6) for i in range(4)] == [
+        0.0, round(-20 / 360 * pano.width, 6), round(-40 / 360 * pano.width, 6),
+        round(160 / 360 * pano.width, 6)]
+    for pose in (Pose(translation_m=(0.01, 0.4, 0.0)), Pose(rotation_deg=(0.5, 0.0, 0.0)),
+                 Pose(rotation_deg=(0.0, 0.0, 0.5))):
+        assert _turned_360_frames([pano.model_copy(update={"pose": pose})] * 4, beta) == {}
+    assert _turned_360_frames([pano.model_copy(update={"pose": Pose(
+        rotation_deg=(0.0, 30.0, 0.0))})] * 4, beta).keys() == {0, 1, 2, 3}
+    # pinhole frames are never turned
+    assert _turned_360_frames([default_rig().cameras[0]] * 4, beta) == {}

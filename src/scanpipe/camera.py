@@ -14,6 +14,7 @@ top row is straight up. Its "depth" is the distance from the camera centre.
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import TypeVar
 
 import cv2
@@ -58,14 +59,24 @@ def project_points(
     return uv, depth
 
 
+@lru_cache(maxsize=1024)
+def _pose_as(cam: CameraConfig, beta_deg: float, dtype: str
+             ) -> tuple[NDArray[np.floating], NDArray[np.floating]]:
+    """:func:`camera_pose_in_rig` in ``dtype`` (read-only), once per camera and angle: the
+    projections run for a frame in cache-sized pieces, each of which needs it."""
+    rotation, translation = camera_pose_in_rig(cam, beta_deg)
+    r, t = rotation.astype(dtype), translation.astype(dtype)
+    r.setflags(write=False)
+    t.setflags(write=False)
+    return r, t
+
+
 def camera_columns(x: NDArray[FloatT], y: NDArray[FloatT], z: NDArray[FloatT],
                    cam: CameraConfig, beta_deg: float
                    ) -> tuple[NDArray[FloatT], NDArray[FloatT], NDArray[FloatT]]:
     """Rig-frame point columns in the camera frame at platform angle β: ``(x, y, depth)``,
     computed in the columns' dtype (float32 or float64)."""
-    rotation, translation = camera_pose_in_rig(cam, beta_deg)
-    r = rotation.astype(x.dtype)
-    t = translation.astype(x.dtype)
+    r, t = _pose_as(cam, float(beta_deg), x.dtype.char)
     # Column arithmetic on 1-D arrays: (N, 3) temporaries and small matrix products cost
     # several times more (this runs for every frame over every point when colouring clouds).
     dx, dy, dz = x - t[0], y - t[1], z - t[2]
@@ -94,12 +105,12 @@ def project_columns(x: NDArray[FloatT], y: NDArray[FloatT], z: NDArray[FloatT],
     across, down, depth = camera_columns(x, y, z, cam, beta_deg)
     dtype = x.dtype.type
     if cam.model == "equirect":
-        longitude, latitude = angles_of(across, down, depth)
+        longitude, latitude, distance = _angles(across, down, depth, distance=True)
         longitude *= dtype(cam.width / (2 * np.pi))
         longitude += dtype(0.5 * cam.width - 0.5)
         latitude *= dtype(cam.height / np.pi)
         latitude += dtype(0.5 * cam.height - 0.5)
-        return longitude, latitude, np.sqrt(across * across + down * down + depth * depth)
+        return longitude, latitude, distance
     u, v = normalized_to_pixels(*normalized_columns(across, down, depth), cam)
     return u, v, depth
 
@@ -111,16 +122,37 @@ def angles_of(across: NDArray[FloatT], down: NDArray[FloatT], depth: NDArray[Flo
     within 10⁻¹⁹ m of the centre, where squares underflow), from ``arctan``
     of the ratios: NumPy's ``arctan`` is vectorised, its ``arctan2`` is not (4–5× slower in
     float32, where it dominated projecting a 360° frame)."""
-    dtype = depth.dtype.type
-    spread = np.sqrt(across * across + depth * depth)
-    with np.errstate(divide="ignore", invalid="ignore"):  # 0 / 0 at the centre: NaN, then 0
-        longitude = np.arctan(across / depth)
-        latitude = np.arctan(down / spread)
-    np.nan_to_num(longitude, copy=False)
-    np.nan_to_num(latitude, copy=False)
-    # the half behind the camera (depth < 0, also −0) lies π further round, on across's side
-    longitude += np.where(np.signbit(depth), np.copysign(dtype(np.pi), across), dtype(0.0))
+    longitude, latitude, _ = _angles(across, down, depth, distance=False)
     return longitude, latitude
+
+
+def _angles(across: NDArray[FloatT], down: NDArray[FloatT], depth: NDArray[FloatT],
+            distance: bool) -> tuple[NDArray[FloatT], NDArray[FloatT], NDArray[FloatT]]:
+    """:func:`angles_of`, and the distance from the camera centre when ``distance`` (else an
+    empty array): every 360° frame projects every point, so each pass over the columns
+    counts (no temporaries beyond the results)."""
+    dtype = depth.dtype.type
+    squares = across * across
+    squares += depth * depth
+    with np.errstate(divide="ignore", invalid="ignore"):  # 0 / 0 at the centre: NaN, then 0
+        longitude = np.divide(across, depth)
+        np.arctan(longitude, out=longitude)
+        latitude = np.sqrt(squares)
+        np.divide(down, latitude, out=latitude)
+        np.arctan(latitude, out=latitude)
+    # arctan gives no infinities: only the centre's NaN is mended
+    np.copyto(longitude, dtype(0.0), where=np.isnan(longitude))
+    np.copyto(latitude, dtype(0.0), where=np.isnan(latitude))
+    # the half behind the camera (depth < 0, also −0) lies π further round, on across's side
+    np.add(longitude, np.copysign(dtype(np.pi), across), out=longitude,
+           where=np.signbit(depth))
+    if not distance:
+        return longitude, latitude, squares[:0]
+    # summed in this order as before: the texture stage's results stay bit for bit
+    np.multiply(across, across, out=squares)
+    squares += down * down
+    squares += depth * depth
+    return longitude, latitude, np.sqrt(squares, out=squares)
 
 
 def normalized_columns(across: NDArray[FloatT], down: NDArray[FloatT], depth: NDArray[FloatT]

@@ -832,6 +832,35 @@ def select_frames_per_face(scores: Scores, frames: FrameSet, occlusion: MeshOccl
     return Selection(chosen, occluded, occlusion.rays_cast - rays_before)
 
 
+def _turned_360_frames(cameras: list[CameraConfig], beta_deg: F64) -> dict[int, tuple[int, float]]:
+    """Frames of a 360° camera that are another frame of it turned about the camera's own
+    vertical axis (its centre on the motor axis, its y axis along it: the usual mount), as
+    ``{frame: (first frame, column shift px)}``: their pixels are the first frame's, ``u``
+    shifted (and wrapped), ``v`` and the distance the same. A camera any of whose frames is
+    not so (a tilted or off-axis mount) is not listed: its frames are projected each."""
+    first: dict[str, int] = {}
+    turned: dict[int, tuple[int, float]] = {}
+    bad: set[str] = set()
+    for i, cam in enumerate(cameras):
+        if cam.model != "equirect" or cam.id in bad:
+            continue
+        ref = first.setdefault(cam.id, i)
+        r_ref, t_ref = camera_pose_in_rig(cameras[ref], float(beta_deg[ref]))
+        r_i, t_i = camera_pose_in_rig(cam, float(beta_deg[i]))
+        turn = r_i.T @ r_ref  # camera coordinates of frame i from those of frame ref
+        about_y = np.array([[turn[0, 0], 0.0, turn[0, 2]], [0.0, 1.0, 0.0],
+                            [-turn[0, 2], 0.0, turn[0, 0]]])
+        # 10⁻⁹ rad off a turn about y moves a pixel by under 10⁻⁵ of a pixel
+        if (cam != cameras[ref] or np.abs(turn - about_y).max() > 1e-9
+                or np.abs(t_i - t_ref).max() > 1e-9):
+            bad.add(cam.id)
+            continue
+        # longitude atan2(x, z) grows by the turn's angle
+        shift_rad = math.atan2(turn[0, 2], turn[0, 0])  # within ±π: u moves under a width
+        turned[i] = (ref, shift_rad * cam.width / (2 * math.pi))
+    return {i: v for i, v in turned.items() if cameras[i].id not in bad}
+
+
 def colorize_points(
     points: pa.Table,
     frames: pa.Table,
@@ -858,6 +887,7 @@ def colorize_points(
     camera's parallax; those near the axis always) are projected into it: the points are
     sorted by azimuth once, so a window is a few contiguous slices. Every point a frame sees
     is in its window, so the colours are those of projecting every point into every frame.
+    A 360° camera upright on the axis is projected once (:func:`_turned_360_frames`).
     Each frame is decoded once, and only when it gives some point its colour; the frames one
     at a time. ``frames_chosen`` is called once the frames are chosen (their bytes copied):
     from then on this function holds no reference to ``frames``, so a caller that drops its
@@ -885,12 +915,45 @@ def colorize_points(
     ordered = [np.asarray(c, dtype=np.float32)[index.order] for c in columns]
     del columns
     count = len(ordered[0])
-    Piece = tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.int32], F64]
+    # (position, pixel row × width + col, score: one for all of a 360° frame's points)
+    Piece = tuple[NDArray[np.int64], I32, "F64 | float"]
+
+    # a 360° camera's frames see every point: where they are one frame turned (the usual
+    # mount), every point is projected once, into the first, and the others' columns shifted
+    turned = _turned_360_frames(chosen.cameras, chosen.beta_deg)
+    first_views: dict[int, tuple[F32, F32, F32]] = {}
+    for ref in sorted({ref for ref, _ in turned.values()}):
+        views = [project_valid_columns(
+            ordered[0][a:b], ordered[1][a:b], ordered[2][a:b], chosen.cameras[ref],
+            float(chosen.beta_deg[ref]), 0.0)[:3] for a, b in _pieces([(0, count)])]
+        first_views[ref] = (np.concatenate([w[0] for w in views]),
+                            np.concatenate([w[1] for w in views]),
+                            np.concatenate([w[2] for w in views]))
+        del views
+
+    def turned_columns(i: int, start: int, stop: int
+                       ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any], NDArray[np.bool_]]:
+        """:func:`project_valid_columns` (margin 0) of positions ``start:stop`` in a turned
+        360° frame ``i``, from its first frame's projection."""
+        cam = chosen.cameras[i]
+        ref, shift_px = turned[i]
+        u0, v, depth = (view[start:stop] for view in first_views[ref])
+        u = u0 + np.float32(shift_px)
+        # back into the image's columns (−½, width − ½], as the longitude wraps
+        np.subtract(u, np.float32(cam.width), out=u, where=u > cam.width - 0.5)
+        np.add(u, np.float32(cam.width), out=u, where=u <= -0.5)
+        valid = depth > 0.05  # project_valid_columns' near_m
+        valid &= u >= 0.0
+        valid &= u <= cam.width - 1
+        valid &= v >= 0.0
+        valid &= v <= cam.height - 1
+        return u, v, depth, valid
 
     def visible(i: int) -> list[Piece]:
-        """Frame ``i``'s points in front (z-buffer), as pieces ``(position, col, row,
-        score)``: first the z-buffer over every point of the window, in cache-sized pieces
-        (the projection's temporaries then stay in the cache: several times faster)."""
+        """Frame ``i``'s points in front (z-buffer) that it colours better than so far, as
+        pieces ``(position, pixel, score)``: first the z-buffer over every point of the
+        window, in cache-sized pieces (the projection's temporaries then stay in the cache:
+        several times faster)."""
         cam, beta = chosen.cameras[i], float(chosen.beta_deg[i])
         window = view_window(cam, beta)
         ranges = ([(0, count)] if window is None
@@ -901,30 +964,49 @@ def colorize_points(
         for a, b in ranges:
             for start in range(a, b, COLOUR_CHUNK_POINTS):
                 stop = min(b, start + COLOUR_CHUNK_POINTS)
-                u, v, depth, valid = project_valid_columns(
-                    ordered[0][start:stop], ordered[1][start:stop], ordered[2][start:stop],
-                    cam, beta, 0.0)
+                if i in turned:
+                    u, v, depth, valid = turned_columns(i, start, stop)
+                else:
+                    u, v, depth, valid = project_valid_columns(
+                        ordered[0][start:stop], ordered[1][start:stop],
+                        ordered[2][start:stop], cam, beta, 0.0)
                 local = np.flatnonzero(valid)
                 if len(local) == 0:
                     continue
                 if len(local) < len(valid):  # a 360° camera's frame sees every point
                     u, v, depth = u[local], v[local], depth[local]
-                col = np.clip(np.rint(u), 0, cam.width - 1).astype(np.int32)
-                row = np.clip(np.rint(v), 0, cam.height - 1).astype(np.int32)
-                cell = (row // cell_px) * cells_w + col // cell_px
+                # valid (margin 0) keeps 0 ≤ u ≤ width − 1 and 0 ≤ v ≤ height − 1: no clip
+                col = np.rint(u).astype(np.int32)
+                row = np.rint(v).astype(np.int32)
+                cell = row // cell_px
+                cell *= cells_w
+                cell += col // cell_px
                 np.minimum.at(nearest, cell, depth)
-                score = (np.full(len(u), resolution[i]) if cam.model == "equirect"
-                         else pinhole_centrality(u, v, cam) * resolution[i])
-                pieces.append((local + start, depth, cell, col, row, score))
+                score: F64 | float = (
+                    float(resolution[i]) if cam.model == "equirect"
+                    else pinhole_centrality(u, v, cam) * resolution[i])
+                row *= cam.width
+                row += col
+                pieces.append((local + start, depth, cell, row, score))
         out: list[Piece] = []
         while pieces:  # each piece's arrays go as its visible part is kept
-            idx, depth, cell, col, row, score = pieces.pop(0)
-            seen = depth <= nearest[cell] + 0.03 + 0.01 * depth
-            out.append((idx[seen], col[seen], row[seen], score[seen]))
+            idx, depth, cell, pixel, score = pieces.pop(0)
+            limit = nearest[cell]
+            limit += 0.03
+            limit += 0.01 * depth
+            # in front, and better than the point's colour so far (a point is in one piece
+            # of a frame: ``best`` changes for it only after this test)
+            better = depth <= limit
+            better &= best[idx] < score
+            out.append((idx[better], pixel[better],
+                        score if isinstance(score, float) else score[better]))
         return out
 
     best = np.zeros(count, dtype=np.float64)
-    rgb = np.tile(np.asarray(neutral_rgb, dtype=np.uint8), (count, 1))
+    # colours as the frames hold them (BGR), one 3-byte item per point: gathering and
+    # scattering whole pixels is several times faster than (n, 3) fancy indexing
+    bgr = np.tile(np.asarray(neutral_rgb[::-1], dtype=np.uint8), (count, 1))
+    bgr_items = bgr.reshape(-1).view("V3")
     # one frame at a time: projecting frames on worker threads gave no CPU back and kept
     # ~400 MB more resident (per-thread malloc arenas) into the rest of the export. Only the
     # frame's decode (OpenCV, without the GIL) runs on a thread of its own, beside its
@@ -938,26 +1020,27 @@ def colorize_points(
     try:
         for i in range(len(chosen)):
             decoding = decoder.submit(chosen.image, i) if decoder is not None else None
-            image = None
-            for idx, col, row, score in visible(i):
-                better = score > best[idx]
-                if not np.any(better):
+            pixels = None
+            for idx, pixel, score in visible(i):
+                if len(idx) == 0:
                     continue
-                if image is None:
+                if pixels is None:
                     image = chosen.image(i) if decoding is None else decoding.result()
-                idx = idx[better]
-                best[idx] = score[better]
-                rgb[idx] = image[row[better], col[better], ::-1]
-            del decoding, image  # a frame that gave no colour: its image goes now
+                    pixels = np.ascontiguousarray(image).reshape(-1).view("V3")
+                    del image
+                best[idx] = score
+                bgr_items[idx] = pixels[pixel]
+            del decoding, pixels  # a frame that gave no colour: its image goes now
             progress("colour points", i + 1, len(chosen))
     finally:
         if decoder is not None:
             decoder.shutdown(wait=True)
-    colours = np.empty_like(rgb)
-    colours[index.order] = rgb
+    colours = np.empty_like(bgr)
+    colours.reshape(-1).view("V3")[index.order] = bgr_items
+    del bgr, bgr_items
     table = points
     for k, name in enumerate(("red", "green", "blue")):
-        column = pa.array(colours[:, k], pa.uint8())
+        column = pa.array(colours[:, 2 - k], pa.uint8())
         if name in table.column_names:
             table = table.set_column(table.column_names.index(name), name, column)
         else:
