@@ -28,7 +28,8 @@ def test_blocks_do_not_change_the_texture(monkeypatch: pytest.MonkeyPatch) -> No
                                (atlas, "REGION_BLOCK_FACES", 53),
                                (atlas, "PROJECT_BLOCK_VERTICES", 41),
                                (atlas, "UV_BLOCK_FACES", 37),
-                               (patches, "COMBINE_BLOCK_FACES", 3)):
+                               (patches, "COMBINE_BLOCK_FACES", 3),
+                               (patches, "PARTIAL_BLOCK_FACES", 2)):
         monkeypatch.setattr(module, name, size)
     blocked = STAGE.run(rec.inputs(vt, ft))
     assert default.report["faces_textured"] > 1000

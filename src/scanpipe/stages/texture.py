@@ -442,10 +442,10 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     del scores
     clock.lap("icm")
     # the atlas's regions read only the frame choice: found on a second thread while the
-    # patches are baked and the seams measured (that work is mostly on one core)
+    # seams are measured, once the ray scene is gone (beside the patches, which cast rays,
+    # the scene (~0.5 GB at lab scale) and the regions' temporaries and charts (~0.5 GB)
+    # were the stage's peak)
     with thread_pool(worker_count(2, limit=2)) as side:  # waits for it on an error
-        charts_job = side.submit(frame_charts, vertices, faces, labels, frames,
-                                 pad_px=params.pad_px)
         patches = None
         if params.patch_texels > 0:
             untextured = labels[partial_pool] < 0  # a face no frame holds whole, still without one
@@ -460,6 +460,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         rays_cast = occlusion.rays_cast
         del occlusion, partial_normals  # the ray scene (~0.4 GB at lab scale): not in the atlas
         clock.lap("patches")
+        charts_job = side.submit(frame_charts, vertices, faces, labels, frames,
+                                 pad_px=params.pad_px)
         seams = None
         if params.seam_strip_px > 0:
             seams = seam_corrections(vertices, faces, labels, frames, gains, edges=edges)
