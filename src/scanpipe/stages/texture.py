@@ -447,7 +447,9 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
                               occlusion, params.seam_weight, params.seam_rounds,
                               progress=progress)
     labels = smoothing.labels
-    del scores
+    # the ray test's choice (ICM's copy is the labels): only its count is reported
+    occluded_candidates = selection.occluded_candidates
+    del scores, selection
     clock.lap("icm")
     # the atlas's regions read only the frame choice: found on a second thread while the
     # seams are measured, once the ray scene is gone (beside the patches, which cast rays,
@@ -501,7 +503,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         "frames_in_recording": frames.considered,
         "frames_considered": len(frames),
         "frames_used": len(used),
-        "occluded_candidates": selection.occluded_candidates,
+        "occluded_candidates": occluded_candidates,
         "rays_cast": rays_cast,
         "regions": atlas.regions,
         "pages": len(atlas.pages),
