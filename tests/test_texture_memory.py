@@ -28,7 +28,8 @@ def test_blocks_do_not_change_the_texture(monkeypatch: pytest.MonkeyPatch) -> No
                                (atlas, "REGION_BLOCK_FACES", 53),
                                (atlas, "PROJECT_BLOCK_VERTICES", 41),
                                (atlas, "UV_BLOCK_FACES", 37),
-                               (patches, "COMBINE_BLOCK_FACES", 3)):
+                               (patches, "COMBINE_BLOCK_FACES", 3),
+                               (patches, "PARTIAL_BLOCK_FACES", 2)):
         monkeypatch.setattr(module, name, size)
     blocked = STAGE.run(rec.inputs(vt, ft))
     assert default.report["faces_textured"] > 1000
@@ -126,3 +127,37 @@ def test_edge_corners_of_some_edges_are_those_of_all() -> None:
     assert edges.pair_slots.dtype == np.int32 and edges.pairs().dtype == np.int64
     rows = np.array([0, 5, 17, len(edges.pair_slots) - 1])
     np.testing.assert_array_equal(edges.vertices(faces, rows), edges.vertices(faces)[rows])
+
+
+def test_regions_are_found_after_the_ray_scene_is_freed(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The atlas's regions (and their temporaries) do not sit beside the ray scene: when
+    ``frame_charts`` runs, no ``MeshOcclusion`` of the stage is alive any more; the stage's
+    result is the same."""
+    import gc
+    import weakref
+
+    from scanpipe.stages import texture as texture_module
+
+    rec = record(small_rig(), beta_step_deg=6.0, caster=Caster())
+    vertices, faces, normals = room_mesh(0.25)
+    vt, ft = mesh_tables(vertices, faces, normals)
+    default = STAGE.run(rec.inputs(vt, ft))
+    scenes: list[weakref.ref[MeshOcclusion]] = []
+    alive_at_charts: list[int] = []
+
+    class Tracked(MeshOcclusion):
+        def __init__(self, *args: object, **kwargs: object) -> None:
+            super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+            scenes.append(weakref.ref(self))
+
+    def charts(*args: object, **kwargs: object) -> atlas.Charts:
+        gc.collect()
+        alive_at_charts.append(sum(ref() is not None for ref in scenes))
+        return atlas.frame_charts(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(texture_module, "MeshOcclusion", Tracked)
+    monkeypatch.setattr(texture_module, "frame_charts", charts)
+    tracked = STAGE.run(rec.inputs(vt, ft))
+    assert scenes and alive_at_charts == [0]
+    for name in ("textured_faces", "texture_pages"):
+        assert default.tables[name].equals(tracked.tables[name]), name

@@ -273,32 +273,35 @@ def untextured_result(n_faces: int, reason: str, png_compression: int) -> StageR
 
 
 def _select_alone(alone: NDArray[np.int64], selection: Selection, scores: GroupedScores,
-                  groups: FaceGroups, vertices: NDArray[np.float64],
+                  vertices: NDArray[np.float64],
                   faces: NDArray[np.signedinteger[Any]],
                   vertex_normals: NDArray[np.floating[Any]] | None, flipped: bool,
                   scored: Callable[[FaceGroups], FaceScores], frames: FrameSet,
                   occlusion: MeshOcclusion, progress: ProgressFn
-                  ) -> tuple[Selection, GroupedScores, FaceGroups]:
+                  ) -> tuple[Selection, GroupedScores]:
     """The faces ``alone`` (of groups, left without a frame by the ray test) scored and
-    tested each alone, as the per-face path does: the selection, scores and groups with
-    them as groups of their own (their normals and centroids found again, bit for bit)."""
+    tested each alone, as the per-face path does: the selection and scores with them as
+    groups of their own, numbered after the others as :func:`split_into_singles` numbers
+    them (their normals and centroids found again, bit for bit). Only the faces' group
+    numbers are needed here, not the groups' members and corners (~0.1 GB at lab scale)."""
     normals = face_normals(vertices, faces[alone],
                            None if vertex_normals is None else vertex_normals)[0]
     if flipped:
         normals *= -1
     centroids = face_centroids(vertices, faces[alone])
     alone_kept = scored(single_faces(faces[alone], normals, centroids))
-    new_groups, _ = split_into_singles(groups, faces, alone, normals, centroids)
+    of = scores.of.copy()
+    of[alone] = scores.groups.faces + np.arange(len(alone), dtype=np.int32)
     merged = GroupedScores(FaceScores(np.concatenate([scores.groups.frame, alone_kept.frame]),
                                       np.concatenate([scores.groups.score, alone_kept.score])),
-                           new_groups.of)
+                           of)
     merged.struck[...] = scores.struck
     merged.struck[alone] = 0
     again = select_frames_per_face(merged, frames, occlusion, progress, faces=alone)
     chosen = selection.frame.copy()
     chosen[alone] = again.frame[alone]
     return (Selection(chosen, selection.occluded_candidates + again.occluded_candidates,
-                      selection.rays_cast + again.rays_cast), merged, new_groups)
+                      selection.rays_cast + again.rays_cast), merged)
 
 
 class PhaseClock:
@@ -415,11 +418,16 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     partial_pool = np.flatnonzero(~whole)
     partial_normals = normals[partial_pool]
     del normals, whole
+    # of the groups, only each face's group and the groups' sizes are read from here on
+    # (not their members, corners, normals, centroids: ~0.1 GB at lab scale)
+    per_face = groups.count == len(faces) and params.face_group == 1
+    group_of, in_group = groups.of, (groups.sizes > 1)[groups.of]
+    del groups
     edges = mesh_edges(faces, len(vertices))  # once: rays, seam step, seam strip
     occlusion = MeshOcclusion(vertices, faces, edges)  # the tree is built here, not at a ray
     clock.lap("ray_scene")
-    scores: Scores = (kept if groups.count == len(faces) and params.face_group == 1
-                      else GroupedScores(kept, groups.of))
+    scores: Scores = kept if per_face else GroupedScores(kept, group_of)
+    del group_of
     del kept
     selection = select_frames_per_face(scores, frames, occlusion, progress)
     del candidates
@@ -428,24 +436,26 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     alone_faces = np.zeros(0, np.int64)
     if isinstance(scores, GroupedScores):
         alone_faces = np.flatnonzero((selection.frame < 0) & scores.has_candidates()
-                                     & (groups.sizes > 1)[groups.of])
+                                     & in_group)
     if isinstance(scores, GroupedScores) and len(alone_faces):
-        selection, scores, groups = _select_alone(
-            alone_faces, selection, scores, groups, vertices, faces, vertex_normals, flipped,
+        selection, scores = _select_alone(
+            alone_faces, selection, scores, vertices, faces, vertex_normals, flipped,
             scored, frames, occlusion, progress)
-    del vertex_normals
+    del vertex_normals, in_group
     clock.lap("visibility")
     smoothing = smooth_labels(scores, selection.frame, edges, frames,
                               occlusion, params.seam_weight, params.seam_rounds,
                               progress=progress)
     labels = smoothing.labels
-    del scores
+    # the ray test's choice (ICM's copy is the labels): only its count is reported
+    occluded_candidates = selection.occluded_candidates
+    del scores, selection
     clock.lap("icm")
     # the atlas's regions read only the frame choice: found on a second thread while the
-    # patches are baked and the seams measured (that work is mostly on one core)
+    # seams are measured, once the ray scene is gone (beside the patches, which cast rays,
+    # the scene (~0.5 GB at lab scale) and the regions' temporaries and charts (~0.5 GB)
+    # were the stage's peak)
     with thread_pool(worker_count(2, limit=2)) as side:  # waits for it on an error
-        charts_job = side.submit(frame_charts, vertices, faces, labels, frames,
-                                 pad_px=params.pad_px)
         patches = None
         if params.patch_texels > 0:
             untextured = labels[partial_pool] < 0  # a face no frame holds whole, still without one
@@ -460,6 +470,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         rays_cast = occlusion.rays_cast
         del occlusion, partial_normals  # the ray scene (~0.4 GB at lab scale): not in the atlas
         clock.lap("patches")
+        charts_job = side.submit(frame_charts, vertices, faces, labels, frames,
+                                 pad_px=params.pad_px)
         seams = None
         if params.seam_strip_px > 0:
             seams = seam_corrections(vertices, faces, labels, frames, gains, edges=edges)
@@ -491,7 +503,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         "frames_in_recording": frames.considered,
         "frames_considered": len(frames),
         "frames_used": len(used),
-        "occluded_candidates": selection.occluded_candidates,
+        "occluded_candidates": occluded_candidates,
         "rays_cast": rays_cast,
         "regions": atlas.regions,
         "pages": len(atlas.pages),

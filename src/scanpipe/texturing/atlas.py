@@ -205,7 +205,7 @@ def frame_charts(vertices: NDArray[np.floating], faces: NDArray[np.integer], cho
                  frames: FrameSet, *, pad_px: int = 3, cell_px: int = 32) -> Charts:
     """The regions of every used frame (:func:`vertex_regions`), the first step of
     :func:`build_atlas`: it reads only the frame choice (no image), so the texture stage
-    finds them on a second thread while the multi-view patches are baked."""
+    finds them on a second thread while the seams are measured."""
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces)  # int32 or int64 as given: no copy of the mesh's corners
     # per used frame: its faces, their vertices' pixels with each corner's row in them, and

@@ -32,6 +32,8 @@ U8 = NDArray[np.uint8]
 MAX_PARTIAL_FRAMES = 32
 #: Share of a patch's texels that must find a frame for the face to count as textured.
 MIN_FILLED = 0.9
+#: Faces whose partial frames :func:`partial_candidates` scores at once.
+PARTIAL_BLOCK_FACES = 1 << 14
 
 
 @dataclass
@@ -53,31 +55,40 @@ def partial_candidates(vertices: F64, faces: I64, normals: F64, face_ids: I64,
     from scanpipe.texturing.projective import project_valid
 
     n = len(face_ids)
-    score = np.zeros((len(frames), n))
+    k = min(count, len(frames))
     if n == 0:
-        return np.full((0, min(count, len(frames))), -1, dtype=np.int64)
-    corners = vertices[faces[face_ids]].reshape(-1, 3)
-    centroid = face_centroids(vertices, faces[face_ids])
-    normals_of = np.asarray(normals, np.float64)
+        return np.full((0, k), -1, dtype=np.int64)
     ids = np.asarray(frames.camera_ids)
     per_camera = max(1, MAX_PARTIAL_FRAMES // max(1, len(set(frames.camera_ids))))
     looked = []
     for cam_id in sorted(set(frames.camera_ids)):
         own = np.flatnonzero(ids == cam_id)
         looked += own[::max(1, -(-len(own) // per_camera))].tolist()
-    for i in looked:
-        cam = frames.cameras[i]
-        _, _, valid = project_valid(corners, cam, float(frames.beta_deg[i]), 0.0)
-        inside = valid.reshape(n, 3).sum(axis=1)
-        to_cam = frames.centre(i) - centroid
-        cos = np.einsum("ij,ij->i", normals_of, to_cam) / np.maximum(
-            np.linalg.norm(to_cam, axis=1), 1e-12)
-        ok = (inside > 0) & (cos >= min_cos)
-        score[i, ok] = cos[ok] * inside[ok] / 3 * weights[i]
-    k = min(count, len(frames))
-    order = np.argsort(-score, axis=0, kind="stable")[:k].T
-    best = np.take_along_axis(score.T, order, axis=1)
-    return np.where(best > 0, order, -1).astype(np.int64)
+    result = np.empty((n, k), dtype=np.int64)
+    # in blocks of faces: a (frames, faces) float64 score and its argsort for all of them
+    # were ~2.5 kB per face (0.3 GB at lab scale) beside the ray scene; each face's column is
+    # its own, so the blocks give the same frames
+    for start in range(0, n, PARTIAL_BLOCK_FACES):
+        block = slice(start, start + PARTIAL_BLOCK_FACES)
+        tri = faces[face_ids[block]]
+        m = len(tri)
+        score = np.zeros((len(frames), m))
+        corners = vertices[tri].reshape(-1, 3)
+        centroid = face_centroids(vertices, tri)
+        normals_of = np.asarray(normals[block], np.float64)
+        for i in looked:
+            cam = frames.cameras[i]
+            _, _, valid = project_valid(corners, cam, float(frames.beta_deg[i]), 0.0)
+            inside = valid.reshape(m, 3).sum(axis=1)
+            to_cam = frames.centre(i) - centroid
+            cos = np.einsum("ij,ij->i", normals_of, to_cam) / np.maximum(
+                np.linalg.norm(to_cam, axis=1), 1e-12)
+            ok = (inside > 0) & (cos >= min_cos)
+            score[i, ok] = cos[ok] * inside[ok] / 3 * weights[i]
+        order = np.argsort(-score, axis=0, kind="stable")[:k].T
+        best = np.take_along_axis(score.T, order, axis=1)
+        result[block] = np.where(best > 0, order, -1)
+    return result
 
 
 def remap_points(image: U8, uv: F64, width: int = 1024) -> U8:
@@ -118,13 +129,12 @@ def bake_patches(vertices: F64, faces: NDArray[np.integer], face_ids: I64, candi
         b1 + b2, 1e-12)
     bary = np.stack([1 - b1c - b2c, b1c, b2c], -1).reshape(-1, 3)  # (P², 3)
     inside = (b1 + b2 <= 1.0).reshape(-1)
-    tri = vertices[faces[face_ids]]  # (n, 3, 3)
-    points = np.einsum("tk,nkc->ntc", bary, tri)  # (n, P², 3)
-    del tri
     n, slots = len(face_ids), candidates.shape[1]
     values = np.zeros((n, p * p, slots, 3), dtype=np.uint8)  # colour in the slot's frame
     seen_in = np.zeros((n, p * p, slots), dtype=bool)  # ... where the texel is seen in it
-    votes = np.zeros((n, len(frames)), dtype=np.int64)
+    # texels seen per face and frame (≤ P² each: a frame fills one slot of a face); int16,
+    # not int64 (0.8 kB per face at lab scale's 102 frames)
+    votes = np.zeros((n, len(frames)), dtype=np.int16 if p * p < 2 ** 15 else np.int64)
     flat_values, flat_seen = values.reshape(-1, 3), seen_in.reshape(-1)  # views, not copies
     for slot in range(slots):
         frame_of = candidates[:, slot]
@@ -132,7 +142,10 @@ def bake_patches(vertices: F64, faces: NDArray[np.integer], face_ids: I64, candi
             rows = np.flatnonzero(frame_of == i)
             face_of = np.repeat(rows, p * p)
             texel = np.tile(np.arange(p * p), len(rows))
-            where = points[rows].reshape(-1, 3)  # = points[face_of, texel], one gather
+            # the texels' surface points of these faces only (all faces' at once were
+            # (n, P², 3) float64 held through the loop: 1.5 kB per face)
+            where = np.einsum("tk,nkc->ntc", bary, vertices[faces[face_ids[rows]]]
+                              ).reshape(-1, 3)
             cam = frames.cameras[int(i)]
             uv, _, valid = project_valid(where, cam, float(frames.beta_deg[i]), 0.5)
             seen = valid.copy()
@@ -146,8 +159,7 @@ def bake_patches(vertices: F64, faces: NDArray[np.integer], face_ids: I64, candi
             at += slot
             flat_values[at] = remap_points(frames.image(int(i)), uv)
             flat_seen[at] = True
-            votes[:, int(i)] += np.bincount(face_of, minlength=n)
-    del points
+            votes[:, int(i)] += np.bincount(face_of, minlength=n).astype(votes.dtype)
     texels_bgr = np.empty((n, p * p, 3), dtype=np.uint8)
     keep = np.empty(n, dtype=bool)
     for start in range(0, n, COMBINE_BLOCK_FACES):
