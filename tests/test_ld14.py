@@ -83,6 +83,23 @@ def test_the_correction_turns_samples_by_minus_the_shift() -> None:
     assert set(np.round(p.ranges_m[np.isfinite(p.ranges_m)], 3).tolist()) <= {1.0, 2.0}
 
 
+def test_a_turn_skipped_whole_is_no_revolution_of_holes() -> None:
+    # A turn missing from the stream (a host that read too late, a head the emulator skipped):
+    # the next turn's first samples, far away, are corrected up to 6.8° below its 0°, into the
+    # missing turn's end. They must not make that turn a revolution of its last 2 % (it was
+    # handed out, and every later profile matched the truth one turn early).
+    n = 384
+    truth = np.full(n, 4.0, np.float32)
+    data = b"".join(ld.encode_profile_sl(Profile(
+        frame=k, sector=0, start_angle_deg=0.0, step_deg=360.0 / n, ranges_m=truth,
+        device_time_ms=100 * k)) for k in (0, 1, 3, 4))
+    profiles, _ = decode_bytes(data, "ldrobot_ld14")
+    assert [p.frame for p in profiles] == [0, 1, 3, 4]
+    for p in profiles[1:-1]:
+        assert np.isfinite(p.ranges_m).mean() > 0.95
+        assert np.nanmax(np.abs(p.ranges_m - truth)) < 0.002
+
+
 def test_a_profile_round_trips_through_the_ld14_dialect() -> None:
     n = 384
     angle = np.arange(n) * (360.0 / n)

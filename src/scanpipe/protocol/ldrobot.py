@@ -764,8 +764,11 @@ class RevolutionAssembler:
         # A revolution is its grid's beams: it is present when a sample lies within half a
         # grid step of one of them (a turn skipped whole leaves at most a sample just below
         # the next turn's 0°, which is that turn's: no revolution of holes is handed out).
-        present = np.concatenate([np.floor((low_deg + half_deg) / 360.0),
-                                  np.floor((high_deg + half_deg) / 360.0)
+        # With the LD14 correction, the packet's (encoder) angles: the next turn's first
+        # samples land up to 6.8° below its 0°, in the skipped turn, and made it present.
+        enc_low, enc_high = pending.start_deg, pending.start_deg + _SPAN_STEPS * pending.step_deg
+        present = np.concatenate([np.floor((enc_low + half_deg) / 360.0),
+                                  np.floor((enc_high + half_deg) / 360.0)
                                   ]).astype(np.int64)
         present = present[(present >= self._next_rev) & (present <= last_complete)]
         revs = np.unique(present)
