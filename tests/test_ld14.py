@@ -26,6 +26,7 @@ from scanpipe.protocol.registry import (
 )
 from scanpipe.recording.reader import read_recording
 from scanpipe.recording.schemas import RX
+from scanpipe.recording.writer import RecordingWriter
 from scanpipe.rig import load_rig
 from scanpipe.scanner_models import SCANNER_MODELS, limit_problems
 from scanpipe.sim.ldrobot_device import LdrobotHead, cast_beams, ldrobot_model
@@ -142,6 +143,37 @@ def test_the_simulated_ld14_head_decodes_to_the_scene(model: str) -> None:
         rms[correct] = float(np.sqrt(np.mean(np.square(e))))
     assert rms[True] <= 1.1 * m.noise_sigma_m, rms  # within the head's noise
     assert rms[False] > 3 * rms[True], rms  # read as an LD06: sheared
+
+
+@pytest.mark.parametrize(("stored", "given"), [("ld06", "ld14"), ("ld14p", "ld19")])
+def test_run_refuses_a_rig_override_of_the_other_variant(tmp_path: Path, cli: Callable[..., Any],
+                                                         stored: str, given: str) -> None:
+    """``run --rig`` replaces the stored rig for the stages after decode only: decode reads the
+    rig stored in the recording. An LD14 recorded under an LD06 rig (or the reverse) and given
+    the right rig with --rig was decoded with the stored rig's dialect and assembled with the
+    override's scanner: sheared by up to 7°, without a word. Now one line, exit 2."""
+    for name in (stored, given):
+        assert cli("rig", "init", tmp_path / f"{name}.toml", "--scanner", name).code == 0
+    rec, work = tmp_path / "rec.mcap", tmp_path / "work"
+    with RecordingWriter(rec, load_rig(tmp_path / f"{stored}.toml"), {"mode": "test"}) as writer:
+        writer.write_stream("scanner", _turns(lambda a: np.full(a.shape, 2000)), RX,
+                            1_700_000_000_000_000_000)
+    override = tmp_path / f"{given}.toml"
+    result = cli("run", rec, "--workdir", work, "--rig", override, "--to", "decode", "--quiet")
+    assert result.code == 2, result.err
+    errors = [line for line in result.err.splitlines() if line.startswith("scanpipe: error:")]
+    assert len(errors) == 1 and str(override) in errors[0] and "7°" in errors[0], result.err
+    assert "Traceback" not in result.err
+    wanted = load_rig(override).scanner.dialect
+    if wanted == "ldrobot_ld14":  # the advice works: the stream decoded with the correction
+        assert f"--set decode.dialect={wanted}" in errors[0]
+        again = cli("run", rec, "--workdir", work, "--rig", override, "--to", "decode",
+                    "--set", f"decode.dialect={wanted}", "--quiet")
+        assert again.code == 0, again.err
+    # the rig stored, given again, is the same scanner: no refusal
+    same = cli("run", rec, "--workdir", work, "--rig", tmp_path / f"{stored}.toml", "--to",
+               "decode", "--quiet")
+    assert same.code == 0, same.err
 
 
 def test_the_ld14_models_and_their_limits(tmp_path: Path, cli: Callable[..., Any]) -> None:

@@ -453,6 +453,24 @@ def test_real_tim55x_cola_a_with_the_default_device_name(copies: int) -> None:
     assert sick_cola.encode_ascii(t)[1:-1] == telegrams[1]
 
 
+@pytest.mark.parametrize("copies", [1, 12])  # 12: the bulk (one layout at once) path too
+def test_cola_a_empty_string_is_read(copies: int) -> None:
+    """A name block present with length 0 (``1 0``: a device whose name was cleared; the
+    encoder writes an empty name so) holds no token: read as "", the telegram kept (a string
+    read by its characters took the next field's token as the string's end and dropped every
+    such telegram as a length mismatch)."""
+    t = dataclasses.replace(sick_cola.parse_ascii(_tim55x_telegrams()[1]), name="")
+    framed = sick_cola.encode_ascii(t)
+    assert b" 1 0 0 0 0" in framed  # name present, length 0; comment, time, event absent
+    again = sick_cola.parse_ascii(framed[1:-1])
+    assert again.name == "" and again.comment is None and again.time is None
+    assert again.scan_counter == t.scan_counter
+    profiles, counters = decode_bytes(framed * copies, "cola_a")
+    assert counters.frames_decoded == copies and counters.malformed_frames == 0
+    assert counters.length_mismatches == 0 and counters.bytes_skipped == 0
+    assert len(profiles) == copies
+
+
 @pytest.mark.parametrize("dialect", ["cola_b", "cola_a"])
 @pytest.mark.parametrize("copies", [1, 12])  # 12: the bulk path too
 def test_multi_layer_telegrams_are_refused(dialect: str, copies: int) -> None:

@@ -392,6 +392,11 @@ def iter_locked_chain(chain: Sequence[Stage], recording: Path, workdir: Path,
         # The override replaces the recording's rig (decode's), not a rig a later stage
         # derives from it (calibrate's).
         if override_path is not None and "rig" in record.outputs and not rig_made:
+            from scanpipe.rig import load_rig
+            from scanpipe.stages.decode import check_rig_override
+
+            assert rig_override is not None  # decode reads the stored rig: the same scanner?
+            check_rig_override(record.report, load_rig(rig_override), f"--rig {rig_override}")
             available["rig"] = override_path
             tables.pop("rig", None)
             keys.pop("rig", None)  # the override's own key, from its file

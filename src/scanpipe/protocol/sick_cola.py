@@ -737,6 +737,8 @@ def _parse_tokens(tok: _Tokens, lo: int, hi: int) -> ScanTelegram:
         # A string is its length's characters after the length token's separator, spaces
         # included (a device's factory name is "not defined"): as many tokens as it spans.
         nonlocal pos
+        if length == 0:  # "1 0": a string present and empty spans no token
+            return b""
         begin = int(tok.ends[pos - 1]) + 1
         end = begin + length
         stop = pos

@@ -276,8 +276,31 @@ def _model_variant(recording: Recording, rig: Rig, params: DecodeParams) -> Dial
             f"decode.dialect = {params.dialect} decodes without the angle "
             f"correction the rig's scanner needs (scanner.model = {rig.scanner.model or '?'}, "
             f"dialect {name}: up to 7° of error per sample); use decode.dialect = auto or "
-            f"{name}, or pass the rig of the scanner used with --rig"], str(recording.path))
+            f"{name} (the decode stage reads the rig stored in the recording: --rig does not "
+            f"change it)"], str(recording.path))
     return get_dialect(name)
+
+
+def check_rig_override(report: Mapping[str, Any], rig: Rig, source: str) -> None:
+    """Refuse a rig that replaces the recording's for the later stages (``run --rig``) when
+    its scanner needs the stream decoded otherwise than the decode stage did: decode reads the
+    rig stored in the recording, not the override, and an LD14's stream decoded as an LD06's
+    (or an LD06's with the LD14's correction) is sheared by up to 7° without a word."""
+    used, wanted = report.get("dialect"), rig.scanner.dialect
+    if not isinstance(used, str) or used == wanted:
+        return
+    if DETECTED_AS.get(wanted) == used:  # the override names the variant: it can be asked for
+        raise ParameterError([
+            f"its scanner ({rig.scanner.model or 'no model'}, dialect {wanted}) needs the "
+            f"stream decoded as {wanted}, but the decode stage decoded it as {used} from the "
+            f"rig stored in the recording (--rig does not reach decode): up to 7° of angle "
+            f"error per sample; add --set decode.dialect={wanted}"], source)
+    if DETECTED_AS.get(used) == wanted:
+        raise ParameterError([
+            f"its scanner ({rig.scanner.model or 'no model'}, dialect {wanted}) takes no "
+            f"angle correction, but the stream was decoded as {used}, with it (from the rig "
+            f"stored in the recording, or decode.dialect; --rig does not reach decode): up to "
+            f"7° of angle error per sample"], source)
 
 
 @dataclass
