@@ -197,3 +197,38 @@ def test_groups_of_odd_meshes() -> None:
         groups = face_groups(faces, normals, areas, centroids, 16)
         assert np.array_equal(np.sort(groups.members), np.arange(len(faces)))
         assert len(groups.corners) == 3 * len(faces)
+
+
+def test_a_frame_behind_a_face_is_struck_before_any_ray(recording: Recording, mesh) -> None:
+    """A group's frames are scored by its mean normal: a member at a crease may turn its back
+    on one of them, which the ray test does not see on an open surface. The facing test
+    (its corners' mean normal towards the frame's centre) strikes it first."""
+    from scanpipe.stages.texture import _facing
+    from scanpipe.texturing.projective import FaceScores, select_frames_per_face
+
+    vertices, faces, normals_in = mesh
+    frames = choose_frames(recording.frames, recording.motor, recording.rig, 4.0)
+    facing = _facing(vertices, faces.astype(np.int32), normals_in, False, frames)
+    rng = np.random.default_rng(5)
+    face_ids = rng.integers(0, len(faces), 400)
+    frame_ids = rng.integers(0, len(frames), 400)
+    centroids = face_centroids(vertices, faces)
+    slow = np.array([float(np.dot(normals_in[faces[f]].sum(0),
+                                  frames.centre(int(i)) - centroids[f])) > 0
+                     for f, i in zip(face_ids, frame_ids, strict=True)])
+    assert np.array_equal(facing(face_ids, frame_ids), slow)
+    assert 0 < slow.sum() < len(slow)  # both kinds drawn
+    # an open sheet 1 m out that turns its back on the rig (its normal +x, away from the
+    # cameras near the axis): nothing occludes it, only the facing test strikes its frames
+    sheet = np.array([[1.0, 0.5, -0.5], [1.0, 0.5, 0.5], [1.0, 1.5, -0.5], [1.0, 1.5, 0.5]])
+    corners = np.array([[0, 2, 1], [1, 2, 3]])
+    assert (face_normals(sheet, corners)[0][:, 0] > 0).all()
+    frame = np.zeros((2, 1), np.int32)
+    back = _facing(sheet, corners.astype(np.int32), np.tile([1.0, 0.0, 0.0], (4, 1)), False,
+                   frames)
+    checked = select_frames_per_face(FaceScores(frame.copy(), np.ones((2, 1), np.float32)),
+                                     frames, MeshOcclusion(sheet, corners), facing=back)
+    assert checked.frame.tolist() == [-1, -1] and checked.backfacing_candidates == 2
+    unchecked = select_frames_per_face(FaceScores(frame.copy(), np.ones((2, 1), np.float32)),
+                                       frames, MeshOcclusion(sheet, corners))
+    assert unchecked.frame.tolist() == [0, 0]  # the ray test alone keeps the back

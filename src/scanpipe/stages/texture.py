@@ -67,6 +67,7 @@ from scanpipe.texturing.photometric import (
 from scanpipe.texturing.projective import (
     EQUIRECT_SPACING_DEG,
     FaceScores,
+    Facing,
     GroupedScores,
     Scores,
     Selection,
@@ -301,7 +302,39 @@ def _select_alone(alone: NDArray[np.int64], selection: Selection, scores: Groupe
     chosen = selection.frame.copy()
     chosen[alone] = again.frame[alone]
     return (Selection(chosen, selection.occluded_candidates + again.occluded_candidates,
-                      selection.rays_cast + again.rays_cast), merged)
+                      selection.rays_cast + again.rays_cast,
+                      selection.backfacing_candidates + again.backfacing_candidates), merged)
+
+
+def _facing(vertices: NDArray[np.float64], faces: NDArray[np.signedinteger[Any]],
+            vertex_normals: NDArray[np.floating[Any]], flipped: bool, frames: FrameSet,
+            chunk: int = 1 << 20) -> Facing:
+    """Whether a face turns its front to a frame's centre, by the mean of its corners' normals
+    (the surface's side as the mesh stage oriented it; a face's own cross product is range
+    noise on a scan): a group's frames were scored by its mean normal, and a member at a
+    crease (up to 60° off it) may be seen from behind, which the ray test does not strike on
+    an open surface. In pieces of ``chunk`` faces, float32 (a sign is asked)."""
+    centres = np.stack([frames.centre(i) for i in range(len(frames))]).astype(np.float32)
+    points = [np.ascontiguousarray(vertices[:, c], np.float32) for c in range(3)]
+    given = [np.ascontiguousarray(vertex_normals[:, c], np.float32) for c in range(3)]
+    sign = np.float32(-1.0 if flipped else 1.0)
+
+    def facing(face_ids: NDArray[np.integer], frame_ids: NDArray[np.integer]) -> NDArray[np.bool_]:
+        front = np.empty(len(face_ids), dtype=bool)
+        for start in range(0, len(face_ids), chunk):
+            corners = faces[face_ids[start:start + chunk]]
+            centre = centres[frame_ids[start:start + chunk]]
+            dot = np.zeros(len(corners), np.float32)
+            for c in range(3):
+                normal = sum((given[c][corners[:, k]] for k in range(1, 3)),
+                             given[c][corners[:, 0]])
+                centroid = sum((points[c][corners[:, k]] for k in range(1, 3)),
+                               points[c][corners[:, 0]]) / np.float32(3)
+                dot += normal * (centre[:, c] - centroid)
+            front[start:start + chunk] = sign * dot > 0
+        return front
+
+    return facing
 
 
 class PhaseClock:
@@ -429,8 +462,11 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     scores: Scores = kept if per_face else GroupedScores(kept, group_of)
     del group_of
     del kept
-    selection = select_frames_per_face(scores, frames, occlusion, progress)
-    del candidates
+    facing = None
+    if isinstance(scores, GroupedScores) and not two_sided and vertex_normals is not None:
+        facing = _facing(vertices, faces, vertex_normals, flipped, frames)
+    selection = select_frames_per_face(scores, frames, occlusion, progress, facing=facing)
+    del candidates, facing
     # faces of a group hidden (in part) in every frame kept for it: scored and tested alone,
     # as the per-face path does (a half-hidden group's hidden half from another frame)
     alone_faces = np.zeros(0, np.int64)
@@ -449,6 +485,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
     labels = smoothing.labels
     # the ray test's choice (ICM's copy is the labels): only its count is reported
     occluded_candidates = selection.occluded_candidates
+    backfacing_candidates = selection.backfacing_candidates
     del scores, selection
     clock.lap("icm")
     # the atlas's regions read only the frame choice: found on a second thread while the
@@ -504,6 +541,7 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
         "frames_considered": len(frames),
         "frames_used": len(used),
         "occluded_candidates": occluded_candidates,
+        "backfacing_candidates": backfacing_candidates,
         "rays_cast": rays_cast,
         "regions": atlas.regions,
         "pages": len(atlas.pages),
@@ -531,7 +569,8 @@ def texture_stage(inputs: Mapping[str, Any], params: TextureParams, progress: Pr
 
 STAGE = Stage(
     name="texture",
-    version=4,  # 4: frames scored per face group (a face may take another frame); 3: occlusion
+    version=5,  # 5: a grouped face's frame it turns its back on is struck; 4: frames scored
+    # per face group (a face may take another frame); 3: occlusion
     # tested at exact shared corners and edge middles: no cached texture of 3 is reused
     params=TextureParams,
     inputs=("mesh_vertices", "mesh_faces", "frames", "motor", "rig"),

@@ -795,16 +795,25 @@ class Selection:
     frame: NDArray[np.int64]
     occluded_candidates: int
     rays_cast: int
+    #: Candidates struck because the face itself turns its back on the frame (``facing``).
+    backfacing_candidates: int = 0
+
+
+#: Whether each face of the first array turns its front to the centre of the frame of the second.
+Facing = Callable[[NDArray[np.integer], NDArray[np.integer]], NDArray[np.bool_]]
 
 
 def select_frames_per_face(scores: Scores, frames: FrameSet, occlusion: MeshOcclusion,
                            progress: ProgressFn = no_progress,
-                           faces: NDArray[np.integer] | None = None) -> Selection:
+                           faces: NDArray[np.integer] | None = None,
+                           facing: Facing | None = None) -> Selection:
     """Each face's best frame in which it is wholly visible (see module docstring), from its
     kept frames (best first, −1 = none or struck out); only of the faces ``faces`` when given
-    (the others −1).
+    (the others −1). With ``facing``, a candidate the face turns its back on is struck before
+    any ray is cast (a group's frames were scored by the group's mean normal: a member at a
+    crease may face away from one of them).
 
-    ``scores`` is modified: occluded candidates are struck out.
+    ``scores`` is modified: occluded (and back-facing) candidates are struck out.
     """
     n_faces, k = scores.faces, scores.keep
     chosen = np.full(n_faces, -1, dtype=np.int64)
@@ -814,7 +823,7 @@ def select_frames_per_face(scores: Scores, frames: FrameSet, occlusion: MeshOccl
     has = scores.has_candidates()
     pending = (np.flatnonzero(has) if faces is None
                else np.sort(np.asarray(faces, np.int64)[has[faces]]))
-    occluded = 0
+    occluded = backfacing = 0
     rays_before = occlusion.rays_cast
     for slot in range(k):
         if len(pending) == 0:
@@ -822,14 +831,21 @@ def select_frames_per_face(scores: Scores, frames: FrameSet, occlusion: MeshOccl
         best = scores.slot(pending, slot)
         struck = best < 0  # none left, or an outlier: try the next
         waiting, pending, best = pending[struck], pending[~struck], best[~struck]
-        visible = occlusion.faces_visible_from(centres, best, pending)
+        if facing is None:
+            visible = occlusion.faces_visible_from(centres, best, pending)
+        else:
+            front = facing(pending, best)
+            backfacing += int(len(front) - np.count_nonzero(front))
+            visible = np.zeros(len(pending), dtype=bool)
+            visible[front] = occlusion.faces_visible_from(centres, best[front], pending[front])
         chosen[pending[visible]] = best[visible]
         blocked = ~visible
         scores.strike_slot(pending[blocked], slot)
         occluded += int(blocked.sum())
         pending = np.sort(np.concatenate([pending[blocked], waiting]))
         progress("visibility", slot + 1, k)
-    return Selection(chosen, occluded, occlusion.rays_cast - rays_before)
+    return Selection(chosen, occluded - backfacing, occlusion.rays_cast - rays_before,
+                     backfacing)
 
 
 def _turned_360_frames(cameras: list[CameraConfig], beta_deg: F64) -> dict[int, tuple[int, float]]:
