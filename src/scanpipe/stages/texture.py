@@ -313,24 +313,20 @@ def _facing(vertices: NDArray[np.float64], faces: NDArray[np.signedinteger[Any]]
     (the surface's side as the mesh stage oriented it; a face's own cross product is range
     noise on a scan): a group's frames were scored by its mean normal, and a member at a
     crease (up to 60° off it) may be seen from behind, which the ray test does not strike on
-    an open surface. In pieces of ``chunk`` faces, float32 (a sign is asked)."""
-    centres = np.stack([frames.centre(i) for i in range(len(frames))]).astype(np.float32)
-    points = [np.ascontiguousarray(vertices[:, c], np.float32) for c in range(3)]
+    an open surface. In pieces of ``chunk`` faces (a sign is asked: float32 normals)."""
+    centres = np.stack([frames.centre(i) for i in range(len(frames))])
     given = [np.ascontiguousarray(vertex_normals[:, c], np.float32) for c in range(3)]
-    sign = np.float32(-1.0 if flipped else 1.0)
+    sign = -1.0 if flipped else 1.0
 
     def facing(face_ids: NDArray[np.integer], frame_ids: NDArray[np.integer]) -> NDArray[np.bool_]:
         front = np.empty(len(face_ids), dtype=bool)
         for start in range(0, len(face_ids), chunk):
             corners = faces[face_ids[start:start + chunk]]
-            centre = centres[frame_ids[start:start + chunk]]
-            dot = np.zeros(len(corners), np.float32)
+            to_frame = centres[frame_ids[start:start + chunk]] - face_centroids(vertices, corners)
+            dot = np.zeros(len(corners))
             for c in range(3):
-                normal = sum((given[c][corners[:, k]] for k in range(1, 3)),
-                             given[c][corners[:, 0]])
-                centroid = sum((points[c][corners[:, k]] for k in range(1, 3)),
-                               points[c][corners[:, 0]]) / np.float32(3)
-                dot += normal * (centre[:, c] - centroid)
+                normal = given[c][corners[:, 0]] + given[c][corners[:, 1]] + given[c][corners[:, 2]]
+                dot += normal * to_frame[:, c]
             front[start:start + chunk] = sign * dot > 0
         return front
 
